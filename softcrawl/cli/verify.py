@@ -1,0 +1,1 @@
+"""``softcrawl verify``: placeholder wired below once the checks exist."""

@@ -1,0 +1,222 @@
+"""Frictional contact with the floor and bilateral constraints, solved in impulse space.
+
+After the free (unconstrained) implicit step gives velocities ``v_f``, constraint impulses
+``lam`` correct them: ``v = v_f + A^-1 H^T lam``. With the Delassus operator
+``W = H A^-1 H^T`` (impulse -> velocity; ``dt * W`` maps forces to positions as in
+physics.md) the constraint velocities are ``u = W lam + H v_f``.
+
+- Bilateral attachments (3 rows each) require ``u + (x_a - x_b)/dt = 0`` (zero velocity
+  error plus full drift correction). They are eliminated exactly with a Schur complement.
+- Floor contacts (rows: normal, tangent 1, tangent 2) obey Signorini at the end of the
+  step, ``g + dt u_n >= 0  _|_  lam_n >= 0`` (so the new gap is non-negative), and
+  Coulomb's law ``|lam_t| <= mu lam_n`` with ``u_t = 0`` inside the cone (stick) and
+  ``u_t`` opposite to ``lam_t`` on its boundary (slip, maximal dissipation).
+
+The contact problem is solved by projected block Gauss-Seidel on the condensed ``W``
+(Jean 1999, "The non-smooth contact dynamics method"; Duriez et al. 2006, as used by
+SOFA's GenericConstraintSolver), then *polished*: the stick/slip/separation pattern that
+Gauss-Seidel found is taken as the active set and the resulting equalities are solved
+directly; the polished impulses are kept when they satisfy every condition of the
+problem (which makes sticking contacts stick to round-off, where Gauss-Seidel alone
+converges slowly on the ill-conditioned ``W`` of stiff bodies).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+from numba import njit
+
+
+@njit(cache=True)
+def pgs_coulomb(W, q, mu, lam, tol, max_iter):
+    """Projected Gauss-Seidel for frictional contact blocks.
+
+    Solves ``u = W lam + q`` with, per block ``i`` (rows 3i: normal, 3i+1, 3i+2: tangents),
+    ``u_n >= 0 _|_ lam_n >= 0`` and the Coulomb cone ``|lam_t| <= mu_i lam_n`` (stick
+    ``u_t = 0`` inside; on the boundary ``u_t`` antiparallel to ``lam_t``).
+
+    Args:
+        W: ``(3k, 3k)`` Delassus operator (symmetric positive semi-definite).
+        q: ``(3k,)`` constraint velocities at zero impulse, incl. gap terms.
+        mu: ``(k,)`` friction coefficients.
+        lam: ``(3k,)`` initial impulses (warm start); updated in place.
+        tol: stop when the largest impulse change in a sweep is <= tol * max |lam|.
+        max_iter: sweep limit.
+
+    Returns:
+        ``(sweeps, relative_change)`` of the last sweep.
+    """
+    k = mu.shape[0]
+    rel = 0.0
+    for it in range(max_iter):
+        dmax = 0.0
+        lmax = 1e-300
+        for i in range(k):
+            r = 3 * i
+            un = q[r]
+            for j in range(3 * k):
+                un += W[r, j] * lam[j]
+            ln_old = lam[r]
+            ln = ln_old - un / W[r, r]
+            if ln < 0.0:
+                ln = 0.0
+            lam[r] = ln
+            dn = ln - ln_old
+            u1 = q[r + 1]  # tangential velocities with the updated normal impulse
+            u2 = q[r + 2]
+            for j in range(3 * k):
+                u1 += W[r + 1, j] * lam[j]
+                u2 += W[r + 2, j] * lam[j]
+            wt = 0.5 * (W[r + 1, r + 1] + W[r + 2, r + 2])
+            t1_old = lam[r + 1]
+            t2_old = lam[r + 2]
+            t1 = t1_old - u1 / wt
+            t2 = t2_old - u2 / wt
+            nt = np.sqrt(t1 * t1 + t2 * t2)
+            lim = mu[i] * ln
+            if nt > lim:
+                s = lim / nt
+                t1 *= s
+                t2 *= s
+            lam[r + 1] = t1
+            lam[r + 2] = t2
+            d = max(abs(dn), abs(t1 - t1_old), abs(t2 - t2_old))
+            if d > dmax:
+                dmax = d
+            m = max(ln, np.sqrt(t1 * t1 + t2 * t2))
+            if m > lmax:
+                lmax = m
+        rel = dmax / lmax
+        if rel <= tol:
+            return it + 1, rel
+    return max_iter, rel
+
+
+def polish_active_set(W, q, mu, lam, max_rounds=12, rtol=1e-9):
+    """Solve the contact problem exactly by a primal-dual active-set iteration from ``lam``.
+
+    Each contact is separated (``lam = 0``), sticking (``u = 0`` on its three rows) or
+    slipping (``u_n = 0``, ``lam_t = mu lam_n d``, with the friction direction ``d`` taken
+    from ``lam``; the check demands ``u_t . d <= 0``). Starting from the pattern of ``lam``,
+    the equalities are solved directly and the pattern is updated from the violated
+    conditions (penetration -> stick, pulling -> separate, outside the cone -> slip, slip
+    along the force -> stick) until it is consistent.
+
+    Args:
+        W, q, mu: as in :func:`pgs_coulomb`.
+        lam: ``(3k,)`` approximate solution (e.g. from Gauss-Seidel).
+        max_rounds: active-set updates to try.
+        rtol: relative tolerance of the validity checks.
+
+    Returns:
+        ``(3k,)`` exact impulses, or None if no consistent active set was found.
+    """
+    k = len(mu)
+    L = lam.reshape(k, 3)
+    lt = np.hypot(L[:, 1], L[:, 2])
+    SEP, STICK, SLIP = 0, 1, 2
+    mode = np.where(L[:, 0] > 0, np.where(lt >= mu * L[:, 0] * (1 - 1e-6), SLIP, STICK), SEP)
+    d = L[:, 1:] / np.maximum(lt, 1e-300)[:, None]
+    vscale = max(np.abs(q).max(), 1e-300)
+    for _ in range(max_rounds):
+        stick, slip = np.flatnonzero(mode == STICK), np.flatnonzero(mode == SLIP)
+        n_unknown = 3 * len(stick) + len(slip)
+        P = np.zeros((3 * k, n_unknown))
+        for a, c in enumerate(stick):
+            P[3 * c : 3 * c + 3, 3 * a : 3 * a + 3] = np.eye(3)
+        for a, c in enumerate(slip, start=3 * len(stick)):
+            P[3 * c, a] = 1.0
+            P[3 * c + 1 : 3 * c + 3, a] = mu[c] * d[c]
+        rows = np.concatenate([(3 * stick[:, None] + np.arange(3)).ravel(), 3 * slip]).astype(np.int64)
+        try:
+            z = np.linalg.solve(W[rows] @ P, -q[rows]) if n_unknown else np.zeros(0)
+        except np.linalg.LinAlgError:
+            return None
+        new = P @ z
+        N = new.reshape(k, 3)
+        u = (W @ new + q).reshape(k, 3)
+        ltn = np.hypot(N[:, 1], N[:, 2])
+        ftol = rtol * max(np.abs(N).max(), 1e-300)
+        vtol = rtol * vscale
+        along = np.einsum("ij,ij->i", u[:, 1:], d)  # slip velocity along the friction force
+        nxt = mode.copy()
+        nxt[(mode == SEP) & (u[:, 0] < -vtol)] = STICK
+        nxt[(mode != SEP) & (N[:, 0] < -ftol)] = SEP
+        out = (mode == STICK) & (ltn > mu * N[:, 0] + ftol)
+        nxt[out] = SLIP
+        d[out] = N[out, 1:] / ltn[out, None]
+        nxt[(mode == SLIP) & (along > vtol)] = STICK
+        if np.array_equal(nxt, mode):
+            return new
+        mode = nxt
+    return None
+
+
+@dataclass(frozen=True)
+class ConstraintSolution:
+    """Impulses of one constraint solve.
+
+    Attributes:
+        bilateral: ``(3b,)`` attachment impulses, mN s.
+        contact: ``(k, 3)`` contact impulses (normal, tangent 1, tangent 2), mN s.
+        sweeps: Gauss-Seidel sweeps used.
+        relative_change: last sweep's relative impulse change.
+        polished: whether the exact active-set solution was accepted.
+    """
+
+    bilateral: np.ndarray
+    contact: np.ndarray
+    sweeps: int
+    relative_change: float
+    polished: bool = False
+
+
+def solve_constraints(
+    W: np.ndarray,
+    q: np.ndarray,
+    n_bilateral_rows: int,
+    mu: np.ndarray,
+    warm_start: np.ndarray,
+    tol: float,
+    max_iter: int,
+) -> ConstraintSolution:
+    """Solve bilateral rows exactly and contact blocks by projected Gauss-Seidel.
+
+    Args:
+        W: ``(r, r)`` Delassus operator; the first ``n_bilateral_rows`` rows are bilateral.
+        q: ``(r,)`` constraint velocities at zero impulse including stabilisation terms
+            (bilateral rows must reach ``u = 0``; contact rows as in :func:`pgs_coulomb`).
+        n_bilateral_rows: number of bilateral rows (multiple of 3).
+        mu: ``(k,)`` friction coefficients of the contacts.
+        warm_start: ``(k, 3)`` initial contact impulses.
+        tol, max_iter: Gauss-Seidel stopping rule.
+    """
+    nb = n_bilateral_rows
+    B, C = slice(0, nb), slice(nb, None)
+    k = len(mu)
+    if nb:
+        try:
+            fac = sla.cho_factor(W[B, B])
+            Wbb_inv = lambda rhs: sla.cho_solve(fac, rhs)  # noqa: E731
+        except np.linalg.LinAlgError:  # redundant attachments: least-squares impulses
+            pinv = np.linalg.pinv(W[B, B])
+            Wbb_inv = lambda rhs: pinv @ rhs  # noqa: E731
+        X = Wbb_inv(np.column_stack([q[B], W[B, C]]))
+        Wc = W[C, C] - W[C, B] @ X[:, 1:]
+        qc = q[C] - W[C, B] @ X[:, 0]
+    else:
+        Wc, qc = W[C, C], q[C]
+    lam_c = np.ascontiguousarray(warm_start, dtype=np.float64).reshape(-1).copy()
+    sweeps, rel, polished = 0, 0.0, False
+    if k:
+        Wc, qc = np.ascontiguousarray(Wc), np.ascontiguousarray(qc)
+        sweeps, rel = pgs_coulomb(Wc, qc, mu, lam_c, tol, max_iter)
+        if rel > tol:
+            exact = polish_active_set(Wc, qc, mu, lam_c)
+            if exact is not None:
+                lam_c, polished = exact, True
+    lam_b = -(X[:, 0] + X[:, 1:] @ lam_c) if nb else np.zeros(0)
+    return ConstraintSolution(lam_b, lam_c.reshape(k, 3), int(sweeps), float(rel), polished)

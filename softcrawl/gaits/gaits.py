@@ -1,0 +1,178 @@
+"""Open-loop gaits for the 3 pressure regulators, in REAL kPa (paper Sec. "Gaits"; ``codesign.md``).
+
+A gait is anything with ``pressure_at(t) -> (3,)`` (the :class:`Gait` protocol): the
+commanded real pressures of regulators 1, 2, 3 at time ``t`` seconds. Column ``k - 1``
+of every pressure array is regulator ``k``. Convert to sim pressures with
+:class:`softcrawl.robot.actuation.PressureCalibration`.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from softcrawl.robot.actuation import P_MAX_KPA, P_MIN_KPA, PressureRangeError, check_pressures
+
+N_REGULATORS = 3
+CSV_HEADER = ("p1", "p2", "p3")
+
+
+@runtime_checkable
+class Gait(Protocol):
+    """An open-loop gait: commanded real pressures ``(3,)`` kPa at time ``t`` s."""
+
+    def pressure_at(self, t: float) -> np.ndarray: ...
+
+
+@dataclass(frozen=True, eq=False)
+class ActionSequence:
+    """Piecewise-constant gait: action ``i`` is held during ``[i * hold, (i + 1) * hold)``.
+
+    Attributes:
+        actions: ``(k, 3)`` float64 real kPa, ``k >= 1``, finite, within [0, 90] kPa
+            (stored as a read-only copy).
+        hold: seconds per action, > 0 (default 1.0).
+
+    Raises:
+        ValueError: on a bad shape or non-positive ``hold``.
+        PressureRangeError: naming the row/column of a non-finite or out-of-range pressure.
+    """
+
+    actions: np.ndarray
+    hold: float = 1.0
+
+    def __post_init__(self) -> None:
+        a = np.array(self.actions, dtype=float)  # copy
+        if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] != N_REGULATORS:
+            raise ValueError(f"actions must have shape (k, {N_REGULATORS}) with k >= 1, got {a.shape}")
+        check_pressures(a, "action")
+        if not (math.isfinite(self.hold) and self.hold > 0):
+            raise ValueError(f"hold must be finite and > 0 s, got {self.hold}")
+        a.setflags(write=False)
+        object.__setattr__(self, "actions", a)
+        object.__setattr__(self, "hold", float(self.hold))
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+    @property
+    def duration(self) -> float:
+        """Total duration ``k * hold`` in seconds."""
+        return len(self.actions) * self.hold
+
+    def pressure_at(self, t: float) -> np.ndarray:
+        """Commanded ``(3,)`` real kPa at ``t`` s: the current action; before 0 the first,
+        after the end the last."""
+        i = min(max(int(math.floor(t / self.hold)), 0), len(self.actions) - 1)
+        return self.actions[i].copy()
+
+
+def read_actions_csv(path: str | Path, hold: float = 1.0) -> ActionSequence:
+    """Read an action sequence: one row ``p1,p2,p3`` (real kPa) per action, optional header
+    line ``p1,p2,p3``; blank lines are skipped.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        ValueError: if the file cannot be read / decoded, a row does not have 3 numbers
+            (message names the line number), or it has no actions.
+        PressureRangeError: for out-of-range pressures (row = action index).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read action CSV: {exc}") from exc
+    rows: list[list[float]] = []
+    for lineno, row in enumerate(csv.reader(text.splitlines()), start=1):
+        cells = [c.strip() for c in row]
+        if not any(cells):
+            continue
+        if not rows and tuple(c.lower() for c in cells) == CSV_HEADER:
+            continue
+        if len(cells) != N_REGULATORS:
+            raise ValueError(f"{path}, line {lineno}: expected {N_REGULATORS} columns, got {len(cells)}: {row!r}")
+        try:
+            rows.append([float(c) for c in cells])
+        except ValueError:
+            raise ValueError(f"{path}, line {lineno}: non-numeric pressure in {row!r}") from None
+    if not rows:
+        raise ValueError(f"{path}: no actions found")
+    return ActionSequence(np.array(rows), hold=hold)
+
+
+def write_actions_csv(seq: ActionSequence, path: str | Path) -> None:
+    """Write ``seq.actions`` as CSV with header ``p1,p2,p3`` (full float precision; ``hold``
+    is not stored)."""
+    with Path(path).open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(CSV_HEADER)
+        w.writerows([repr(float(p)) for p in row] for row in seq.actions)
+
+
+@dataclass(frozen=True)
+class SineGait:
+    """The expert baseline gait (paper Sec. "Baseline"): raised-cosine pressure waves.
+
+    Front regulator 1: ``p(t) = offset - amplitude * cos(2 pi t / period)``; rear regulator 2
+    lags it by ``phase_deg``: ``p2(t) = p(t - phase_deg / 360 * period)``; regulator 3 stays 0.
+    Defaults give ``p(t) = 45 - 45 cos(2 pi t / 4)``: 0 kPa at t = 0, 90 kPa peak at t = T/2.
+
+    Attributes:
+        period: T, seconds (> 0).
+        amplitude, offset: kPa; ``offset +/- amplitude`` must lie in [0, 90] kPa.
+        phase_deg: lag of regulator 2 behind regulator 1, degrees.
+
+    Raises:
+        ValueError: for a non-positive period or non-finite parameters.
+        PressureRangeError: if the wave leaves [0, 90] kPa.
+    """
+
+    period: float = 4.0
+    amplitude: float = 45.0
+    offset: float = 45.0
+    phase_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not all(math.isfinite(v) for v in (self.period, self.amplitude, self.offset, self.phase_deg)):
+            raise ValueError(f"SineGait parameters must be finite: {self}")
+        if self.period <= 0:
+            raise ValueError(f"period must be > 0 s, got {self.period}")
+        lo, hi = self.offset - abs(self.amplitude), self.offset + abs(self.amplitude)
+        if lo < P_MIN_KPA or hi > P_MAX_KPA:
+            raise PressureRangeError(
+                f"sine gait spans [{lo:g}, {hi:g}] kPa, outside [{P_MIN_KPA:g}, {P_MAX_KPA:g}] kPa"
+            )
+
+    def _wave(self, t: float) -> float:
+        return self.offset - self.amplitude * math.cos(2.0 * math.pi * t / self.period)
+
+    def pressure_at(self, t: float) -> np.ndarray:
+        """Commanded ``(3,)`` real kPa ``[p(t), p(t - lag), 0]`` at ``t`` seconds."""
+        lag = self.phase_deg / 360.0 * self.period
+        # clip guards the +/- 1 ulp overshoot of the cosine at the range ends
+        return np.clip([self._wave(t), self._wave(t - lag), 0.0], P_MIN_KPA, P_MAX_KPA)
+
+
+def paper_best_gait(n_cycles: int | None = None, n_actions: int = 20, high_kpa: float = P_MAX_KPA) -> ActionSequence:
+    """The paper's learned gait for ``PAPER_BEST_DESIGN`` (1,0,0,2,2,0,0,0), hold 1 s.
+
+    A 3-action (3 s) cycle: rear regulator 2 at ``high_kpa`` (90 kPa), then front regulator 1
+    at ``high_kpa``, then both at 0; repeated and truncated to ``n_actions`` actions (default 20,
+    paper Sec. "Results"), or exactly ``3 * n_cycles`` actions if ``n_cycles`` is given.
+
+    Returns:
+        ActionSequence with ``(n, 3)`` real-kPa actions.
+    """
+    cycle = np.array([[0.0, high_kpa, 0.0], [high_kpa, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    n = 3 * int(n_cycles) if n_cycles is not None else int(n_actions)
+    if n < 1:
+        raise ValueError(f"need at least one action, got {n}")
+    return ActionSequence(np.resize(cycle, (n, N_REGULATORS)), hold=1.0)
+
