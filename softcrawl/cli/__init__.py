@@ -10,7 +10,7 @@ import sys
 from softcrawl import __version__
 
 #: Subcommand modules, in the order they appear in ``softcrawl --help``.
-SUBCOMMANDS = ("softcrawl.cli.verify", "softcrawl.cli.designs")
+SUBCOMMANDS = ("softcrawl.cli.verify", "softcrawl.cli.designs", "softcrawl.cli.simulate")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,14 +16,15 @@ Bodies are coupled only through constraints, so each body's matrix is factorized
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from softcrawl.fem.body import Body
+from softcrawl.fem.constraints import Block, NodalCompliance, Term, assemble, velocity_correction
 from softcrawl.fem.contact import solve_constraints
-from softcrawl.fem.linalg import LaggedSolver
+from softcrawl.fem.linalg import Factorization
 from softcrawl.fem.model import Model, PointRef
 from softcrawl.fem.state import Control, State
 
@@ -49,10 +50,6 @@ class SolverSettings:
         dt: time step, s (> 0; physics.md: 0.01).
         newton_iterations: 1 = linearly implicit Euler (the reference); more = Newton
             iterations on backward Euler.
-        refactor_every: reuse a body's factorization for up to this many linear solves,
-            solving exactly with factorization-preconditioned CG in between (1 = always
-            refactorize). The Delassus operator uses the current factorization.
-        cg_rtol: CG relative residual tolerance.
         contact_tolerance: Gauss-Seidel relative impulse change to stop at (physics.md: 1e-8).
         contact_max_iterations: Gauss-Seidel sweep limit (physics.md: 250).
         max_speed: any node faster than this (mm/s) means divergence.
@@ -63,8 +60,6 @@ class SolverSettings:
 
     dt: float = 0.01
     newton_iterations: int = 1
-    refactor_every: int = 1
-    cg_rtol: float = 1e-10
     contact_tolerance: float = 1e-8
     contact_max_iterations: int = 250
     max_speed: float = 1e5
@@ -72,8 +67,8 @@ class SolverSettings:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"time step dt must be positive, got {self.dt!r} s")
-        if self.newton_iterations < 1 or self.refactor_every < 1 or self.contact_max_iterations < 1:
-            raise ValueError("newton_iterations, refactor_every and contact_max_iterations must be >= 1")
+        if self.newton_iterations < 1 or self.contact_max_iterations < 1:
+            raise ValueError("newton_iterations and contact_max_iterations must be >= 1")
 
 
 @dataclass
@@ -86,17 +81,6 @@ class StepStats:
     contact_change: float = 0.0
     normal_force: float = 0.0  # total floor normal force, mN
     factorizations: int = 0
-    cg_iterations: int = 0
-    extra: dict = field(default_factory=dict)
-
-
-@dataclass(frozen=True, eq=False)
-class _Row:
-    """A 3-row constraint block acting on one body: rows = frame @ sum_a w_a v[node_a]."""
-
-    body: int
-    nodes: np.ndarray
-    weights: np.ndarray
 
 
 _FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # normal, t1, t2
@@ -109,23 +93,19 @@ class ImplicitEulerSolver:
         model: the static model.
         settings: integration and contact settings.
 
-    The solver keeps per-body factorizations between steps (a cache; results do not
-    depend on it beyond solver tolerances) and the statistics of the last step in
-    :attr:`stats`.
+    The statistics of the last step are in :attr:`stats`.
     """
 
     def __init__(self, model: Model, settings: SolverSettings = SolverSettings()):
         self.model, self.settings = model, settings
-        self._linear = [
-            LaggedSolver(settings.refactor_every, settings.cg_rtol) for _ in model.bodies
-        ]
+        self._factor: list[Factorization | None] = [None] * len(model.bodies)  # of the current step
         self._mass3 = [np.repeat(b.nodal_mass, 3) for b in model.bodies]
         self._collision = np.concatenate(
             [self.model.node_offsets[i] + b.collision_nodes[b.fixed[b.collision_nodes].sum(1) == 0]
              for i, b in enumerate(model.bodies)]
         )
-        self._attach_rows = [
-            (_Row(a.a.body, a.a.nodes, a.a.weights), _Row(a.b.body, a.b.nodes, -a.b.weights))
+        self._attach_blocks = [
+            Block(np.eye(3), (Term(a.a.body, a.a.nodes, a.a.weights), Term(a.b.body, a.b.nodes, -a.b.weights)))
             for a in model.attachments
         ]
         self.stats = StepStats()
@@ -165,7 +145,9 @@ class ImplicitEulerSolver:
         for it in range(self.settings.newton_iterations):
             xk = x if it == 0 else x + h * vk
             A, rhs = self._system(i, body, xk, vk, v, control, t, linearised=(it == 0))
-            vk = vk + self._linear[i].solve(A, rhs).reshape(-1, 3)
+            self._factor[i] = Factorization(A)
+            self.stats.factorizations += 1
+            vk = vk + self._factor[i].solve(rhs).reshape(-1, 3)
         return vk
 
     # -- constraints ---------------------------------------------------------------------
@@ -181,70 +163,64 @@ class ImplicitEulerSolver:
         return c[near], gap[near]
 
     def _constrain(self, state: State, v_free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Velocity corrections from attachments and floor contacts."""
+        """Velocity corrections from attachments and floor contacts.
+
+        The contact set grows from the candidates whose free motion penetrates (plus last
+        step's loaded contacts) until no other candidate ends below the floor; candidates
+        left out have zero impulse and a non-negative gap, so the result solves the whole
+        problem.
+        """
         m, h = self.model, self.settings.dt
-        nodes, gaps = self._contact_rows(state.x, v_free)
-        blocks: list[tuple[_Row, ...]] = list(self._attach_rows)
-        frames = [np.eye(3)] * len(blocks) + [_FLOOR_FRAME] * len(nodes)
+        near, gaps = self._contact_rows(state.x, v_free)
         offsets = m.node_offsets
-        for g in nodes:
-            b = int(np.searchsorted(offsets, g, side="right") - 1)
-            blocks.append((_Row(b, np.array([g - offsets[b]]), np.ones(1)),))
-        n_rows = 3 * len(blocks)
-        if n_rows == 0:
-            return np.zeros_like(v_free), nodes, np.zeros((0, 3))
-        # Per-body H (rows x 3n_b) and Y = A^-1 H^T.
-        per_body: dict[int, list[tuple[int, _Row, np.ndarray]]] = {}
-        for j, (blk, fr) in enumerate(zip(blocks, frames)):
-            for row in blk:
-                per_body.setdefault(row.body, []).append((j, row, fr))
-        W = np.zeros((n_rows, n_rows))
-        q = np.zeros(n_rows)
-        H_list = {}
-        for b, items in per_body.items():
-            body = m.bodies[b]
-            rows, cols, vals = [], [], []
-            for j, row, fr in items:
-                for r in range(3):
-                    for node, w in zip(row.nodes, row.weights):
-                        rows.extend([3 * j + r] * 3)
-                        cols.extend(3 * node + np.arange(3))
-                        vals.extend(w * fr[r])
-            H = sp.csr_matrix((vals, (rows, cols)), shape=(n_rows, 3 * body.n_nodes))
-            H = H @ sp.diags(body.free_dofs.astype(float))
-            used = np.unique(H.nonzero()[0])
-            Hu = H[used]
-            Y = self._linear[b].factor.solve(Hu.T.toarray())
-            W[np.ix_(used, used)] += Hu @ Y
-            q += H @ v_free[m.body_slice(b)].ravel()
-            H_list[b] = (used, Y)
-        nb = 3 * len(self._attach_rows)
-        for j, (ra, rb) in enumerate(self._attach_rows):  # drift correction: u = -(x_a - x_b)/h
-            pa = m.point_position(state.x, PointRef(ra.body, ra.nodes, ra.weights))
-            pb = m.point_position(state.x, PointRef(rb.body, rb.nodes, -rb.weights))
-            q[3 * j : 3 * j + 3] += (pa - pb) / h
-        q[nb::3] += gaps / h  # Signorini: gap + h u_n >= 0
-        mu = np.full(len(nodes), m.floor.friction if m.floor else 0.0)
-        warm = np.zeros((len(nodes), 3))
-        if len(state.contact_nodes) and len(nodes):
-            idx = np.searchsorted(state.contact_nodes, nodes)
-            idx = np.minimum(idx, len(state.contact_nodes) - 1)
-            hit = state.contact_nodes[idx] == nodes
-            warm[hit] = state.contact_impulses[idx[hit]]
-        sol = solve_constraints(W, q, nb, mu, warm, self.settings.contact_tolerance,
-                                self.settings.contact_max_iterations)
-        lam = np.concatenate([sol.bilateral, sol.contact.ravel()])
-        dv = np.zeros_like(v_free)
-        for b, (used, Y) in H_list.items():
-            dv[m.body_slice(b)] += (Y @ lam[used]).reshape(-1, 3)
+        near_body = np.searchsorted(offsets, near, side="right") - 1
+        loaded = state.contact_nodes[state.contact_impulses[:, 0] > 0] if len(state.contact_nodes) else near[:0]
+        active = (gaps + h * v_free[near, 2] < 0) | np.isin(near, loaded)
+        comp = {b: NodalCompliance(self._factor[b], m.bodies[b].free_dofs) for b in range(len(m.bodies))}
+        vel = {b: v_free[m.body_slice(b)] for b in range(len(m.bodies))}
+        nb = 3 * len(self._attach_blocks)
+        drift = np.concatenate([
+            m.point_position(state.x, PointRef(blk.terms[0].body, blk.terms[0].nodes, blk.terms[0].weights))
+            - m.point_position(state.x, PointRef(blk.terms[1].body, blk.terms[1].nodes, -blk.terms[1].weights))
+            for blk in self._attach_blocks
+        ]) if nb else np.zeros(0)
+        mu = m.floor.friction if m.floor else 0.0
+        while True:
+            idx = np.flatnonzero(active)
+            blocks = self._attach_blocks + [
+                Block(_FLOOR_FRAME, (Term(int(near_body[i]), np.array([near[i] - offsets[near_body[i]]]), np.ones(1)),))
+                for i in idx
+            ]
+            if not blocks:
+                return np.zeros_like(v_free), near[:0], np.zeros((0, 3))
+            W, q, T = assemble(blocks, comp, vel)
+            q[:nb] += drift / h  # attachments: u = -(x_a - x_b)/h
+            q[nb::3] += gaps[idx] / h  # Signorini: gap + h u_n >= 0
+            warm = np.zeros((len(idx), 3))
+            if len(state.contact_nodes) and len(idx):
+                pos = np.minimum(np.searchsorted(state.contact_nodes, near[idx]), len(state.contact_nodes) - 1)
+                hit = state.contact_nodes[pos] == near[idx]
+                warm[hit] = state.contact_impulses[pos[hit]]
+            sol = solve_constraints(W, q, nb, np.full(len(idx), mu), warm,
+                                    self.settings.contact_tolerance, self.settings.contact_max_iterations)
+            lam = np.concatenate([sol.bilateral, sol.contact.ravel()])
+            dv = np.zeros_like(v_free)
+            for b, d in velocity_correction(lam, T, comp).items():
+                dv[m.body_slice(b)] = d
+            new_gap = gaps + h * (v_free[near, 2] + dv[near, 2])
+            missed = ~active & (new_gap < -1e-9 * max(1.0, float(np.abs(gaps).max(initial=0.0))))
+            if not missed.any():
+                break
+            active |= missed
         u = W @ lam + q
         tang = np.hypot(u[nb + 1 :: 3], u[nb + 2 :: 3])
         st = self.stats
-        st.n_contacts = int(np.sum(sol.contact[:, 0] > 0))
-        st.n_sticking = int(np.sum((sol.contact[:, 0] > 0) & (tang <= 1e-6 * (1 + np.abs(u).max()))))
+        loaded_now = sol.contact[:, 0] > 0
+        st.n_contacts = int(loaded_now.sum())
+        st.n_sticking = int(np.sum(loaded_now & (tang <= 1e-9 * (1 + np.abs(u).max()))))
         st.contact_sweeps, st.contact_change = sol.sweeps, sol.relative_change
         st.normal_force = float(sol.contact[:, 0].sum() / h)
-        return dv, nodes, sol.contact
+        return dv, near[idx], sol.contact
 
     # -- public --------------------------------------------------------------------------
     def step(self, state: State, control: Control) -> State:
@@ -270,7 +246,6 @@ class ImplicitEulerSolver:
         if not state.is_finite():
             raise SimulationDiverged("non-finite positions or velocities in the input state", state.t)
         self.stats = StepStats()
-        before = [(s.factorizations, s.cg_iterations) for s in self._linear]
         v_free = np.empty_like(state.v)
         for i, body in enumerate(m.bodies):
             sl = m.body_slice(i)
@@ -278,9 +253,6 @@ class ImplicitEulerSolver:
         dv, nodes, impulses = self._constrain(state, v_free)
         v = v_free + dv
         x = state.x + h * v
-        for s, (f0, c0) in zip(self._linear, before):
-            self.stats.factorizations += s.factorizations - f0
-            self.stats.cg_iterations += s.cg_iterations - c0
         t = state.t + h
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
             raise SimulationDiverged("non-finite positions or velocities", t)

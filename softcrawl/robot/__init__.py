@@ -1,0 +1,34 @@
+"""The crawler: actuation (calibration, regulators), assembly of the FEM model, episodes.
+
+Does not import :mod:`softcrawl.gaits` (which imports :mod:`softcrawl.robot.actuation`),
+nor the output writers (:mod:`softcrawl.robot.output`, heavy plotting/IO imports).
+"""
+
+from softcrawl.robot.actuation import (
+    P_MAX_KPA,
+    P_MIN_KPA,
+    PressureCalibration,
+    PressureRangeError,
+    RegulatorBank,
+    check_pressures,
+)
+from softcrawl.robot.assembly import LegSlot, Robot, RobotConfig, build_robot, leg_transform
+from softcrawl.robot.episode import SETTLE_STEPS, Episode, EpisodeResult, run_episode
+
+__all__ = [
+    "P_MAX_KPA",
+    "P_MIN_KPA",
+    "SETTLE_STEPS",
+    "Episode",
+    "EpisodeResult",
+    "LegSlot",
+    "PressureCalibration",
+    "PressureRangeError",
+    "RegulatorBank",
+    "Robot",
+    "RobotConfig",
+    "build_robot",
+    "check_pressures",
+    "leg_transform",
+    "run_episode",
+]

@@ -1,0 +1,247 @@
+"""Writing the results of ``softcrawl simulate``: summary, trajectory, plot, ParaView series.
+
+Layout of an output directory:
+
+- ``summary.json``: design, gait, reward, timing, model size, solver statistics, version.
+- ``trajectory.npz`` / ``trajectory.csv``: per step ``t, x, y, z`` (disk top centre, mm),
+  ``cmd_1..3`` and ``applied_1..3`` (real kPa), ``contacts``.
+- ``trajectory.png``: displacement x(t) in cm and pressures vs t (commanded dashed,
+  applied solid).
+- ``crawl.pvd`` + ``frames/frame_NNNNN.vtu``: all bodies' tetrahedra in one grid per frame
+  with point field ``"displacement"`` (mm, from rest) and cell field ``"body"``.
+
+Everything is written into a hidden temporary directory next to the destination and
+renamed onto it only when complete (:func:`staged_directory`), so a failed run leaves no
+partial directory that looks like a result.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import dataclasses
+import json
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import meshio
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from softcrawl import __version__
+from softcrawl.design.space import N_REGULATORS
+from softcrawl.robot.actuation import PressureCalibration
+from softcrawl.robot.assembly import Robot
+from softcrawl.robot.episode import MM_PER_CM, EpisodeResult
+
+_REGS = range(1, N_REGULATORS + 1)
+#: Columns of ``trajectory.csv``.
+CSV_COLUMNS = ("t", "x", "y", "z", *(f"cmd_{k}" for k in _REGS), *(f"applied_{k}" for k in _REGS), "contacts")
+
+
+class OutputExistsError(ValueError):
+    """The output path exists and overwriting was not requested (or it is not a directory)."""
+
+
+def check_output_path(out: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Validate a destination directory before any work is done.
+
+    Returns:
+        ``out`` as a Path.
+
+    Raises:
+        OutputExistsError: ``out`` exists and ``overwrite`` is False, or ``out`` exists and
+            is not a directory.
+    """
+    out = Path(out)
+    if out.exists() or out.is_symlink():
+        if not out.is_dir() or out.is_symlink():
+            raise OutputExistsError(f"{out} exists and is not a directory")
+        if not overwrite:
+            raise OutputExistsError(f"{out} already exists (use --overwrite to replace it)")
+    return out
+
+
+@contextlib.contextmanager
+def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a fresh temporary directory next to ``out``; on success move it onto ``out``.
+
+    On an exception the temporary directory is removed and ``out`` is left untouched. With
+    ``overwrite``, an existing ``out`` directory is replaced (after the new one is complete).
+
+    Raises:
+        OutputExistsError: see :func:`check_output_path` (checked again at the end).
+    """
+    out = check_output_path(out, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; the result should not be
+        yield tmp
+        check_output_path(out, overwrite)
+        old = None
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            os.replace(out, old / "dir")
+        os.replace(tmp, out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _jsonable(v):
+    """Convert numpy values/arrays and non-finite floats (-> None) for JSON."""
+    if isinstance(v, np.ndarray):
+        return _jsonable(v.tolist())
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(u) for u in v]
+    if isinstance(v, dict):
+        return {str(k): _jsonable(u) for k, u in v.items()}
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def describe_gait(gait) -> dict:
+    """JSON-ready description of a gait: ``{"type": class name, **dataclass fields}``
+    (arrays as lists), or ``{"type", "repr"}`` for other objects."""
+    if dataclasses.is_dataclass(gait):
+        fields = {f.name: getattr(gait, f.name) for f in dataclasses.fields(gait)}
+    else:
+        fields = {"repr": repr(gait)}
+    return _jsonable({"type": type(gait).__name__, **fields})
+
+
+def summary(robot: Robot, gait, result: EpisodeResult, calibration: PressureCalibration) -> dict:
+    """The content of ``summary.json`` (JSON-ready dict; non-finite numbers become null)."""
+    bodies = robot.model.bodies
+    leg = bodies[robot.leg_bodies[0]].mesh
+    disk = bodies[robot.disk_body].mesh
+    steps = slice(1, None)  # episode steps (row 0 is the settled state)
+    return _jsonable({
+        "design": list(robot.design),
+        "gait": describe_gait(gait),
+        "reward_cm": None if result.diverged else result.reward_cm,  # a diverged run has no reward
+        "displacement_cm": result.reward_cm,
+        "steps": result.steps,
+        "sim_seconds": result.sim_seconds,
+        "wall_seconds": result.wall_seconds,
+        "real_time_factor": result.real_time_factor,
+        "diverged": result.diverged,
+        "divergence_reason": result.reason,
+        "model": "full",
+        "config": dataclasses.asdict(robot.config),
+        "calibration": {"a": calibration.a, "b": calibration.b},
+        "mesh": {
+            "leg_mesh_size": robot.config.leg_mesh_size, "disk_mesh_size": robot.config.disk_mesh_size,
+            "nodes": robot.model.n_nodes, "tets": sum(b.mesh.n_tets for b in bodies),
+            "leg_nodes": leg.n_nodes, "leg_tets": leg.n_tets, "disk_nodes": disk.n_nodes, "disk_tets": disk.n_tets,
+        },
+        "solver": {
+            "mean_contacts": float(result.contacts[steps].mean()) if result.steps else None,
+            "max_contacts": int(result.contacts[steps].max()) if result.steps else None,
+            "mean_contact_sweeps": float(result.contact_sweeps[steps].mean()) if result.steps else None,
+            "factorizations": result.factorizations,
+        },
+        "softcrawl_version": __version__,
+    })
+
+
+def trajectory_table(result: EpisodeResult) -> np.ndarray:
+    """``(n + 1, 11)`` float array with the columns :data:`CSV_COLUMNS`."""
+    return np.column_stack([result.time, result.position, result.commanded, result.applied, result.contacts])
+
+
+def write_trajectory(directory: Path, result: EpisodeResult) -> None:
+    """Write ``trajectory.npz`` (named arrays) and ``trajectory.csv`` (header :data:`CSV_COLUMNS`)."""
+    np.savez_compressed(
+        directory / "trajectory.npz", t=result.time, position=result.position, commanded=result.commanded,
+        applied=result.applied, contacts=result.contacts, contact_sweeps=result.contact_sweeps,
+    )
+    with (directory / "trajectory.csv").open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(CSV_COLUMNS)
+        for row in trajectory_table(result):
+            w.writerow([f"{v:.6g}" for v in row[:-1]] + [int(row[-1])])
+
+
+def plot_trajectory(path: Path, robot: Robot, result: EpisodeResult) -> None:
+    """Save a two-panel PNG: disk x displacement (cm) vs t, and the used regulators'
+    pressures vs t (commanded dashed, applied solid, real kPa)."""
+    fig = Figure(figsize=(8, 6), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax_x, ax_p = fig.subplots(2, 1, sharex=True)
+    if len(result.time):
+        ax_x.plot(result.time, (result.position[:, 0] - result.position[0, 0]) / MM_PER_CM, color="k")
+    ax_x.set_ylabel("x displacement (cm)")
+    title = f"design {','.join(map(str, robot.design))}: {result.reward_cm:+.2f} cm in {result.sim_seconds:g} s"
+    ax_x.set_title(title + (" (DIVERGED)" if result.diverged else ""))
+    ax_x.grid(alpha=0.3)
+    used = sorted({leg.regulator for leg in robot.legs})
+    for k in used:
+        color = f"C{k - 1}"
+        # the command in row i was sampled at the start t_{i-1} of its step
+        ax_p.plot(result.time[:-1], result.commanded[1:, k - 1], "--", color=color, label=f"cmd {k}")
+        ax_p.plot(result.time, result.applied[:, k - 1], "-", color=color, label=f"applied {k}")
+    ax_p.set_xlabel("t (s)")
+    ax_p.set_ylabel("pressure (real kPa)")
+    ax_p.grid(alpha=0.3)
+    ax_p.legend(ncols=len(used), fontsize="small")
+    fig.savefig(path, dpi=120)
+
+
+def write_paraview(directory: Path, robot: Robot, result: EpisodeResult, name: str = "crawl") -> None:
+    """Write ``frames/frame_NNNNN.vtu`` per recorded frame and the index ``<name>.pvd``.
+
+    Each ``.vtu`` holds all bodies' tetrahedra (global node numbering), the deformed
+    positions (mm), point field ``"displacement"`` (mm, from rest) and cell field ``"body"``.
+    """
+    model = robot.model
+    tets = np.concatenate([b.mesh.tets + off for b, off in zip(model.bodies, model.node_offsets)])
+    body = np.concatenate([np.full(b.mesh.n_tets, i, np.int32) for i, b in enumerate(model.bodies)])
+    rest = model.rest_state().x
+    (directory / "frames").mkdir()
+    entries = []
+    for i, (t, x) in enumerate(zip(result.frame_times, result.frames)):
+        rel = f"frames/frame_{i:05d}.vtu"
+        mesh = meshio.Mesh(x.astype(np.float64), [("tetra", tets)],
+                           point_data={"displacement": x - rest}, cell_data={"body": [body]})
+        meshio.write(directory / rel, mesh, file_format="vtu")
+        entries.append(f'    <DataSet timestep="{t:.6g}" group="" part="0" file={quoteattr(rel)}/>')
+    (directory / f"{name}.pvd").write_text(
+        '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
+        "  <Collection>\n" + "".join(e + "\n" for e in entries) + "  </Collection>\n</VTKFile>\n",
+        encoding="utf-8",
+    )
+
+
+def write_results(out: str | os.PathLike, robot: Robot, gait, result: EpisodeResult,
+                  calibration: PressureCalibration = PressureCalibration(), overwrite: bool = False) -> Path:
+    """Write all outputs (module docstring) into ``out`` atomically (:func:`staged_directory`).
+
+    Returns:
+        ``out`` as a Path.
+
+    Raises:
+        OutputExistsError: ``out`` exists and ``overwrite`` is False.
+        OSError: on write failures (nothing is left at ``out`` then).
+    """
+    with staged_directory(out, overwrite) as tmp:
+        (tmp / "summary.json").write_text(json.dumps(summary(robot, gait, result, calibration), indent=2) + "\n",
+                                          encoding="utf-8")
+        write_trajectory(tmp, result)
+        plot_trajectory(tmp / "trajectory.png", robot, result)
+        write_paraview(tmp, robot, result)
+    return Path(out)
