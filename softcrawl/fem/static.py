@@ -1,8 +1,8 @@
 """Static equilibrium of unconstrained-by-contact bodies: ``f_int(x) + f_ext(x) = 0``.
 
 Newton iterations with the corotational tangent ``K = sum_e R K_e R^T`` (SOFA's, without
-dR/dx, so convergence is linear rather than quadratic under large rotations) and optional
-load stepping. Used by the verification checks (cantilever, Lamé sphere, PneuNet bending).
+dR/dx, so convergence is linear rather than quadratic under large rotations), a
+backtracking line search on the residual norm, and optional load stepping. Used by the verification checks (cantilever, Lamé sphere, PneuNet bending).
 """
 
 from __future__ import annotations
@@ -75,32 +75,43 @@ def solve_static(
         xb = x[sl]
         free = body.free_dofs
         diag_fixed = body.pattern.diag[~free]
+        def residual(x: np.ndarray, scale: float, tangent: bool):
+            f, kdata, n_bad = body.internal_forces(x, tangent_coef=1.0 if tangent else None)
+            f_ext = body.external_forces(x, scale * control.pressures, scale * g)
+            if control.forces is not None:
+                f_ext += scale * control.forces[sl]
+            r = (f + f_ext).ravel()
+            r[~free] = 0.0
+            return r, kdata, n_bad, max(np.linalg.norm(f_ext.ravel()[free]), 1e-300)
+
         for s in range(1, load_steps + 1):
             scale = s / load_steps
-            for it in range(max_iterations):
-                f, kdata, n_bad = body.internal_forces(xb, tangent_coef=1.0)
+            r, kdata, n_bad, ref = residual(xb, scale, True)
+            for it in range(max_iterations + 1):
                 if n_bad:
                     raise StaticSolveError(f"{n_bad} inverted elements in body {body.name!r}")
-                f_ext = body.external_forces(xb, scale * control.pressures, scale * g)
-                if control.forces is not None:
-                    f_ext += scale * control.forces[sl]
-                f_ext = f_ext.ravel()
-                r = (f.ravel() + f_ext)[free]
-                ref = max(np.linalg.norm(f_ext[free]), 1e-300)
                 res = float(np.linalg.norm(r) / ref)
                 if res <= tol:
                     break
+                if it == max_iterations:
+                    raise StaticSolveError(
+                        f"no equilibrium for body {body.name!r} at load {scale:.2f} after "
+                        f"{max_iterations} iterations (relative residual {res:.3g})"
+                    )
                 kdata[body.fixed_entries] = 0.0
                 kdata[diag_fixed] = 1.0
-                rhs = f.ravel() + f_ext
-                rhs[~free] = 0.0
-                dx = Factorization(body.pattern.matrix(kdata)).solve(rhs)
-                xb += dx.reshape(-1, 3)
+                dx = Factorization(body.pattern.matrix(kdata)).solve(r).reshape(-1, 3)
+                # Backtracking line search on the residual norm (the corotational tangent
+                # omits dR/dx, so full steps can overshoot under large rotations).
+                step = 1.0
+                for _ in range(12):
+                    x_try = xb + step * dx
+                    r_try, _, bad_try, _ = residual(x_try, scale, False)
+                    if not bad_try and np.linalg.norm(r_try) < np.linalg.norm(r):
+                        break
+                    step *= 0.5
+                xb[:] = x_try
+                r, kdata, n_bad, ref = residual(xb, scale, True)
                 total_its += 1
-            else:
-                raise StaticSolveError(
-                    f"no equilibrium for body {body.name!r} at load {scale:.2f} after "
-                    f"{max_iterations} iterations (relative residual {res:.3g})"
-                )
     return StaticResult(State(x=x, v=np.zeros_like(x), t=state.t), total_its, res)
 

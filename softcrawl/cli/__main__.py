@@ -1,0 +1,5 @@
+import sys
+
+from softcrawl.cli import main
+
+sys.exit(main())

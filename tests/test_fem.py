@@ -1,0 +1,147 @@
+"""FEM engine against closed-form physics (verification.md) and on bad input.
+
+Tolerances are stated per test; discretisation-limited ones come with a convergence check.
+"""
+
+import numpy as np
+import pytest
+
+from softcrawl.fem.body import Body, Cavity, Membrane
+from softcrawl.fem.materials import LinearElastic
+from softcrawl.fem.model import Floor, Model
+from softcrawl.fem.pressure import enclosed_volume, pressure_forces
+from softcrawl.fem.solver import ImplicitEulerSolver, SimulationDiverged, SolverSettings
+from softcrawl.fem.state import Control, State
+from softcrawl.geometry import PneuNetParams, box_mesh, pneunet_mesh
+from softcrawl.geometry.mesh import MeshError, TetMesh
+from softcrawl.verify import checks
+
+
+def test_cantilever_converges_to_euler_bernoulli():
+    """Error falls with refinement and is within 3% on the finest mesh (issue #2)."""
+    for load in ("tip", "gravity"):
+        errors = []
+        for div in checks.CANTILEVER_DIVISIONS:
+            got, expected = checks.cantilever_tip_deflection(div, load)
+            errors.append(abs(got - expected) / expected)
+        assert errors[0] > errors[1] > errors[2], (load, errors)
+        assert errors[-1] < 0.03, (load, errors)
+
+
+@pytest.mark.parametrize("name", ["corotational", "lame", "incline", "sliding", "resting"])
+def test_closed_form_checks_pass(name):
+    results = checks.CHECKS[name]("coarse")
+    assert results
+    for r in results:
+        assert r.passed, r
+
+
+def test_static_friction_truly_sticks():
+    """Below theta* the block does not creep at all (not just slowly): 1e-9 mm in 1 s."""
+    _, xs, solver, _ = checks._run(checks.block_model(checks.incline_gravity(checks.THETA_STAR - 2)), 1.1, 0.01)
+    assert abs(xs[-1, 0] - xs[9, 0]) < 1e-9
+    assert solver.stats.n_sticking == solver.stats.n_contacts > 0
+
+
+def test_pneunet_bends_toward_paper_side_monotonically():
+    table = checks.pneunet_bending(8.0, np.array([0.0, 100.0, 200.0, 350.0]), ramp=0.3, hold=0.5)
+    dz, angle = table[:, 1], table[:, 2]
+    assert np.all(np.diff(dz) < 0)  # tip moves down (toward the paper side), more with pressure
+    assert np.all(np.diff(angle) > 0) and angle[-1] > 45.0
+
+
+def test_membrane_uniform_stretch_matches_plane_stress():
+    """A 1 mm paper layer stretched by strain e along x: the edge force equals
+    E t H e / (1 - nu^2) (plane stress with eps_yy = 0 imposed)."""
+    mat, t, e = LinearElastic(2320.0, 0.49), 1.0, 1e-3
+    mesh = box_mesh((20.0, 10.0, 2.0), (4, 2, 1))
+    bottom = mesh.surfaces["boundary"][np.all(np.isclose(mesh.points[mesh.surfaces["boundary"], 2], 0.0), axis=1)]
+    body = Body(mesh, LinearElastic(1e-6, 0.0), 1e-3, membrane=Membrane(bottom, mat, t))
+    x = mesh.points.copy()
+    x[:, 0] *= 1 + e
+    f, _, _ = body.internal_forces(x)
+    edge = np.isclose(mesh.points[:, 0], 20.0) & np.isclose(mesh.points[:, 2], 0.0)
+    expected = -mat.youngs_modulus * t * 10.0 * e / (1 - mat.poisson_ratio**2)
+    assert f[edge, 0].sum() == pytest.approx(expected, rel=1e-3)  # tets contribute E = 1e-6 only
+
+
+def test_membrane_rigid_rotation_gives_zero_force():
+    mesh = box_mesh((20.0, 10.0, 2.0), (4, 2, 1))
+    body = Body(mesh, LinearElastic(1.0, 0.3), 1e-3,
+                membrane=Membrane(mesh.surfaces["boundary"], LinearElastic(2320.0, 0.49), 1.0))
+    R = checks._rotation([0.3, -1.0, 2.0], 123.0)
+    f, _, _ = body.internal_forces(mesh.points @ R.T + 4.0)
+    assert np.abs(f).max() < 1e-10 * 2320.0
+
+
+def test_cavity_pressure_is_p_dV_dx():
+    """Follower load = p dV/dx (finite differences of the enclosed volume) and sums to zero."""
+    mesh = pneunet_mesh(PneuNetParams(mesh_size=10.0))
+    cav = mesh.surfaces["cavity"]
+    assert enclosed_volume(mesh.points, cav) == pytest.approx(3528.0, rel=1e-9)
+    rng = np.random.default_rng(0)
+    x = mesh.points + rng.normal(scale=0.2, size=mesh.points.shape)
+    f = pressure_forces(x, cav, 50.0)
+    assert np.abs(f.sum(0)).max() < 1e-9 * np.abs(f).max()
+    dx = rng.normal(size=x.shape) * 1e-4
+    dV = enclosed_volume(x + dx, cav) - enclosed_volume(x - dx, cav)
+    assert np.sum(f * 2 * dx) == pytest.approx(50.0 * dV, rel=1e-6)
+
+
+def test_bad_material_and_settings_raise():
+    with pytest.raises(ValueError, match="Young"):
+        LinearElastic(0.0, 0.3)
+    with pytest.raises(ValueError, match="Young"):
+        LinearElastic(-5.0, 0.3)
+    for nu in (0.5, -1.0, 0.7, float("nan")):
+        with pytest.raises(ValueError, match="Poisson"):
+            LinearElastic(100.0, nu)
+    with pytest.raises(ValueError, match="dt"):
+        SolverSettings(dt=-0.01)
+    with pytest.raises(ValueError, match="finite"):
+        Control(np.array([10.0, np.nan]))
+    with pytest.raises(ValueError, match="mass"):
+        Body(box_mesh(), LinearElastic(1.0, 0.3), mass=0.0)
+    with pytest.raises(ValueError, match="friction"):
+        Floor(friction=-1.0)
+
+
+def test_inverted_mesh_is_rejected():
+    mesh = box_mesh((1.0, 1.0, 1.0), (1, 1, 1))
+    tets = mesh.tets.copy()
+    tets[0, [1, 2]] = tets[0, [2, 1]]
+    with pytest.raises(MeshError, match="inverted"):
+        TetMesh(mesh.points, tets)
+
+
+def _falling_block():
+    body = Body(box_mesh((10.0, 10.0, 5.0), (2, 2, 1)), LinearElastic(1e4, 0.3), 0.01)
+    return Model((body,), floor=Floor())
+
+
+def test_diverged_state_is_reported_not_propagated():
+    model = _falling_block()
+    solver = ImplicitEulerSolver(model)
+    rest = model.rest_state()
+    bad = State(rest.x.copy(), rest.v.copy())
+    bad.v[0, 0] = np.nan
+    with pytest.raises(SimulationDiverged, match="non-finite"):
+        solver.step(bad, Control(np.zeros(1)))
+    inverted = rest.x.copy()
+    inverted[:, 2] *= -1.0  # mirror: every element inverted
+    with pytest.raises(SimulationDiverged, match="inverted"):
+        solver.step(State(inverted + [0, 0, 10.0], rest.v), Control(np.zeros(1)))
+    with pytest.raises(ValueError, match="channels"):
+        solver.step(rest, Control(np.zeros(2)))
+
+
+def test_pressurised_cavity_inflates_dynamically():
+    """A free PneuNet under pressure: cavity volume grows, the step stays finite."""
+    mesh = pneunet_mesh(PneuNetParams(mesh_size=10.0))
+    body = Body(mesh, LinearElastic(1160.0, 0.2), 0.105, cavities=(Cavity(mesh.surfaces["cavity"], 0),))
+    model = Model((body,), gravity=(0.0, 0.0, 0.0))
+    solver = ImplicitEulerSolver(model)
+    state = model.rest_state()
+    for _ in range(10):
+        state = solver.step(state, Control(np.array([50.0])))
+    assert enclosed_volume(state.x, mesh.surfaces["cavity"]) > 3528.0 * 1.01
