@@ -33,6 +33,7 @@ def test_baseline_model_structure(baseline):
     assert [(g.slot, g.regulator, g.channel) for g in baseline.legs] == [(0, 1, 0), (3, 2, 1), (4, 2, 1), (7, 1, 0)]
     assert [m.bodies[g.body].cavities[0].channel for g in baseline.legs] == [0, 1, 1, 0]
     assert m.floor.friction == 1.2 and m.floor.contact_distance == 0.5
+    assert baseline.regulator_channels == {1: 0, 2: 1, 3: 2}
     top = baseline.reward_position(m.rest_state().x)
     np.testing.assert_allclose(top[:2], 0.0, atol=1e-9)
     assert top[2] == pytest.approx(m.rest_state().x[m.body_slice(0), 2].max())
@@ -133,6 +134,7 @@ def test_staged_directory_cleans_up_on_error(tmp_path):
 
 
 def _simulate(monkeypatch, *args):
+    assert "softcrawl.cli.simulate" in cli.SUBCOMMANDS
     monkeypatch.setattr(cli, "SUBCOMMANDS", ("softcrawl.cli.simulate",))  # isolate from other subcommands
     return cli.main(["simulate", "--mesh-size", "12", "--no-progress", *map(str, args)])
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from softcrawl.fem.linalg import Factorization
 
@@ -65,18 +66,17 @@ class NodalCompliance:
             self.index[a] = len(self.index)
         self.G = np.hstack([self.G, cols])
 
-    def columns(self, node: int) -> slice:
-        j = self.index[node]
-        return slice(3 * j, 3 * j + 3)
+    def nodes(self) -> np.ndarray:
+        """``(K,)`` the nodes seen, in column order."""
+        return np.fromiter(self.index, np.int64, len(self.index))
 
     def nodal(self) -> np.ndarray:
         """``(3K, 3K)`` compliance ``E^T A^-1 E`` of the K nodes seen, ordered as columns."""
-        dofs = (3 * np.fromiter(self.index, int, len(self.index))[:, None] + np.arange(3)).ravel()
-        return self.G[dofs]
+        return self.G[(3 * self.nodes()[:, None] + np.arange(3)).ravel()]
 
 
 def assemble(blocks: list[Block], compliances: dict[int, NodalCompliance],
-             velocities: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray]]:
+             velocities: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, dict[int, sp.csr_matrix]]:
     """Delassus operator and free constraint velocities of a list of blocks.
 
     Args:
@@ -86,31 +86,37 @@ def assemble(blocks: list[Block], compliances: dict[int, NodalCompliance],
 
     Returns:
         ``(W, u_free, T)``: ``W`` ``(3B, 3B)`` (mm/s per mN s), ``u_free = H v_free`` ``(3B,)``,
-        and body -> ``T_b`` ``(3B, 3K_b)`` for :func:`velocity_correction`.
+        and body -> sparse ``T_b`` ``(3B, 3K_b)`` for :func:`velocity_correction`.
     """
-    touched: dict[int, list[np.ndarray]] = {}
-    for blk in blocks:
-        for t in blk.terms:
-            touched.setdefault(t.body, []).append(t.nodes)
-    for b, nodes in touched.items():
-        compliances[b].ensure(np.concatenate(nodes))
-    n_rows = 3 * len(blocks)
-    T = {b: np.zeros((n_rows, c.G.shape[1])) for b, c in compliances.items()}
-    u_free = np.zeros(n_rows)
+    entries: dict[int, tuple[list, list, list]] = {}
     for j, blk in enumerate(blocks):
         for t in blk.terms:
-            c = compliances[t.body]
-            for a, w in zip(t.nodes.tolist(), t.weights.tolist()):
-                T[t.body][3 * j : 3 * j + 3, c.columns(a)] += w * blk.frame
-            u_free[3 * j : 3 * j + 3] += blk.frame @ (t.weights @ velocities[t.body][t.nodes])
+            rows, nodes, coef = entries.setdefault(t.body, ([], [], []))
+            rows.append(np.full(len(t.nodes), j))
+            nodes.append(t.nodes)
+            coef.append(t.weights[:, None, None] * blk.frame[None])
+    n_rows = 3 * len(blocks)
     W = np.zeros((n_rows, n_rows))
-    for b, c in compliances.items():
-        if c.G.shape[1]:
-            W += T[b] @ c.nodal() @ T[b].T
+    u_free = np.zeros(n_rows)
+    T = {}
+    r3 = np.arange(3)
+    for b, (rows, nodes, coef) in entries.items():
+        c = compliances[b]
+        nodes = np.concatenate(nodes)
+        c.ensure(nodes)
+        cols = np.fromiter((c.index[a] for a in nodes.tolist()), np.int64, len(nodes))
+        blk_rows, vals = np.concatenate(rows), np.concatenate(coef)  # (m,), (m, 3, 3)
+        ii = np.broadcast_to((3 * blk_rows[:, None] + r3)[:, :, None], vals.shape)
+        jj = np.broadcast_to((3 * cols[:, None] + r3)[:, None, :], vals.shape)
+        Tb = sp.csr_matrix((vals.ravel(), (ii.ravel(), jj.ravel())), shape=(n_rows, c.G.shape[1]))
+        TN = Tb @ c.nodal()
+        W += np.asarray(Tb @ TN.T)  # T N T^T (N symmetric)
+        u_free += Tb @ velocities[b][c.nodes()].ravel()
+        T[b] = Tb
     return W, u_free, T
 
 
-def velocity_correction(lam: np.ndarray, T: dict[int, np.ndarray],
+def velocity_correction(lam: np.ndarray, T: dict[int, sp.csr_matrix],
                         compliances: dict[int, NodalCompliance]) -> dict[int, np.ndarray]:
     """body -> ``(n_b, 3)`` velocity corrections ``A_b^-1 H_b^T lam``, mm/s."""
-    return {b: (c.G @ (T[b].T @ lam)).reshape(-1, 3) for b, c in compliances.items() if c.G.shape[1]}
+    return {b: (compliances[b].G @ (Tb.T @ lam)).reshape(-1, 3) for b, Tb in T.items()}

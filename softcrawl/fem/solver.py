@@ -24,7 +24,7 @@ import scipy.sparse as sp
 from softcrawl.fem.body import Body
 from softcrawl.fem.constraints import Block, NodalCompliance, Term, assemble, velocity_correction
 from softcrawl.fem.contact import solve_constraints
-from softcrawl.fem.linalg import Factorization
+from softcrawl.fem.linalg import ReusedFactorization
 from softcrawl.fem.model import Model, PointRef
 from softcrawl.fem.state import Control, State
 
@@ -50,6 +50,12 @@ class SolverSettings:
         dt: time step, s (> 0; physics.md: 0.01).
         newton_iterations: 1 = linearly implicit Euler (the reference); more = Newton
             iterations on backward Euler.
+        refactor_every: refactorize each body's matrix every this many linear solves
+            (1 = every step: exact). In between, the free motion is still solved to
+            ``cg_rtol`` by CG preconditioned with the kept factorization, but the contact
+            compliance ``A^-1 H^T`` (Delassus operator and velocity correction) uses the
+            kept factorization: constraints hold exactly, the impulse response lags.
+        cg_rtol: relative residual tolerance of those CG solves.
         contact_tolerance: Gauss-Seidel relative impulse change to stop at (physics.md: 1e-8).
         contact_max_iterations: Gauss-Seidel sweep limit (physics.md: 250).
         max_speed: any node faster than this (mm/s) means divergence.
@@ -60,6 +66,8 @@ class SolverSettings:
 
     dt: float = 0.01
     newton_iterations: int = 1
+    refactor_every: int = 1
+    cg_rtol: float = 1e-9
     contact_tolerance: float = 1e-8
     contact_max_iterations: int = 250
     max_speed: float = 1e5
@@ -67,8 +75,8 @@ class SolverSettings:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"time step dt must be positive, got {self.dt!r} s")
-        if self.newton_iterations < 1 or self.contact_max_iterations < 1:
-            raise ValueError("newton_iterations and contact_max_iterations must be >= 1")
+        if min(self.newton_iterations, self.refactor_every, self.contact_max_iterations) < 1:
+            raise ValueError("newton_iterations, refactor_every and contact_max_iterations must be >= 1")
 
 
 @dataclass
@@ -81,6 +89,7 @@ class StepStats:
     contact_change: float = 0.0
     normal_force: float = 0.0  # total floor normal force, mN
     factorizations: int = 0
+    cg_iterations: int = 0
 
 
 _FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # normal, t1, t2
@@ -98,7 +107,9 @@ class ImplicitEulerSolver:
 
     def __init__(self, model: Model, settings: SolverSettings = SolverSettings()):
         self.model, self.settings = model, settings
-        self._factor: list[Factorization | None] = [None] * len(model.bodies)  # of the current step
+        self._linear = [ReusedFactorization(settings.refactor_every, settings.cg_rtol) for _ in model.bodies]
+        # Contact compliance columns, valid as long as the body's factorization is kept.
+        self._compliance: list[NodalCompliance | None] = [None] * len(model.bodies)
         self._mass3 = [np.repeat(b.nodal_mass, 3) for b in model.bodies]
         self._collision = np.concatenate(
             [self.model.node_offsets[i] + b.collision_nodes[b.fixed[b.collision_nodes].sum(1) == 0]
@@ -145,9 +156,13 @@ class ImplicitEulerSolver:
         for it in range(self.settings.newton_iterations):
             xk = x if it == 0 else x + h * vk
             A, rhs = self._system(i, body, xk, vk, v, control, t, linearised=(it == 0))
-            self._factor[i] = Factorization(A)
-            self.stats.factorizations += 1
-            vk = vk + self._factor[i].solve(rhs).reshape(-1, 3)
+            lin = self._linear[i]
+            n_fact, n_cg = lin.factorizations, lin.cg_iterations
+            vk = vk + lin.solve(A, rhs).reshape(-1, 3)
+            self.stats.factorizations += lin.factorizations - n_fact
+            self.stats.cg_iterations += lin.cg_iterations - n_cg
+            if lin.factorizations > n_fact or self._compliance[i] is None:
+                self._compliance[i] = NodalCompliance(lin.factor, body.free_dofs)
         return vk
 
     # -- constraints ---------------------------------------------------------------------
@@ -176,7 +191,7 @@ class ImplicitEulerSolver:
         near_body = np.searchsorted(offsets, near, side="right") - 1
         loaded = state.contact_nodes[state.contact_impulses[:, 0] > 0] if len(state.contact_nodes) else near[:0]
         active = (gaps + h * v_free[near, 2] < 0) | np.isin(near, loaded)
-        comp = {b: NodalCompliance(self._factor[b], m.bodies[b].free_dofs) for b in range(len(m.bodies))}
+        comp = dict(enumerate(self._compliance))
         vel = {b: v_free[m.body_slice(b)] for b in range(len(m.bodies))}
         nb = 3 * len(self._attach_blocks)
         drift = np.concatenate([

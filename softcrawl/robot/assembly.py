@@ -126,6 +126,11 @@ class Robot:
         """Body indices of the legs, in slot order."""
         return tuple(leg.body for leg in self.legs)
 
+    @property
+    def regulator_channels(self) -> dict[int, int]:
+        """Regulator (1..3) -> model pressure channel (``regulator - 1``), all 3 regulators."""
+        return {k: self.channel_of(k) for k in range(1, N_REGULATORS + 1)}
+
     @staticmethod
     def channel_of(regulator: int) -> int:
         """Model channel of regulator ``k`` (1..3): ``k - 1``. Raises ValueError otherwise."""
