@@ -99,9 +99,13 @@ class Model:
         gravity: ``(3,)`` mm/s^2 (default ``(0, 0, -9800)``).
         rayleigh_mass: Rayleigh mass coefficient r_M, 1/s (physics.md: 0.1).
         rayleigh_stiffness: Rayleigh stiffness coefficient r_K, s (physics.md: 0.1).
+        channels: number of pressure channels a ``Control`` must hold; None = one more than
+            the highest channel a cavity uses (at least 1). A robot declares all its
+            regulators even when a design leaves one unused.
 
     Raises:
-        ValueError: negative damping, a non-finite gravity, an attachment naming a missing body.
+        ValueError: negative damping, a non-finite gravity, an attachment naming a missing
+            body, or fewer channels than the cavities use.
     """
 
     bodies: tuple[Body, ...]
@@ -110,6 +114,7 @@ class Model:
     gravity: tuple[float, float, float] = (0.0, 0.0, -9800.0)
     rayleigh_mass: float = 0.1
     rayleigh_stiffness: float = 0.1
+    channels: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "bodies", tuple(self.bodies))
@@ -122,6 +127,7 @@ class Model:
             )
         if not np.all(np.isfinite(self.gravity)) or len(self.gravity) != 3:
             raise ValueError(f"gravity must be 3 finite numbers, got {self.gravity!r}")
+        self.n_channels  # validates the channel count
         for att in self.attachments:
             for ref in (att.a, att.b):
                 if not 0 <= ref.body < len(self.bodies):
@@ -138,8 +144,13 @@ class Model:
 
     @cached_property
     def n_channels(self) -> int:
-        """Number of pressure channels the cavities use (at least 1)."""
-        return 1 + max((c.channel for b in self.bodies for c in b.cavities), default=0)
+        """Number of pressure channels of a ``Control`` (see ``channels``)."""
+        used = 1 + max((c.channel for b in self.bodies for c in b.cavities), default=0)
+        if self.channels is None:
+            return used
+        if self.channels < used:
+            raise ValueError(f"model declares {self.channels} pressure channels but its cavities use {used}")
+        return self.channels
 
     @property
     def total_mass(self) -> float:

@@ -9,10 +9,9 @@ then shifted vertically so that its lowest node sits ``FLOOR_CLEARANCE`` above t
 
 Bodies: index 0 is the disk, then one leg per occupied slot in slot order. Channels:
 regulator ``k`` drives model channel ``k - 1``. The model always has
-``N_REGULATORS = 3`` channels, even if a design leaves a regulator unused: the disk
-carries an empty placeholder cavity (no triangles, no load) on the last channel, so
-:attr:`Model.n_channels` does not depend on the design and a ``Control`` always holds
-one pressure per regulator (see :meth:`Robot.control`).
+``N_REGULATORS = 3`` channels (``Model(channels=3)``), even if a design leaves a
+regulator unused, so a ``Control`` always holds one pressure per regulator (see
+:meth:`Robot.control`).
 """
 
 from __future__ import annotations
@@ -57,6 +56,8 @@ class RobotConfig:
         tilt_deg: leg tilt about y, degrees.
         rayleigh_mass, rayleigh_stiffness: Rayleigh damping coefficients (1/s, s).
         contact_distance: floor contact distance, mm.
+        refactor_every: factorization reuse of the solver (1 = exact, refactorize every
+            step; see :class:`softcrawl.fem.solver.SolverSettings`).
 
     Raises:
         ValueError: for non-positive mesh sizes, masses or dt (friction, lumping and damping
@@ -74,8 +75,11 @@ class RobotConfig:
     rayleigh_mass: float = 0.1
     rayleigh_stiffness: float = 0.1
     contact_distance: float = 0.5
+    refactor_every: int = 1
 
     def __post_init__(self) -> None:
+        if int(self.refactor_every) != self.refactor_every or self.refactor_every < 1:
+            raise ValueError(f"RobotConfig.refactor_every must be a positive integer, got {self.refactor_every!r}")
         for name in ("leg_mesh_size", "disk_mesh_size", "dt", "leg_mass", "disk_mass"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -158,7 +162,8 @@ class Robot:
 
     def make_solver(self) -> ImplicitEulerSolver:
         """A fresh full-order solver for :attr:`model` with the config's time step."""
-        return ImplicitEulerSolver(self.model, SolverSettings(dt=self.config.dt))
+        return ImplicitEulerSolver(self.model, SolverSettings(dt=self.config.dt,
+                                                              refactor_every=self.config.refactor_every))
 
     def reward_position(self, x: np.ndarray) -> np.ndarray:
         """``(3,)`` position (mm) of the disk's top centre given stacked positions ``x`` (N, 3)."""
@@ -221,10 +226,7 @@ def build_robot(design, config: RobotConfig = RobotConfig()) -> Robot:
     shift = np.array([0.0, 0.0, FLOOR_CLEARANCE - z_min])
     disk, *leg_meshes = [m.transformed(R, t + shift) for m, R, t in parts]
 
-    # An empty cavity on the last channel keeps model.n_channels == N_REGULATORS for every design.
-    placeholder = Cavity(np.zeros((0, 3), np.int64), channel=N_REGULATORS - 1)
-    disk_body = Body(disk, PRINTED_POLYMER, config.disk_mass, mass_lumping=config.mass_lumping,
-                     cavities=(placeholder,), name="disk")
+    disk_body = Body(disk, PRINTED_POLYMER, config.disk_mass, mass_lumping=config.mass_lumping, name="disk")
     bodies, legs, attachments = [disk_body], [], []
     for (slot, reg), mesh in zip(slots, leg_meshes):
         index = len(bodies)
@@ -244,6 +246,7 @@ def build_robot(design, config: RobotConfig = RobotConfig()) -> Robot:
         tuple(bodies), tuple(attachments),
         floor=Floor(0.0, config.friction, config.contact_distance),
         rayleigh_mass=config.rayleigh_mass, rayleigh_stiffness=config.rayleigh_stiffness,
+        channels=N_REGULATORS,
     )
     reward_node = int(model.node_offsets[0] + disk.node_sets["top_centre"][0])
     return Robot(model, design, config, tuple(legs), reward_node)
