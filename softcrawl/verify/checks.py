@@ -352,7 +352,10 @@ def pneunet_bending(mesh_size: float, pressures: np.ndarray, ramp: float = 0.5, 
 
 
 def check_pneunet_bending(resolution: str = "coarse") -> list[CheckResult]:
-    """Pressurised PneuNet bends toward its paper side, monotonically in pressure."""
+    """Pressurised PneuNet bends toward its paper side, monotonically in pressure.
+
+    Monotonicity is asserted on the tip angle: past about 90 deg of curl (4 mm mesh,
+    300 kPa) the tip rises again, so its height is not monotone."""
     h = PNEUNET_MESH[_level(resolution)]
     table = pneunet_bending(h, PNEUNET_PRESSURES)
     dz, angle = table[:, 1], table[:, 2]
@@ -361,8 +364,8 @@ def check_pneunet_bending(resolution: str = "coarse") -> list[CheckResult]:
                     1.0, float(-dz[-1]), 0.0, "mm", mode="min"),
         CheckResult("PneuNet at 350 kPa: tip bending angle toward the paper side", 1.0, float(angle[-1]), 0.0,
                     "deg", mode="min"),
-        CheckResult("PneuNet bending monotone in pressure (0..350 kPa by 50): decreasing steps of -dz", 0.0,
-                    float(np.sum(np.diff(-dz) <= 0)), 0.0, mode="abs"),
+        CheckResult("PneuNet bending angle monotone in pressure (0..350 kPa by 50): non-increasing steps", 0.0,
+                    float(np.sum(np.diff(angle) <= 0)), 0.0, mode="abs"),
     ]
 
 
