@@ -180,3 +180,28 @@ def test_cli_simulate_errors_leave_no_output(tmp_path, monkeypatch, capsys, case
     err = capsys.readouterr().err.strip()
     assert err.startswith("softcrawl simulate: error:") and "\n" not in err
     assert not out.exists() and not (tmp_path / "runs").exists()
+
+
+def test_attachment_patches():
+    """Each attachment point averages the leg nodes near its corner (radius 0: one node)."""
+    from softcrawl.robot.assembly import RobotConfig, build_robot
+
+    patched = build_robot("1,0,0,2,2,0,0,0", RobotConfig(leg_mesh_size=12.0, attachment_radius=5.0))
+    single = build_robot("1,0,0,2,2,0,0,0", RobotConfig(leg_mesh_size=12.0, attachment_radius=0.0))
+    assert all(len(a.a.nodes) > 1 and np.isclose(a.a.weights.sum(), 1.0) for a in patched.model.attachments)
+    assert all(len(a.a.nodes) == 1 for a in single.model.attachments)
+    with pytest.raises(ValueError, match="attachment_radius"):
+        RobotConfig(attachment_radius=-1.0)
+
+
+@pytest.mark.slow
+def test_full_pressure_at_4mm_does_not_invert_elements():
+    """Regression: single-node attachments crushed the corner element of a rear leg at 4 mm
+    (t = 0.85 s of the paper's gait, 347 sim kPa): reported as divergence."""
+    from softcrawl.gaits import paper_best_gait
+    from softcrawl.robot.assembly import RobotConfig, build_robot
+    from softcrawl.robot.episode import run_episode
+
+    robot = build_robot("1,0,0,2,2,0,0,0", RobotConfig(leg_mesh_size=4.0, refactor_every=5))
+    result = run_episode(robot, paper_best_gait(), duration=1.2, record_every=None, progress=False)
+    assert not result.diverged, result.reason
