@@ -183,15 +183,15 @@ def test_cli_simulate_errors_leave_no_output(tmp_path, monkeypatch, capsys, case
 
 
 def test_attachment_patches():
-    """Each attachment point averages the leg nodes near its corner (radius 0: one node)."""
+    """Each attachment point averages the corner node's one-ring ("node": the corner alone)."""
     from softcrawl.robot.assembly import RobotConfig, build_robot
 
-    patched = build_robot("1,0,0,2,2,0,0,0", RobotConfig(leg_mesh_size=12.0, attachment_radius=5.0))
-    single = build_robot("1,0,0,2,2,0,0,0", RobotConfig(leg_mesh_size=12.0, attachment_radius=0.0))
+    patched = build_robot("1,0,0,2,2,0,0,0", RobotConfig(leg_mesh_size=12.0, attachment_patch="ring"))
+    single = build_robot("1,0,0,2,2,0,0,0", RobotConfig(leg_mesh_size=12.0, attachment_patch="node"))
     assert all(len(a.a.nodes) > 1 and np.isclose(a.a.weights.sum(), 1.0) for a in patched.model.attachments)
     assert all(len(a.a.nodes) == 1 for a in single.model.attachments)
-    with pytest.raises(ValueError, match="attachment_radius"):
-        RobotConfig(attachment_radius=-1.0)
+    with pytest.raises(ValueError, match="attachment_patch"):
+        RobotConfig(attachment_patch="glue")
 
 
 @pytest.mark.slow

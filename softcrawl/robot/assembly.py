@@ -6,7 +6,7 @@ and rotated by θ about z; the disk is lifted by ``2 · 52 sin15°``. The whole 
 then shifted vertically so that its lowest node sits ``FLOOR_CLEARANCE`` above the floor
 (``z = 0``); it settles onto the floor under gravity. Each leg is tied to the disk at the
 4 ``"attachment"`` corners of its block by point-to-point constraints (each on the average
-of the leg nodes near the corner: ``RobotConfig.attachment_radius``).
+of the corner node and its one-ring: ``RobotConfig.attachment_patch``).
 
 Bodies: index 0 is the disk, then one leg per occupied slot in slot order. Channels:
 regulator ``k`` drives model channel ``k - 1``. The model always has
@@ -59,10 +59,10 @@ class RobotConfig:
         contact_distance: floor contact distance, mm.
         refactor_every: factorization reuse of the solver (1 = exact, refactorize every
             step; see :class:`softcrawl.fem.solver.SolverSettings`).
-        attachment_radius: each of a leg's 4 attachment points ties the disk to the average
-            of the leg nodes within this distance (mm) of the corner, not to the corner node
-            alone: a single-node tie concentrates the leg's reaction in one element, which
-            inverted at 4 mm meshes under full pressure. 0 = the reference single-node tie.
+        attachment_patch: ``"ring"``: each of a leg's 4 attachment points ties the disk to
+            the average of the corner node and its one-ring (the nodes sharing a tetrahedron
+            with it); a single-node tie concentrates the leg's reaction in one element, which
+            inverted at 4 mm meshes under full pressure. ``"node"``: the reference single-node tie.
 
     Raises:
         ValueError: for non-positive mesh sizes, masses or dt (friction, lumping and damping
@@ -81,11 +81,11 @@ class RobotConfig:
     rayleigh_stiffness: float = 0.1
     contact_distance: float = 0.5
     refactor_every: int = 1
-    attachment_radius: float = 5.0
+    attachment_patch: str = "ring"
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.attachment_radius) and self.attachment_radius >= 0):
-            raise ValueError(f"RobotConfig.attachment_radius must be >= 0, got {self.attachment_radius!r}")
+        if self.attachment_patch not in ("ring", "node"):
+            raise ValueError(f"RobotConfig.attachment_patch must be 'ring' or 'node', got {self.attachment_patch!r}")
         if int(self.refactor_every) != self.refactor_every or self.refactor_every < 1:
             raise ValueError(f"RobotConfig.refactor_every must be a positive integer, got {self.refactor_every!r}")
         for name in ("leg_mesh_size", "disk_mesh_size", "dt", "leg_mass", "disk_mass"):
@@ -246,8 +246,8 @@ def build_robot(design, config: RobotConfig = RobotConfig()) -> Robot:
         ))
         legs.append(LegSlot(index, slot, SLOT_ANGLES_DEG[slot], reg, Robot.channel_of(reg)))
         for node in mesh.node_sets["attachment"]:
-            patch = np.flatnonzero(np.linalg.norm(mesh.points - mesh.points[node], axis=1) <= config.attachment_radius)
-            patch = patch if len(patch) else np.array([node])
+            patch = (np.unique(mesh.tets[np.any(mesh.tets == node, axis=1)])
+                     if config.attachment_patch == "ring" else np.array([node]))
             weights = np.full(len(patch), 1.0 / len(patch))
             attachments.append(Attachment(
                 PointRef(index, patch, weights),
