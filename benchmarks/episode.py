@@ -42,12 +42,14 @@ def bench(mesh_size: float, refactor_every: int, duration: float) -> dict:
     return {
         "mesh_size_mm": mesh_size, "refactor_every": refactor_every,
         "nodes": robot.model.n_nodes, "tets": sum(b.mesh.n_tets for b in robot.model.bodies),
-        "build_seconds": round(build, 2), "warmup_seconds": round(warmup, 2), "steps": res.steps, "settle_steps": SETTLE_STEPS,
+        "build_seconds": round(build, 2), "warmup_seconds": round(warmup, 2),
+        "steps": res.steps, "settle_steps": SETTLE_STEPS,
         "wall_seconds": round(res.wall_seconds, 2), "seconds_per_step": round(per_step, 4),
         "real_time_factor": round(res.real_time_factor, 4),
         "projected_20s_episode_minutes": round(per_step * (PROJECT_TO_S / robot.config.dt + SETTLE_STEPS) / 60, 1),
         "mean_contacts": round(float(res.contacts[1:].mean()), 1) if res.steps else None,
-        "factorizations": res.factorizations, "reward_cm": round(res.reward_cm, 4), "diverged": res.diverged,
+        "factorizations": res.factorizations, "reward_cm": round(res.reward_cm, 4),
+        "diverged": res.diverged, "divergence_reason": res.reason,
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
     }
 

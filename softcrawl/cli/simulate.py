@@ -4,7 +4,8 @@ Example::
 
     softcrawl simulate --design 1,0,0,2,2,0,0,1 --gait sine --phase 110 --duration 20 --out runs/baseline
 
-Inputs are validated (design, gait, action file, output path) before the model is built;
+Inputs are validated (design, gait, action file, output path, and with ``--video`` that pyvista
+can render off-screen) before the model is built;
 outputs appear at ``--out`` only when complete (:mod:`softcrawl.robot.output`). A diverged
 simulation is written (flagged ``"diverged": true``, ``reward_cm`` null) and exits with 1.
 """
@@ -44,11 +45,15 @@ def _run(args: argparse.Namespace) -> int:
                          refactor_every=args.refactor_every)
     gait = _gait(args)
     check_output_path(args.out, args.overwrite)
+    if args.video:
+        from softcrawl.robot.video import check_video_support  # optional extra
+
+        check_video_support()
     robot = build_robot(design, config)
     calibration = PressureCalibration()
     result = run_episode(robot, gait, args.duration, calibration, record_every=args.frames_every,
                          progress=not args.no_progress)
-    out = write_results(args.out, robot, gait, result, calibration, overwrite=args.overwrite)
+    out = write_results(args.out, robot, gait, result, calibration, overwrite=args.overwrite, video=args.video)
     print(f"reward {result.reward_cm:+.3f} cm after {result.sim_seconds:g} s "
           f"({result.steps} steps, {result.wall_seconds:.1f} s wall, {result.real_time_factor:.3f}x real time); "
           f"wrote {out}")
@@ -63,7 +68,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "simulate", help="simulate one episode of a design and gait (full-order FEM)",
         description="Simulate one episode of a crawler design with an open-loop gait and write summary.json, "
-        "trajectory.{npz,csv,png} and a ParaView series (crawl.pvd + frames/) into --out.",
+        "trajectory.{npz,csv,png}, a ParaView series (crawl.pvd + frames/) and, with --video, crawl.mp4 "
+        "into --out.",
     )
     p.add_argument("--design", default=",".join(map(str, BASELINE_DESIGN)),
                    help='8 comma-separated slot values in {0..3} (default: the baseline "1,0,0,2,2,0,0,1")')
@@ -85,6 +91,9 @@ def register(subparsers) -> None:
                         "1.7x faster and lags the contact compliance)")
     p.add_argument("--frames-every", type=int, default=10, metavar="K",
                    help="write a ParaView frame every K steps (default 10)")
+    p.add_argument("--video", action="store_true",
+                   help="also render crawl.mp4 off-screen (one frame per --frames-every steps, 25 fps; "
+                        "needs: pip install softcrawl[video])")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_run)

@@ -9,6 +9,8 @@ Layout of an output directory:
   applied solid).
 - ``crawl.pvd`` + ``frames/frame_NNNNN.vtu``: all bodies' tetrahedra in one grid per frame
   with point field ``"displacement"`` (mm, from rest) and cell field ``"body"``.
+- ``crawl.mp4`` (only with ``video=True``; needs ``softcrawl[video]``): the recorded frames
+  rendered off-screen, 25 fps (:mod:`softcrawl.robot.video`).
 
 Everything is written into a hidden temporary directory next to the destination and
 renamed onto it only when complete (:func:`staged_directory`), so a failed run leaves no
@@ -228,14 +230,18 @@ def write_paraview(directory: Path, robot: Robot, result: EpisodeResult, name: s
 
 
 def write_results(out: str | os.PathLike, robot: Robot, gait, result: EpisodeResult,
-                  calibration: PressureCalibration = PressureCalibration(), overwrite: bool = False) -> Path:
+                  calibration: PressureCalibration = PressureCalibration(), overwrite: bool = False,
+                  video: bool = False) -> Path:
     """Write all outputs (module docstring) into ``out`` atomically (:func:`staged_directory`).
+
+    With ``video``, also ``crawl.mp4`` (:func:`softcrawl.robot.video.write_video`).
 
     Returns:
         ``out`` as a Path.
 
     Raises:
         OutputExistsError: ``out`` exists and ``overwrite`` is False.
+        VideoUnavailableError: ``video`` without pyvista / imageio-ffmpeg (nothing is written).
         OSError: on write failures (nothing is left at ``out`` then).
     """
     with staged_directory(out, overwrite) as tmp:
@@ -244,4 +250,8 @@ def write_results(out: str | os.PathLike, robot: Robot, gait, result: EpisodeRes
         write_trajectory(tmp, result)
         plot_trajectory(tmp / "trajectory.png", robot, result)
         write_paraview(tmp, robot, result)
+        if video:
+            from softcrawl.robot.video import write_video  # optional extra, heavy import
+
+            write_video(tmp / "crawl.mp4", robot, result)
     return Path(out)

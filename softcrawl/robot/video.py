@@ -1,0 +1,130 @@
+"""MP4 video of an episode, rendered off-screen with pyvista (optional extra ``softcrawl[video]``).
+
+One video frame per recorded episode frame (``EpisodeResult.frames``, i.e. one per
+``--frames-every`` steps), 25 frames per second: the outer surface of all bodies (disk grey,
+legs coloured by regulator), a floor grid (20 mm squares) at ``z = 0``, a camera that follows
+the disk from a 3/4 view (front right, above), and a label with the time and the reward so far.
+
+Without a display, VTK renders through EGL: unless ``VTK_DEFAULT_OPENGL_WINDOW`` is already set,
+it is set to ``vtkEGLRenderWindow`` before pyvista is imported.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from softcrawl.geometry.mesh import boundary_triangles
+from softcrawl.robot.assembly import Robot
+from softcrawl.robot.episode import MM_PER_CM, EpisodeResult
+
+#: Video frame rate, frames per second.
+FPS = 25
+#: Default frame size, pixels (width, height).
+SIZE = (640, 360)
+#: Camera offset from the disk centre, mm (front right, above: a 3/4 view).
+CAMERA_OFFSET = np.array([260.0, -340.0, 240.0])
+_INSTALL = "pip install softcrawl[video]"
+_COLORS = ("#9a9a9a", "#1f77b4", "#d62728", "#2ca02c")  # disk, regulators 1..3
+
+
+class VideoUnavailableError(ValueError):
+    """pyvista / imageio-ffmpeg are missing or cannot render off-screen (a ValueError, so the CLI
+    reports it as a one-line user error)."""
+
+
+def _import():
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    try:
+        import imageio_ffmpeg
+        import pyvista
+    except ImportError as exc:
+        raise VideoUnavailableError(f"--video needs pyvista and imageio-ffmpeg ({exc}); "
+                                    f"install them with: {_INSTALL}") from None
+    return pyvista, imageio_ffmpeg
+
+
+def check_video_support() -> None:
+    """Check, cheaply and before a simulation, that videos can be written: imports pyvista and
+    imageio-ffmpeg and renders one tiny off-screen frame.
+
+    Raises:
+        VideoUnavailableError: a package is missing (the message names ``pip install
+            softcrawl[video]``) or off-screen rendering fails.
+    """
+    pv, _ = _import()
+    try:
+        pl = pv.Plotter(off_screen=True, window_size=(32, 32))
+        pl.add_mesh(pv.Sphere())
+        pl.screenshot(return_img=True)
+        pl.close()
+    except Exception as exc:  # VTK raises plain RuntimeErrors (or worse) without a GL context
+        raise VideoUnavailableError(f"off-screen rendering with pyvista failed ({exc}); VTK needs EGL "
+                                    "(libEGL) or OSMesa, or a display") from exc
+
+
+def write_video(path: str | os.PathLike, robot: Robot, result: EpisodeResult,
+                size: tuple[int, int] = SIZE, fps: int = FPS) -> int:
+    """Render the recorded frames of an episode to an H.264 MP4.
+
+    Args:
+        path: destination ``.mp4``.
+        robot: the robot the episode ran (its meshes give the surfaces).
+        result: the episode; ``result.frames`` ``(k, N, 3)`` mm at ``result.frame_times`` ``(k,)`` s.
+        size: ``(width, height)`` pixels, both even.
+        fps: frames per second of the video.
+
+    Returns:
+        The number of video frames written (``k``).
+
+    Raises:
+        VideoUnavailableError: pyvista / imageio-ffmpeg missing (see :func:`check_video_support`).
+        ValueError: no recorded frames, or an odd frame size.
+        OSError / RuntimeError: if ffmpeg fails to write the file.
+    """
+    pv, imageio_ffmpeg = _import()
+    if len(result.frames) == 0:
+        raise ValueError("the episode recorded no frames (record_every=None?); nothing to render")
+    if size[0] % 2 or size[1] % 2:
+        raise ValueError(f"video size must be even (H.264), got {size}")
+    model = robot.model
+    tris, face_color = [], []
+    for i, (b, off) in enumerate(zip(model.bodies, model.node_offsets)):
+        tri = boundary_triangles(b.mesh.tets, b.mesh.points) + off
+        tris.append(tri)
+        face_color.append(np.full(len(tri), next((g.regulator for g in robot.legs if g.body == i), 0)))
+    tris = np.concatenate(tris)
+    surface = pv.PolyData(result.frames[0].astype(np.float64),
+                          np.column_stack([np.full(len(tris), 3), tris]).ravel())
+    surface.cell_data["color"] = np.concatenate(face_color)  # disk 0, a leg its regulator
+    disk = model.body_slice(robot.disk_body)
+
+    centre0 = result.frames[0][disk].mean(axis=0)
+    x0 = robot.reward_position(result.frames[0])[0]
+    floor = pv.Plane(center=(centre0[0], centre0[1], 0.0), i_size=1200, j_size=1200, i_resolution=60, j_resolution=60)
+    pl = pv.Plotter(off_screen=True, window_size=tuple(size))
+    try:
+        pl.set_background("white")
+        pl.add_mesh(floor, color="#f2efe6", show_edges=True, edge_color="#c9c4b5", lighting=False)
+        pl.add_mesh(surface, scalars="color", cmap=list(_COLORS), clim=(-0.5, 3.5), n_colors=4,
+                    show_scalar_bar=False, smooth_shading=False)
+        label = pl.add_text("", position="upper_left", font_size=12, color="black")  # corner 2 = upper left
+        writer = imageio_ffmpeg.write_frames(str(path), tuple(size), fps=fps, macro_block_size=2)
+        writer.send(None)  # start ffmpeg
+        try:
+            for t, x in zip(result.frame_times, result.frames):
+                surface.points = np.asarray(x, dtype=np.float64)
+                centre = x[disk].mean(axis=0).astype(np.float64)
+                pl.camera.focal_point = centre
+                pl.camera.position = centre + CAMERA_OFFSET
+                pl.camera.up = (0.0, 0.0, 1.0)
+                label.SetText(2, f"t = {t:5.2f} s   x = {(robot.reward_position(x)[0] - x0) / MM_PER_CM:+.2f} cm")
+                pl.render()
+                img = pl.screenshot(return_img=True)
+                writer.send(np.ascontiguousarray(img[:, :, :3]))
+        finally:
+            writer.close()
+    finally:
+        pl.close()
+    return len(result.frames)
