@@ -76,7 +76,7 @@ def test_pneunet_surfaces_partition_the_boundary(leg):
     cavity, outer = leg.surfaces["cavity"], leg.surfaces["boundary"]
     assert_closed_and_consistent(cavity)  # channel and chambers form one closed cavity
     assert_closed_and_consistent(outer)
-    every = boundary_triangles(leg.tets, leg.points)
+    every = boundary_triangles(leg.tets)
     assert len(cavity) + len(outer) == len(every)
     assert np.array_equal(np.unique(leg.node_sets["collision"]), np.unique(outer))
     assert not np.intersect1d(np.unique(cavity), np.unique(outer)).size

@@ -94,7 +94,7 @@ class Body:
         if self.collision_nodes is None:
             coll = self.mesh.node_sets.get("collision")
             if coll is None:
-                coll = np.unique(boundary_triangles(self.mesh.tets, self.mesh.points))
+                coll = np.unique(boundary_triangles(self.mesh.tets))
             object.__setattr__(self, "collision_nodes", np.asarray(coll, np.int64))
 
     @property

@@ -25,7 +25,7 @@ from softcrawl.fem.body import Body
 from softcrawl.fem.constraints import Block, NodalCompliance, Term, assemble, velocity_correction
 from softcrawl.fem.contact import solve_constraints
 from softcrawl.fem.linalg import ReusedFactorization
-from softcrawl.fem.model import Model, PointRef
+from softcrawl.fem.model import Model
 from softcrawl.fem.state import Control, State
 
 
@@ -194,10 +194,9 @@ class ImplicitEulerSolver:
         comp = dict(enumerate(self._compliance))
         vel = {b: v_free[m.body_slice(b)] for b in range(len(m.bodies))}
         nb = 3 * len(self._attach_blocks)
+        # Attachment violation x_a - x_b: the blocks' terms carry the signed weights.
         drift = np.concatenate([
-            m.point_position(state.x, PointRef(blk.terms[0].body, blk.terms[0].nodes, blk.terms[0].weights))
-            - m.point_position(state.x, PointRef(blk.terms[1].body, blk.terms[1].nodes, -blk.terms[1].weights))
-            for blk in self._attach_blocks
+            sum(t.weights @ state.x[m.body_slice(t.body)][t.nodes] for t in blk.terms) for blk in self._attach_blocks
         ]) if nb else np.zeros(0)
         mu = m.floor.friction if m.floor else 0.0
         while True:

@@ -46,7 +46,7 @@ def _build_occ(p: DiskParams) -> None:
 
 def _build_mesh(p: DiskParams) -> TetMesh:
     points, tets = occ_tet_mesh("disk", partial(_build_occ, p), p.mesh_size)
-    boundary = boundary_triangles(tets, points)
+    boundary = boundary_triangles(tets)
     return TetMesh(
         points,
         tets,

@@ -33,7 +33,7 @@ def _sidecar(path: Path) -> Path:
     return path.with_suffix(".json")
 
 
-def _replace_atomically(path: Path, write: Callable[[Path], None]) -> None:
+def replace_atomically(path: Path, write: Callable[[Path], None]) -> None:
     """Call ``write`` on a temporary file next to ``path``, then move it onto ``path``."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=path.suffix)
     os.close(fd)
@@ -87,9 +87,9 @@ def write_mesh(mesh: TetMesh, path: str | os.PathLike) -> None:
         "params": mesh.params,
     }
     json.dumps(meta)  # fail (TypeError) before writing anything
-    _replace_atomically(path, lambda tmp: meshio.write(tmp, vtu, file_format="vtu"))
+    replace_atomically(path, lambda tmp: meshio.write(tmp, vtu, file_format="vtu"))
     meta["vtu_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
-    _replace_atomically(_sidecar(path), lambda tmp: tmp.write_text(json.dumps(meta, indent=1)))
+    replace_atomically(_sidecar(path), lambda tmp: tmp.write_text(json.dumps(meta, indent=1)))
 
 
 def read_mesh(path: str | os.PathLike) -> TetMesh:

@@ -128,12 +128,11 @@ class TetMesh:
         return TetMesh(pts, self.tets, self.surfaces, self.node_sets, dict(self.params))
 
 
-def boundary_triangles(tets: np.ndarray, points: np.ndarray) -> np.ndarray:
+def boundary_triangles(tets: np.ndarray) -> np.ndarray:
     """Outward-oriented boundary faces of a tetrahedral mesh.
 
     Args:
         tets: ``(m, 4)`` positively oriented tetrahedra.
-        points: ``(n, 3)`` node positions (unused for orientation, kept for checks).
 
     Returns:
         ``(k, 3)`` triangles that belong to exactly one tetrahedron, with normals pointing out.

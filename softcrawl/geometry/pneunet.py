@@ -154,7 +154,7 @@ def _build_occ(p: PneuNetParams) -> None:
 def _build_mesh(p: PneuNetParams) -> TetMesh:
     points, tets = occ_tet_mesh("pneunet", partial(_build_occ, p), p.mesh_size)
     tol = geom_tol(points)
-    tris = boundary_triangles(tets, points)
+    tris = boundary_triangles(tets)
     centroids = points[tris].mean(axis=1)
     in_cavity = np.zeros(len(tris), dtype=bool)
     for lo, hi in _boxes(p)[1]:

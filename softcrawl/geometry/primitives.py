@@ -198,7 +198,7 @@ def box_mesh(
             corners.append(corners[-1] + np.eye(3, dtype=np.int64)[axis])
         tets.append(np.stack([node[tuple((cell + c).T)] for c in corners], axis=1))
     tets = orient_tets(points, np.concatenate(tets))
-    boundary = boundary_triangles(tets, points)
+    boundary = boundary_triangles(tets)
     return TetMesh(
         points,
         tets,

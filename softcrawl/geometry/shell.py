@@ -40,7 +40,7 @@ def spherical_shell_octant(inner_radius: float, outer_radius: float, mesh_size: 
         raise ValueError(f"need 0 < inner_radius < outer_radius, got {inner_radius}, {outer_radius}")
     points, tets = occ_tet_mesh("shell", lambda: _build_occ(inner_radius, outer_radius), mesh_size)
     tol = geom_tol(points)
-    tris = boundary_triangles(tets, points)
+    tris = boundary_triangles(tets)
     on_inner = np.all(np.abs(np.linalg.norm(points[tris], axis=2) - inner_radius) <= tol, axis=1)
     on_plane = np.any(np.all(np.abs(points[tris]) <= tol, axis=1), axis=1)  # all 3 nodes on one sym plane
     return TetMesh(

@@ -101,14 +101,14 @@ def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterato
         raise
 
 
-def _jsonable(v):
+def jsonable(v):
     """Convert numpy values/arrays and non-finite floats (-> None) for JSON."""
     if isinstance(v, np.ndarray):
-        return _jsonable(v.tolist())
+        return jsonable(v.tolist())
     if isinstance(v, (list, tuple)):
-        return [_jsonable(u) for u in v]
+        return [jsonable(u) for u in v]
     if isinstance(v, dict):
-        return {str(k): _jsonable(u) for k, u in v.items()}
+        return {str(k): jsonable(u) for k, u in v.items()}
     if isinstance(v, np.generic):
         v = v.item()
     if isinstance(v, float) and not math.isfinite(v):
@@ -123,7 +123,7 @@ def describe_gait(gait) -> dict:
         fields = {f.name: getattr(gait, f.name) for f in dataclasses.fields(gait)}
     else:
         fields = {"repr": repr(gait)}
-    return _jsonable({"type": type(gait).__name__, **fields})
+    return jsonable({"type": type(gait).__name__, **fields})
 
 
 def summary(robot: Robot, gait, result: EpisodeResult, calibration: PressureCalibration) -> dict:
@@ -132,7 +132,7 @@ def summary(robot: Robot, gait, result: EpisodeResult, calibration: PressureCali
     leg = bodies[robot.leg_bodies[0]].mesh
     disk = bodies[robot.disk_body].mesh
     steps = slice(1, None)  # episode steps (row 0 is the settled state)
-    return _jsonable({
+    return jsonable({
         "design": list(robot.design),
         "gait": describe_gait(gait),
         "reward_cm": None if result.diverged else result.reward_cm,  # a diverged run has no reward

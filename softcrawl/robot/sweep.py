@@ -42,11 +42,11 @@ from tqdm.auto import tqdm
 from softcrawl import __version__
 from softcrawl.design.space import validate_design
 from softcrawl.gaits import SineGait
-from softcrawl.geometry.io import _replace_atomically
+from softcrawl.geometry.io import replace_atomically
 from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.assembly import RobotConfig, build_robot
 from softcrawl.robot.episode import SETTLE_STEPS, run_episode
-from softcrawl.robot.output import _jsonable, check_output_path, describe_gait, staged_directory
+from softcrawl.robot.output import jsonable, check_output_path, describe_gait, staged_directory
 
 #: The paper's best phase lag of the baseline, degrees.
 PAPER_BEST_PHASE_DEG = 110.0
@@ -84,7 +84,7 @@ class PhaseResult:
 
     def to_json(self) -> dict:
         """JSON-ready dict (non-finite numbers become null)."""
-        return _jsonable(dataclasses.asdict(self))
+        return jsonable(dataclasses.asdict(self))
 
     @classmethod
     def from_json(cls, d: dict) -> PhaseResult:
@@ -151,7 +151,7 @@ def sweep_settings(design, config: RobotConfig, duration: float,
     steps and the software version. Two sweeps may share finished phases only if these match."""
     gait = describe_gait(SineGait())
     gait.pop("phase_deg")
-    return _jsonable({
+    return jsonable({
         "design": list(validate_design(design)), "gait": gait, "duration_s": float(duration),
         "config": dataclasses.asdict(config), "calibration": {"a": calibration.a, "b": calibration.b},
         "settle_steps": SETTLE_STEPS, "softcrawl_version": __version__,
@@ -196,7 +196,7 @@ def _open_work_dir(work: Path, settings: dict) -> dict[float, PhaseResult]:
     if not path.exists():
         shutil.rmtree(work / "partial", ignore_errors=True)  # phase files without settings cannot be trusted
         (work / "partial").mkdir(parents=True)
-        _replace_atomically(path, lambda tmp: tmp.write_text(json.dumps(settings, indent=1) + "\n", encoding="utf-8"))
+        replace_atomically(path, lambda tmp: tmp.write_text(json.dumps(settings, indent=1) + "\n", encoding="utf-8"))
         return {}
     try:
         old = json.loads(path.read_text(encoding="utf-8"))
@@ -217,7 +217,7 @@ def _open_work_dir(work: Path, settings: dict) -> dict[float, PhaseResult]:
 
 def _save_phase(work: Path, r: PhaseResult) -> None:
     path = work / "partial" / f"phase_{r.phase_deg!r}.json"  # repr: distinct phases, distinct names
-    _replace_atomically(path, lambda tmp: tmp.write_text(json.dumps(r.to_json()) + "\n", encoding="utf-8"))
+    replace_atomically(path, lambda tmp: tmp.write_text(json.dumps(r.to_json()) + "\n", encoding="utf-8"))
 
 
 @contextlib.contextmanager
@@ -330,7 +330,7 @@ def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: R
 def sweep_json(result: SweepResult) -> dict:
     """The content of ``sweep.json`` (JSON-ready; non-finite numbers become null)."""
     best = result.best
-    return _jsonable({
+    return jsonable({
         "settings": result.settings,
         "phases": [r.to_json() for r in result.phases],
         "best": None if best is None else {"phase_deg": best.phase_deg, "reward_cm": best.reward_cm},

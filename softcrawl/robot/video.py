@@ -91,7 +91,7 @@ def write_video(path: str | os.PathLike, robot: Robot, result: EpisodeResult,
     model = robot.model
     tris, face_color = [], []
     for i, (b, off) in enumerate(zip(model.bodies, model.node_offsets)):
-        tri = boundary_triangles(b.mesh.tets, b.mesh.points) + off
+        tri = boundary_triangles(b.mesh.tets) + off
         tris.append(tri)
         face_color.append(np.full(len(tri), next((g.regulator for g in robot.legs if g.body == i), 0)))
     tris = np.concatenate(tris)
