@@ -70,6 +70,15 @@ class NodalCompliance:
         """``(K,)`` the nodes seen, in column order."""
         return np.fromiter(self.index, np.int64, len(self.index))
 
+    @property
+    def n_columns(self) -> int:
+        """``3K``: columns computed so far."""
+        return self.G.shape[1]
+
+    def correction(self, y: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` velocity change ``A^-1 E y`` for generalised impulses ``y`` ``(3K,)``."""
+        return (self.G @ y).reshape(-1, 3)
+
     def nodal(self) -> np.ndarray:
         """``(3K, 3K)`` compliance ``E^T A^-1 E`` of the K nodes seen, ordered as columns."""
         return self.G[(3 * self.nodes()[:, None] + np.arange(3)).ravel()]
@@ -108,7 +117,7 @@ def assemble(blocks: list[Block], compliances: dict[int, NodalCompliance],
         blk_rows, vals = np.concatenate(rows), np.concatenate(coef)  # (m,), (m, 3, 3)
         ii = np.broadcast_to((3 * blk_rows[:, None] + r3)[:, :, None], vals.shape)
         jj = np.broadcast_to((3 * cols[:, None] + r3)[:, None, :], vals.shape)
-        Tb = sp.csr_matrix((vals.ravel(), (ii.ravel(), jj.ravel())), shape=(n_rows, c.G.shape[1]))
+        Tb = sp.csr_matrix((vals.ravel(), (ii.ravel(), jj.ravel())), shape=(n_rows, c.n_columns))
         TN = Tb @ c.nodal()
         W += np.asarray(Tb @ TN.T)  # T N T^T (N symmetric)
         u_free += Tb @ velocities[b][c.nodes()].ravel()
@@ -119,4 +128,4 @@ def assemble(blocks: list[Block], compliances: dict[int, NodalCompliance],
 def velocity_correction(lam: np.ndarray, T: dict[int, sp.csr_matrix],
                         compliances: dict[int, NodalCompliance]) -> dict[int, np.ndarray]:
     """body -> ``(n_b, 3)`` velocity corrections ``A_b^-1 H_b^T lam``, mm/s."""
-    return {b: (compliances[b].G @ (Tb.T @ lam)).reshape(-1, 3) for b, Tb in T.items()}
+    return {b: compliances[b].correction(Tb.T @ lam) for b, Tb in T.items()}

@@ -12,7 +12,13 @@ from softcrawl.robot.actuation import (
     RegulatorBank,
     check_pressures,
 )
-from softcrawl.robot.assembly import LegSlot, Robot, RobotConfig, build_robot, leg_transform
+from softcrawl.robot.assembly import (
+    LegSlot,
+    Robot,
+    RobotConfig,
+    build_robot,
+    leg_transform,
+)
 from softcrawl.robot.episode import SETTLE_STEPS, Episode, EpisodeResult, run_episode
 
 __all__ = [

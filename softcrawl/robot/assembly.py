@@ -17,19 +17,30 @@ regulator unused, so a ``Control`` always holds one pressure per regulator (see
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from softcrawl.design.space import N_REGULATORS, SLOT_ANGLES_DEG, Design, validate_design
+from softcrawl.design.space import (
+    N_REGULATORS,
+    N_SLOTS,
+    SLOT_ANGLES_DEG,
+    Design,
+    validate_design,
+)
 from softcrawl.fem.body import Body, Cavity, Membrane
 from softcrawl.fem.materials import DRAGONSKIN_30, PAPER, PRINTED_POLYMER
 from softcrawl.fem.model import Attachment, Floor, Model, PointRef, embed_point
 from softcrawl.fem.solver import ImplicitEulerSolver, SolverSettings
 from softcrawl.fem.state import Control
 from softcrawl.geometry.disk import DiskParams, disk_mesh
+from softcrawl.geometry.mesh import TetMesh
 from softcrawl.geometry.pneunet import PneuNetParams, pneunet_mesh
+from softcrawl.reduction.model import PartReduction, ReducedBody, reduce_body
+from softcrawl.reduction.solver import ReducedSolver
 
 #: Leg tilt about y, degrees (outer tip down).
 TILT_DEG = 15.0
@@ -41,6 +52,9 @@ LEG_RADIAL_OFFSET = 50.0
 LEG_BASE_THICKNESS = 4.0
 #: Gap between the robot's lowest node and the floor after placement, mm.
 FLOOR_CLEARANCE = 0.01
+
+
+MODELS = ("full", "reduced")
 
 
 @dataclass(frozen=True)
@@ -61,6 +75,10 @@ class RobotConfig:
         contact_distance: floor contact distance, mm.
         refactor_every: factorization reuse of the solver (1 = exact, refactorize every
             step; see :class:`softcrawl.fem.solver.SolverSettings`).
+        model: ``"full"`` (full-order legs) or ``"reduced"`` (legs reduced with POD + ECSW
+            from ``reduction``; the disk stays full-order).
+        reduction: path of the leg reduction file for ``model="reduced"`` (None: the one
+            shipped with softcrawl, :func:`softcrawl.reduction.default_reduction_path`).
         attachment_patch: ``"ring"``: each of a leg's 4 attachment points ties the disk to
             the average of the corner node and its one-ring (the nodes sharing a tetrahedron
             with it); a single-node tie concentrates the leg's reaction in one element, which
@@ -84,8 +102,12 @@ class RobotConfig:
     contact_distance: float = 0.5
     refactor_every: int = 1
     attachment_patch: str = "ring"
+    model: str = "full"
+    reduction: str | None = None
 
     def __post_init__(self) -> None:
+        if self.model not in MODELS:
+            raise ValueError(f"RobotConfig.model must be one of {MODELS}, got {self.model!r}")
         if self.attachment_patch not in ("ring", "node"):
             raise ValueError(f"RobotConfig.attachment_patch must be 'ring' or 'node', got {self.attachment_patch!r}")
         if int(self.refactor_every) != self.refactor_every or self.refactor_every < 1:
@@ -104,8 +126,10 @@ class LegSlot:
         body: index of the leg's body in the model.
         slot: slot index 0..7.
         angle_deg: slot angle about +z from +x, degrees.
-        regulator: pressure regulator 1..3 driving the leg.
+        regulator: pressure regulator driving the leg (1..3 in a design; ``channel + 1``).
         channel: model pressure channel (``regulator - 1``).
+        rotation: ``(3, 3)`` rotation placing the leg-local frame in the world
+            (``R_z(angle) R_y(tilt)``, see :func:`leg_transform`).
     """
 
     body: int
@@ -113,6 +137,7 @@ class LegSlot:
     angle_deg: float
     regulator: int
     channel: int
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3), compare=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,6 +151,7 @@ class Robot:
         legs: one :class:`LegSlot` per leg, in slot order.
         reward_node: global node index (into ``State.x``) of the disk's top-centre node.
         disk_body: index of the disk body (0).
+        reduced: body index -> :class:`ReducedBody` for reduced legs (empty: full-order).
     """
 
     model: Model
@@ -134,6 +160,7 @@ class Robot:
     legs: tuple[LegSlot, ...]
     reward_node: int
     disk_body: int = 0
+    reduced: Mapping[int, ReducedBody] = field(default_factory=dict)
 
     @property
     def leg_bodies(self) -> tuple[int, ...]:
@@ -156,24 +183,27 @@ class Robot:
         """The solver input for per-regulator sim pressures.
 
         Args:
-            sim_kpa: ``(3,)`` sim gauge pressures of regulators 1..3, kPa (after the
-                real-to-sim calibration). Unused regulators have no effect.
+            sim_kpa: ``(n_channels,)`` sim gauge pressures, kPa (after the real-to-sim
+                calibration): regulators 1..3 of a design. Unused regulators have no effect.
 
         Returns:
-            A ``Control`` with ``model.n_channels == 3`` pressures (channel = regulator - 1).
+            A ``Control`` with ``model.n_channels`` pressures (channel = regulator - 1).
 
         Raises:
             ValueError: wrong shape, or a non-finite pressure.
         """
         p = np.asarray(sim_kpa, dtype=float)
-        if p.shape != (N_REGULATORS,):
-            raise ValueError(f"need {N_REGULATORS} regulator pressures, got shape {p.shape}")
+        if p.shape != (self.model.n_channels,):
+            raise ValueError(f"need {self.model.n_channels} regulator pressures, got shape {p.shape}")
         return Control(pressures=p.copy())
 
     def make_solver(self) -> ImplicitEulerSolver:
-        """A fresh full-order solver for :attr:`model` with the config's time step."""
-        return ImplicitEulerSolver(self.model, SolverSettings(dt=self.config.dt,
-                                                              refactor_every=self.config.refactor_every))
+        """A fresh solver for :attr:`model` with the config's time step (reduced if
+        :attr:`reduced` is not empty)."""
+        settings = SolverSettings(dt=self.config.dt, refactor_every=self.config.refactor_every)
+        if self.reduced:
+            return ReducedSolver(self.model, dict(self.reduced), settings)
+        return ImplicitEulerSolver(self.model, settings)
 
     def reward_position(self, x: np.ndarray) -> np.ndarray:
         """``(3,)`` position (mm) of the disk's top centre given stacked positions ``x`` (N, 3)."""
@@ -209,12 +239,14 @@ def leg_transform(angle_deg: float, tilt_deg: float = TILT_DEG) -> tuple[np.ndar
     return rz @ _rot_y(tilt_deg), rz @ offset
 
 
-def build_robot(design, config: RobotConfig = RobotConfig()) -> Robot:
+def build_robot(design, config: RobotConfig = RobotConfig(), leg_mesh: TetMesh | None = None) -> Robot:
     """Assemble the full-order model of a design.
 
     Args:
         design: 8 slot values in {0..3} (sequence or string such as ``"1,0,0,2,2,0,0,1"``).
         config: model settings.
+        leg_mesh: the PneuNet mesh in leg-local coordinates (default: meshed by gmsh at
+            ``config.leg_mesh_size``; a reduction supplies the mesh it was built on).
 
     Returns:
         The :class:`Robot` (disk = body 0, legs in slot order, ``4 * n_legs`` attachments,
@@ -225,28 +257,75 @@ def build_robot(design, config: RobotConfig = RobotConfig()) -> Robot:
         ValueError: for invalid settings; MeshError if meshing fails.
     """
     design = validate_design(design)
-    leg_local = pneunet_mesh(PneuNetParams(mesh_size=config.leg_mesh_size))
+    legs = [(slot, Robot.channel_of(reg)) for slot, reg in enumerate(design) if reg]
+    return assemble_robot(legs, config, N_REGULATORS, design, leg_mesh)
+
+
+def reduce_legs(robot: Robot, part: PartReduction) -> Robot:
+    """The reductor: the same robot with every leg replaced by the part reduction rotated to
+    its slot's pose (reduction.md, "Design-reconfigurable reduction").
+
+    Raises:
+        ValueError: the legs' mesh is not the reduction's.
+    """
+    bodies = robot.model.bodies
+    reduced = {leg.body: reduce_body(bodies[leg.body], part, leg.rotation) for leg in robot.legs}
+    return dataclasses.replace(robot, reduced=reduced, config=dataclasses.replace(robot.config, model="reduced"))
+
+
+def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotConfig(), n_channels: int | None = None,
+                   design: Design | None = None, leg_mesh: TetMesh | None = None) -> Robot:
+    """Assemble a disk with legs in any slots on any pressure channels (no design-space rules).
+
+    Used by :func:`build_robot` and, for training and validating reductions, for robots
+    outside the design space (one or two legs, one channel per leg).
+
+    Args:
+        legs: ``(slot 0..7, channel)`` per leg, slots distinct.
+        config: model settings.
+        n_channels: pressure channels of the model (default: one more than the highest used).
+        design: the design tuple recorded in the robot (default: slot -> channel + 1).
+        leg_mesh: the leg-local PneuNet mesh (default: gmsh at ``config.leg_mesh_size``).
+
+    Raises:
+        ValueError: a slot outside 0..7 or repeated, a negative channel, no legs.
+    """
+    part = None
+    if config.model == "reduced":
+        from softcrawl.reduction.artifact import load_reduction
+        from softcrawl.reduction.data import default_reduction_path
+
+        part, _ = load_reduction(config.reduction or default_reduction_path(), expect=dataclasses.asdict(config))
+        leg_mesh = part.mesh
+    legs = sorted((int(s), int(c)) for s, c in legs)
+    slots_used = [s for s, _ in legs]
+    if not legs or len(set(slots_used)) != len(legs) or not all(0 <= s < N_SLOTS for s in slots_used):
+        raise ValueError(f"legs need distinct slots in 0..{N_SLOTS - 1}, got {slots_used}")
+    if min(c for _, c in legs) < 0:
+        raise ValueError(f"pressure channels must be >= 0, got {[c for _, c in legs]}")
+    if design is None:
+        design = tuple(dict(legs).get(s, -1) + 1 for s in range(N_SLOTS))
+    leg_local = leg_mesh if leg_mesh is not None else pneunet_mesh(PneuNetParams(mesh_size=config.leg_mesh_size))
     disk_local = disk_mesh(DiskParams(mesh_size=config.disk_mesh_size))
     lift = 2 * LEG_HALF_BLOCK * math.sin(math.radians(config.tilt_deg))
 
-    slots = [(slot, reg) for slot, reg in enumerate(design) if reg]
     parts = [(disk_local, np.eye(3), np.array([0.0, 0.0, lift]))]
-    parts += [(leg_local, *leg_transform(SLOT_ANGLES_DEG[slot], config.tilt_deg)) for slot, _ in slots]
+    parts += [(leg_local, *leg_transform(SLOT_ANGLES_DEG[slot], config.tilt_deg)) for slot, _ in legs]
     z_min = min(float((m.points @ R.T + t)[:, 2].min()) for m, R, t in parts)
     shift = np.array([0.0, 0.0, FLOOR_CLEARANCE - z_min])
     disk, *leg_meshes = [m.transformed(R, t + shift) for m, R, t in parts]
 
     disk_body = Body(disk, PRINTED_POLYMER, config.disk_mass, mass_lumping=config.mass_lumping, name="disk")
-    bodies, legs, attachments = [disk_body], [], []
-    for (slot, reg), mesh in zip(slots, leg_meshes):
+    bodies, leg_slots, attachments = [disk_body], [], []
+    for (slot, channel), mesh, (_, R, _) in zip(legs, leg_meshes, parts[1:]):
         index = len(bodies)
         bodies.append(Body(
             mesh, DRAGONSKIN_30, config.leg_mass, mass_lumping=config.mass_lumping,
             membrane=Membrane(mesh.surfaces["paper"], PAPER, 1.0),
-            cavities=(Cavity(mesh.surfaces["cavity"], channel=Robot.channel_of(reg)),),
+            cavities=(Cavity(mesh.surfaces["cavity"], channel=channel),),
             name=f"leg{slot}",
         ))
-        legs.append(LegSlot(index, slot, SLOT_ANGLES_DEG[slot], reg, Robot.channel_of(reg)))
+        leg_slots.append(LegSlot(index, slot, SLOT_ANGLES_DEG[slot], channel + 1, channel, R))
         for node in mesh.node_sets["attachment"]:
             patch = (np.unique(mesh.tets[np.any(mesh.tets == node, axis=1)])
                      if config.attachment_patch == "ring" else np.array([node]))
@@ -259,7 +338,8 @@ def build_robot(design, config: RobotConfig = RobotConfig()) -> Robot:
         tuple(bodies), tuple(attachments),
         floor=Floor(0.0, config.friction, config.contact_distance),
         rayleigh_mass=config.rayleigh_mass, rayleigh_stiffness=config.rayleigh_stiffness,
-        channels=N_REGULATORS,
+        channels=n_channels,
     )
     reward_node = int(model.node_offsets[0] + disk.node_sets["top_centre"][0])
-    return Robot(model, design, config, tuple(legs), reward_node)
+    robot = Robot(model, tuple(design), config, tuple(leg_slots), reward_node)
+    return reduce_legs(robot, part) if part is not None else robot

@@ -19,18 +19,15 @@ work directory is removed once ``out`` is complete.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import contextlib
 import csv
 import dataclasses
 import functools
 import json
 import math
-import multiprocessing
 import os
 import shutil
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,16 +40,21 @@ from softcrawl import __version__
 from softcrawl.design.space import validate_design
 from softcrawl.gaits import SineGait
 from softcrawl.geometry.io import replace_atomically
+from softcrawl.parallel import run_pool
 from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.assembly import RobotConfig, build_robot
 from softcrawl.robot.episode import SETTLE_STEPS, run_episode
-from softcrawl.robot.output import jsonable, check_output_path, describe_gait, staged_directory
+from softcrawl.robot.output import (
+    check_output_path,
+    describe_gait,
+    jsonable,
+    staged_directory,
+)
 
 #: The paper's best phase lag of the baseline, degrees.
 PAPER_BEST_PHASE_DEG = 110.0
 #: Columns of ``sweep.csv``.
 CSV_COLUMNS = ("phase_deg", "reward_cm", "displacement_cm", "diverged", "steps", "wall_seconds")
-_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 class SweepSettingsMismatch(ValueError):
@@ -220,44 +222,6 @@ def _save_phase(work: Path, r: PhaseResult) -> None:
     replace_atomically(path, lambda tmp: tmp.write_text(json.dumps(r.to_json()) + "\n", encoding="utf-8"))
 
 
-@contextlib.contextmanager
-def _one_blas_thread() -> Iterator[None]:
-    """Environment of the processes started inside: one BLAS/OpenMP thread (restored after)."""
-    old = {v: os.environ.get(v) for v in _BLAS_VARS}
-    os.environ.update({v: "1" for v in _BLAS_VARS})
-    try:
-        yield
-    finally:
-        for v, val in old.items():
-            if val is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = val
-
-
-def _run_pool(workers: int, tasks: list[tuple], finished) -> None:
-    """``finished(run_phase(*task))`` for each task, as episodes complete, on ``workers`` spawned
-    processes. On an error or interrupt, results already computed are still passed to
-    ``finished``, the workers are stopped and the error is re-raised."""
-    with _one_blas_thread():  # the workers are spawned on submit, inside this block
-        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
-        futures = [pool.submit(run_phase, *task) for task in tasks]
-    seen = set()
-    try:
-        for f in cf.as_completed(futures):
-            seen.add(f)
-            finished(f.result())
-    except BaseException:
-        for f in futures:  # keep what is done
-            if f not in seen and f.done() and not f.cancelled() and f.exception() is None:
-                finished(f.result())
-        for proc in list((pool._processes or {}).values()):  # no public API before Python 3.14
-            proc.terminate()
-        raise
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
 def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: RobotConfig = RobotConfig(),
               duration: float = 20.0, workers: int | None = None, overwrite: bool = False,
               progress: bool = True) -> SweepResult:
@@ -318,7 +282,7 @@ def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: R
             for p in todo:
                 finished(run_phase(design, config, p, duration))
         elif todo:
-            _run_pool(workers, [(design, config, p, duration) for p in todo], finished)
+            run_pool(run_phase, workers, [(design, config, p, duration) for p in todo], finished)
     finally:
         bar.close()
     result = SweepResult(settings, tuple(done[p] for p in phases), time.perf_counter() - wall, workers)

@@ -1,0 +1,208 @@
+"""Typed configuration of a co-design training run and its presets (codesign.md tables).
+
+A :class:`TrainConfig` is a tree of dataclasses; it is dumped as ``config.json`` in the run
+directory (with the software version) and read back by ``--resume``. ``override`` applies
+``"section.field=value"`` strings (values parsed as JSON, else kept as strings).
+
+Presets:
+
+* ``paper``: the paper's table: 96 envs, 1M transitions, buffer 100K, batch 512, γ 0.95,
+  policy lr 6e-4, Q lr 2e-3, τ 0.01, learning starts 10K, 1 update per transition,
+  net [400, 200, 100]; entropy schedule t0 = 200K, t1 = 950K; full-order 6 mm model with
+  1 s actions (100 steps of 0.01 s).
+* ``demo``: about 15 min on a 2-core machine with the *full-order* model: coarse mesh
+  (16 mm legs, 25 mm disk, factorization reuse 5), dt 0.1 s and 10 steps per 1 s action,
+  the 280 three-legged designs, 8 envs in 2 worker processes, 4,000 transitions.
+* ``smoke``: CI, < 1 min: 2 envs in-process, 2 steps per action, 160 transitions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import asdict, dataclass, field
+
+from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
+
+MODELS = ("full",)
+BACKENDS = ("serial", "subprocess")
+TIMEOUTS = ("bootstrap", "terminal")
+
+
+@dataclass
+class EnvConfig:
+    """Simulation of one episode.
+
+    Attributes:
+        model: ``"full"`` (full-order FEM; the reduced model will add a value).
+        leg_mesh_size, disk_mesh_size: mm. refactor_every: factorization reuse (1 = exact).
+        dt: simulator step, s. steps_per_action: steps per action (hold = dt * steps_per_action s).
+        n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
+        settle_steps: zero-pressure settling steps before each episode.
+        legs: leg counts of the designs in play (default 3..6: all 6,972 canonical designs).
+        max_cached_robots: robots kept per env (LRU).
+    """
+
+    model: str = "full"
+    leg_mesh_size: float = 6.0
+    disk_mesh_size: float = 10.0
+    refactor_every: int = 1
+    dt: float = 0.01
+    steps_per_action: int = 100
+    n_actions: int = 20
+    observe_state: bool = False
+    settle_steps: int = 15
+    legs: tuple[int, ...] = (3, 4, 5, 6)
+    max_cached_robots: int = 16
+
+    def designs(self) -> tuple[tuple[int, ...], ...]:
+        """The canonical designs with a leg count in ``legs`` (sorted)."""
+        return tuple(d for d in canonical_designs() if sum(v > 0 for v in d) in self.legs)
+
+
+@dataclass
+class SACConfig:
+    """SAC hyper-parameters (paper table; see :mod:`softcrawl.codesign.sac`).
+
+    ``timeout``: ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"``
+    (reference implementation)."""
+
+    policy_lr: float = 6e-4
+    q_lr: float = 2e-3
+    buffer_size: int = 100_000
+    batch_size: int = 512
+    gamma: float = 0.95
+    tau: float = 0.01
+    learning_starts: int = 10_000
+    utd_ratio: float = 1.0
+    net_arch: tuple[int, ...] = (400, 200, 100)
+    target_entropy: float = -3.0
+    timeout: str = "bootstrap"
+
+
+@dataclass
+class DesignConfig:
+    """Design distribution: entropy schedule as fractions of the run (paper 0.2 and 0.95 of 1M),
+    handling of untried designs (:mod:`softcrawl.codesign.distribution`), ``beta_max`` (1/cm)."""
+
+    t0_fraction: float = 0.2
+    t1_fraction: float = 0.95
+    h_end: float = 0.0
+    untried: str = "mean"
+    beta_max: float = 1e6
+
+
+@dataclass
+class TrainConfig:
+    """A whole run. Steps count environment transitions (one action of one env)."""
+
+    preset: str = "paper"
+    n_envs: int = 96
+    total_steps: int = 1_000_000
+    seed: int = 0
+    backend: str = "subprocess"
+    n_workers: int = 0  # 0: one per CPU core
+    checkpoint_every: int = 50_000
+    snapshot_every: int = 20_000
+    keep_checkpoints: int = 2
+    env: EnvConfig = field(default_factory=EnvConfig)
+    sac: SACConfig = field(default_factory=SACConfig)
+    design: DesignConfig = field(default_factory=DesignConfig)
+
+    def validate(self) -> TrainConfig:
+        """Raise ValueError naming the first bad setting; returns self."""
+        def pos_int(name, v):
+            if int(v) != v or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("n_envs", "total_steps", "checkpoint_every", "snapshot_every", "keep_checkpoints"):
+            pos_int(name, getattr(self, name))
+        for name in ("steps_per_action", "n_actions", "refactor_every", "max_cached_robots"):
+            pos_int(f"env.{name}", getattr(self.env, name))
+        for name in ("buffer_size", "batch_size"):
+            pos_int(f"sac.{name}", getattr(self.sac, name))
+        if self.env.model not in MODELS:
+            raise ValueError(f"env.model must be one of {MODELS}, got {self.env.model!r}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+        if self.sac.timeout not in TIMEOUTS:
+            raise ValueError(f"sac.timeout must be one of {TIMEOUTS}, got {self.sac.timeout!r}")
+        if not self.env.legs or any(k not in range(MIN_LEGS, MAX_LEGS + 1) for k in self.env.legs):
+            raise ValueError(f"env.legs must be a non-empty subset of {MIN_LEGS}..{MAX_LEGS}, got {self.env.legs}")
+        if not 0 <= self.design.t0_fraction <= self.design.t1_fraction:
+            raise ValueError("design fractions need 0 <= t0_fraction <= t1_fraction")
+        if not (0 < self.sac.gamma <= 1 and 0 < self.sac.tau <= 1 and self.sac.utd_ratio > 0):
+            raise ValueError("sac.gamma and sac.tau must be in (0, 1], sac.utd_ratio > 0")
+        if self.n_workers < 0 or self.sac.learning_starts < 0:
+            raise ValueError("n_workers and sac.learning_starts must be >= 0")
+        if not all(math.isfinite(v) and v > 0 for v in (self.env.dt, self.sac.policy_lr, self.sac.q_lr)):
+            raise ValueError("env.dt, sac.policy_lr and sac.q_lr must be positive")
+        return self
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        """Inverse of :meth:`to_dict`; unknown keys raise ValueError."""
+        def build(kind, data):
+            names = {f.name: f for f in dataclasses.fields(kind)}
+            unknown = set(data) - set(names)
+            if unknown:
+                raise ValueError(f"unknown {kind.__name__} settings: {sorted(unknown)}")
+            kw = {}
+            for k, v in data.items():
+                sub = {"env": EnvConfig, "sac": SACConfig, "design": DesignConfig}.get(k) if kind is cls else None
+                kw[k] = build(sub, v) if sub else (tuple(v) if isinstance(v, list) else v)
+            return kind(**kw)
+        return build(cls, d).validate()
+
+
+PRESETS = ("paper", "demo", "smoke")
+
+
+def preset(name: str) -> TrainConfig:
+    """The named preset (``paper``, ``demo``, ``smoke``; see the module docstring)."""
+    if name == "paper":
+        return TrainConfig().validate()
+    if name == "demo":
+        return TrainConfig(
+            preset="demo", n_envs=8, total_steps=4_000, backend="subprocess", n_workers=2,
+            checkpoint_every=800, snapshot_every=200,
+            env=EnvConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5, dt=0.1, steps_per_action=10,
+                          settle_steps=3, legs=(3,)),
+            sac=SACConfig(buffer_size=20_000, batch_size=128, learning_starts=400, utd_ratio=0.25),
+        ).validate()
+    if name == "smoke":
+        return TrainConfig(
+            preset="smoke", n_envs=2, total_steps=160, backend="serial", n_workers=1,
+            checkpoint_every=80, snapshot_every=40,
+            env=EnvConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5, steps_per_action=2,
+                          settle_steps=3, legs=(3,)),
+            sac=SACConfig(buffer_size=1_000, batch_size=32, learning_starts=40),
+        ).validate()
+    raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
+
+
+def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
+    """Apply ``"field=value"`` / ``"section.field=value"`` strings (value parsed as JSON if
+    possible); ValueError on an unknown field or malformed string. Returns a validated copy."""
+    d = cfg.to_dict()
+    for a in assignments:
+        if "=" not in a:
+            raise ValueError(f"override must look like section.field=value, got {a!r}")
+        key, raw = a.split("=", 1)
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        parts = key.strip().split(".")
+        target = d
+        for p in parts[:-1]:
+            if p not in target or not isinstance(target[p], dict):
+                raise ValueError(f"unknown setting {key!r}")
+            target = target[p]
+        if parts[-1] not in target or isinstance(target[parts[-1]], dict):
+            raise ValueError(f"unknown setting {key!r}")
+        target[parts[-1]] = value
+    return TrainConfig.from_dict(d)

@@ -1,0 +1,181 @@
+"""Report of a co-design run (``softcrawl report RUN``; also written at the end of training).
+
+Writes ``RUN/report/``:
+
+* ``summary.md``: run settings, steps, episodes, best return, final entropy/beta, and the
+  top-k table (design, latest return R (cm; the score in the Gibbs weights), probability,
+  episodes, mean and best return, picture);
+* ``top-<i>.png``: pictures of the top-k designs (:func:`softcrawl.design.picture.plot_design`);
+* ``reward_histogram.png``: over training (x: steps), the distribution of the designs'
+  latest returns (y, cm) weighted by the design distribution p (tried designs only, weights
+  renormalised), from the ``snapshots/``, with the best return so far as a line (paper figure);
+* ``returns.png``: episode returns over training with a running mean;
+* ``top_designs.csv``: the top-k table.
+
+Top-k ranking: designs that were tried, by their latest return ``R`` (the quantity the
+distribution concentrates on), ties broken by design order.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import pickle
+from pathlib import Path
+
+import numpy as np
+
+from softcrawl.design.picture import plot_design
+
+
+def _episodes(run: Path) -> dict:
+    t, designs, r, div = [], [], [], []
+    path = run / "episodes.csv"
+    if path.exists():
+        with open(path, newline="") as f:
+            for row in csv.reader(f):
+                if row:
+                    t.append(int(row[0]))
+                    designs.append(tuple(int(c) for c in row[1]))
+                    r.append(float(row[2]))
+                    div.append(bool(int(row[3])))
+    return {"t": np.array(t, np.int64), "design": designs, "r": np.array(r), "diverged": np.array(div, bool)}
+
+
+def load_final_sampler_state(run: Path) -> dict | None:
+    """The design-sampler state of the latest checkpoint, or None."""
+    from softcrawl.codesign.training import latest_checkpoint
+
+    ck = latest_checkpoint(run)
+    if ck is None:
+        return None
+    with open(ck / "state.pkl", "rb") as f:
+        return pickle.load(f)["sampler"]
+
+
+def top_designs(run: str | Path, k: int = 5) -> list[dict]:
+    """Top-k tried designs of a run (see the module docstring) as dicts with keys ``design``,
+    ``latest_cm``, ``prob``, ``episodes``, ``mean_cm``, ``best_cm``."""
+    run = Path(run)
+    state = load_final_sampler_state(run)
+    if state is None:
+        raise ValueError(f"{run} has no checkpoint (not a training run, or it has not checkpointed yet)")
+    from softcrawl.codesign.distribution import GibbsDesignDistribution
+
+    dist = GibbsDesignDistribution(state["distribution"]["designs"])
+    dist.load_state_dict(state["distribution"])
+    p = dist.probs()
+    ep = _episodes(run)
+    tried = np.flatnonzero(dist.tried)
+    order = tried[np.lexsort((tried, -dist.returns[tried]))][:k]
+    rows = []
+    for i in order:
+        d = dist.designs[i]
+        mine = np.array([r for dd, r in zip(ep["design"], ep["r"]) if dd == d])
+        rows.append({"design": d, "latest_cm": float(dist.returns[i]), "prob": float(p[i]), "episodes": len(mine),
+                     "mean_cm": float(mine.mean()) if len(mine) else float("nan"),
+                     "best_cm": float(mine.max()) if len(mine) else float("nan")})
+    return rows
+
+
+def _histogram_figure(run: Path, ep: dict, path: Path) -> bool:
+    from matplotlib.figure import Figure
+
+    snaps = sorted((run / "snapshots").glob("t-*.npz")) if (run / "snapshots").exists() else []
+    if not snaps:
+        return False
+    data = [np.load(s) for s in snaps]
+    ts = np.array([int(d["t"]) for d in data])
+    allr = np.concatenate([d["scores"][d["tried"]] for d in data] + [ep["r"]] if len(ep["r"]) else
+                          [d["scores"][d["tried"]] for d in data])
+    if allr.size == 0:
+        return False
+    lo, hi = float(allr.min()), float(allr.max())
+    if hi <= lo:
+        hi = lo + 1e-3
+    edges = np.linspace(lo, hi, 41)
+    img = np.zeros((len(edges) - 1, len(data)))
+    for j, d in enumerate(data):
+        w = d["p"][d["tried"]].astype(float)
+        if w.sum() > 0:
+            img[:, j] = np.histogram(d["scores"][d["tried"]], bins=edges, weights=w / w.sum())[0]
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    x_edges = np.concatenate([[0], ts]) if len(ts) else np.array([0, 1])
+    mesh = ax.pcolormesh(x_edges, edges, img, cmap="viridis", shading="flat")
+    fig.colorbar(mesh, ax=ax, label="probability mass (design distribution)")
+    if len(ep["r"]):
+        ax.step(ep["t"], np.maximum.accumulate(ep["r"]), where="post", color="tab:red", label="best so far")
+        ax.legend(loc="lower right")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("latest return R (cm per episode)")
+    ax.set_title("Returns weighted by the design distribution")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    return True
+
+
+def _returns_figure(ep: dict, path: Path) -> None:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 3.5))
+    ax = fig.add_subplot()
+    if len(ep["r"]):
+        ax.plot(ep["t"], ep["r"], ".", ms=3, alpha=0.4, label="episode return")
+        w = max(1, len(ep["r"]) // 20)
+        run_mean = np.convolve(ep["r"], np.ones(w) / w, mode="valid")
+        ax.plot(ep["t"][w - 1:], run_mean, color="k", label=f"running mean ({w})")
+        ax.legend()
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("return (cm)")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+
+
+def write_report(run: str | Path, k: int = 5) -> Path:
+    """Write ``run/report/`` (module docstring) and return its path.
+
+    Raises:
+        ValueError: ``run`` is not a training run with at least one checkpoint.
+    """
+    run = Path(run)
+    if not (run / "config.json").exists():
+        raise ValueError(f"{run} is not a training run (no config.json)")
+    meta = json.loads((run / "config.json").read_text())
+    top = top_designs(run, k)
+    out = run / "report"
+    out.mkdir(exist_ok=True)
+    ep = _episodes(run)
+    for i, row in enumerate(top, 1):
+        plot_design(row["design"], path=out / f"top-{i}.png")
+    has_hist = _histogram_figure(run, ep, out / "reward_histogram.png")
+    _returns_figure(ep, out / "returns.png")
+    with open(out / "top_designs.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["rank", "design", "latest_cm", "prob", "episodes", "mean_cm", "best_cm"])
+        for i, row in enumerate(top, 1):
+            w.writerow([i, ",".join(map(str, row["design"])), f"{row['latest_cm']:.4f}", f"{row['prob']:.4g}",
+                        row["episodes"], f"{row['mean_cm']:.4f}", f"{row['best_cm']:.4f}"])
+    state = load_final_sampler_state(run)
+    last = state["distribution"]["last"]
+    cfg = meta["config"]
+    lines = [
+        f"# Co-design run `{run.name}`", "",
+        f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
+        f"{cfg['total_steps']} steps planned; {len(ep['r'])} episodes logged, "
+        f"{int(ep['diverged'].sum())} diverged.", "",
+        f"- steps done (last checkpoint): {state['timestep']}",
+        f"- best episode return: {ep['r'].max():+.3f} cm" if len(ep["r"]) else "- no episode finished",
+        f"- design distribution: beta = {last.beta:.4g} /cm, entropy {last.entropy:.3f} nats "
+        f"(target {last.target:.3f}{', clamped to the tie floor' if last.clamped else ''})" if last else "",
+        "", f"## Top {len(top)} designs (by latest return R)", "",
+        "| rank | design | R (cm) | p | episodes | mean (cm) | best (cm) | picture |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for i, row in enumerate(top, 1):
+        lines.append(f"| {i} | `{','.join(map(str, row['design']))}` | {row['latest_cm']:+.3f} | {row['prob']:.3g} | "
+                     f"{row['episodes']} | {row['mean_cm']:+.3f} | {row['best_cm']:+.3f} | ![](top-{i}.png) |")
+    lines += ["", "## Training", ""]
+    if has_hist:
+        lines.append("![reward histogram weighted by the design distribution](reward_histogram.png)")
+    lines += ["", "![episode returns](returns.png)", ""]
+    (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
+    return out

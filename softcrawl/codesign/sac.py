@@ -1,0 +1,55 @@
+"""Soft actor-critic for co-design: stable-baselines3's SAC with separate policy and Q learning
+rates, one gradient update per environment transition (codesign.md, "Soft actor-critic").
+
+Time limit. An episode ends after 20 actions by *truncation*: the observation (design + the
+last 4 actions) does not contain the time, but the MDP continues physically, so the Q target
+bootstraps through the cut (``r + gamma Q(s', a')``): SB3's replay buffer reads
+``info["TimeLimit.truncated"]`` (set by :class:`softcrawl.envs.vec.DesignVecEnv`) with
+``handle_timeout_termination=True``. The reference implementation treated the limit as a true
+terminal (``SACConfig.timeout = "terminal"`` reproduces that). Divergence of the simulation is a
+true terminal (no bootstrap).
+"""
+
+from __future__ import annotations
+
+from stable_baselines3 import SAC
+
+from softcrawl.codesign.config import SACConfig
+
+
+class SplitLRSAC(SAC):
+    """SAC whose critic optimizer uses ``q_learning_rate`` (a float); the actor and the entropy
+    temperature use ``learning_rate`` (SB3's). Everything else is SB3's SAC."""
+
+    def __init__(self, *args, q_learning_rate: float | None = None, **kwargs):
+        self.q_learning_rate = q_learning_rate
+        super().__init__(*args, **kwargs)
+
+    def _update_learning_rate(self, optimizers) -> None:
+        critic_opt = self.critic.optimizer
+        super()._update_learning_rate([o for o in optimizers if o is not critic_opt])
+        if self.q_learning_rate is not None:
+            for group in critic_opt.param_groups:
+                group["lr"] = float(self.q_learning_rate)
+            self.logger.record("train/q_learning_rate", float(self.q_learning_rate))
+
+
+def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
+    """The SAC learner for a vectorised crawler env.
+
+    ``gradient_steps`` per vectorised step = ``round(cfg.utd_ratio * env.num_envs)`` (at least 1),
+    i.e. ``utd_ratio`` updates per transition (paper: 1). Networks: MLP ``cfg.net_arch`` with ReLU
+    for the actor and both critics; Adam(β1 0.9, β2 0.999); automatic temperature with target
+    entropy ``cfg.target_entropy`` (−3 = −dim A).
+    """
+    grad_steps = max(1, round(cfg.utd_ratio * env.num_envs))
+    return SplitLRSAC(
+        "MlpPolicy", env,
+        learning_rate=cfg.policy_lr, q_learning_rate=cfg.q_lr,
+        buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
+        tau=cfg.tau, gamma=cfg.gamma, train_freq=(1, "step"), gradient_steps=grad_steps,
+        ent_coef="auto", target_entropy=cfg.target_entropy,
+        replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"},
+        policy_kwargs={"net_arch": list(cfg.net_arch), "optimizer_kwargs": {"betas": (0.9, 0.999)}},
+        seed=seed, device="cpu", verbose=0,
+    )

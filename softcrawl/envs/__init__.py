@@ -1,0 +1,17 @@
+"""Reinforcement-learning environments of the crawler: the single-episode gymnasium env
+(:mod:`softcrawl.envs.crawler`) and the design-sampling vectorised env with serial and
+process-parallel backends (:mod:`softcrawl.envs.vec`, imports stable-baselines3)."""
+
+from softcrawl.envs.crawler import (
+    DESIGN_DIM,
+    HISTORY,
+    N_ACTIONS,
+    STATE_DIM,
+    BuildRobot,
+    CrawlerEnv,
+    action_to_kpa,
+    kpa_to_action,
+)
+
+__all__ = ["DESIGN_DIM", "HISTORY", "N_ACTIONS", "STATE_DIM", "BuildRobot", "CrawlerEnv", "action_to_kpa",
+           "kpa_to_action"]

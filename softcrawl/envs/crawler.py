@@ -1,0 +1,212 @@
+"""Gymnasium environment of one crawler episode (codesign.md, "The policy").
+
+One episode = ``n_actions`` (20) actions, each held for ``steps_per_action`` simulator steps
+(default 100 steps of 0.01 s = 1 s). The design is fixed per episode and chosen at
+``reset(options={"design": ...})`` (a uniformly random design of ``designs`` from the env's RNG
+when none is given).
+
+* Action: ``Box(-1, 1, (3,))``, mapped inside to commanded real pressures
+  ``45 (a + 1)`` kPa in [0, 90] (regulators 1..3).
+* Observation: ``Box((44,))`` float32 = design one-hot (32, slot-major, see
+  :func:`softcrawl.design.space.one_hot`) + the last ``history`` (4) actions in [-1, 1], most
+  recent first, zeros at the start of an episode (cleared on every reset). With
+  ``observe_state=True`` 9 numbers follow: disk top-centre displacement since the end of
+  settling (cm, x/y/z), its velocity (cm/s) and the applied pressures scaled to [-1, 1].
+* Reward: cm crawled along +x by the disk top centre during the action (the episode return is
+  the +x displacement, codesign.md / paper).
+* ``terminated``: only on a diverged simulation (``SimulationDiverged``): ``info["diverged"]``
+  is True and ``info["reason"]`` holds the message; the reward of that action counts up to the
+  last valid state. ``truncated``: after ``n_actions`` actions (the time limit; learners should
+  bootstrap through it, see :mod:`softcrawl.codesign.sac`).
+* ``info``: ``design``, ``t`` (s), ``disk_position_mm`` (3,), ``displacement_cm``,
+  ``applied_kpa`` (3,) and ``commanded_kpa`` (3,), ``diverged``, ``reason``.
+
+Robots are built with an injectable ``robot_factory(design) -> Robot`` (default
+:class:`BuildRobot`, the full-order model) and cached per design (LRU, ``max_cached``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import gymnasium as gym
+import numpy as np
+
+from softcrawl.design.space import Design, canonical_designs, one_hot, validate_design
+from softcrawl.fem.solver import SimulationDiverged
+from softcrawl.robot.actuation import P_MAX_KPA, PressureCalibration
+from softcrawl.robot.assembly import Robot, RobotConfig, build_robot
+from softcrawl.robot.episode import MM_PER_CM, SETTLE_STEPS, Episode
+
+N_ACTIONS = 20
+HISTORY = 4
+DESIGN_DIM = 32
+STATE_DIM = 9
+
+
+@dataclass(frozen=True)
+class BuildRobot:
+    """Picklable default robot factory: ``build_robot(design, config)`` (full-order model)."""
+
+    config: RobotConfig = field(default_factory=RobotConfig)
+
+    def __call__(self, design: Design) -> Robot:
+        return build_robot(design, self.config)
+
+
+def action_to_kpa(action: np.ndarray) -> np.ndarray:
+    """Map actions in [-1, 1] (clipped) to commanded real kPa in [0, 90]: ``45 (a + 1)``."""
+    a = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)
+    return (a + 1.0) * (P_MAX_KPA / 2.0)
+
+
+def kpa_to_action(kpa: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`action_to_kpa`."""
+    return np.asarray(kpa, dtype=float) / (P_MAX_KPA / 2.0) - 1.0
+
+
+class CrawlerEnv(gym.Env):
+    """One crawler episode as a gymnasium 1.x environment (see the module docstring).
+
+    Args:
+        robot_factory: ``design tuple -> Robot`` (default ``BuildRobot(RobotConfig())``).
+        steps_per_action: simulator steps per action (default 100 = 1 s at dt 0.01 s).
+        n_actions: actions per episode (default 20).
+        history: past actions in the observation (default 4).
+        observe_state: append the 9-number robot-state summary to the observation.
+        designs: designs drawn at reset when none is given (default: all canonical designs).
+        settle_steps: zero-pressure settling steps at reset (default 15, not counted).
+        calibration: real-to-sim pressure map.
+        max_cached: robots kept per env (LRU).
+
+    Raises:
+        ValueError: non-positive ``steps_per_action``/``n_actions``/``max_cached``, negative
+            ``history``, an empty or invalid ``designs`` list.
+    """
+
+    metadata = {"render_modes": []}
+    render_mode = None
+
+    def __init__(self, robot_factory: Callable[[Design], Robot] | None = None, steps_per_action: int = 100,
+                 n_actions: int = N_ACTIONS, history: int = HISTORY, observe_state: bool = False,
+                 designs: Sequence[Sequence[int]] | None = None, settle_steps: int = SETTLE_STEPS,
+                 calibration: PressureCalibration = PressureCalibration(), max_cached: int = 16):
+        super().__init__()
+        for name, v in (("steps_per_action", steps_per_action), ("n_actions", n_actions), ("max_cached", max_cached)):
+            if int(v) != v or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if int(history) != history or history < 0:
+            raise ValueError(f"history must be a non-negative integer, got {history!r}")
+        self.robot_factory = robot_factory if robot_factory is not None else BuildRobot()
+        self.steps_per_action, self.n_actions, self.history = int(steps_per_action), int(n_actions), int(history)
+        self.observe_state, self.settle_steps, self.calibration = bool(observe_state), int(settle_steps), calibration
+        self.designs = canonical_designs() if designs is None else tuple(validate_design(d) for d in designs)
+        if not self.designs:
+            raise ValueError("designs must not be empty")
+        self.max_cached = int(max_cached)
+        self._episodes: OrderedDict[Design, Episode] = OrderedDict()
+        n_hist = 3 * self.history
+        low = np.concatenate([np.zeros(DESIGN_DIM), -np.ones(n_hist)]).astype(np.float32)
+        high = np.ones(DESIGN_DIM + n_hist, np.float32)
+        if self.observe_state:
+            low = np.concatenate([low, np.full(STATE_DIM, -np.inf, np.float32)])
+            high = np.concatenate([high, np.full(STATE_DIM, np.inf, np.float32)])
+        self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
+        self.design: Design | None = None
+        self.episode: Episode | None = None
+        self._hist = np.zeros((self.history, 3), np.float32)
+        self._k = 0
+        self._dead, self._reason = False, ""
+        self._one_hot = np.zeros(DESIGN_DIM, np.float32)
+
+    # -- robots ---------------------------------------------------------------------------
+    def _episode_for(self, design: Design) -> Episode:
+        ep = self._episodes.pop(design, None)
+        if ep is None:
+            ep = Episode(self.robot_factory(design), self.calibration, self.settle_steps)
+        self._episodes[design] = ep
+        while len(self._episodes) > self.max_cached:
+            self._episodes.popitem(last=False)
+        return ep
+
+    # -- observation / info -----------------------------------------------------------------
+    def _state_summary(self) -> np.ndarray:
+        ep = self.episode
+        node = ep.robot.reward_node
+        disp = (ep.state.x[node] - ep.start) / MM_PER_CM
+        vel = ep.state.v[node] / MM_PER_CM
+        return np.concatenate([disp, vel, kpa_to_action(ep.applied)]).astype(np.float32)
+
+    def _obs(self) -> np.ndarray:
+        parts = [self._one_hot, self._hist.reshape(-1)]
+        if self.observe_state:
+            parts.append(self._state_summary() if not self._dead else np.zeros(STATE_DIM, np.float32))
+        return np.concatenate(parts).astype(np.float32)
+
+    def _info(self, commanded: np.ndarray | None = None) -> dict:
+        ep = self.episode
+        pos = ep.robot.reward_position(ep.state.x) if not self._dead or self._k > 0 else np.full(3, np.nan)
+        return {
+            "design": self.design, "t": self._k * self.steps_per_action * ep.dt,
+            "disk_position_mm": np.array(pos, dtype=float), "displacement_cm": self._displacement(),
+            "applied_kpa": ep.applied, "commanded_kpa": np.zeros(3) if commanded is None else commanded,
+            "diverged": self._dead, "reason": self._reason,
+        }
+
+    def _displacement(self) -> float:
+        return self.episode.displacement_cm if (not self._dead or self._k > 0) else 0.0
+
+    # -- gymnasium API ----------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode: ``options={"design": ...}`` (8 slot values or a string) or a random
+        design of ``designs``. Returns ``(obs, info)``. A diverged settling is reported with
+        ``info["diverged"]`` and the first step then terminates with reward 0."""
+        super().reset(seed=seed)
+        options = options or {}
+        if options.get("design") is not None:
+            design = validate_design(options["design"])
+        else:
+            design = self.designs[int(self.np_random.integers(len(self.designs)))]
+        self.design = design
+        self._one_hot = one_hot(design)
+        self._hist[:] = 0.0
+        self._k = 0
+        self._dead, self._reason = False, ""
+        self.episode = self._episode_for(design)
+        try:
+            self.episode.reset()
+        except SimulationDiverged as exc:
+            self._dead, self._reason = True, f"settling diverged: {exc}"
+        return self._obs(), self._info()
+
+    def step(self, action):
+        """Apply one action for ``steps_per_action`` steps; returns
+        ``(obs, reward_cm, terminated, truncated, info)``."""
+        if self.episode is None:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(action, dtype=np.float32).reshape(-1)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be 3 finite numbers in [-1, 1], got {action!r}")
+        a = np.clip(a, -1.0, 1.0)
+        kpa = action_to_kpa(a)
+        before = self._displacement()
+        if self.history:
+            self._hist[1:] = self._hist[:-1].copy()
+            self._hist[0] = a
+        if not self._dead:
+            try:
+                for _ in range(self.steps_per_action):
+                    self.episode.step(kpa)
+            except SimulationDiverged as exc:
+                self._dead, self._reason = True, str(exc)
+        self._k += 1
+        reward = self._displacement() - before
+        if not math.isfinite(reward):
+            reward = 0.0
+        terminated = self._dead
+        truncated = (not terminated) and self._k >= self.n_actions
+        return self._obs(), float(reward), terminated, truncated, self._info(kpa)

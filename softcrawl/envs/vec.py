@@ -1,0 +1,332 @@
+"""Vectorised crawler rollouts: a stable-baselines3 ``VecEnv`` of N crawlers whose designs are
+drawn at every (auto-)reset by a design sampler living in the learner's process
+(codesign.md, "Each iteration").
+
+The simulation runs in a small *backend* interface (:class:`EnvBackend`): ``reset`` given
+env indices, designs and seeds, ``step`` of all envs, ``get_attr``/``set_attr``/``call`` and
+``close``. Two backends: :class:`SerialBackend` (in-process, tests) and
+:class:`SubprocessBackend` (``multiprocessing`` workers connected by pipes, each worker
+holding a contiguous chunk of the envs, so 96 envs run on 2 cores with 2 workers). A Ray
+backend only needs to implement the same five methods.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from collections.abc import Callable, Sequence
+
+import cloudpickle
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.vec_env import VecEnv
+
+from softcrawl.design.space import Design
+
+StepResult = tuple[np.ndarray, float, bool, bool, dict]
+
+
+class EnvBackend:
+    """Where the N environments live. Subclasses implement the methods below."""
+
+    num_envs: int
+    observation_space: gym.Space
+    action_space: gym.Space
+
+    def reset(self, indices: Sequence[int], designs: Sequence[Design | None],
+              seeds: Sequence[int | None]) -> list[tuple[np.ndarray, dict]]:  # pragma: no cover
+        """Reset envs ``indices`` with the given designs (None: the env chooses) and seeds."""
+        raise NotImplementedError
+
+    def step(self, actions: np.ndarray) -> list[StepResult]:  # pragma: no cover
+        """Step all envs with ``actions`` ``(N, 3)``; no auto-reset."""
+        raise NotImplementedError
+
+    def get_attr(self, name: str, indices: Sequence[int]) -> list:  # pragma: no cover
+        raise NotImplementedError
+
+    def set_attr(self, name: str, value, indices: Sequence[int]) -> None:  # pragma: no cover
+        raise NotImplementedError
+
+    def call(self, method: str, args: tuple, kwargs: dict, indices: Sequence[int]) -> list:  # pragma: no cover
+        raise NotImplementedError
+
+    def close(self) -> None:  # pragma: no cover
+        pass
+
+
+class SerialBackend(EnvBackend):
+    """All envs in this process, stepped one after another.
+
+    Args:
+        env_fns: one zero-argument constructor per env.
+    """
+
+    def __init__(self, env_fns: Sequence[Callable[[], gym.Env]]):
+        if len(env_fns) < 1:
+            raise ValueError("need at least one env")
+        self.envs = [fn() for fn in env_fns]
+        self.num_envs = len(self.envs)
+        self.observation_space, self.action_space = self.envs[0].observation_space, self.envs[0].action_space
+
+    def reset(self, indices, designs, seeds):
+        return [self.envs[i].reset(seed=s, options={"design": d}) for i, d, s in zip(indices, designs, seeds)]
+
+    def step(self, actions):
+        return [env.step(a) for env, a in zip(self.envs, actions)]
+
+    def get_attr(self, name, indices):
+        return [getattr(self.envs[i], name) for i in indices]
+
+    def set_attr(self, name, value, indices):
+        for i in indices:
+            setattr(self.envs[i], name, value)
+
+    def call(self, method, args, kwargs, indices):
+        return [getattr(self.envs[i], method)(*args, **kwargs) for i in indices]
+
+    def close(self):
+        for env in self.envs:
+            env.close()
+
+
+def _worker(remote, parent_remote, payload: bytes) -> None:
+    """Worker loop: holds a chunk of envs, answers commands from the pipe."""
+    parent_remote.close()
+    backend = SerialBackend(cloudpickle.loads(payload))
+    try:
+        while True:
+            cmd, arg = remote.recv()
+            try:
+                if cmd == "step":
+                    out = backend.step(arg)
+                elif cmd == "reset":
+                    out = backend.reset(*arg)
+                elif cmd == "spaces":
+                    out = (backend.observation_space, backend.action_space)
+                elif cmd == "get_attr":
+                    out = backend.get_attr(*arg)
+                elif cmd == "set_attr":
+                    out = backend.set_attr(*arg)
+                elif cmd == "call":
+                    out = backend.call(*arg)
+                elif cmd == "close":
+                    backend.close()
+                    remote.send(("ok", None))
+                    break
+                else:
+                    raise ValueError(f"unknown command {cmd!r}")
+                remote.send(("ok", out))
+            except Exception as exc:  # noqa: BLE001 - forwarded to the parent
+                remote.send(("error", exc))
+    except (EOFError, KeyboardInterrupt):
+        pass
+    finally:
+        remote.close()
+
+
+class SubprocessBackend(EnvBackend):
+    """Envs spread over ``n_workers`` processes (contiguous chunks), talked to through pipes.
+
+    Args:
+        env_fns: one zero-argument constructor per env (pickled with cloudpickle, so lambdas work).
+        n_workers: worker processes (default: ``min(len(env_fns), os.cpu_count())``).
+        start_method: ``multiprocessing`` start method (default ``"forkserver"`` where available,
+            else ``"spawn"``; ``fork`` is unsafe once torch has started threads).
+
+    Worker processes inherit ``OMP_NUM_THREADS`` etc. (set to 1 here if unset). An exception
+    in a worker is re-raised in the parent.
+    """
+
+    def __init__(self, env_fns: Sequence[Callable[[], gym.Env]], n_workers: int | None = None,
+                 start_method: str | None = None):
+        n = len(env_fns)
+        if n < 1:
+            raise ValueError("need at least one env")
+        n_workers = min(n, n_workers or os.cpu_count() or 1)
+        if n_workers < 1:
+            raise ValueError(f"n_workers must be >= 1, got {n_workers}")
+        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(var, "1")
+        if start_method is None:
+            start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+        ctx = mp.get_context(start_method)
+        self.num_envs = n
+        bounds = np.linspace(0, n, n_workers + 1).round().astype(int)
+        self._chunks = [list(range(bounds[w], bounds[w + 1])) for w in range(n_workers)]
+        self._owner = {i: (w, j) for w, chunk in enumerate(self._chunks) for j, i in enumerate(chunk)}
+        self.remotes, self.processes = [], []
+        for chunk in self._chunks:
+            remote, work_remote = ctx.Pipe()
+            payload = cloudpickle.dumps([env_fns[i] for i in chunk])
+            proc = ctx.Process(target=_worker, args=(work_remote, remote, payload), daemon=True)
+            proc.start()
+            work_remote.close()
+            self.remotes.append(remote)
+            self.processes.append(proc)
+        self._closed = False
+        self.observation_space, self.action_space = self._ask([0], "spaces", lambda j: None)[0]
+
+    def _recv(self, w: int):
+        status, out = self.remotes[w].recv()
+        if status == "error":
+            raise out
+        return out
+
+    def _ask(self, workers: Sequence[int], cmd: str, arg_of: Callable[[int], object]) -> list:
+        for w in workers:
+            self.remotes[w].send((cmd, arg_of(w)))
+        return [self._recv(w) for w in workers]
+
+    def _by_worker(self, indices: Sequence[int]) -> dict[int, list[tuple[int, int]]]:
+        """``worker -> [(position in indices, local index)]``."""
+        groups: dict[int, list[tuple[int, int]]] = {}
+        for pos, i in enumerate(indices):
+            w, j = self._owner[int(i)]
+            groups.setdefault(w, []).append((pos, j))
+        return groups
+
+    def _scatter(self, indices, cmd: str, make_arg: Callable[[list[tuple[int, int]]], object]) -> list:
+        groups = self._by_worker(indices)
+        workers = list(groups)
+        outs = self._ask(workers, cmd, lambda w: make_arg(groups[w]))
+        result: list = [None] * len(indices)
+        for w, out in zip(workers, outs):
+            for (pos, _), o in zip(groups[w], out if out is not None else [None] * len(groups[w])):
+                result[pos] = o
+        return result
+
+    def reset(self, indices, designs, seeds):
+        return self._scatter(indices, "reset", lambda g: ([j for _, j in g], [designs[p] for p, _ in g],
+                                                          [seeds[p] for p, _ in g]))
+
+    def step(self, actions):
+        actions = np.asarray(actions)
+        outs = self._ask(range(len(self._chunks)), "step", lambda w: actions[self._chunks[w]])
+        return [r for out in outs for r in out]
+
+    def get_attr(self, name, indices):
+        return self._scatter(indices, "get_attr", lambda g: (name, [j for _, j in g]))
+
+    def set_attr(self, name, value, indices):
+        self._scatter(indices, "set_attr", lambda g: (name, value, [j for _, j in g]))
+
+    def call(self, method, args, kwargs, indices):
+        return self._scatter(indices, "call", lambda g: (method, args, kwargs, [j for _, j in g]))
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        for remote in self.remotes:
+            try:
+                remote.send(("close", None))
+                remote.recv()
+            except (BrokenPipeError, EOFError, OSError):
+                pass
+        for proc in self.processes:
+            proc.join(timeout=10)
+            if proc.is_alive():
+                proc.terminate()
+
+
+class DesignVecEnv(VecEnv):
+    """SB3 ``VecEnv`` of crawler envs whose designs come from ``sampler`` at every reset.
+
+    Args:
+        backend: where the envs run (:class:`SerialBackend`, :class:`SubprocessBackend`).
+        sampler: object with ``sample(n) -> list[design]`` and
+            ``observe(designs, returns_cm, diverged, timestep)`` (e.g.
+            :class:`softcrawl.codesign.GibbsDesignSampler`); None lets each env pick a random
+            design.
+
+    On every step the finished episodes (terminated or truncated) are first reported to
+    ``sampler.observe`` (``timestep`` = transitions collected so far, :attr:`num_transitions`),
+    then all of them get new designs from one ``sampler.sample(k)`` call and are reset
+    (auto-reset, SB3 convention: ``infos[i]["terminal_observation"]``, ``"TimeLimit.truncated"``
+    and Monitor-style ``"episode": {"r": return cm, "l": actions, "t": s}``, plus
+    ``"design"`` and ``"diverged"``).
+    """
+
+    def __init__(self, backend: EnvBackend, sampler=None):
+        self.backend, self.sampler = backend, sampler  # before super(): it queries render_mode
+        super().__init__(backend.num_envs, backend.observation_space, backend.action_space)
+        self.num_transitions = 0
+        self.designs: list[Design | None] = [None] * self.num_envs
+        self._returns = np.zeros(self.num_envs)
+        self._lengths = np.zeros(self.num_envs, np.int64)
+        self._actions: np.ndarray | None = None
+
+    def _new_designs(self, k: int) -> list[Design | None]:
+        return list(self.sampler.sample(k)) if self.sampler is not None else [None] * k
+
+    def _reset_envs(self, indices: list[int]) -> list[tuple[np.ndarray, dict]]:
+        designs = self._new_designs(len(indices))
+        seeds = [self._seeds[i] for i in indices]
+        out = self.backend.reset(indices, designs, seeds)
+        for i, (_, info) in zip(indices, out):
+            self.designs[i] = info.get("design")
+            self.reset_infos[i] = info
+            self._returns[i], self._lengths[i] = 0.0, 0
+            self._seeds[i] = None
+        return out
+
+    def reset(self) -> np.ndarray:
+        out = self._reset_envs(list(range(self.num_envs)))
+        return np.stack([o for o, _ in out])
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions, dtype=np.float32).reshape(self.num_envs, -1)
+
+    def step_wait(self):
+        if self._actions is None:
+            raise RuntimeError("step_async must be called before step_wait")
+        results = self.backend.step(self._actions)
+        self._actions = None
+        self.num_transitions += self.num_envs
+        obs = np.stack([r[0] for r in results])
+        rewards = np.array([r[1] for r in results], dtype=np.float32)
+        dones = np.zeros(self.num_envs, bool)
+        infos: list[dict] = []
+        finished = []
+        for i, (o, rew, term, trunc, info) in enumerate(results):
+            info = dict(info)
+            self._returns[i] += rew
+            self._lengths[i] += 1
+            if term or trunc:
+                dones[i] = True
+                info["terminal_observation"] = o
+                info["TimeLimit.truncated"] = bool(trunc and not term)
+                info["episode"] = {"r": float(self._returns[i]), "l": int(self._lengths[i]),
+                                   "t": float(info.get("t", 0.0))}
+                finished.append(i)
+            infos.append(info)
+        if finished:
+            if self.sampler is not None:
+                self.sampler.observe([self.designs[i] for i in finished], [self._returns[i] for i in finished],
+                                     [bool(infos[i].get("diverged", False)) for i in finished], self.num_transitions)
+            for i, (o, _) in zip(finished, self._reset_envs(finished)):
+                obs[i] = o
+        return obs, rewards, dones, infos
+
+    def close(self) -> None:
+        self.backend.close()
+
+    def _indices(self, indices) -> list[int]:
+        if indices is None:
+            return list(range(self.num_envs))
+        if isinstance(indices, int):
+            return [indices]
+        return list(indices)
+
+    def get_attr(self, attr_name, indices=None):
+        return self.backend.get_attr(attr_name, self._indices(indices))
+
+    def set_attr(self, attr_name, value, indices=None):
+        self.backend.set_attr(attr_name, value, self._indices(indices))
+
+    def env_method(self, method_name, *method_args, indices=None, **method_kwargs):
+        return self.backend.call(method_name, method_args, method_kwargs, self._indices(indices))
+
+    def env_is_wrapped(self, wrapper_class, indices=None):
+        return [False] * len(self._indices(indices))

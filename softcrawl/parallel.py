@@ -1,0 +1,50 @@
+"""Process-parallel task runs (one BLAS thread per worker), shared by the phase sweep and
+the reduction build."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import multiprocessing
+import os
+from collections.abc import Callable, Iterator
+
+_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """Environment of the processes started inside: one BLAS/OpenMP thread (restored after)."""
+    old = {v: os.environ.get(v) for v in _BLAS_VARS}
+    os.environ.update({v: "1" for v in _BLAS_VARS})
+    try:
+        yield
+    finally:
+        for v, val in old.items():
+            if val is None:
+                os.environ.pop(v, None)
+            else:
+                os.environ[v] = val
+
+
+def run_pool(fn: Callable, workers: int, tasks: list[tuple], finished: Callable) -> None:
+    """``finished(fn(*task))`` for each task, as tasks complete, on ``workers`` spawned
+    processes. On an error or interrupt, results already computed are still passed to
+    ``finished``, the workers are stopped and the error is re-raised."""
+    with _one_blas_thread():  # the workers are spawned on submit, inside this block
+        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        futures = [pool.submit(fn, *task) for task in tasks]
+    seen = set()
+    try:
+        for f in cf.as_completed(futures):
+            seen.add(f)
+            finished(f.result())
+    except BaseException:
+        for f in futures:  # keep what is done
+            if f not in seen and f.done() and not f.cancelled() and f.exception() is None:
+                finished(f.result())
+        for proc in list((pool._processes or {}).values()):  # no public API before Python 3.14
+            proc.terminate()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)

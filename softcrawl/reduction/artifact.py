@@ -1,0 +1,140 @@
+"""Reduction files: one self-describing, versioned, checksummed ``.npz``.
+
+Arrays: the part mesh (points, tets, surfaces, node sets), the basis, singular values, the
+RIDs and weights. Key ``metadata`` holds UTF-8 JSON: format version, software version, mesh
+hash, the model parameters the reduction is valid for, tolerances and build statistics,
+and a SHA-256 over every array. :func:`load_reduction` rejects a file that is unreadable,
+of another format, altered (checksum), or whose mesh or parameters do not match.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from softcrawl import __version__
+from softcrawl.geometry.io import replace_atomically
+from softcrawl.geometry.mesh import TetMesh
+from softcrawl.reduction.model import PartReduction
+
+FORMAT = "softcrawl-reduction"
+FORMAT_VERSION = 1
+#: RobotConfig fields a leg reduction depends on; loading under other values is refused.
+MATCHED_FIELDS = ("leg_mesh_size", "leg_mass", "mass_lumping", "tilt_deg", "rayleigh_mass", "rayleigh_stiffness")
+
+
+class ReductionFileError(ValueError):
+    """A reduction file is missing, unreadable, corrupt or of another format."""
+
+
+class ReductionMismatchError(ValueError):
+    """A reduction does not match the mesh or the model parameters in use."""
+
+
+def mesh_hash(mesh: TetMesh) -> str:
+    """SHA-256 of a mesh's points (rounded to 1e-9 mm) and connectivity."""
+    h = hashlib.sha256()
+    h.update(np.round(mesh.points, 9).astype("<f8").tobytes())
+    h.update(mesh.tets.astype("<i8").tobytes())
+    return h.hexdigest()
+
+
+def _arrays(part: PartReduction) -> dict[str, np.ndarray]:
+    m = part.mesh
+    out = {"mesh_points": m.points, "mesh_tets": m.tets, "basis": part.basis,
+           "singular_values": part.singular_values, "tet_rid": part.tet_rid, "tet_weights": part.tet_weights,
+           "tri_rid": part.tri_rid, "tri_weights": part.tri_weights, "n_rigid": np.array(part.n_rigid)}
+    out.update({f"surface__{k}": v for k, v in m.surfaces.items()})
+    out.update({f"nodeset__{k}": v for k, v in m.node_sets.items()})
+    return out
+
+
+def _checksum(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        a = np.ascontiguousarray(arrays[k])
+        h.update(k.encode())
+        h.update(str(a.dtype.str).encode() + str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save_reduction(path: str | os.PathLike, part: PartReduction, valid_for: dict) -> Path:
+    """Write ``part`` atomically to ``path`` (``.npz``).
+
+    Args:
+        path: destination.
+        part: the reduction.
+        valid_for: model parameters it is valid for (at least the :data:`MATCHED_FIELDS`).
+    """
+    path = Path(path)
+    arrays = _arrays(part)
+    meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "software_version": __version__,
+            "mesh_hash": mesh_hash(part.mesh), "mesh_params": part.mesh.params, "valid_for": valid_for,
+            "n_modes": part.n_modes, "n_rigid": part.n_rigid, "rid_tetrahedra": len(part.tet_rid),
+            "rid_triangles": len(part.tri_rid), "build": part.metadata, "checksum": _checksum(arrays)}
+    blob = np.frombuffer(json.dumps(meta, indent=1, default=str).encode(), np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    replace_atomically(path, lambda tmp: np.savez_compressed(tmp, metadata=blob, **arrays))
+    return path
+
+
+def read_metadata(path: str | os.PathLike) -> dict:
+    """The JSON metadata of a reduction file (no checks beyond readability)."""
+    return load_reduction(path, check=False)[1]
+
+
+def load_reduction(path: str | os.PathLike, expect: dict | None = None,
+                   check: bool = True) -> tuple[PartReduction, dict]:
+    """Read a reduction file and check it.
+
+    Args:
+        path: the ``.npz``.
+        expect: model parameters in use; each of :data:`MATCHED_FIELDS` present here must
+            equal the file's ``valid_for`` value.
+        check: verify format and checksum.
+
+    Returns:
+        ``(part, metadata)``.
+
+    Raises:
+        ReductionFileError: missing, unreadable, other format/version, checksum mismatch.
+        ReductionMismatchError: a parameter in ``expect`` differs from the file's.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ReductionFileError(f"reduction file {path} does not exist (build one with `softcrawl reduce build`)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+        meta = json.loads(data.pop("metadata").tobytes().decode())
+    except Exception as exc:  # zip, npy and JSON errors all mean "not a readable reduction"
+        raise ReductionFileError(f"cannot read reduction file {path}: {exc}") from exc
+    if check:
+        if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
+            raise ReductionFileError(f"{path} is not a {FORMAT} file of version {FORMAT_VERSION} "
+                                     f"(found {meta.get('format')!r} version {meta.get('format_version')!r})")
+        if _checksum(data) != meta.get("checksum"):
+            raise ReductionFileError(f"reduction file {path} is corrupt: its arrays do not match their checksum")
+    try:
+        mesh = TetMesh(data["mesh_points"], data["mesh_tets"],
+                       {k[9:]: v for k, v in data.items() if k.startswith("surface__")},
+                       {k[9:]: v for k, v in data.items() if k.startswith("nodeset__")}, meta.get("mesh_params", {}))
+        part = PartReduction(mesh, data["basis"], int(data["n_rigid"]), data["singular_values"], data["tet_rid"],
+                             data["tet_weights"], data["tri_rid"], data["tri_weights"], meta.get("build", {}))
+    except (KeyError, ValueError) as exc:
+        raise ReductionFileError(f"reduction file {path} is incomplete or inconsistent: {exc}") from exc
+    if check and mesh_hash(mesh) != meta.get("mesh_hash"):
+        raise ReductionFileError(f"reduction file {path}: mesh does not match its recorded hash")
+    if expect:
+        valid = meta.get("valid_for", {})
+        diff = [f"{k}: {valid.get(k)!r} in the reduction, {expect[k]!r} in use"
+                for k in MATCHED_FIELDS if k in expect and valid.get(k) != expect[k]]
+        if diff:
+            raise ReductionMismatchError(f"reduction {path} does not match the model ({'; '.join(diff)}); "
+                                         "rebuild it with `softcrawl reduce build` or use --model full")
+    return part, meta

@@ -1,0 +1,162 @@
+"""Reduced parts and reduced bodies: the static data of a (hyper-)reduced model.
+
+A :class:`PartReduction` is what a reduction build produces for one part (here the PneuNet
+leg) in the part's own frame: the POD basis and the ECSW reduced integration domain. A
+:class:`ReducedBody` is that part placed in a robot: the basis rotated to the leg's pose
+(reduction.md: every node's 3-vector in every column is rotated by ``R_i``; RID and weights
+are rotation invariant) and the RID element data computed from the placed rest mesh.
+Kinematics: ``x = X + Phi q`` (``X`` placed rest positions, ``q`` reduced coordinates).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from softcrawl.fem.body import Body
+from softcrawl.fem.elements import membrane_triangles, tetrahedra
+from softcrawl.geometry.mesh import TetMesh
+from softcrawl.reduction.kernels import stiffness_factors
+
+
+@dataclass(frozen=True, eq=False)
+class PartReduction:
+    """The reduction of one part, in the part's own (leg-local) frame.
+
+    Attributes:
+        mesh: the part's mesh the reduction was built on (leg-local, mm).
+        basis: ``(3n, m)`` orthonormal basis (xyz interleaved per node): rigid modes first.
+        n_rigid: number of rigid modes at the front of ``basis``.
+        singular_values: ``(S,)`` POD singular values of the snapshots (rigid part removed).
+        tet_rid, tet_weights: ``(k,)`` RID tetrahedra (indices into ``mesh.tets``) and ECSW weights.
+        tri_rid, tri_weights: the same for the membrane (paper) triangles
+            (indices into the body's ``membrane.triangles``).
+        metadata: JSON-ready build information (tolerances, errors, settings, version).
+
+    Raises:
+        ValueError: mismatched shapes, negative weights or indices out of range.
+    """
+
+    mesh: TetMesh
+    basis: np.ndarray
+    n_rigid: int
+    singular_values: np.ndarray
+    tet_rid: np.ndarray
+    tet_weights: np.ndarray
+    tri_rid: np.ndarray
+    tri_weights: np.ndarray
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n3 = 3 * self.mesh.n_nodes
+        if self.basis.ndim != 2 or self.basis.shape[0] != n3 or not np.all(np.isfinite(self.basis)):
+            raise ValueError(f"basis must be a finite ({n3}, m) array, got shape {self.basis.shape}")
+        for name, idx, w, n in (("tetrahedra", self.tet_rid, self.tet_weights, self.mesh.n_tets),
+                                ("membrane triangles", self.tri_rid, self.tri_weights, None)):
+            if idx.shape != w.shape or idx.ndim != 1:
+                raise ValueError(f"RID {name}: indices {idx.shape} and weights {w.shape} must match")
+            if len(idx) and (idx.min() < 0 or (n is not None and idx.max() >= n) or len(np.unique(idx)) != len(idx)):
+                raise ValueError(f"RID {name}: indices must be distinct and in 0..{n - 1}")
+            if not (np.all(np.isfinite(w)) and np.all(w >= 0)):
+                raise ValueError(f"RID {name}: ECSW weights must be finite and >= 0")
+
+    @property
+    def n_modes(self) -> int:
+        return self.basis.shape[1]
+
+    @classmethod
+    def full(cls, mesh: TetMesh, basis: np.ndarray, n_triangles: int, n_rigid: int = 0, **metadata) -> PartReduction:
+        """Every element (``mesh.tets`` and ``n_triangles`` membrane triangles) at unit weight:
+        the Galerkin projection, no hyper-reduction."""
+        n_tri = n_triangles
+        return cls(mesh, basis, n_rigid, np.zeros(0), np.arange(mesh.n_tets), np.ones(mesh.n_tets),
+                   np.arange(n_tri), np.ones(n_tri), dict(metadata))
+
+
+def rotate_basis(basis: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """``(3n, m)`` basis with every node's 3-vector in every column rotated by ``rotation``."""
+    n3, m = basis.shape
+    return np.einsum("ij,njm->nim", rotation, basis.reshape(n3 // 3, 3, m)).reshape(n3, m)
+
+
+@dataclass(frozen=True)
+class ElementFactors:
+    """RID element data of one family on a placed body (see :mod:`softcrawl.reduction.kernels`).
+
+    Attributes:
+        conn: ``(E, k)`` node indices; rest: ``(E, k, 3)`` mm; factors: ``(E, r, 3k)``;
+        frames: ``(E, 3, 3)``; sqrt_weights: ``(E,)``.
+    """
+
+    conn: np.ndarray
+    rest: np.ndarray
+    factors: np.ndarray
+    frames: np.ndarray
+    sqrt_weights: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class ReducedBody:
+    """A reduced part placed in a model: ``x = X + basis @ q``.
+
+    Attributes:
+        body: the full-order body (placed mesh, materials, masses, cavities, collision nodes).
+        basis: ``(3n, m)`` the part's basis rotated to the body's pose.
+        part: the part reduction it came from.
+
+    Raises:
+        ValueError: the body has fixed DOFs, uses the "polar" rotation method, or its mesh
+            does not have the part's node count.
+    """
+
+    body: Body
+    basis: np.ndarray
+    part: PartReduction
+
+    def __post_init__(self) -> None:
+        if self.body.n_nodes != self.part.mesh.n_nodes:
+            raise ValueError(f"body {self.body.name!r} has {self.body.n_nodes} nodes, "
+                             f"the reduction {self.part.mesh.n_nodes}")
+        if not self.body.free_dofs.all():
+            raise ValueError(f"reduced body {self.body.name!r} cannot have fixed DOFs")
+        if self.body.rotation_method != "large":
+            raise ValueError("reduced bodies use the corotational 'large' rotation method")
+
+    @property
+    def n_modes(self) -> int:
+        return self.basis.shape[1]
+
+    @cached_property
+    def element_factors(self) -> tuple[ElementFactors, ...]:
+        """RID tetrahedra and membrane triangles, from the placed rest mesh."""
+        b, p = self.body, self.part
+        out = []
+        tets = b.mesh.tets[p.tet_rid]
+        es = tetrahedra(b.mesh.points, tets, b.material, "large")
+        out.append(ElementFactors(tets, es.rest, stiffness_factors(es.stiffness, 6), es.frames,
+                                  np.sqrt(p.tet_weights)))
+        if len(p.tri_rid):
+            if b.membrane is None or p.tri_rid.max() >= len(b.membrane.triangles):
+                raise ValueError(f"the reduction's RID has membrane triangles body {b.name!r} does not have")
+            tris = np.asarray(b.membrane.triangles, np.int64)[p.tri_rid]
+            ms = membrane_triangles(b.mesh.points, tris, b.membrane.material, b.membrane.thickness)
+            out.append(ElementFactors(tris, ms.rest, stiffness_factors(ms.stiffness, 3), ms.frames,
+                                      np.sqrt(p.tri_weights)))
+        return tuple(out)
+
+    @cached_property
+    def reduced_mass(self) -> np.ndarray:
+        """``(m, m)`` ``Phi^T M Phi`` (constant), kg."""
+        return self.basis.T @ (np.repeat(self.body.nodal_mass, 3)[:, None] * self.basis)
+
+    def reduced_coordinates(self, x: np.ndarray) -> np.ndarray:
+        """``(m,)`` ``q = Phi^T (x - X)`` for body positions ``x`` ``(n, 3)`` (exact on the
+        reduced subspace, since the basis is orthonormal)."""
+        return self.basis.T @ (x - self.body.mesh.points).ravel()
+
+
+def reduce_body(body: Body, part: PartReduction, rotation: np.ndarray) -> ReducedBody:
+    """Place a part reduction on a body posed by ``rotation`` (``(3, 3)``, leg-local -> world)."""
+    return ReducedBody(body, rotate_basis(part.basis, np.asarray(rotation, float)), part)

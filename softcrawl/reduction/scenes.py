@@ -1,0 +1,197 @@
+"""Training and validation scenes of a reduction: robots with one pressure channel per leg,
+driven by animations, and the runner that records them.
+
+The leg-local displacement of leg ``i`` (placed by rotation ``R_i``) is
+``u_local = R_i^T (x - X_placed)`` per node: snapshots from every slot are pooled in one
+frame (reduction.md, "Design-reconfigurable reduction").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from softcrawl.design.space import BASELINE_DESIGN, N_SLOTS
+from softcrawl.fem.state import Control
+from softcrawl.gaits import SineGait
+from softcrawl.reduction.animations import (
+    AlternatingAnimation,
+    GaitAnimation,
+    HamiltonianAnimation,
+)
+from softcrawl.robot.assembly import Robot, RobotConfig, assemble_robot
+from softcrawl.robot.episode import SETTLE_STEPS
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A robot layout plus an animation.
+
+    Attributes:
+        name: label (file names, reports).
+        legs: ``(slot, channel)`` per leg.
+        animation: object with ``sim_pressure_at(t)`` and ``duration``.
+    """
+
+    name: str
+    legs: tuple[tuple[int, int], ...]
+    animation: object
+
+    @property
+    def slots(self) -> tuple[int, ...]:
+        return tuple(s for s, _ in self.legs)
+
+    def describe(self) -> dict:
+        anim = self.animation
+        return {"name": self.name, "legs": [list(leg) for leg in self.legs], "animation": type(anim).__name__,
+                "animation_params": {k: (str(v) if not isinstance(v, (int, float, tuple)) else v)
+                                     for k, v in dataclasses.asdict(anim).items()}}
+
+
+def per_leg(slots: Sequence[int]) -> tuple[tuple[int, int], ...]:
+    """Each leg on its own channel, in slot order."""
+    return tuple((int(s), i) for i, s in enumerate(sorted(slots)))
+
+
+#: Slot sets of the validation scenes (never used for training).
+_BASELINE_SLOTS = tuple(i for i, r in enumerate(BASELINE_DESIGN) if r)
+_TWO_LEG_SLOTS = (0, 2)  # 22.5 and 112.5 deg: 90 deg apart
+_SIX_LEG_SLOTS = (0, 1, 3, 4, 5, 7)
+
+
+def validation_scenes(duration: float = 4.0) -> tuple[Scene, ...]:
+    """The paper's four held-out animations (reduction.md, "Validating a reduction"):
+    Hamiltonian on the baseline design, the baseline sine gait (φ = 110°), two legs 90° apart
+    inflating alternately, six legs inflating in two alternating groups of three."""
+    baseline = tuple((s, BASELINE_DESIGN[s] - 1) for s in _BASELINE_SLOTS)
+    return (
+        Scene("hamiltonian", per_leg(_BASELINE_SLOTS), HamiltonianAnimation(4)),
+        Scene("baseline", baseline, GaitAnimation(SineGait(phase_deg=110.0), duration)),
+        Scene("two_leg", per_leg(_TWO_LEG_SLOTS), AlternatingAnimation(((0,), (1,)), duration=duration)),
+        Scene("six_leg", per_leg(_SIX_LEG_SLOTS), AlternatingAnimation(((0, 2, 4), (1, 3, 5)), duration=duration)),
+    )
+
+
+def training_scenes(n_designs: int = 8, sizes: Sequence[int] = (3, 4), seed: int = 0,
+                    state_seconds: float = 0.3) -> tuple[Scene, ...]:
+    """Training scenes: ``n_designs`` distinct slot subsets (sizes cycling through ``sizes``,
+    drawn with a seeded RNG, excluding the validation slot sets), each leg on its own channel,
+    each driven by the Hamiltonian animation of its legs.
+
+    Raises:
+        ValueError: non-positive count or a size outside 1..8.
+    """
+    if n_designs < 1 or not sizes or not all(1 <= s <= N_SLOTS for s in sizes):
+        raise ValueError(f"need n_designs >= 1 and sizes in 1..{N_SLOTS}, got {n_designs}, {sizes}")
+    import itertools
+
+    held_out = {_BASELINE_SLOTS, _TWO_LEG_SLOTS, _SIX_LEG_SLOTS}
+    rng = np.random.default_rng(seed)
+    pools = {s: [c for c in itertools.combinations(range(N_SLOTS), s) if c not in held_out] for s in set(sizes)}
+    for s in pools:
+        pools[s] = [pools[s][i] for i in rng.permutation(len(pools[s]))]
+    scenes = []
+    for k in range(n_designs):
+        s = sizes[k % len(sizes)]
+        pick = pools[s].pop(0)
+        scenes.append(Scene(f"train{k:03d}_" + "".join(map(str, pick)), per_leg(pick),
+                            HamiltonianAnimation(s, state_seconds=state_seconds, ramp_seconds=state_seconds / 2)))
+    return tuple(scenes)
+
+
+def scene_robot(scene: Scene, config: RobotConfig, leg_mesh=None) -> Robot:
+    """The full-order robot of a scene (one channel per leg unless the scene says otherwise)."""
+    return assemble_robot(scene.legs, config, leg_mesh=leg_mesh)
+
+
+@dataclass(frozen=True, eq=False)
+class SceneRecord:
+    """What :func:`run_scene` recorded.
+
+    Attributes:
+        times: ``(k,)`` s (0 = end of settling).
+        positions: ``(k, N, 3)`` float32 positions of all nodes, mm.
+        reward_x: ``(k,)`` x of the disk top centre, mm.
+        steps: steps run; wall_seconds: wall time of the stepping (settling included).
+        diverged: reason, or "".
+    """
+
+    times: np.ndarray
+    positions: np.ndarray
+    reward_x: np.ndarray
+    steps: int
+    wall_seconds: float
+    diverged: str = ""
+
+
+def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, duration: float | None = None,
+              on_step: Callable[[int], None] | None = None) -> SceneRecord:
+    """Settle ``SETTLE_STEPS`` at zero pressure, then play the animation, recording every
+    ``record_every`` steps (and at t = 0).
+
+    Args:
+        robot: the robot (full-order or reduced: anything with ``make_solver``).
+        animation: ``sim_pressure_at(t) -> (n_channels,)`` sim kPa, and ``duration``.
+        solver: the solver to use (default ``robot.make_solver()``).
+        record_every: steps between records.
+        duration: s (default: the animation's).
+        on_step: called with the step index after each step (progress).
+    """
+    import time
+
+    from softcrawl.fem.solver import SimulationDiverged
+
+    solver = solver or robot.make_solver()
+    dt = robot.config.dt
+    n = int(round((duration if duration is not None else animation.duration) / dt))
+    nch = robot.model.n_channels
+    state = robot.model.rest_state()
+    times, frames, rx = [], [], []
+    wall = time.perf_counter()
+    reason = ""
+    try:
+        zero = Control(np.zeros(nch))
+        for _ in range(SETTLE_STEPS):
+            state = solver.step(state, zero)
+        state = dataclasses.replace(state, t=0.0)
+        for k in range(n + 1):
+            if k % record_every == 0:
+                x = state.x
+                times.append(k * dt)
+                frames.append(x.astype(np.float32))
+                rx.append(float(x[robot.reward_node, 0]))
+            if k == n:
+                break
+            p = np.zeros(nch)
+            a = np.asarray(animation.sim_pressure_at(k * dt), float)[:nch]
+            p[: len(a)] = a
+            state = solver.step(state, Control(p))
+            if on_step is not None:
+                on_step(k)
+    except SimulationDiverged as exc:
+        reason = str(exc)
+    wall = time.perf_counter() - wall
+    return SceneRecord(np.array(times), np.stack(frames) if frames else np.zeros((0, robot.model.n_nodes, 3), np.float32),
+                       np.array(rx), n, wall, reason)
+
+
+def leg_displacements(robot: Robot, positions: np.ndarray) -> np.ndarray:
+    """Leg-local displacements of every leg in every frame.
+
+    Args:
+        robot: the robot the positions belong to.
+        positions: ``(k, N, 3)`` stacked node positions, mm.
+
+    Returns:
+        ``(k * n_legs, n_leg_nodes, 3)`` float32 ``R_i^T (x - X_placed)``, mm.
+    """
+    m = robot.model
+    out = []
+    for leg in robot.legs:
+        sl = m.body_slice(leg.body)
+        u = positions[:, sl] - m.bodies[leg.body].mesh.points[None]
+        out.append((u @ leg.rotation).astype(np.float32))  # rows: (R^T u)^T = u^T R
+    return np.concatenate(out)
