@@ -1,5 +1,7 @@
 """Reduced model (POD + ECSW): exactness limits, basis and RID construction, artifacts."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -53,3 +55,176 @@ def test_all_modes_all_elements_reproduce_the_full_model_to_round_off():
     assert fom.stats.n_contacts > 0
     assert np.abs(a.x - b.x).max() < 1e-9
     assert np.abs(a.v - b.v).max() < 1e-6
+
+
+# -- POD ------------------------------------------------------------------------------------
+from softcrawl.reduction.pod import pod_basis, rigid_modes, truncation_rank  # noqa: E402
+
+
+def test_truncation_rank_follows_the_tail_energy_rule():
+    s = np.array([10.0, 1.0, 0.1, 0.01])
+    e = s**2
+    for tol in (0.5, 0.05, 0.005, 1e-6):
+        m = truncation_rank(s, tol)
+        assert np.sqrt(e[m:].sum() / e.sum()) <= tol  # meets the tolerance ...
+        assert m == 0 or np.sqrt(e[m - 1:].sum() / e.sum()) > tol  # ... with the fewest modes
+
+
+def test_pod_basis_is_orthonormal_contains_rigid_modes_and_recovers_the_snapshot_space():
+    rng = np.random.default_rng(1)
+    points = rng.normal(size=(40, 3)) * 10
+    modes = rng.normal(size=(2, 40, 3))
+    coef = rng.normal(size=(30, 2)) * [5.0, 1.0]
+    shift = rng.normal(size=(30, 1, 3))  # rigid translations in every snapshot
+    snaps = np.einsum("sk,knd->snd", coef, modes) + shift
+    pod = pod_basis(snaps, points, tol_modes=1e-8)
+    B = pod.basis
+    assert np.allclose(B.T @ B, np.eye(B.shape[1]), atol=1e-12)
+    assert pod.n_rigid == 3 and pod.n_pod == 2  # exactly the 2 deformation modes
+    T = rigid_modes(points)
+    assert np.allclose(B @ (B.T @ T), T, atol=1e-10)
+    S = snaps.reshape(30, -1).T
+    assert np.allclose(B @ (B.T @ S), S, atol=1e-9)
+    with pytest.raises(ValueError, match="NaN"):
+        pod_basis(np.full_like(snaps, np.nan), points, 1e-3)
+
+
+# -- ECSW -----------------------------------------------------------------------------------
+from softcrawl.reduction.ecsw import GramAccumulator, ecsw_weights  # noqa: E402
+
+
+def test_ecsw_finds_a_sparse_weighting_within_tolerance():
+    """Columns that are copies of a few 'representative' elements: ECSW needs only those."""
+    rng = np.random.default_rng(2)
+    base = rng.normal(size=(200, 5))
+    owner = rng.integers(0, 5, size=300)
+    G = base[:, owner] * rng.uniform(0.5, 2.0, size=300)
+    acc = GramAccumulator(300)
+    for rows in np.split(G, 4):  # streamed: 4 blocks of 50 rows
+        acc.add(rows.T)
+    assert np.allclose(acc.gram, G.T @ G)
+    b = G.sum(axis=1)
+    for tol in (1e-2, 1e-6):
+        res = ecsw_weights(acc.gram, tol)
+        assert np.all(res.weights > 0) and len(res.elements) <= 5
+        got = np.linalg.norm(G[:, res.elements] @ res.weights - b) / np.linalg.norm(b)
+        assert got <= tol * 1.0001 and abs(got - res.relative_residual) < 1e-6
+
+
+def test_ecsw_on_independent_columns_keeps_what_the_tolerance_needs():
+    rng = np.random.default_rng(3)
+    G = rng.normal(size=(400, 60)) * np.exp(-np.arange(60) / 6.0)  # decaying column norms
+    b = G.sum(axis=1)
+    loose, tight = ecsw_weights(G.T @ G, 0.2), ecsw_weights(G.T @ G, 1e-3)
+    assert len(loose.elements) < len(tight.elements) <= 60
+    for res, tol in ((loose, 0.2), (tight, 1e-3)):
+        assert np.linalg.norm(G[:, res.elements] @ res.weights - b) <= tol * np.linalg.norm(b) * 1.0001
+    with pytest.raises(ValueError, match="tol_gie"):
+        ecsw_weights(G.T @ G, 0.0)
+
+
+# -- a tiny build end to end: file, checks, accuracy against the full model -----------------
+import dataclasses  # noqa: E402
+
+from softcrawl.reduction.artifact import (  # noqa: E402
+    ReductionFileError,
+    ReductionMismatchError,
+    load_reduction,
+    save_reduction,
+)
+from softcrawl.reduction.build import BuildSettings, build_reduction  # noqa: E402
+from softcrawl.reduction.scenes import run_scene, scene_robot  # noqa: E402
+from softcrawl.robot.assembly import RobotConfig, build_robot, reduce_legs  # noqa: E402
+
+TINY = RobotConfig(leg_mesh_size=12.0)
+TINY_SETTINGS = BuildSettings(n_designs=2, sizes=(3,), state_seconds=0.05, ecsw_scenes=1, ecsw_every=3)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    work = tmp_path_factory.mktemp("reduce")
+    part = build_reduction(work, TINY, TINY_SETTINGS, workers=1, progress=False)
+    path = save_reduction(work / "tiny.npz", part, dataclasses.asdict(TINY))
+    return part, path, work
+
+
+def test_tiny_build_is_hyper_reduced_and_resumes_from_saved_runs(tiny):
+    part, _, work = tiny
+    meta = part.metadata
+    assert 0 < len(part.tet_rid) < part.mesh.n_tets / 4  # hyper-reduction keeps a small RID
+    assert meta["ecsw_residual"]["tetrahedra"] <= TINY_SETTINGS.tol_gie
+    assert meta["tail_energy"] <= TINY_SETTINGS.tol_modes
+    again = build_reduction(work, TINY, TINY_SETTINGS, workers=1, progress=False)  # snapshot runs reused
+    assert again.metadata["wall_seconds"]["snapshots"] < 0.2 * meta["wall_seconds"]["snapshots"]
+    assert np.allclose(again.basis, part.basis)
+
+
+def test_reduced_robot_follows_the_full_model_on_a_training_scene(tiny):
+    """Node error of the hyper-reduced robot vs the full-order robot over the training scene
+    it was built from, averaged over nodes and frames: below 0.5 mm (legs are 115 mm long and
+    bend by tens of mm here; measured ~0.1 mm)."""
+    part, _, _ = tiny
+    scene = TINY_SETTINGS.scenes()[0]
+    fom_robot = scene_robot(scene, TINY, leg_mesh=part.mesh)
+    fom = run_scene(fom_robot, scene.animation)
+    rom = run_scene(reduce_legs(fom_robot, part), scene.animation)
+    assert not fom.diverged and not rom.diverged
+    moved = np.linalg.norm(fom.positions - fom.positions[:1], axis=2).max()
+    err = np.linalg.norm(rom.positions - fom.positions, axis=2).mean()
+    assert moved > 5.0 and err < 0.5, (moved, err)
+
+
+def test_reduction_file_round_trip_and_reduced_config(tiny):
+    part, path, _ = tiny
+    loaded, meta = load_reduction(path, expect=dataclasses.asdict(TINY))
+    assert np.array_equal(loaded.basis, part.basis) and np.array_equal(loaded.tet_rid, part.tet_rid)
+    assert meta["n_modes"] == part.n_modes and meta["software_version"]
+    robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), dataclasses.replace(TINY, model="reduced", reduction=str(path)))
+    assert len(robot.reduced) == 4 and robot.make_solver().__class__.__name__ == "ReducedSolver"
+
+
+def test_corrupt_missing_and_mismatched_reduction_files_are_rejected(tiny, tmp_path):
+    part, path, _ = tiny
+    with pytest.raises(ReductionFileError, match="does not exist"):
+        load_reduction(tmp_path / "none.npz")
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a zip file")
+    with pytest.raises(ReductionFileError, match="cannot read"):
+        load_reduction(garbage)
+    # Same metadata, one basis entry changed: the checksum catches it.
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    data["basis"] = data["basis"].copy()
+    data["basis"][0, 0] += 1e-6
+    tampered = tmp_path / "tampered.npz"
+    np.savez(tampered, **data)
+    with pytest.raises(ReductionFileError, match="corrupt"):
+        load_reduction(tampered)
+    with pytest.raises(ReductionMismatchError, match="leg_mesh_size"):
+        load_reduction(path, expect=dataclasses.asdict(dataclasses.replace(TINY, leg_mesh_size=6.0)))
+    with pytest.raises(ReductionMismatchError, match="leg_mass"):
+        build_robot((1, 0, 0, 2, 2, 0, 0, 1),
+                    dataclasses.replace(TINY, model="reduced", reduction=str(path), leg_mass=0.2))
+
+
+# -- the shipped default reduction -----------------------------------------------------------
+def test_shipped_reduction_loads_and_simulates_the_baseline(tmp_path, monkeypatch, capsys):
+    """The default 6 mm leg reduction ships in the package, is intact, and `softcrawl simulate`
+    uses it by default; a leg mesh it was not built for is refused with a clear error."""
+    import json
+
+    from softcrawl import cli
+    from softcrawl.reduction.data import default_reduction_path
+
+    part, meta = load_reduction(default_reduction_path(), expect=dataclasses.asdict(RobotConfig()))
+    assert meta["valid_for"]["leg_mesh_size"] == 6.0 and part.n_modes == meta["n_modes"] >= 10
+    assert 0 < len(part.tet_rid) < part.mesh.n_tets / 10
+    monkeypatch.setattr(cli, "SUBCOMMANDS", ("softcrawl.cli.simulate",))
+    out = tmp_path / "rom"
+    rc = cli.main(["simulate", "--duration", "0.2", "--frames-every", "10", "--no-progress", "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["model"] == "reduced" and s["steps"] == 20 and math.isfinite(s["reward_cm"])
+    rc = cli.main(["simulate", "--mesh-size", "8", "--duration", "0.1", "--no-progress", "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "leg_mesh_size" in err and "--model full" in err and not (tmp_path / "x").exists()

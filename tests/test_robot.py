@@ -136,7 +136,7 @@ def test_staged_directory_cleans_up_on_error(tmp_path):
 def _simulate(monkeypatch, *args):
     assert "softcrawl.cli.simulate" in cli.SUBCOMMANDS
     monkeypatch.setattr(cli, "SUBCOMMANDS", ("softcrawl.cli.simulate",))  # isolate from other subcommands
-    return cli.main(["simulate", "--mesh-size", "12", "--no-progress", *map(str, args)])
+    return cli.main(["simulate", "--model", "full", "--mesh-size", "12", "--no-progress", *map(str, args)])
 
 
 def test_cli_simulate_writes_outputs(tmp_path, monkeypatch, capsys):

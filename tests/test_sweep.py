@@ -70,7 +70,7 @@ def test_sweep_outputs_and_resume_on_workers(tmp_path, monkeypatch, capsys):
     assert not out.exists() and [p.name for p in (work / "partial").iterdir()] == ["phase_0.0.json"]
 
     rc = _main(monkeypatch, "softcrawl.cli.sweep", "sweep-phase", "--out", out, "--phases", "0:180:90",
-               "--duration", DURATION, "--mesh-size", 12, "--workers", 2, "--no-progress")
+               "--duration", DURATION, "--model", "full", "--mesh-size", 12, "--workers", 2, "--no-progress")
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     assert sorted(p.name for p in out.iterdir()) == ["reward_vs_phase.png", "sweep.csv", "sweep.json"]
@@ -130,7 +130,7 @@ def test_mismatched_settings_refused(tmp_path, monkeypatch, capsys):
     with pytest.raises(SweepSettingsMismatch, match=r"duration_s: 0\.2 there, 0\.3 now"):
         run_sweep(out, PHASES, BASELINE_DESIGN, COARSE, 0.3, workers=1, progress=False)
     rc = _main(monkeypatch, "softcrawl.cli.sweep", "sweep-phase", "--out", out, "--phases", "0:180:90",
-               "--duration", DURATION, "--mesh-size", 8, "--no-progress")
+               "--duration", DURATION, "--model", "full", "--mesh-size", 8, "--no-progress")
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "config.leg_mesh_size: 12.0 there, 8.0 now" in err and "delete" in err and "\n" not in err
     assert not out.exists() and (work / "partial" / "phase_0.0.json").exists()  # the partial sweep is kept

@@ -17,7 +17,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 from softcrawl import __version__
 
 #: Subcommand modules, in the order they appear in ``softcrawl --help``.
-SUBCOMMANDS = ("softcrawl.cli.verify", "softcrawl.cli.designs", "softcrawl.cli.simulate", "softcrawl.cli.sweep")
+SUBCOMMANDS = ("softcrawl.cli.verify", "softcrawl.cli.designs", "softcrawl.cli.simulate", "softcrawl.cli.sweep",
+               "softcrawl.cli.reduce")
 
 
 def build_parser() -> argparse.ArgumentParser:

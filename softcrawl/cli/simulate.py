@@ -19,7 +19,7 @@ import sys
 from softcrawl.design.space import BASELINE_DESIGN, validate_design
 from softcrawl.gaits import SineGait, paper_best_gait, read_actions_csv
 from softcrawl.robot.actuation import PressureCalibration
-from softcrawl.robot.assembly import RobotConfig, build_robot
+from softcrawl.robot.assembly import MODELS, RobotConfig, build_robot
 from softcrawl.robot.episode import run_episode
 from softcrawl.robot.output import check_output_path, write_results
 
@@ -42,7 +42,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
     config = RobotConfig(leg_mesh_size=args.mesh_size, friction=args.friction, dt=args.dt,
-                         refactor_every=args.refactor_every)
+                         refactor_every=args.refactor_every, model=args.model, reduction=args.reduction)
     gait = _gait(args)
     check_output_path(args.out, args.overwrite)
     if args.video:
@@ -63,10 +63,19 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_model_arguments(p: argparse.ArgumentParser) -> None:
+    """``--model`` and ``--reduction`` (shared with ``sweep-phase``)."""
+    p.add_argument("--model", choices=MODELS, default="reduced",
+                   help="reduced: legs reduced by POD + ECSW (the shipped 6 mm reduction, fast); "
+                        "full: full-order FEM (default reduced)")
+    p.add_argument("--reduction", metavar="FILE.npz", default=None,
+                   help="leg reduction file for --model reduced (default: the one shipped with softcrawl)")
+
+
 def register(subparsers) -> None:
     """Add the ``simulate`` subcommand to ``subparsers``."""
     p = subparsers.add_parser(
-        "simulate", help="simulate one episode of a design and gait (full-order FEM)",
+        "simulate", help="simulate one episode of a design and gait (reduced or full-order FEM)",
         description="Simulate one episode of a crawler design with an open-loop gait and write summary.json, "
         "trajectory.{npz,csv,png}, a ParaView series (crawl.pvd + frames/) and, with --video, crawl.mp4 "
         "into --out.",
@@ -81,6 +90,7 @@ def register(subparsers) -> None:
                    help="action sequence p1,p2,p3 (real kPa, one row per 1 s); overrides --gait")
     p.add_argument("--duration", type=float, default=20.0, help="episode length, s (default 20)")
     p.add_argument("--out", required=True, help="output directory (must not exist unless --overwrite)")
+    add_model_arguments(p)
     p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size,
                    help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")
     p.add_argument("--friction", type=float, default=RobotConfig.friction,

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from softcrawl.cli.simulate import add_model_arguments
 from softcrawl.design.space import BASELINE_DESIGN
 from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.sweep import format_table, parse_phases, run_sweep
@@ -22,7 +23,8 @@ from softcrawl.robot.sweep import format_table, parse_phases, run_sweep
 def _run(args: argparse.Namespace) -> int:
     try:
         result = run_sweep(args.out, parse_phases(args.phases), args.design,
-                           RobotConfig(leg_mesh_size=args.mesh_size, refactor_every=args.refactor_every),
+                           RobotConfig(leg_mesh_size=args.mesh_size, refactor_every=args.refactor_every,
+                                       model=args.model, reduction=args.reduction),
                            args.duration, workers=args.workers, overwrite=args.overwrite,
                            progress=not args.no_progress)
     except KeyboardInterrupt:
@@ -51,6 +53,7 @@ def register(subparsers) -> None:
     p.add_argument("--duration", type=float, default=20.0, help="episode length, s (default 20)")
     p.add_argument("--design", default=",".join(map(str, BASELINE_DESIGN)),
                    help='8 comma-separated slot values in {0..3} (default: the baseline "1,0,0,2,2,0,0,1")')
+    add_model_arguments(p)
     p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size,
                    help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")
     p.add_argument("--refactor-every", type=int, default=RobotConfig.refactor_every,

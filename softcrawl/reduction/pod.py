@@ -14,6 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 RIGID_MODES = ("translations", "rigid")
+#: Singular values below this fraction of the largest are round-off of the snapshot Gram
+#: matrix (its eigenvalues carry errors of ~1e-16 of the largest, i.e. ~1e-8 in s).
+_GRAM_NOISE = 1e-7
 
 
 def rigid_modes(points: np.ndarray, kind: str = "translations") -> np.ndarray:
@@ -72,7 +75,8 @@ def pod_basis(snapshots: np.ndarray, points: np.ndarray, tol_modes: float, rigid
     Args:
         snapshots: ``(S, n, 3)`` displacements in the part's frame, mm (any float dtype).
         points: ``(n, 3)`` rest positions of the part, mm (for rotation modes).
-        tol_modes: tail-energy tolerance in (0, 1) (reduction.md; reference 0.0032).
+        tol_modes: tail-energy tolerance in (0, 1) (reduction.md; reference 0.0032); modes
+            with singular values below 1e-7 of the largest are dropped as round-off.
         rigid: ``"translations"`` (3 modes, the reference) or ``"rigid"`` (6: + rotations).
         max_modes: cap on POD modes.
 
@@ -96,7 +100,7 @@ def pod_basis(snapshots: np.ndarray, points: np.ndarray, tol_modes: float, rigid
     m = truncation_rank(s, tol_modes)
     if max_modes is not None:
         m = min(m, int(max_modes))
-    keep = s[:m] > s[0] * 1e-10 if m else np.zeros(0, bool)
+    keep = s[:m] > s[0] * _GRAM_NOISE if m else np.zeros(0, bool)
     U = (A @ V[:, :m][:, keep]) / s[:m][keep]
     Q, R = np.linalg.qr(np.hstack([T, U]))
     Q = Q * np.sign(np.diag(R))[None, :]  # deterministic signs

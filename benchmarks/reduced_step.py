@@ -1,0 +1,65 @@
+"""Reduced vs full-order step of the expert baseline (design 1,0,0,2,2,0,0,1, sine gait, φ = 110°),
+both in one process, one BLAS thread. Prints JSON: seconds per step of each model (episode
+steps only, after settling), the speedup, reduced steps per second per core, the robot's
+reduced sizes (modes, RID elements) and the peak RSS.
+
+Usage: OMP_NUM_THREADS=1 python benchmarks/reduced_step.py [--full-steps 30] [--reduced-steps 500]
+       [--reduction FILE.npz]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+def time_steps(robot, steps: int) -> tuple[float, float]:
+    """(seconds per step over ``steps`` gait steps after settling, reward point x after them)."""
+    from softcrawl.gaits import SineGait
+    from softcrawl.robot import Episode
+
+    ep = Episode(robot)
+    ep.reset()
+    gait = SineGait(phase_deg=110.0)
+    ep.step(gait.pressure_at(0.0))  # warm-up (numba cache load, first factorization)
+    t0 = time.perf_counter()
+    for k in range(1, steps + 1):
+        ep.step(gait.pressure_at(k * ep.dt))
+    return (time.perf_counter() - t0) / steps, ep.displacement_cm
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--full-steps", type=int, default=30)
+    p.add_argument("--reduced-steps", type=int, default=500)
+    p.add_argument("--reduction", default=None)
+    args = p.parse_args()
+    from softcrawl.design.space import BASELINE_DESIGN
+    from softcrawl.robot import RobotConfig, build_robot
+
+    reduced = build_robot(BASELINE_DESIGN, RobotConfig(model="reduced", reduction=args.reduction))
+    full = build_robot(BASELINE_DESIGN, RobotConfig(), leg_mesh=next(iter(reduced.reduced.values())).part.mesh)
+    t_red, _ = time_steps(reduced, args.reduced_steps)
+    t_full, _ = time_steps(full, args.full_steps)
+    rb = list(reduced.reduced.values())
+    print(json.dumps({
+        "design": list(BASELINE_DESIGN), "nodes": full.model.n_nodes,
+        "modes_per_leg": rb[0].n_modes, "rid_tetrahedra_per_leg": len(rb[0].part.tet_rid),
+        "rid_triangles_per_leg": len(rb[0].part.tri_rid),
+        "full_seconds_per_step": round(t_full, 4), "full_steps": args.full_steps,
+        "reduced_seconds_per_step": round(t_red, 6), "reduced_steps": args.reduced_steps,
+        "speedup": round(t_full / t_red, 1), "reduced_steps_per_second_per_core": round(1.0 / t_red, 1),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}",
+    }, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,129 @@
+"""``softcrawl reduce build|validate``: build a leg reduction, and check it against the full model.
+
+Examples::
+
+    softcrawl reduce build --out pneunet_6mm.npz --workdir runs/reduce
+    softcrawl reduce validate --workdir runs/reduce --out runs/reduce/validation
+    softcrawl reduce validate --grid --workdir runs/reduce --out runs/reduce/grid
+
+Full-order runs live in ``--workdir`` and are reused after an interruption or by a later
+command with the same settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+from softcrawl.reduction.artifact import MATCHED_FIELDS, load_reduction, save_reduction
+from softcrawl.reduction.build import BuildSettings, build_reduction, build_reductions
+from softcrawl.reduction.data import default_reduction_path
+from softcrawl.reduction.validate import validate_reduction
+from softcrawl.robot.assembly import RobotConfig
+from softcrawl.robot.output import jsonable
+
+#: The 3 x 3 grid of the paper's appendix around its chosen (tol_modes, tol_gie).
+GRID_TOL_MODES = (0.01, 0.0032, 0.001)
+GRID_TOL_GIE = (0.01, 0.003, 0.001)
+
+
+def _build(args: argparse.Namespace) -> int:
+    config = RobotConfig(leg_mesh_size=args.mesh_size)
+    settings = BuildSettings(n_designs=args.designs, tol_modes=args.tol_modes, tol_gie=args.tol_gie,
+                             rigid=args.rigid_modes)
+    part = build_reduction(args.workdir, config, settings, args.workers, not args.no_progress)
+    out = save_reduction(args.out, part, dataclasses.asdict(config))
+    meta = part.metadata
+    print(f"wrote {out}: {part.n_modes} modes ({part.n_rigid} rigid), RID {meta['rid']['tetrahedra'][0]} of "
+          f"{meta['rid']['tetrahedra'][1]} tetrahedra and {meta['rid']['triangles'][0]} of "
+          f"{meta['rid']['triangles'][1]} paper triangles, {meta['wall_seconds']['total']:.0f} s")
+    return 0
+
+
+def _markdown(report: dict) -> str:
+    lines = ["| scene | mean node error (mm) | max (mm) | trajectory error (mm) | reward full (cm) | reward reduced (cm) "
+             "| s/step full | s/step reduced |", "|---|---|---|---|---|---|---|---|"]
+    for r in report["scenes"]:
+        lines.append(f"| {r['scene']} | {r['mean_node_error_mm']:.3f} | {r['max_node_error_mm']:.2f} | "
+                     f"{r['mean_trajectory_error_mm']:.3f} | {r['reward_full_cm']:+.3f} | {r['reward_reduced_cm']:+.3f} "
+                     f"| {r['seconds_per_step_full']:.4f} | {r['seconds_per_step_reduced']:.5f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _plot_grid(path: Path, rows: list[dict]) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 4.2))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    for tm in sorted({r["tol_modes"] for r in rows}):
+        pts = sorted((r["mean_seconds_per_step_reduced"] * 1e3, r["mean_node_error_mm"], r["tol_gie"])
+                     for r in rows if r["tol_modes"] == tm)
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"tol_modes {tm:g}")
+        for x, y, g in pts:
+            ax.annotate(f"{g:g}", (x, y), fontsize=7, textcoords="offset points", xytext=(3, 3))
+    ax.set_xlabel("reduced step, ms (labels: tol_gie)")
+    ax.set_ylabel("mean node error vs full model, mm")
+    ax.set_yscale("log")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def _validate(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    config = RobotConfig(leg_mesh_size=args.mesh_size)
+    progress = not args.no_progress
+    if args.grid:
+        rows = []
+        for tm in GRID_TOL_MODES:
+            settings = BuildSettings(n_designs=args.designs, tol_modes=tm, rigid=args.rigid_modes)
+            for part in build_reductions(args.workdir, config, settings, GRID_TOL_GIE, args.workers, progress):
+                rep = validate_reduction(part, config, args.workdir, workers=args.workers, progress=progress)
+                rep.update(tol_modes=tm, tol_gie=part.metadata["settings"]["tol_gie"])
+                rows.append(rep)
+                print(f"tol_modes {tm:g} tol_gie {rep['tol_gie']:g}: {rep['n_modes']} modes, RID "
+                      f"{rep['rid_tetrahedra']}+{rep['rid_triangles']}, error {rep['mean_node_error_mm']:.3f} mm, "
+                      f"{rep['mean_seconds_per_step_reduced'] * 1e3:.2f} ms/step", flush=True)
+        (out / "grid.json").write_text(json.dumps(jsonable(rows), indent=1) + "\n", encoding="utf-8")
+        _plot_grid(out / "error_vs_time.png", rows)
+        print(f"wrote {out / 'grid.json'} and {out / 'error_vs_time.png'}")
+        return 0
+    path = args.reduction or default_reduction_path()
+    part, _ = load_reduction(path, expect={k: getattr(config, k) for k in MATCHED_FIELDS})
+    rep = validate_reduction(part, config, args.workdir, workers=args.workers, progress=progress)
+    rep["reduction"] = str(path)
+    (out / "validation.json").write_text(json.dumps(jsonable(rep), indent=1) + "\n", encoding="utf-8")
+    (out / "validation.md").write_text(_markdown(rep), encoding="utf-8")
+    print(_markdown(rep))
+    print(f"mean node error {rep['mean_node_error_mm']:.3f} mm; reduced step {rep['speedup']:.0f}x faster; "
+          f"wrote {out}")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``reduce build`` and ``reduce validate``."""
+    p = subparsers.add_parser("reduce", help="build and validate the leg reduction (POD + ECSW)")
+    sub = p.add_subparsers(dest="reduce_command", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--workdir", default="runs/reduce", help="full-order runs, reused (default runs/reduce)")
+    common.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size, help="leg mesh size, mm")
+    common.add_argument("--designs", type=int, default=BuildSettings.n_designs, help="training designs")
+    common.add_argument("--rigid-modes", choices=("translations", "rigid"), default=BuildSettings.rigid)
+    common.add_argument("--workers", type=int, default=None, help="processes (default: CPU count)")
+    common.add_argument("--no-progress", action="store_true")
+    b = sub.add_parser("build", parents=[common], help="snapshots -> POD -> Galerkin runs -> ECSW; writes --out")
+    b.add_argument("--out", required=True, help="reduction file to write (.npz)")
+    b.add_argument("--tol-modes", type=float, default=BuildSettings.tol_modes, help="POD tail-energy tolerance")
+    b.add_argument("--tol-gie", type=float, default=BuildSettings.tol_gie, help="ECSW relative residual tolerance")
+    b.set_defaults(func=_build)
+    v = sub.add_parser("validate", parents=[common], help="compare with the full model on 4 held-out scenes")
+    v.add_argument("--reduction", default=None, help="reduction file (default: the shipped one)")
+    v.add_argument("--out", default="runs/reduce/validation", help="report directory")
+    v.add_argument("--grid", action="store_true", help="3 x 3 grid over (tol_modes, tol_gie) with a plot")
+    v.set_defaults(func=_validate)
