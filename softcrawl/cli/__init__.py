@@ -18,7 +18,7 @@ from softcrawl import __version__
 
 #: Subcommand modules, in the order they appear in ``softcrawl --help``.
 SUBCOMMANDS = ("softcrawl.cli.verify", "softcrawl.cli.designs", "softcrawl.cli.simulate", "softcrawl.cli.sweep",
-               "softcrawl.cli.reduce")
+               "softcrawl.cli.reduce", "softcrawl.cli.train", "softcrawl.cli.evaluate", "softcrawl.cli.report")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -10,9 +10,13 @@ Presets:
   policy lr 6e-4, Q lr 2e-3, τ 0.01, learning starts 10K, 1 update per transition,
   net [400, 200, 100]; entropy schedule t0 = 200K, t1 = 950K; full-order 6 mm model with
   1 s actions (100 steps of 0.01 s).
-* ``demo``: about 15 min on a 2-core machine with the *full-order* model: coarse mesh
-  (16 mm legs, 25 mm disk, factorization reuse 5), dt 0.1 s and 10 steps per 1 s action,
-  the 280 three-legged designs, 8 envs in 2 worker processes, 4,000 transitions.
+* ``demo``: under 15 min on a 2-core machine with the *full-order* model: coarse mesh
+  (16 mm legs, 25 mm disk, factorization reuse 5), 10 steps of 0.01 s per action (0.1 s
+  holds: a fast gait, not the paper's 1 s), the 280 three-legged designs, 8 envs in 2 worker
+  processes, 1,600 transitions (80 episodes; 2.5 min per 320 measured on the shared machine),
+  batch 128. Once the reduced model steps in a few ms, ``--set env.model="reduced"
+  --set env.steps_per_action=100`` gives the paper's 1 s actions (it measured 47-62 ms per step
+  on 2026-11-21 with the coarse disk, no faster than the coarse full model yet).
 * ``smoke``: CI, < 1 min: 2 envs in-process, 2 steps per action, 160 transitions.
 """
 
@@ -24,8 +28,8 @@ import math
 from dataclasses import asdict, dataclass, field
 
 from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
+from softcrawl.robot.assembly import MODELS
 
-MODELS = ("full",)
 BACKENDS = ("serial", "subprocess")
 TIMEOUTS = ("bootstrap", "terminal")
 
@@ -35,7 +39,8 @@ class EnvConfig:
     """Simulation of one episode.
 
     Attributes:
-        model: ``"full"`` (full-order FEM; the reduced model will add a value).
+        model: ``"full"`` (full-order FEM) or ``"reduced"`` (POD + ECSW legs,
+            :class:`softcrawl.robot.RobotConfig`); reduction: its file (None: the shipped one).
         leg_mesh_size, disk_mesh_size: mm. refactor_every: factorization reuse (1 = exact).
         dt: simulator step, s. steps_per_action: steps per action (hold = dt * steps_per_action s).
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
@@ -45,6 +50,7 @@ class EnvConfig:
     """
 
     model: str = "full"
+    reduction: str | None = None
     leg_mesh_size: float = 6.0
     disk_mesh_size: float = 10.0
     refactor_every: int = 1
@@ -167,11 +173,11 @@ def preset(name: str) -> TrainConfig:
         return TrainConfig().validate()
     if name == "demo":
         return TrainConfig(
-            preset="demo", n_envs=8, total_steps=4_000, backend="subprocess", n_workers=2,
-            checkpoint_every=800, snapshot_every=200,
-            env=EnvConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5, dt=0.1, steps_per_action=10,
+            preset="demo", n_envs=8, total_steps=1_600, backend="subprocess", n_workers=2,
+            checkpoint_every=400, snapshot_every=80,
+            env=EnvConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5, steps_per_action=10,
                           settle_steps=3, legs=(3,)),
-            sac=SACConfig(buffer_size=20_000, batch_size=128, learning_starts=400, utd_ratio=0.25),
+            sac=SACConfig(buffer_size=20_000, batch_size=128, learning_starts=320),
         ).validate()
     if name == "smoke":
         return TrainConfig(

@@ -251,9 +251,8 @@ class GibbsDesignDistribution:
         else:
             if eff < floor + self.floor_margin:
                 eff, clamped = floor + self.floor_margin, True
-                if eff >= h_max:
-                    eff = h_max
-            f = lambda b: gibbs_entropy(s, b) - eff  # noqa: E731 - non-increasing in b
+                eff = min(h_max, eff)
+            f = lambda b: gibbs_entropy(s, b) - eff
             std = float(np.std(s))
             hi = min(1.0 / std if std > 0 else 1.0, self.beta_max)
             lo = 0.0

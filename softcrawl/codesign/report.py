@@ -159,9 +159,9 @@ def write_report(run: str | Path, k: int = 5) -> Path:
     cfg = meta["config"]
     lines = [
         f"# Co-design run `{run.name}`", "",
-        f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
-        f"{cfg['total_steps']} steps planned; {len(ep['r'])} episodes logged, "
-        f"{int(ep['diverged'].sum())} diverged.", "",
+        (f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
+         f"{cfg['total_steps']} steps planned; {len(ep['r'])} episodes logged, "
+         f"{int(ep['diverged'].sum())} diverged."), "",
         f"- steps done (last checkpoint): {state['timestep']}",
         f"- best episode return: {ep['r'].max():+.3f} cm" if len(ep["r"]) else "- no episode finished",
         f"- design distribution: beta = {last.beta:.4g} /cm, entropy {last.entropy:.3f} nats "

@@ -12,7 +12,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from softcrawl.codesign.distribution import BetaUpdate, EntropySchedule, GibbsDesignDistribution
+from softcrawl.codesign.distribution import (
+    BetaUpdate,
+    EntropySchedule,
+    GibbsDesignDistribution,
+)
 from softcrawl.design.space import Design
 
 

@@ -49,12 +49,10 @@ from softcrawl.robot.assembly import RobotConfig
 
 
 def robot_factory(cfg: TrainConfig):
-    """Picklable ``design -> Robot`` for ``cfg.env`` (only the full-order model exists yet)."""
+    """Picklable ``design -> Robot`` for ``cfg.env`` (full-order or reduced model)."""
     e = cfg.env
-    if e.model != "full":
-        raise ValueError(f"env.model {e.model!r} is not available")
     return BuildRobot(RobotConfig(leg_mesh_size=e.leg_mesh_size, disk_mesh_size=e.disk_mesh_size,
-                                  refactor_every=e.refactor_every, dt=e.dt))
+                                  refactor_every=e.refactor_every, dt=e.dt, model=e.model, reduction=e.reduction))
 
 
 def env_fn(cfg: TrainConfig):
@@ -168,9 +166,10 @@ class CodesignCallback(BaseCallback):
         self.start_steps = self.num_timesteps
         self.bar = tqdm(total=self.cfg.total_steps, initial=self.num_timesteps, unit="step", desc="train",
                         disable=not self.progress, dynamic_ncols=True)
-        self.episodes = open(self.run_dir / "episodes.csv", "a", newline="")
+        # kept open for the whole run, closed in _on_training_end
+        self.episodes = open(self.run_dir / "episodes.csv", "a", newline="")  # noqa: SIM115
         self.ep_writer = csv.writer(self.episodes)
-        self.dist_file = open(self.run_dir / "distribution.csv", "a", newline="")
+        self.dist_file = open(self.run_dir / "distribution.csv", "a", newline="")  # noqa: SIM115
         self.dist_writer = csv.writer(self.dist_file)
         self.best = -np.inf
 
@@ -195,6 +194,8 @@ class CodesignCallback(BaseCallback):
             self.logger.record("codesign/best_return_cm", self.best)
             self.logger.record("codesign/mean_return_cm", float(np.mean([i["episode"]["r"] for i in rows])))
             self.logger.record("codesign/top1_prob", top[0][1])
+            self.logger.record("codesign/top_designs", ", ".join(f"{_design_str(d)} p={p:.3g} R={r:+.3f}"
+                                                                  for d, p, r in top), exclude=("csv", "stdout"))
             self.bar.set_postfix(best=f"{self.best:+.2f}cm", H=f"{up.entropy:.2f}", refresh=False)
         every = self.cfg.snapshot_every
         if t // every > (t - self.training_env.num_envs) // every:
@@ -246,6 +247,21 @@ def _truncate_csv(path: Path, t_max: int) -> None:
     os.replace(tmp, path)
 
 
+def _forget_after(run_dir: Path, t: int) -> None:
+    """Resume bookkeeping: drop episode/distribution rows and snapshots logged after step ``t``
+    (the killed run's work past its checkpoint) and keep the SB3 ``progress.csv`` of the earlier
+    part as ``progress-<k>.csv`` (SB3 would overwrite it)."""
+    for name in ("episodes.csv", "distribution.csv"):
+        _truncate_csv(run_dir / name, t)
+    for snap in (run_dir / "snapshots").glob("t-*.npz") if (run_dir / "snapshots").exists() else []:
+        if int(snap.stem.split("-")[1]) > t:
+            snap.unlink()
+    progress = run_dir / "logs" / "progress.csv"
+    if progress.exists():
+        k = len(list(progress.parent.glob("progress-*.csv")))
+        os.replace(progress, progress.with_name(f"progress-{k}.csv"))
+
+
 def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
           progress: bool = True, report: bool = True) -> TrainResult:
     """Train (or, with ``resume``, continue) a co-design run in ``run_dir``.
@@ -287,8 +303,8 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         if ckpt is not None:
             load_checkpoint(ckpt, model, sampler)
             venv.num_transitions = model.num_timesteps
-            for name in ("episodes.csv", "distribution.csv"):
-                _truncate_csv(run_dir / name, model.num_timesteps)
+        if resume:
+            _forget_after(run_dir, model.num_timesteps)
         model.set_logger(configure(str(run_dir / "logs"), ["csv", "tensorboard"]))
         start = model.num_timesteps
         callback = CodesignCallback(cfg, run_dir, sampler, progress)

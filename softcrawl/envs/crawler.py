@@ -22,7 +22,8 @@ when none is given).
   ``applied_kpa`` (3,) and ``commanded_kpa`` (3,), ``diverged``, ``reason``.
 
 Robots are built with an injectable ``robot_factory(design) -> Robot`` (default
-:class:`BuildRobot`, the full-order model) and cached per design (LRU, ``max_cached``).
+:class:`BuildRobot`, the full-order model) and cached per design (LRU, ``max_cached``); each
+episode gets a fresh solver, so the same design and actions give the same return.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -79,7 +81,7 @@ class CrawlerEnv(gym.Env):
         observe_state: append the 9-number robot-state summary to the observation.
         designs: designs drawn at reset when none is given (default: all canonical designs).
         settle_steps: zero-pressure settling steps at reset (default 15, not counted).
-        calibration: real-to-sim pressure map.
+        calibration: real-to-sim pressure map (default ``PressureCalibration()``).
         max_cached: robots kept per env (LRU).
 
     Raises:
@@ -87,13 +89,13 @@ class CrawlerEnv(gym.Env):
             ``history``, an empty or invalid ``designs`` list.
     """
 
-    metadata = {"render_modes": []}
+    metadata: ClassVar[dict] = {"render_modes": []}
     render_mode = None
 
     def __init__(self, robot_factory: Callable[[Design], Robot] | None = None, steps_per_action: int = 100,
                  n_actions: int = N_ACTIONS, history: int = HISTORY, observe_state: bool = False,
                  designs: Sequence[Sequence[int]] | None = None, settle_steps: int = SETTLE_STEPS,
-                 calibration: PressureCalibration = PressureCalibration(), max_cached: int = 16):
+                 calibration: PressureCalibration | None = None, max_cached: int = 16):
         super().__init__()
         for name, v in (("steps_per_action", steps_per_action), ("n_actions", n_actions), ("max_cached", max_cached)):
             if int(v) != v or v < 1:
@@ -102,12 +104,13 @@ class CrawlerEnv(gym.Env):
             raise ValueError(f"history must be a non-negative integer, got {history!r}")
         self.robot_factory = robot_factory if robot_factory is not None else BuildRobot()
         self.steps_per_action, self.n_actions, self.history = int(steps_per_action), int(n_actions), int(history)
-        self.observe_state, self.settle_steps, self.calibration = bool(observe_state), int(settle_steps), calibration
+        self.observe_state, self.settle_steps = bool(observe_state), int(settle_steps)
+        self.calibration = calibration if calibration is not None else PressureCalibration()
         self.designs = canonical_designs() if designs is None else tuple(validate_design(d) for d in designs)
         if not self.designs:
             raise ValueError("designs must not be empty")
         self.max_cached = int(max_cached)
-        self._episodes: OrderedDict[Design, Episode] = OrderedDict()
+        self._robots: OrderedDict[Design, Robot] = OrderedDict()
         n_hist = 3 * self.history
         low = np.concatenate([np.zeros(DESIGN_DIM), -np.ones(n_hist)]).astype(np.float32)
         high = np.ones(DESIGN_DIM + n_hist, np.float32)
@@ -125,13 +128,16 @@ class CrawlerEnv(gym.Env):
 
     # -- robots ---------------------------------------------------------------------------
     def _episode_for(self, design: Design) -> Episode:
-        ep = self._episodes.pop(design, None)
-        if ep is None:
-            ep = Episode(self.robot_factory(design), self.calibration, self.settle_steps)
-        self._episodes[design] = ep
-        while len(self._episodes) > self.max_cached:
-            self._episodes.popitem(last=False)
-        return ep
+        """A fresh :class:`Episode` (new solver: no factorization or warm start carried over
+        from earlier episodes, so an episode is a function of design and actions only) on the
+        cached robot of ``design``."""
+        robot = self._robots.pop(design, None)
+        if robot is None:
+            robot = self.robot_factory(design)
+        self._robots[design] = robot
+        while len(self._robots) > self.max_cached:
+            self._robots.popitem(last=False)
+        return Episode(robot, self.calibration, self.settle_steps)
 
     # -- observation / info -----------------------------------------------------------------
     def _state_summary(self) -> np.ndarray:

@@ -1,0 +1,175 @@
+"""Crawler gymnasium environment and the design-sampling VecEnv (softcrawl.envs).
+
+Uses a coarse full-order robot (16 mm legs, 25 mm disk, factorization reuse 5) and 2 steps per
+action so that an episode costs about a second."""
+
+import numpy as np
+import pytest
+
+from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN, one_hot
+from softcrawl.envs import BuildRobot, CrawlerEnv, action_to_kpa, kpa_to_action
+from softcrawl.fem.solver import SimulationDiverged
+from softcrawl.robot import RobotConfig
+
+COARSE = RobotConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5)
+DESIGNS = [PAPER_BEST_DESIGN, BASELINE_DESIGN]
+
+
+def make_env(**kw):
+    kw.setdefault("robot_factory", BuildRobot(COARSE))
+    kw.setdefault("steps_per_action", 2)
+    kw.setdefault("n_actions", 4)
+    kw.setdefault("designs", DESIGNS)
+    kw.setdefault("settle_steps", 3)
+    return CrawlerEnv(**kw)
+
+
+@pytest.fixture(scope="module")
+def env():
+    return make_env()
+
+
+def test_action_mapping():
+    np.testing.assert_allclose(action_to_kpa([-1, 0, 1]), [0, 45, 90])
+    np.testing.assert_allclose(action_to_kpa([-3, 3, 0.5]), [0, 90, 67.5])  # clipped
+    np.testing.assert_allclose(kpa_to_action(action_to_kpa([-0.2, 0.3, 0.9])), [-0.2, 0.3, 0.9])
+
+
+def test_spaces_obs_history_and_reward(env):
+    assert env.observation_space.shape == (44,) and env.action_space.shape == (3,)
+    obs, info = env.reset(seed=1, options={"design": "1,0,0,2,2,0,0,0"})
+    assert obs.dtype == np.float32 and info["design"] == PAPER_BEST_DESIGN
+    np.testing.assert_array_equal(obs[:32], one_hot(PAPER_BEST_DESIGN))
+    assert np.all(obs[32:] == 0)
+    acts = [np.array([1.0, -1.0, 0.5], np.float32), np.array([-0.5, 1.0, -1.0], np.float32)]
+    total, x0 = 0.0, info["disk_position_mm"][0]
+    for k, a in enumerate(acts):
+        obs, r, term, trunc, info = env.step(a)
+        total += r
+        assert not term and not trunc
+        np.testing.assert_allclose(obs[32:35], a)  # most recent first
+        np.testing.assert_allclose(info["commanded_kpa"], action_to_kpa(a))
+        assert info["applied_kpa"].shape == (3,) and np.all(info["applied_kpa"] <= 90)
+        assert info["t"] == pytest.approx((k + 1) * 2 * COARSE.dt)
+    np.testing.assert_allclose(obs[35:38], acts[0])
+    assert np.all(obs[38:] == 0)
+    # the return is the +x displacement of the disk top centre, cm
+    assert total == pytest.approx(info["displacement_cm"], abs=1e-9)
+    assert total == pytest.approx((info["disk_position_mm"][0] - x0) / 10.0, abs=1e-6)
+    for _ in range(2):
+        obs, r, term, trunc, info = env.step(acts[0])
+    assert trunc and not term  # time limit after n_actions
+    obs, info = env.reset(options={"design": BASELINE_DESIGN})
+    assert np.all(obs[32:] == 0), "history must be cleared on reset"
+    assert len(env._robots) == 2  # robots cached per design
+
+
+def test_episodes_are_reproducible():
+    env = make_env(n_actions=3)
+    acts = np.array([[1, -1, 0.5], [0.2, 1, -1], [-1, 0, 1]], np.float32)
+    returns = []
+    for design in (PAPER_BEST_DESIGN, BASELINE_DESIGN, PAPER_BEST_DESIGN):
+        env.reset(options={"design": design})
+        returns.append(sum(env.step(a)[1] for a in acts))
+    assert returns[0] == returns[2]  # same design and actions, other episodes in between
+
+
+def test_random_design_from_rng():
+    env = make_env()
+    seen = {env.reset(seed=s)[1]["design"] for s in range(6)}
+    assert seen <= set(DESIGNS) and len(seen) == 2
+    assert env.reset(seed=4)[1]["design"] == env.reset(seed=4)[1]["design"]
+
+
+def test_gymnasium_and_sb3_checkers():
+    from gymnasium.utils.env_checker import check_env as gym_check
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    env = make_env()
+    gym_check(env, skip_render_check=True)
+    sb3_check(env, warn=False)
+    env_s = make_env(observe_state=True)
+    assert env_s.observation_space.shape == (53,)
+    gym_check(env_s, skip_render_check=True)
+    sb3_check(env_s, warn=False)
+
+
+def test_observe_state(env):
+    e = make_env(observe_state=True)
+    obs, _ = e.reset(options={"design": PAPER_BEST_DESIGN})
+    np.testing.assert_allclose(obs[44:47], 0.0, atol=1e-6)  # no displacement right after settling
+    obs, _, _, _, info = e.step(np.ones(3, np.float32))
+    assert obs[44] == pytest.approx(info["displacement_cm"], abs=1e-5)
+    assert np.all(obs[50:53] > -1)  # regulators rising
+
+
+def test_divergence_ends_episode_without_raising(env):
+    env.reset(options={"design": PAPER_BEST_DESIGN})
+    env.step(np.zeros(3, np.float32))
+
+    def boom(command):
+        raise SimulationDiverged("NaN in test", 0.0)
+
+    env.episode.step = boom
+    try:
+        obs, r, term, trunc, info = env.step(np.zeros(3, np.float32))
+    finally:
+        del env.episode.step
+    assert term and not trunc and info["diverged"] and "NaN in test" in info["reason"]
+    assert r == 0.0 and np.all(np.isfinite(obs))
+
+
+def test_bad_input(env):
+    with pytest.raises(ValueError):
+        make_env(steps_per_action=0)
+    with pytest.raises(ValueError):
+        make_env(designs=[])
+    with pytest.raises(ValueError):
+        env.reset(options={"design": (1, 1, 0, 0, 0, 0, 0, 0)})  # 2 legs
+    env.reset(options={"design": PAPER_BEST_DESIGN})
+    with pytest.raises(ValueError):
+        env.step(np.array([np.nan, 0, 0]))
+
+
+class FixedSampler:
+    def __init__(self, designs):
+        self.designs, self.seen = list(designs), []
+
+    def sample(self, n):
+        return [self.designs[i % len(self.designs)] for i in range(n)]
+
+    def observe(self, designs, returns, diverged, timestep):
+        self.seen.append((list(designs), list(returns), timestep))
+
+
+@pytest.mark.parametrize("backend", ["serial", "subprocess"])
+def test_vec_env(backend):
+    from softcrawl.envs.vec import DesignVecEnv, SerialBackend, SubprocessBackend
+
+    fns = [make_env] * 3
+    be = SerialBackend(fns) if backend == "serial" else SubprocessBackend(fns, n_workers=2)
+    sampler = FixedSampler([BASELINE_DESIGN, PAPER_BEST_DESIGN])
+    venv = DesignVecEnv(be, sampler)
+    try:
+        obs = venv.reset()
+        assert obs.shape == (3, 44)
+        assert venv.designs == [BASELINE_DESIGN, PAPER_BEST_DESIGN, BASELINE_DESIGN]
+        np.testing.assert_array_equal(obs[1, :32], one_hot(PAPER_BEST_DESIGN))
+        rng = np.random.default_rng(0)
+        total = np.zeros(3)
+        for k in range(4):
+            obs, rew, dones, infos = venv.step(rng.uniform(-1, 1, (3, 3)).astype(np.float32))
+            total += rew
+        assert dones.all() and venv.num_transitions == 12
+        for i, info in enumerate(infos):
+            assert info["TimeLimit.truncated"] and info["episode"]["l"] == 4
+            assert info["episode"]["r"] == pytest.approx(total[i], abs=1e-5)
+            assert info["terminal_observation"].shape == (44,)
+        assert np.all(obs[:, 32:] == 0)  # auto-reset cleared the history
+        (designs, _returns, t), = sampler.seen
+        assert t == 12 and designs == [BASELINE_DESIGN, PAPER_BEST_DESIGN, BASELINE_DESIGN]
+        assert venv.get_attr("steps_per_action") == [2, 2, 2]
+        with pytest.raises(ValueError, match="legs"):  # errors in workers reach the caller
+            be.reset([2], [(1, 1, 0, 0, 0, 0, 0, 0)], [None])
+    finally:
+        venv.close()

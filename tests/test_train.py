@@ -1,0 +1,182 @@
+"""Co-design training: config, SAC learner, checkpoint / kill / resume, report (softcrawl.codesign)."""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from softcrawl.codesign.config import PRESETS, SACConfig, TrainConfig, override, preset
+
+
+def test_presets_and_overrides():
+    for name in PRESETS:
+        cfg = preset(name)
+        assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    paper = preset("paper")
+    assert (paper.n_envs, paper.total_steps, paper.sac.batch_size, paper.sac.buffer_size) == (96, 1_000_000, 512, 100_000)
+    assert (paper.sac.policy_lr, paper.sac.q_lr, paper.sac.gamma, paper.sac.tau) == (6e-4, 2e-3, 0.95, 0.01)
+    assert paper.sac.net_arch == (400, 200, 100) and paper.sac.learning_starts == 10_000
+    assert paper.design.t0_fraction * paper.total_steps == 200_000
+    assert paper.design.t1_fraction * paper.total_steps == 950_000
+    assert len(paper.env.designs()) == 6972 and len(preset("demo").env.designs()) == 280
+    cfg = override(paper, ["sac.batch_size=64", "env.legs=[3, 4]", 'backend="serial"', "design.untried=zero"])
+    assert cfg.sac.batch_size == 64 and cfg.env.legs == (3, 4) and cfg.backend == "serial"
+    assert cfg.design.untried == "zero"
+    for bad in (["sac.nope=1"], ["n_envs=0"], ["env.legs=[2]"], ["backend=\"ray\""], ["sac.timeout=\"x\""], ["n_envs"]):
+        with pytest.raises(ValueError):
+            override(paper, bad)
+    with pytest.raises(ValueError):
+        preset("huge")
+
+
+def test_sac_split_learning_rates_and_update_ratio():
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from softcrawl.codesign.sac import make_sac
+
+    venv = DummyVecEnv([lambda: gym.make("Pendulum-v1")] * 2)
+    cfg = SACConfig(policy_lr=1e-3, q_lr=5e-3, learning_starts=20, batch_size=16, buffer_size=500, net_arch=(32, 16))
+    model = make_sac(venv, cfg, seed=0)
+    assert model.gradient_steps == 2  # one update per transition with 2 envs
+    assert model.replay_buffer.handle_timeout_termination
+    model.learn(60)
+    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
+    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(5e-3)
+    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
+    assert model._n_updates == 60 - 20  # one per transition after learning_starts (2 per vectorised step)
+    sizes = [m.out_features for m in model.actor.latent_pi if hasattr(m, "out_features")]
+    assert sizes == [32, 16]
+    terminal = make_sac(venv, SACConfig(timeout="terminal", buffer_size=100, net_arch=(8,)))
+    assert not terminal.replay_buffer.handle_timeout_termination
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return [r for r in csv.reader(f) if r]
+
+
+def test_kill_and_resume(tmp_path):
+    """A smoke run killed (SIGKILL) after its first checkpoint resumes, keeps counting, completes."""
+    from softcrawl.codesign.report import top_designs
+    from softcrawl.codesign.training import latest_checkpoint, train
+
+    run = tmp_path / "run"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.Popen([sys.executable, "-m", "softcrawl.cli.train", "--preset", "smoke", "--out", str(run),
+                             "--no-progress", "--set", "checkpoint_every=40"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 150
+    try:
+        while time.time() < deadline and proc.poll() is None and latest_checkpoint(run) is None:
+            time.sleep(0.2)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+        _, err = proc.communicate()
+    ck = latest_checkpoint(run)
+    assert ck is not None, err.decode()[-2000:]
+    killed_at = int(ck.name.split("-")[1])
+    assert 40 <= killed_at < 160, "the run must be killed before it completes"
+    assert not (run / "report").exists()
+    res = train(run, resume=True, progress=False)
+    assert res.steps == 160 and latest_checkpoint(run).name == "step-0000000160"
+    ts = [int(r[0]) for r in _rows(run / "episodes.csv")]
+    # 2 envs x 20-action episodes: episodes end together every 40 transitions, none lost or doubled
+    assert ts == [40, 40, 80, 80, 120, 120, 160, 160]
+    # SAC kept its counters: 1 update per transition after learning_starts (40) over the whole run
+    assert res.updates == 160 - 40
+    # truncation at the time limit is bootstrapped: stored as done with timeout, sampled as not done
+    import pickle
+
+    with open(latest_checkpoint(run) / "replay_buffer.pkl", "rb") as f:
+        rb = pickle.load(f)
+    assert rb.dones.sum() > 0 and np.all(rb.timeouts[rb.dones > 0] == 1)
+    assert float(rb.sample(64).dones.max()) == 0.0
+    assert (run / "logs" / "progress-0.csv").exists()  # the killed part's SB3 log is kept
+    snaps = sorted(int(p.stem.split("-")[1]) for p in (run / "snapshots").glob("t-*.npz"))
+    assert snaps == [40, 80, 120, 160]
+    # evaluate: the written re-run (ActionSequence through run_episode) reproduces the env's return
+    from softcrawl.cli.evaluate import _hold, evaluate
+
+    ev = evaluate(run, "1,0,0,2,2,0,0,0", episodes=2)
+    assert ev["actions_kpa"].shape == (20, 3) and np.all((ev["actions_kpa"] >= 0) & (ev["actions_kpa"] <= 90))
+    assert ev["returns_cm"][0] == ev["returns_cm"][1]  # deterministic policy, fresh solver per episode
+    from softcrawl.gaits import ActionSequence
+    from softcrawl.robot import run_episode
+
+    cfg = ev["config"]
+    gait = ActionSequence(ev["actions_kpa"], hold=_hold(cfg.env.dt, cfg.env.steps_per_action, 20))
+    rerun = run_episode(ev["env"].episode.robot, gait, 20 * cfg.env.steps_per_action * cfg.env.dt,
+                        settle_steps=cfg.env.settle_steps, record_every=None, progress=False)
+    assert rerun.reward_cm == pytest.approx(ev["returns_cm"][0], abs=1e-9)
+    top = top_designs(run, 3)
+    assert top and top[0]["latest_cm"] >= top[-1]["latest_cm"]
+    assert (run / "report" / "summary.md").exists() and (run / "report" / "reward_histogram.png").exists()
+    assert (run / "logs" / "progress.csv").exists()
+    assert any(p.name.startswith("events.out.tfevents") for p in (run / "logs").iterdir())
+
+
+def test_hold_matches_integer_step_schedule():
+    import math
+
+    from softcrawl.cli.evaluate import _hold
+
+    for dt, spa in ((0.01, 100), (0.01, 10), (0.01, 20), (0.005, 7)):
+        h = _hold(dt, spa, 20)
+        assert all(math.floor(k * dt / h) == k // spa for k in range(20 * spa))
+
+
+def test_train_rejects_bad_dirs(tmp_path):
+    from softcrawl.codesign.training import train
+
+    with pytest.raises(ValueError):
+        train(tmp_path / "missing", resume=True)
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("x")
+    with pytest.raises(ValueError):
+        train(tmp_path / "full", preset("smoke"))
+
+
+def _parser():
+    import argparse
+    import importlib
+
+    p = argparse.ArgumentParser(prog="softcrawl")
+    sub = p.add_subparsers(dest="command", required=True)
+    for m in ("train", "report", "evaluate"):
+        importlib.import_module(f"softcrawl.cli.{m}").register(sub)
+    return p
+
+
+def test_cli_bad_input(tmp_path):
+    p = _parser()
+    args = p.parse_args(["train", "--preset", "smoke", "--out", str(tmp_path / "r"), "--set", "n_envs=0"])
+    with pytest.raises(ValueError, match="n_envs"):
+        args.func(args)
+    args = p.parse_args(["train", "--resume", "--out", str(tmp_path / "r"), "--total-steps", "10"])
+    with pytest.raises(ValueError, match="resume"):
+        args.func(args)
+    args = p.parse_args(["report", str(tmp_path)])
+    with pytest.raises(ValueError, match="not a training run"):
+        args.func(args)
+    args = p.parse_args(["evaluate", str(tmp_path), "--design", "1,0,0,2,2,0,0,0", "--out", str(tmp_path / "e")])
+    with pytest.raises(ValueError, match="not a training run"):
+        args.func(args)
+    assert not (tmp_path / "r").exists()
+
+
+def test_reduced_model_is_selectable():
+    from softcrawl.codesign.training import robot_factory
+
+    cfg = override(preset("smoke"), ['env.model="reduced"'])
+    factory = robot_factory(cfg)
+    assert factory.config.model == "reduced" and factory.config.reduction is None
+    with pytest.raises(ValueError):
+        override(preset("smoke"), ['env.model="tiny"'])
