@@ -83,11 +83,6 @@ def save_reduction(path: str | os.PathLike, part: PartReduction, valid_for: dict
     return path
 
 
-def read_metadata(path: str | os.PathLike) -> dict:
-    """The JSON metadata of a reduction file (no checks beyond readability)."""
-    return load_reduction(path, check=False)[1]
-
-
 def load_reduction(path: str | os.PathLike, expect: dict | None = None,
                    check: bool = True) -> tuple[PartReduction, dict]:
     """Read a reduction file and check it.

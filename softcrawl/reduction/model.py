@@ -151,11 +151,6 @@ class ReducedBody:
         """``(m, m)`` ``Phi^T M Phi`` (constant), kg."""
         return self.basis.T @ (np.repeat(self.body.nodal_mass, 3)[:, None] * self.basis)
 
-    def reduced_coordinates(self, x: np.ndarray) -> np.ndarray:
-        """``(m,)`` ``q = Phi^T (x - X)`` for body positions ``x`` ``(n, 3)`` (exact on the
-        reduced subspace, since the basis is orthonormal)."""
-        return self.basis.T @ (x - self.body.mesh.points).ravel()
-
 
 def reduce_body(body: Body, part: PartReduction, rotation: np.ndarray) -> ReducedBody:
     """Place a part reduction on a body posed by ``rotation`` (``(3, 3)``, leg-local -> world)."""
