@@ -27,10 +27,16 @@ def _one_blas_thread() -> Iterator[None]:
                 os.environ[v] = val
 
 
-def run_pool(fn: Callable, workers: int, tasks: list[tuple], finished: Callable) -> None:
+def run_pool(fn: Callable, workers: int | None, tasks: list[tuple], finished: Callable) -> None:
     """``finished(fn(*task))`` for each task, as tasks complete, on ``workers`` spawned
-    processes. On an error or interrupt, results already computed are still passed to
+    processes (None: the CPU count; never more than there are tasks; 1: in this process, in
+    order). On an error or interrupt, results already computed are still passed to
     ``finished``, the workers are stopped and the error is re-raised."""
+    workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
+    if workers == 1:
+        for task in tasks:
+            finished(fn(*task))
+        return
     with _one_blas_thread():  # the workers are spawned on submit, inside this block
         pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
         futures = [pool.submit(fn, *task) for task in tasks]

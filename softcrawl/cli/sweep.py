@@ -42,7 +42,7 @@ def register(subparsers) -> None:
     """Add the ``sweep-phase`` subcommand to ``subparsers``."""
     p = subparsers.add_parser(
         "sweep-phase", help="sweep the phase lag of the baseline sine gait (one episode per phase)",
-        description="Run one full-order episode of the sine gait per phase lag of the rear regulator, in "
+        description="Run one episode (reduced or full-order model, --model) of the sine gait per phase lag of the rear regulator, in "
         "parallel worker processes, and write sweep.json, sweep.csv and reward_vs_phase.png into --out. "
         "Finished phases are kept in <out>.partial/ until the sweep completes; re-running the same command "
         "resumes an interrupted sweep.",

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def _area_normals(x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def area_normals(x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """``(k, 3)`` area-weighted normals ``(x1 - x0) x (x2 - x0) / 2``, mm^2."""
     p = x[triangles]
     return 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
@@ -29,7 +29,7 @@ def pressure_forces(x: np.ndarray, triangles: np.ndarray, pressure: float) -> np
     Returns:
         ``(n, 3)`` forces, mN (kPa * mm^2).
     """
-    fn = (pressure / 3.0) * _area_normals(x, triangles)
+    fn = (pressure / 3.0) * area_normals(x, triangles)
     out = np.zeros((len(x), 3))
     idx = triangles.ravel()
     for c in range(3):

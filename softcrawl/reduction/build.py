@@ -151,18 +151,11 @@ def build_reductions(workdir: str | os.PathLike, config: RobotConfig, settings: 
     results: dict[str, np.ndarray] = {}
     with tqdm(total=len(ecsw_scenes), desc="Galerkin ROM runs", unit="scene", disable=not progress,
               dynamic_ncols=True) as bar:
-        tasks = [(s, fom, galerkin, settings.ecsw_every) for s in ecsw_scenes]
-        n_workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
-
         def finished(r: tuple[str, np.ndarray]) -> None:
             results[r[0]] = r[1]
             bar.update()
 
-        if n_workers == 1:
-            for task in tasks:
-                finished(galerkin_states(*task))
-        else:
-            run_pool(galerkin_states, n_workers, tasks, finished)
+        run_pool(galerkin_states, workers, [(s, fom, galerkin, settings.ecsw_every) for s in ecsw_scenes], finished)
     states = []
     for scene in ecsw_scenes:
         xs = results[scene.name]

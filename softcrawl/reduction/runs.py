@@ -91,13 +91,7 @@ def run_fom_scenes(directory: str | os.PathLike, scenes: Sequence[Scene], config
     bar = tqdm(total=len(scenes), initial=len(scenes) - len(todo), unit="scene", desc=f"full-order {kind}",
                disable=not progress, dynamic_ncols=True)
     try:
-        n_workers = max(1, min(workers or os.cpu_count() or 1, len(todo)))
-        if n_workers == 1:
-            for task in todo:
-                run_fom_scene(*task)
-                bar.update()
-        elif todo:
-            run_pool(run_fom_scene, n_workers, todo, lambda _: bar.update())
+        run_pool(run_fom_scene, workers, todo, lambda _: bar.update())
     finally:
         bar.close()
     return paths

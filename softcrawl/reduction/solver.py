@@ -22,6 +22,7 @@ import scipy.linalg as sla
 
 from softcrawl.fem.body import Body
 from softcrawl.fem.model import Model
+from softcrawl.fem.pressure import area_normals
 from softcrawl.fem.solver import ImplicitEulerSolver, SimulationDiverged, SolverSettings
 from softcrawl.fem.state import Control
 from softcrawl.reduction.kernels import reduced_element_terms
@@ -124,9 +125,7 @@ class ReducedSolver(ImplicitEulerSolver):
         for cav, phi_sum in self._cavity_basis[i]:
             p = float(control.pressures[cav.channel])
             if p != 0.0:
-                xt = x[cav.triangles]
-                an = 0.5 * np.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
-                f += (p / 3.0) * np.einsum("tim,ti->m", phi_sum, an)
+                f += (p / 3.0) * np.einsum("tim,ti->m", phi_sum, area_normals(x, cav.triangles))
         if control.forces is not None:
             f += Phi.T @ control.forces[m.body_slice(i)].ravel()
         qd = Phi.T @ v.ravel()

@@ -1,4 +1,5 @@
-"""Assembling a crawler (disk + PneuNet legs in slots) into a full-order FEM model.
+"""Assembling a crawler (disk + PneuNet legs in slots) into an FEM model (full-order, or with
+reduced legs when ``RobotConfig.model == "reduced"``).
 
 Placement follows physics.md ("Geometry"): a leg in the slot at angle θ is rotated +15°
 about y (its outer tip dips down), translated by ``(52 cos15° + 50, 0, 52 sin15° - 4)``
@@ -240,13 +241,13 @@ def leg_transform(angle_deg: float, tilt_deg: float = TILT_DEG) -> tuple[np.ndar
 
 
 def build_robot(design, config: RobotConfig = RobotConfig(), leg_mesh: TetMesh | None = None) -> Robot:
-    """Assemble the full-order model of a design.
+    """Assemble the model of a design (legs reduced if ``config.model == "reduced"``).
 
     Args:
         design: 8 slot values in {0..3} (sequence or string such as ``"1,0,0,2,2,0,0,1"``).
         config: model settings.
         leg_mesh: the PneuNet mesh in leg-local coordinates (default: meshed by gmsh at
-            ``config.leg_mesh_size``; a reduction supplies the mesh it was built on).
+            ``config.leg_mesh_size``; a reduced model always uses its reduction's mesh).
 
     Returns:
         The :class:`Robot` (disk = body 0, legs in slot order, ``4 * n_legs`` attachments,

@@ -278,11 +278,7 @@ def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: R
         bar.update()
 
     try:
-        if workers == 1:
-            for p in todo:
-                finished(run_phase(design, config, p, duration))
-        elif todo:
-            run_pool(run_phase, workers, [(design, config, p, duration) for p in todo], finished)
+        run_pool(run_phase, workers, [(design, config, p, duration) for p in todo], finished)
     finally:
         bar.close()
     result = SweepResult(settings, tuple(done[p] for p in phases), time.perf_counter() - wall, workers)
