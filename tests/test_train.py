@@ -119,6 +119,20 @@ def test_kill_and_resume(tmp_path):
     top = top_designs(run, 3)
     assert top and top[0]["latest_cm"] >= top[-1]["latest_cm"]
     assert (run / "report" / "summary.md").exists() and (run / "report" / "reward_histogram.png").exists()
+    # the report compares with the expert baseline's phase sweep when given one
+    from softcrawl.codesign.report import write_report
+
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    (sweep / "sweep.json").write_text(json.dumps({
+        "settings": {"design": [1, 0, 0, 2, 2, 0, 0, 1], "duration_s": 20.0, "config": {"model": "reduced",
+                                                                                      "leg_mesh_size": 6.0}},
+        "best": {"phase_deg": 250.0, "reward_cm": 3.21}, "paper_best_phase_deg": 110.0}))
+    summary = (write_report(run, baseline=sweep) / "summary.md").read_text()
+    assert "## Expert baseline" in summary and "250° (paper: 110.0°), +3.210 cm" in summary
+    (sweep / "sweep.json").write_text("{}")
+    with pytest.raises(ValueError, match="not a softcrawl sweep-phase output"):
+        write_report(run, baseline=sweep)
     assert (run / "logs" / "progress.csv").exists()
     assert any(p.name.startswith("events.out.tfevents") for p in (run / "logs").iterdir())
 

@@ -11,7 +11,7 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.top < 1:
         raise ValueError(f"--top must be >= 1, got {args.top}")
-    out = write_report(args.run, k=args.top)
+    out = write_report(args.run, k=args.top, baseline=args.baseline)
     print((out / "summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out}")
     return 0
@@ -24,4 +24,6 @@ def register(subparsers) -> None:
                               "weighted by the design distribution with the best so far, and summary.md.")
     p.add_argument("run", help="training run directory (softcrawl train --out)")
     p.add_argument("--top", type=int, default=5, help="number of top designs (default 5)")
+    p.add_argument("--baseline", default=None, metavar="SWEEP",
+                   help="a softcrawl sweep-phase output (directory or sweep.json) to compare with")
     p.set_defaults(func=_run)

@@ -10,7 +10,11 @@ Writes ``RUN/report/``:
   latest returns (y, cm) weighted by the design distribution p (tried designs only, weights
   renormalised), from the ``snapshots/``, with the best return so far as a line (paper figure);
 * ``returns.png``: episode returns over training with a running mean;
-* ``top_designs.csv``: the top-k table.
+* ``top_designs.csv``: the top-k table;
+* with ``baseline`` (a ``softcrawl sweep-phase`` output): an "Expert baseline" section with its
+  best phase and reward next to the run's best, and ``reward_vs_phase.png`` copied in. The two
+  are comparable only when the sweep's episode length and model match the run's environment;
+  the section states both.
 
 Top-k ranking: designs that were tried, by their latest return ``R`` (the quantity the
 distribution concentrates on), ties broken by design order.
@@ -21,6 +25,7 @@ from __future__ import annotations
 import csv
 import json
 import pickle
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -130,15 +135,65 @@ def _returns_figure(ep: dict, path: Path) -> None:
     fig.savefig(path, dpi=110, bbox_inches="tight")
 
 
-def write_report(run: str | Path, k: int = 5) -> Path:
-    """Write ``run/report/`` (module docstring) and return its path.
+def _load_sweep(sweep: str | Path) -> tuple[Path, dict]:
+    """``(sweep.json path, its content)`` of a ``softcrawl sweep-phase`` output (directory or file).
 
     Raises:
-        ValueError: ``run`` is not a training run with at least one checkpoint.
+        ValueError: unreadable, or without ``settings`` and ``best``.
+    """
+    sweep = Path(sweep)
+    path = sweep / "sweep.json" if sweep.is_dir() else sweep
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        for key in ("design", "duration_s", "config"):
+            data["settings"][key]
+        data["best"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{sweep} is not a softcrawl sweep-phase output (sweep.json): {exc!r}") from exc
+    return path, data
+
+
+def _baseline_section(path: Path, data: dict, out: Path, cfg: dict, best_cm: float | None) -> list[str]:
+    """Markdown lines comparing the run with the expert baseline's phase sweep (``path``: its
+    ``sweep.json``, ``data``: its content)."""
+    settings, best = data["settings"], data["best"]
+    if (path.parent / "reward_vs_phase.png").exists():
+        shutil.copyfile(path.parent / "reward_vs_phase.png", out / "reward_vs_phase.png")
+    env = cfg.get("env", {})
+    episode_s = 20 * env.get("steps_per_action", 0) * env.get("dt", 0.0)
+    sweep_model = settings["config"].get("model", "full")
+    lines = ["", "## Expert baseline", "",
+             (f"Sine gait on `{','.join(map(str, settings['design']))}`, {settings['duration_s']:g} s episodes, "
+              f"{sweep_model} model, {settings['config'].get('leg_mesh_size')} mm legs (this run: {episode_s:g} s "
+              f"episodes, {env.get('model', '?')} model, {env.get('leg_mesh_size')} mm legs)."), ""]
+    if best is None:
+        lines.append("Every phase of the sweep diverged.")
+    else:
+        lines.append(f"- best phase lag: {best['phase_deg']:g}° (paper: {data.get('paper_best_phase_deg', 110)}°), "
+                     f"{best['reward_cm']:+.3f} cm")
+        if best_cm is not None:
+            lines.append(f"- this run's best episode: {best_cm:+.3f} cm")
+    if (out / "reward_vs_phase.png").exists():
+        lines += ["", "![baseline reward vs phase](reward_vs_phase.png)"]
+    return lines
+
+
+def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None) -> Path:
+    """Write ``run/report/`` (module docstring) and return its path.
+
+    Args:
+        run: the training run directory.
+        k: number of top designs.
+        baseline: a ``softcrawl sweep-phase`` output directory or its ``sweep.json``.
+
+    Raises:
+        ValueError: ``run`` is not a training run with at least one checkpoint, or
+            ``baseline`` is not a sweep output.
     """
     run = Path(run)
     if not (run / "config.json").exists():
         raise ValueError(f"{run} is not a training run (no config.json)")
+    sweep = _load_sweep(baseline) if baseline is not None else None
     meta = json.loads((run / "config.json").read_text())
     top = top_designs(run, k)
     out = run / "report"
@@ -176,6 +231,9 @@ def write_report(run: str | Path, k: int = 5) -> Path:
     lines += ["", "## Training", ""]
     if has_hist:
         lines.append("![reward histogram weighted by the design distribution](reward_histogram.png)")
-    lines += ["", "![episode returns](returns.png)", ""]
+    lines += ["", "![episode returns](returns.png)"]
+    if sweep is not None:
+        lines += _baseline_section(*sweep, out, cfg, float(ep["r"].max()) if len(ep["r"]) else None)
+    lines.append("")
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     return out
