@@ -1,22 +1,28 @@
 """Co-design throughput: SAC gradient updates per second (paper networks, CPU, 1 thread) and
-crawler-env transitions per second. Prints JSON.
+crawler-env transitions per second, and from them the projected wall time of the ``paper``
+preset (1M transitions, one update per transition) on this machine and on 32 cores. Prints JSON.
+
+Projection: wall = transitions x (sim seconds per transition / cores + seconds per update):
+simulation parallel over cores, learning serial in the learner process (SB3 SAC on one thread).
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--batch 512] [--updates 200]
-       [--leg-mesh 16 --disk-mesh 25 --refactor-every 5 --steps-per-action 2 --actions 20]
-       [--design 1,0,0,2,2,0,0,0]
+       [--model full|reduced --leg-mesh 16 --disk-mesh 25 --refactor-every 5 --steps-per-action 2
+        --actions 20] [--design 1,0,0,2,2,0,0,0]
+Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --refactor-every 1 --steps-per-action 100
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 
 import numpy as np
 import torch
 
-from softcrawl.codesign.config import SACConfig
+from softcrawl.codesign.config import SACConfig, preset
 from softcrawl.codesign.sac import make_sac
 from softcrawl.design.space import validate_design
 from softcrawl.envs import BuildRobot, CrawlerEnv
@@ -52,7 +58,8 @@ def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100)) -> flo
 
 
 def env_rates(args) -> dict:
-    cfg = RobotConfig(leg_mesh_size=args.leg_mesh, disk_mesh_size=args.disk_mesh, refactor_every=args.refactor_every)
+    cfg = RobotConfig(leg_mesh_size=args.leg_mesh, disk_mesh_size=args.disk_mesh, refactor_every=args.refactor_every,
+                      model=args.model)
     design = validate_design(args.design)
     env = CrawlerEnv(BuildRobot(cfg), steps_per_action=args.steps_per_action, n_actions=args.actions, designs=[design])
     venv = DesignVecEnv(SerialBackend([lambda: env]))
@@ -71,6 +78,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--batch", type=int, default=512)
     p.add_argument("--updates", type=int, default=200)
+    p.add_argument("--model", choices=("full", "reduced"), default="full")
     p.add_argument("--leg-mesh", type=float, default=16)
     p.add_argument("--disk-mesh", type=float, default=25)
     p.add_argument("--refactor-every", type=int, default=5)
@@ -79,9 +87,14 @@ def main() -> None:
     p.add_argument("--design", default="1,0,0,2,2,0,0,0")
     args = p.parse_args()
     torch.set_num_threads(1)
-    out = {"machine": platform.platform(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-           "batch": args.batch, "sac_updates_per_s": sac_updates_per_s(args.batch, args.updates),
-           "env": {**vars(args), **env_rates(args)}}
+    updates = sac_updates_per_s(args.batch, args.updates)
+    env = env_rates(args)
+    transitions = preset("paper").total_steps
+    hours = {f"{n}_cores": transitions * (1 / env["transitions_per_s"] / n + 1 / updates) / 3600
+             for n in (os.cpu_count(), 32)}
+    out = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
+           "torch_threads": torch.get_num_threads(), "batch": args.batch, "sac_updates_per_s": updates,
+           "env": {**vars(args), **env}, "paper_preset_projected_hours": hours}
     print(json.dumps(out, indent=2))
 
 
