@@ -281,3 +281,11 @@ def test_validation_report_shows_floor_and_grid_plot(tmp_path):
             for i, (tm, tg) in enumerate([(0.01, 0.01), (0.01, 0.001), (0.001, 0.01)])]
     _plot_grid(tmp_path / "grid.png", rows)
     assert (tmp_path / "grid.png").stat().st_size > 10_000
+
+
+def test_validation_refuses_a_floor_that_is_the_reference(tiny):
+    from softcrawl.reduction.validate import validate_reduction
+
+    part, _, work = tiny
+    with pytest.raises(ValueError, match="floor_refactor_every"):
+        validate_reduction(part, TINY, work, floor_refactor_every=1, progress=False)

@@ -117,11 +117,16 @@ def validate_reduction(part: PartReduction, config: RobotConfig, workdir: str | 
         floor_refactor_every: also run the full model with this factorization reuse and
             report its distance to the exact one (the sensitivity floor); None: skip.
 
+    Raises:
+        ValueError: ``floor_refactor_every`` below 2 (the floor run would be the reference).
+
     Returns:
         ``{"scenes": [per-scene dicts of compare_scene], "mean_node_error_mm",
         "mean_deformation_error_mm", "max_scene_node_error_mm", "floor_mean_node_error_mm"
         (with a floor), "mean_seconds_per_step_full/reduced", "speedup", sizes}``.
     """
+    if floor_refactor_every is not None and floor_refactor_every < 2:
+        raise ValueError(f"floor_refactor_every must be >= 2 (1 is the exact reference), got {floor_refactor_every}")
     scenes = scenes or validation_scenes()
     refs = fom_references(workdir, config, scenes, record_every, workers, progress)
     floors = (fom_references(workdir, config, scenes, record_every, workers, progress, floor_refactor_every)
