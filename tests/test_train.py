@@ -130,6 +130,7 @@ def test_kill_and_resume(tmp_path):
         "best": {"phase_deg": 250.0, "reward_cm": 3.21}, "paper_best_phase_deg": 110.0}))
     summary = (write_report(run, baseline=sweep) / "summary.md").read_text()
     assert "## Expert baseline" in summary and "250° (paper: 110.0°), +3.210 cm" in summary
+    assert "this run: 0.4 s episodes" in summary  # smoke: 20 actions x 2 steps x 0.01 s
     (sweep / "sweep.json").write_text("{}")
     with pytest.raises(ValueError, match="not a softcrawl sweep-phase output"):
         write_report(run, baseline=sweep)

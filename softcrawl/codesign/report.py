@@ -160,7 +160,7 @@ def _baseline_section(path: Path, data: dict, out: Path, cfg: dict, best_cm: flo
     if (path.parent / "reward_vs_phase.png").exists():
         shutil.copyfile(path.parent / "reward_vs_phase.png", out / "reward_vs_phase.png")
     env = cfg.get("env", {})
-    episode_s = 20 * env.get("steps_per_action", 0) * env.get("dt", 0.0)
+    episode_s = env.get("n_actions", 0) * env.get("steps_per_action", 0) * env.get("dt", 0.0)
     sweep_model = settings["config"].get("model", "full")
     lines = ["", "## Expert baseline", "",
              (f"Sine gait on `{','.join(map(str, settings['design']))}`, {settings['duration_s']:g} s episodes, "
