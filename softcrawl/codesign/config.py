@@ -41,7 +41,8 @@ class EnvConfig:
     Attributes:
         model: ``"full"`` (full-order FEM) or ``"reduced"`` (POD + ECSW legs,
             :class:`softcrawl.robot.RobotConfig`); reduction: its file (None: the shipped one).
-        leg_mesh_size, disk_mesh_size: mm. refactor_every: factorization reuse (1 = exact).
+        leg_mesh_size, disk_mesh_size: mm. refactor_every: factorization reuse
+            of the full-order bodies (None: the robot's default, :class:`softcrawl.robot.RobotConfig`).
         dt: simulator step, s. steps_per_action: steps per action (hold = dt * steps_per_action s).
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
         settle_steps: zero-pressure settling steps before each episode.
@@ -53,7 +54,7 @@ class EnvConfig:
     reduction: str | None = None
     leg_mesh_size: float = 6.0
     disk_mesh_size: float = 10.0
-    refactor_every: int = 1
+    refactor_every: int | None = None
     dt: float = 0.01
     steps_per_action: int = 100
     n_actions: int = 20
@@ -123,8 +124,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         for name in ("n_envs", "total_steps", "checkpoint_every", "snapshot_every", "keep_checkpoints"):
             pos_int(name, getattr(self, name))
-        for name in ("steps_per_action", "n_actions", "refactor_every", "max_cached_robots"):
+        for name in ("steps_per_action", "n_actions", "max_cached_robots"):
             pos_int(f"env.{name}", getattr(self.env, name))
+        if self.env.refactor_every is not None:
+            pos_int("env.refactor_every", self.env.refactor_every)
         for name in ("buffer_size", "batch_size"):
             pos_int(f"sac.{name}", getattr(self.sac, name))
         if self.env.model not in MODELS:

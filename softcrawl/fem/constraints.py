@@ -1,15 +1,18 @@
-"""Constraint rows and the Delassus operator built from per-body nodal compliances.
+"""Constraint rows and the Delassus operator built from per-body compliances.
 
-A constraint block is 3 rows ``u = F sum_t w_t v[node_t]`` (frame ``F``; terms may lie on
-several bodies, e.g. an attachment ``v_a - v_b``). With each body's implicit matrix ``A_b``
-factorized, the compliance of the nodes that constraints touch,
-``G_b = A_b^-1 E_b`` (``E_b`` selects those nodes' DOFs), gives
+A constraint block is 3 rows ``u_k = sum_e C_e v[node_e]`` over its entries ``e`` (3 x 3
+coefficients ``C_e``: ``w I`` for an attachment point, the contact frame for a floor
+contact; entries may lie on several bodies, e.g. an attachment ``v_a - v_b``). Each body
+expresses its entries as a Jacobian ``J_b`` in its own coordinates (the DOFs of the nodes
+that constraints touch for a full-order body, the modes for a reduced one) and, with its
+implicit matrix ``A_b`` factorized,
 
-    W = sum_b T_b (E_b^T G_b) T_b^T,      dv_b = G_b T_b^T lam,
+    W = sum_b J_b A_b^-1 J_b^T,      dv_b = A_b^-1 J_b^T lam_b
 
-where ``T_b`` maps the touched nodes' velocities to constraint rows. ``G_b`` is computed
-once per node per step and grows as contacts are added (Duriez et al. 2006, "Realistic
-haptic rendering of interacting deformable objects in virtual environments", sec. 4).
+(Duriez et al. 2006, "Realistic haptic rendering of interacting deformable objects in
+virtual environments", sec. 4). A full-order body's compliance columns ``A_b^-1 E_b``
+(``E_b`` selects the touched nodes' DOFs) are computed once per node per step and grow as
+contacts are added.
 """
 
 from __future__ import annotations
@@ -17,26 +20,33 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from softcrawl.fem.linalg import Factorization
 
 
 @dataclass(frozen=True, eq=False)
-class Term:
-    """``sum_a w_a v[node_a]`` on one body (local node indices)."""
+class Entries:
+    """Constraint entries on one body: block ``blocks[e]`` gets ``coefs[e] @ v[nodes[e]]``.
 
-    body: int
+    Attributes:
+        blocks: ``(E,)`` global block indices.
+        nodes: ``(E,)`` the body's local node indices.
+        coefs: ``(E, 3, 3)`` coefficients.
+    """
+
+    blocks: np.ndarray
     nodes: np.ndarray
-    weights: np.ndarray
+    coefs: np.ndarray
 
+    def __add__(self, other: Entries) -> Entries:
+        return Entries(*(np.concatenate([a, b]) for a, b in
+                         ((self.blocks, other.blocks), (self.nodes, other.nodes), (self.coefs, other.coefs))))
 
-@dataclass(frozen=True, eq=False)
-class Block:
-    """Three constraint rows ``frame @ sum(term velocities)``."""
-
-    frame: np.ndarray
-    terms: tuple[Term, ...]
+    def apply(self, x: np.ndarray, n_blocks: int) -> np.ndarray:
+        """``(n_blocks, 3)`` block sums ``sum_e C_e x[node_e]`` of a nodal field ``x`` ``(n, 3)``."""
+        out = np.zeros((n_blocks, 3))
+        np.add.at(out, self.blocks, np.einsum("eij,ej->ei", self.coefs, x[self.nodes]))
+        return out
 
 
 class NodalCompliance:
@@ -51,20 +61,20 @@ class NodalCompliance:
         self.factor, self.free = factor, free_dofs
         self.index: dict[int, int] = {}
         self.G = np.zeros((len(free_dofs), 0))
+        self._column = np.full(len(free_dofs) // 3, -1)
 
     def ensure(self, nodes: np.ndarray) -> None:
         """Compute the columns of nodes not seen yet (one solve per DOF)."""
         new = [int(a) for a in dict.fromkeys(np.asarray(nodes).tolist()) if a not in self.index]
         if not new:
             return
-        n_dof = len(self.free)
-        E = np.zeros((n_dof, 3 * len(new)))
         dofs = (3 * np.asarray(new)[:, None] + np.arange(3)).ravel()
+        E = np.zeros((len(self.free), len(dofs)))
         E[dofs, np.arange(len(dofs))] = self.free[dofs]
-        cols = self.factor.solve(E) * self.free[:, None]
+        self.G = np.hstack([self.G, self.factor.solve(E) * self.free[:, None]])
         for a in new:
+            self._column[a] = len(self.index)
             self.index[a] = len(self.index)
-        self.G = np.hstack([self.G, cols])
 
     def nodes(self) -> np.ndarray:
         """``(K,)`` the nodes seen, in column order."""
@@ -75,57 +85,61 @@ class NodalCompliance:
         """``3K``: columns computed so far."""
         return self.G.shape[1]
 
-    def correction(self, y: np.ndarray) -> np.ndarray:
-        """``(n, 3)`` velocity change ``A^-1 E y`` for generalised impulses ``y`` ``(3K,)``."""
-        return (self.G @ y).reshape(-1, 3)
+    def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
+        """``(3B, 3K)`` rows of ``entries`` on the nodes seen (adds their columns first);
+        ``blocks`` ``(E,)`` are the entries' local block numbers in ``0..B-1``."""
+        self.ensure(entries.nodes)
+        J = np.zeros((n_blocks, len(self.index), 3, 3))
+        np.add.at(J, (blocks, self._column[entries.nodes]), entries.coefs)
+        return J.transpose(0, 2, 1, 3).reshape(3 * n_blocks, -1)
 
-    def nodal(self) -> np.ndarray:
-        """``(3K, 3K)`` compliance ``E^T A^-1 E`` of the K nodes seen, ordered as columns."""
-        return self.G[(3 * self.nodes()[:, None] + np.arange(3)).ravel()]
+    def dofs(self) -> np.ndarray:
+        """``(3K,)`` the DOFs of the nodes seen, in column order."""
+        return (3 * self.nodes()[:, None] + np.arange(3)).ravel()
+
+    def delassus(self, J: np.ndarray) -> np.ndarray:
+        """``J E^T A^-1 E J^T``."""
+        return J @ self.G[self.dofs()] @ J.T
+
+    def constraint_velocity(self, J: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``J E^T v`` for the body's velocities ``v`` ``(n, 3)``."""
+        return J @ v[self.nodes()].ravel()
+
+    def correction(self, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` velocity change ``A^-1 E J^T lam``."""
+        return (self.G @ (J.T @ lam)).reshape(-1, 3)
 
 
-def assemble(blocks: list[Block], compliances: dict[int, NodalCompliance],
-             velocities: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray, dict[int, sp.csr_matrix]]:
-    """Delassus operator and free constraint velocities of a list of blocks.
+def assemble(entries: dict[int, Entries], compliances: dict, velocities: dict[int, np.ndarray],
+             n_blocks: int) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[np.ndarray, np.ndarray]]]:
+    """Delassus operator and free constraint velocities.
 
     Args:
-        blocks: the constraint blocks (3 rows each).
-        compliances: body -> its :class:`NodalCompliance` (nodes are added as needed).
+        entries: body -> its constraint entries.
+        compliances: body -> its compliance (:class:`NodalCompliance`, or any object with
+            the same ``jacobian``/``delassus``/``constraint_velocity``/``correction``).
         velocities: body -> ``(n_b, 3)`` free velocities, mm/s.
+        n_blocks: number of 3-row blocks.
 
     Returns:
-        ``(W, u_free, T)``: ``W`` ``(3B, 3B)`` (mm/s per mN s), ``u_free = H v_free`` ``(3B,)``,
-        and body -> sparse ``T_b`` ``(3B, 3K_b)`` for :func:`velocity_correction`.
+        ``(W, u_free, jacobians)``: ``W`` ``(3B, 3B)`` (mm/s per mN s), ``u_free = H v_free``
+        ``(3B,)``, and body -> ``(rows, J_b)`` for :func:`velocity_correction`.
     """
-    entries: dict[int, tuple[list, list, list]] = {}
-    for j, blk in enumerate(blocks):
-        for t in blk.terms:
-            rows, nodes, coef = entries.setdefault(t.body, ([], [], []))
-            rows.append(np.full(len(t.nodes), j))
-            nodes.append(t.nodes)
-            coef.append(t.weights[:, None, None] * blk.frame[None])
-    n_rows = 3 * len(blocks)
-    W = np.zeros((n_rows, n_rows))
-    u_free = np.zeros(n_rows)
-    T = {}
-    r3 = np.arange(3)
-    for b, (rows, nodes, coef) in entries.items():
+    W = np.zeros((3 * n_blocks, 3 * n_blocks))
+    u_free = np.zeros(3 * n_blocks)
+    jacobians = {}
+    for b, ent in entries.items():
+        touched, local = np.unique(ent.blocks, return_inverse=True)
         c = compliances[b]
-        nodes = np.concatenate(nodes)
-        c.ensure(nodes)
-        cols = np.fromiter((c.index[a] for a in nodes.tolist()), np.int64, len(nodes))
-        blk_rows, vals = np.concatenate(rows), np.concatenate(coef)  # (m,), (m, 3, 3)
-        ii = np.broadcast_to((3 * blk_rows[:, None] + r3)[:, :, None], vals.shape)
-        jj = np.broadcast_to((3 * cols[:, None] + r3)[:, None, :], vals.shape)
-        Tb = sp.csr_matrix((vals.ravel(), (ii.ravel(), jj.ravel())), shape=(n_rows, c.n_columns))
-        TN = Tb @ c.nodal()
-        W += np.asarray(Tb @ TN.T)  # T N T^T (N symmetric)
-        u_free += Tb @ velocities[b][c.nodes()].ravel()
-        T[b] = Tb
-    return W, u_free, T
+        J = c.jacobian(ent, local, len(touched))
+        rows = (3 * touched[:, None] + np.arange(3)).ravel()
+        W[np.ix_(rows, rows)] += c.delassus(J)
+        u_free[rows] += c.constraint_velocity(J, velocities[b])
+        jacobians[b] = (rows, J)
+    return W, u_free, jacobians
 
 
-def velocity_correction(lam: np.ndarray, T: dict[int, sp.csr_matrix],
-                        compliances: dict[int, NodalCompliance]) -> dict[int, np.ndarray]:
-    """body -> ``(n_b, 3)`` velocity corrections ``A_b^-1 H_b^T lam``, mm/s."""
-    return {b: compliances[b].correction(Tb.T @ lam) for b, Tb in T.items()}
+def velocity_correction(lam: np.ndarray, jacobians: dict[int, tuple[np.ndarray, np.ndarray]],
+                        compliances: dict) -> dict[int, np.ndarray]:
+    """body -> ``(n_b, 3)`` velocity corrections ``A_b^-1 J_b^T lam_b``, mm/s."""
+    return {b: compliances[b].correction(J, lam[rows]) for b, (rows, J) in jacobians.items()}

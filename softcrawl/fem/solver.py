@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from softcrawl.fem.body import Body
-from softcrawl.fem.constraints import Block, NodalCompliance, Term, assemble, velocity_correction
+from softcrawl.fem.constraints import Entries, NodalCompliance, assemble, velocity_correction
 from softcrawl.fem.contact import solve_constraints
 from softcrawl.fem.linalg import ReusedFactorization
 from softcrawl.fem.model import Model
@@ -115,10 +115,13 @@ class ImplicitEulerSolver:
             [self.model.node_offsets[i] + b.collision_nodes[b.fixed[b.collision_nodes].sum(1) == 0]
              for i, b in enumerate(model.bodies)]
         )
-        self._attach_blocks = [
-            Block(np.eye(3), (Term(a.a.body, a.a.nodes, a.a.weights), Term(a.b.body, a.b.nodes, -a.b.weights)))
-            for a in model.attachments
-        ]
+        # Attachment j is block j: rows x_a - x_b (weights signed), per body.
+        terms: dict[int, list[Entries]] = {}
+        for j, a in enumerate(model.attachments):
+            for ref, sign in ((a.a, 1.0), (a.b, -1.0)):
+                coefs = sign * np.asarray(ref.weights, float)[:, None, None] * np.eye(3)
+                terms.setdefault(ref.body, []).append(Entries(np.full(len(ref.nodes), j), np.asarray(ref.nodes), coefs))
+        self._attach_entries = {b: sum(e[1:], e[0]) for b, e in terms.items()}
         self.stats = StepStats()
 
     # -- free motion ---------------------------------------------------------------------
@@ -198,21 +201,23 @@ class ImplicitEulerSolver:
             active = gaps + h * v_free[near, 2] < 0
         comp = dict(enumerate(self._compliance))
         vel = {b: v_free[m.body_slice(b)] for b in range(len(m.bodies))}
-        nb = 3 * len(self._attach_blocks)
-        # Attachment violation x_a - x_b: the blocks' terms carry the signed weights.
-        drift = np.concatenate([
-            sum(t.weights @ state.x[m.body_slice(t.body)][t.nodes] for t in blk.terms) for blk in self._attach_blocks
-        ]) if nb else np.zeros(0)
+        n_att = len(m.attachments)
+        nb = 3 * n_att
+        # Attachment violation x_a - x_b.
+        drift = sum(e.apply(state.x[m.body_slice(b)], n_att) for b, e in self._attach_entries.items()).ravel() \
+            if n_att else np.zeros(0)
         mu = m.floor.friction if m.floor else 0.0
         while True:
             idx = np.flatnonzero(active)
-            blocks = self._attach_blocks + [
-                Block(_FLOOR_FRAME, (Term(int(near_body[i]), np.array([near[i] - offsets[near_body[i]]]), np.ones(1)),))
-                for i in idx
-            ]
-            if not blocks:
+            if not n_att + len(idx):
                 return np.zeros_like(v_free), near[:0], np.zeros((0, 3))
-            W, q, T = assemble(blocks, comp, vel)
+            entries = dict(self._attach_entries)
+            for b in np.unique(near_body[idx]):
+                on_b = idx[near_body[idx] == b]
+                contact = Entries(n_att + np.searchsorted(idx, on_b), near[on_b] - offsets[b],
+                                  np.broadcast_to(_FLOOR_FRAME, (len(on_b), 3, 3)))
+                entries[b] = entries[b] + contact if b in entries else contact
+            W, q, T = assemble(entries, comp, vel, n_att + len(idx))
             q[:nb] += drift / h  # attachments: u = -(x_a - x_b)/h
             q[nb::3] += gaps[idx] / h  # Signorini: gap + h u_n >= 0
             warm = np.zeros((len(idx), 3))

@@ -50,7 +50,7 @@ def reduced_element_terms(x, conn, X, C, frames, sqrt_w, Phi, Z, s):
     Fc = np.empty((3, 3))
     R = np.empty((3, 3))
     u = np.empty(nd)
-    Psi = np.empty((nd, m))
+    CR = np.empty((r, nd))  # C_e blockdiag(R)^T: Z_e = sqrt(xi) CR Phi_e
     n_bad = 0
     for e in range(E):
         if k == 4:
@@ -75,20 +75,24 @@ def reduced_element_terms(x, conn, X, C, frames, sqrt_w, Phi, Z, s):
             na = conn[e, a]
             for i in range(3):
                 u[3 * a + i] = R[0, i] * x[na, 0] + R[1, i] * x[na, 1] + R[2, i] * x[na, 2] - X[e, a, i]
-                r0 = 3 * na
-                for j in range(m):
-                    Psi[3 * a + i, j] = R[0, i] * Phi[r0, j] + R[1, i] * Phi[r0 + 1, j] + R[2, i] * Phi[r0 + 2, j]
         w = sqrt_w[e]
         for i in range(r):
             acc = 0.0
             for q in range(nd):
                 acc += C[e, i, q] * u[q]
             s[e * r + i] = w * acc
+            for a in range(k):
+                for c in range(3):
+                    CR[i, 3 * a + c] = w * (C[e, i, 3 * a] * R[c, 0] + C[e, i, 3 * a + 1] * R[c, 1]
+                                            + C[e, i, 3 * a + 2] * R[c, 2])
             for j in range(m):
-                acc = 0.0
-                for q in range(nd):
-                    acc += C[e, i, q] * Psi[q, j]
-                Z[e * r + i, j] = w * acc
+                Z[e * r + i, j] = 0.0
+            for a in range(k):
+                r0 = 3 * conn[e, a]
+                for c in range(3):
+                    coef = CR[i, 3 * a + c]
+                    for j in range(m):
+                        Z[e * r + i, j] += coef * Phi[r0 + c, j]
     return n_bad
 
 

@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
+from scipy.linalg.blas import dsyrk
 
 from softcrawl.fem.body import Body
+from softcrawl.fem.constraints import Entries
 from softcrawl.fem.model import Model
 from softcrawl.fem.pressure import area_normals
 from softcrawl.fem.solver import ImplicitEulerSolver, SimulationDiverged, SolverSettings
@@ -30,46 +32,37 @@ from softcrawl.reduction.model import ReducedBody
 
 
 class ReducedCompliance:
-    """Contact compliance ``Phi A_r^-1 Phi^T`` of a reduced body for a growing node set
-    (the role :class:`softcrawl.fem.constraints.NodalCompliance` plays for full bodies).
+    """Constraint compliance of a reduced body (the role of
+    :class:`softcrawl.fem.constraints.NodalCompliance` for full bodies): rows in modal
+    coordinates ``J = H Phi`` and ``W_b = J A_r^-1 J^T = Y^T Y`` with ``Y = L^-1 J^T``.
 
     Args:
-        factor: Cholesky factor of ``A_r`` (``scipy.linalg.cho_factor``).
+        cholesky: lower Cholesky factor ``L`` of ``A_r`` ``(m, m)``.
         basis: ``(3n, m)`` the body's basis.
+        velocity: ``(m,)`` the body's free modal velocity (``v_free = Phi qdot``).
     """
 
-    def __init__(self, factor, basis: np.ndarray):
-        self.factor, self.basis = factor, basis
-        self.index: dict[int, int] = {}
-        m = basis.shape[1]
-        self._B = np.zeros((m, 0))  # Phi_E^T
-        self._G = np.zeros((m, 0))  # A_r^-1 Phi_E^T
+    def __init__(self, cholesky: np.ndarray, basis: np.ndarray, velocity: np.ndarray):
+        self.L, self.basis, self.velocity = cholesky, basis, velocity
 
-    def ensure(self, nodes: np.ndarray) -> None:
-        new = [int(a) for a in dict.fromkeys(np.asarray(nodes).tolist()) if a not in self.index]
-        if not new:
-            return
-        dofs = (3 * np.asarray(new)[:, None] + np.arange(3)).ravel()
-        B = self.basis[dofs].T
-        for a in new:
-            self.index[a] = len(self.index)
-        self._B = np.hstack([self._B, B])
-        self._G = np.hstack([self._G, sla.cho_solve(self.factor, B)])
+    def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
+        """``(3B, m)`` ``H Phi`` of the entries (local block numbers ``blocks``)."""
+        m = self.basis.shape[1]
+        rows = entries.coefs @ self.basis.reshape(-1, 3, m)[entries.nodes]
+        J = np.zeros((n_blocks, 3, m))
+        np.add.at(J, blocks, rows)
+        return J.reshape(3 * n_blocks, m)
 
-    def nodes(self) -> np.ndarray:
-        return np.fromiter(self.index, np.int64, len(self.index))
+    def delassus(self, J: np.ndarray) -> np.ndarray:
+        Y = sla.solve_triangular(self.L, J.T, lower=True, check_finite=False)
+        return Y.T @ Y
 
-    @property
-    def n_columns(self) -> int:
-        return self._B.shape[1]
+    def constraint_velocity(self, J: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return J @ self.velocity
 
-    def nodal(self) -> np.ndarray:
-        """``(3K, 3K)`` ``Phi_E A_r^-1 Phi_E^T``."""
-        return self._B.T @ self._G
-
-    def correction(self, y: np.ndarray) -> np.ndarray:
-        """``(n, 3)`` velocity change ``Phi A_r^-1 Phi_E^T y``."""
-        return (self.basis @ (self._G @ y)).reshape(-1, 3)
+    def correction(self, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` ``Phi A_r^-1 J^T lam``."""
+        return (self.basis @ sla.cho_solve((self.L, True), J.T @ lam, check_finite=False)).reshape(-1, 3)
 
 
 class ReducedSolver(ImplicitEulerSolver):
@@ -102,7 +95,9 @@ class ReducedSolver(ImplicitEulerSolver):
             rows = sum(len(ef.conn) * ef.factors.shape[1] for ef in rb.element_factors)
             self._buffers[i] = (np.empty((rows, rb.n_modes)), np.empty(rows))
             phi = rb.basis.reshape(b.n_nodes, 3, rb.n_modes)
-            self._cavity_basis[i] = [(cav, phi[cav.triangles].sum(axis=1)) for cav in b.cavities]
+            # sum of the 3 vertices' basis rows per cavity triangle, (3T, m): f_r += p/3 n.ravel() @ it
+            self._cavity_basis[i] = [(cav, phi[cav.triangles].sum(axis=1).reshape(-1, rb.n_modes))
+                                     for cav in b.cavities]
 
     def _free_velocity(self, i: int, body: Body, x: np.ndarray, v: np.ndarray,
                        control: Control, t: float) -> np.ndarray:
@@ -125,17 +120,17 @@ class ReducedSolver(ImplicitEulerSolver):
         for cav, phi_sum in self._cavity_basis[i]:
             p = float(control.pressures[cav.channel])
             if p != 0.0:
-                f += (p / 3.0) * np.einsum("tim,ti->m", phi_sum, area_normals(x, cav.triangles))
+                f += (p / 3.0) * (area_normals(x, cav.triangles).ravel() @ phi_sum)
         if control.forces is not None:
             f += Phi.T @ control.forces[m.body_slice(i)].ravel()
         qd = Phi.T @ v.ravel()
-        K = Z.T @ Z
         Mr = rb.reduced_mass
-        A = (1 + h * rM) * Mr + h * (h + rK) * K
-        rhs = h * (f - (h + rK) * (K @ qd) - rM * (Mr @ qd))
+        A = (1 + h * rM) * Mr + dsyrk(h * (h + rK), Z.T, lower=1)  # lower triangle of the tangent Z^T Z
+        rhs = h * (f - (h + rK) * (Z.T @ (Z @ qd)) - rM * (Mr @ qd))
         try:
-            factor = sla.cho_factor(A)
+            L = np.linalg.cholesky(A)
         except np.linalg.LinAlgError as exc:
             raise SimulationDiverged(f"reduced matrix of body {body.name!r} is not positive definite", t) from exc
-        self._compliance[i] = ReducedCompliance(factor, Phi)
-        return (Phi @ (qd + sla.cho_solve(factor, rhs))).reshape(-1, 3)
+        qd = qd + sla.cho_solve((L, True), rhs, check_finite=False)
+        self._compliance[i] = ReducedCompliance(L, Phi, qd)
+        return (Phi @ qd).reshape(-1, 3)
