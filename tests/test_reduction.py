@@ -135,7 +135,7 @@ from softcrawl.reduction.artifact import (  # noqa: E402
 from softcrawl.reduction.build import BuildSettings, build_reduction  # noqa: E402
 from softcrawl.reduction.scenes import run_scene, scene_robot  # noqa: E402
 from softcrawl.reduction.validate import deformation_error  # noqa: E402
-from softcrawl.robot.assembly import RobotConfig, build_robot, reduce_legs  # noqa: E402
+from softcrawl.robot.assembly import REDUCED_DISK_REFACTOR_EVERY, RobotConfig, build_robot, reduce_legs  # noqa: E402
 
 TINY = RobotConfig(leg_mesh_size=12.0)
 TINY_SETTINGS = BuildSettings(n_designs=2, sizes=(3,), state_seconds=0.05, ecsw_scenes=1, ecsw_every=3)
@@ -214,7 +214,11 @@ def test_reduction_file_round_trip_and_reduced_config(tiny):
     assert np.array_equal(loaded.basis, part.basis) and np.array_equal(loaded.tet_rid, part.tet_rid)
     assert meta["n_modes"] == part.n_modes and meta["software_version"]
     robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), dataclasses.replace(TINY, model="reduced", reduction=str(path)))
-    assert len(robot.reduced) == 4 and robot.make_solver().__class__.__name__ == "ReducedSolver"
+    solver = robot.make_solver()
+    assert len(robot.reduced) == 4 and solver.__class__.__name__ == "ReducedSolver"
+    # Factorization reuse defaults by model: the reduced model's disk 10, the full model exact.
+    assert solver.settings.refactor_every == REDUCED_DISK_REFACTOR_EVERY > 1
+    assert build_robot((1, 0, 0, 2, 2, 0, 0, 1), TINY).make_solver().settings.refactor_every == 1
 
 
 def test_corrupt_missing_and_mismatched_reduction_files_are_rejected(tiny, tmp_path):

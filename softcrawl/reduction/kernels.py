@@ -103,3 +103,28 @@ def stiffness_factors(K: np.ndarray, rank: int) -> np.ndarray:
     lam, V = np.linalg.eigh(K)
     lam, V = lam[:, -rank:], V[:, :, -rank:]
     return np.sqrt(np.maximum(lam, 0.0))[:, :, None] * V.transpose(0, 2, 1)
+
+
+@njit(cache=True)
+def reduced_area_normal_load(x, triangles, phi_sum):
+    """``sum_t phi_sum_t^T n_t`` with ``n_t = (x1 - x0) x (x2 - x0) / 2`` the area normal of
+    triangle ``t`` (:func:`softcrawl.fem.pressure.area_normals`).
+
+    Args:
+        x: ``(n, 3)`` node positions, mm.
+        triangles: ``(T, 3)`` node indices.
+        phi_sum: ``(T, 3, m)`` sum of the triangle's three vertex rows of the basis.
+
+    Returns:
+        ``(m,)`` in mm^2; times ``p / 3`` (kPa) it is the reduced cavity pressure load, mN.
+    """
+    m = phi_sum.shape[2]
+    out = np.zeros(m)
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        u0, u1, u2 = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+        v0, v1, v2 = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
+        n0, n1, n2 = 0.5 * (u1 * v2 - u2 * v1), 0.5 * (u2 * v0 - u0 * v2), 0.5 * (u0 * v1 - u1 * v0)
+        for j in range(m):
+            out[j] += n0 * phi_sum[t, 0, j] + n1 * phi_sum[t, 1, j] + n2 * phi_sum[t, 2, j]
+    return out

@@ -24,10 +24,9 @@ from scipy.linalg.blas import dsyrk
 from softcrawl.fem.body import Body
 from softcrawl.fem.constraints import Entries
 from softcrawl.fem.model import Model
-from softcrawl.fem.pressure import area_normals
 from softcrawl.fem.solver import ImplicitEulerSolver, SimulationDiverged, SolverSettings
 from softcrawl.fem.state import Control
-from softcrawl.reduction.kernels import reduced_element_terms
+from softcrawl.reduction.kernels import reduced_area_normal_load, reduced_element_terms
 from softcrawl.reduction.model import ReducedBody
 
 
@@ -95,9 +94,7 @@ class ReducedSolver(ImplicitEulerSolver):
             rows = sum(len(ef.conn) * ef.factors.shape[1] for ef in rb.element_factors)
             self._buffers[i] = (np.empty((rows, rb.n_modes)), np.empty(rows))
             phi = rb.basis.reshape(b.n_nodes, 3, rb.n_modes)
-            # sum of the 3 vertices' basis rows per cavity triangle, (3T, m): f_r += p/3 n.ravel() @ it
-            self._cavity_basis[i] = [(cav, phi[cav.triangles].sum(axis=1).reshape(-1, rb.n_modes))
-                                     for cav in b.cavities]
+            self._cavity_basis[i] = [(cav, phi[cav.triangles].sum(axis=1)) for cav in b.cavities]
 
     def _free_velocity(self, i: int, body: Body, x: np.ndarray, v: np.ndarray,
                        control: Control, t: float) -> np.ndarray:
@@ -120,7 +117,7 @@ class ReducedSolver(ImplicitEulerSolver):
         for cav, phi_sum in self._cavity_basis[i]:
             p = float(control.pressures[cav.channel])
             if p != 0.0:
-                f += (p / 3.0) * (area_normals(x, cav.triangles).ravel() @ phi_sum)
+                f += (p / 3.0) * reduced_area_normal_load(x, cav.triangles, phi_sum)
         if control.forces is not None:
             f += Phi.T @ control.forces[m.body_slice(i)].ravel()
         qd = Phi.T @ v.ravel()
