@@ -8,7 +8,7 @@ simulation parallel over cores, learning serial in the learner process (SB3 SAC 
 Usage: OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--batch 512] [--updates 200]
        [--model full|reduced --leg-mesh 16 --disk-mesh 25 --refactor-every 5 --steps-per-action 2
         --actions 20] [--design 1,0,0,2,2,0,0,0]
-Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --refactor-every 1 --steps-per-action 100
+Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --steps-per-action 100
 """
 
 from __future__ import annotations
@@ -81,7 +81,8 @@ def main() -> None:
     p.add_argument("--model", choices=("full", "reduced"), default="full")
     p.add_argument("--leg-mesh", type=float, default=16)
     p.add_argument("--disk-mesh", type=float, default=25)
-    p.add_argument("--refactor-every", type=int, default=5)
+    p.add_argument("--refactor-every", type=int, default=None,
+                   help="factorization reuse of the full-order bodies (default: the robot's, 1 full / 10 reduced disk)")
     p.add_argument("--steps-per-action", type=int, default=2)
     p.add_argument("--actions", type=int, default=20)
     p.add_argument("--design", default="1,0,0,2,2,0,0,0")

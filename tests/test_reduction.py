@@ -293,3 +293,21 @@ def test_validation_refuses_a_floor_that_is_the_reference(tiny):
     part, _, work = tiny
     with pytest.raises(ValueError, match="floor_refactor_every"):
         validate_reduction(part, TINY, work, floor_refactor_every=1, progress=False)
+
+
+def test_saved_runs_with_tuple_parameters_are_reused(tmp_path, monkeypatch):
+    """Regression: settings holding tuples (AlternatingAnimation.groups) never compared equal
+    to their JSON copy, so the two-leg and six-leg validation references re-ran every time."""
+    from softcrawl.reduction import runs
+    from softcrawl.reduction.animations import AlternatingAnimation
+    from softcrawl.reduction.scenes import Scene
+
+    scene = Scene("alt", ((0, 0), (4, 1)), AlternatingAnimation(groups=((0,), (1,)), duration=0.02))
+    calls = []
+    monkeypatch.setattr(runs, "run_pool", lambda fn, workers, todo, done: calls.append(len(todo)))
+    path = tmp_path / "alt.npz"
+    path.write_bytes(b"")
+    settings = runs._settings(scene, TINY, "reference", 2)
+    path.with_suffix(".json").write_text(__import__("json").dumps(settings), encoding="utf-8")
+    runs.run_fom_scenes(tmp_path, [scene], TINY, "reference", record_every=2, workers=1, progress=False)
+    assert calls == [0]

@@ -24,8 +24,10 @@ from softcrawl.robot.assembly import RobotConfig
 
 
 def _settings(scene: Scene, config: RobotConfig, kind: str, record_every: int) -> dict:
-    return {"kind": kind, "scene": scene.describe(), "config": dataclasses.asdict(config),
-            "record_every": record_every, "version": __version__}
+    """The settings of a run as they read back from its ``.json`` (tuples become lists), so
+    that a finished run compares equal to its saved settings."""
+    return json.loads(json.dumps({"kind": kind, "scene": scene.describe(), "config": dataclasses.asdict(config),
+                                  "record_every": record_every, "version": __version__}))
 
 
 def _save(path: Path, arrays: dict, settings: dict) -> None:
