@@ -82,7 +82,7 @@ def main() -> None:
     p.add_argument("--leg-mesh", type=float, default=16)
     p.add_argument("--disk-mesh", type=float, default=25)
     p.add_argument("--refactor-every", type=int, default=None,
-                   help="factorization reuse of the full-order bodies (default: the robot's, 1 full / 10 reduced disk)")
+                   help="factorization reuse of the full-order bodies (default: the robot's, 1 full / 5 reduced disk)")
     p.add_argument("--steps-per-action", type=int, default=2)
     p.add_argument("--actions", type=int, default=20)
     p.add_argument("--design", default="1,0,0,2,2,0,0,0")

@@ -216,7 +216,7 @@ def test_reduction_file_round_trip_and_reduced_config(tiny):
     robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), dataclasses.replace(TINY, model="reduced", reduction=str(path)))
     solver = robot.make_solver()
     assert len(robot.reduced) == 4 and solver.__class__.__name__ == "ReducedSolver"
-    # Factorization reuse defaults by model: the reduced model's disk 10, the full model exact.
+    # Factorization reuse defaults by model: the reduced model's disk 5, the full model exact.
     assert solver.settings.refactor_every == REDUCED_DISK_REFACTOR_EVERY > 1
     assert build_robot((1, 0, 0, 2, 2, 0, 0, 1), TINY).make_solver().settings.refactor_every == 1
 

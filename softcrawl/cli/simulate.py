@@ -99,7 +99,7 @@ def register(subparsers) -> None:
     p.add_argument("--refactor-every", type=int, default=RobotConfig.refactor_every,
                    help="reuse each full-order body's factorization for this many steps (1 = exact; 5 is about "
                         "1.7x faster and lags the contact compliance; default: 1 for the full model, "
-                        "10 for the reduced model's disk)")
+                        "5 for the reduced model's disk)")
     p.add_argument("--frames-every", type=int, default=10, metavar="K",
                    help="write a ParaView frame every K steps (default 10)")
     p.add_argument("--video", action="store_true",
