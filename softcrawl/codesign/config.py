@@ -170,6 +170,13 @@ class TrainConfig:
 PRESETS = ("paper", "demo", "smoke")
 
 
+def _coarse_env(steps_per_action: int) -> EnvConfig:
+    """The demo and smoke simulation: 16 mm legs, 25 mm disk, factorization reuse 5, the
+    three-legged designs, 3 settling steps."""
+    return EnvConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5, steps_per_action=steps_per_action,
+                     settle_steps=3, legs=(3,))
+
+
 def preset(name: str) -> TrainConfig:
     """The named preset (``paper``, ``demo``, ``smoke``; see the module docstring)."""
     if name == "paper":
@@ -178,16 +185,14 @@ def preset(name: str) -> TrainConfig:
         return TrainConfig(
             preset="demo", n_envs=8, total_steps=1_600, backend="subprocess", n_workers=2,
             checkpoint_every=400, snapshot_every=80,
-            env=EnvConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5, steps_per_action=10,
-                          settle_steps=3, legs=(3,)),
+            env=_coarse_env(steps_per_action=10),
             sac=SACConfig(buffer_size=20_000, batch_size=128, learning_starts=320),
         ).validate()
     if name == "smoke":
         return TrainConfig(
             preset="smoke", n_envs=2, total_steps=160, backend="serial", n_workers=1,
             checkpoint_every=80, snapshot_every=40,
-            env=EnvConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5, steps_per_action=2,
-                          settle_steps=3, legs=(3,)),
+            env=_coarse_env(steps_per_action=2),
             sac=SACConfig(buffer_size=1_000, batch_size=32, learning_starts=40),
         ).validate()
     raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")

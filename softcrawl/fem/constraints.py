@@ -59,37 +59,32 @@ class NodalCompliance:
 
     def __init__(self, factor: Factorization, free_dofs: np.ndarray):
         self.factor, self.free = factor, free_dofs
-        self.index: dict[int, int] = {}
         self.G = np.zeros((len(free_dofs), 0))
-        self._column = np.full(len(free_dofs) // 3, -1)
+        self._nodes: list[int] = []  # nodes seen, in column order
+        self._column = np.full(len(free_dofs) // 3, -1)  # node -> its position in _nodes, -1 if unseen
 
     def ensure(self, nodes: np.ndarray) -> None:
         """Compute the columns of nodes not seen yet (one solve per DOF)."""
-        new = [int(a) for a in dict.fromkeys(np.asarray(nodes).tolist()) if a not in self.index]
+        nodes = np.asarray(nodes)
+        new = list(dict.fromkeys(nodes[self._column[nodes] < 0].tolist()))
         if not new:
             return
         dofs = (3 * np.asarray(new)[:, None] + np.arange(3)).ravel()
         E = np.zeros((len(self.free), len(dofs)))
         E[dofs, np.arange(len(dofs))] = self.free[dofs]
         self.G = np.hstack([self.G, self.factor.solve(E) * self.free[:, None]])
-        for a in new:
-            self._column[a] = len(self.index)
-            self.index[a] = len(self.index)
+        self._column[new] = np.arange(len(self._nodes), len(self._nodes) + len(new))
+        self._nodes += new
 
     def nodes(self) -> np.ndarray:
         """``(K,)`` the nodes seen, in column order."""
-        return np.fromiter(self.index, np.int64, len(self.index))
-
-    @property
-    def n_columns(self) -> int:
-        """``3K``: columns computed so far."""
-        return self.G.shape[1]
+        return np.asarray(self._nodes, np.int64)
 
     def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
         """``(3B, 3K)`` rows of ``entries`` on the nodes seen (adds their columns first);
         ``blocks`` ``(E,)`` are the entries' local block numbers in ``0..B-1``."""
         self.ensure(entries.nodes)
-        J = np.zeros((n_blocks, len(self.index), 3, 3))
+        J = np.zeros((n_blocks, len(self._nodes), 3, 3))
         np.add.at(J, (blocks, self._column[entries.nodes]), entries.coefs)
         return J.transpose(0, 2, 1, 3).reshape(3 * n_blocks, -1)
 

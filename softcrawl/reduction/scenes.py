@@ -9,12 +9,15 @@ frame (reduction.md, "Design-reconfigurable reduction").
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from softcrawl.design.space import BASELINE_DESIGN, N_SLOTS
+from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.fem.state import Control
 from softcrawl.gaits import SineGait
 from softcrawl.reduction.animations import (
@@ -86,8 +89,6 @@ def training_scenes(n_designs: int = 8, sizes: Sequence[int] = (3, 4), seed: int
     """
     if n_designs < 1 or not sizes or not all(1 <= s <= N_SLOTS for s in sizes):
         raise ValueError(f"need n_designs >= 1 and sizes in 1..{N_SLOTS}, got {n_designs}, {sizes}")
-    import itertools
-
     held_out = {_BASELINE_SLOTS, _TWO_LEG_SLOTS, _SIX_LEG_SLOTS}
     rng = np.random.default_rng(seed)
     pools = {s: [c for c in itertools.combinations(range(N_SLOTS), s) if c not in held_out] for s in set(sizes)}
@@ -140,10 +141,6 @@ def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, durat
         duration: s (default: the animation's).
         on_step: called with the step index after each step (progress).
     """
-    import time
-
-    from softcrawl.fem.solver import SimulationDiverged
-
     solver = solver or robot.make_solver()
     dt = robot.config.dt
     n = int(round((duration if duration is not None else animation.duration) / dt))

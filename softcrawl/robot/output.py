@@ -251,9 +251,7 @@ def write_results(out: str | os.PathLike, robot: Robot, gait, result: EpisodeRes
         plot_trajectory(tmp / "trajectory.png", robot, result)
         write_paraview(tmp, robot, result)
         if video:
-            from softcrawl.robot.video import (
-                write_video,  # optional extra, heavy import
-            )
+            from softcrawl.robot.video import write_video  # optional extra, heavy import
 
             write_video(tmp / "crawl.mp4", robot, result)
     return Path(out)
