@@ -4,7 +4,7 @@ steps only, after settling), the speedup, reduced steps per second per core, the
 reduced sizes (modes, RID elements) and the peak RSS.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/reduced_step.py [--full-steps 30] [--reduced-steps 500]
-       [--reduction FILE.npz]
+       [--reduction FILE.npz] [--disk-mesh 10]
 """
 
 from __future__ import annotations
@@ -40,17 +40,19 @@ def main() -> None:
     p.add_argument("--full-steps", type=int, default=30)
     p.add_argument("--reduced-steps", type=int, default=500)
     p.add_argument("--reduction", default=None)
+    p.add_argument("--disk-mesh", type=float, default=None, help="disk mesh size, mm (default: the robot's, 10)")
     args = p.parse_args()
     from softcrawl.design.space import BASELINE_DESIGN
     from softcrawl.robot import RobotConfig, build_robot
 
-    reduced = build_robot(BASELINE_DESIGN, RobotConfig(model="reduced", reduction=args.reduction))
-    full = build_robot(BASELINE_DESIGN, RobotConfig(), leg_mesh=next(iter(reduced.reduced.values())).part.mesh)
+    disk = {} if args.disk_mesh is None else {"disk_mesh_size": args.disk_mesh}
+    reduced = build_robot(BASELINE_DESIGN, RobotConfig(model="reduced", reduction=args.reduction, **disk))
+    full = build_robot(BASELINE_DESIGN, RobotConfig(**disk), leg_mesh=next(iter(reduced.reduced.values())).part.mesh)
     t_red, _ = time_steps(reduced, args.reduced_steps)
     t_full, _ = time_steps(full, args.full_steps)
     rb = list(reduced.reduced.values())
     print(json.dumps({
-        "design": list(BASELINE_DESIGN), "nodes": full.model.n_nodes,
+        "design": list(BASELINE_DESIGN), "nodes": full.model.n_nodes, "disk_mesh_size": full.config.disk_mesh_size,
         "modes_per_leg": rb[0].n_modes, "rid_tetrahedra_per_leg": len(rb[0].part.tet_rid),
         "rid_triangles_per_leg": len(rb[0].part.tri_rid),
         "full_seconds_per_step": round(t_full, 4), "full_steps": args.full_steps,

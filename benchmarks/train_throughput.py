@@ -5,10 +5,15 @@ preset (1M transitions, one update per transition) on this machine and on 32 cor
 Projection: wall = transitions x (sim seconds per transition / cores + seconds per update):
 simulation parallel over cores, learning serial in the learner process (SB3 SAC on one thread).
 
-Usage: OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--batch 512] [--updates 200]
+Components (one env in-process, SAC on a dummy env):
+  OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--batch 512] [--updates 200]
        [--model full|reduced --leg-mesh 16 --disk-mesh 25 --refactor-every 5 --steps-per-action 2
         --actions 20] [--design 1,0,0,2,2,0,0,0]
-Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --steps-per-action 100
+  Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --steps-per-action 100
+
+End to end (``softcrawl train`` itself: the ``paper`` preset with ``--n-envs`` envs in one worker
+process per core, learning from the second round of transitions on, ``--rounds`` rounds):
+  OMP_NUM_THREADS=1 python benchmarks/train_throughput.py --end-to-end --n-envs 96 --rounds 6
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import time
 
 import numpy as np
@@ -74,6 +80,33 @@ def env_rates(args) -> dict:
             "episode_s": dt, "nodes": int(env.episode.robot.model.n_nodes)}
 
 
+def end_to_end(args) -> dict:
+    """Transitions/s of :func:`softcrawl.codesign.training.train` (paper preset, ``n_envs`` envs,
+    learning starts after the first round) and the split of its wall time into learning
+    (``updates / sac_updates_per_s`` measured alone) and simulation."""
+    import tempfile
+
+    from softcrawl.codesign.config import override
+    from softcrawl.codesign.training import train
+
+    n = args.n_envs
+    cfg = override(preset("paper"), [f"n_envs={n}", f"total_steps={n * args.rounds}", f"sac.learning_starts={n}",
+                                     f"checkpoint_every={10 * n * args.rounds}", f"snapshot_every={n}"])
+    with tempfile.TemporaryDirectory() as tmp:
+        res = train(f"{tmp}/run", cfg, progress=True, report=False)
+    updates_per_s = sac_updates_per_s(cfg.sac.batch_size, args.updates)
+    learn_s = res.updates / updates_per_s
+    sim_s_per_transition = (res.wall_seconds - learn_s) / res.steps
+    cores = os.cpu_count()
+    total = preset("paper").total_steps
+    hours = {f"{c}_cores": total * (sim_s_per_transition * cores / c + 1 / updates_per_s) / 3600 for c in (cores, 32)}
+    return {"n_envs": n, "transitions": res.steps, "updates": res.updates, "wall_s": res.wall_seconds,
+            "transitions_per_s": res.steps / res.wall_seconds, "sac_updates_per_s": updates_per_s,
+            "learning_s_estimate": learn_s, "simulation_s_per_transition_all_cores": sim_s_per_transition,
+            "peak_rss_mb_learner": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "paper_preset_projected_hours": hours}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--batch", type=int, default=512)
@@ -86,8 +119,15 @@ def main() -> None:
     p.add_argument("--steps-per-action", type=int, default=2)
     p.add_argument("--actions", type=int, default=20)
     p.add_argument("--design", default="1,0,0,2,2,0,0,0")
+    p.add_argument("--end-to-end", action="store_true", help="time softcrawl train itself (paper preset)")
+    p.add_argument("--n-envs", type=int, default=96)
+    p.add_argument("--rounds", type=int, default=6, help="transitions per env (end to end)")
     args = p.parse_args()
     torch.set_num_threads(1)
+    if args.end_to_end:
+        print(json.dumps({"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
+                          **end_to_end(args)}, indent=2))
+        return
     updates = sac_updates_per_s(args.batch, args.updates)
     env = env_rates(args)
     transitions = preset("paper").total_steps

@@ -103,22 +103,27 @@ def test_kill_and_resume(tmp_path):
     snaps = sorted(int(p.stem.split("-")[1]) for p in (run / "snapshots").glob("t-*.npz"))
     assert snaps == [40, 80, 120, 160]
     # evaluate: the written re-run (ActionSequence through run_episode) reproduces the env's return
-    from softcrawl.cli.evaluate import _hold, evaluate
+    from softcrawl.codesign.evaluation import evaluate_policy
 
-    ev = evaluate(run, "1,0,0,2,2,0,0,0", episodes=2)
-    assert ev["actions_kpa"].shape == (20, 3) and np.all((ev["actions_kpa"] >= 0) & (ev["actions_kpa"] <= 90))
-    assert ev["returns_cm"][0] == ev["returns_cm"][1]  # deterministic policy, fresh solver per episode
-    from softcrawl.gaits import ActionSequence
-    from softcrawl.robot import run_episode
-
-    cfg = ev["config"]
-    gait = ActionSequence(ev["actions_kpa"], hold=_hold(cfg.env.dt, cfg.env.steps_per_action, 20))
-    rerun = run_episode(ev["env"].episode.robot, gait, 20 * cfg.env.steps_per_action * cfg.env.dt,
-                        settle_steps=cfg.env.settle_steps, record_every=None, progress=False)
-    assert rerun.reward_cm == pytest.approx(ev["returns_cm"][0], abs=1e-9)
+    ev = evaluate_policy(run, "1,0,0,2,2,0,0,0", episodes=2)
+    assert ev.actions_kpa.shape == (20, 3) and np.all((ev.actions_kpa >= 0) & (ev.actions_kpa <= 90))
+    assert ev.returns_cm[0] == ev.returns_cm[1]  # deterministic policy, fresh solver per episode
+    rerun = ev.resimulate(record_every=None)
+    assert rerun.reward_cm == pytest.approx(ev.returns_cm[0], abs=1e-9)
     top = top_designs(run, 3)
     assert top and top[0]["latest_cm"] >= top[-1]["latest_cm"]
-    assert (run / "report" / "summary.md").exists() and (run / "report" / "reward_histogram.png").exists()
+    report = run / "report"
+    assert (report / "summary.md").exists() and (report / "reward_histogram.png").exists()
+    # the end-of-training report re-simulates the best design with the policy and sweeps the baseline
+    summary = (report / "summary.md").read_text()
+    assert "## Best design's gait" in summary and (report / "best_design" / "trajectory.png").exists()
+    best = json.loads((report / "best_design" / "summary.json").read_text())
+    assert best["design"] == list(top[0]["design"])
+    sweep = json.loads((report / "baseline_sweep" / "sweep.json").read_text())
+    assert len(sweep["phases"]) == 12 and sweep["settings"]["duration_s"] == pytest.approx(0.4)
+    assert (report / "baseline_best" / "trajectory.png").exists()
+    assert f"best phase lag: {sweep['best']['phase_deg']:g}°" in summary
+    assert len(_rows(run / "sessions.csv")) == 1  # the killed call never finished; the resume did
     # the report compares with the expert baseline's phase sweep when given one
     from softcrawl.codesign.report import write_report
 
@@ -128,12 +133,12 @@ def test_kill_and_resume(tmp_path):
         "settings": {"design": [1, 0, 0, 2, 2, 0, 0, 1], "duration_s": 20.0, "config": {"model": "reduced",
                                                                                       "leg_mesh_size": 6.0}},
         "best": {"phase_deg": 250.0, "reward_cm": 3.21}, "paper_best_phase_deg": 110.0}))
-    summary = (write_report(run, baseline=sweep) / "summary.md").read_text()
+    summary = (write_report(run, baseline=sweep, simulate=False) / "summary.md").read_text()
     assert "## Expert baseline" in summary and "250° (paper: 110.0°), +3.210 cm" in summary
     assert "this run: 0.4 s episodes" in summary  # smoke: 20 actions x 2 steps x 0.01 s
     (sweep / "sweep.json").write_text("{}")
     with pytest.raises(ValueError, match="not a softcrawl sweep-phase output"):
-        write_report(run, baseline=sweep)
+        write_report(run, baseline=sweep, simulate=False)
     assert (run / "logs" / "progress.csv").exists()
     assert any(p.name.startswith("events.out.tfevents") for p in (run / "logs").iterdir())
 
@@ -141,10 +146,10 @@ def test_kill_and_resume(tmp_path):
 def test_hold_matches_integer_step_schedule():
     import math
 
-    from softcrawl.cli.evaluate import _hold
+    from softcrawl.codesign.evaluation import action_hold
 
     for dt, spa in ((0.01, 100), (0.01, 10), (0.01, 20), (0.005, 7)):
-        h = _hold(dt, spa, 20)
+        h = action_hold(dt, spa, 20)
         assert all(math.floor(k * dt / h) == k // spa for k in range(20 * spa))
 
 

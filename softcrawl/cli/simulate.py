@@ -41,8 +41,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError(f"--duration must be > 0 s, got {args.duration}")
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
-    config = RobotConfig(leg_mesh_size=args.mesh_size, friction=args.friction, dt=args.dt,
-                         refactor_every=args.refactor_every, model=args.model, reduction=args.reduction)
+    config = RobotConfig(leg_mesh_size=args.mesh_size, disk_mesh_size=args.disk_mesh_size, friction=args.friction,
+                         dt=args.dt, refactor_every=args.refactor_every, model=args.model, reduction=args.reduction)
     gait = _gait(args)
     check_output_path(args.out, args.overwrite)
     if args.video:
@@ -93,6 +93,8 @@ def register(subparsers) -> None:
     add_model_arguments(p)
     p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size,
                    help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")
+    p.add_argument("--disk-mesh-size", type=float, default=RobotConfig.disk_mesh_size,
+                   help=f"disk mesh size, mm (default {RobotConfig.disk_mesh_size:g}; the demo preset uses 25)")
     p.add_argument("--friction", type=float, default=RobotConfig.friction,
                    help=f"floor friction coefficient (default {RobotConfig.friction:g})")
     p.add_argument("--dt", type=float, default=RobotConfig.dt, help=f"time step, s (default {RobotConfig.dt:g})")

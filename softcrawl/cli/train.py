@@ -36,6 +36,10 @@ def _run(args: argparse.Namespace) -> int:
         cfg = override(preset(args.preset), sets)
         res = train(args.out, cfg, progress=not args.no_progress)
     print(f"trained {res.steps} steps ({res.updates} SAC updates) in {res.wall_seconds:.1f} s; run in {res.run_dir}")
+    report = res.run_dir / "report" / "summary.md"
+    if report.exists():
+        print(report.read_text(encoding="utf-8"))
+        print(f"report: {report}")
     return 0
 
 

@@ -8,16 +8,15 @@ Presets:
 
 * ``paper``: the paper's table: 96 envs, 1M transitions, buffer 100K, batch 512, γ 0.95,
   policy lr 6e-4, Q lr 2e-3, τ 0.01, learning starts 10K, 1 update per transition,
-  net [400, 200, 100]; entropy schedule t0 = 200K, t1 = 950K; full-order 6 mm model with
-  1 s actions (100 steps of 0.01 s).
-* ``demo``: under 15 min on a 2-core machine with the *full-order* model: coarse mesh
-  (16 mm legs, 25 mm disk, factorization reuse 5), 10 steps of 0.01 s per action (0.1 s
-  holds: a fast gait, not the paper's 1 s), the 280 three-legged designs, 8 envs in 2 worker
-  processes, 1,600 transitions (80 episodes; 2.5 min per 320 measured on the shared machine),
-  batch 128. Once the reduced model steps in a few ms, ``--set env.model="reduced"
-  --set env.steps_per_action=100`` gives the paper's 1 s actions (it measured 47-62 ms per step
-  on 2026-11-21 with the coarse disk, no faster than the coarse full model yet).
-* ``smoke``: CI, < 1 min: 2 envs in-process, 2 steps per action, 160 transitions.
+  net [400, 200, 100]; entropy schedule t0 = 200K, t1 = 950K; the reduced model (shipped 6 mm
+  leg reduction, 10 mm full-order disk) with 1 s actions (100 steps of 0.01 s), 20 per episode.
+* ``demo``: about 11 min on a 2-core machine (plus the report's re-simulations, about 1 min): the reduced model with 6 mm legs and a coarse
+  25 mm disk (20 s paper-best gait: +11.35 cm vs +11.22 cm with the 10 mm disk, 1.5x faster),
+  the 280 three-legged designs, **0.5 s holds and 8 actions** (4 s episodes: the regulators
+  slew 150 kPa/s, so holds much shorter than 0.5 s cannot swing a leg through its range),
+  8 envs in 2 worker processes, 2,400 transitions (300 episodes), batch 128.
+* ``smoke``: CI, < 1 min: the reduced model, 2 envs in-process, 2 steps per action,
+  160 transitions.
 """
 
 from __future__ import annotations
@@ -50,7 +49,7 @@ class EnvConfig:
         max_cached_robots: robots kept per env (LRU).
     """
 
-    model: str = "full"
+    model: str = "reduced"
     reduction: str | None = None
     leg_mesh_size: float = 6.0
     disk_mesh_size: float = 10.0
@@ -170,11 +169,11 @@ class TrainConfig:
 PRESETS = ("paper", "demo", "smoke")
 
 
-def _coarse_env(steps_per_action: int) -> EnvConfig:
-    """The demo and smoke simulation: 16 mm legs, 25 mm disk, factorization reuse 5, the
+def _coarse_env(steps_per_action: int, n_actions: int) -> EnvConfig:
+    """The demo and smoke simulation: reduced 6 mm legs, 25 mm full-order disk, the
     three-legged designs, 3 settling steps."""
-    return EnvConfig(leg_mesh_size=16, disk_mesh_size=25, refactor_every=5, steps_per_action=steps_per_action,
-                     settle_steps=3, legs=(3,))
+    return EnvConfig(disk_mesh_size=25, steps_per_action=steps_per_action, n_actions=n_actions, settle_steps=3,
+                     legs=(3,))
 
 
 def preset(name: str) -> TrainConfig:
@@ -183,16 +182,16 @@ def preset(name: str) -> TrainConfig:
         return TrainConfig().validate()
     if name == "demo":
         return TrainConfig(
-            preset="demo", n_envs=8, total_steps=1_600, backend="subprocess", n_workers=2,
+            preset="demo", n_envs=8, total_steps=2_400, backend="subprocess", n_workers=2,
             checkpoint_every=400, snapshot_every=80,
-            env=_coarse_env(steps_per_action=10),
+            env=_coarse_env(steps_per_action=50, n_actions=8),
             sac=SACConfig(buffer_size=20_000, batch_size=128, learning_starts=320),
         ).validate()
     if name == "smoke":
         return TrainConfig(
             preset="smoke", n_envs=2, total_steps=160, backend="serial", n_workers=1,
             checkpoint_every=80, snapshot_every=40,
-            env=_coarse_env(steps_per_action=2),
+            env=_coarse_env(steps_per_action=2, n_actions=20),
             sac=SACConfig(buffer_size=1_000, batch_size=32, learning_starts=40),
         ).validate()
     raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")

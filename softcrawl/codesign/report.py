@@ -11,10 +11,14 @@ Writes ``RUN/report/``:
   renormalised), from the ``snapshots/``, with the best return so far as a line (paper figure);
 * ``returns.png``: episode returns over training with a running mean;
 * ``top_designs.csv``: the top-k table;
-* with ``baseline`` (a ``softcrawl sweep-phase`` output): an "Expert baseline" section with its
-  best phase and reward next to the run's best, and ``reward_vs_phase.png`` copied in. The two
-  are comparable only when the sweep's episode length and model match the run's environment;
-  the section states both.
+* ``best_design/``: the top design re-simulated with the trained policy (deterministic actions,
+  :mod:`softcrawl.codesign.evaluation`): the outputs of ``softcrawl simulate`` (``trajectory.png``
+  shows commanded vs applied pressures and x(t); ParaView frames; ``summary.json``);
+* "Expert baseline": the baseline design's sine gait swept over ``baseline_phases`` with the
+  run's robot settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase``
+  output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
+  sweep's best phase and reward (comparable only when its episode length and model match the
+  run's; the section states both), its ``reward_vs_phase.png`` copied in.
 
 Top-k ranking: designs that were tried, by their latest return ``R`` (the quantity the
 distribution concentrates on), ties broken by design order.
@@ -32,6 +36,9 @@ import numpy as np
 
 from softcrawl.design.picture import plot_design
 
+BASELINE_PHASES: tuple[float, ...] = tuple(range(0, 360, 30))
+"""Phase lags (degrees) of the report's own baseline sweep."""
+
 
 def _episodes(run: Path) -> dict:
     t, designs, r, div = [], [], [], []
@@ -45,6 +52,22 @@ def _episodes(run: Path) -> dict:
                     r.append(float(row[2]))
                     div.append(bool(int(row[3])))
     return {"t": np.array(t, np.int64), "design": designs, "r": np.array(r), "diverged": np.array(div, bool)}
+
+
+def _checkpoint_steps(run: Path) -> int:
+    """Environment steps of the latest checkpoint."""
+    from softcrawl.codesign.training import latest_checkpoint
+
+    return int(latest_checkpoint(run).name.split("-")[1])
+
+
+def _wall_seconds(run: Path) -> float:
+    """Training wall time over all train/resume calls (``sessions.csv``), s."""
+    path = run / "sessions.csv"
+    if not path.exists():
+        return float("nan")
+    with open(path, newline="") as f:
+        return sum(float(row[2]) for row in csv.reader(f) if row)
 
 
 def load_final_sampler_state(run: Path) -> dict | None:
@@ -178,13 +201,51 @@ def _baseline_section(path: Path, data: dict, out: Path, cfg: dict, best_cm: flo
     return lines
 
 
-def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None) -> Path:
+def _best_design_section(run: Path, out: Path, design) -> list[str]:
+    """Re-simulate ``design`` with the run's policy into ``out/best_design``; Markdown lines."""
+    from softcrawl.codesign.evaluation import evaluate_policy
+    from softcrawl.robot.output import write_results
+
+    ev = evaluate_policy(run, design)
+    result = ev.resimulate(record_every=10)
+    write_results(out / "best_design", ev.env.episode.robot, ev.gait(), result, ev.env.calibration, overwrite=True)
+    name = ",".join(map(str, ev.design))
+    return ["", "## Best design's gait", "",
+            (f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} cm per episode "
+             f"(re-run {result.reward_cm:+.3f} cm{', DIVERGED' if result.diverged else ''}); commanded (dashed) "
+             f"vs applied (solid) pressures and x(t); ParaView series in `best_design/crawl.pvd`."), "",
+            "![best design's gait](best_design/trajectory.png)"]
+
+
+def _baseline_best(run: Path, out: Path, data: dict) -> list[str]:
+    """Re-simulate the swept baseline at its best phase into ``out/baseline_best``."""
+    from softcrawl.codesign.evaluation import load_run_config
+    from softcrawl.codesign.training import robot_factory
+    from softcrawl.design.space import BASELINE_DESIGN
+    from softcrawl.gaits import SineGait
+    from softcrawl.robot.episode import run_episode
+    from softcrawl.robot.output import write_results
+
+    robot = robot_factory(load_run_config(run))(BASELINE_DESIGN)
+    gait = SineGait(phase_deg=data["best"]["phase_deg"])
+    result = run_episode(robot, gait, data["settings"]["duration_s"], record_every=10, progress=False)
+    write_results(out / "baseline_best", robot, gait, result, overwrite=True)
+    return ["", "![baseline at its best phase](baseline_best/trajectory.png)"]
+
+
+def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None,
+                 baseline_phases=BASELINE_PHASES, simulate: bool = True, workers: int | None = None) -> Path:
     """Write ``run/report/`` (module docstring) and return its path.
 
     Args:
         run: the training run directory.
         k: number of top designs.
-        baseline: a ``softcrawl sweep-phase`` output directory or its ``sweep.json``.
+        baseline: a ``softcrawl sweep-phase`` output directory or its ``sweep.json``; None
+            sweeps the baseline over ``baseline_phases`` with the run's settings (if ``simulate``).
+        baseline_phases: degrees; empty: no baseline section unless ``baseline`` is given.
+        simulate: re-simulate the best design (and run the baseline sweep); False writes only
+            what the logs hold.
+        workers: processes of the baseline sweep (None: the CPU count).
 
     Raises:
         ValueError: ``run`` is not a training run with at least one checkpoint, or
@@ -217,7 +278,8 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         (f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
          f"{cfg['total_steps']} steps planned; {len(ep['r'])} episodes logged, "
          f"{int(ep['diverged'].sum())} diverged."), "",
-        f"- steps done (last checkpoint): {state['timestep']}",
+        f"- steps done (last checkpoint): {_checkpoint_steps(run)}; training wall time {_wall_seconds(run) / 60:.1f} min",
+        f"- design distribution last updated at step {state['timestep']} (the last episode end)",
         f"- best episode return: {ep['r'].max():+.3f} cm" if len(ep["r"]) else "- no episode finished",
         f"- design distribution: beta = {last.beta:.4g} /cm, entropy {last.entropy:.3f} nats "
         f"(target {last.target:.3f}{', clamped to the tie floor' if last.clamped else ''})" if last else "",
@@ -232,8 +294,19 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
     if has_hist:
         lines.append("![reward histogram weighted by the design distribution](reward_histogram.png)")
     lines += ["", "![episode returns](returns.png)"]
+    best_cm = float(ep["r"].max()) if len(ep["r"]) else None
+    if simulate and top:
+        lines += _best_design_section(run, out, top[0]["design"])
+    own_sweep = sweep is None and simulate and len(baseline_phases) > 0
+    if own_sweep:
+        from softcrawl.codesign.evaluation import baseline_sweep
+
+        baseline_sweep(run, out / "baseline_sweep", baseline_phases, workers=workers)
+        sweep = _load_sweep(out / "baseline_sweep")
     if sweep is not None:
-        lines += _baseline_section(*sweep, out, cfg, float(ep["r"].max()) if len(ep["r"]) else None)
+        lines += _baseline_section(*sweep, out, cfg, best_cm)
+        if own_sweep and sweep[1]["best"] is not None:
+            lines += _baseline_best(run, out, sweep[1])
     lines.append("")
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     return out

@@ -5,6 +5,7 @@ Run directory layout::
     config.json            TrainConfig + software version
     episodes.csv           t (transitions), design, return_cm, diverged  (one row per episode)
     distribution.csv       t, beta, entropy, target, effective_target, floor, clamped, top designs
+    sessions.csv           one row per train/resume call: first step, last step, wall seconds, version
     snapshots/t-XXXXXXXXXX.npz   p (probabilities) and scores of all designs every snapshot_every
     logs/                  SB3 logger: progress.csv + TensorBoard events (SAC losses, alpha, codesign/*)
     checkpoints/step-XXXXXXXXXX/  model.pt (policy, critics, targets, optimizers, temperature,
@@ -316,6 +317,8 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
                 callback.write_snapshot()
                 save_checkpoint(run_dir, model, sampler, cfg.keep_checkpoints)
         result = TrainResult(run_dir, model.num_timesteps, time.perf_counter() - wall, model._n_updates)
+        with open(run_dir / "sessions.csv", "a", newline="") as f:
+            csv.writer(f).writerow([start, result.steps, f"{result.wall_seconds:.1f}", __version__])
     finally:
         venv.close()
     if report:

@@ -1,0 +1,141 @@
+"""Evaluating a trained co-design run: roll out its design-conditioned policy on a design, and
+re-simulate the result (or the expert baseline) with the run's simulation settings.
+
+Used by ``softcrawl evaluate`` and by the report (:mod:`softcrawl.codesign.report`): the best
+design's gait (commanded vs applied pressures, x(t)) and the expert baseline's phase sweep at
+the run's episode length (codesign.md, "Expert baseline").
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softcrawl.codesign.config import TrainConfig
+from softcrawl.gaits import ActionSequence
+from softcrawl.robot.episode import EpisodeResult, run_episode
+
+
+def load_run_config(run: str | Path) -> TrainConfig:
+    """The :class:`TrainConfig` saved in ``run/config.json``.
+
+    Raises:
+        ValueError: ``run`` is not a training run.
+    """
+    path = Path(run) / "config.json"
+    if not path.exists():
+        raise ValueError(f"{run} is not a training run (no config.json)")
+    return TrainConfig.from_dict(json.loads(path.read_text())["config"])
+
+
+def episode_seconds(cfg: TrainConfig) -> float:
+    """Length of one episode of the run's environment, s."""
+    return cfg.env.n_actions * cfg.env.steps_per_action * cfg.env.dt
+
+
+def action_hold(dt: float, steps: int, n_actions: int) -> float:
+    """Hold time (s) for an :class:`ActionSequence` so that step k gets action k // steps exactly
+    (floor(k dt / hold) can round the wrong way at some boundaries; nudge hold down then)."""
+    for hold in (dt * steps, dt * steps * (1 - 1e-9)):
+        if all(math.floor(k * dt / hold) == k // steps for k in range(steps * n_actions)):
+            return hold
+    raise ValueError("cannot represent the action timing as an ActionSequence")  # pragma: no cover
+
+
+@dataclass(frozen=True, eq=False)
+class PolicyEvaluation:
+    """Outcome of :func:`evaluate_policy`.
+
+    Attributes:
+        design: the canonical design (regulator k of the outputs is the canonical k).
+        returns_cm: return of each episode, cm. diverged: per episode.
+        actions_kpa: ``(n_actions, 3)`` real kPa commanded in the first episode.
+        env: the :class:`softcrawl.envs.CrawlerEnv` (its robot cached). config: the run's config.
+        checkpoint: the checkpoint folder the policy came from.
+    """
+
+    design: tuple[int, ...]
+    returns_cm: list
+    diverged: list
+    actions_kpa: np.ndarray
+    env: object
+    config: TrainConfig
+    checkpoint: str
+
+    def gait(self) -> ActionSequence:
+        """The first episode's actions as a gait with the run's hold time."""
+        e = self.config.env
+        return ActionSequence(self.actions_kpa, hold=action_hold(e.dt, e.steps_per_action, len(self.actions_kpa)))
+
+    def resimulate(self, record_every: int | None = 10, progress: bool = False) -> EpisodeResult:
+        """Re-run the first episode's actions through :func:`softcrawl.robot.run_episode` (same
+        robot, calibration and settling as the env): per-step commanded/applied pressures and
+        positions, and ParaView frames every ``record_every`` steps."""
+        e = self.config.env
+        return run_episode(self.env.episode.robot, self.gait(), episode_seconds(self.config), self.env.calibration,
+                           settle_steps=e.settle_steps, record_every=record_every, progress=progress)
+
+
+def evaluate_policy(run: str | Path, design, episodes: int = 1,
+                    checkpoint: str | Path | None = None) -> PolicyEvaluation:
+    """Roll out the trained policy (deterministic actions) on ``design`` for ``episodes``
+    episodes in a :class:`softcrawl.envs.CrawlerEnv` with the run's settings.
+
+    ``design`` is canonicalised first (regulators relabelled by first appearance; the policy
+    only saw canonical designs).
+
+    Raises:
+        ValueError: not a training run, no checkpoint, ``episodes < 1``.
+        InvalidDesignError: an invalid design.
+    """
+    import torch
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from softcrawl.codesign.sac import make_sac
+    from softcrawl.codesign.training import env_fn, latest_checkpoint
+    from softcrawl.design.space import canonicalize
+    from softcrawl.envs import action_to_kpa
+
+    cfg = load_run_config(run)
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    design = canonicalize(design)
+    ck = Path(checkpoint) if checkpoint is not None else latest_checkpoint(Path(run))
+    if ck is None or not (ck / "model.pt").exists():
+        raise ValueError(f"no checkpoint found in {run}")
+    env = env_fn(cfg)()
+    cfg.sac.buffer_size = 1
+    model = make_sac(DummyVecEnv([lambda: env]), cfg.sac)
+    model.policy.load_state_dict(torch.load(ck / "model.pt", weights_only=False)["policy"])
+    returns, diverged, first = [], [], None
+    for _ in range(episodes):
+        obs, _ = env.reset(options={"design": design})
+        total, acts, done, info = 0.0, [], False, {}
+        while not done:
+            a, _ = model.predict(obs, deterministic=True)
+            obs, r, term, trunc, info = env.step(a)
+            total += r
+            acts.append(action_to_kpa(a))
+            done = term or trunc
+        returns.append(total)
+        diverged.append(bool(info.get("diverged")))
+        first = first if first is not None else np.array(acts)
+    return PolicyEvaluation(design, returns, diverged, first, env, cfg, str(ck))
+
+
+def baseline_sweep(run: str | Path, out: str | Path, phases, workers: int | None = None, progress: bool = False):
+    """The expert baseline (:data:`softcrawl.design.BASELINE_DESIGN`, sine gait) swept over
+    ``phases`` (degrees) with the run's robot settings and episode length, written to ``out``
+    (a ``softcrawl sweep-phase`` output, resumable). Returns the
+    :class:`softcrawl.robot.sweep.SweepResult`."""
+    from softcrawl.codesign.training import robot_factory
+    from softcrawl.design.space import BASELINE_DESIGN
+    from softcrawl.robot.sweep import run_sweep
+
+    cfg = load_run_config(run)
+    return run_sweep(out, phases, BASELINE_DESIGN, robot_factory(cfg).config, duration=episode_seconds(cfg),
+                     workers=workers, overwrite=True, progress=progress)
