@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from softcrawl.codesign.config import TrainConfig
+from softcrawl.codesign.evaluation import episode_seconds
 from softcrawl.design.picture import plot_design
 
 BASELINE_PHASES: tuple[float, ...] = tuple(range(0, 360, 30))
@@ -176,19 +178,17 @@ def _load_sweep(sweep: str | Path) -> tuple[Path, dict]:
     return path, data
 
 
-def _baseline_section(path: Path, data: dict, out: Path, cfg: dict, best_cm: float | None) -> list[str]:
-    """Markdown lines comparing the run with the expert baseline's phase sweep (``path``: its
-    ``sweep.json``, ``data``: its content)."""
+def _baseline_section(path: Path, data: dict, out: Path, cfg: TrainConfig, best_cm: float | None) -> list[str]:
+    """Markdown lines comparing the run (config ``cfg``) with the expert baseline's phase sweep
+    (``path``: its ``sweep.json``, ``data``: its content)."""
     settings, best = data["settings"], data["best"]
     if (path.parent / "reward_vs_phase.png").exists():
         shutil.copyfile(path.parent / "reward_vs_phase.png", out / "reward_vs_phase.png")
-    env = cfg.get("env", {})
-    episode_s = env.get("n_actions", 0) * env.get("steps_per_action", 0) * env.get("dt", 0.0)
     sweep_model = settings["config"].get("model", "full")
     lines = ["", "## Expert baseline", "",
              (f"Sine gait on `{','.join(map(str, settings['design']))}`, {settings['duration_s']:g} s episodes, "
-              f"{sweep_model} model, {settings['config'].get('leg_mesh_size')} mm legs (this run: {episode_s:g} s "
-              f"episodes, {env.get('model', '?')} model, {env.get('leg_mesh_size')} mm legs)."), ""]
+              f"{sweep_model} model, {settings['config'].get('leg_mesh_size')} mm legs (this run: {episode_seconds(cfg):g} s "
+              f"episodes, {cfg.env.model} model, {cfg.env.leg_mesh_size} mm legs)."), ""]
     if best is None:
         lines.append("Every phase of the sweep diverged.")
     else:
@@ -217,16 +217,16 @@ def _best_design_section(run: Path, out: Path, design) -> list[str]:
             "![best design's gait](best_design/trajectory.png)"]
 
 
-def _baseline_best(run: Path, out: Path, data: dict) -> list[str]:
-    """Re-simulate the swept baseline at its best phase into ``out/baseline_best``."""
-    from softcrawl.codesign.evaluation import load_run_config
+def _baseline_best(cfg: TrainConfig, out: Path, data: dict) -> list[str]:
+    """Re-simulate the swept baseline at its best phase (robot settings of ``cfg``) into
+    ``out/baseline_best``."""
     from softcrawl.codesign.training import robot_factory
     from softcrawl.design.space import BASELINE_DESIGN
     from softcrawl.gaits import SineGait
     from softcrawl.robot.episode import run_episode
     from softcrawl.robot.output import write_results
 
-    robot = robot_factory(load_run_config(run))(BASELINE_DESIGN)
+    robot = robot_factory(cfg)(BASELINE_DESIGN)
     gait = SineGait(phase_deg=data["best"]["phase_deg"])
     result = run_episode(robot, gait, data["settings"]["duration_s"], record_every=10, progress=False)
     write_results(out / "baseline_best", robot, gait, result, overwrite=True)
@@ -273,6 +273,7 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
     state = load_final_sampler_state(run)
     last = state["distribution"]["last"]
     cfg = meta["config"]
+    run_cfg = TrainConfig.from_dict(cfg)
     lines = [
         f"# Co-design run `{run.name}`", "",
         (f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
@@ -304,9 +305,9 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         baseline_sweep(run, out / "baseline_sweep", baseline_phases, workers=workers)
         sweep = _load_sweep(out / "baseline_sweep")
     if sweep is not None:
-        lines += _baseline_section(*sweep, out, cfg, best_cm)
+        lines += _baseline_section(*sweep, out, run_cfg, best_cm)
         if own_sweep and sweep[1]["best"] is not None:
-            lines += _baseline_best(run, out, sweep[1])
+            lines += _baseline_best(run_cfg, out, sweep[1])
     lines.append("")
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     return out
