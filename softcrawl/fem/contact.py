@@ -97,6 +97,87 @@ def pgs_coulomb(W, q, mu, lam, tol, max_iter):
     return max_iter, rel
 
 
+_SEP, _STICK, _SLIP = 0, 1, 2
+
+
+@njit(cache=True)
+def _polish(W, q, mu, lam, max_rounds, rtol):
+    """Compiled body of :func:`polish_active_set`: ``(consistent, impulses)``."""
+    k = mu.shape[0]
+    mode = np.empty(k, np.int64)
+    d = np.zeros((k, 2))
+    for i in range(k):
+        ln, lt = lam[3 * i], np.hypot(lam[3 * i + 1], lam[3 * i + 2])
+        mode[i] = (_SLIP if lt >= mu[i] * ln * (1 - 1e-6) else _STICK) if ln > 0 else _SEP
+        den = max(lt, 1e-300)
+        d[i, 0], d[i, 1] = lam[3 * i + 1] / den, lam[3 * i + 2] / den
+    vscale = max(np.abs(q).max(), 1e-300) if k else 1e-300
+    new = np.zeros(3 * k)
+    u = np.empty(3 * k)
+    for _ in range(max_rounds):
+        # Unknowns: 3 impulses per sticking contact, the normal impulse per slipping one
+        # (its tangential impulse is mu lam_n d). Equations: u = 0 / u_n = 0 on those rows.
+        stick = np.flatnonzero(mode == _STICK)
+        slip = np.flatnonzero(mode == _SLIP)
+        ns = 3 * len(stick)
+        n = ns + len(slip)
+        rows = np.empty(n, np.int64)
+        for a in range(len(stick)):
+            for c in range(3):
+                rows[3 * a + c] = 3 * stick[a] + c
+        for a in range(len(slip)):
+            rows[ns + a] = 3 * slip[a]
+        A = np.empty((n, n))
+        rhs = np.empty(n)
+        for a in range(n):
+            r = rows[a]
+            rhs[a] = -q[r]
+            for c in range(ns):
+                A[a, c] = W[r, rows[c]]
+            for c in range(len(slip)):
+                j = 3 * slip[c]
+                A[a, ns + c] = (W[r, j] + mu[slip[c]] * d[slip[c], 0] * W[r, j + 1]
+                                + mu[slip[c]] * d[slip[c], 1] * W[r, j + 2])
+        z = np.zeros(n)
+        if n:
+            try:
+                z = np.linalg.solve(A, rhs)
+            except Exception:  # singular active-set system
+                return False, new
+        new[:] = 0.0
+        for a in range(ns):
+            new[rows[a]] = z[a]
+        for c in range(len(slip)):
+            j, ln = 3 * slip[c], z[ns + c]
+            new[j] = ln
+            new[j + 1] = ln * mu[slip[c]] * d[slip[c], 0]
+            new[j + 2] = ln * mu[slip[c]] * d[slip[c], 1]
+        u[:] = W @ new + q
+        ftol = rtol * max(np.abs(new).max(), 1e-300) if k else 1e-300
+        vtol = rtol * vscale
+        same = True
+        for i in range(k):
+            r, m = 3 * i, mode[i]
+            ltn = np.hypot(new[r + 1], new[r + 2])
+            along = u[r + 1] * d[i, 0] + u[r + 2] * d[i, 1]  # slip velocity along the friction force
+            nxt = m
+            if m == _SEP and u[r] < -vtol:
+                nxt = _STICK  # penetrating
+            if m != _SEP and new[r] < -ftol:
+                nxt = _SEP  # pulling
+            if m == _STICK and ltn > mu[i] * new[r] + ftol:
+                nxt = _SLIP  # outside the cone
+                d[i, 0], d[i, 1] = new[r + 1] / ltn, new[r + 2] / ltn
+            if m == _SLIP and along > vtol:
+                nxt = _STICK  # slipping along the friction force
+            if nxt != m:
+                same = False
+                mode[i] = nxt
+        if same:
+            return True, new
+    return False, new
+
+
 def polish_active_set(W, q, mu, lam, max_rounds=12, rtol=1e-9):
     """Solve the contact problem exactly by a primal-dual active-set iteration from ``lam``.
 
@@ -105,7 +186,7 @@ def polish_active_set(W, q, mu, lam, max_rounds=12, rtol=1e-9):
     from ``lam``; the check demands ``u_t . d <= 0``). Starting from the pattern of ``lam``,
     the equalities are solved directly and the pattern is updated from the violated
     conditions (penetration -> stick, pulling -> separate, outside the cone -> slip, slip
-    along the force -> stick) until it is consistent.
+    along the force -> stick) until it is consistent (compiled: :func:`_polish`).
 
     Args:
         W, q, mu: as in :func:`pgs_coulomb`.
@@ -116,50 +197,10 @@ def polish_active_set(W, q, mu, lam, max_rounds=12, rtol=1e-9):
     Returns:
         ``(3k,)`` exact impulses, or None if no consistent active set was found.
     """
-    k = len(mu)
-    L = lam.reshape(k, 3)
-    lt = np.hypot(L[:, 1], L[:, 2])
-    SEP, STICK, SLIP = 0, 1, 2
-    mode = np.where(L[:, 0] > 0, np.where(lt >= mu * L[:, 0] * (1 - 1e-6), SLIP, STICK), SEP)
-    d = L[:, 1:] / np.maximum(lt, 1e-300)[:, None]
-    vscale = max(np.abs(q).max(), 1e-300)
-    for _ in range(max_rounds):
-        stick, slip = np.flatnonzero(mode == STICK), np.flatnonzero(mode == SLIP)
-        # Unknowns: 3 impulses per sticking contact, the normal impulse per slipping one
-        # (its tangential impulse is mu lam_n d). Equations: u = 0 / u_n = 0 on those rows.
-        stick_rows = (3 * stick[:, None] + np.arange(3)).ravel()
-        rows = np.concatenate([stick_rows, 3 * slip])
-        Wr = W[rows]
-        md = mu[slip, None] * d[slip]
-        A = np.column_stack([Wr[:, stick_rows],
-                             Wr[:, 3 * slip] + md[:, 0] * Wr[:, 3 * slip + 1] + md[:, 1] * Wr[:, 3 * slip + 2]])
-        try:
-            z = np.linalg.solve(A, -q[rows]) if len(rows) else np.zeros(0)
-        except np.linalg.LinAlgError:
-            return None
-        new = np.zeros(3 * k)
-        new[stick_rows] = z[: len(stick_rows)]
-        ln = z[len(stick_rows) :]
-        new[3 * slip] = ln
-        new[3 * slip + 1] = ln * md[:, 0]
-        new[3 * slip + 2] = ln * md[:, 1]
-        N = new.reshape(k, 3)
-        u = (W @ new + q).reshape(k, 3)
-        ltn = np.hypot(N[:, 1], N[:, 2])
-        ftol = rtol * max(np.abs(N).max(), 1e-300)
-        vtol = rtol * vscale
-        along = np.einsum("ij,ij->i", u[:, 1:], d)  # slip velocity along the friction force
-        nxt = mode.copy()
-        nxt[(mode == SEP) & (u[:, 0] < -vtol)] = STICK
-        nxt[(mode != SEP) & (N[:, 0] < -ftol)] = SEP
-        out = (mode == STICK) & (ltn > mu * N[:, 0] + ftol)
-        nxt[out] = SLIP
-        d[out] = N[out, 1:] / ltn[out, None]
-        nxt[(mode == SLIP) & (along > vtol)] = STICK
-        if np.array_equal(nxt, mode):
-            return new
-        mode = nxt
-    return None
+    ok, new = _polish(np.ascontiguousarray(W, dtype=np.float64), np.ascontiguousarray(q, dtype=np.float64),
+                      np.ascontiguousarray(mu, dtype=np.float64), np.ascontiguousarray(lam, dtype=np.float64),
+                      int(max_rounds), float(rtol))
+    return new if ok else None
 
 
 @dataclass(frozen=True)
