@@ -18,14 +18,14 @@ ParaView frames) is unchanged; a reduced body's nodes stay on ``X + range(Phi)``
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
-from scipy.linalg.blas import dsyrk
+from scipy.linalg.blas import dsyrk, dtrsm
+from scipy.linalg.lapack import dpotrf, dpotrs
 
 from softcrawl.fem.body import Body
 from softcrawl.fem.constraints import Entries
 from softcrawl.fem.model import Model
 from softcrawl.fem.solver import ImplicitEulerSolver, SimulationDiverged, SolverSettings
-from softcrawl.fem.state import Control
+from softcrawl.fem.state import Control, State
 from softcrawl.reduction.kernels import reduced_area_normal_load, reduced_element_terms
 from softcrawl.reduction.model import ReducedBody
 
@@ -43,6 +43,7 @@ class ReducedCompliance:
 
     def __init__(self, cholesky: np.ndarray, basis: np.ndarray, velocity: np.ndarray):
         self.L, self.basis, self.velocity = cholesky, basis, velocity
+        self.last_correction = np.zeros_like(velocity)  # modal velocity change of the last correction
 
     def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
         """``(3B, m)`` ``H Phi`` of the entries (local block numbers ``blocks``)."""
@@ -53,7 +54,7 @@ class ReducedCompliance:
         return J.reshape(3 * n_blocks, m)
 
     def delassus(self, J: np.ndarray) -> np.ndarray:
-        Y = sla.solve_triangular(self.L, J.T, lower=True, check_finite=False)
+        Y = dtrsm(1.0, self.L, J.T, lower=1)
         return Y.T @ Y
 
     def constraint_velocity(self, J: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -61,7 +62,8 @@ class ReducedCompliance:
 
     def correction(self, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
         """``(n, 3)`` ``Phi A_r^-1 J^T lam``."""
-        return (self.basis @ sla.cho_solve((self.L, True), J.T @ lam, check_finite=False)).reshape(-1, 3)
+        self.last_correction = dpotrs(self.L, J.T @ lam, lower=1)[0]
+        return (self.basis @ self.last_correction).reshape(-1, 3)
 
 
 class ReducedSolver(ImplicitEulerSolver):
@@ -72,6 +74,9 @@ class ReducedSolver(ImplicitEulerSolver):
         reduced: body index -> its :class:`ReducedBody` (the others stay full-order).
         settings: as for the full solver; reduced bodies take one linear solve per step
             (``newton_iterations`` must be 1) and are always solved exactly.
+
+    A state this solver produced carries its reduced bodies' modal velocities (kept here,
+    not projected again); do not modify such a state's ``v`` in place.
 
     Raises:
         ValueError: a reduced body that is not the model's body at that index, or
@@ -86,6 +91,8 @@ class ReducedSolver(ImplicitEulerSolver):
         if reduced and settings.newton_iterations != 1:
             raise ValueError("reduced bodies support the linearly implicit step only (newton_iterations=1)")
         self.reduced = dict(reduced)
+        self._modal_velocity = {i: np.zeros(rb.n_modes) for i, rb in self.reduced.items()}
+        self._modal_valid, self._last_v = False, None
         g = np.asarray(model.gravity, float)
         self._gravity_r, self._buffers, self._cavity_basis = {}, {}, {}
         for i, rb in self.reduced.items():
@@ -95,6 +102,17 @@ class ReducedSolver(ImplicitEulerSolver):
             self._buffers[i] = (np.empty((rows, rb.n_modes)), np.empty(rows))
             phi = rb.basis.reshape(b.n_nodes, 3, rb.n_modes)
             self._cavity_basis[i] = [(cav, phi[cav.triangles].sum(axis=1)) for cav in b.cavities]
+
+    def step(self, state: State, control: Control) -> State:
+        # A state this solver produced carries the reduced bodies' exact modal velocities
+        # (kept below); any other state is projected (``qdot = Phi^T v``, Phi orthonormal).
+        self._modal_valid = state.v is self._last_v
+        new = super().step(state, control)
+        for i in self.reduced:
+            c = self._compliance[i]
+            self._modal_velocity[i] = c.velocity + c.last_correction
+        self._last_v = new.v
+        return new
 
     def _free_velocity(self, i: int, body: Body, x: np.ndarray, v: np.ndarray,
                        control: Control, t: float) -> np.ndarray:
@@ -120,14 +138,13 @@ class ReducedSolver(ImplicitEulerSolver):
                 f += (p / 3.0) * reduced_area_normal_load(x, cav.triangles, phi_sum)
         if control.forces is not None:
             f += Phi.T @ control.forces[m.body_slice(i)].ravel()
-        qd = Phi.T @ v.ravel()
+        qd = self._modal_velocity[i] if self._modal_valid else Phi.T @ v.ravel()
         Mr = rb.reduced_mass
         A = (1 + h * rM) * Mr + dsyrk(h * (h + rK), Z.T, lower=1)  # lower triangle of the tangent Z^T Z
         rhs = h * (f - (h + rK) * (Z.T @ (Z @ qd)) - rM * (Mr @ qd))
-        try:
-            L = np.linalg.cholesky(A)
-        except np.linalg.LinAlgError as exc:
-            raise SimulationDiverged(f"reduced matrix of body {body.name!r} is not positive definite", t) from exc
-        qd = qd + sla.cho_solve((L, True), rhs, check_finite=False)
+        L, info = dpotrf(A, lower=1, clean=1)
+        if info:
+            raise SimulationDiverged(f"reduced matrix of body {body.name!r} is not positive definite", t)
+        qd = qd + dpotrs(L, rhs, lower=1)[0]
         self._compliance[i] = ReducedCompliance(L, Phi, qd)
         return (Phi @ qd).reshape(-1, 3)
