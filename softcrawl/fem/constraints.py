@@ -24,6 +24,14 @@ import numpy as np
 from softcrawl.fem.linalg import Factorization
 
 
+def block_sum_matrix(blocks: np.ndarray, n_blocks: int) -> np.ndarray:
+    """``(n_blocks, E)`` 0/1 matrix ``S`` with ``(S @ a)[b] = sum of a[e] over blocks[e] == b``
+    (a dense product is faster than ``np.add.at`` at these sizes: tens of entries)."""
+    S = np.zeros((n_blocks, len(blocks)))
+    S[blocks, np.arange(len(blocks))] = 1.0
+    return S
+
+
 @dataclass(frozen=True, eq=False)
 class Entries:
     """Constraint entries on one body: block ``blocks[e]`` gets ``coefs[e] @ v[nodes[e]]``.
@@ -44,9 +52,7 @@ class Entries:
 
     def apply(self, x: np.ndarray, n_blocks: int) -> np.ndarray:
         """``(n_blocks, 3)`` block sums ``sum_e C_e x[node_e]`` of a nodal field ``x`` ``(n, 3)``."""
-        out = np.zeros((n_blocks, 3))
-        np.add.at(out, self.blocks, np.einsum("eij,ej->ei", self.coefs, x[self.nodes]))
-        return out
+        return block_sum_matrix(self.blocks, n_blocks) @ np.einsum("eij,ej->ei", self.coefs, x[self.nodes])
 
 
 class NodalCompliance:
@@ -84,8 +90,13 @@ class NodalCompliance:
         """``(3B, 3K)`` rows of ``entries`` on the nodes seen (adds their columns first);
         ``blocks`` ``(E,)`` are the entries' local block numbers in ``0..B-1``."""
         self.ensure(entries.nodes)
-        J = np.zeros((n_blocks, len(self._nodes), 3, 3))
-        np.add.at(J, (blocks, self._column[entries.nodes]), entries.coefs)
+        K = len(self._nodes)
+        J = np.zeros((n_blocks, K, 3, 3))
+        columns = self._column[entries.nodes]
+        if len(np.unique(blocks * K + columns)) == len(blocks):  # each (block, node) once: assign
+            J[blocks, columns] = entries.coefs
+        else:
+            np.add.at(J, (blocks, columns), entries.coefs)
         return J.transpose(0, 2, 1, 3).reshape(3 * n_blocks, -1)
 
     def dofs(self) -> np.ndarray:

@@ -22,7 +22,7 @@ from scipy.linalg.blas import dsyrk, dtrsm
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from softcrawl.fem.body import Body
-from softcrawl.fem.constraints import Entries
+from softcrawl.fem.constraints import Entries, block_sum_matrix
 from softcrawl.fem.model import Model
 from softcrawl.fem.solver import ImplicitEulerSolver, SimulationDiverged, SolverSettings
 from softcrawl.fem.state import Control, State
@@ -49,9 +49,7 @@ class ReducedCompliance:
         """``(3B, m)`` ``H Phi`` of the entries (local block numbers ``blocks``)."""
         m = self.basis.shape[1]
         rows = entries.coefs @ self.basis.reshape(-1, 3, m)[entries.nodes]
-        J = np.zeros((n_blocks, 3, m))
-        np.add.at(J, blocks, rows)
-        return J.reshape(3 * n_blocks, m)
+        return (block_sum_matrix(blocks, n_blocks) @ rows.reshape(len(blocks), 3 * m)).reshape(3 * n_blocks, m)
 
     def delassus(self, J: np.ndarray) -> np.ndarray:
         Y = dtrsm(1.0, self.L, J.T, lower=1)
