@@ -129,17 +129,19 @@ class ReducedSolver(ImplicitEulerSolver):
             row += rows
         if n_bad:
             raise SimulationDiverged(f"{n_bad} inverted elements in reduced body {body.name!r}", t)
-        f = self._gravity_r[i] - Z.T @ s
+        qd = self._modal_velocity[i] if self._modal_valid else Phi.T @ v.ravel()
+        # Internal force -Z^T s, with the linearisation and Rayleigh stiffness damping terms
+        # -(h + r_K) K_r qdot (K_r = Z^T Z) in the same product.
+        f = self._gravity_r[i] - Z.T @ (s + (h + rK) * (Z @ qd))
         for cav, phi_sum in self._cavity_basis[i]:
             p = float(control.pressures[cav.channel])
             if p != 0.0:
                 f += (p / 3.0) * reduced_area_normal_load(x, cav.triangles, phi_sum)
         if control.forces is not None:
             f += Phi.T @ control.forces[m.body_slice(i)].ravel()
-        qd = self._modal_velocity[i] if self._modal_valid else Phi.T @ v.ravel()
         Mr = rb.reduced_mass
         A = (1 + h * rM) * Mr + dsyrk(h * (h + rK), Z.T, lower=1)  # lower triangle of the tangent Z^T Z
-        rhs = h * (f - (h + rK) * (Z.T @ (Z @ qd)) - rM * (Mr @ qd))
+        rhs = h * (f - rM * (Mr @ qd))
         L, info = dpotrf(A, lower=1, clean=1)
         if info:
             raise SimulationDiverged(f"reduced matrix of body {body.name!r} is not positive definite", t)
