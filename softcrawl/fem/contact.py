@@ -28,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
+from scipy.linalg.lapack import dpotrf, dpotrs
 from numba import njit
 
 
@@ -246,13 +246,12 @@ def solve_constraints(
     B, C = slice(0, nb), slice(nb, None)
     k = len(mu)
     if nb:
-        try:
-            fac = sla.cho_factor(W[B, B])
-            Wbb_inv = lambda rhs: sla.cho_solve(fac, rhs)  # noqa: E731
-        except np.linalg.LinAlgError:  # redundant attachments: least-squares impulses
-            pinv = np.linalg.pinv(W[B, B])
-            Wbb_inv = lambda rhs: pinv @ rhs  # noqa: E731
-        X = Wbb_inv(np.column_stack([q[B], W[B, C]]))
+        rhs = np.column_stack([q[B], W[B, C]])
+        fac, info = dpotrf(W[B, B], lower=1)
+        if info == 0:
+            X = dpotrs(fac, rhs, lower=1)[0]
+        else:  # redundant attachments: least-squares impulses
+            X = np.linalg.pinv(W[B, B]) @ rhs
         Wc = W[C, C] - W[C, B] @ X[:, 1:]
         qc = q[C] - W[C, B] @ X[:, 0]
     else:
