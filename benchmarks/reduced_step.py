@@ -4,7 +4,7 @@ steps only, after settling), the speedup, reduced steps per second per core, the
 reduced sizes (modes, RID elements) and the peak RSS.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/reduced_step.py [--full-steps 30] [--reduced-steps 500]
-       [--reduction FILE.npz] [--disk-mesh 25]
+       [--reduction FILE.npz] [--disk-mesh 10]
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def main() -> None:
     p.add_argument("--full-steps", type=int, default=30)
     p.add_argument("--reduced-steps", type=int, default=500)
     p.add_argument("--reduction", default=None)
-    p.add_argument("--disk-mesh", type=float, default=None, help="disk mesh size, mm (default: the robot's, 25)")
+    p.add_argument("--disk-mesh", type=float, default=None, help="disk mesh size, mm (default: the robot's, 10)")
     args = p.parse_args()
     from softcrawl.design.space import BASELINE_DESIGN
     from softcrawl.robot import RobotConfig, build_robot

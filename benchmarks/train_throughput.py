@@ -9,7 +9,7 @@ Components (one env in-process, SAC on a dummy env):
   OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--batch 512] [--updates 200]
        [--model full|reduced --leg-mesh 16 --disk-mesh 25 --refactor-every 5 --steps-per-action 2
         --actions 20] [--design 1,0,0,2,2,0,0,0]
-  Paper's env: --model reduced --leg-mesh 6 --disk-mesh 25 --steps-per-action 100
+  Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --steps-per-action 100
 
 End to end (``softcrawl train`` itself: the ``paper`` preset with ``--n-envs`` envs in one worker
 process per core, learning from the second round of transitions on, ``--rounds`` rounds):

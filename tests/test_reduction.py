@@ -137,7 +137,7 @@ from softcrawl.reduction.scenes import run_scene, scene_robot  # noqa: E402
 from softcrawl.reduction.validate import deformation_error  # noqa: E402
 from softcrawl.robot.assembly import REDUCED_DISK_REFACTOR_EVERY, RobotConfig, build_robot, reduce_legs  # noqa: E402
 
-TINY = RobotConfig(leg_mesh_size=12.0, disk_mesh_size=10.0)  # the bounds below were measured with it
+TINY = RobotConfig(leg_mesh_size=12.0)
 TINY_SETTINGS = BuildSettings(n_designs=2, sizes=(3,), state_seconds=0.05, ecsw_scenes=1, ecsw_every=3)
 
 

@@ -94,7 +94,7 @@ def register(subparsers) -> None:
     p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size,
                    help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")
     p.add_argument("--disk-mesh-size", type=float, default=RobotConfig.disk_mesh_size,
-                   help=f"disk mesh size, mm (default {RobotConfig.disk_mesh_size:g})")
+                   help=f"disk mesh size, mm (default {RobotConfig.disk_mesh_size:g}; the demo preset uses 25)")
     p.add_argument("--friction", type=float, default=RobotConfig.friction,
                    help=f"floor friction coefficient (default {RobotConfig.friction:g})")
     p.add_argument("--dt", type=float, default=RobotConfig.dt, help=f"time step, s (default {RobotConfig.dt:g})")
