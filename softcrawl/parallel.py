@@ -7,7 +7,10 @@ import concurrent.futures as cf
 import contextlib
 import multiprocessing
 import os
+import threading
 from collections.abc import Callable, Iterator
+
+import psutil
 
 _BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -54,3 +57,52 @@ def run_pool(fn: Callable, workers: int | None, tasks: list[tuple], finished: Ca
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+class PeakMemory:
+    """Peak resident memory of this process and of this process with all its child processes
+    (e.g. :func:`run_pool` workers), sampled by a background thread while the context is open.
+
+    The sum over processes counts pages they share (libraries) once per process, so
+    ``total_mb`` is an upper bound of the memory used. Usage::
+
+        with PeakMemory() as mem:
+            ...
+        mem.total_mb, mem.main_mb
+
+    Args:
+        interval: seconds between samples (a shorter peak between samples is missed).
+    """
+
+    def __init__(self, interval: float = 0.2):
+        self.interval = interval
+        self.total_mb = self.main_mb = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="peak-memory")
+
+    def sample(self) -> None:
+        """Take one sample now."""
+        me = psutil.Process()
+        main = me.memory_info().rss
+        total = main
+        for child in me.children(recursive=True):
+            try:
+                total += child.memory_info().rss
+            except psutil.Error:  # the child ended meanwhile
+                pass
+        self.main_mb = max(self.main_mb, main / 2**20)
+        self.total_mb = max(self.total_mb, total / 2**20)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            self.sample()
+
+    def __enter__(self) -> PeakMemory:
+        self.sample()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sample()

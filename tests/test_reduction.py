@@ -174,6 +174,8 @@ def test_tiny_build_is_hyper_reduced_and_resumes_from_saved_runs(tiny):
     assert 0 < len(part.tet_rid) < part.mesh.n_tets / 4  # hyper-reduction keeps a small RID
     assert meta["ecsw_residual"]["tetrahedra"] <= TINY_SETTINGS.tol_gie
     assert meta["tail_energy"] <= TINY_SETTINGS.tol_modes
+    rss = meta["peak_rss_mb"]  # reported build memory: at least this process's imports and meshes
+    assert 100 < rss["main"] <= rss["with_workers"] < 8192, rss
     again = build_reduction(work, TINY, TINY_SETTINGS, workers=1, progress=False)  # snapshot runs reused
     assert again.metadata["wall_seconds"]["snapshots"] < 0.2 * meta["wall_seconds"]["snapshots"]
     assert np.allclose(again.basis, part.basis)

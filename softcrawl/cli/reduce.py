@@ -38,7 +38,8 @@ def _build(args: argparse.Namespace) -> int:
     meta = part.metadata
     print(f"wrote {out}: {part.n_modes} modes ({part.n_rigid} rigid), RID {meta['rid']['tetrahedra'][0]} of "
           f"{meta['rid']['tetrahedra'][1]} tetrahedra and {meta['rid']['triangles'][0]} of "
-          f"{meta['rid']['triangles'][1]} paper triangles, {meta['wall_seconds']['total']:.0f} s")
+          f"{meta['rid']['triangles'][1]} paper triangles, {meta['wall_seconds']['total']:.0f} s, peak memory "
+          f"{meta['peak_rss_mb']['with_workers']} MB with its workers (main process {meta['peak_rss_mb']['main']} MB)")
     return 0
 
 

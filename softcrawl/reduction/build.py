@@ -17,7 +17,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from softcrawl.geometry.pneunet import PneuNetParams, pneunet_mesh
-from softcrawl.parallel import run_pool
+from softcrawl.parallel import PeakMemory, run_pool
 from softcrawl.reduction.ecsw import GramAccumulator, ecsw_weights
 from softcrawl.reduction.kernels import reduced_element_terms
 from softcrawl.reduction.model import PartReduction, ReducedBody
@@ -125,7 +125,8 @@ def build_reduction(workdir: str | os.PathLike, config: RobotConfig = RobotConfi
 
     Returns:
         The :class:`PartReduction`; ``metadata`` holds the settings, sizes, tolerances
-        reached and the wall time of each phase.
+        reached, the wall time of each phase and the peak resident memory
+        (``peak_rss_mb``: of the main process, and of it with its workers, MB).
     """
     return build_reductions(workdir, config, settings, (settings.tol_gie,), workers, progress)[0]
 
@@ -135,6 +136,15 @@ def build_reductions(workdir: str | os.PathLike, config: RobotConfig, settings: 
                      progress: bool = True) -> list[PartReduction]:
     """:func:`build_reduction` for several ECSW tolerances sharing one basis and one ECSW
     training set (``settings.tol_gie`` is replaced by each of ``tol_gies``)."""
+    with PeakMemory() as memory:
+        parts = _build(workdir, config, settings, tol_gies, workers, progress)
+    for part in parts:
+        part.metadata["peak_rss_mb"] = {"main": round(memory.main_mb), "with_workers": round(memory.total_mb)}
+    return parts
+
+
+def _build(workdir, config: RobotConfig, settings: BuildSettings, tol_gies: tuple[float, ...],
+           workers: int | None, progress: bool) -> list[PartReduction]:
     t0 = time.perf_counter()
     workdir = Path(workdir)
     fom = dataclasses.replace(config, model="full", reduction=None, refactor_every=settings.fom_refactor_every)
