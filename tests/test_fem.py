@@ -168,6 +168,52 @@ def test_factorization_multi_rhs_and_reuse():
     assert np.linalg.norm(A2 @ x - B[:, 1]) < 1e-10 * np.linalg.norm(B[:, 1])
 
 
+def test_compliance_columns_give_the_dense_delassus_operator():
+    """Attachment rows kept as one compliance column per row (FixedRows) and contact nodes as
+    one column per DOF reproduce the dense ``W = H A^-1 H^T``, ``H v`` and ``A^-1 H^T lam``
+    to round-off (1e-9 relative), with repeated (block, node) entries and a fixed DOF."""
+    import scipy.sparse as sp
+
+    from softcrawl.fem.constraints import Entries, FixedRows, NodalCompliance, assemble, velocity_correction
+    from softcrawl.fem.linalg import Factorization
+
+    rng = np.random.default_rng(3)
+    n = 40  # nodes
+    R = sp.random(3 * n, 3 * n, density=0.05, random_state=4)
+    A = (R @ R.T + sp.eye(3 * n) * 3).tocsr()
+    free = np.ones(3 * n, bool)
+    free[5] = False  # fixed DOF: identity row and column, zero compliance
+    A = A.tolil()
+    A[5, :], A[:, 5] = 0.0, 0.0
+    A[5, 5] = 1.0
+    A = A.tocsr()
+    # 3 attachment blocks over 4-6 nodes each (one node twice in block 1), then 2 contacts.
+    att = [Entries(np.full(k, j), rng.choice(n, k), rng.normal(size=(k, 1, 1)) * np.eye(3))
+           for j, k in enumerate((4, 6, 5))]
+    att[1] = att[1] + Entries(np.array([1]), att[1].nodes[:1], np.eye(3)[None] * 0.5)
+    fixed = sum(att[1:], att[0])
+    contacts = Entries(np.array([3, 4]), np.array([1, 11]), rng.normal(size=(2, 3, 3)))  # node 1 holds DOF 5
+    entries = {0: fixed + contacts}
+    H = np.zeros((15, 3 * n))
+    for e in range(len(entries[0].blocks)):
+        b, node = entries[0].blocks[e], entries[0].nodes[e]
+        H[3 * b:3 * b + 3, 3 * node:3 * node + 3] += entries[0].coefs[e]
+    H[:, ~free] = 0.0
+    Ainv = np.linalg.inv(A.toarray())
+    Ainv[~free] = Ainv[:, ~free] = 0.0
+    v = rng.normal(size=(n, 3))
+    v[1, 2] = 0.0  # the fixed DOF does not move
+    lam = rng.normal(size=15)
+    for rows in (FixedRows.from_entries(fixed, n), None):  # per-row columns, and per-node columns only
+        comp = {0: NodalCompliance(Factorization(A), free, rows)}
+        W, u, T = assemble(entries, comp, {0: v}, 5)
+        dv = velocity_correction(lam, T, comp)[0]
+        scale = np.abs(H @ Ainv @ H.T).max()
+        assert np.abs(W - H @ Ainv @ H.T).max() < 1e-9 * scale
+        assert np.abs(u - H @ v.ravel()).max() < 1e-9 * np.abs(H @ v.ravel()).max()
+        assert np.abs(dv.ravel() - Ainv @ H.T @ lam).max() < 1e-9 * np.abs(Ainv @ H.T @ lam).max()
+
+
 def test_refactorizing_does_not_leak_memory():
     """Regression: the cholespy backend leaked the last solve's workspace of every freed
     solver (~n k 8 bytes; 14 GB over one 20 s robot episode)."""

@@ -10,9 +10,11 @@ implicit matrix ``A_b`` factorized,
     W = sum_b J_b A_b^-1 J_b^T,      dv_b = A_b^-1 J_b^T lam_b
 
 (Duriez et al. 2006, "Realistic haptic rendering of interacting deformable objects in
-virtual environments", sec. 4). A full-order body's compliance columns ``A_b^-1 E_b``
-(``E_b`` selects the touched nodes' DOFs) are computed once per node per step and grow as
-contacts are added.
+virtual environments", sec. 4). A full-order body's compliance columns ``A_b^-1 E_b`` are
+kept while its factorization is: one column per row of its permanent constraints (the
+attachments, :class:`FixedRows`: 3 per attachment, however many nodes its patch spans) and
+one per DOF of every other node a constraint touches (floor contacts), added as contacts
+appear.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from softcrawl.fem.linalg import Factorization
 
@@ -55,19 +58,58 @@ class Entries:
         return block_sum_matrix(self.blocks, n_blocks) @ np.einsum("eij,ej->ei", self.coefs, x[self.nodes])
 
 
+@dataclass(frozen=True, eq=False)
+class FixedRows:
+    """A body's permanent constraint blocks (its attachments) as one sparse row matrix.
+
+    Attributes:
+        blocks: ``(F,)`` sorted global block indices.
+        H: ``(3F, 3n)`` CSR rows: block ``blocks[k]``, row ``i`` is row ``3k + i``.
+    """
+
+    blocks: np.ndarray
+    H: sp.csr_matrix
+
+    @classmethod
+    def from_entries(cls, entries: Entries, n_nodes: int) -> FixedRows:
+        """The rows of all ``entries`` (of one body with ``n_nodes`` nodes); repeated
+        (block, node) entries are summed."""
+        blocks = np.unique(entries.blocks)
+        local = np.searchsorted(blocks, entries.blocks)
+        i = np.arange(3)
+        rows = np.broadcast_to(3 * local[:, None, None] + i[None, :, None], entries.coefs.shape)
+        cols = np.broadcast_to(3 * entries.nodes[:, None, None] + i[None, None, :], entries.coefs.shape)
+        H = sp.csr_matrix((entries.coefs.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * len(blocks), 3 * n_nodes))
+        return cls(blocks, H)
+
+
 class NodalCompliance:
-    """Columns ``A^-1 E`` of one body's factorized matrix for a growing set of nodes.
+    """Compliance columns ``G = A^-1 E`` of one body's factorized matrix ``A``: first one per
+    row of its fixed blocks (``E = H_f^T``), then one per DOF of a growing set of nodes
+    (``E`` selects DOFs). A Jacobian from :meth:`jacobian` is in these columns' coordinates:
+    the rows ``H`` of a constraint are ``J E^T``.
 
     Args:
         factor: the body's factorized implicit matrix (fixed DOFs as identity rows).
         free_dofs: ``(3n,)`` bool; fixed DOFs get zero compliance.
+        fixed: the body's permanent constraint rows (None: none). Every entry of
+            :meth:`jacobian` in one of its blocks must be one of the entries it was built from.
     """
 
-    def __init__(self, factor: Factorization, free_dofs: np.ndarray):
-        self.factor, self.free = factor, free_dofs
-        self.G = np.zeros((len(free_dofs), 0))
-        self._nodes: list[int] = []  # nodes seen, in column order
+    def __init__(self, factor: Factorization, free_dofs: np.ndarray, fixed: FixedRows | None = None):
+        self.factor, self.free, self.fixed = factor, free_dofs, fixed
+        self._n_fixed = 0 if fixed is None else fixed.H.shape[0]
+        if self._n_fixed:
+            self.G = self._solve(fixed.H.T.toarray())
+        else:
+            self.G = np.zeros((len(free_dofs), 0))
+        self._nodes: list[int] = []  # nodes seen, in column order (after the fixed rows' columns)
         self._column = np.full(len(free_dofs) // 3, -1)  # node -> its position in _nodes, -1 if unseen
+        self._EtG: np.ndarray | None = None  # E^T A^-1 E for the current columns
+
+    def _solve(self, E: np.ndarray) -> np.ndarray:
+        free = self.free[:, None]
+        return self.factor.solve(E * free) * free
 
     def ensure(self, nodes: np.ndarray) -> None:
         """Compute the columns of nodes not seen yet (one solve per DOF)."""
@@ -77,39 +119,60 @@ class NodalCompliance:
             return
         dofs = (3 * np.asarray(new)[:, None] + np.arange(3)).ravel()
         E = np.zeros((len(self.free), len(dofs)))
-        E[dofs, np.arange(len(dofs))] = self.free[dofs]
-        self.G = np.hstack([self.G, self.factor.solve(E) * self.free[:, None]])
+        E[dofs, np.arange(len(dofs))] = 1.0
+        self.G = np.hstack([self.G, self._solve(E)])
         self._column[new] = np.arange(len(self._nodes), len(self._nodes) + len(new))
         self._nodes += new
+        self._EtG = None
 
     def nodes(self) -> np.ndarray:
         """``(K,)`` the nodes seen, in column order."""
         return np.asarray(self._nodes, np.int64)
 
-    def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
-        """``(3B, 3K)`` rows of ``entries`` on the nodes seen (adds their columns first);
-        ``blocks`` ``(E,)`` are the entries' local block numbers in ``0..B-1``."""
-        self.ensure(entries.nodes)
-        K = len(self._nodes)
-        J = np.zeros((n_blocks, K, 3, 3))
-        columns = self._column[entries.nodes]
-        if len(np.unique(blocks * K + columns)) == len(blocks):  # each (block, node) once: assign
-            J[blocks, columns] = entries.coefs
-        else:
-            np.add.at(J, (blocks, columns), entries.coefs)
-        return J.transpose(0, 2, 1, 3).reshape(3 * n_blocks, -1)
-
     def dofs(self) -> np.ndarray:
         """``(3K,)`` the DOFs of the nodes seen, in column order."""
         return (3 * self.nodes()[:, None] + np.arange(3)).ravel()
 
+    def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
+        """``(3B, n_fixed_rows + 3K)`` rows of ``entries`` in column coordinates (adds node
+        columns first); ``blocks`` ``(E,)`` are the entries' local block numbers in ``0..B-1``."""
+        on_fixed = np.isin(entries.blocks, self.fixed.blocks) if self._n_fixed else np.zeros(len(blocks), bool)
+        nodal = ~on_fixed
+        nodes, local, coefs = entries.nodes[nodal], blocks[nodal], entries.coefs[nodal]
+        self.ensure(nodes)
+        K, nf = len(self._nodes), self._n_fixed
+        J = np.zeros((3 * n_blocks, nf + 3 * K))
+        if on_fixed.any():  # a fixed block's rows are its own columns: identity
+            lb, first = np.unique(blocks[on_fixed], return_index=True)
+            k = np.searchsorted(self.fixed.blocks, entries.blocks[on_fixed][first])
+            r = np.arange(3)
+            J[(3 * lb[:, None] + r).ravel(), (3 * k[:, None] + r).ravel()] = 1.0
+        if len(nodes):
+            Jn = np.zeros((n_blocks, K, 3, 3))
+            columns = self._column[nodes]
+            if len(np.unique(local * K + columns)) == len(local):  # each (block, node) once: assign
+                Jn[local, columns] = coefs
+            else:
+                np.add.at(Jn, (local, columns), coefs)
+            J[:, nf:] = Jn.transpose(0, 2, 1, 3).reshape(3 * n_blocks, 3 * K)
+        return J
+
+    def _Et(self, a: np.ndarray) -> np.ndarray:
+        """``E^T a`` for ``a`` ``(3n,)`` or ``(3n, k)``."""
+        parts = [a[self.dofs()]]
+        if self._n_fixed:
+            parts.insert(0, self.fixed.H @ a)
+        return np.concatenate(parts)
+
     def delassus(self, J: np.ndarray) -> np.ndarray:
         """``J E^T A^-1 E J^T``."""
-        return J @ self.G[self.dofs()] @ J.T
+        if self._EtG is None:
+            self._EtG = self._Et(self.G)
+        return J @ self._EtG @ J.T
 
     def constraint_velocity(self, J: np.ndarray, v: np.ndarray) -> np.ndarray:
         """``J E^T v`` for the body's velocities ``v`` ``(n, 3)``."""
-        return J @ v[self.nodes()].ravel()
+        return J @ self._Et(v.ravel())
 
     def correction(self, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
         """``(n, 3)`` velocity change ``A^-1 E J^T lam``."""

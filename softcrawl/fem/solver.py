@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from softcrawl.fem.body import Body
-from softcrawl.fem.constraints import Entries, NodalCompliance, assemble, velocity_correction
+from softcrawl.fem.constraints import Entries, FixedRows, NodalCompliance, assemble, velocity_correction
 from softcrawl.fem.contact import solve_constraints
 from softcrawl.fem.linalg import ReusedFactorization
 from softcrawl.fem.model import Model
@@ -122,6 +122,8 @@ class ImplicitEulerSolver:
                 coefs = sign * np.asarray(ref.weights, float)[:, None, None] * np.eye(3)
                 terms.setdefault(ref.body, []).append(Entries(np.full(len(ref.nodes), j), np.asarray(ref.nodes), coefs))
         self._attach_entries = {b: sum(e[1:], e[0]) for b, e in terms.items()}
+        self._attach_rows = {b: FixedRows.from_entries(e, model.bodies[b].n_nodes)
+                             for b, e in self._attach_entries.items()}
         self.stats = StepStats()
 
     # -- free motion ---------------------------------------------------------------------
@@ -165,7 +167,7 @@ class ImplicitEulerSolver:
             self.stats.factorizations += lin.factorizations - n_fact
             self.stats.cg_iterations += lin.cg_iterations - n_cg
             if lin.factorizations > n_fact or self._compliance[i] is None:
-                self._compliance[i] = NodalCompliance(lin.factor, body.free_dofs)
+                self._compliance[i] = NodalCompliance(lin.factor, body.free_dofs, self._attach_rows.get(i))
         return vk
 
     # -- constraints ---------------------------------------------------------------------
