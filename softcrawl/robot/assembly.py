@@ -68,7 +68,7 @@ class RobotConfig:
             crawl distance of the paper's best design and gait in 6 s was 0.63 / 3.57 / 3.39 cm
             at 8 / 6 / 4 mm, so 8 mm is not converged while 6 mm is within 5% of 4 mm).
         disk_mesh_size: maximum tet size of the disk mesh, mm (default 10: 337 nodes; 25 gives
-            127 nodes, near the paper's coarse 86-node disk, and a 1.4x faster reduced step with
+            127 nodes, near the paper's coarse 86-node disk, and a 1.3x faster reduced step with
             the same 20 s paper-best crawl, +11.69 cm full-order exact with either, but the
             exact full-order model with it diverged on one of the 8 reduction training scenes,
             which it passes at 10 mm: at full pressure, two elements under a 1 mm gap between
