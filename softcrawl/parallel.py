@@ -1,5 +1,5 @@
 """Process-parallel task runs (one BLAS thread per worker), shared by the phase sweep and
-the reduction build."""
+the reduction build, and the peak-memory monitor of such runs."""
 
 from __future__ import annotations
 
