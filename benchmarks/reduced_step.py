@@ -1,7 +1,8 @@
 """Reduced vs full-order step of the expert baseline (design 1,0,0,2,2,0,0,1, sine gait, φ = 110°),
 both in one process, one BLAS thread. Prints JSON: seconds per step of each model (episode
 steps only, after settling), the speedup, reduced steps per second per core, the robot's
-reduced sizes (modes, RID elements) and the peak RSS.
+reduced sizes (modes, RID elements of a leg and of the disk) and the peak RSS. The full model
+uses the reduction's meshes.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/reduced_step.py [--full-steps 30] [--reduced-steps 500]
        [--reduction FILE.npz] [--disk-mesh 10]
@@ -39,22 +40,26 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--full-steps", type=int, default=30)
     p.add_argument("--reduced-steps", type=int, default=500)
-    p.add_argument("--reduction", default=None)
-    p.add_argument("--disk-mesh", type=float, default=None, help="disk mesh size, mm (default: the robot's, 10)")
+    p.add_argument("--reduction", default=None, help="reduction file (default: the shipped one)")
+    p.add_argument("--disk-mesh", type=float, default=None,
+                   help="disk mesh size, mm (default: the robot's, 10; a full-order disk only)")
     args = p.parse_args()
     from softcrawl.design.space import BASELINE_DESIGN
     from softcrawl.robot import RobotConfig, build_robot
 
-    disk = {} if args.disk_mesh is None else {"disk_mesh_size": args.disk_mesh}
-    reduced = build_robot(BASELINE_DESIGN, RobotConfig(model="reduced", reduction=args.reduction, **disk))
-    full = build_robot(BASELINE_DESIGN, RobotConfig(**disk), leg_mesh=next(iter(reduced.reduced.values())).part.mesh)
+    size = {} if args.disk_mesh is None else {"disk_mesh_size": args.disk_mesh}
+    reduced = build_robot(BASELINE_DESIGN, RobotConfig(model="reduced", reduction=args.reduction, **size))
+    leg = reduced.reduced[reduced.legs[0].body]
+    disk = reduced.reduced.get(0)
+    full = build_robot(BASELINE_DESIGN, RobotConfig(**size), leg_mesh=leg.part.mesh,
+                       disk_mesh_local=disk.part.mesh if disk else None)
     t_red, _ = time_steps(reduced, args.reduced_steps)
     t_full, _ = time_steps(full, args.full_steps)
-    rb = list(reduced.reduced.values())
     print(json.dumps({
         "design": list(BASELINE_DESIGN), "nodes": full.model.n_nodes, "disk_mesh_size": full.config.disk_mesh_size,
-        "modes_per_leg": rb[0].n_modes, "rid_tetrahedra_per_leg": len(rb[0].part.tet_rid),
-        "rid_triangles_per_leg": len(rb[0].part.tri_rid),
+        "modes_per_leg": leg.n_modes, "rid_tetrahedra_per_leg": len(leg.part.tet_rid),
+        "rid_triangles_per_leg": len(leg.part.tri_rid),
+        "disk": {"modes": disk.n_modes, "rid_tetrahedra": len(disk.part.tet_rid)} if disk else "full-order",
         "full_seconds_per_step": round(t_full, 4), "full_steps": args.full_steps,
         "reduced_seconds_per_step": round(t_red, 6), "reduced_steps": args.reduced_steps,
         "speedup": round(t_full / t_red, 1), "reduced_steps_per_second_per_core": round(1.0 / t_red, 1),

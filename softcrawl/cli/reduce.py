@@ -1,4 +1,5 @@
-"""``softcrawl reduce build|validate``: build a leg reduction, and check it against the full model.
+"""``softcrawl reduce build|validate``: build a crawler reduction (the leg; optionally the disk),
+and check it against the full model.
 
 Examples::
 
@@ -17,9 +18,10 @@ import dataclasses
 import json
 from pathlib import Path
 
-from softcrawl.reduction.artifact import MATCHED_FIELDS, load_reduction, save_reduction
+from softcrawl.reduction.artifact import load_reduction, save_reduction
 from softcrawl.reduction.build import BuildSettings, build_reduction, build_reductions
 from softcrawl.reduction.data import default_reduction_path
+from softcrawl.reduction.model import PartReduction
 from softcrawl.reduction.validate import validate_reduction
 from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.output import jsonable
@@ -29,16 +31,27 @@ GRID_TOL_MODES = (0.01, 0.0032, 0.001)
 GRID_TOL_GIE = (0.01, 0.003, 0.001)
 
 
+def _settings(args: argparse.Namespace, **kw) -> BuildSettings:
+    return BuildSettings(n_designs=args.designs, rigid=args.rigid_modes, disk=args.reduce_disk,
+                         disk_tol_modes=args.disk_tol_modes, **kw)
+
+
+def _describe(name: str, part: PartReduction) -> str:
+    rid = part.metadata["rid"]
+    text = f"{name}: {part.n_modes} modes ({part.n_rigid} rigid), RID {rid['tetrahedra'][0]} of {rid['tetrahedra'][1]} tetrahedra"
+    if "triangles" in rid:
+        text += f" and {rid['triangles'][0]} of {rid['triangles'][1]} paper triangles"
+    return text
+
+
 def _build(args: argparse.Namespace) -> int:
     config = RobotConfig(leg_mesh_size=args.mesh_size)
-    settings = BuildSettings(n_designs=args.designs, tol_modes=args.tol_modes, tol_gie=args.tol_gie,
-                             rigid=args.rigid_modes)
-    part = build_reduction(args.workdir, config, settings, args.workers, not args.no_progress)
-    out = save_reduction(args.out, part, dataclasses.asdict(config))
-    meta = part.metadata
-    print(f"wrote {out}: {part.n_modes} modes ({part.n_rigid} rigid), RID {meta['rid']['tetrahedra'][0]} of "
-          f"{meta['rid']['tetrahedra'][1]} tetrahedra and {meta['rid']['triangles'][0]} of "
-          f"{meta['rid']['triangles'][1]} paper triangles, {meta['wall_seconds']['total']:.0f} s, peak memory "
+    settings = _settings(args, tol_modes=args.tol_modes, tol_gie=args.tol_gie)
+    reduction = build_reduction(args.workdir, config, settings, args.workers, not args.no_progress)
+    out = save_reduction(args.out, reduction, dataclasses.asdict(config))
+    meta = reduction.metadata
+    parts = "; ".join(_describe(name, part) for name, part in reduction.parts.items())
+    print(f"wrote {out}: {parts}; {meta['wall_seconds']['total']:.0f} s, peak memory "
           f"{meta['peak_rss_mb']['with_workers']} MB with its workers (main process {meta['peak_rss_mb']['main']} MB)")
     return 0
 
@@ -98,11 +111,11 @@ def _validate(args: argparse.Namespace) -> int:
     if args.grid:
         rows = []
         for tm in GRID_TOL_MODES:
-            settings = BuildSettings(n_designs=args.designs, tol_modes=tm, rigid=args.rigid_modes)
-            for part in build_reductions(args.workdir, config, settings, GRID_TOL_GIE, args.workers, progress):
-                rep = validate_reduction(part, config, args.workdir, workers=args.workers, progress=progress,
+            settings = _settings(args, tol_modes=tm)
+            for reduction in build_reductions(args.workdir, config, settings, GRID_TOL_GIE, args.workers, progress):
+                rep = validate_reduction(reduction, config, args.workdir, workers=args.workers, progress=progress,
                                          floor_refactor_every=None)
-                rep.update(tol_modes=tm, tol_gie=part.metadata["settings"]["tol_gie"])
+                rep.update(tol_modes=tm, tol_gie=reduction.metadata["settings"]["tol_gie"])
                 rows.append(rep)
                 print(f"tol_modes {tm:g} tol_gie {rep['tol_gie']:g}: {rep['n_modes']} modes, RID "
                       f"{rep['rid_tetrahedra']}+{rep['rid_triangles']}, error {rep['mean_node_error_mm']:.3f} mm "
@@ -113,8 +126,8 @@ def _validate(args: argparse.Namespace) -> int:
         print(f"wrote {out / 'grid.json'} and {out / 'error_vs_time.png'}")
         return 0
     path = args.reduction or default_reduction_path()
-    part, _ = load_reduction(path, expect={k: getattr(config, k) for k in MATCHED_FIELDS})
-    rep = validate_reduction(part, config, args.workdir, workers=args.workers, progress=progress,
+    reduction, _ = load_reduction(path, expect=dataclasses.asdict(config))
+    rep = validate_reduction(reduction, config, args.workdir, workers=args.workers, progress=progress,
                              floor_refactor_every=args.floor_refactor_every or None)
     rep["reduction"] = str(path)
     (out / "validation.json").write_text(json.dumps(jsonable(rep), indent=1) + "\n", encoding="utf-8")
@@ -128,13 +141,18 @@ def _validate(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     """Add ``reduce build`` and ``reduce validate``."""
-    p = subparsers.add_parser("reduce", help="build and validate the leg reduction (POD + ECSW)")
+    p = subparsers.add_parser("reduce", help="build and validate the leg (and disk) reduction (POD + ECSW)")
     sub = p.add_subparsers(dest="reduce_command", required=True)
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--workdir", default="runs/reduce", help="full-order runs, reused (default runs/reduce)")
     common.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size, help="leg mesh size, mm")
     common.add_argument("--designs", type=int, default=BuildSettings.n_designs, help="training designs")
-    common.add_argument("--rigid-modes", choices=("translations", "rigid"), default=BuildSettings.rigid)
+    common.add_argument("--rigid-modes", choices=("translations", "rigid"), default=BuildSettings.rigid,
+                        help="rigid modes of the leg basis")
+    common.add_argument("--reduce-disk", action="store_true",
+                        help="reduce the disk too (default: full-order disk; see BuildSettings.disk for why)")
+    common.add_argument("--disk-tol-modes", type=float, default=BuildSettings.disk_tol_modes,
+                        help="POD tail-energy tolerance of the disk (after its 6 rigid modes)")
     common.add_argument("--workers", type=int, default=None, help="processes (default: CPU count)")
     common.add_argument("--no-progress", action="store_true")
     b = sub.add_parser("build", parents=[common], help="snapshots -> POD -> Galerkin runs -> ECSW; writes --out")

@@ -69,7 +69,7 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
                    help="reduced: legs reduced by POD + ECSW (the shipped 6 mm reduction, fast); "
                         "full: full-order FEM (default reduced)")
     p.add_argument("--reduction", metavar="FILE.npz", default=None,
-                   help="leg reduction file for --model reduced (default: the one shipped with softcrawl)")
+                   help="reduction file for --model reduced (default: the one shipped with softcrawl)")
 
 
 def register(subparsers) -> None:

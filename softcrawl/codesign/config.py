@@ -38,8 +38,9 @@ class EnvConfig:
     """Simulation of one episode.
 
     Attributes:
-        model: ``"full"`` (full-order FEM) or ``"reduced"`` (POD + ECSW legs,
-            :class:`softcrawl.robot.RobotConfig`); reduction: its file (None: the shipped one).
+        model: ``"full"`` (full-order FEM) or ``"reduced"`` (POD + ECSW legs, and disk if the
+            reduction has one, :class:`softcrawl.robot.RobotConfig`); reduction: its file (None:
+            the shipped one).
         leg_mesh_size, disk_mesh_size: mm. refactor_every: factorization reuse
             of the full-order bodies (None: the robot's default, :class:`softcrawl.robot.RobotConfig`).
         dt: simulator step, s. steps_per_action: steps per action (hold = dt * steps_per_action s).

@@ -98,6 +98,9 @@ def pgs_coulomb(W, q, mu, lam, tol, max_iter):
 
 
 _SEP, _STICK, _SLIP = 0, 1, 2
+#: Extra chunks of ``max_iter`` Gauss-Seidel sweeps allowed when the first chunk neither
+#: converges nor yields a consistent active set (a fallback: rare, cheap for few contacts).
+EXTRA_SWEEP_CHUNKS = 8
 
 
 @njit(cache=True)
@@ -240,7 +243,9 @@ def solve_constraints(
         n_bilateral_rows: number of bilateral rows (multiple of 3).
         mu: ``(k,)`` friction coefficients of the contacts.
         warm_start: ``(k, 3)`` initial contact impulses.
-        tol, max_iter: Gauss-Seidel stopping rule.
+        tol, max_iter: Gauss-Seidel stopping rule; if ``max_iter`` sweeps neither converge
+            nor give the polish a consistent active set, up to :data:`EXTRA_SWEEP_CHUNKS`
+            more chunks of ``max_iter`` sweeps are run, polishing after each.
     """
     nb = n_bilateral_rows
     B, C = slice(0, nb), slice(nb, None)
@@ -265,8 +270,17 @@ def solve_constraints(
         exact = polish_active_set(Wc, qc, mu, lam_c) if np.any(lam_c) else None
         if exact is None:
             sweeps, rel = pgs_coulomb(Wc, qc, mu, lam_c, tol, max_iter)
-            if rel > tol:
+            # Unconverged and not polishable (an ill-conditioned W, e.g. several contacts on
+            # one reduced leg): more sweeps, in chunks of max_iter, until the pattern is
+            # right for the polish or Gauss-Seidel converges.
+            for _ in range(EXTRA_SWEEP_CHUNKS + 1):
+                if rel <= tol:
+                    break
                 exact = polish_active_set(Wc, qc, mu, lam_c)
+                if exact is not None or sweeps >= (EXTRA_SWEEP_CHUNKS + 1) * max_iter:
+                    break
+                more, rel = pgs_coulomb(Wc, qc, mu, lam_c, tol, max_iter)
+                sweeps += more
         if exact is not None:
             lam_c, polished = exact, True
     lam_b = -(X[:, 0] + X[:, 1:] @ lam_c) if nb else np.zeros(0)

@@ -1,5 +1,5 @@
-"""Design-reconfigurable model order reduction: snapshot POD + ECSW hyper-reduction of one
-PneuNet leg, placed in any slot of any design (reduction.md; paper sec. IV).
+"""Design-reconfigurable model order reduction: snapshot POD + ECSW hyper-reduction of the
+PneuNet leg, placed in any slot of any design, and of the disk (reduction.md; paper sec. IV).
 
 Core (no robot imports): :mod:`~softcrawl.reduction.pod`, :mod:`~softcrawl.reduction.ecsw`,
 :mod:`~softcrawl.reduction.model` (part reductions and reduced bodies),

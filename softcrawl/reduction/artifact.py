@@ -1,10 +1,12 @@
 """Reduction files: one self-describing, versioned, checksummed ``.npz``.
 
-Arrays: the part mesh (points, tets, surfaces, node sets), the basis, singular values, the
-RIDs and weights. Key ``metadata`` holds UTF-8 JSON: format version, software version, mesh
-hash, the model parameters the reduction is valid for, tolerances and build statistics,
-and a SHA-256 over every array. :func:`load_reduction` rejects a file that is unreadable,
-of another format, altered (checksum), or whose mesh or parameters do not match.
+A file holds the parts of a :class:`~softcrawl.reduction.model.RobotReduction` (the leg and,
+optionally, the disk). Arrays, prefixed ``<part>__``: the part mesh (points, tets, surfaces,
+node sets), the basis, singular values, the RIDs and weights. Key ``metadata`` holds UTF-8
+JSON: format version, software version, per part its mesh hash and sizes, the model
+parameters the reduction is valid for, tolerances and build statistics, and a SHA-256 over
+every array. :func:`load_reduction` rejects a file that is unreadable, of another format or
+version, altered (checksum), or whose mesh or parameters do not match.
 """
 
 from __future__ import annotations
@@ -19,12 +21,15 @@ import numpy as np
 from softcrawl import __version__
 from softcrawl.geometry.io import replace_atomically
 from softcrawl.geometry.mesh import TetMesh
-from softcrawl.reduction.model import PartReduction
+from softcrawl.reduction.model import PartReduction, RobotReduction
 
 FORMAT = "softcrawl-reduction"
-FORMAT_VERSION = 1
-#: RobotConfig fields a leg reduction depends on; loading under other values is refused.
+#: 2: named parts (leg, disk); 1 (leg only) files are refused with a request to rebuild.
+FORMAT_VERSION = 2
+#: RobotConfig fields every reduction depends on (its leg part); loading under other values is refused.
 MATCHED_FIELDS = ("leg_mesh_size", "leg_mass", "mass_lumping", "tilt_deg", "rayleigh_mass", "rayleigh_stiffness")
+#: Further fields a reduction with a disk part depends on.
+DISK_MATCHED_FIELDS = ("disk_mesh_size", "disk_mass")
 
 
 class ReductionFileError(ValueError):
@@ -43,14 +48,22 @@ def mesh_hash(mesh: TetMesh) -> str:
     return h.hexdigest()
 
 
-def _arrays(part: PartReduction) -> dict[str, np.ndarray]:
+def _arrays(part: PartReduction, prefix: str) -> dict[str, np.ndarray]:
     m = part.mesh
     out = {"mesh_points": m.points, "mesh_tets": m.tets, "basis": part.basis,
            "singular_values": part.singular_values, "tet_rid": part.tet_rid, "tet_weights": part.tet_weights,
            "tri_rid": part.tri_rid, "tri_weights": part.tri_weights, "n_rigid": np.array(part.n_rigid)}
     out.update({f"surface__{k}": v for k, v in m.surfaces.items()})
     out.update({f"nodeset__{k}": v for k, v in m.node_sets.items()})
-    return out
+    return {f"{prefix}__{k}": v for k, v in out.items()}
+
+
+def _part(data: dict[str, np.ndarray], prefix: str, meta: dict) -> PartReduction:
+    d = {k[len(prefix) + 2:]: v for k, v in data.items() if k.startswith(prefix + "__")}
+    mesh = TetMesh(d["mesh_points"], d["mesh_tets"], {k[9:]: v for k, v in d.items() if k.startswith("surface__")},
+                   {k[9:]: v for k, v in d.items() if k.startswith("nodeset__")}, meta.get("mesh_params", {}))
+    return PartReduction(mesh, d["basis"], int(d["n_rigid"]), d["singular_values"], d["tet_rid"],
+                         d["tet_weights"], d["tri_rid"], d["tri_weights"], meta.get("build", {}))
 
 
 def _checksum(arrays: dict[str, np.ndarray]) -> str:
@@ -63,20 +76,24 @@ def _checksum(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def save_reduction(path: str | os.PathLike, part: PartReduction, valid_for: dict) -> Path:
-    """Write ``part`` atomically to ``path`` (``.npz``).
+def save_reduction(path: str | os.PathLike, reduction: RobotReduction, valid_for: dict) -> Path:
+    """Write ``reduction`` atomically to ``path`` (``.npz``).
 
     Args:
         path: destination.
-        part: the reduction.
-        valid_for: model parameters it is valid for (at least the :data:`MATCHED_FIELDS`).
+        reduction: the reduced parts.
+        valid_for: model parameters it is valid for (at least :data:`MATCHED_FIELDS`, and
+            :data:`DISK_MATCHED_FIELDS` with a disk part).
     """
     path = Path(path)
-    arrays = _arrays(part)
+    arrays, parts = {}, {}
+    for name, part in reduction.parts.items():
+        arrays.update(_arrays(part, name))
+        parts[name] = {"mesh_hash": mesh_hash(part.mesh), "mesh_params": part.mesh.params, "n_modes": part.n_modes,
+                       "n_rigid": part.n_rigid, "rid_tetrahedra": len(part.tet_rid),
+                       "rid_triangles": len(part.tri_rid), "build": part.metadata}
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "software_version": __version__,
-            "mesh_hash": mesh_hash(part.mesh), "mesh_params": part.mesh.params, "valid_for": valid_for,
-            "n_modes": part.n_modes, "n_rigid": part.n_rigid, "rid_tetrahedra": len(part.tet_rid),
-            "rid_triangles": len(part.tri_rid), "build": part.metadata, "checksum": _checksum(arrays)}
+            "parts": parts, "valid_for": valid_for, "build": reduction.metadata, "checksum": _checksum(arrays)}
     blob = np.frombuffer(json.dumps(meta, indent=1, default=str).encode(), np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
     replace_atomically(path, lambda tmp: np.savez_compressed(tmp, metadata=blob, **arrays))
@@ -84,17 +101,18 @@ def save_reduction(path: str | os.PathLike, part: PartReduction, valid_for: dict
 
 
 def load_reduction(path: str | os.PathLike, expect: dict | None = None,
-                   check: bool = True) -> tuple[PartReduction, dict]:
+                   check: bool = True) -> tuple[RobotReduction, dict]:
     """Read a reduction file and check it.
 
     Args:
         path: the ``.npz``.
-        expect: model parameters in use; each of :data:`MATCHED_FIELDS` present here must
-            equal the file's ``valid_for`` value.
-        check: verify format and checksum.
+        expect: model parameters in use (e.g. ``dataclasses.asdict(RobotConfig(...))``); each
+            of :data:`MATCHED_FIELDS` (and :data:`DISK_MATCHED_FIELDS` if the file has a disk
+            part) present here must equal the file's ``valid_for`` value.
+        check: verify format, version, checksum and mesh hashes.
 
     Returns:
-        ``(part, metadata)``.
+        ``(reduction, metadata)``.
 
     Raises:
         ReductionFileError: missing, unreadable, other format/version, checksum mismatch.
@@ -112,24 +130,26 @@ def load_reduction(path: str | os.PathLike, expect: dict | None = None,
     if check:
         if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
             raise ReductionFileError(f"{path} is not a {FORMAT} file of version {FORMAT_VERSION} "
-                                     f"(found {meta.get('format')!r} version {meta.get('format_version')!r})")
+                                     f"(found {meta.get('format')!r} version {meta.get('format_version')!r}); "
+                                     "rebuild it with `softcrawl reduce build`")
         if _checksum(data) != meta.get("checksum"):
             raise ReductionFileError(f"reduction file {path} is corrupt: its arrays do not match their checksum")
+    parts_meta = meta.get("parts", {})
     try:
-        mesh = TetMesh(data["mesh_points"], data["mesh_tets"],
-                       {k[9:]: v for k, v in data.items() if k.startswith("surface__")},
-                       {k[9:]: v for k, v in data.items() if k.startswith("nodeset__")}, meta.get("mesh_params", {}))
-        part = PartReduction(mesh, data["basis"], int(data["n_rigid"]), data["singular_values"], data["tet_rid"],
-                             data["tet_weights"], data["tri_rid"], data["tri_weights"], meta.get("build", {}))
-    except (KeyError, ValueError) as exc:
-        raise ReductionFileError(f"reduction file {path} is incomplete or inconsistent: {exc}") from exc
-    if check and mesh_hash(mesh) != meta.get("mesh_hash"):
-        raise ReductionFileError(f"reduction file {path}: mesh does not match its recorded hash")
+        parts = {name: _part(data, name, parts_meta[name]) for name in parts_meta}
+        reduction = RobotReduction(parts["leg"], parts.get("disk"), meta.get("build", {}))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ReductionFileError(f"reduction file {path} is incomplete or inconsistent: {exc!r}") from exc
+    if check:
+        for name, part in parts.items():
+            if mesh_hash(part.mesh) != parts_meta[name].get("mesh_hash"):
+                raise ReductionFileError(f"reduction file {path}: the {name} mesh does not match its recorded hash")
     if expect:
         valid = meta.get("valid_for", {})
+        fields = MATCHED_FIELDS + (DISK_MATCHED_FIELDS if reduction.disk is not None else ())
         diff = [f"{k}: {valid.get(k)!r} in the reduction, {expect[k]!r} in use"
-                for k in MATCHED_FIELDS if k in expect and valid.get(k) != expect[k]]
+                for k in fields if k in expect and valid.get(k) != expect[k]]
         if diff:
             raise ReductionMismatchError(f"reduction {path} does not match the model ({'; '.join(diff)}); "
                                          "rebuild it with `softcrawl reduce build` or use --model full")
-    return part, meta
+    return reduction, meta

@@ -1,8 +1,10 @@
 """Reduced parts and reduced bodies: the static data of a (hyper-)reduced model.
 
-A :class:`PartReduction` is what a reduction build produces for one part (here the PneuNet
-leg) in the part's own frame: the POD basis and the ECSW reduced integration domain. A
-:class:`ReducedBody` is that part placed in a robot: the basis rotated to the leg's pose
+A :class:`PartReduction` is what a reduction build produces for one part (the PneuNet leg,
+the disk) in the part's own frame: the POD basis and the ECSW reduced integration domain.
+A :class:`RobotReduction` is the set of parts a crawler is made of (reduction.md: "reduce
+each part once; build any design by placing reduced parts"). A :class:`ReducedBody` is a
+part placed in a robot: the basis rotated to the leg's pose
 (reduction.md: every node's 3-vector in every column is rotated by ``R_i``; RID and weights
 are rotation invariant) and the RID element data computed from the placed rest mesh.
 Kinematics: ``x = X + Phi q`` (``X`` placed rest positions, ``q`` reduced coordinates).
@@ -73,6 +75,27 @@ class PartReduction:
         n_tri = n_triangles
         return cls(mesh, basis, n_rigid, np.zeros(0), np.arange(mesh.n_tets), np.ones(mesh.n_tets),
                    np.arange(n_tri), np.ones(n_tri), dict(metadata))
+
+
+@dataclass(frozen=True, eq=False)
+class RobotReduction:
+    """The reduced parts of a crawler.
+
+    Attributes:
+        leg: the PneuNet leg (placed in every slot, rotated to its pose).
+        disk: the central disk, or None to keep the disk full-order (the paper's choice).
+        metadata: JSON-ready build information shared by the parts (settings, model
+            parameters, wall time and peak memory of each phase).
+    """
+
+    leg: PartReduction
+    disk: PartReduction | None = None
+    metadata: dict = field(default_factory=dict)
+
+    @property
+    def parts(self) -> dict[str, PartReduction]:
+        """Name (``"leg"``, ``"disk"``) -> part, for the parts present."""
+        return {name: p for name, p in (("leg", self.leg), ("disk", self.disk)) if p is not None}
 
 
 def rotate_basis(basis: np.ndarray, rotation: np.ndarray) -> np.ndarray:

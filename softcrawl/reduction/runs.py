@@ -19,15 +19,21 @@ from tqdm.auto import tqdm
 from softcrawl import __version__
 from softcrawl.geometry.io import replace_atomically
 from softcrawl.parallel import run_pool
-from softcrawl.reduction.scenes import Scene, leg_displacements, run_scene, scene_robot
+from softcrawl.reduction.scenes import Scene, disk_displacements, leg_displacements, run_scene, scene_robot
 from softcrawl.robot.assembly import RobotConfig
+
+#: Part -> its array in a snapshot run file.
+SNAPSHOT_KEYS = {"leg": "u", "disk": "u_disk"}
 
 
 def _settings(scene: Scene, config: RobotConfig, kind: str, record_every: int) -> dict:
     """The settings of a run as they read back from its ``.json`` (tuples become lists), so
     that a finished run compares equal to its saved settings."""
-    return json.loads(json.dumps({"kind": kind, "scene": scene.describe(), "config": dataclasses.asdict(config),
-                                  "record_every": record_every, "version": __version__}))
+    settings = {"kind": kind, "scene": scene.describe(), "config": dataclasses.asdict(config),
+                "record_every": record_every, "version": __version__}
+    if kind == "snapshots":
+        settings["arrays"] = sorted(SNAPSHOT_KEYS.values())
+    return json.loads(json.dumps(settings))
 
 
 def _save(path: Path, arrays: dict, settings: dict) -> None:
@@ -40,7 +46,7 @@ def run_fom_scene(scene: Scene, config: RobotConfig, kind: str, record_every: in
     """Run one scene on the full-order model and save it (worker entry point).
 
     ``kind == "snapshots"`` saves the leg-local displacements ``u`` ``(k * n_legs, n, 3)``
-    float32 (mm); ``kind == "reference"`` saves all node positions ``positions``
+    and the disk's ``u_disk`` ``(k, n_disk, 3)``, float32 (mm); ``kind == "reference"`` saves all node positions ``positions``
     ``(k, N, 3)`` float32 (mm), ``times`` (s) and ``reward_x`` (mm) for validation.
 
     Raises:
@@ -51,7 +57,7 @@ def run_fom_scene(scene: Scene, config: RobotConfig, kind: str, record_every: in
     if rec.diverged:
         raise RuntimeError(f"full-order scene {scene.name!r} diverged: {rec.diverged}")
     if kind == "snapshots":
-        arrays = {"u": leg_displacements(robot, rec.positions)}
+        arrays = {"u": leg_displacements(robot, rec.positions), "u_disk": disk_displacements(robot, rec.positions)}
     else:
         arrays = {"positions": rec.positions, "times": rec.times, "reward_x": rec.reward_x}
     arrays["wall_seconds"] = np.array(rec.wall_seconds)

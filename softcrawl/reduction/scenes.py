@@ -3,7 +3,8 @@ driven by animations, and the runner that records them.
 
 The leg-local displacement of leg ``i`` (placed by rotation ``R_i``) is
 ``u_local = R_i^T (x - X_placed)`` per node: snapshots from every slot are pooled in one
-frame (reduction.md, "Design-reconfigurable reduction").
+frame (reduction.md, "Design-reconfigurable reduction"). The disk is placed unrotated in
+every design: its snapshots are ``x - X_placed``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from softcrawl.reduction.animations import (
     GaitAnimation,
     HamiltonianAnimation,
 )
-from softcrawl.robot.assembly import Robot, RobotConfig, assemble_robot
+from softcrawl.reduction.model import RobotReduction
+from softcrawl.robot.assembly import Robot, RobotConfig, assemble_robot, reduce_robot
 from softcrawl.robot.episode import SETTLE_STEPS
 
 
@@ -103,9 +105,17 @@ def training_scenes(n_designs: int = 8, sizes: Sequence[int] = (3, 4), seed: int
     return tuple(scenes)
 
 
-def scene_robot(scene: Scene, config: RobotConfig, leg_mesh=None) -> Robot:
+def scene_robot(scene: Scene, config: RobotConfig, leg_mesh=None, disk_mesh_local=None) -> Robot:
     """The full-order robot of a scene (one channel per leg unless the scene says otherwise)."""
-    return assemble_robot(scene.legs, config, leg_mesh=leg_mesh)
+    return assemble_robot(scene.legs, config, leg_mesh=leg_mesh, disk_mesh_local=disk_mesh_local)
+
+
+def reduced_scene_robot(scene: Scene, config: RobotConfig, reduction: RobotReduction) -> Robot:
+    """The robot of a scene with its parts reduced by ``reduction`` (on the reduction's meshes;
+    ``config.model`` and ``config.reduction`` are ignored)."""
+    disk = reduction.disk.mesh if reduction.disk is not None else None
+    full = dataclasses.replace(config, model="full", reduction=None)
+    return reduce_robot(scene_robot(scene, full, leg_mesh=reduction.leg.mesh, disk_mesh_local=disk), reduction)
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,3 +202,10 @@ def leg_displacements(robot: Robot, positions: np.ndarray) -> np.ndarray:
         u = positions[:, sl] - m.bodies[leg.body].mesh.points[None]
         out.append((u @ leg.rotation).astype(np.float32))  # rows: (R^T u)^T = u^T R
     return np.concatenate(out)
+
+
+def disk_displacements(robot: Robot, positions: np.ndarray) -> np.ndarray:
+    """``(k, n_disk_nodes, 3)`` float32 displacements ``x - X_placed`` of the disk (body 0)
+    in every frame of ``positions`` ``(k, N, 3)``, mm."""
+    sl = robot.model.body_slice(0)
+    return (positions[:, sl] - robot.model.bodies[0].mesh.points[None]).astype(np.float32)

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from softcrawl.reduction.model import PartReduction
+from softcrawl.reduction.model import RobotReduction
 from softcrawl.reduction.runs import run_fom_scenes
-from softcrawl.reduction.scenes import Scene, run_scene, scene_robot, validation_scenes
-from softcrawl.robot.assembly import RobotConfig, reduce_legs
+from softcrawl.reduction.scenes import Scene, reduced_scene_robot, run_scene, validation_scenes
+from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.episode import MM_PER_CM, SETTLE_STEPS
 
 
@@ -71,7 +71,7 @@ def _errors(a: np.ndarray, b: np.ndarray, bodies: list[slice], node: int) -> dic
             "mean_trajectory_error_mm": float(err[:, node].mean())}
 
 
-def compare_scene(part: PartReduction, config: RobotConfig, scene: Scene, reference: Path,
+def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
                   record_every: int = 2, floor_reference: Path | None = None) -> dict:
     """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run
     (and, given ``floor_reference``, that run with the reference: keys ``floor_*``).
@@ -80,8 +80,7 @@ def compare_scene(part: PartReduction, config: RobotConfig, scene: Scene, refere
         ValueError: a reference was recorded on another mesh or at other times.
     """
     ref = np.load(reference)
-    robot = reduce_legs(scene_robot(scene, dataclasses.replace(config, model="full", reduction=None),
-                                    leg_mesh=part.mesh), part)
+    robot = reduced_scene_robot(scene, config, reduction)
     rec = run_scene(robot, scene.animation, record_every=record_every)
     fom_x = ref["positions"].astype(float)
     k = len(rec.positions)
@@ -107,11 +106,11 @@ def compare_scene(part: PartReduction, config: RobotConfig, scene: Scene, refere
     return row
 
 
-def validate_reduction(part: PartReduction, config: RobotConfig, workdir: str | os.PathLike,
+def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: str | os.PathLike,
                        scenes: tuple[Scene, ...] | None = None, record_every: int = 2,
                        workers: int | None = None, progress: bool = True,
                        floor_refactor_every: int | None = 5) -> dict:
-    """Compare ``part`` with the exact full-order model on the held-out scenes.
+    """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
         floor_refactor_every: also run the full model with this factorization reuse and
@@ -131,7 +130,7 @@ def validate_reduction(part: PartReduction, config: RobotConfig, workdir: str | 
     refs = fom_references(workdir, config, scenes, record_every, workers, progress)
     floors = (fom_references(workdir, config, scenes, record_every, workers, progress, floor_refactor_every)
               if floor_refactor_every else [None] * len(scenes))
-    rows = [compare_scene(part, config, s, r, record_every, f)
+    rows = [compare_scene(reduction, config, s, r, record_every, f)
             for s, r, f in tqdm(list(zip(scenes, refs, floors)), desc="reduced runs", unit="scene",
                                 disable=not progress)]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
@@ -142,4 +141,14 @@ def validate_reduction(part: PartReduction, config: RobotConfig, workdir: str | 
     return {"scenes": rows, **means,
             "max_scene_node_error_mm": float(max(r["mean_node_error_mm"] for r in rows)),
             "mean_seconds_per_step_full": full, "mean_seconds_per_step_reduced": red, "speedup": full / red,
-            "n_modes": part.n_modes, "rid_tetrahedra": len(part.tet_rid), "rid_triangles": len(part.tri_rid)}
+            **reduction_sizes(reduction)}
+
+
+def reduction_sizes(reduction: RobotReduction) -> dict:
+    """``{"n_modes", "rid_tetrahedra", "rid_triangles"}`` of the leg, and ``disk_n_modes``,
+    ``disk_rid_tetrahedra`` with a disk part."""
+    leg, disk = reduction.leg, reduction.disk
+    out = {"n_modes": leg.n_modes, "rid_tetrahedra": len(leg.tet_rid), "rid_triangles": len(leg.tri_rid)}
+    if disk is not None:
+        out.update(disk_n_modes=disk.n_modes, disk_rid_tetrahedra=len(disk.tet_rid))
+    return out

@@ -1,5 +1,5 @@
 """Assembling a crawler (disk + PneuNet legs in slots) into an FEM model (full-order, or with
-reduced legs when ``RobotConfig.model == "reduced"``).
+reduced parts when ``RobotConfig.model == "reduced"``).
 
 Placement follows physics.md ("Geometry"): a leg in the slot at angle θ is rotated +15°
 about y (its outer tip dips down), translated by ``(52 cos15° + 50, 0, 52 sin15° - 4)``
@@ -40,7 +40,7 @@ from softcrawl.fem.state import Control
 from softcrawl.geometry.disk import DiskParams, disk_mesh
 from softcrawl.geometry.mesh import TetMesh
 from softcrawl.geometry.pneunet import PneuNetParams, pneunet_mesh
-from softcrawl.reduction.model import PartReduction, ReducedBody, reduce_body
+from softcrawl.reduction.model import ReducedBody, RobotReduction, reduce_body
 from softcrawl.reduction.solver import ReducedSolver
 
 #: Leg tilt about y, degrees (outer tip down).
@@ -67,14 +67,14 @@ class RobotConfig:
         leg_mesh_size: maximum tet size of the PneuNet mesh, mm (reference 4; default 6: the
             crawl distance of the paper's best design and gait in 6 s was 0.63 / 3.57 / 3.39 cm
             at 8 / 6 / 4 mm, so 8 mm is not converged while 6 mm is within 5% of 4 mm).
-        disk_mesh_size: maximum tet size of the disk mesh, mm (default 10: 337 nodes; 25 gives
-            127 nodes, near the paper's coarse 86-node disk, and a 1.3x faster reduced step with
-            the same 20 s paper-best crawl, +11.69 cm full-order exact with either, but the
-            exact full-order model with it diverged on one of the 8 reduction training scenes,
-            which it passes at 10 mm: at full pressure, two elements under a 1 mm gap between
-            teeth of a leg were squeezed from 4% of their volume to inverted in 0.12 s; without
+        disk_mesh_size: maximum tet size of the disk mesh, mm (default 10: 337 nodes; a
+            reduction with a disk part only accepts the size it was built for). 25 gives 127 nodes, near the paper's coarse 86-node disk, and the same
+            20 s paper-best crawl (+11.69 cm full-order exact with either), but the exact
+            full-order model with it diverged on one of the 8 reduction training scenes, which
+            it passes at 10 mm: at full pressure, two elements under a 1 mm gap between teeth
+            of a leg were squeezed from 4% of their volume to inverted in 0.12 s; without
             tooth-tooth self-contact neighbouring teeth may overlap, and the corotational
-            linear material has no volumetric barrier).
+            linear material has no volumetric barrier.
         friction: Coulomb coefficient of the floor.
         dt: time step, s.
         mass_lumping: ``"uniform"`` (SOFA, reference) or ``"volume"``.
@@ -84,16 +84,19 @@ class RobotConfig:
         contact_distance: floor contact distance, mm.
         refactor_every: factorization reuse of the full-order bodies (1 = exact, refactorize
             every step; see :class:`softcrawl.fem.solver.SolverSettings`). ``None``: 1 for the
-            full model (the exact reference); :data:`REDUCED_DISK_REFACTOR_EVERY` for the
-            reduced model, whose only full-order body is the stiff disk (its factorization and
+            full model (the exact reference); :data:`REDUCED_DISK_REFACTOR_EVERY` for a
+            reduced model whose only full-order body is the stiff disk (its factorization and
             attachment compliance columns were 35% of the reduced step; between
             refactorizations its free motion is still solved to 1e-9 by preconditioned CG, its
             contact compliance lags). Paper-best design and gait, 20 s: +11.44 / +11.22 /
             +10.76 cm with the disk refactorized every 1 / 5 / 10 steps, full model +11.69 cm.
-        model: ``"full"`` (full-order legs) or ``"reduced"`` (legs reduced with POD + ECSW
-            from ``reduction``; the disk stays full-order).
-        reduction: path of the leg reduction file for ``model="reduced"`` (None: the one
-            shipped with softcrawl, :func:`softcrawl.reduction.default_reduction_path`).
+        model: ``"full"`` (full-order bodies) or ``"reduced"`` (legs, and the disk if the
+            reduction has a disk part, reduced with POD + ECSW from ``reduction``; the
+            reduction's meshes replace the ones ``leg_mesh_size`` and ``disk_mesh_size`` would
+            give, and those sizes must be the ones it was built for).
+        reduction: path of the reduction file for ``model="reduced"`` (None: the one
+            shipped with softcrawl, :func:`softcrawl.reduction.default_reduction_path`: 6 mm
+            legs, full-order disk).
         attachment_patch: ``"ring"``: each of a leg's 4 attachment points ties the disk to
             the average of the corner node and its one-ring (the nodes sharing a tetrahedron
             with it); a single-node tie concentrates the leg's reaction in one element, which
@@ -167,7 +170,7 @@ class Robot:
         legs: one :class:`LegSlot` per leg, in slot order.
         reward_node: global node index (into ``State.x``) of the disk's top-centre node.
         disk_body: index of the disk body (0).
-        reduced: body index -> :class:`ReducedBody` for reduced legs (empty: full-order).
+        reduced: body index -> :class:`ReducedBody` for reduced bodies (empty: full-order).
     """
 
     model: Model
@@ -256,14 +259,17 @@ def leg_transform(angle_deg: float, tilt_deg: float = TILT_DEG) -> tuple[np.ndar
     return rz @ _rot_y(tilt_deg), rz @ offset
 
 
-def build_robot(design, config: RobotConfig = RobotConfig(), leg_mesh: TetMesh | None = None) -> Robot:
-    """Assemble the model of a design (legs reduced if ``config.model == "reduced"``).
+def build_robot(design, config: RobotConfig = RobotConfig(), leg_mesh: TetMesh | None = None,
+                disk_mesh_local: TetMesh | None = None) -> Robot:
+    """Assemble the model of a design (reduced if ``config.model == "reduced"``).
 
     Args:
         design: 8 slot values in {0..3} (sequence or string such as ``"1,0,0,2,2,0,0,1"``).
         config: model settings.
         leg_mesh: the PneuNet mesh in leg-local coordinates (default: meshed by gmsh at
             ``config.leg_mesh_size``; a reduced model always uses its reduction's mesh).
+        disk_mesh_local: the unplaced disk mesh (default: gmsh at ``config.disk_mesh_size``,
+            or the reduction's disk mesh).
 
     Returns:
         The :class:`Robot` (disk = body 0, legs in slot order, ``4 * n_legs`` attachments,
@@ -275,23 +281,27 @@ def build_robot(design, config: RobotConfig = RobotConfig(), leg_mesh: TetMesh |
     """
     design = validate_design(design)
     legs = [(slot, Robot.channel_of(reg)) for slot, reg in enumerate(design) if reg]
-    return assemble_robot(legs, config, N_REGULATORS, design, leg_mesh)
+    return assemble_robot(legs, config, N_REGULATORS, design, leg_mesh, disk_mesh_local)
 
 
-def reduce_legs(robot: Robot, part: PartReduction) -> Robot:
-    """The reductor: the same robot with every leg replaced by the part reduction rotated to
-    its slot's pose (reduction.md, "Design-reconfigurable reduction").
+def reduce_robot(robot: Robot, reduction: RobotReduction) -> Robot:
+    """The reductor: the same robot with every leg replaced by the leg reduction rotated to its
+    slot's pose (reduction.md, "Design-reconfigurable reduction") and, if the reduction has a
+    disk part, the disk replaced by it.
 
     Raises:
-        ValueError: the legs' mesh is not the reduction's.
+        ValueError: the robot's leg or disk mesh is not the reduction's.
     """
     bodies = robot.model.bodies
-    reduced = {leg.body: reduce_body(bodies[leg.body], part, leg.rotation) for leg in robot.legs}
+    reduced = {leg.body: reduce_body(bodies[leg.body], reduction.leg, leg.rotation) for leg in robot.legs}
+    if reduction.disk is not None:
+        reduced[0] = reduce_body(bodies[0], reduction.disk, np.eye(3))
     return dataclasses.replace(robot, reduced=reduced, config=dataclasses.replace(robot.config, model="reduced"))
 
 
 def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotConfig(), n_channels: int | None = None,
-                   design: Design | None = None, leg_mesh: TetMesh | None = None) -> Robot:
+                   design: Design | None = None, leg_mesh: TetMesh | None = None,
+                   disk_mesh_local: TetMesh | None = None) -> Robot:
     """Assemble a disk with legs in any slots on any pressure channels (no design-space rules).
 
     Used by :func:`build_robot` and, for training and validating reductions, for robots
@@ -303,17 +313,21 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
         n_channels: pressure channels of the model (default: one more than the highest used).
         design: the design tuple recorded in the robot (default: slot -> channel + 1).
         leg_mesh: the leg-local PneuNet mesh (default: gmsh at ``config.leg_mesh_size``).
+        disk_mesh_local: the unplaced disk mesh (default: gmsh at ``config.disk_mesh_size``).
+            A reduced model always uses its reduction's meshes.
 
     Raises:
         ValueError: a slot outside 0..7 or repeated, a negative channel, no legs.
     """
-    part = None
+    reduction = None
     if config.model == "reduced":
         from softcrawl.reduction.artifact import load_reduction
         from softcrawl.reduction.data import default_reduction_path
 
-        part, _ = load_reduction(config.reduction or default_reduction_path(), expect=dataclasses.asdict(config))
-        leg_mesh = part.mesh
+        reduction, _ = load_reduction(config.reduction or default_reduction_path(), expect=dataclasses.asdict(config))
+        leg_mesh = reduction.leg.mesh
+        if reduction.disk is not None:
+            disk_mesh_local = reduction.disk.mesh
     legs = sorted((int(s), int(c)) for s, c in legs)
     slots_used = [s for s, _ in legs]
     if not legs or len(set(slots_used)) != len(legs) or not all(0 <= s < N_SLOTS for s in slots_used):
@@ -323,7 +337,7 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
     if design is None:
         design = tuple(dict(legs).get(s, -1) + 1 for s in range(N_SLOTS))
     leg_local = leg_mesh if leg_mesh is not None else pneunet_mesh(PneuNetParams(mesh_size=config.leg_mesh_size))
-    disk_local = disk_mesh(DiskParams(mesh_size=config.disk_mesh_size))
+    disk_local = disk_mesh_local if disk_mesh_local is not None else disk_mesh(DiskParams(mesh_size=config.disk_mesh_size))
     lift = 2 * LEG_HALF_BLOCK * math.sin(math.radians(config.tilt_deg))
 
     parts = [(disk_local, np.eye(3), np.array([0.0, 0.0, lift]))]
@@ -359,4 +373,4 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
     )
     reward_node = int(model.node_offsets[0] + disk.node_sets["top_centre"][0])
     robot = Robot(model, tuple(design), config, tuple(leg_slots), reward_node)
-    return reduce_legs(robot, part) if part is not None else robot
+    return reduce_robot(robot, reduction) if reduction is not None else robot
