@@ -246,14 +246,16 @@ def test_reduction_file_round_trip_and_reduced_config(tiny):
     for name, part in reduction.parts.items():
         got = loaded.parts[name]
         assert np.array_equal(got.basis, part.basis) and np.array_equal(got.tet_rid, part.tet_rid)
-        assert np.array_equal(got.mesh.points, part.mesh.points) and got.mesh.node_sets.keys() == part.mesh.node_sets.keys()
+        assert np.array_equal(got.mesh.points, part.mesh.points)
+        assert got.mesh.node_sets.keys() == part.mesh.node_sets.keys()
         assert meta["parts"][name]["n_modes"] == part.n_modes
     assert meta["software_version"] and meta["build"]["settings"]["disk"]
     robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), dataclasses.replace(TINY, model="reduced", reduction=str(path)))
     solver = robot.make_solver()
     assert sorted(robot.reduced) == [0, 1, 2, 3, 4] and solver.__class__.__name__ == "ReducedSolver"
     # A leg-only reduction keeps the disk full-order.
-    legs_only = save_reduction(work / "legs_only.npz", dataclasses.replace(reduction, disk=None), dataclasses.asdict(TINY))
+    legs_only = save_reduction(work / "legs_only.npz", dataclasses.replace(reduction, disk=None),
+                               dataclasses.asdict(TINY))
     robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), dataclasses.replace(TINY, model="reduced", reduction=str(legs_only)))
     solver = robot.make_solver()
     assert sorted(robot.reduced) == [1, 2, 3, 4]

@@ -38,7 +38,8 @@ def _settings(args: argparse.Namespace, **kw) -> BuildSettings:
 
 def _describe(name: str, part: PartReduction) -> str:
     rid = part.metadata["rid"]
-    text = f"{name}: {part.n_modes} modes ({part.n_rigid} rigid), RID {rid['tetrahedra'][0]} of {rid['tetrahedra'][1]} tetrahedra"
+    text = (f"{name}: {part.n_modes} modes ({part.n_rigid} rigid), "
+            f"RID {rid['tetrahedra'][0]} of {rid['tetrahedra'][1]} tetrahedra")
     if "triangles" in rid:
         text += f" and {rid['triangles'][0]} of {rid['triangles'][1]} paper triangles"
     return text

@@ -2,9 +2,9 @@
 
 Each part (the PneuNet leg and, optionally, the disk) gets its own basis and RID from the
 same runs (reduction.md; paper sec. IV reduces the legs only and keeps a coarse full-order
-disk, as the default here). ``softcrawl reduce build`` calls :func:`build_reduction`. Every phase shows a
-progress bar; the full-order runs are saved per scene and reused after an interruption
-(:mod:`softcrawl.reduction.runs`).
+disk, as the default here). ``softcrawl reduce build`` calls :func:`build_reduction`. Every
+phase shows a progress bar; the full-order runs are saved per scene and reused after an
+interruption (:mod:`softcrawl.reduction.runs`).
 """
 
 from __future__ import annotations
@@ -202,8 +202,9 @@ def _build(workdir, config: RobotConfig, settings: BuildSettings, tol_gies: tupl
     states: dict[str, list[tuple[ReducedBody, np.ndarray]]] = {name: [] for name in galerkin}
     for scene in ecsw_scenes:
         robot = reduced_scene_robot(scene, fom, galerkin_reduction)
-        for name, bodies in _part_bodies(robot).items():
-            for j, b in enumerate(bodies if name in galerkin else ()):
+        bodies = _part_bodies(robot)
+        for name in galerkin:
+            for j, b in enumerate(bodies[name]):
                 states[name].append((robot.reduced[b], results[scene.name][name][:, j]))
     t3 = time.perf_counter()
     grams = {name: ecsw_grams(states[name], progress, f"ECSW training matrix ({name})") for name in galerkin}

@@ -46,8 +46,9 @@ def run_fom_scene(scene: Scene, config: RobotConfig, kind: str, record_every: in
     """Run one scene on the full-order model and save it (worker entry point).
 
     ``kind == "snapshots"`` saves the leg-local displacements ``u`` ``(k * n_legs, n, 3)``
-    and the disk's ``u_disk`` ``(k, n_disk, 3)``, float32 (mm); ``kind == "reference"`` saves all node positions ``positions``
-    ``(k, N, 3)`` float32 (mm), ``times`` (s) and ``reward_x`` (mm) for validation.
+    and the disk's ``u_disk`` ``(k, n_disk, 3)``, float32 (mm); ``kind == "reference"`` saves
+    all node positions ``positions`` ``(k, N, 3)`` float32 (mm), ``times`` (s) and
+    ``reward_x`` (mm) for validation.
 
     Raises:
         RuntimeError: the full-order run diverged (no file is written).
