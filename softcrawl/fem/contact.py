@@ -273,11 +273,11 @@ def solve_constraints(
             # Unconverged and not polishable (an ill-conditioned W, e.g. several contacts on
             # one reduced leg): more sweeps, in chunks of max_iter, until the pattern is
             # right for the polish or Gauss-Seidel converges.
-            for _ in range(EXTRA_SWEEP_CHUNKS + 1):
+            for chunk in range(EXTRA_SWEEP_CHUNKS + 1):
                 if rel <= tol:
                     break
                 exact = polish_active_set(Wc, qc, mu, lam_c)
-                if exact is not None or sweeps >= (EXTRA_SWEEP_CHUNKS + 1) * max_iter:
+                if exact is not None or chunk == EXTRA_SWEEP_CHUNKS:
                     break
                 more, rel = pgs_coulomb(Wc, qc, mu, lam_c, tol, max_iter)
                 sweeps += more
