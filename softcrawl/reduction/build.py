@@ -94,7 +94,7 @@ def element_reduced_forces(rb: ReducedBody, x: np.ndarray) -> list[np.ndarray]:
 
 
 def _part_bodies(robot) -> dict[str, list[int]]:
-    return {"leg": [leg.body for leg in robot.legs], "disk": [0]}
+    return {"leg": [leg.body for leg in robot.legs], "disk": [robot.disk_body]}
 
 
 def galerkin_states(scene: Scene, config: RobotConfig, reduction: RobotReduction,

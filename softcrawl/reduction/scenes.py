@@ -205,7 +205,7 @@ def leg_displacements(robot: Robot, positions: np.ndarray) -> np.ndarray:
 
 
 def disk_displacements(robot: Robot, positions: np.ndarray) -> np.ndarray:
-    """``(k, n_disk_nodes, 3)`` float32 displacements ``x - X_placed`` of the disk (body 0)
-    in every frame of ``positions`` ``(k, N, 3)``, mm."""
-    sl = robot.model.body_slice(0)
-    return (positions[:, sl] - robot.model.bodies[0].mesh.points[None]).astype(np.float32)
+    """``(k, n_disk_nodes, 3)`` float32 displacements ``x - X_placed`` of the disk in every
+    frame of ``positions`` ``(k, N, 3)``, mm."""
+    sl = robot.model.body_slice(robot.disk_body)
+    return (positions[:, sl] - robot.model.bodies[robot.disk_body].mesh.points[None]).astype(np.float32)

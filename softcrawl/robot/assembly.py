@@ -296,7 +296,7 @@ def reduce_robot(robot: Robot, reduction: RobotReduction) -> Robot:
     bodies = robot.model.bodies
     reduced = {leg.body: reduce_body(bodies[leg.body], reduction.leg, leg.rotation) for leg in robot.legs}
     if reduction.disk is not None:
-        reduced[0] = reduce_body(bodies[0], reduction.disk, np.eye(3))
+        reduced[robot.disk_body] = reduce_body(bodies[robot.disk_body], reduction.disk, np.eye(3))
     return dataclasses.replace(robot, reduced=reduced, config=dataclasses.replace(robot.config, model="reduced"))
 
 
