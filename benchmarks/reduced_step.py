@@ -5,7 +5,7 @@ reduced sizes (modes, RID elements of a leg and of the disk) and the peak RSS. T
 uses the reduction's meshes.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/reduced_step.py [--full-steps 30] [--reduced-steps 500]
-       [--reduction FILE.npz] [--disk-mesh 10]
+       [--reduction FILE.npz] [--disk-mesh 10] [--reduced-disk floating|corotational]
 """
 
 from __future__ import annotations
@@ -42,24 +42,30 @@ def main() -> None:
     p.add_argument("--reduced-steps", type=int, default=500)
     p.add_argument("--reduction", default=None, help="reduction file (default: the shipped one)")
     p.add_argument("--disk-mesh", type=float, default=None,
-                   help="disk mesh size, mm (default: the robot's, 10; a full-order disk only)")
+                   help="disk mesh size, mm (default: the robot's, 10; not with a POD-reduced disk)")
+    p.add_argument("--reduced-disk", default="floating", choices=("floating", "corotational"),
+                   help="the reduced robot's disk when the reduction has none (RobotConfig.reduced_disk)")
     args = p.parse_args()
     from softcrawl.design.space import BASELINE_DESIGN
+    from softcrawl.reduction.model import ReducedBody
     from softcrawl.robot import RobotConfig, build_robot
 
     size = {} if args.disk_mesh is None else {"disk_mesh_size": args.disk_mesh}
-    reduced = build_robot(BASELINE_DESIGN, RobotConfig(model="reduced", reduction=args.reduction, **size))
+    reduced = build_robot(BASELINE_DESIGN, RobotConfig(model="reduced", reduction=args.reduction,
+                                                       reduced_disk=args.reduced_disk, **size))
     leg = reduced.reduced[reduced.legs[0].body]
-    disk = reduced.reduced.get(0)
+    disk = reduced.reduced.get(reduced.disk_body)
+    pod_disk = disk if isinstance(disk, ReducedBody) else None
     full = build_robot(BASELINE_DESIGN, RobotConfig(**size), leg_mesh=leg.part.mesh,
-                       disk_mesh_local=disk.part.mesh if disk else None)
+                       disk_mesh_local=pod_disk.part.mesh if pod_disk else None)
     t_red, _ = time_steps(reduced, args.reduced_steps)
     t_full, _ = time_steps(full, args.full_steps)
     print(json.dumps({
         "design": list(BASELINE_DESIGN), "nodes": full.model.n_nodes, "disk_mesh_size": full.config.disk_mesh_size,
         "modes_per_leg": leg.n_modes, "rid_tetrahedra_per_leg": len(leg.part.tet_rid),
         "rid_triangles_per_leg": len(leg.part.tri_rid),
-        "disk": {"modes": disk.n_modes, "rid_tetrahedra": len(disk.part.tet_rid)} if disk else "full-order",
+        "disk": ({"modes": pod_disk.n_modes, "rid_tetrahedra": len(pod_disk.part.tet_rid)} if pod_disk
+                 else "floating frame" if disk else "full-order corotational"),
         "full_seconds_per_step": round(t_full, 4), "full_steps": args.full_steps,
         "reduced_seconds_per_step": round(t_red, 6), "reduced_steps": args.reduced_steps,
         "speedup": round(t_full / t_red, 1), "reduced_steps_per_second_per_core": round(1.0 / t_red, 1),

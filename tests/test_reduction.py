@@ -11,7 +11,8 @@ from softcrawl.fem.model import Attachment, Floor, Model, PointRef
 from softcrawl.fem.solver import ImplicitEulerSolver, SolverSettings
 from softcrawl.fem.state import Control
 from softcrawl.geometry import box_mesh
-from softcrawl.reduction.model import PartReduction, reduce_body
+from softcrawl.reduction.floating import FloatingFrameBody
+from softcrawl.reduction.model import PartReduction, ReducedBody, reduce_body
 from softcrawl.reduction.solver import ReducedSolver
 
 
@@ -185,24 +186,27 @@ def test_tiny_build_is_hyper_reduced_and_resumes_from_saved_runs(tiny):
     assert np.allclose(again.leg.basis, leg.basis) and np.allclose(again.disk.basis, disk.basis)
 
 
-@pytest.mark.parametrize("with_disk", [False, True])
-def test_reduced_robot_follows_the_full_model_on_a_training_scene(tiny, with_disk):
-    """The hyper-reduced robot (legs, or legs and disk) vs the full-order robot over the
-    training scene it was built from (legs 115 mm long, bending by tens of mm), averaged over
-    nodes and frames:
+@pytest.mark.parametrize("disk", ["floating", "corotational", "pod"])
+def test_reduced_robot_follows_the_full_model_on_a_training_scene(tiny, disk):
+    """The hyper-reduced robot (legs reduced; the disk floating-frame, full-order corotational
+    or POD-reduced) vs the full-order robot over the training scene it was built from (legs
+    115 mm long, bending by tens of mm), averaged over nodes and frames:
     - deformation error (each body rigidly fitted) below 0.1 mm: what the reduction
-      approximates (measured 0.033 mm with legs only, 0.057 mm with the disk reduced too);
-    - raw node error below 1 mm with legs only (measured 0.63 mm): it also holds the rigid
-      drift of stick-slip contact, which solver details alone change by ~0.1-0.5 mm here;
-      below 2 mm with the reduced disk (measured 1.22 mm: its basis stiffens the point ties
-      the legs hang on, see ``BuildSettings.disk``)."""
+      approximates (measured 0.035 / 0.033 / 0.057 mm with the floating / corotational /
+      POD disk);
+    - raw node error below 1 mm with a full-resolution disk (measured 0.56 mm floating,
+      0.63 mm corotational): it also holds the rigid drift of stick-slip contact, which solver
+      details alone change by ~0.1-0.5 mm here; below 2 mm with the POD disk (measured
+      1.22 mm: its basis stiffens the point ties the legs hang on, see ``BuildSettings.disk``)."""
     full = tiny[0]
-    reduction = full if with_disk else dataclasses.replace(full, disk=None)
+    reduction = full if disk == "pod" else dataclasses.replace(full, disk=None)
+    config = dataclasses.replace(TINY, reduced_disk="corotational") if disk == "corotational" else TINY
     scene = TINY_SETTINGS.scenes()[0]
     fom_robot = scene_robot(scene, TINY, leg_mesh=full.leg.mesh, disk_mesh_local=full.disk.mesh)
     fom = run_scene(fom_robot, scene.animation)
-    rom_robot = reduced_scene_robot(scene, TINY, reduction)
-    assert (0 in rom_robot.reduced) == with_disk and len(rom_robot.reduced) == 3 + with_disk
+    rom_robot = reduced_scene_robot(scene, config, reduction)
+    kind = {"floating": FloatingFrameBody, "pod": ReducedBody}.get(disk)
+    assert (kind is None and 0 not in rom_robot.reduced) or isinstance(rom_robot.reduced[0], kind)
     rom = run_scene(rom_robot, scene.animation)
     assert not fom.diverged and not rom.diverged
     a, b = rom.positions.astype(float), fom.positions.astype(float)
@@ -210,7 +214,7 @@ def test_reduced_robot_follows_the_full_model_on_a_training_scene(tiny, with_dis
     err = np.linalg.norm(a - b, axis=2).mean()
     bodies = [fom_robot.model.body_slice(i) for i in range(len(fom_robot.model.bodies))]
     shape = deformation_error(a, b, bodies).mean()
-    assert moved > 5.0 and err < (2.0 if with_disk else 1.0) and shape < 0.1, (moved, err, shape)
+    assert moved > 5.0 and err < (2.0 if disk == "pod" else 1.0) and shape < 0.1, (moved, err, shape)
     # The contact set grows lazily from last step's loaded contacts; no candidate may be left
     # below the floor (1e-6 mm: the solver's gap tolerance is relative, ~1e-9 of the gaps).
     model = fom_robot.model
@@ -253,15 +257,21 @@ def test_reduction_file_round_trip_and_reduced_config(tiny):
     robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), dataclasses.replace(TINY, model="reduced", reduction=str(path)))
     solver = robot.make_solver()
     assert sorted(robot.reduced) == [0, 1, 2, 3, 4] and solver.__class__.__name__ == "ReducedSolver"
-    # A leg-only reduction keeps the disk full-order.
+    # With a leg-only reduction the disk is a floating-frame body, or the full-order
+    # corotational one on request.
     legs_only = save_reduction(work / "legs_only.npz", dataclasses.replace(reduction, disk=None),
                                dataclasses.asdict(TINY))
-    robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), dataclasses.replace(TINY, model="reduced", reduction=str(legs_only)))
-    solver = robot.make_solver()
+    config = dataclasses.replace(TINY, model="reduced", reduction=str(legs_only))
+    robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), config)
+    assert sorted(robot.reduced) == [0, 1, 2, 3, 4] and isinstance(robot.reduced[0], FloatingFrameBody)
+    assert robot.make_solver().settings.refactor_every == 1
+    robot = build_robot((1, 0, 0, 2, 2, 0, 0, 1), dataclasses.replace(config, reduced_disk="corotational"))
     assert sorted(robot.reduced) == [1, 2, 3, 4]
-    # Factorization reuse defaults by model: the reduced model's disk 5, the full model exact.
-    assert solver.settings.refactor_every == REDUCED_DISK_REFACTOR_EVERY > 1
+    # Factorization reuse defaults by model: the reduced model's corotational disk 5, the full model exact.
+    assert robot.make_solver().settings.refactor_every == REDUCED_DISK_REFACTOR_EVERY > 1
     assert build_robot((1, 0, 0, 2, 2, 0, 0, 1), TINY).make_solver().settings.refactor_every == 1
+    with pytest.raises(ValueError, match="reduced_disk"):
+        RobotConfig(reduced_disk="rigid")
 
 
 def test_corrupt_missing_and_mismatched_reduction_files_are_rejected(tiny, tmp_path):
@@ -313,13 +323,18 @@ def test_shipped_reduction_loads_and_simulates_the_baseline(tmp_path, monkeypatc
     part = reduction.leg
     assert meta["valid_for"]["leg_mesh_size"] == 6.0 and part.n_modes == meta["parts"]["leg"]["n_modes"] >= 10
     assert 0 < len(part.tet_rid) < part.mesh.n_tets / 10
-    assert reduction.disk is None  # the shipped default keeps the disk full-order (BuildSettings.disk)
+    assert reduction.disk is None  # the shipped default keeps every disk node (BuildSettings.disk)
     monkeypatch.setattr(cli, "SUBCOMMANDS", ("softcrawl.cli.simulate",))
     out = tmp_path / "rom"
     rc = cli.main(["simulate", "--duration", "0.2", "--frames-every", "10", "--no-progress", "--out", str(out)])
     assert rc == 0, capsys.readouterr().err
     s = json.loads((out / "summary.json").read_text())
     assert s["model"] == "reduced" and s["steps"] == 20 and math.isfinite(s["reward_cm"])
+    assert s["config"]["reduced_disk"] == "floating"
+    rc = cli.main(["simulate", "--duration", "0.05", "--reduced-disk", "corotational", "--no-progress",
+                   "--out", str(tmp_path / "corotational")])
+    assert rc == 0 and json.loads((tmp_path / "corotational" / "summary.json").read_text())["config"]["reduced_disk"] \
+        == "corotational"
     rc = cli.main(["simulate", "--mesh-size", "8", "--duration", "0.1", "--no-progress", "--out", str(tmp_path / "x")])
     err = capsys.readouterr().err
     assert rc == 2 and "leg_mesh_size" in err and "--model full" in err and not (tmp_path / "x").exists()

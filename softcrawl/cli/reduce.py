@@ -23,7 +23,7 @@ from softcrawl.reduction.build import BuildSettings, build_reduction, build_redu
 from softcrawl.reduction.data import default_reduction_path
 from softcrawl.reduction.model import PartReduction
 from softcrawl.reduction.validate import validate_reduction
-from softcrawl.robot.assembly import RobotConfig
+from softcrawl.robot.assembly import REDUCED_DISKS, RobotConfig
 from softcrawl.robot.output import jsonable
 
 #: The 3 x 3 grid of the paper's appendix around its chosen (tol_modes, tol_gie).
@@ -45,8 +45,12 @@ def _describe(name: str, part: PartReduction) -> str:
     return text
 
 
+def _config(args: argparse.Namespace) -> RobotConfig:
+    return RobotConfig(leg_mesh_size=args.mesh_size, reduced_disk=args.reduced_disk)
+
+
 def _build(args: argparse.Namespace) -> int:
-    config = RobotConfig(leg_mesh_size=args.mesh_size)
+    config = _config(args)
     settings = _settings(args, tol_modes=args.tol_modes, tol_gie=args.tol_gie)
     reduction = build_reduction(args.workdir, config, settings, args.workers, not args.no_progress)
     out = save_reduction(args.out, reduction, dataclasses.asdict(config))
@@ -107,7 +111,7 @@ def _plot_grid(path: Path, rows: list[dict]) -> None:
 def _validate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    config = RobotConfig(leg_mesh_size=args.mesh_size)
+    config = _config(args)
     progress = not args.no_progress
     if args.grid:
         rows = []
@@ -154,6 +158,9 @@ def register(subparsers) -> None:
                         help="reduce the disk too (default: full-order disk; see BuildSettings.disk for why)")
     common.add_argument("--disk-tol-modes", type=float, default=BuildSettings.disk_tol_modes,
                         help="POD tail-energy tolerance of the disk (after its 6 rigid modes)")
+    common.add_argument("--reduced-disk", choices=REDUCED_DISKS, default=RobotConfig.reduced_disk,
+                        help="the reduced robot's disk when the reduction has no disk part "
+                             "(see RobotConfig.reduced_disk)")
     common.add_argument("--workers", type=int, default=None, help="processes (default: CPU count)")
     common.add_argument("--no-progress", action="store_true")
     b = sub.add_parser("build", parents=[common], help="snapshots -> POD -> Galerkin runs -> ECSW; writes --out")

@@ -19,7 +19,7 @@ import sys
 from softcrawl.design.space import BASELINE_DESIGN, validate_design
 from softcrawl.gaits import SineGait, paper_best_gait, read_actions_csv
 from softcrawl.robot.actuation import PressureCalibration
-from softcrawl.robot.assembly import MODELS, RobotConfig, build_robot
+from softcrawl.robot.assembly import MODELS, REDUCED_DISKS, RobotConfig, build_robot
 from softcrawl.robot.episode import run_episode
 from softcrawl.robot.output import check_output_path, write_results
 
@@ -42,7 +42,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
     config = RobotConfig(leg_mesh_size=args.mesh_size, disk_mesh_size=args.disk_mesh_size, friction=args.friction,
-                         dt=args.dt, refactor_every=args.refactor_every, model=args.model, reduction=args.reduction)
+                         dt=args.dt, refactor_every=args.refactor_every, model=args.model, reduction=args.reduction,
+                         reduced_disk=args.reduced_disk)
     gait = _gait(args)
     check_output_path(args.out, args.overwrite)
     if args.video:
@@ -70,6 +71,9 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
                         "full: full-order FEM (default reduced)")
     p.add_argument("--reduction", metavar="FILE.npz", default=None,
                    help="reduction file for --model reduced (default: the one shipped with softcrawl)")
+    p.add_argument("--reduced-disk", choices=REDUCED_DISKS, default=RobotConfig.reduced_disk,
+                   help="disk of --model reduced when the reduction has none: floating (one floating frame, "
+                        "default) or corotational (full-order)")
 
 
 def register(subparsers) -> None:
@@ -101,7 +105,7 @@ def register(subparsers) -> None:
     p.add_argument("--refactor-every", type=int, default=RobotConfig.refactor_every,
                    help="reuse each full-order body's factorization for this many steps (1 = exact; 5 is about "
                         "1.7x faster and lags the contact compliance; default: 1 for the full model, "
-                        "5 for the reduced model's disk)")
+                        "5 for the reduced model's corotational disk)")
     p.add_argument("--frames-every", type=int, default=10, metavar="K",
                    help="write a ParaView frame every K steps (default 10)")
     p.add_argument("--video", action="store_true",

@@ -58,7 +58,7 @@ def register(subparsers) -> None:
                    help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")
     p.add_argument("--refactor-every", type=int, default=RobotConfig.refactor_every,
                    help="reuse each full-order body's factorization for this many steps (1 = exact; default: 1 for "
-                        "the full model, 5 for the reduced model's disk)")
+                        "the full model, 5 for the reduced model's corotational disk)")
     p.add_argument("--workers", type=int, default=None,
                    help="worker processes, one BLAS thread each (default: number of CPUs; 1 = in this process)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")

@@ -82,6 +82,11 @@ class FixedRows:
         H = sp.csr_matrix((entries.coefs.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * len(blocks), 3 * n_nodes))
         return cls(blocks, H)
 
+    def locate(self, blocks: np.ndarray) -> np.ndarray:
+        """``(E,)`` position of each of ``blocks`` in :attr:`blocks`, -1 where it is not one."""
+        pos = np.minimum(np.searchsorted(self.blocks, blocks), len(self.blocks) - 1)
+        return np.where(self.blocks[pos] == blocks, pos, -1)
+
 
 class NodalCompliance:
     """Compliance columns ``G = A^-1 E`` of one body's factorized matrix ``A``: first one per
@@ -136,7 +141,8 @@ class NodalCompliance:
     def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
         """``(3B, n_fixed_rows + 3K)`` rows of ``entries`` in column coordinates (adds node
         columns first); ``blocks`` ``(E,)`` are the entries' local block numbers in ``0..B-1``."""
-        on_fixed = np.isin(entries.blocks, self.fixed.blocks) if self._n_fixed else np.zeros(len(blocks), bool)
+        fixed_pos = self.fixed.locate(entries.blocks) if self._n_fixed else np.full(len(blocks), -1)
+        on_fixed = fixed_pos >= 0
         nodal = ~on_fixed
         nodes, local, coefs = entries.nodes[nodal], blocks[nodal], entries.coefs[nodal]
         self.ensure(nodes)
@@ -144,7 +150,7 @@ class NodalCompliance:
         J = np.zeros((3 * n_blocks, nf + 3 * K))
         if on_fixed.any():  # a fixed block's rows are its own columns: identity
             lb, first = np.unique(blocks[on_fixed], return_index=True)
-            k = np.searchsorted(self.fixed.blocks, entries.blocks[on_fixed][first])
+            k = fixed_pos[on_fixed][first]
             r = np.arange(3)
             J[(3 * lb[:, None] + r).ravel(), (3 * k[:, None] + r).ravel()] = 1.0
         if len(nodes):
@@ -175,8 +181,14 @@ class NodalCompliance:
         return J @ self._Et(v.ravel())
 
     def correction(self, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
-        """``(n, 3)`` velocity change ``A^-1 E J^T lam``."""
+        """``(n, 3)`` velocity change ``A^-1 E J^T lam`` (the body's correction coordinates:
+        its nodal velocities)."""
         return (self.G @ (J.T @ lam)).reshape(-1, 3)
+
+    def velocities(self, correction: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
+        """``(k, 3)`` nodal velocity change of a :meth:`correction` at local ``nodes``
+        (None: ``(n, 3)``, all nodes)."""
+        return correction if nodes is None else correction[nodes]
 
 
 def assemble(entries: dict[int, Entries], compliances: dict, velocities: dict[int, np.ndarray],
@@ -186,7 +198,8 @@ def assemble(entries: dict[int, Entries], compliances: dict, velocities: dict[in
     Args:
         entries: body -> its constraint entries.
         compliances: body -> its compliance (:class:`NodalCompliance`, or any object with
-            the same ``jacobian``/``delassus``/``constraint_velocity``/``correction``).
+            the same ``jacobian``/``delassus``/``constraint_velocity``/``correction``/
+            ``velocities``).
         velocities: body -> ``(n_b, 3)`` free velocities, mm/s.
         n_blocks: number of 3-row blocks.
 
@@ -211,5 +224,7 @@ def assemble(entries: dict[int, Entries], compliances: dict, velocities: dict[in
 
 def velocity_correction(lam: np.ndarray, jacobians: dict[int, tuple[np.ndarray, np.ndarray]],
                         compliances: dict) -> dict[int, np.ndarray]:
-    """body -> ``(n_b, 3)`` velocity corrections ``A_b^-1 J_b^T lam_b``, mm/s."""
+    """body -> velocity correction ``A_b^-1 J_b^T lam_b`` in the body's correction
+    coordinates (nodal velocities, mm/s, for a full-order body; the compliance's
+    ``velocities`` method gives nodal values)."""
     return {b: compliances[b].correction(J, lam[rows]) for b, (rows, J) in jacobians.items()}

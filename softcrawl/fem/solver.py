@@ -182,8 +182,13 @@ class ImplicitEulerSolver:
         near = np.minimum(gap, gap_free) < floor.contact_distance
         return c[near], gap[near]
 
-    def _constrain(self, state: State, v_free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Velocity corrections from attachments and floor contacts.
+    def _constrain(self, state: State, v_free: np.ndarray) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray]:
+        """Velocity corrections from attachments and floor contacts: ``(corrections, nodes,
+        impulses)`` with body -> its correction (see :meth:`_velocity`), the contact nodes
+        (global, ``(k,)``) and their impulses ``(k, 3)`` (normal, t1, t2), mN s.
+
+        Of ``v_free`` only the z velocity of collision nodes is read, and each body's rows
+        through its compliance's ``constraint_velocity``.
 
         The contact set starts from last step's loaded contacts (the pattern changes little
         between steps), or from the candidates whose free motion penetrates when none were
@@ -212,7 +217,7 @@ class ImplicitEulerSolver:
         while True:
             idx = np.flatnonzero(active)
             if not n_att + len(idx):
-                return np.zeros_like(v_free), near[:0], np.zeros((0, 3))
+                return {}, near[:0], np.zeros((0, 3))
             entries = dict(self._attach_entries)
             for b in np.unique(near_body[idx]):
                 on_b = idx[near_body[idx] == b]
@@ -230,10 +235,13 @@ class ImplicitEulerSolver:
             sol = solve_constraints(W, q, nb, np.full(len(idx), mu), warm,
                                     self.settings.contact_tolerance, self.settings.contact_max_iterations)
             lam = np.concatenate([sol.bilateral, sol.contact.ravel()])
-            dv = np.zeros_like(v_free)
-            for b, d in velocity_correction(lam, T, comp).items():
-                dv[m.body_slice(b)] = d
-            new_gap = gaps + h * (v_free[near, 2] + dv[near, 2])
+            corrections = velocity_correction(lam, T, comp)
+            dv_near = np.zeros(len(near))
+            for b, d in corrections.items():
+                on_b = near_body == b
+                if on_b.any():
+                    dv_near[on_b] = comp[b].velocities(d, near[on_b] - offsets[b])[:, 2]
+            new_gap = gaps + h * (v_free[near, 2] + dv_near)
             missed = ~active & (new_gap < -1e-9 * max(1.0, float(np.abs(gaps).max(initial=0.0))))
             if not missed.any():
                 break
@@ -246,7 +254,15 @@ class ImplicitEulerSolver:
         st.n_sticking = int(np.sum(loaded_now & (tang <= 1e-9 * (1 + np.abs(u).max()))))
         st.contact_sweeps, st.contact_change = sol.sweeps, sol.relative_change
         st.normal_force = float(sol.contact[:, 0].sum() / h)
-        return dv, near[idx], sol.contact
+        return corrections, near[idx], sol.contact
+
+    def _velocity(self, v_free: np.ndarray, corrections: dict[int, np.ndarray]) -> np.ndarray:
+        """``(N, 3)`` end-of-step velocities: the free ones plus each body's constraint
+        correction (:func:`softcrawl.fem.constraints.velocity_correction`), mm/s."""
+        v = v_free.copy()
+        for b, d in corrections.items():
+            v[self.model.body_slice(b)] += self._compliance[b].velocities(d)
+        return v
 
     # -- public --------------------------------------------------------------------------
     def step(self, state: State, control: Control) -> State:
@@ -276,8 +292,8 @@ class ImplicitEulerSolver:
         for i, body in enumerate(m.bodies):
             sl = m.body_slice(i)
             v_free[sl] = self._free_velocity(i, body, state.x[sl], state.v[sl], control, state.t)
-        dv, nodes, impulses = self._constrain(state, v_free)
-        v = v_free + dv
+        corrections, nodes, impulses = self._constrain(state, v_free)
+        v = self._velocity(v_free, corrections)
         x = state.x + h * v
         t = state.t + h
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):

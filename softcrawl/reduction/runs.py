@@ -22,14 +22,18 @@ from softcrawl.parallel import run_pool
 from softcrawl.reduction.scenes import Scene, disk_displacements, leg_displacements, run_scene, scene_robot
 from softcrawl.robot.assembly import RobotConfig
 
+#: RobotConfig fields a full-order run does not depend on (left out of its settings).
+REDUCED_ONLY_FIELDS = ("reduced_disk",)
 #: Part -> its array in a snapshot run file.
 SNAPSHOT_KEYS = {"leg": "u", "disk": "u_disk"}
 
 
 def _settings(scene: Scene, config: RobotConfig, kind: str, record_every: int) -> dict:
     """The settings of a run as they read back from its ``.json`` (tuples become lists), so
-    that a finished run compares equal to its saved settings."""
-    settings = {"kind": kind, "scene": scene.describe(), "config": dataclasses.asdict(config),
+    that a finished run compares equal to its saved settings. Fields of ``config`` that only
+    a reduced model reads are left out: they do not change a full-order run."""
+    config = {k: v for k, v in dataclasses.asdict(config).items() if k not in REDUCED_ONLY_FIELDS}
+    settings = {"kind": kind, "scene": scene.describe(), "config": config,
                 "record_every": record_every, "version": __version__}
     if kind == "snapshots":
         settings["arrays"] = sorted(SNAPSHOT_KEYS.values())

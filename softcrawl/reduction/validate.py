@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from softcrawl.reduction.floating import rigid_fit_rotation
 from softcrawl.reduction.model import RobotReduction
 from softcrawl.reduction.runs import run_fom_scenes
 from softcrawl.reduction.scenes import Scene, reduced_scene_robot, run_scene, validation_scenes
@@ -50,17 +51,14 @@ def deformation_error(a: np.ndarray, b: np.ndarray, bodies: list[slice]) -> np.n
 
     Returns:
         ``(T, N)`` distances, mm. The fit is Kabsch's (least-squares rotation about the
-        centroids, reflections excluded; Kabsch 1976, Acta Cryst. A32).
+        centroids, reflections excluded: :func:`rigid_fit_rotation`).
     """
     out = np.empty(a.shape[:2])
     for sl in bodies:
         A = a[:, sl] - a[:, sl].mean(1, keepdims=True)
         B = b[:, sl] - b[:, sl].mean(1, keepdims=True)
-        U, _, Vt = np.linalg.svd(np.einsum("tni,tnj->tij", A, B))
-        D = np.ones((len(a), 3))
-        D[:, 2] = np.sign(np.linalg.det(U @ Vt))
-        R = np.einsum("tij,tj,tjk->tik", U, D, Vt)  # A_t R_t ~ B_t
-        out[:, sl] = np.linalg.norm(np.einsum("tni,tij->tnj", A, R) - B, axis=2)
+        R = rigid_fit_rotation(B, A, np.full(A.shape[1], 1.0 / A.shape[1]))  # R A_n ~ B_n
+        out[:, sl] = np.linalg.norm(A @ R.swapaxes(-1, -2) - B, axis=2)
     return out
 
 

@@ -1,0 +1,114 @@
+"""A stiff body reduced to linear elasticity in one floating frame (the disk of a reduced robot).
+
+The full model rotates every element by its own corotational frame (SOFA ``"large"``). A
+body whose strains stay small, like the printed disk (E = 5,000 kPa, 4.3x the legs'), moves
+almost rigidly, so one frame for the whole body is enough: with ``R`` the rotation of the
+best rigid fit of the current positions to the rest ones (mass-weighted Kabsch / polar
+decomposition), ``K_0`` the rest stiffness and ``M`` the lumped (isotropic) mass,
+
+    f = -R K_0 (R^T x - X),     K_t = R K_0 R^T,
+    A = (1 + h r_M) M + h (h + r_K) K_t = R A_0 R^T,   A_0 = (1 + h r_M) M + h (h + r_K) K_0
+
+(floating frame of reference formulation: Shabana, *Dynamics of Multibody Systems*, 3rd ed.,
+ch. 5; the corotational force of Felippa & Haugen 2005, "A unified formulation of small-strain
+corotational finite elements", with one frame for all elements). ``A_0`` is constant, so the
+body's implicit step is one solve with a factorization made once, and its constraint
+compliance columns ``A_0^-1 E`` never change: ``W_b = (H R) A_0^-1 (H R)^T``. ``R`` is
+taken at the start of the step, as the corotational solver takes its element rotations; like
+there, the tangent ignores the derivative of ``R``. The body keeps all its nodes (no basis):
+this reduces the nonlinearity, not the dimension. It has no per-element inversion check (strains
+stay small); a diverging state is still caught by the solver's speed and finiteness checks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+
+from softcrawl.fem.body import Body
+from softcrawl.fem.constraints import Entries, NodalCompliance
+
+
+def rigid_fit_rotation(x: np.ndarray, rest_centred: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Rotation ``R`` minimising ``sum_n w_n |R X_n - (x_n - xbar)|^2`` (``xbar`` the weighted
+    centroid of ``x``; the Kabsch algorithm, reflections excluded: Kabsch 1976, Acta Cryst.
+    A32, 922).
+
+    Args:
+        x: ``(..., n, 3)`` current positions, mm (leading axes: a batch, e.g. frames).
+        rest_centred: ``(..., n, 3)`` rest positions minus their weighted centroid, mm.
+        weights: ``(n,)`` non-negative weights summing to 1 (e.g. nodal masses over the total).
+
+    Returns:
+        ``(..., 3, 3)`` rotations.
+    """
+    xc = x - (weights @ x)[..., None, :]
+    U, _, Vt = np.linalg.svd((rest_centred * weights[:, None]).swapaxes(-1, -2) @ xc)
+    D = np.ones(U.shape[:-1])
+    D[..., 2] = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
+    return (Vt.swapaxes(-1, -2) * D[..., None, :]) @ U.swapaxes(-1, -2)
+
+
+@dataclass(frozen=True, eq=False)
+class FloatingFrameBody:
+    """A full-order body simulated as linear elastic in its floating frame (see module doc).
+
+    Attributes:
+        body: the body (all its nodes stay degrees of freedom).
+
+    Raises:
+        ValueError: the body has fixed DOFs (its frame would not float).
+    """
+
+    body: Body
+
+    def __post_init__(self) -> None:
+        if not self.body.free_dofs.all():
+            raise ValueError(f"floating-frame body {self.body.name!r} cannot have fixed DOFs")
+
+    @cached_property
+    def weights(self) -> np.ndarray:
+        """``(n,)`` nodal masses over the body's mass."""
+        return self.body.nodal_mass / self.body.nodal_mass.sum()
+
+    @cached_property
+    def rest_centred(self) -> np.ndarray:
+        """``(n, 3)`` rest positions minus the rest centre of mass, mm."""
+        X = self.body.mesh.points
+        return X - self.weights @ X
+
+    @cached_property
+    def rest_stiffness(self) -> sp.csr_matrix:
+        """``(3n, 3n)`` ``K_0``, the tangent stiffness at rest (mN/mm)."""
+        _, data, _ = self.body.internal_forces(self.body.mesh.points, tangent_coef=1.0)
+        return self.body.pattern.matrix(data)
+
+    def rotation(self, x: np.ndarray) -> np.ndarray:
+        """``(3, 3)`` the floating frame's rotation at positions ``x`` ``(n, 3)`` mm."""
+        return rigid_fit_rotation(x, self.rest_centred, self.weights)
+
+
+class FloatingFrameCompliance(NodalCompliance):
+    """Constraint compliance of a floating-frame body: the columns ``A_0^-1 E`` of the constant
+    body-frame matrix, with every constraint row rotated into the body frame by the current
+    :attr:`rotation` (``H R``; attachment and contact coefficients are 3 x 3 blocks, so
+    ``E^T R = blockdiag(R) E^T``).
+
+    Args:
+        As :class:`NodalCompliance`, with the factorization of ``A_0``.
+    """
+
+    rotation = np.eye(3)
+
+    def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
+        J = super().jacobian(entries, blocks, n_blocks)
+        return (J.reshape(len(J), -1, 3) @ self.rotation).reshape(J.shape)
+
+    def constraint_velocity(self, J: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return super().constraint_velocity(J, v @ self.rotation)
+
+    def velocities(self, correction: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
+        return super().velocities(correction, nodes) @ self.rotation.T
