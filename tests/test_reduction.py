@@ -383,3 +383,10 @@ def test_saved_runs_with_tuple_parameters_are_reused(tmp_path, monkeypatch):
     path.with_suffix(".json").write_text(__import__("json").dumps(settings), encoding="utf-8")
     runs.run_fom_scenes(tmp_path, [scene], TINY, "reference", record_every=2, workers=1, progress=False)
     assert calls == [0]
+    # A field only the reduced model reads does not invalidate full-order runs (regression:
+    # adding RobotConfig.reduced_disk re-ran every saved reference); a full-order one does.
+    corotational = dataclasses.replace(TINY, reduced_disk="corotational")
+    runs.run_fom_scenes(tmp_path, [scene], corotational, "reference", record_every=2, workers=1, progress=False)
+    runs.run_fom_scenes(tmp_path, [scene], dataclasses.replace(TINY, friction=0.9), "reference", record_every=2,
+                        workers=1, progress=False)
+    assert calls == [0, 0, 1]
