@@ -109,6 +109,23 @@ def test_sweep_outputs_and_resume_on_workers(tmp_path, monkeypatch, capsys):
     assert rc == 2 and "already exists" in capsys.readouterr().err
 
 
+def test_sweep_passes_the_model_arguments_to_its_config(tmp_path, monkeypatch):
+    """Regression: ``--reduced-disk`` (a shared model argument) was accepted by sweep-phase but
+    left out of the robot config it ran."""
+    from softcrawl.cli import sweep as sweep_cli
+
+    seen = []
+
+    def fake(out, phases, design, config, *a, **k):
+        seen.append(config)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sweep_cli, "run_sweep", fake)
+    rc = _main(monkeypatch, "softcrawl.cli.sweep", "sweep-phase", "--out", tmp_path / "s", "--phases", "0",
+               "--reduced-disk", "corotational", "--no-progress")
+    assert rc == 130 and seen[0].reduced_disk == "corotational" and seen[0].model == "reduced"
+
+
 def test_resume_runs_only_unfinished_phases(tmp_path, monkeypatch):
     out = tmp_path / "sweep"
     assert _interrupted(monkeypatch, out) == [0.0]

@@ -42,8 +42,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
     config = RobotConfig(leg_mesh_size=args.mesh_size, disk_mesh_size=args.disk_mesh_size, friction=args.friction,
-                         dt=args.dt, refactor_every=args.refactor_every, model=args.model, reduction=args.reduction,
-                         reduced_disk=args.reduced_disk)
+                         dt=args.dt, refactor_every=args.refactor_every, **model_fields(args))
     gait = _gait(args)
     check_output_path(args.out, args.overwrite)
     if args.video:
@@ -65,7 +64,8 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def add_model_arguments(p: argparse.ArgumentParser) -> None:
-    """``--model`` and ``--reduction`` (shared with ``sweep-phase``)."""
+    """``--model``, ``--reduction`` and ``--reduced-disk`` (shared with ``sweep-phase``;
+    :func:`model_fields` reads them)."""
     p.add_argument("--model", choices=MODELS, default="reduced",
                    help="reduced: legs reduced by POD + ECSW (the shipped 6 mm reduction, fast); "
                         "full: full-order FEM (default reduced)")
@@ -74,6 +74,11 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reduced-disk", choices=REDUCED_DISKS, default=RobotConfig.reduced_disk,
                    help="disk of --model reduced when the reduction has none: floating (one floating frame, "
                         "default) or corotational (full-order)")
+
+
+def model_fields(args: argparse.Namespace) -> dict:
+    """The :class:`RobotConfig` fields set by :func:`add_model_arguments`."""
+    return {"model": args.model, "reduction": args.reduction, "reduced_disk": args.reduced_disk}
 
 
 def register(subparsers) -> None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from softcrawl.cli.simulate import add_model_arguments
+from softcrawl.cli.simulate import add_model_arguments, model_fields
 from softcrawl.design.space import BASELINE_DESIGN
 from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.sweep import format_table, parse_phases, run_sweep
@@ -24,7 +24,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         result = run_sweep(args.out, parse_phases(args.phases), args.design,
                            RobotConfig(leg_mesh_size=args.mesh_size, refactor_every=args.refactor_every,
-                                       model=args.model, reduction=args.reduction),
+                                       **model_fields(args)),
                            args.duration, workers=args.workers, overwrite=args.overwrite,
                            progress=not args.no_progress)
     except KeyboardInterrupt:
