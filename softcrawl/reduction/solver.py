@@ -125,8 +125,7 @@ class ReducedSolver(ImplicitEulerSolver):
             A0 = h * (h + rK) * fb.rest_stiffness + sp.diags((1 + h * rM) * self._mass3[i])
             self._compliance[i] = FloatingFrameCompliance(Factorization(A0), fb.body.free_dofs,
                                                           self._attach_rows.get(i))
-        reduced = {i: rb for i, rb in reduced.items() if i not in self.floating}
-        self.reduced = dict(reduced)
+        self.reduced = {i: rb for i, rb in reduced.items() if i not in self.floating}
         self._modal_velocity = {i: np.zeros(rb.n_modes) for i, rb in self.reduced.items()}
         self._modal_valid, self._last_v = False, None
         g = np.asarray(model.gravity, float)
