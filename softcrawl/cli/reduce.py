@@ -155,7 +155,8 @@ def register(subparsers) -> None:
     common.add_argument("--rigid-modes", choices=("translations", "rigid"), default=BuildSettings.rigid,
                         help="rigid modes of the leg basis")
     common.add_argument("--reduce-disk", action="store_true",
-                        help="reduce the disk too (default: full-order disk; see BuildSettings.disk for why)")
+                        help="reduce the disk too by POD + ECSW (default: no disk part, the disk is then set by "
+                             "--reduced-disk; see BuildSettings.disk for why)")
     common.add_argument("--disk-tol-modes", type=float, default=BuildSettings.disk_tol_modes,
                         help="POD tail-energy tolerance of the disk (after its 6 rigid modes)")
     common.add_argument("--reduced-disk", choices=REDUCED_DISKS, default=RobotConfig.reduced_disk,

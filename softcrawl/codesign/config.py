@@ -9,7 +9,7 @@ Presets:
 * ``paper``: the paper's table: 96 envs, 1M transitions, buffer 100K, batch 512, γ 0.95,
   policy lr 6e-4, Q lr 2e-3, τ 0.01, learning starts 10K, 1 update per transition,
   net [400, 200, 100]; entropy schedule t0 = 200K, t1 = 950K; the reduced model (shipped 6 mm
-  leg reduction, 10 mm full-order disk) with 1 s actions (100 steps of 0.01 s), 20 per episode.
+  leg reduction, 10 mm floating-frame disk) with 1 s actions (100 steps of 0.01 s), 20 per episode.
 * ``demo``: about 11 min on a 2-core machine (plus the report's re-simulations, about 1 min): the reduced model with 6 mm legs and a coarse
   25 mm disk (20 s paper-best gait: +11.35 cm vs +11.22 cm with the 10 mm disk, 1.5x faster),
   the 280 three-legged designs, **0.5 s holds and 8 actions** (4 s episodes: the regulators
@@ -171,7 +171,7 @@ PRESETS = ("paper", "demo", "smoke")
 
 
 def _coarse_env(steps_per_action: int, n_actions: int) -> EnvConfig:
-    """The demo and smoke simulation: reduced 6 mm legs, 25 mm full-order disk, the
+    """The demo and smoke simulation: reduced 6 mm legs, 25 mm floating-frame disk, the
     three-legged designs, 3 settling steps."""
     return EnvConfig(disk_mesh_size=25, steps_per_action=steps_per_action, n_actions=n_actions, settle_steps=3,
                      legs=(3,))

@@ -41,10 +41,11 @@ class BuildSettings:
         tol_modes: POD tail-energy tolerance (reduction.md; reference 0.0032).
         tol_gie: ECSW relative residual tolerance (reference 0.001).
         rigid: rigid modes, ``"translations"`` (reference) or ``"rigid"`` (+ rotations).
-        disk: also reduce the disk (default False: the disk stays full-order, as in the
-            paper). Measured on the 4 held-out scenes against legs-only reductions from the
-            same runs (mean node / deformation error 2.51 / 0.101 mm, baseline reward error
-            0.4%): a 56-mode disk (``disk_tol_modes`` 0.001; RID 645 of 1,018 tetrahedra) was
+        disk: also reduce the disk by POD + ECSW (default False: no disk part; the reduced
+            robot's disk is then set by ``RobotConfig.reduced_disk``). Measured on the 4
+            held-out scenes against legs-only reductions from the same runs, with the
+            full-order corotational disk (mean node / deformation error 2.51 / 0.101 mm,
+            baseline reward error 0.4%): a 56-mode disk (``disk_tol_modes`` 0.001; RID 645 of 1,018 tetrahedra) was
             no faster and less accurate (3.71 / 0.149 mm, 15%); a 23-mode disk (0.01; RID 260)
             made the step 1.6x faster but the reward error 50% (4.01 / 0.233 mm). The legs
             hang on the disk by point ties, and the disk's local compliance under them needs

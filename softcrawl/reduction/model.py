@@ -83,7 +83,8 @@ class RobotReduction:
 
     Attributes:
         leg: the PneuNet leg (placed in every slot, rotated to its pose).
-        disk: the central disk, or None to keep the disk full-order (the paper's choice).
+        disk: the central disk, or None: no disk part (the robot's disk is then full-order or
+            floating-frame, ``RobotConfig.reduced_disk``; the paper kept it full-order).
         metadata: JSON-ready build information shared by the parts (settings, model
             parameters, wall time and peak memory of each phase).
     """

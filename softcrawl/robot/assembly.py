@@ -99,7 +99,7 @@ class RobotConfig:
             give, and those sizes must be the ones it was built for).
         reduction: path of the reduction file for ``model="reduced"`` (None: the one
             shipped with softcrawl, :func:`softcrawl.reduction.default_reduction_path`: 6 mm
-            legs, full-order disk).
+            legs, no disk part).
         reduced_disk: the disk of a reduced model whose reduction has no disk part:
             ``"floating"`` (default; all its nodes, linear elastic in one floating frame,
             :class:`softcrawl.reduction.floating.FloatingFrameBody`: one constant

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-#: File name of the default reduction (6 mm PneuNet leg, full-order disk, reference parameters).
+#: File name of the default reduction (6 mm PneuNet leg, no disk part, reference parameters).
 DEFAULT_REDUCTION = "pneunet_6mm.npz"
 
 
