@@ -168,50 +168,63 @@ def test_factorization_multi_rhs_and_reuse():
     assert np.linalg.norm(A2 @ x - B[:, 1]) < 1e-10 * np.linalg.norm(B[:, 1])
 
 
-def test_compliance_columns_give_the_dense_delassus_operator():
-    """Attachment rows kept as one compliance column per row (FixedRows) and contact nodes as
-    one column per DOF reproduce the dense ``W = H A^-1 H^T``, ``H v`` and ``A^-1 H^T lam``
-    to round-off (1e-9 relative), with repeated (block, node) entries and a fixed DOF."""
+@pytest.mark.parametrize("floating", [False, True])
+def test_compliance_blocks_give_the_dense_delassus_operator(floating):
+    """Attachment rows kept as one compliance column per row (FixedRows), contact nodes as one
+    column per DOF, and 3 x 3 block coefficients reproduce the dense ``W = H A^-1 H^T``,
+    ``H v`` and ``A^-1 H^T lam`` to round-off (1e-9 relative): with a fixed DOF for a
+    full-order body, and for a floating-frame body (``A = R A_0 R^T`` blockwise, the
+    compliance of ``A_0`` with ``rotation = R``)."""
     import scipy.sparse as sp
 
-    from softcrawl.fem.constraints import Entries, FixedRows, NodalCompliance, assemble, velocity_correction
+    from softcrawl.fem.constraints import FixedRows, NodalCompliance, add_body, body_correction
     from softcrawl.fem.linalg import Factorization
 
     rng = np.random.default_rng(3)
     n = 40  # nodes
-    R = sp.random(3 * n, 3 * n, density=0.05, random_state=4)
-    A = (R @ R.T + sp.eye(3 * n) * 3).tocsr()
+    S = sp.random(3 * n, 3 * n, density=0.05, random_state=4)
+    A0 = (S @ S.T + sp.eye(3 * n) * 3).tolil()
     free = np.ones(3 * n, bool)
-    free[5] = False  # fixed DOF: identity row and column, zero compliance
-    A = A.tolil()
-    A[5, :], A[:, 5] = 0.0, 0.0
-    A[5, 5] = 1.0
-    A = A.tocsr()
-    # 3 attachment blocks over 4-6 nodes each (one node twice in block 1), then 2 contacts.
-    att = [Entries(np.full(k, j), rng.choice(n, k), rng.normal(size=(k, 1, 1)) * np.eye(3))
-           for j, k in enumerate((4, 6, 5))]
-    att[1] = att[1] + Entries(np.array([1]), att[1].nodes[:1], np.eye(3)[None] * 0.5)
-    fixed = sum(att[1:], att[0])
-    contacts = Entries(np.array([3, 4]), np.array([1, 11]), rng.normal(size=(2, 3, 3)))  # node 1 holds DOF 5
-    entries = {0: fixed + contacts}
-    H = np.zeros((15, 3 * n))
-    for e in range(len(entries[0].blocks)):
-        b, node = entries[0].blocks[e], entries[0].nodes[e]
-        H[3 * b:3 * b + 3, 3 * node:3 * node + 3] += entries[0].coefs[e]
+    Q = np.eye(3)
+    if floating:
+        Q = np.linalg.qr(rng.normal(size=(3, 3)))[0] * np.array([1.0, 1.0, -1.0])
+        Q *= np.sign(np.linalg.det(Q))
+        A = (sp.block_diag([Q] * n) @ A0 @ sp.block_diag([Q] * n).T).toarray()
+    else:
+        free[5] = False  # fixed DOF: identity row and column, zero compliance
+        A0[5, :], A0[:, 5] = 0.0, 0.0
+        A0[5, 5] = 1.0
+        A = A0.toarray()
+    # Global rows: 2 attachment blocks of another body first, then 3 of this body over 4-6
+    # nodes each (isotropic weights), then 2 contacts with general coefficients.
+    Hatt = np.zeros((15, 3 * (n + 10)))
+    for j, k in zip((2, 3, 4), (4, 6, 5)):
+        for node, w in zip(rng.choice(n, k, replace=False), rng.normal(size=k)):
+            Hatt[3 * j:3 * j + 3, 3 * (10 + node):3 * (10 + node) + 3] += w * np.eye(3)
+    Hatt[:6, :30] = rng.normal(size=(6, 30))
+    fixed = FixedRows.of_body(sp.csr_matrix(Hatt), 10, n)
+    assert fixed.blocks.tolist() == [2, 3, 4]
+    nodes, coefs = np.array([1, 11]), rng.normal(size=(2, 3, 3))  # node 1 holds DOF 5
+    H = np.zeros((21, 3 * n))
+    H[:15] = Hatt[:, 30:]
+    for k, (node, c) in enumerate(zip(nodes, coefs)):
+        H[15 + 3 * k:18 + 3 * k, 3 * node:3 * node + 3] = c
     H[:, ~free] = 0.0
-    Ainv = np.linalg.inv(A.toarray())
+    Ainv = np.linalg.inv(A)
     Ainv[~free] = Ainv[:, ~free] = 0.0
     v = rng.normal(size=(n, 3))
-    v[1, 2] = 0.0  # the fixed DOF does not move
-    lam = rng.normal(size=15)
-    for rows in (FixedRows.from_entries(fixed, n), None):  # per-row columns, and per-node columns only
-        comp = {0: NodalCompliance(Factorization(A), free, rows)}
-        W, u, T = assemble(entries, comp, {0: v}, 5)
-        dv = velocity_correction(lam, T, comp)[0]
-        scale = np.abs(H @ Ainv @ H.T).max()
-        assert np.abs(W - H @ Ainv @ H.T).max() < 1e-9 * scale
-        assert np.abs(u - H @ v.ravel()).max() < 1e-9 * np.abs(H @ v.ravel()).max()
-        assert np.abs(dv.ravel() - Ainv @ H.T @ lam).max() < 1e-9 * np.abs(Ainv @ H.T @ lam).max()
+    v[1, 2] = 0.0 if not floating else v[1, 2]  # a fixed DOF does not move
+    lam = rng.normal(size=21)
+    lam[:6] = 0.0  # blocks of the other body
+    c = NodalCompliance(Factorization(A0.tocsr()), free, fixed)
+    c.rotation = Q
+    W, u = np.zeros((21, 21)), np.zeros(21)
+    bb = add_body(W, u, c, v, nodes, coefs, np.array([5, 6]))
+    dv = body_correction(c, lam, bb)
+    ref = H @ Ainv @ H.T
+    assert np.abs(W - ref).max() < 1e-9 * np.abs(ref).max()
+    assert np.abs(u - H @ v.ravel()).max() < 1e-9 * np.abs(H @ v.ravel()).max()
+    assert np.abs(dv.ravel() - Ainv @ H.T @ lam).max() < 1e-9 * np.abs(Ainv @ H.T @ lam).max()
 
 
 def test_refactorizing_does_not_leak_memory():

@@ -1,20 +1,18 @@
 """Constraint rows and the Delassus operator built from per-body compliances.
 
-A constraint block is 3 rows ``u_k = sum_e C_e v[node_e]`` over its entries ``e`` (3 x 3
-coefficients ``C_e``: ``w I`` for an attachment point, the contact frame for a floor
-contact; entries may lie on several bodies, e.g. an attachment ``v_a - v_b``). Each body
-expresses its entries as a Jacobian ``J_b`` in its own coordinates (the DOFs of the nodes
-that constraints touch for a full-order body, the modes for a reduced one) and, with its
-implicit matrix ``A_b`` factorized,
+A constraint block is 3 rows of velocity. Every block touches a full-order body through one
+3-vector of that body: an attachment through its *fixed rows* ``H_f`` (the weighted
+combination of a patch of nodes, :class:`FixedRows`: one block per attachment), a floor
+contact through one node. With the body's implicit matrix ``A_b`` factorized, its compliance
+columns ``G = A_b^-1 E`` (``E = [H_f^T, node selectors]``) give ``T = E^T A_b^-1 E``, and a
+block ``i`` with 3 x 3 coefficient ``P_i`` on column triple ``c_i`` contributes
 
-    W = sum_b J_b A_b^-1 J_b^T,      dv_b = A_b^-1 J_b^T lam_b
+    W_ij += P_i T[c_i, c_j] P_j^T,     u_i += P_i (E^T v)[c_i],     dv_b = G sum_i E_ci P_i^T lam_i
 
-(Duriez et al. 2006, "Realistic haptic rendering of interacting deformable objects in
-virtual environments", sec. 4). A full-order body's compliance columns ``A_b^-1 E_b`` are
-kept while its factorization is: one column per row of its permanent constraints (the
-attachments, :class:`FixedRows`: 3 per attachment, however many nodes its patch spans) and
-one per DOF of every other node a constraint touches (floor contacts), added as contacts
-appear.
+(the Delassus operator ``W = sum_b H_b A_b^-1 H_b^T``: Duriez et al. 2006, "Realistic haptic
+rendering of interacting deformable objects in virtual environments", sec. 4). A body whose
+matrix is a rotated constant (a floating frame: ``A = R A_0 R^T`` blockwise) keeps the
+columns of ``A_0`` and has every coefficient multiplied by ``R`` on the right.
 """
 
 from __future__ import annotations
@@ -23,39 +21,27 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 
 from softcrawl.fem.linalg import Factorization
 
 
-def block_sum_matrix(blocks: np.ndarray, n_blocks: int) -> np.ndarray:
-    """``(n_blocks, E)`` 0/1 matrix ``S`` with ``(S @ a)[b] = sum of a[e] over blocks[e] == b``
-    (a dense product is faster than ``np.add.at`` at these sizes: tens of entries)."""
-    S = np.zeros((n_blocks, len(blocks)))
-    S[blocks, np.arange(len(blocks))] = 1.0
-    return S
-
-
-@dataclass(frozen=True, eq=False)
-class Entries:
-    """Constraint entries on one body: block ``blocks[e]`` gets ``coefs[e] @ v[nodes[e]]``.
-
-    Attributes:
-        blocks: ``(E,)`` global block indices.
-        nodes: ``(E,)`` the body's local node indices.
-        coefs: ``(E, 3, 3)`` coefficients.
-    """
-
-    blocks: np.ndarray
-    nodes: np.ndarray
-    coefs: np.ndarray
-
-    def __add__(self, other: Entries) -> Entries:
-        return Entries(*(np.concatenate([a, b]) for a, b in
-                         ((self.blocks, other.blocks), (self.nodes, other.nodes), (self.coefs, other.coefs))))
-
-    def apply(self, x: np.ndarray, n_blocks: int) -> np.ndarray:
-        """``(n_blocks, 3)`` block sums ``sum_e C_e x[node_e]`` of a nodal field ``x`` ``(n, 3)``."""
-        return block_sum_matrix(self.blocks, n_blocks) @ np.einsum("eij,ej->ei", self.coefs, x[self.nodes])
+def attachment_matrix(model) -> sp.csr_matrix:
+    """``(3A, 3N)`` sparse rows giving every attachment's violation ``x_a - x_b`` (mm) from the
+    stacked positions ``x.ravel()`` of a :class:`~softcrawl.fem.model.Model` (attachment
+    ``j`` is rows ``3j .. 3j + 2``)."""
+    rows, cols, vals = [], [], []
+    i = np.arange(3)
+    for j, att in enumerate(model.attachments):
+        for ref, sign in ((att.a, 1.0), (att.b, -1.0)):
+            nodes = model.node_offsets[ref.body] + np.asarray(ref.nodes)
+            rows.append(np.broadcast_to(3 * j + i, (len(nodes), 3)).ravel())
+            cols.append((3 * nodes[:, None] + i).ravel())
+            vals.append(np.repeat(sign * np.asarray(ref.weights, float), 3))
+    shape = (3 * len(model.attachments), 3 * model.n_nodes)
+    if not rows:
+        return sp.csr_matrix(shape)
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=shape)
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,160 +57,149 @@ class FixedRows:
     H: sp.csr_matrix
 
     @classmethod
-    def from_entries(cls, entries: Entries, n_nodes: int) -> FixedRows:
-        """The rows of all ``entries`` (of one body with ``n_nodes`` nodes); repeated
-        (block, node) entries are summed."""
-        blocks = np.unique(entries.blocks)
-        local = np.searchsorted(blocks, entries.blocks)
-        i = np.arange(3)
-        rows = np.broadcast_to(3 * local[:, None, None] + i[None, :, None], entries.coefs.shape)
-        cols = np.broadcast_to(3 * entries.nodes[:, None, None] + i[None, None, :], entries.coefs.shape)
-        H = sp.csr_matrix((entries.coefs.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * len(blocks), 3 * n_nodes))
-        return cls(blocks, H)
-
-    def locate(self, blocks: np.ndarray) -> np.ndarray:
-        """``(E,)`` position of each of ``blocks`` in :attr:`blocks`, -1 where it is not one."""
-        pos = np.minimum(np.searchsorted(self.blocks, blocks), len(self.blocks) - 1)
-        return np.where(self.blocks[pos] == blocks, pos, -1)
+    def of_body(cls, rows: sp.csr_matrix, first: int, n_nodes: int) -> FixedRows | None:
+        """The blocks of global constraint ``rows`` (``(3B, 3N)``, e.g.
+        :func:`attachment_matrix`) that touch the body of nodes ``first .. first + n_nodes - 1``,
+        restricted to its columns; None if none does."""
+        H = sp.csr_matrix(rows[:, 3 * first:3 * (first + n_nodes)])
+        blocks = np.unique(np.flatnonzero(np.diff(H.indptr)) // 3)
+        if not len(blocks):
+            return None
+        return cls(blocks, sp.csr_matrix(H[(3 * blocks[:, None] + np.arange(3)).ravel()]))
 
 
 class NodalCompliance:
-    """Compliance columns ``G = A^-1 E`` of one body's factorized matrix ``A``: first one per
-    row of its fixed blocks (``E = H_f^T``), then one per DOF of a growing set of nodes
-    (``E`` selects DOFs). A Jacobian from :meth:`jacobian` is in these columns' coordinates:
-    the rows ``H`` of a constraint are ``J E^T``.
+    """Compliance columns ``G = A^-1 E`` of one full-order body's factorized matrix ``A``:
+    first one per row of its fixed blocks (``E = H_f^T``), then one per DOF of a growing set
+    of nodes (``E`` selects DOFs), and ``T = E^T A^-1 E``.
 
     Args:
         factor: the body's factorized implicit matrix (fixed DOFs as identity rows).
         free_dofs: ``(3n,)`` bool; fixed DOFs get zero compliance.
-        fixed: the body's permanent constraint rows (None: none). Every entry of
-            :meth:`jacobian` in one of its blocks must be one of the entries it was built from.
+        fixed: the body's permanent constraint rows (None: none).
+
+    Attributes:
+        rotation: ``(3, 3)`` ``R`` of a floating-frame body whose matrix is ``R A R^T``
+            blockwise (identity otherwise): every coefficient is multiplied by it.
     """
 
     def __init__(self, factor: Factorization, free_dofs: np.ndarray, fixed: FixedRows | None = None):
         self.factor, self.free, self.fixed = factor, free_dofs, fixed
-        self._n_fixed = 0 if fixed is None else fixed.H.shape[0]
-        if self._n_fixed:
-            self.G = self._solve(fixed.H.T.toarray())
-        else:
-            self.G = np.zeros((len(free_dofs), 0))
+        self.rotation = np.eye(3)
+        self.n_fixed = 0 if fixed is None else fixed.H.shape[0]
+        self.G = self._solve(fixed.H.T.toarray()) if self.n_fixed else np.zeros((len(free_dofs), 0))
         self._nodes: list[int] = []  # nodes seen, in column order (after the fixed rows' columns)
         self._column = np.full(len(free_dofs) // 3, -1)  # node -> its position in _nodes, -1 if unseen
-        self._EtG: np.ndarray | None = None  # E^T A^-1 E for the current columns
+        self._gram: np.ndarray | None = None
 
     def _solve(self, E: np.ndarray) -> np.ndarray:
         free = self.free[:, None]
         return self.factor.solve(E * free) * free
 
-    def ensure(self, nodes: np.ndarray) -> None:
-        """Compute the columns of nodes not seen yet (one solve per DOF)."""
-        nodes = np.asarray(nodes)
+    def columns(self, nodes: np.ndarray) -> np.ndarray:
+        """``(F + k,)`` first column of the triple of each fixed block, then of each of the
+        (local) ``nodes``; columns of nodes not seen yet are computed (one solve per DOF)."""
+        nodes = np.asarray(nodes, np.int64)
         new = list(dict.fromkeys(nodes[self._column[nodes] < 0].tolist()))
-        if not new:
-            return
-        dofs = (3 * np.asarray(new)[:, None] + np.arange(3)).ravel()
-        E = np.zeros((len(self.free), len(dofs)))
-        E[dofs, np.arange(len(dofs))] = 1.0
-        self.G = np.hstack([self.G, self._solve(E)])
-        self._column[new] = np.arange(len(self._nodes), len(self._nodes) + len(new))
-        self._nodes += new
-        self._EtG = None
+        if new:
+            dofs = (3 * np.asarray(new)[:, None] + np.arange(3)).ravel()
+            E = np.zeros((len(self.free), len(dofs)))
+            E[dofs, np.arange(len(dofs))] = 1.0
+            self.G = np.hstack([self.G, self._solve(E)])
+            self._column[new] = np.arange(len(self._nodes), len(self._nodes) + len(new))
+            self._nodes += new
+            self._gram = None
+        return np.concatenate([np.arange(0, self.n_fixed, 3), self.n_fixed + 3 * self._column[nodes]])
 
-    def nodes(self) -> np.ndarray:
-        """``(K,)`` the nodes seen, in column order."""
-        return np.asarray(self._nodes, np.int64)
-
-    def dofs(self) -> np.ndarray:
-        """``(3K,)`` the DOFs of the nodes seen, in column order."""
-        return (3 * self.nodes()[:, None] + np.arange(3)).ravel()
-
-    def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
-        """``(3B, n_fixed_rows + 3K)`` rows of ``entries`` in column coordinates (adds node
-        columns first); ``blocks`` ``(E,)`` are the entries' local block numbers in ``0..B-1``."""
-        fixed_pos = self.fixed.locate(entries.blocks) if self._n_fixed else np.full(len(blocks), -1)
-        on_fixed = fixed_pos >= 0
-        nodal = ~on_fixed
-        nodes, local, coefs = entries.nodes[nodal], blocks[nodal], entries.coefs[nodal]
-        self.ensure(nodes)
-        K, nf = len(self._nodes), self._n_fixed
-        J = np.zeros((3 * n_blocks, nf + 3 * K))
-        if on_fixed.any():  # a fixed block's rows are its own columns: identity
-            lb, first = np.unique(blocks[on_fixed], return_index=True)
-            k = fixed_pos[on_fixed][first]
-            r = np.arange(3)
-            J[(3 * lb[:, None] + r).ravel(), (3 * k[:, None] + r).ravel()] = 1.0
-        if len(nodes):
-            Jn = np.zeros((n_blocks, K, 3, 3))
-            columns = self._column[nodes]
-            if len(np.unique(local * K + columns)) == len(local):  # each (block, node) once: assign
-                Jn[local, columns] = coefs
-            else:
-                np.add.at(Jn, (local, columns), coefs)
-            J[:, nf:] = Jn.transpose(0, 2, 1, 3).reshape(3 * n_blocks, 3 * K)
-        return J
-
-    def _Et(self, a: np.ndarray) -> np.ndarray:
+    def et(self, a: np.ndarray) -> np.ndarray:
         """``E^T a`` for ``a`` ``(3n,)`` or ``(3n, k)``."""
-        parts = [a[self.dofs()]]
-        if self._n_fixed:
-            parts.insert(0, self.fixed.H @ a)
-        return np.concatenate(parts)
+        dofs = (3 * np.asarray(self._nodes, np.int64)[:, None] + np.arange(3)).ravel()
+        return np.concatenate([self.fixed.H @ a, a[dofs]]) if self.n_fixed else a[dofs]
 
-    def delassus(self, J: np.ndarray) -> np.ndarray:
-        """``J E^T A^-1 E J^T``."""
-        if self._EtG is None:
-            self._EtG = self._Et(self.G)
-        return J @ self._EtG @ J.T
-
-    def constraint_velocity(self, J: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """``J E^T v`` for the body's velocities ``v`` ``(n, 3)``."""
-        return J @ self._Et(v.ravel())
-
-    def correction(self, J: np.ndarray, lam: np.ndarray) -> np.ndarray:
-        """``(n, 3)`` velocity change ``A^-1 E J^T lam`` (the body's correction coordinates:
-        its nodal velocities)."""
-        return (self.G @ (J.T @ lam)).reshape(-1, 3)
-
-    def velocities(self, correction: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
-        """``(k, 3)`` nodal velocity change of a :meth:`correction` at local ``nodes``
-        (None: ``(n, 3)``, all nodes)."""
-        return correction if nodes is None else correction[nodes]
+    @property
+    def gram(self) -> np.ndarray:
+        """``T = E^T A^-1 E`` for the current columns."""
+        if self._gram is None:
+            self._gram = self.et(self.G)
+        return self._gram
 
 
-def assemble(entries: dict[int, Entries], compliances: dict, velocities: dict[int, np.ndarray],
-             n_blocks: int) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[np.ndarray, np.ndarray]]]:
-    """Delassus operator and free constraint velocities.
+@njit(cache=True)
+def add_block_delassus(W, u, T, Etv, columns, P, blocks):
+    """``W[i, j] += P_i T[c_i, c_j] P_j^T`` and ``u_i += P_i (E^T v)[c_i]`` over a body's
+    blocks (module doc).
 
     Args:
-        entries: body -> its constraint entries.
-        compliances: body -> its compliance (:class:`NodalCompliance`, or any object with
-            the same ``jacobian``/``delassus``/``constraint_velocity``/``correction``/
-            ``velocities``).
-        velocities: body -> ``(n_b, 3)`` free velocities, mm/s.
-        n_blocks: number of 3-row blocks.
-
-    Returns:
-        ``(W, u_free, jacobians)``: ``W`` ``(3B, 3B)`` (mm/s per mN s), ``u_free = H v_free``
-        ``(3B,)``, and body -> ``(rows, J_b)`` for :func:`velocity_correction`.
+        W: ``(3B, 3B)`` Delassus operator, added to; u: ``(3B,)`` free constraint velocities.
+        T: ``(K, K)`` the body's ``E^T A^-1 E``; Etv: ``(K,)`` its ``E^T v``.
+        columns: ``(b,)`` first column of each block's triple; P: ``(b, 3, 3)`` coefficients;
+        blocks: ``(b,)`` global block numbers.
     """
-    W = np.zeros((3 * n_blocks, 3 * n_blocks))
-    u_free = np.zeros(3 * n_blocks)
-    jacobians = {}
-    for b, ent in entries.items():
-        touched = np.unique(ent.blocks)
-        local = np.searchsorted(touched, ent.blocks)
-        c = compliances[b]
-        J = c.jacobian(ent, local, len(touched))
-        rows = (3 * touched[:, None] + np.arange(3)).ravel()
-        W[np.ix_(rows, rows)] += c.delassus(J)
-        u_free[rows] += c.constraint_velocity(J, velocities[b])
-        jacobians[b] = (rows, J)
-    return W, u_free, jacobians
+    nb = columns.shape[0]
+    PT = np.empty((3, 3))
+    for p in range(nb):
+        cp, rp = columns[p], 3 * blocks[p]
+        for i in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += P[p, i, k] * Etv[cp + k]
+            u[rp + i] += acc
+        for q in range(nb):
+            cq, rq = columns[q], 3 * blocks[q]
+            for i in range(3):
+                for k in range(3):
+                    acc = 0.0
+                    for a in range(3):
+                        acc += P[p, i, a] * T[cp + a, cq + k]
+                    PT[i, k] = acc
+            for i in range(3):
+                for j in range(3):
+                    acc = 0.0
+                    for k in range(3):
+                        acc += PT[i, k] * P[q, j, k]
+                    W[rp + i, rq + j] += acc
 
 
-def velocity_correction(lam: np.ndarray, jacobians: dict[int, tuple[np.ndarray, np.ndarray]],
-                        compliances: dict) -> dict[int, np.ndarray]:
-    """body -> velocity correction ``A_b^-1 J_b^T lam_b`` in the body's correction
-    coordinates (nodal velocities, mm/s, for a full-order body; the compliance's
-    ``velocities`` method gives nodal values)."""
-    return {b: compliances[b].correction(J, lam[rows]) for b, (rows, J) in jacobians.items()}
+@njit(cache=True)
+def block_impulses(lam, columns, P, blocks, n_columns):
+    """``(K,)`` ``sum_i E_ci P_i^T lam_i``: a body's impulses in its column coordinates."""
+    g = np.zeros(n_columns)
+    for p in range(columns.shape[0]):
+        c, r = columns[p], 3 * blocks[p]
+        for k in range(3):
+            g[c + k] += P[p, 0, k] * lam[r] + P[p, 1, k] * lam[r + 1] + P[p, 2, k] * lam[r + 2]
+    return g
+
+
+@dataclass(frozen=True, eq=False)
+class BodyBlocks:
+    """One body's constraint blocks in one solve: what :func:`body_correction` needs.
+
+    Attributes:
+        columns: ``(b,)`` first compliance column of each block; P: ``(b, 3, 3)``
+        coefficients (times the body's rotation); blocks: ``(b,)`` global block numbers.
+    """
+
+    columns: np.ndarray
+    P: np.ndarray
+    blocks: np.ndarray
+
+
+def add_body(W: np.ndarray, u: np.ndarray, c: NodalCompliance, v: np.ndarray, nodes: np.ndarray,
+             contact_coefs: np.ndarray, contact_blocks: np.ndarray) -> BodyBlocks:
+    """Add a body's terms to ``W`` ``(3B, 3B)`` and ``u = H v_free`` ``(3B,)``: all its fixed
+    blocks (coefficient I) and contacts at its local ``nodes`` (``contact_coefs`` ``(k, 3, 3)``,
+    global blocks ``contact_blocks``); ``v``: ``(n, 3)`` its free velocities, mm/s."""
+    columns = c.columns(nodes)
+    nf = len(columns) - len(nodes)
+    R = c.rotation
+    P = np.concatenate([np.broadcast_to(R, (nf, 3, 3)), contact_coefs @ R])
+    blocks = np.concatenate([c.fixed.blocks if nf else np.zeros(0, np.int64), contact_blocks]).astype(np.int64)
+    add_block_delassus(W, u, c.gram, c.et((v @ R).ravel()), columns, P, blocks)
+    return BodyBlocks(columns, P, blocks)
+
+
+def body_correction(c: NodalCompliance, lam: np.ndarray, bb: BodyBlocks) -> np.ndarray:
+    """``(n, 3)`` a body's velocity change ``A^-1 H^T lam`` (world frame), mm/s."""
+    g = block_impulses(lam, bb.columns, bb.P, bb.blocks, c.G.shape[1])
+    return (c.G @ g).reshape(-1, 3) @ c.rotation.T

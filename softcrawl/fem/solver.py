@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from softcrawl.fem.body import Body
-from softcrawl.fem.constraints import Entries, FixedRows, NodalCompliance, assemble, velocity_correction
+from softcrawl.fem.constraints import FixedRows, NodalCompliance, add_body, attachment_matrix, body_correction
 from softcrawl.fem.contact import solve_constraints
 from softcrawl.fem.linalg import ReusedFactorization
 from softcrawl.fem.model import Model
@@ -115,15 +115,14 @@ class ImplicitEulerSolver:
             [self.model.node_offsets[i] + b.collision_nodes[b.fixed[b.collision_nodes].sum(1) == 0]
              for i, b in enumerate(model.bodies)]
         )
-        # Attachment j is block j: rows x_a - x_b (weights signed), per body.
-        terms: dict[int, list[Entries]] = {}
-        for j, a in enumerate(model.attachments):
-            for ref, sign in ((a.a, 1.0), (a.b, -1.0)):
-                coefs = sign * np.asarray(ref.weights, float)[:, None, None] * np.eye(3)
-                terms.setdefault(ref.body, []).append(Entries(np.full(len(ref.nodes), j), np.asarray(ref.nodes), coefs))
-        self._attach_entries = {b: sum(e[1:], e[0]) for b, e in terms.items()}
-        self._attach_rows = {b: FixedRows.from_entries(e, model.bodies[b].n_nodes)
-                             for b, e in self._attach_entries.items()}
+        # Attachment j is block j: rows x_a - x_b (weights signed); each body's part of them.
+        self._attach_drift = attachment_matrix(model)
+        self._attach_rows = {}
+        for i, b in enumerate(model.bodies):
+            rows = FixedRows.of_body(self._attach_drift, int(model.node_offsets[i]), b.n_nodes)
+            if rows is not None:
+                self._attach_rows[i] = rows
+        self._nodal = set(range(len(model.bodies)))  # bodies whose compliance is a NodalCompliance
         self.stats = StepStats()
 
     # -- free motion ---------------------------------------------------------------------
@@ -154,6 +153,15 @@ class ImplicitEulerSolver:
             rhs[fixed] = 0.0
         return body.pattern.matrix(adata), rhs
 
+    def _free_motion(self, state: State, control: Control) -> np.ndarray:
+        """``(N, 3)`` free (unconstrained) velocities of all bodies, mm/s."""
+        m = self.model
+        v_free = np.empty_like(state.v)
+        for i, body in enumerate(m.bodies):
+            sl = m.body_slice(i)
+            v_free[sl] = self._free_velocity(i, body, state.x[sl], state.v[sl], control, state.t)
+        return v_free
+
     def _free_velocity(self, i: int, body: Body, x: np.ndarray, v: np.ndarray,
                        control: Control, t: float) -> np.ndarray:
         h = self.settings.dt
@@ -182,13 +190,13 @@ class ImplicitEulerSolver:
         near = np.minimum(gap, gap_free) < floor.contact_distance
         return c[near], gap[near]
 
-    def _constrain(self, state: State, v_free: np.ndarray) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray]:
+    def _constrain(self, state: State, v_free: np.ndarray):
         """Velocity corrections from attachments and floor contacts: ``(corrections, nodes,
-        impulses)`` with body -> its correction (see :meth:`_velocity`), the contact nodes
-        (global, ``(k,)``) and their impulses ``(k, 3)`` (normal, t1, t2), mN s.
+        impulses)`` with the corrections for :meth:`_velocity` (None: no constraint), the
+        contact nodes (global, ``(k,)``) and their impulses ``(k, 3)`` (normal, t1, t2), mN s.
 
-        Of ``v_free`` only the z velocity of collision nodes is read, and each body's rows
-        through its compliance's ``constraint_velocity``.
+        Of ``v_free`` only the z velocity of collision nodes is read, and what
+        :meth:`_delassus` reads.
 
         The contact set starts from last step's loaded contacts (the pattern changes little
         between steps), or from the candidates whose free motion penetrates when none were
@@ -200,31 +208,20 @@ class ImplicitEulerSolver:
         """
         m, h = self.model, self.settings.dt
         near, gaps = self._contact_rows(state.x, v_free)
-        offsets = m.node_offsets
-        near_body = np.searchsorted(offsets, near, side="right") - 1
+        near_body = np.searchsorted(m.node_offsets, near, side="right") - 1
         loaded = state.contact_nodes[state.contact_impulses[:, 0] > 0] if len(state.contact_nodes) else near[:0]
         active = np.isin(near, loaded)
         if not active.any():
             active = gaps + h * v_free[near, 2] < 0
-        comp = dict(enumerate(self._compliance))
-        vel = {b: v_free[m.body_slice(b)] for b in range(len(m.bodies))}
         n_att = len(m.attachments)
         nb = 3 * n_att
-        # Attachment violation x_a - x_b.
-        drift = sum(e.apply(state.x[m.body_slice(b)], n_att) for b, e in self._attach_entries.items()).ravel() \
-            if n_att else np.zeros(0)
+        drift = self._attach_drift @ state.x.ravel()  # attachment violation x_a - x_b
         mu = m.floor.friction if m.floor else 0.0
         while True:
             idx = np.flatnonzero(active)
             if not n_att + len(idx):
-                return {}, near[:0], np.zeros((0, 3))
-            entries = dict(self._attach_entries)
-            for b in np.unique(near_body[idx]):
-                on_b = idx[near_body[idx] == b]
-                contact = Entries(n_att + np.searchsorted(idx, on_b), near[on_b] - offsets[b],
-                                  np.broadcast_to(_FLOOR_FRAME, (len(on_b), 3, 3)))
-                entries[b] = entries[b] + contact if b in entries else contact
-            W, q, T = assemble(entries, comp, vel, n_att + len(idx))
+                return None, near[:0], np.zeros((0, 3))
+            W, q, jacobians = self._delassus(v_free, near[idx], near_body[idx])
             q[:nb] += drift / h  # attachments: u = -(x_a - x_b)/h
             q[nb::3] += gaps[idx] / h  # Signorini: gap + h u_n >= 0
             warm = np.zeros((len(idx), 3))
@@ -235,13 +232,8 @@ class ImplicitEulerSolver:
             sol = solve_constraints(W, q, nb, np.full(len(idx), mu), warm,
                                     self.settings.contact_tolerance, self.settings.contact_max_iterations)
             lam = np.concatenate([sol.bilateral, sol.contact.ravel()])
-            corrections = velocity_correction(lam, T, comp)
-            dv_near = np.zeros(len(near))
-            for b, d in corrections.items():
-                on_b = near_body == b
-                if on_b.any():
-                    dv_near[on_b] = comp[b].velocities(d, near[on_b] - offsets[b])[:, 2]
-            new_gap = gaps + h * (v_free[near, 2] + dv_near)
+            corrections = self._corrections(lam, jacobians)
+            new_gap = gaps + h * (v_free[near, 2] + self._normal_velocity_change(corrections, near, near_body))
             missed = ~active & (new_gap < -1e-9 * max(1.0, float(np.abs(gaps).max(initial=0.0))))
             if not missed.any():
                 break
@@ -256,12 +248,42 @@ class ImplicitEulerSolver:
         st.normal_force = float(sol.contact[:, 0].sum() / h)
         return corrections, near[idx], sol.contact
 
-    def _velocity(self, v_free: np.ndarray, corrections: dict[int, np.ndarray]) -> np.ndarray:
-        """``(N, 3)`` end-of-step velocities: the free ones plus each body's constraint
-        correction (:func:`softcrawl.fem.constraints.velocity_correction`), mm/s."""
-        v = v_free.copy()
+    def _delassus(self, v_free: np.ndarray, nodes: np.ndarray, bodies: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+        """Delassus operator ``W`` ``(3B, 3B)``, free constraint velocities ``H v_free``
+        ``(3B,)`` and what :meth:`_corrections` needs, for the attachments (blocks
+        ``0..A-1``) and floor contacts at global ``nodes`` of ``bodies`` (blocks ``A..``)."""
+        m = self.model
+        n_att = len(m.attachments)
+        B = n_att + len(nodes)
+        W, u, blocks = np.zeros((3 * B, 3 * B)), np.zeros(3 * B), {}
+        for b in self._nodal:
+            on = np.flatnonzero(bodies == b)
+            if b not in self._attach_rows and not len(on):
+                continue
+            blocks[b] = add_body(W, u, self._compliance[b], v_free[m.body_slice(b)], nodes[on] - m.node_offsets[b],
+                                 np.broadcast_to(_FLOOR_FRAME, (len(on), 3, 3)), n_att + on)
+        return W, u, blocks
+
+    def _corrections(self, lam: np.ndarray, blocks: dict) -> dict[int, np.ndarray]:
+        """body -> its velocity change ``(n, 3)`` (mm/s) for the impulses ``lam``."""
+        return {b: body_correction(self._compliance[b], lam, bb) for b, bb in blocks.items()}
+
+    def _normal_velocity_change(self, corrections: dict[int, np.ndarray], near: np.ndarray,
+                                near_body: np.ndarray) -> np.ndarray:
+        """``(k,)`` z velocity change of the corrections at global nodes ``near`` of ``near_body``."""
+        dv = np.zeros(len(near))
         for b, d in corrections.items():
-            v[self.model.body_slice(b)] += self._compliance[b].velocities(d)
+            on_b = near_body == b
+            if on_b.any():
+                dv[on_b] = d[near[on_b] - self.model.node_offsets[b], 2]
+        return dv
+
+    def _velocity(self, v_free: np.ndarray, corrections: dict[int, np.ndarray] | None) -> np.ndarray:
+        """``(N, 3)`` end-of-step velocities: the free ones plus each body's constraint
+        correction, mm/s."""
+        v = v_free.copy()
+        for b, d in (corrections or {}).items():
+            v[self.model.body_slice(b)] += d
         return v
 
     # -- public --------------------------------------------------------------------------
@@ -288,10 +310,7 @@ class ImplicitEulerSolver:
         if not state.is_finite():
             raise SimulationDiverged("non-finite positions or velocities in the input state", state.t)
         self.stats = StepStats()
-        v_free = np.empty_like(state.v)
-        for i, body in enumerate(m.bodies):
-            sl = m.body_slice(i)
-            v_free[sl] = self._free_velocity(i, body, state.x[sl], state.v[sl], control, state.t)
+        v_free = self._free_motion(state, control)
         corrections, nodes, impulses = self._constrain(state, v_free)
         v = self._velocity(v_free, corrections)
         x = state.x + h * v

@@ -22,7 +22,7 @@ from softcrawl.geometry.disk import DiskParams, disk_mesh
 from softcrawl.geometry.pneunet import PneuNetParams, pneunet_mesh
 from softcrawl.parallel import PeakMemory, run_pool
 from softcrawl.reduction.ecsw import GramAccumulator, ecsw_weights
-from softcrawl.reduction.kernels import reduced_element_terms
+from softcrawl.reduction.kernels import element_terms
 from softcrawl.reduction.model import PartReduction, ReducedBody, RobotReduction
 from softcrawl.reduction.pod import PODBasis, pod_basis
 from softcrawl.reduction.runs import SNAPSHOT_KEYS, run_fom_scenes
@@ -88,9 +88,10 @@ def element_reduced_forces(rb: ReducedBody, x: np.ndarray) -> list[np.ndarray]:
     out = []
     for ef in rb.element_factors:
         E, r = len(ef.conn), ef.factors.shape[1]
-        Z, s = np.empty((E * r, rb.n_modes)), np.empty(E * r)
-        reduced_element_terms(x, ef.conn, ef.rest, ef.factors, ef.frames, np.ones(E), rb.basis, Z, s)
-        out.append(-(Z * s[:, None]).reshape(E, r, -1).sum(axis=1))
+        Z, s = np.empty((1, E * r, rb.n_modes)), np.empty((1, E * r))
+        element_terms(x, np.zeros(1, np.int64), rb.rotation[None], ef.conn, ef.rest, ef.factors, ef.frames,
+                      np.ones(E), ef.basis_rows, Z, s, 0, np.zeros(1, np.int64))
+        out.append(-(Z[0] * s[0, :, None]).reshape(E, r, -1).sum(axis=1))
     return out
 
 

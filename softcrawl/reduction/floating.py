@@ -29,7 +29,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from softcrawl.fem.body import Body
-from softcrawl.fem.constraints import Entries, NodalCompliance
 
 
 def rigid_fit_rotation(x: np.ndarray, rest_centred: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -89,26 +88,3 @@ class FloatingFrameBody:
     def rotation(self, x: np.ndarray) -> np.ndarray:
         """``(3, 3)`` the floating frame's rotation at positions ``x`` ``(n, 3)`` mm."""
         return rigid_fit_rotation(x, self.rest_centred, self.weights)
-
-
-class FloatingFrameCompliance(NodalCompliance):
-    """Constraint compliance of a floating-frame body: the columns ``A_0^-1 E`` of the constant
-    body-frame matrix, with every constraint row rotated into the body frame by the current
-    :attr:`rotation` (``H R``; attachment and contact coefficients are 3 x 3 blocks, so
-    ``E^T R = blockdiag(R) E^T``).
-
-    Args:
-        As :class:`NodalCompliance`, with the factorization of ``A_0``.
-    """
-
-    rotation = np.eye(3)
-
-    def jacobian(self, entries: Entries, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
-        J = super().jacobian(entries, blocks, n_blocks)
-        return (J.reshape(len(J), -1, 3) @ self.rotation).reshape(J.shape)
-
-    def constraint_velocity(self, J: np.ndarray, v: np.ndarray) -> np.ndarray:
-        return super().constraint_velocity(J, v @ self.rotation)
-
-    def velocities(self, correction: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
-        return super().velocities(correction, nodes) @ self.rotation.T

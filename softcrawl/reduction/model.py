@@ -107,11 +107,13 @@ def rotate_basis(basis: np.ndarray, rotation: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ElementFactors:
-    """RID element data of one family on a placed body (see :mod:`softcrawl.reduction.kernels`).
+    """RID element data of one family of a part, in the part frame (see
+    :mod:`softcrawl.reduction.kernels`).
 
     Attributes:
         conn: ``(E, k)`` node indices; rest: ``(E, k, 3)`` mm; factors: ``(E, r, 3k)``;
-        frames: ``(E, 3, 3)``; sqrt_weights: ``(E,)``.
+        frames: ``(E, 3, 3)``; sqrt_weights: ``(E,)``; basis_rows: ``(E, 3k, m)`` the part
+        basis rows of each element's nodes.
     """
 
     conn: np.ndarray
@@ -119,30 +121,51 @@ class ElementFactors:
     factors: np.ndarray
     frames: np.ndarray
     sqrt_weights: np.ndarray
+    basis_rows: np.ndarray
+
+    @property
+    def n_rows(self) -> int:
+        """Rows of ``Z`` of this family (``E * r``)."""
+        return self.factors.shape[0] * self.factors.shape[1]
+
+
+#: Largest distance (mm) between a reduced body's rest nodes and its part's nodes placed by
+#: the body's rotation (after the best translation) for the body to be that placed part.
+PLACEMENT_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
 class ReducedBody:
-    """A reduced part placed in a model: ``x = X + basis @ q``.
+    """A reduced part placed in a model: ``x = X + basis @ q`` with
+    ``basis = blockdiag(rotation) @ part.basis`` (reduction.md: every node's 3-vector in every
+    column is rotated; RID and weights are rotation invariant).
 
     Attributes:
         body: the full-order body (placed mesh, materials, masses, cavities, collision nodes).
-        basis: ``(3n, m)`` the part's basis rotated to the body's pose.
         part: the part reduction it came from.
+        rotation: ``(3, 3)`` the rotation placing the part frame in the world.
 
     Raises:
-        ValueError: the body has fixed DOFs, uses the "polar" rotation method, or its mesh
-            does not have the part's node count.
+        ValueError: the body has fixed DOFs, uses the "polar" rotation method, or is not the
+            part's mesh placed by ``rotation`` and a translation.
     """
 
     body: Body
-    basis: np.ndarray
     part: PartReduction
+    rotation: np.ndarray
 
     def __post_init__(self) -> None:
+        R = np.asarray(self.rotation, float)
+        object.__setattr__(self, "rotation", R)
+        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) or np.linalg.det(R) <= 0:
+            raise ValueError(f"rotation of reduced body {self.body.name!r} must be a proper 3x3 rotation")
         if self.body.n_nodes != self.part.mesh.n_nodes:
             raise ValueError(f"body {self.body.name!r} has {self.body.n_nodes} nodes, "
                              f"the reduction {self.part.mesh.n_nodes}")
+        local = self.body.mesh.points @ R
+        gap = local - self.part.mesh.points
+        if np.abs(gap - gap.mean(axis=0)).max() > PLACEMENT_TOLERANCE:
+            raise ValueError(f"body {self.body.name!r} is not the reduction's mesh placed by the given rotation")
         if not self.body.free_dofs.all():
             raise ValueError(f"reduced body {self.body.name!r} cannot have fixed DOFs")
         if self.body.rotation_method != "large":
@@ -150,32 +173,40 @@ class ReducedBody:
 
     @property
     def n_modes(self) -> int:
-        return self.basis.shape[1]
+        return self.part.n_modes
+
+    @cached_property
+    def basis(self) -> np.ndarray:
+        """``(3n, m)`` the part basis rotated to the body's pose (world frame)."""
+        return rotate_basis(self.part.basis, self.rotation)
 
     @cached_property
     def element_factors(self) -> tuple[ElementFactors, ...]:
-        """RID tetrahedra and membrane triangles, from the placed rest mesh."""
+        """RID tetrahedra and membrane triangles, from the part's rest mesh (part frame)."""
         b, p = self.body, self.part
+        pts, m = p.mesh.points, p.n_modes
+        rows = p.basis.reshape(-1, 3, m)
         out = []
-        tets = b.mesh.tets[p.tet_rid]
-        es = tetrahedra(b.mesh.points, tets, b.material, "large")
+        tets = p.mesh.tets[p.tet_rid]
+        es = tetrahedra(pts, tets, b.material, "large")
         out.append(ElementFactors(tets, es.rest, stiffness_factors(es.stiffness, 6), es.frames,
-                                  np.sqrt(p.tet_weights)))
+                                  np.sqrt(p.tet_weights), rows[tets].reshape(len(tets), -1, m)))
         if len(p.tri_rid):
             if b.membrane is None or p.tri_rid.max() >= len(b.membrane.triangles):
                 raise ValueError(f"the reduction's RID has membrane triangles body {b.name!r} does not have")
             tris = np.asarray(b.membrane.triangles, np.int64)[p.tri_rid]
-            ms = membrane_triangles(b.mesh.points, tris, b.membrane.material, b.membrane.thickness)
+            ms = membrane_triangles(pts, tris, b.membrane.material, b.membrane.thickness)
             out.append(ElementFactors(tris, ms.rest, stiffness_factors(ms.stiffness, 3), ms.frames,
-                                      np.sqrt(p.tri_weights)))
+                                      np.sqrt(p.tri_weights), rows[tris].reshape(len(tris), -1, m)))
         return tuple(out)
 
     @cached_property
     def reduced_mass(self) -> np.ndarray:
-        """``(m, m)`` ``Phi^T M Phi`` (constant), kg."""
-        return self.basis.T @ (np.repeat(self.body.nodal_mass, 3)[:, None] * self.basis)
+        """``(m, m)`` ``Phi^T M Phi`` (constant; the same in the part frame), kg."""
+        Phi = self.part.basis
+        return Phi.T @ (np.repeat(self.body.nodal_mass, 3)[:, None] * Phi)
 
 
 def reduce_body(body: Body, part: PartReduction, rotation: np.ndarray) -> ReducedBody:
-    """Place a part reduction on a body posed by ``rotation`` (``(3, 3)``, leg-local -> world)."""
-    return ReducedBody(body, rotate_basis(part.basis, np.asarray(rotation, float)), part)
+    """Place a part reduction on a body posed by ``rotation`` (``(3, 3)``, part frame -> world)."""
+    return ReducedBody(body, part, np.asarray(rotation, float))

@@ -1,0 +1,201 @@
+"""Reduced bodies that share one part (the legs of a robot), stepped together.
+
+A :class:`ModalGroup` holds the static data of the bodies placed from one
+:class:`~softcrawl.reduction.model.PartReduction`: one copy of the part's RID element data
+and basis rows in the part frame, and per body its rotation, node offset, reduced mass,
+gravity load, attachment rows ``H_f Phi`` and pressure channels. Its methods run the
+batched compiled kernels of :mod:`softcrawl.reduction.kernels` (free motion, Delassus terms,
+corrections) and expand modal velocities to nodal ones. The time-varying values (modal
+velocities, the step matrices' Cholesky factors) are passed in and out; the group keeps none.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softcrawl.fem.constraints import FixedRows
+from softcrawl.fem.model import Model
+from softcrawl.reduction.kernels import (add_delassus, cavity_loads, corrections, element_terms,
+                                         implicit_steps, point_velocity)
+from softcrawl.reduction.model import ElementFactors, ReducedBody
+
+
+def _layout(body) -> tuple:
+    """What the bodies of a group must share besides the part: materials, masses, membrane
+    and cavity triangles (not the cavities' channels)."""
+    mem = body.membrane
+    return (body.material, body.nodal_mass.tobytes(),
+            None if mem is None else (mem.material, mem.thickness, np.asarray(mem.triangles).tobytes()),
+            tuple(np.asarray(c.triangles).tobytes() for c in body.cavities))
+
+
+@dataclass(frozen=True, eq=False)
+class ModalGroup:
+    """Static data of reduced bodies placed from one part.
+
+    Attributes:
+        members: ``(L,)`` the bodies' indices in the model.
+        offsets: ``(L,)`` their first node in the stacked state.
+        n_nodes: nodes per body.
+        rotations: ``(L, 3, 3)`` placement rotations (part frame -> world).
+        basis: ``(3n, m)`` the part basis (part frame).
+        families: the part's RID element families (part frame).
+        mass: ``(L, m, m)`` reduced masses, kg.
+        gravity: ``(L, m)`` reduced gravity loads, mN.
+        cavity_triangles: ``(T, 3)`` the part's cavity triangles; cavity_phi: ``(T, 3, m)``
+            the sums of their vertex basis rows; cavity_channel: ``(L, T)`` the pressure
+            channel of each body's triangle.
+        collision: ``(c,)`` part nodes that are floor contact candidates; collision_rows:
+            ``(3c, m)`` their basis rows.
+        fixed_rows: ``(L, 3F, m)`` world rows ``H_f Phi_b`` of each body's ``F`` attachment
+            blocks; fixed_blocks: ``(L, F)`` their global block numbers.
+        frame_rot: ``(L, 3, 3)`` the contact frame times each body's rotation.
+    """
+
+    members: np.ndarray
+    offsets: np.ndarray
+    n_nodes: int
+    rotations: np.ndarray
+    basis: np.ndarray
+    families: tuple[ElementFactors, ...]
+    mass: np.ndarray
+    gravity: np.ndarray
+    cavity_triangles: np.ndarray
+    cavity_phi: np.ndarray
+    cavity_channel: np.ndarray
+    collision: np.ndarray
+    collision_rows: np.ndarray
+    fixed_rows: np.ndarray
+    fixed_blocks: np.ndarray
+    frame_rot: np.ndarray
+    _work: dict = field(default_factory=dict, repr=False)  # scratch arrays of free_motion
+
+    @classmethod
+    def build(cls, model: Model, bodies: dict[int, ReducedBody], fixed: dict[int, FixedRows],
+              contact_frame: np.ndarray) -> ModalGroup:
+        """The group of ``bodies`` (index -> reduced body), which must share one part, one
+        material and one cavity layout and have the same number of attachment blocks.
+
+        Args:
+            model: the model the bodies belong to.
+            bodies: body index -> its :class:`ReducedBody`.
+            fixed: body index -> its attachment rows (bodies without attachments absent).
+            contact_frame: ``(3, 3)`` rows normal, tangent 1, tangent 2 of a floor contact.
+
+        Raises:
+            ValueError: the bodies do not share a part, materials, cavities or attachment count.
+        """
+        members = np.array(sorted(bodies), np.int64)
+        rbs = [bodies[i] for i in members]
+        first = rbs[0]
+        part = first.part
+        for rb in rbs[1:]:
+            if rb.part is not part or _layout(rb.body) != _layout(first.body):
+                raise ValueError("the bodies of a modal group must share a part, materials, masses and cavities")
+        n_fixed = {len(fixed[i].blocks) if i in fixed else 0 for i in members}
+        if len(n_fixed) != 1:
+            raise ValueError(f"the bodies of a modal group must have equally many attachments, got {n_fixed}")
+        n, m = part.mesh.n_nodes, part.n_modes
+        Phi = part.basis
+        R = np.stack([rb.rotation for rb in rbs])
+        g = np.asarray(model.gravity, float)
+        gravity = np.stack([Phi.T @ (rb.body.nodal_mass[:, None] * (g @ rb.rotation)[None, :]).ravel() for rb in rbs])
+        cavities = first.body.cavities
+        tris = (np.concatenate([np.asarray(c.triangles, np.int64) for c in cavities])
+                if cavities else np.zeros((0, 3), np.int64))
+        phi = Phi.reshape(n, 3, m)[tris].sum(axis=1)
+        channel = np.stack([np.concatenate([np.full(len(c.triangles), c.channel) for c in rb.body.cavities])
+                            if cavities else np.zeros(0, np.int64) for rb in rbs]).astype(np.int64)
+        coll = np.asarray(first.body.collision_nodes, np.int64)
+        nf = n_fixed.pop()
+        rows = np.zeros((len(rbs), 3 * nf, m))
+        blocks = np.zeros((len(rbs), nf), np.int64)
+        for j, i in enumerate(members):
+            if nf:
+                rows[j] = fixed[i].H @ bodies[i].basis
+                blocks[j] = fixed[i].blocks
+        return cls(members, model.node_offsets[members].astype(np.int64), n, R, Phi, first.element_factors,
+                   np.stack([rb.reduced_mass for rb in rbs]), gravity, tris, phi, channel, coll,
+                   np.ascontiguousarray(Phi.reshape(n, 3, m)[coll].reshape(-1, m)), rows, blocks,
+                   np.asarray(contact_frame, float) @ R)
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.members)
+
+    @property
+    def n_modes(self) -> int:
+        return self.basis.shape[1]
+
+    def project(self, v: np.ndarray) -> np.ndarray:
+        """``(L, m)`` modal velocities ``Phi_b^T v_b`` of the stacked velocities ``v`` ``(N, 3)``
+        (the basis is orthonormal)."""
+        out = np.empty((self.n_bodies, self.n_modes))
+        for j, o in enumerate(self.offsets):
+            out[j] = self.basis.T @ (v[o:o + self.n_nodes] @ self.rotations[j]).ravel()
+        return out
+
+    def free_motion(self, x: np.ndarray, qdot: np.ndarray, pressures: np.ndarray, h: float, r_mass: float,
+                    r_stiff: float, forces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The linearly implicit step of every body without constraints.
+
+        Args:
+            x: ``(N, 3)`` stacked positions, mm.
+            qdot: ``(L, m)`` modal velocities at the start of the step.
+            pressures: ``(channels,)`` cavity pressures, kPa.
+            h, r_mass, r_stiff: time step (s), Rayleigh coefficients.
+            forces: optional ``(N, 3)`` prescribed nodal forces, mN.
+
+        Returns:
+            ``(qdot_free, chol, n_bad, positive)``: ``(L, m)`` free modal velocities, ``(L, m, m)``
+            Cholesky factors of the step matrices, ``(L,)`` inverted or degenerate RID elements
+            and ``(L,)`` bool whether each step matrix was positive definite.
+        """
+        L, m = self.n_bodies, self.n_modes
+        if not self._work:  # kept between steps: fresh pages for Z (MBs) cost more than filling them
+            rows = sum(f.n_rows for f in self.families)
+            self._work.update(Z=np.empty((L, rows, m)), s=np.empty((L, rows)))
+        Z, s = self._work["Z"], self._work["s"]
+        n_bad = np.zeros(L, np.int64)
+        r0 = 0
+        for f in self.families:
+            element_terms(x, self.offsets, self.rotations, f.conn, f.rest, f.factors, f.frames, f.sqrt_weights,
+                          f.basis_rows, Z, s, r0, n_bad)
+            r0 += f.n_rows
+        load = self.gravity.copy()
+        if len(self.cavity_triangles):
+            scale = np.asarray(pressures, float)[self.cavity_channel] / 3.0
+            if scale.any():
+                cavity_loads(x, self.offsets, self.rotations, self.cavity_triangles, self.cavity_phi, scale, load)
+        if forces is not None:
+            load += self.project(forces)
+        chol, qdot_free = np.empty((L, m, m)), np.empty((L, m))
+        positive = implicit_steps(Z, s, load, self.mass, qdot, h, r_mass, r_stiff, chol, qdot_free)
+        return qdot_free, chol, n_bad, positive
+
+    def collision_velocity_z(self, qdot: np.ndarray) -> np.ndarray:
+        """``(L, c)`` world z velocities of the collision nodes, mm/s."""
+        V = (qdot @ self.collision_rows.T).reshape(self.n_bodies, len(self.collision), 3)
+        return np.matmul(V, self.rotations[:, 2, :, None])[:, :, 0]
+
+    def velocities(self, qdot: np.ndarray) -> np.ndarray:
+        """``(L, n, 3)`` world nodal velocities ``Phi_b qdot_b``, mm/s."""
+        V = (qdot @ self.basis.T).reshape(self.n_bodies, self.n_nodes, 3)
+        return np.matmul(V, self.rotations.transpose(0, 2, 1))
+
+    def add_delassus(self, W: np.ndarray, u: np.ndarray, chol: np.ndarray, qdot: np.ndarray,
+                     contacts: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """Add the group's ``J A^-1 J^T`` to ``W`` ``(3B, 3B)`` and ``J qdot`` to ``u`` ``(3B,)``;
+        ``contacts``: ``(body in group or -1, part node, global block)`` per contact."""
+        add_delassus(W, u, chol, qdot, self.fixed_rows, self.fixed_blocks, self.frame_rot, self.basis, *contacts)
+
+    def corrections(self, lam: np.ndarray, chol: np.ndarray,
+                    contacts: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+        """``(L, m)`` modal velocity corrections for the impulses ``lam`` ``(3B,)``, mN s."""
+        return corrections(lam, chol, self.fixed_rows, self.fixed_blocks, self.frame_rot, self.basis, *contacts)
+
+    def velocity_z(self, qdot: np.ndarray, body: np.ndarray, node: np.ndarray) -> np.ndarray:
+        """``(k,)`` world z velocities at ``(body in group, part node)`` points, mm/s."""
+        return point_velocity(qdot, np.ascontiguousarray(self.rotations[:, 2, :]), self.basis, body, node)
