@@ -15,7 +15,7 @@ class State:
         x: ``(N, 3)`` node positions of all bodies stacked (see ``Model.node_offsets``), mm.
         v: ``(N, 3)`` node velocities, mm/s.
         t: time, s.
-        contact_nodes: ``(k,)`` global node indices of last step's contacts (solver warm start).
+        contact_nodes: ``(k,)`` sorted global node indices of last step's contacts (solver warm start).
         contact_impulses: ``(k, 3)`` their impulses (normal, tangent1, tangent2), mN s.
     """
 

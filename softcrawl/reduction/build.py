@@ -90,7 +90,7 @@ def element_reduced_forces(rb: ReducedBody, x: np.ndarray) -> list[np.ndarray]:
         E, r = len(ef.conn), ef.factors.shape[1]
         Z, s = np.empty((1, E * r, rb.n_modes)), np.empty((1, E * r))
         element_terms(x, np.zeros(1, np.int64), rb.rotation[None], ef.conn, ef.rest, ef.factors, ef.frames,
-                      np.ones(E), ef.basis_rows, Z, s, 0, np.zeros(1, np.int64))
+                      np.ones(E), ef.basis_rows, Z, s, 0, E, np.zeros(1, np.int64))
         out.append(-(Z[0] * s[0, :, None]).reshape(E, r, -1).sum(axis=1))
     return out
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from softcrawl.fem.constraints import FixedRows
 from softcrawl.fem.model import Model
-from softcrawl.reduction.kernels import (add_delassus, cavity_loads, corrections, element_terms,
+from softcrawl.reduction.kernels import (accumulate_terms, add_delassus, cavity_loads, corrections,
                                          implicit_steps, point_velocity)
 from softcrawl.reduction.model import ElementFactors, ReducedBody
 
@@ -29,6 +29,10 @@ def _layout(body) -> tuple:
     return (body.material, body.nodal_mass.tobytes(),
             None if mem is None else (mem.material, mem.thickness, np.asarray(mem.triangles).tobytes()),
             tuple(np.asarray(c.triangles).tobytes() for c in body.cavities))
+
+
+#: RID elements whose ``Z`` rows are formed at once (a chunk of all bodies' rows stays in cache).
+ELEMENT_CHUNK = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,8 +51,8 @@ class ModalGroup:
         cavity_triangles: ``(T, 3)`` the part's cavity triangles; cavity_phi: ``(T, 3, m)``
             the sums of their vertex basis rows; cavity_channel: ``(L, T)`` the pressure
             channel of each body's triangle.
-        collision: ``(c,)`` part nodes that are floor contact candidates; collision_rows:
-            ``(3c, m)`` their basis rows.
+        collision: ``(c,)`` part nodes that are floor contact candidates; collision_bound:
+            ``(c,)`` the Frobenius norms of their basis rows (``|v_n| <= bound_n |qdot|``).
         fixed_rows: ``(L, 3F, m)`` world rows ``H_f Phi_b`` of each body's ``F`` attachment
             blocks; fixed_blocks: ``(L, F)`` their global block numbers.
         frame_rot: ``(L, 3, 3)`` the contact frame times each body's rotation.
@@ -66,7 +70,7 @@ class ModalGroup:
     cavity_phi: np.ndarray
     cavity_channel: np.ndarray
     collision: np.ndarray
-    collision_rows: np.ndarray
+    collision_bound: np.ndarray
     fixed_rows: np.ndarray
     fixed_blocks: np.ndarray
     frame_rot: np.ndarray
@@ -118,7 +122,7 @@ class ModalGroup:
                 blocks[j] = fixed[i].blocks
         return cls(members, model.node_offsets[members].astype(np.int64), n, R, Phi, first.element_factors,
                    np.stack([rb.reduced_mass for rb in rbs]), gravity, tris, phi, channel, coll,
-                   np.ascontiguousarray(Phi.reshape(n, 3, m)[coll].reshape(-1, m)), rows, blocks,
+                   np.linalg.norm(Phi.reshape(n, 3, m)[coll], axis=(1, 2)), rows, blocks,
                    np.asarray(contact_frame, float) @ R)
 
     @property
@@ -154,31 +158,23 @@ class ModalGroup:
             and ``(L,)`` bool whether each step matrix was positive definite.
         """
         L, m = self.n_bodies, self.n_modes
-        if not self._work:  # kept between steps: fresh pages for Z (MBs) cost more than filling them
-            rows = sum(f.n_rows for f in self.families)
+        if not self._work:  # scratch kept between steps (fresh pages cost more than filling them)
+            rows = ELEMENT_CHUNK * max(f.factors.shape[1] for f in self.families)
             self._work.update(Z=np.empty((L, rows, m)), s=np.empty((L, rows)))
-        Z, s = self._work["Z"], self._work["s"]
         n_bad = np.zeros(L, np.int64)
-        r0 = 0
-        for f in self.families:
-            element_terms(x, self.offsets, self.rotations, f.conn, f.rest, f.factors, f.frames, f.sqrt_weights,
-                          f.basis_rows, Z, s, r0, n_bad)
-            r0 += f.n_rows
-        load = self.gravity.copy()
+        K, load = np.zeros((L, m, m)), self.gravity.copy()
         if len(self.cavity_triangles):
             scale = np.asarray(pressures, float)[self.cavity_channel] / 3.0
             if scale.any():
                 cavity_loads(x, self.offsets, self.rotations, self.cavity_triangles, self.cavity_phi, scale, load)
         if forces is not None:
             load += self.project(forces)
+        for f in self.families:
+            accumulate_terms(x, self.offsets, self.rotations, f.conn, f.rest, f.factors, f.frames, f.sqrt_weights,
+                             f.basis_rows, qdot, h + r_stiff, self._work["Z"], self._work["s"], K, load, n_bad)
         chol, qdot_free = np.empty((L, m, m)), np.empty((L, m))
-        positive = implicit_steps(Z, s, load, self.mass, qdot, h, r_mass, r_stiff, chol, qdot_free)
+        positive = implicit_steps(K, load, self.mass, qdot, h, r_mass, r_stiff, chol, qdot_free)
         return qdot_free, chol, n_bad, positive
-
-    def collision_velocity_z(self, qdot: np.ndarray) -> np.ndarray:
-        """``(L, c)`` world z velocities of the collision nodes, mm/s."""
-        V = (qdot @ self.collision_rows.T).reshape(self.n_bodies, len(self.collision), 3)
-        return np.matmul(V, self.rotations[:, 2, :, None])[:, :, 0]
 
     def velocities(self, qdot: np.ndarray) -> np.ndarray:
         """``(L, n, 3)`` world nodal velocities ``Phi_b qdot_b``, mm/s."""

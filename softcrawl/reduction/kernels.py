@@ -33,8 +33,9 @@ from softcrawl.fem.kernels import _triangle_frame
 
 
 @njit(cache=True)
-def element_terms(x, offsets, rotations, conn, X, C, frames, sqrt_w, basis_rows, Z, s, row0, n_bad):
-    """Fill ``Z`` and ``s`` for one RID element family of every body of a group.
+def element_terms(x, offsets, rotations, conn, X, C, frames, sqrt_w, basis_rows, Z, s, e0, e1, n_bad):
+    """Fill ``Z`` and ``s`` for elements ``e0 .. e1 - 1`` of one RID element family of every
+    body of a group.
 
     Args:
         x: ``(N, 3)`` current node positions of the whole model (world frame), mm.
@@ -46,25 +47,25 @@ def element_terms(x, offsets, rotations, conn, X, C, frames, sqrt_w, basis_rows,
         frames: ``(E, 3, 3)`` rest frames (rows e1, e2, n of the first three nodes).
         sqrt_w: ``(E,)`` square roots of the ECSW weights.
         basis_rows: ``(E, 3k, m)`` the part basis rows of each element's nodes.
-        Z: ``(L, R, m)`` output: this family's rows are ``row0 .. row0 + E * r - 1``.
+        Z: ``(L, R, m)`` output: element ``e``'s rows are ``(e - e0) * r ..`` (r rows each).
         s: ``(L, R)`` output, the same rows.
-        row0: first row of this family in ``Z`` and ``s``.
+        e0, e1: the range of elements.
         n_bad: ``(L,)`` incremented by each body's inverted tetrahedra and degenerate elements.
 
     The ``Z_e`` of all bodies are one BLAS product per element, ``[CR_1; ...; CR_L] Phi_e``
     (3x faster than compiled loops, which do not vectorize here).
     """
     L = offsets.shape[0]
-    E, k = conn.shape
+    k = conn.shape[1]
     r = C.shape[1]
-    m = basis_rows.shape[2]
     nd = 3 * k
     y = np.empty((k, 3))
     Fc = np.empty((3, 3))
     R = np.empty((3, 3))
     u = np.empty(nd)
     CR = np.empty((L * r, nd))  # body b's rows b*r..: sqrt(xi) C_e blockdiag(R_e)^T
-    for e in range(E):
+    for e in range(e0, e1):
+        row = (e - e0) * r
         for b in range(L):
             o = offsets[b]
             Rb = rotations[b]
@@ -81,7 +82,7 @@ def element_terms(x, offsets, rotations, conn, X, C, frames, sqrt_w, basis_rows,
             if not _triangle_frame(y[0], y[1], y[2], Fc):
                 n_bad[b] += 1
                 for i in range(r):
-                    s[b, row0 + e * r + i] = 0.0
+                    s[b, row + i] = 0.0
                     for q in range(nd):
                         CR[b * r + i, q] = 0.0
                 continue
@@ -96,7 +97,7 @@ def element_terms(x, offsets, rotations, conn, X, C, frames, sqrt_w, basis_rows,
                 acc = 0.0
                 for q in range(nd):
                     acc += C[e, i, q] * u[q]
-                s[b, row0 + e * r + i] = w * acc
+                s[b, row + i] = w * acc
                 for a in range(k):
                     for c in range(3):
                         CR[b * r + i, 3 * a + c] = w * (C[e, i, 3 * a] * R[c, 0] + C[e, i, 3 * a + 1] * R[c, 1]
@@ -104,7 +105,7 @@ def element_terms(x, offsets, rotations, conn, X, C, frames, sqrt_w, basis_rows,
         Ze = np.dot(CR, basis_rows[e])
         for b in range(L):
             for i in range(r):
-                Z[b, row0 + e * r + i] = Ze[b * r + i]
+                Z[b, row + i] = Ze[b * r + i]
 
 
 def stiffness_factors(K: np.ndarray, rank: int) -> np.ndarray:
@@ -169,17 +170,36 @@ def _cholesky_solve(L, b):
 
 
 @njit(cache=True)
-def implicit_steps(Z, s, load, mass, qdot, h, r_mass, r_stiff, chol, qdot_free):
+def accumulate_terms(x, offsets, rotations, conn, X, C, frames, sqrt_w, basis_rows, qdot, c, Zc, sc, K, f, n_bad):
+    """Add one RID element family's ``K_r = Z^T Z`` and ``-Z^T (s + c Z qdot)`` to ``K``
+    ``(L, m, m)`` and ``f`` ``(L, m)`` (arguments of :func:`element_terms`; ``c = h + r_K``).
+    ``Z`` is formed in chunks of elements in the scratch arrays ``Zc`` ``(L, R, m)`` and
+    ``sc`` ``(L, R)`` (R a multiple of r), so it stays in cache for its products."""
+    E = conn.shape[0]
+    r = C.shape[1]
+    chunk = Zc.shape[1] // r
+    for e0 in range(0, E, chunk):
+        e1 = min(E, e0 + chunk)
+        element_terms(x, offsets, rotations, conn, X, C, frames, sqrt_w, basis_rows, Zc, sc, e0, e1, n_bad)
+        n = (e1 - e0) * r
+        for b in range(offsets.shape[0]):
+            Zb = Zc[b, :n]
+            f[b] -= Zb.T @ (sc[b, :n] + c * (Zb @ qdot[b]))
+            K[b] += Zb.T @ Zb
+
+
+@njit(cache=True)
+def implicit_steps(K, f, mass, qdot, h, r_mass, r_stiff, chol, qdot_free):
     """The linearly implicit Euler step of each body in reduced coordinates:
 
         [(1 + h r_M) M_r + h (h + r_K) K_r] dqdot = h (f_r - (h + r_K) K_r qdot - r_M M_r qdot)
 
-    with ``K_r = Z^T Z`` and ``f_r = load - Z^T s`` (SOFA ``EulerImplicitSolver`` projected on
-    the basis; reduction.md, "Reduced kinematics").
+    (SOFA ``EulerImplicitSolver`` projected on the basis; reduction.md, "Reduced kinematics").
 
     Args:
-        Z, s: ``(L, R, m)``, ``(L, R)`` from :func:`element_terms`.
-        load: ``(L, m)`` reduced external load (gravity, cavity pressure), mN.
+        K: ``(L, m, m)`` reduced tangents ``K_r``, mN/mm.
+        f: ``(L, m)`` ``f_r - (h + r_K) K_r qdot``: reduced load, internal force and
+            stiffness damping (:func:`accumulate_terms`), mN.
         mass: ``(L, m, m)`` reduced masses ``Phi^T M Phi``, kg.
         qdot: ``(L, m)`` modal velocities at the start of the step.
         h, r_mass, r_stiff: time step (s) and Rayleigh coefficients.
@@ -189,20 +209,17 @@ def implicit_steps(Z, s, load, mass, qdot, h, r_mass, r_stiff, chol, qdot_free):
     Returns:
         ``(L,)`` bool: whether each body's step matrix was positive definite.
     """
-    L = Z.shape[0]
-    c = h + r_stiff
+    L = K.shape[0]
     ok = np.ones(L, np.bool_)
     for b in range(L):
-        Zb = Z[b]
-        f = load[b] - Zb.T @ (s[b] + c * (Zb @ qdot[b]))
-        A = (1.0 + h * r_mass) * mass[b] + (h * c) * (Zb.T @ Zb)
+        A = (1.0 + h * r_mass) * mass[b] + (h * (h + r_stiff)) * K[b]
         try:
             chol[b] = np.linalg.cholesky(A)
         except Exception:  # not positive definite
             ok[b] = False
             qdot_free[b] = qdot[b]
             continue
-        qdot_free[b] = qdot[b] + _cholesky_solve(chol[b], h * (f - r_mass * (mass[b] @ qdot[b])))
+        qdot_free[b] = qdot[b] + _cholesky_solve(chol[b], h * (f[b] - r_mass * (mass[b] @ qdot[b])))
     return ok
 
 

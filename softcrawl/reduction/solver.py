@@ -90,14 +90,16 @@ class ReducedSolver(ImplicitEulerSolver):
             for j, b in enumerate(group.members):
                 self._node_group[model.body_slice(b)] = g
                 self._node_member[model.body_slice(b)] = j
+        self._collision = self._collision[self._node_group[self._collision] < 0]  # groups: _contact_rows
         self._qdot = [np.zeros((g.n_bodies, g.n_modes)) for g in self.groups]
         self._free: list[tuple[np.ndarray, np.ndarray]] = []  # per group: (qdot_free, chol) of this step
         self._modal_valid, self._last_v = False, None
 
     # -- free motion ---------------------------------------------------------------------
     def _free_motion(self, state: State, control: Control) -> np.ndarray:
-        """Free velocities; of a modal group's bodies only the rows the contact search reads
-        (z at collision nodes, zero elsewhere): their step velocities come from :meth:`_velocity`.
+        """Free velocities of the nodal bodies; a modal group's bodies get theirs (z only, at
+        the nodes near the floor) from :meth:`_contact_rows`, and their step velocities
+        from :meth:`_velocity`.
 
         A state this solver produced carries the modal velocities kept below; any other state
         is projected (``qdot = Phi^T v``, Phi orthonormal).
@@ -120,9 +122,6 @@ class ReducedSolver(ImplicitEulerSolver):
                 raise SimulationDiverged(f"reduced matrix of body {m.bodies[group.members[j]].name!r} "
                                          "is not positive definite", state.t)
             self._free.append((qd_free, chol))
-            vz = group.collision_velocity_z(qd_free)
-            for j, o in enumerate(group.offsets):
-                v_free[o + group.collision, 2] = vz[j]
         return v_free
 
     def _free_velocity(self, i: int, body: Body, x: np.ndarray, v: np.ndarray,
@@ -145,6 +144,32 @@ class ReducedSolver(ImplicitEulerSolver):
         return (vb + c.factor.solve(rhs)).reshape(-1, 3) @ R.T
 
     # -- constraints ---------------------------------------------------------------------
+    def _contact_rows(self, x: np.ndarray, v_free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As the full solver, and for a modal group's collision nodes: a node can only be a
+        candidate if ``gap - h |v| < d`` with the bound ``|v_n| <= |Phi_p[n]|_F |qdot|``
+        (Phi orthonormal); only those nodes' free z velocities are computed (written to
+        ``v_free``)."""
+        near, gaps = super()._contact_rows(x, v_free)
+        floor, h = self.model.floor, self.settings.dt
+        if floor is None:
+            return near, gaps
+        parts, part_gaps = [near], [gaps]
+        for group, (qd, _) in zip(self.groups, self._free):
+            nodes = group.offsets[:, None] + group.collision[None, :]
+            gap = x[nodes, 2] - floor.height
+            reach = h * group.collision_bound[None, :] * np.linalg.norm(qd, axis=1)[:, None]
+            member, col = np.nonzero(gap - reach < floor.contact_distance)
+            vz = group.velocity_z(qd, member, group.collision[col])
+            g = gap[member, col]
+            close = np.minimum(g, g + h * vz) < floor.contact_distance
+            n = nodes[member[close], col[close]]
+            v_free[n, 2] = vz[close]
+            parts.append(n)
+            part_gaps.append(g[close])
+        near, gaps = np.concatenate(parts), np.concatenate(part_gaps)
+        order = np.argsort(near)
+        return near[order], gaps[order]
+
     def _group_contacts(self, g: int, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Contacts at global ``nodes`` as ``(body in group g or -1, part node, global block)``."""
         group = self.groups[g]
