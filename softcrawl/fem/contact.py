@@ -101,6 +101,11 @@ _SEP, _STICK, _SLIP = 0, 1, 2
 #: Extra chunks of ``max_iter`` Gauss-Seidel sweeps allowed when the first chunk neither
 #: converges nor yields a consistent active set (a fallback: rare, cheap for few contacts).
 EXTRA_SWEEP_CHUNKS = 8
+#: Above this many contacts every violated contact switches in every round of the polish
+#: (each round is a dense solve: one switch per round would cost too much).
+SINGLE_SWITCH_MAX_CONTACTS = 40
+#: Polish rounds above that size.
+MULTI_SWITCH_ROUNDS = 12
 
 
 @njit(cache=True)
@@ -117,7 +122,9 @@ def _polish(W, q, mu, lam, max_rounds, rtol):
     vscale = max(np.abs(q).max(), 1e-300) if k else 1e-300
     new = np.zeros(3 * k)
     u = np.empty(3 * k)
-    for _ in range(max_rounds):
+    change = np.empty(k, np.int64)
+    single = k <= SINGLE_SWITCH_MAX_CONTACTS
+    for rnd in range(max_rounds if single else min(max_rounds, MULTI_SWITCH_ROUNDS)):
         # Unknowns: 3 impulses per sticking contact, the normal impulse per slipping one
         # (its tangential impulse is mu lam_n d). Equations: u = 0 / u_n = 0 on those rows.
         stick = np.flatnonzero(mode == _STICK)
@@ -158,30 +165,41 @@ def _polish(W, q, mu, lam, max_rounds, rtol):
         u[:] = W @ new + q
         ftol = rtol * max(np.abs(new).max(), 1e-300) if k else 1e-300
         vtol = rtol * vscale
-        same = True
+        fscale = max(np.abs(new).max(), 1e-300)
+        # Violations, each with its severity (relative to the impulse or velocity scale).
+        worst, worst_sev, n_viol = -1, -1.0, 0
         for i in range(k):
             r, m = 3 * i, mode[i]
             ltn = np.hypot(new[r + 1], new[r + 2])
             along = u[r + 1] * d[i, 0] + u[r + 2] * d[i, 1]  # slip velocity along the friction force
-            nxt = m
+            nxt, sev = m, 0.0
             if m == _SEP and u[r] < -vtol:
-                nxt = _STICK  # penetrating
+                nxt, sev = _STICK, -u[r] / vscale  # penetrating
             if m != _SEP and new[r] < -ftol:
-                nxt = _SEP  # pulling
+                nxt, sev = _SEP, -new[r] / fscale  # pulling
             if m == _STICK and ltn > mu[i] * new[r] + ftol:
-                nxt = _SLIP  # outside the cone
-                d[i, 0], d[i, 1] = new[r + 1] / ltn, new[r + 2] / ltn
+                nxt, sev = _SLIP, (ltn - mu[i] * new[r]) / fscale  # outside the cone
             if m == _SLIP and along > vtol:
-                nxt = _STICK  # slipping along the friction force
+                nxt, sev = _STICK, along / vscale  # slipping along the friction force
+            change[i] = nxt
             if nxt != m:
-                same = False
-                mode[i] = nxt
-        if same:
+                n_viol += 1
+                if sev > worst_sev:
+                    worst, worst_sev = i, sev
+        if n_viol == 0:
             return True, new
+        # All violated contacts switch in the first round; later only the worst one, which
+        # stops the cycling of ill-conditioned problems (a few contacts on one reduced leg).
+        for i in range(k):
+            if change[i] != mode[i] and (rnd == 0 or i == worst or not single):
+                if change[i] == _SLIP:
+                    ltn = np.hypot(new[3 * i + 1], new[3 * i + 2])
+                    d[i, 0], d[i, 1] = new[3 * i + 1] / ltn, new[3 * i + 2] / ltn
+                mode[i] = change[i]
     return False, new
 
 
-def polish_active_set(W, q, mu, lam, max_rounds=12, rtol=1e-9):
+def polish_active_set(W, q, mu, lam, max_rounds=30, rtol=1e-9):
     """Solve the contact problem exactly by a primal-dual active-set iteration from ``lam``.
 
     Each contact is separated (``lam = 0``), sticking (``u = 0`` on its three rows) or
@@ -189,7 +207,9 @@ def polish_active_set(W, q, mu, lam, max_rounds=12, rtol=1e-9):
     from ``lam``; the check demands ``u_t . d <= 0``). Starting from the pattern of ``lam``,
     the equalities are solved directly and the pattern is updated from the violated
     conditions (penetration -> stick, pulling -> separate, outside the cone -> slip, slip
-    along the force -> stick) until it is consistent (compiled: :func:`_polish`).
+    along the force -> stick) until it is consistent (compiled: :func:`_polish`): all of
+    them in the first round, then the most violated one per round (up to
+    :data:`SINGLE_SWITCH_MAX_CONTACTS` contacts), which avoids cycling.
 
     Args:
         W, q, mu: as in :func:`pgs_coulomb`.
