@@ -16,11 +16,12 @@ The contact problem is solved by projected block Gauss-Seidel on the condensed `
 (Jean 1999, "The non-smooth contact dynamics method"; Duriez et al. 2006, as used by
 SOFA's GenericConstraintSolver), then *polished*: the stick/slip/separation pattern that
 Gauss-Seidel found is taken as the active set and the resulting equalities are solved
-directly; the polished impulses are kept when they satisfy every condition of the
-problem (which makes sticking contacts stick to round-off, where Gauss-Seidel alone
-converges slowly on the ill-conditioned ``W`` of stiff bodies). When last step's impulses
-are available the exact active-set solve is tried first from them, and Gauss-Seidel runs
-only if it fails.
+directly, and the friction directions of slipping contacts are then turned opposite to
+their slip by Newton's method (maximal dissipation); the polished impulses are kept when
+they satisfy every condition of the problem (which makes sticking contacts stick to
+round-off, where Gauss-Seidel alone converges slowly on the ill-conditioned ``W`` of stiff
+bodies). When last step's impulses are available the exact active-set solve is tried first
+from them, and Gauss-Seidel runs only if it fails.
 """
 
 from __future__ import annotations
@@ -106,6 +107,116 @@ EXTRA_SWEEP_CHUNKS = 8
 SINGLE_SWITCH_MAX_CONTACTS = 40
 #: Polish rounds above that size.
 MULTI_SWITCH_ROUNDS = 12
+#: A slipping contact's friction direction must be opposite to its slip velocity to within
+#: this angle (rad) for the polish to stop aligning it (Coulomb's maximal dissipation).
+DIRECTION_TOLERANCE = 1e-6
+#: Newton iterations of one alignment, and alignments per polish.
+ALIGN_ITERATIONS = 25
+MAX_ALIGNMENTS = 4
+
+
+@njit(cache=True)
+def _align_slip(W, q, mu, mode, d, lam, vtol, max_iterations):
+    """Newton iteration turning the friction directions ``d`` of the slipping contacts that
+    slip (``|u_t| > vtol``) until each is opposite to its slip velocity, on the fixed
+    stick/slip/separation pattern ``mode``.
+
+    Unknowns: the 3 impulses of each sticking contact, the normal impulse ``a`` and the
+    direction angle of each slipping one (``lam_t = mu a (cos t, sin t)``). Equations:
+    ``u = 0`` (stick), ``u_n = 0`` (slip) and ``d x u_t = 0`` (slip, maximal dissipation).
+    ``d`` and ``lam`` are updated in place when the directions converge to
+    :data:`DIRECTION_TOLERANCE`. Returns whether they did.
+    """
+    k = mu.shape[0]
+    u0 = W @ lam + q
+    stick = np.flatnonzero(mode == _STICK)
+    slip = np.flatnonzero(mode == _SLIP)
+    ns, npl = 3 * len(stick), len(slip)
+    turn = np.zeros(npl, np.bool_)  # slipping contacts whose direction is an unknown
+    for c in range(npl):
+        j = 3 * slip[c]
+        turn[c] = np.hypot(u0[j + 1], u0[j + 2]) > vtol and lam[j] > 0.0
+    nt = int(turn.sum())
+    tcol = np.full(npl, -1, np.int64)
+    col = ns + npl
+    for c in range(npl):
+        if turn[c]:
+            tcol[c] = col
+            col += 1
+    n = col
+    x = np.empty(n)
+    for a in range(len(stick)):
+        for c in range(3):
+            x[3 * a + c] = lam[3 * stick[a] + c]
+    for c in range(npl):
+        j = 3 * slip[c]
+        x[ns + c] = lam[j]
+        if turn[c]:
+            x[tcol[c]] = np.arctan2(d[slip[c], 1], d[slip[c], 0])
+    th = np.empty(npl)
+    L = np.zeros(3 * k)
+    F = np.empty(n)
+    dL = np.zeros((3 * k, n))
+    for it in range(max_iterations + 1):
+        L[:] = 0.0
+        for a in range(len(stick)):
+            for c in range(3):
+                L[3 * stick[a] + c] = x[3 * a + c]
+        for c in range(npl):
+            i, j = slip[c], 3 * slip[c]
+            th[c] = x[tcol[c]] if turn[c] else np.arctan2(d[i, 1], d[i, 0])
+            L[j] = x[ns + c]
+            L[j + 1] = mu[i] * x[ns + c] * np.cos(th[c])
+            L[j + 2] = mu[i] * x[ns + c] * np.sin(th[c])
+        u = W @ L + q
+        done = True
+        for a in range(ns):
+            F[a] = u[3 * stick[a // 3] + a % 3]
+            done = done and abs(F[a]) <= vtol
+        for c in range(npl):
+            j = 3 * slip[c]
+            F[ns + c] = u[j]
+            done = done and abs(u[j]) <= vtol
+            if turn[c]:
+                g = np.cos(th[c]) * u[j + 2] - np.sin(th[c]) * u[j + 1]  # d x u_t
+                F[tcol[c]] = g
+                done = done and abs(g) <= DIRECTION_TOLERANCE * np.hypot(u[j + 1], u[j + 2])
+        if done:
+            for c in range(npl):
+                d[slip[c], 0], d[slip[c], 1] = np.cos(th[c]), np.sin(th[c])
+            lam[:] = L
+            return True
+        if it == max_iterations:
+            break
+        # Jacobian: dF/dx = (rows of W dL/dx), plus the direct d(d x u_t)/dt = -d . u_t.
+        dL[:, :] = 0.0
+        for a in range(ns):
+            dL[3 * stick[a // 3] + a % 3, a] = 1.0
+        for c in range(npl):
+            i, j = slip[c], 3 * slip[c]
+            cs, sn = np.cos(th[c]), np.sin(th[c])
+            dL[j, ns + c] = 1.0
+            dL[j + 1, ns + c] = mu[i] * cs
+            dL[j + 2, ns + c] = mu[i] * sn
+            if turn[c]:
+                dL[j + 1, tcol[c]] = -mu[i] * x[ns + c] * sn
+                dL[j + 2, tcol[c]] = mu[i] * x[ns + c] * cs
+        dU = W @ dL
+        J = np.empty((n, n))
+        for a in range(ns):
+            J[a] = dU[3 * stick[a // 3] + a % 3]
+        for c in range(npl):
+            j = 3 * slip[c]
+            J[ns + c] = dU[j]
+            if turn[c]:
+                cs, sn = np.cos(th[c]), np.sin(th[c])
+                J[tcol[c]] = cs * dU[j + 2] - sn * dU[j + 1]
+                J[tcol[c], tcol[c]] -= cs * u[j + 1] + sn * u[j + 2]
+        try:
+            x += np.linalg.solve(J, -F)
+        except Exception:  # singular: directions not determined
+            return False
+    return False
 
 
 @njit(cache=True)
@@ -120,10 +231,13 @@ def _polish(W, q, mu, lam, max_rounds, rtol):
         den = max(lt, 1e-300)
         d[i, 0], d[i, 1] = lam[3 * i + 1] / den, lam[3 * i + 2] / den
     vscale = max(np.abs(q).max(), 1e-300) if k else 1e-300
+    vtol = rtol * vscale
     new = np.zeros(3 * k)
     u = np.empty(3 * k)
     change = np.empty(k, np.int64)
     single = k <= SINGLE_SWITCH_MAX_CONTACTS
+    alignments, have_found = 0, False
+    found = np.zeros(3 * k)  # the last consistent solution before an alignment
     for rnd in range(max_rounds if single else min(max_rounds, MULTI_SWITCH_ROUNDS)):
         # Unknowns: 3 impulses per sticking contact, the normal impulse per slipping one
         # (its tangential impulse is mu lam_n d). Equations: u = 0 / u_n = 0 on those rows.
@@ -163,11 +277,10 @@ def _polish(W, q, mu, lam, max_rounds, rtol):
             new[j + 1] = ln * mu[slip[c]] * d[slip[c], 0]
             new[j + 2] = ln * mu[slip[c]] * d[slip[c], 1]
         u[:] = W @ new + q
-        ftol = rtol * max(np.abs(new).max(), 1e-300) if k else 1e-300
-        vtol = rtol * vscale
-        fscale = max(np.abs(new).max(), 1e-300)
+        fscale = max(np.abs(new).max(), 1e-300) if k else 1e-300
+        ftol = rtol * fscale
         # Violations, each with its severity (relative to the impulse or velocity scale).
-        worst, worst_sev, n_viol = -1, -1.0, 0
+        worst, worst_sev, n_viol, misaligned = -1, -1.0, 0, False
         for i in range(k):
             r, m = 3 * i, mode[i]
             ltn = np.hypot(new[r + 1], new[r + 2])
@@ -181,12 +294,25 @@ def _polish(W, q, mu, lam, max_rounds, rtol):
                 nxt, sev = _SLIP, (ltn - mu[i] * new[r]) / fscale  # outside the cone
             if m == _SLIP and along > vtol:
                 nxt, sev = _STICK, along / vscale  # slipping along the friction force
+            if m == _SLIP and abs(d[i, 0] * u[r + 2] - d[i, 1] * u[r + 1]) > DIRECTION_TOLERANCE * max(
+                    np.hypot(u[r + 1], u[r + 2]), vtol / DIRECTION_TOLERANCE):
+                misaligned = True  # friction not opposite to the slip
             change[i] = nxt
             if nxt != m:
                 n_viol += 1
                 if sev > worst_sev:
                     worst, worst_sev = i, sev
         if n_viol == 0:
+            # A consistent pattern. Its slip directions come from the start (last step's
+            # impulses or Gauss-Seidel): turn them opposite to the slip (maximal
+            # dissipation) and check the pattern again with them; if they do not converge,
+            # or no consistent pattern follows, keep the directions found.
+            if misaligned and alignments < MAX_ALIGNMENTS:
+                alignments += 1
+                found[:] = new
+                have_found = True
+                if _align_slip(W, q, mu, mode, d, new.copy(), vtol, ALIGN_ITERATIONS):
+                    continue
             return True, new
         # All violated contacts switch in the first round; later only the worst one, which
         # stops the cycling of ill-conditioned problems (a few contacts on one reduced leg).
@@ -196,6 +322,8 @@ def _polish(W, q, mu, lam, max_rounds, rtol):
                     ltn = np.hypot(new[3 * i + 1], new[3 * i + 2])
                     d[i, 0], d[i, 1] = new[3 * i + 1] / ltn, new[3 * i + 2] / ltn
                 mode[i] = change[i]
+    if have_found:  # aligned directions changed the pattern and no consistent one followed
+        return True, found
     return False, new
 
 
@@ -204,7 +332,10 @@ def polish_active_set(W, q, mu, lam, max_rounds=30, rtol=1e-9):
 
     Each contact is separated (``lam = 0``), sticking (``u = 0`` on its three rows) or
     slipping (``u_n = 0``, ``lam_t = mu lam_n d``, with the friction direction ``d`` taken
-    from ``lam``; the check demands ``u_t . d <= 0``). Starting from the pattern of ``lam``,
+    from ``lam``; the check demands ``u_t . d <= 0``). Once the pattern is consistent, the
+    directions are turned opposite to the slip velocities (:func:`_align_slip`, to
+    :data:`DIRECTION_TOLERANCE`) and the pattern is checked again; if that fails, the
+    consistent solution with the directions from ``lam`` is returned. Starting from the pattern of ``lam``,
     the equalities are solved directly and the pattern is updated from the violated
     conditions (penetration -> stick, pulling -> separate, outside the cone -> slip, slip
     along the force -> stick) until it is consistent (compiled: :func:`_polish`): all of
