@@ -341,17 +341,19 @@ def test_shipped_reduction_loads_and_simulates_the_baseline(tmp_path, monkeypatc
 
 
 def test_validation_report_shows_floor_and_grid_plot(tmp_path):
-    """The Markdown table carries the deformation error and the full-model floor; the grid
-    figure is written from the grid rows."""
+    """The Markdown table carries the deformation error, the chaos floor and the full
+    ensemble's reward range; the grid figure is written from the grid rows."""
     from softcrawl.cli.reduce import _markdown, _plot_grid
 
     row = {"scene": "baseline", "mean_node_error_mm": 1.5, "max_node_error_mm": 9.0,
            "mean_deformation_error_mm": 0.1, "mean_trajectory_error_mm": 1.4, "reward_full_cm": -1.15,
            "reward_reduced_cm": -1.0, "seconds_per_step_full": 0.3, "seconds_per_step_reduced": 0.02,
-           "floor_mean_node_error_mm": 1.42, "floor_mean_deformation_error_mm": 0.06}
-    text = _markdown({"scenes": [row]})
-    assert "| baseline | 1.500 | 9.00 | 0.100 | 1.400 | 1.420 / 0.060 |" in text and "floor" in text
-    plain = {k: v for k, v in row.items() if not k.startswith("floor_")}
+           "floor_mean_node_error_mm": 1.42, "floor_mean_deformation_error_mm": 0.06,
+           "ensemble_rewards_cm": [-1.15, -0.9, -1.3], "reward_in_ensemble": True}
+    text = _markdown({"scenes": [row], "ensemble": 2, "perturbation_mm": 1e-6})
+    assert "| baseline | 1.500 | 9.00 | 0.100 | 1.400 | 1.420 / 0.060 | -1.150 | -1.300 .. -0.900 | -1.000 (inside) |" \
+        in text and "Chaos floor" in text and "1e-06 mm" in text
+    plain = {k: v for k, v in row.items() if not k.startswith(("floor_", "ensemble_", "reward_in"))}
     assert "floor" not in _markdown({"scenes": [plain]})
     rows = [dict(plain, tol_modes=tm, tol_gie=tg, mean_seconds_per_step_reduced=0.01 * (i + 1))
             for i, (tm, tg) in enumerate([(0.01, 0.01), (0.01, 0.001), (0.001, 0.01)])]
@@ -359,12 +361,18 @@ def test_validation_report_shows_floor_and_grid_plot(tmp_path):
     assert (tmp_path / "grid.png").stat().st_size > 10_000
 
 
-def test_validation_refuses_a_floor_that_is_the_reference(tiny):
+def test_validation_ensemble_needs_a_perturbation_of_full_order_runs(tiny):
+    """An ensemble without a positive perturbation would repeat the reference; a perturbed
+    reduced robot would leave its basis' range: both are refused."""
+    from softcrawl.reduction.scenes import reduced_scene_robot, run_scene, training_scenes
     from softcrawl.reduction.validate import validate_reduction
 
     reduction, _, work = tiny
-    with pytest.raises(ValueError, match="floor_refactor_every"):
-        validate_reduction(reduction, TINY, work, floor_refactor_every=1, progress=False)
+    with pytest.raises(ValueError, match="perturbation"):
+        validate_reduction(reduction, TINY, work, ensemble=2, perturbation=0.0, progress=False)
+    scene = training_scenes(1, (1,))[0]
+    with pytest.raises(ValueError, match="full-order"):
+        run_scene(reduced_scene_robot(scene, TINY, reduction), scene.animation, duration=0.02, perturbation=1e-6)
 
 
 def test_saved_runs_with_tuple_parameters_are_reused(tmp_path, monkeypatch):

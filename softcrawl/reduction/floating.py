@@ -13,7 +13,8 @@ decomposition), ``K_0`` the rest stiffness and ``M`` the lumped (isotropic) mass
 ch. 5; the corotational force of Felippa & Haugen 2005, "A unified formulation of small-strain
 corotational finite elements", with one frame for all elements). ``A_0`` is constant, so the
 body's implicit step is one solve with a factorization made once, and its constraint
-compliance columns ``A_0^-1 E`` never change: ``W_b = (H R) A_0^-1 (H R)^T``. ``R`` is
+compliance columns ``A_0^-1 E`` never change: ``W_b = (H R) A_0^-1 (H R)^T`` (a
+:class:`~softcrawl.fem.constraints.NodalCompliance` of ``A_0`` whose ``rotation`` is ``R``). ``R`` is
 taken at the start of the step, as the corotational solver takes its element rotations; like
 there, the tangent ignores the derivative of ``R``. The body keeps all its nodes (no basis):
 this reduces the nonlinearity, not the dimension. It has no per-element inversion check (strains
@@ -38,14 +39,15 @@ def rigid_fit_rotation(x: np.ndarray, rest_centred: np.ndarray, weights: np.ndar
 
     Args:
         x: ``(..., n, 3)`` current positions, mm (leading axes: a batch, e.g. frames).
-        rest_centred: ``(..., n, 3)`` rest positions minus their weighted centroid, mm.
+        rest_centred: ``(..., n, 3)`` rest positions minus their weighted centroid (with
+            ``weights``), mm.
         weights: ``(n,)`` non-negative weights summing to 1 (e.g. nodal masses over the total).
 
     Returns:
         ``(..., 3, 3)`` rotations.
     """
-    xc = x - (weights @ x)[..., None, :]
-    U, _, Vt = np.linalg.svd((rest_centred * weights[:, None]).swapaxes(-1, -2) @ xc)
+    # sum_n w_n X_n (x_n - xbar)^T = sum_n w_n X_n x_n^T: the weighted X_n sum to zero.
+    U, _, Vt = np.linalg.svd((rest_centred * weights[:, None]).swapaxes(-1, -2) @ x)
     D = np.ones(U.shape[:-1])
     D[..., 2] = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
     return (Vt.swapaxes(-1, -2) * D[..., None, :]) @ U.swapaxes(-1, -2)

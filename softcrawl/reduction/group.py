@@ -18,7 +18,7 @@ import numpy as np
 from softcrawl.fem.constraints import FixedRows
 from softcrawl.fem.model import Model
 from softcrawl.reduction.kernels import (accumulate_terms, add_delassus, cavity_loads, corrections,
-                                         implicit_steps, point_velocity)
+                                         floor_candidates, implicit_steps, point_velocity)
 from softcrawl.reduction.model import ElementFactors, ReducedBody
 
 
@@ -192,6 +192,18 @@ class ModalGroup:
         """``(L, m)`` modal velocity corrections for the impulses ``lam`` ``(3B,)``, mN s."""
         return corrections(lam, chol, self.fixed_rows, self.fixed_blocks, self.frame_rot, self.basis, *contacts)
 
+    def floor_candidates(self, x: np.ndarray, qdot: np.ndarray, h: float, floor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(nodes, gaps, vz)`` of the collision nodes that are floor contact candidates
+        (:func:`softcrawl.reduction.kernels.floor_candidates`; ``floor``: a
+        :class:`~softcrawl.fem.model.Floor`)."""
+        return floor_candidates(x, self.offsets, self.collision, self.collision_bound, qdot, self._z_axes,
+                                self.basis, h, floor.height, floor.contact_distance)
+
+    @property
+    def _z_axes(self) -> np.ndarray:
+        """``(L, 3)`` each body's world z axis in its part frame (``R_b^T e_z``)."""
+        return np.ascontiguousarray(self.rotations[:, 2, :])
+
     def velocity_z(self, qdot: np.ndarray, body: np.ndarray, node: np.ndarray) -> np.ndarray:
         """``(k,)`` world z velocities at ``(body in group, part node)`` points, mm/s."""
-        return point_velocity(qdot, np.ascontiguousarray(self.rotations[:, 2, :]), self.basis, body, node)
+        return point_velocity(qdot, self._z_axes, self.basis, body, node)

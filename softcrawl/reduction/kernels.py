@@ -341,3 +341,50 @@ def point_velocity(qdot, direction, basis, body, node):
                     + direction[b, 2] * basis[n + 2, j]) * qdot[b, j]
         out[c] = acc
     return out
+
+
+@njit(cache=True)
+def floor_candidates(x, offsets, collision, bound, qdot, direction, basis, h, height, distance):
+    """Collision nodes of a group's bodies that are floor contact candidates: gap below
+    ``distance`` before or after the free motion (``gap + h v_z``).
+
+    A node is skipped without computing its velocity when ``gap - h bound_n |qdot_b| >=
+    distance`` (``|v_n| <= bound_n |qdot_b|`` with ``bound_n`` the Frobenius norm of its
+    basis rows: the basis is orthonormal).
+
+    Args:
+        x: ``(N, 3)`` stacked positions, mm; offsets: ``(L,)`` the bodies' first nodes.
+        collision: ``(c,)`` part nodes; bound: ``(c,)`` their basis-row norms.
+        qdot: ``(L, m)`` free modal velocities; direction: ``(L, 3)`` each body's world z axis
+            in the part frame; basis: ``(3n, m)`` the part basis.
+        h: time step, s; height: floor z, mm; distance: contact distance, mm.
+
+    Returns:
+        ``(nodes, gaps, vz)``: global node indices ``(k,)``, their gaps (mm) and free z
+        velocities (mm/s), in body then collision order.
+    """
+    L, m = qdot.shape
+    c = collision.shape[0]
+    nodes = np.empty(L * c, np.int64)
+    gaps = np.empty(L * c)
+    vz = np.empty(L * c)
+    k = 0
+    for b in range(L):
+        speed = 0.0
+        for j in range(m):
+            speed += qdot[b, j] * qdot[b, j]
+        reach = h * np.sqrt(speed)
+        for i in range(c):
+            node = offsets[b] + collision[i]
+            gap = x[node, 2] - height
+            if gap - reach * bound[i] >= distance:
+                continue
+            r = 3 * collision[i]
+            v = 0.0
+            for j in range(m):
+                v += (direction[b, 0] * basis[r, j] + direction[b, 1] * basis[r + 1, j]
+                      + direction[b, 2] * basis[r + 2, j]) * qdot[b, j]
+            if min(gap, gap + h * v) < distance:
+                nodes[k], gaps[k], vz[k] = node, gap, v
+                k += 1
+    return nodes[:k], gaps[:k], vz[:k]

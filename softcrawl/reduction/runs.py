@@ -28,13 +28,16 @@ REDUCED_ONLY_FIELDS = ("reduced_disk",)
 SNAPSHOT_KEYS = {"leg": "u", "disk": "u_disk"}
 
 
-def _settings(scene: Scene, config: RobotConfig, kind: str, record_every: int) -> dict:
+def _settings(scene: Scene, config: RobotConfig, kind: str, record_every: int,
+              perturbation: tuple[float, int] = (0.0, 0)) -> dict:
     """The settings of a run as they read back from its ``.json`` (tuples become lists), so
     that a finished run compares equal to its saved settings. Fields of ``config`` that only
     a reduced model reads are left out: they do not change a full-order run."""
     config = {k: v for k, v in dataclasses.asdict(config).items() if k not in REDUCED_ONLY_FIELDS}
     settings = {"kind": kind, "scene": scene.describe(), "config": config,
                 "record_every": record_every, "version": __version__}
+    if perturbation[0]:
+        settings["perturbation"] = {"amplitude_mm": perturbation[0], "seed": perturbation[1]}
     if kind == "snapshots":
         settings["arrays"] = sorted(SNAPSHOT_KEYS.values())
     return json.loads(json.dumps(settings))
@@ -46,8 +49,10 @@ def _save(path: Path, arrays: dict, settings: dict) -> None:
                        lambda tmp: tmp.write_text(json.dumps(settings, indent=1) + "\n", encoding="utf-8"))
 
 
-def run_fom_scene(scene: Scene, config: RobotConfig, kind: str, record_every: int, path: str) -> str:
-    """Run one scene on the full-order model and save it (worker entry point).
+def run_fom_scene(scene: Scene, config: RobotConfig, kind: str, record_every: int, path: str,
+                  perturbation: tuple[float, int] = (0.0, 0)) -> str:
+    """Run one scene on the full-order model and save it (worker entry point);
+    ``perturbation``: ``(amplitude mm, seed)`` of the initial noise (:func:`run_scene`).
 
     ``kind == "snapshots"`` saves the leg-local displacements ``u`` ``(k * n_legs, n, 3)``
     and the disk's ``u_disk`` ``(k, n_disk, 3)``, float32 (mm); ``kind == "reference"`` saves
@@ -58,7 +63,8 @@ def run_fom_scene(scene: Scene, config: RobotConfig, kind: str, record_every: in
         RuntimeError: the full-order run diverged (no file is written).
     """
     robot = scene_robot(scene, config)
-    rec = run_scene(robot, scene.animation, record_every=record_every)
+    rec = run_scene(robot, scene.animation, record_every=record_every, perturbation=perturbation[0],
+                    seed=perturbation[1])
     if rec.diverged:
         raise RuntimeError(f"full-order scene {scene.name!r} diverged: {rec.diverged}")
     if kind == "snapshots":
@@ -67,7 +73,7 @@ def run_fom_scene(scene: Scene, config: RobotConfig, kind: str, record_every: in
         arrays = {"positions": rec.positions, "times": rec.times, "reward_x": rec.reward_x}
     arrays["wall_seconds"] = np.array(rec.wall_seconds)
     arrays["steps"] = np.array(rec.steps)
-    _save(Path(path), arrays, _settings(scene, config, kind, record_every))
+    _save(Path(path), arrays, _settings(scene, config, kind, record_every, perturbation))
     return path
 
 
@@ -79,7 +85,8 @@ def _is_done(path: Path, settings: dict) -> bool:
 
 
 def run_fom_scenes(directory: str | os.PathLike, scenes: Sequence[Scene], config: RobotConfig, kind: str,
-                   record_every: int = 2, workers: int | None = None, progress: bool = True) -> list[Path]:
+                   record_every: int = 2, workers: int | None = None, progress: bool = True,
+                   perturbation: tuple[float, int] = (0.0, 0)) -> list[Path]:
     """Run (or reuse) the full-order runs of ``scenes`` into ``directory/<scene>.npz``.
 
     Args:
@@ -90,6 +97,7 @@ def run_fom_scenes(directory: str | os.PathLike, scenes: Sequence[Scene], config
         record_every: steps between recorded frames (reduction.md: every 0.02 s).
         workers: processes (default: the CPU count).
         progress: show a progress bar over scenes.
+        perturbation: ``(amplitude mm, seed)`` of the initial noise of every run.
 
     Returns:
         The ``.npz`` paths, in scene order.
@@ -99,8 +107,8 @@ def run_fom_scenes(directory: str | os.PathLike, scenes: Sequence[Scene], config
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"{s.name}.npz" for s in scenes]
-    todo = [(s, config, kind, record_every, str(p)) for s, p in zip(scenes, paths)
-            if not _is_done(p, _settings(s, config, kind, record_every))]
+    todo = [(s, config, kind, record_every, str(p), perturbation) for s, p in zip(scenes, paths)
+            if not _is_done(p, _settings(s, config, kind, record_every, perturbation))]
     bar = tqdm(total=len(scenes), initial=len(scenes) - len(todo), unit="scene", desc=f"full-order {kind}",
                disable=not progress, dynamic_ncols=True)
     try:

@@ -139,7 +139,7 @@ class SceneRecord:
 
 
 def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, duration: float | None = None,
-              on_step: Callable[[int], None] | None = None) -> SceneRecord:
+              on_step: Callable[[int], None] | None = None, perturbation: float = 0.0, seed: int = 0) -> SceneRecord:
     """Settle ``SETTLE_STEPS`` at zero pressure, then play the animation, recording every
     ``record_every`` steps (and at t = 0).
 
@@ -150,12 +150,24 @@ def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, durat
         record_every: steps between records.
         duration: s (default: the animation's).
         on_step: called with the step index after each step (progress).
+        perturbation: amplitude (mm) of independent uniform noise added to every rest node
+            position before settling (``seed`` draws it): a run that differs from the
+            unperturbed one only at round-off scale, to measure how far the model's own
+            trajectories drift apart (full-order robots only).
+
+    Raises:
+        ValueError: a perturbation of a reduced robot (its nodes must stay in its basis' range).
     """
     solver = solver or robot.make_solver()
     dt = robot.config.dt
     n = int(round((duration if duration is not None else animation.duration) / dt))
     nch = robot.model.n_channels
     state = robot.model.rest_state()
+    if perturbation:
+        if robot.reduced:
+            raise ValueError("initial perturbations are for full-order robots (reduced nodes stay in their basis' range)")
+        noise = np.random.default_rng(seed).uniform(-perturbation, perturbation, state.x.shape)
+        state = dataclasses.replace(state, x=state.x + noise)
     times, frames, rx = [], [], []
     wall = time.perf_counter()
     reason = ""

@@ -155,17 +155,10 @@ class ReducedSolver(ImplicitEulerSolver):
             return near, gaps
         parts, part_gaps = [near], [gaps]
         for group, (qd, _) in zip(self.groups, self._free):
-            nodes = group.offsets[:, None] + group.collision[None, :]
-            gap = x[nodes, 2] - floor.height
-            reach = h * group.collision_bound[None, :] * np.linalg.norm(qd, axis=1)[:, None]
-            member, col = np.nonzero(gap - reach < floor.contact_distance)
-            vz = group.velocity_z(qd, member, group.collision[col])
-            g = gap[member, col]
-            close = np.minimum(g, g + h * vz) < floor.contact_distance
-            n = nodes[member[close], col[close]]
-            v_free[n, 2] = vz[close]
+            n, g, vz = group.floor_candidates(x, qd, h, floor)
+            v_free[n, 2] = vz
             parts.append(n)
-            part_gaps.append(g[close])
+            part_gaps.append(g)
         near, gaps = np.concatenate(parts), np.concatenate(part_gaps)
         order = np.argsort(near)
         return near[order], gaps[order]

@@ -8,11 +8,13 @@ mean disk top-centre trajectory error (mm), the reward (+x of the disk top centr
 both and its error, and the wall time per step of both models (settling included).
 
 The reference is the exact full-order model (``refactor_every=1``). A crawler's stick-slip
-motion is sensitive: two *full-order* runs that differ only in solver settings drift apart
-by millimetres. So each scene also reports that floor, the distance between the exact
-reference and a full-order run reusing factorizations (``floor_refactor_every``): reduced
-errors near the floor are as good as the full model's own solver sensitivity, and the
-deformation error separates the reduction's approximation from rigid drift.
+motion is chaotic: full-order runs whose initial node positions differ by round-off-sized
+noise (``perturbation``, 1e-6 mm) end millimetres apart. So each scene is also run by an
+*ensemble* of such perturbed full-order runs, and reports their distance to the reference
+(the chaos floor: no model, the full one included, can be closer to the reference than
+that on average) and the spread of their rewards: a reduced reward inside the ensemble's
+range is as close as the full model's own reward is to itself. The deformation error
+separates the reduction's approximation from rigid drift.
 """
 
 from __future__ import annotations
@@ -34,12 +36,14 @@ from softcrawl.robot.episode import MM_PER_CM, SETTLE_STEPS
 
 def fom_references(workdir: str | os.PathLike, config: RobotConfig, scenes: tuple[Scene, ...],
                    record_every: int = 2, workers: int | None = None, progress: bool = True,
-                   refactor_every: int = 1) -> list[Path]:
-    """Full-order runs of the validation scenes into ``workdir/reference`` (exact solver) or
-    ``workdir/reference_refactor<k>``, reused when their settings match."""
-    fom = dataclasses.replace(config, model="full", reduction=None, refactor_every=refactor_every)
-    name = "reference" if refactor_every == 1 else f"reference_refactor{refactor_every}"
-    return run_fom_scenes(Path(workdir) / name, scenes, fom, "reference", record_every, workers, progress)
+                   perturbation: float = 0.0, seed: int = 0) -> list[Path]:
+    """Exact full-order runs of the validation scenes into ``workdir/reference`` (or, with an
+    initial ``perturbation`` (mm) drawn by ``seed``, ``workdir/perturbed<seed>``), reused
+    when their settings match."""
+    fom = dataclasses.replace(config, model="full", reduction=None, refactor_every=1)
+    name = f"perturbed{seed}" if perturbation else "reference"
+    return run_fom_scenes(Path(workdir) / name, scenes, fom, "reference", record_every, workers, progress,
+                          (perturbation, seed))
 
 
 def deformation_error(a: np.ndarray, b: np.ndarray, bodies: list[slice]) -> np.ndarray:
@@ -69,10 +73,16 @@ def _errors(a: np.ndarray, b: np.ndarray, bodies: list[slice], node: int) -> dic
             "mean_trajectory_error_mm": float(err[:, node].mean())}
 
 
+def _reward(positions: np.ndarray, node: int) -> float:
+    """+x displacement of ``node`` over ``positions`` ``(k, N, 3)``, cm."""
+    return float((positions[-1, node, 0] - positions[0, node, 0]) / MM_PER_CM)
+
+
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
-                  record_every: int = 2, floor_reference: Path | None = None) -> dict:
-    """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run
-    (and, given ``floor_reference``, that run with the reference: keys ``floor_*``).
+                  record_every: int = 2, ensemble: list[Path] = ()) -> dict:
+    """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run;
+    given perturbed full-order runs (``ensemble``), also their mean distance to the reference
+    (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first).
 
     Raises:
         ValueError: a reference was recorded on another mesh or at other times.
@@ -86,57 +96,61 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         raise ValueError(f"reference {reference} does not match the reduction's robot (mesh or duration differ)")
     bodies = [robot.model.body_slice(i) for i in range(len(robot.model.bodies))]
     node = robot.reward_node
-    reward_rom = (rec.positions[-1, node, 0] - rec.positions[0, node, 0]) / MM_PER_CM
-    reward_fom = (fom_x[k - 1, node, 0] - fom_x[0, node, 0]) / MM_PER_CM
+    reward_rom, reward_fom = _reward(rec.positions, node), _reward(fom_x[:k], node)
     steps_fom = int(ref["steps"]) + SETTLE_STEPS
     row = {"scene": scene.name, "diverged": rec.diverged, "frames": k,
            **_errors(rec.positions.astype(float), fom_x[:k], bodies, node),
-           "reward_full_cm": float(reward_fom), "reward_reduced_cm": float(reward_rom),
-           "reward_error_cm": float(abs(reward_rom - reward_fom)),
+           "reward_full_cm": reward_fom, "reward_reduced_cm": reward_rom,
+           "reward_error_cm": abs(reward_rom - reward_fom),
            "seconds_per_step_full": float(ref["wall_seconds"]) / steps_fom,
            "seconds_per_step_reduced": rec.wall_seconds / (rec.steps + SETTLE_STEPS)}
-    if floor_reference is not None:
-        other = np.load(floor_reference)["positions"].astype(float)
-        if other.shape != fom_x.shape:
-            raise ValueError(f"{floor_reference} does not match {reference} (mesh or duration differ)")
-        row.update({f"floor_{key}": v for key, v in _errors(other[:k], fom_x[:k], bodies, node).items()})
-        row["floor_reward_cm"] = float((other[k - 1, node, 0] - other[0, node, 0]) / MM_PER_CM)
+    if ensemble:
+        members = [np.load(p)["positions"].astype(float) for p in ensemble]
+        if any(x.shape != fom_x.shape for x in members):
+            raise ValueError(f"the perturbed runs do not match {reference} (mesh or duration differ)")
+        floors = [_errors(x[:k], fom_x[:k], bodies, node) for x in members]
+        row.update({f"floor_{key}": float(np.mean([f[key] for f in floors])) for key in floors[0]})
+        rewards = [reward_fom] + [_reward(x[:k], node) for x in members]
+        row.update(ensemble_rewards_cm=rewards, reward_in_ensemble=bool(min(rewards) <= reward_rom <= max(rewards)))
     return row
 
 
 def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: str | os.PathLike,
                        scenes: tuple[Scene, ...] | None = None, record_every: int = 2,
-                       workers: int | None = None, progress: bool = True,
-                       floor_refactor_every: int | None = 5) -> dict:
+                       workers: int | None = None, progress: bool = True, ensemble: int = 3,
+                       perturbation: float = 1e-6) -> dict:
     """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
-        floor_refactor_every: also run the full model with this factorization reuse and
-            report its distance to the exact one (the sensitivity floor); None: skip.
+        ensemble: perturbed full-order runs per scene (the chaos floor and reward spread; 0:
+            none).
+        perturbation: their initial noise amplitude, mm.
 
     Raises:
-        ValueError: ``floor_refactor_every`` below 2 (the floor run would be the reference).
+        ValueError: a negative ensemble, or an ensemble without a positive perturbation.
 
     Returns:
         ``{"scenes": [per-scene dicts of compare_scene], "mean_node_error_mm",
         "mean_deformation_error_mm", "max_scene_node_error_mm", "floor_mean_node_error_mm"
-        (with a floor), "mean_seconds_per_step_full/reduced", "speedup", sizes}``.
+        and "floor_mean_deformation_error_mm" (with an ensemble),
+        "mean_seconds_per_step_full/reduced", "speedup", sizes}``.
     """
-    if floor_refactor_every is not None and floor_refactor_every < 2:
-        raise ValueError(f"floor_refactor_every must be >= 2 (1 is the exact reference), got {floor_refactor_every}")
+    if ensemble < 0 or (ensemble and not perturbation > 0):
+        raise ValueError(f"an ensemble needs a positive perturbation, got ensemble={ensemble}, "
+                         f"perturbation={perturbation}")
     scenes = scenes or validation_scenes()
     refs = fom_references(workdir, config, scenes, record_every, workers, progress)
-    floors = (fom_references(workdir, config, scenes, record_every, workers, progress, floor_refactor_every)
-              if floor_refactor_every else [None] * len(scenes))
-    rows = [compare_scene(reduction, config, s, r, record_every, f)
-            for s, r, f in tqdm(list(zip(scenes, refs, floors)), desc="reduced runs", unit="scene",
-                                disable=not progress)]
+    members = [fom_references(workdir, config, scenes, record_every, workers, progress, perturbation, seed)
+               for seed in range(1, ensemble + 1)]
+    rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members])
+            for i, (s, r) in enumerate(tqdm(list(zip(scenes, refs)), desc="reduced runs", unit="scene",
+                                            disable=not progress))]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
     red = float(np.mean([r["seconds_per_step_reduced"] for r in rows]))
     means = {key: float(np.mean([r[key] for r in rows])) for key in
              ("mean_node_error_mm", "mean_deformation_error_mm", "floor_mean_node_error_mm",
               "floor_mean_deformation_error_mm") if key in rows[0]}
-    return {"scenes": rows, **means,
+    return {"scenes": rows, **means, "ensemble": ensemble, "perturbation_mm": perturbation,
             "max_scene_node_error_mm": float(max(r["mean_node_error_mm"] for r in rows)),
             "mean_seconds_per_step_full": full, "mean_seconds_per_step_reduced": red, "speedup": full / red,
             **reduction_sizes(reduction)}
