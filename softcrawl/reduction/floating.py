@@ -28,8 +28,20 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 
 from softcrawl.fem.body import Body
+
+
+@njit(cache=True)
+def _kabsch(x, weighted_rest):
+    """``R`` maximising ``tr(R H)``, ``H = sum_n w_n X_n x_n^T``, with ``det R = +1``."""
+    H = weighted_rest.T @ x
+    U, _, Vt = np.linalg.svd(H)
+    d = 1.0 if np.linalg.det(U @ Vt) >= 0.0 else -1.0
+    V = Vt.T.copy()
+    V[:, 2] *= d
+    return V @ U.T
 
 
 def rigid_fit_rotation(x: np.ndarray, rest_centred: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -47,10 +59,31 @@ def rigid_fit_rotation(x: np.ndarray, rest_centred: np.ndarray, weights: np.ndar
         ``(..., 3, 3)`` rotations.
     """
     # sum_n w_n X_n (x_n - xbar)^T = sum_n w_n X_n x_n^T: the weighted X_n sum to zero.
-    U, _, Vt = np.linalg.svd((rest_centred * weights[:, None]).swapaxes(-1, -2) @ x)
-    D = np.ones(U.shape[:-1])
-    D[..., 2] = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
-    return (Vt.swapaxes(-1, -2) * D[..., None, :]) @ U.swapaxes(-1, -2)
+    x, rest = np.broadcast_arrays(np.asarray(x, float), rest_centred)
+    weighted = rest * weights[:, None]
+    out = np.empty(x.shape[:-2] + (3, 3))
+    for i in np.ndindex(x.shape[:-2]):
+        out[i] = _kabsch(np.ascontiguousarray(x[i]), np.ascontiguousarray(weighted[i]))
+    return out
+
+
+@njit(cache=True)
+def floating_rhs(x, v, f, R, X, mass, indptr, indices, data, h, r_mass, r_stiff):
+    """Body-frame velocities ``v' = R^T v`` ``(n, 3)`` and the right-hand side of the body-frame
+    step ``h (R^T f - K_0 (R^T x - X + (h + r_K) v') - r_M M v')`` ``(3n,)`` (module doc);
+    ``K_0`` in CSR (``indptr, indices, data``), ``mass`` ``(n,)`` nodal masses."""
+    n = x.shape[0]
+    vb = v @ R
+    stretch = (x @ R - X + (h + r_stiff) * vb).ravel()
+    fb = (f @ R).ravel()
+    vf = vb.ravel()
+    rhs = np.empty(3 * n)
+    for i in range(3 * n):
+        acc = 0.0
+        for p in range(indptr[i], indptr[i + 1]):
+            acc += data[p] * stretch[indices[p]]
+        rhs[i] = h * (fb[i] - acc - r_mass * mass[i // 3] * vf[i])
+    return vb, rhs
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,6 +120,11 @@ class FloatingFrameBody:
         _, data, _ = self.body.internal_forces(self.body.mesh.points, tangent_coef=1.0)
         return self.body.pattern.matrix(data)
 
+    @cached_property
+    def weighted_rest(self) -> np.ndarray:
+        """``(n, 3)`` :attr:`rest_centred` times :attr:`weights`."""
+        return np.ascontiguousarray(self.rest_centred * self.weights[:, None])
+
     def rotation(self, x: np.ndarray) -> np.ndarray:
         """``(3, 3)`` the floating frame's rotation at positions ``x`` ``(n, 3)`` mm."""
-        return rigid_fit_rotation(x, self.rest_centred, self.weights)
+        return _kabsch(np.ascontiguousarray(x), self.weighted_rest)

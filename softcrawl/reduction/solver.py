@@ -31,7 +31,7 @@ from softcrawl.fem.linalg import Factorization
 from softcrawl.fem.model import Model
 from softcrawl.fem.solver import _FLOOR_FRAME, ImplicitEulerSolver, SimulationDiverged, SolverSettings
 from softcrawl.fem.state import Control, State
-from softcrawl.reduction.floating import FloatingFrameBody
+from softcrawl.reduction.floating import FloatingFrameBody, floating_rhs
 from softcrawl.reduction.group import ModalGroup
 from softcrawl.reduction.model import ReducedBody
 
@@ -138,10 +138,10 @@ class ReducedSolver(ImplicitEulerSolver):
         f = body.external_forces(x, control.pressures, np.asarray(m.gravity))
         if control.forces is not None:
             f = f + control.forces[m.body_slice(i)]
-        vb = (v @ R).ravel()
-        stretch = (x @ R - body.mesh.points).ravel() + (h + m.rayleigh_stiffness) * vb
-        rhs = h * ((f @ R).ravel() - fb.rest_stiffness @ stretch - m.rayleigh_mass * self._mass3[i] * vb)
-        return (vb + c.factor.solve(rhs)).reshape(-1, 3) @ R.T
+        K = fb.rest_stiffness
+        vb, rhs = floating_rhs(x, v, f, R, body.mesh.points, body.nodal_mass, K.indptr, K.indices, K.data, h,
+                               m.rayleigh_mass, m.rayleigh_stiffness)
+        return (vb + c.factor.solve(rhs).reshape(-1, 3)) @ R.T
 
     # -- constraints ---------------------------------------------------------------------
     def _contact_rows(self, x: np.ndarray, v_free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
