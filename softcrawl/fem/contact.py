@@ -153,10 +153,16 @@ def _align_slip(W, q, mu, mode, d, lam, vtol, max_iterations):
         x[ns + c] = lam[j]
         if turn[c]:
             x[tcol[c]] = np.arctan2(d[slip[c], 1], d[slip[c], 0])
-    th = np.empty(npl)
+    cof = np.full(n, -1, np.int64)  # direction column -> its slipping contact
+    for c in range(npl):
+        if turn[c]:
+            cof[tcol[c]] = c
+    cth, sth = np.empty(npl), np.empty(npl)  # the slip directions of this iteration
     L = np.zeros(3 * k)
     F = np.empty(n)
-    dL = np.zeros((3 * k, n))
+    J = np.empty((n, n))
+    dlam, du = np.empty(3), np.empty(3)
+    cols = np.empty(3, np.int64)
     for it in range(max_iterations + 1):
         L[:] = 0.0
         for a in range(len(stick)):
@@ -164,10 +170,11 @@ def _align_slip(W, q, mu, mode, d, lam, vtol, max_iterations):
                 L[3 * stick[a] + c] = x[3 * a + c]
         for c in range(npl):
             i, j = slip[c], 3 * slip[c]
-            th[c] = x[tcol[c]] if turn[c] else np.arctan2(d[i, 1], d[i, 0])
+            th = x[tcol[c]] if turn[c] else np.arctan2(d[i, 1], d[i, 0])
+            cth[c], sth[c] = np.cos(th), np.sin(th)
             L[j] = x[ns + c]
-            L[j + 1] = mu[i] * x[ns + c] * np.cos(th[c])
-            L[j + 2] = mu[i] * x[ns + c] * np.sin(th[c])
+            L[j + 1] = mu[i] * x[ns + c] * cth[c]
+            L[j + 2] = mu[i] * x[ns + c] * sth[c]
         u = W @ L + q
         done = True
         for a in range(ns):
@@ -178,40 +185,47 @@ def _align_slip(W, q, mu, mode, d, lam, vtol, max_iterations):
             F[ns + c] = u[j]
             done = done and abs(u[j]) <= vtol
             if turn[c]:
-                g = np.cos(th[c]) * u[j + 2] - np.sin(th[c]) * u[j + 1]  # d x u_t
+                g = cth[c] * u[j + 2] - sth[c] * u[j + 1]  # d x u_t
                 F[tcol[c]] = g
                 done = done and abs(g) <= DIRECTION_TOLERANCE * np.hypot(u[j + 1], u[j + 2])
         if done:
             for c in range(npl):
-                d[slip[c], 0], d[slip[c], 1] = np.cos(th[c]), np.sin(th[c])
+                d[slip[c], 0], d[slip[c], 1] = cth[c], sth[c]
             lam[:] = L
             return True
         if it == max_iterations:
             break
-        # Jacobian: dF/dx = (rows of W dL/dx), plus the direct d(d x u_t)/dt = -d . u_t.
-        dL[:, :] = 0.0
-        for a in range(ns):
-            dL[3 * stick[a // 3] + a % 3, a] = 1.0
+        # Jacobian: dF/dx = (rows of W dL/dx), plus the direct d(d x u_t)/dt = -d . u_t;
+        # column by column, dL/dx has at most 3 entries.
+        for col in range(n):
+            if col < ns:
+                dlam[0], dlam[1], dlam[2] = 1.0, 0.0, 0.0
+                base = 3 * stick[col // 3] + col % 3
+                cols[0], cols[1], cols[2] = base, base, base
+            else:
+                c = col - ns if col < ns + npl else cof[col]
+                i, j = slip[c], 3 * slip[c]
+                cs, sn = cth[c], sth[c]
+                cols[0], cols[1], cols[2] = j, j + 1, j + 2
+                if col < ns + npl:  # normal impulse
+                    dlam[0], dlam[1], dlam[2] = 1.0, mu[i] * cs, mu[i] * sn
+                else:  # direction angle
+                    dlam[0], dlam[1], dlam[2] = 0.0, -mu[i] * x[ns + c] * sn, mu[i] * x[ns + c] * cs
+            for a in range(ns):
+                r = 3 * stick[a // 3] + a % 3
+                J[a, col] = W[r, cols[0]] * dlam[0] + W[r, cols[1]] * dlam[1] + W[r, cols[2]] * dlam[2]
+            for c2 in range(npl):
+                j2 = 3 * slip[c2]
+                for e in range(3):
+                    du[e] = (W[j2 + e, cols[0]] * dlam[0] + W[j2 + e, cols[1]] * dlam[1]
+                             + W[j2 + e, cols[2]] * dlam[2])
+                J[ns + c2, col] = du[0]
+                if turn[c2]:
+                    J[tcol[c2], col] = cth[c2] * du[2] - sth[c2] * du[1]
         for c in range(npl):
-            i, j = slip[c], 3 * slip[c]
-            cs, sn = np.cos(th[c]), np.sin(th[c])
-            dL[j, ns + c] = 1.0
-            dL[j + 1, ns + c] = mu[i] * cs
-            dL[j + 2, ns + c] = mu[i] * sn
             if turn[c]:
-                dL[j + 1, tcol[c]] = -mu[i] * x[ns + c] * sn
-                dL[j + 2, tcol[c]] = mu[i] * x[ns + c] * cs
-        dU = W @ dL
-        J = np.empty((n, n))
-        for a in range(ns):
-            J[a] = dU[3 * stick[a // 3] + a % 3]
-        for c in range(npl):
-            j = 3 * slip[c]
-            J[ns + c] = dU[j]
-            if turn[c]:
-                cs, sn = np.cos(th[c]), np.sin(th[c])
-                J[tcol[c]] = cs * dU[j + 2] - sn * dU[j + 1]
-                J[tcol[c], tcol[c]] -= cs * u[j + 1] + sn * u[j + 2]
+                j = 3 * slip[c]
+                J[tcol[c], tcol[c]] -= cth[c] * u[j + 1] + sth[c] * u[j + 2]
         try:
             x += np.linalg.solve(J, -F)
         except Exception:  # singular: directions not determined
