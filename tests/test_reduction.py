@@ -77,6 +77,77 @@ def test_reduced_solver_keeps_modal_velocities_only_for_its_own_states():
     assert np.abs(kept.x - projected.x).max() < 1e-9 and np.abs(kept.v - projected.v).max() < 1e-6
 
 
+def _rotated_pair(floor=None):
+    """Two copies of the soft box (membrane, cavity on channel 0), the second turned 70 degrees
+    about z and moved away, both reduced with one part (random orthonormal basis, every
+    element): the model, the reduced bodies and the rotation."""
+    a = math.radians(70.0)
+    Rz = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    soft = _two_box_model().bodies[0]
+    mesh2 = soft.mesh.transformed(Rz, np.array([60.0, 20.0, 0.0]))
+    b2 = Body(mesh2, soft.material, soft.mass, membrane=soft.membrane, cavities=soft.cavities, name="soft2")
+    model = Model((soft, b2), floor=floor)
+    basis = np.linalg.qr(np.random.default_rng(1).standard_normal((3 * soft.n_nodes, 24)))[0]
+    part = PartReduction.full(soft.mesh, basis, len(soft.membrane.triangles))
+    return model, {0: reduce_body(soft, part, np.eye(3)), 1: reduce_body(b2, part, Rz)}, Rz
+
+
+def test_legs_of_one_part_in_different_poses_step_alike():
+    """reduction.md: a part placed by R has the basis R Phi (every node's vector rotated); the
+    group steps every body in the part frame. Two copies of a body, one turned 70 degrees
+    about z (gravity along z), with the pressure on one channel and the nodal forces turned
+    with it, follow congruent trajectories (1e-9 mm) with equal modal velocities (1e-9 mm/s)."""
+    model, reduced, Rz = _rotated_pair()
+    rom = ReducedSolver(model, reduced)
+    assert len(rom.groups) == 1 and rom.groups[0].n_bodies == 2
+    n = model.bodies[0].n_nodes
+    state = model.rest_state()
+    forces = np.zeros_like(state.x)
+    forces[:n] = [5.0, 0.0, 0.0]
+    forces[n:] = Rz @ [5.0, 0.0, 0.0]
+    for k in range(20):
+        state = rom.step(state, Control(np.array([40.0 * min(1.0, k / 5)]), forces))
+    X = model.rest_state().x
+    u1, u2 = state.x[:n] - X[:n], state.x[n:] - X[n:]
+    assert np.abs(u1).max() > 0.05  # it moved (a random basis: no rigid modes)
+    assert np.abs(u2 - u1 @ Rz.T).max() < 1e-9
+    assert np.abs(rom._qdot[0][0] - rom._qdot[0][1]).max() < 1e-9
+
+
+def test_reduced_body_must_be_the_part_in_the_given_pose():
+    model, reduced, Rz = _rotated_pair()
+    with pytest.raises(ValueError, match="placed by the given rotation"):
+        reduce_body(model.bodies[1], reduced[0].part, np.eye(3))
+    with pytest.raises(ValueError, match="rotation"):
+        reduce_body(model.bodies[1], reduced[0].part, 2 * Rz)
+
+
+def test_floor_candidates_skip_only_nodes_that_cannot_reach_the_floor():
+    """The velocity bound |v_n| <= |Phi_n|_F |qdot| lets the contact search skip nodes; the
+    candidates must be exactly those of a search over every collision node with its exact
+    free velocity, for states moving fast towards the floor."""
+    model, reduced, _ = _rotated_pair(Floor(0.0, 0.8, 0.5))
+    rom = ReducedSolver(model, reduced)
+    group = rom.groups[0]
+    rng = np.random.default_rng(2)
+    floor, h = model.floor, rom.settings.dt
+    for trial in range(5):
+        qd = rng.standard_normal((2, group.n_modes)) * 10.0 ** rng.uniform(1, 3)
+        x = model.rest_state().x
+        x[:, 2] += rng.uniform(-0.2, 3.0)
+        nodes, gaps, vz = group.floor_candidates(x, qd, h, floor)
+        v = group.velocities(qd)
+        expect = []
+        for j, o in enumerate(group.offsets):
+            c = group.collision
+            gap = x[o + c, 2] - floor.height
+            close = np.minimum(gap, gap + h * v[j, c, 2]) < floor.contact_distance
+            expect.append(o + c[close])
+        expect = np.concatenate(expect)
+        assert np.array_equal(np.sort(nodes), np.sort(expect))
+        assert np.allclose(vz, v.reshape(-1, 3)[nodes - group.offsets[0], 2], atol=1e-9)
+
+
 # -- POD ------------------------------------------------------------------------------------
 from softcrawl.reduction.pod import pod_basis, rigid_modes, truncation_rank  # noqa: E402
 
