@@ -276,6 +276,23 @@ def _assert_contact_conditions(L, U, mu, tol, slip_cos=1e-6):
     assert np.all(cos <= -1 + slip_cos)  # maximal dissipation: friction opposes slip
 
 
+def _random_contact_problem(rng, k_min: int, k_max: int):
+    """``(W, q, mu)``: an SPD Delassus operator of k_min..k_max-1 contacts, random free
+    velocities, mu = 0.5."""
+    k = int(rng.integers(k_min, k_max))
+    B = rng.standard_normal((3 * k, 3 * k))
+    return B @ B.T / (3 * k) + 0.05 * np.eye(3 * k), rng.standard_normal(3 * k), np.full(k, 0.5)
+
+
+def _polished(W, q, mu, tol, sweeps):
+    """Impulses polished from Gauss-Seidel run from zero (``tol``, ``sweeps``), or None."""
+    from softcrawl.fem.contact import pgs_coulomb, polish_active_set
+
+    lam = np.zeros(len(q))
+    pgs_coulomb(W, q, mu, lam, tol, sweeps)
+    return polish_active_set(W, q, mu, lam)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_contact_solution_satisfies_signorini_and_coulomb(seed):
     """Random Delassus operators (SPD, 1-10 contacts, mu = 0.5): the polished impulses
@@ -283,19 +300,12 @@ def test_contact_solution_satisfies_signorini_and_coulomb(seed):
     1e-8 relative: lam_n >= 0, u_n >= 0, lam_n u_n = 0, |lam_t| <= mu lam_n, u_t = 0 inside
     the cone and u_t antiparallel to lam_t on it. (Gauss-Seidel alone stops at 1e-8 in the
     impulses; the active-set polish makes these hold to round-off.)"""
-    from softcrawl.fem.contact import pgs_coulomb, polish_active_set
-
     rng = np.random.default_rng(seed)
     solved = 0
     for _ in range(25):
-        k = int(rng.integers(1, 11))
-        B = rng.standard_normal((3 * k, 3 * k))
-        W = B @ B.T / (3 * k) + 0.05 * np.eye(3 * k)
-        q = rng.standard_normal(3 * k)
-        mu = np.full(k, 0.5)
-        lam = np.zeros(3 * k)
-        pgs_coulomb(W, q, mu, lam, 1e-6, 100)
-        out = polish_active_set(W, q, mu, lam)
+        W, q, mu = _random_contact_problem(rng, 1, 11)
+        k = len(mu)
+        out = _polished(W, q, mu, 1e-6, 100)
         if out is None:
             continue
         solved += 1
@@ -333,19 +343,14 @@ def test_polish_from_last_step_turns_friction_against_the_slip(seed):
     reduced crawl: median 57 degrees). Solved exactly once, then the free velocities change
     as between two steps; polished from the old impulses, the friction of every slipping
     contact must again oppose its slip (cos <= -1 + 1e-6) with all other conditions to 1e-8."""
-    from softcrawl.fem.contact import pgs_coulomb, polish_active_set
+    from softcrawl.fem.contact import polish_active_set
 
     rng = np.random.default_rng(10 + seed)
     checked = 0
     for _ in range(30):
-        k = int(rng.integers(2, 9))
-        B = rng.standard_normal((3 * k, 3 * k))
-        W = B @ B.T / (3 * k) + 0.05 * np.eye(3 * k)
-        q = rng.standard_normal(3 * k)
-        mu = np.full(k, 0.5)
-        lam = np.zeros(3 * k)
-        pgs_coulomb(W, q, mu, lam, 1e-12, 5000)
-        before = polish_active_set(W, q, mu, lam)
+        W, q, mu = _random_contact_problem(rng, 2, 9)
+        k = len(mu)
+        before = _polished(W, q, mu, 1e-12, 5000)
         if before is None:
             continue
         q2 = q + 0.2 * rng.standard_normal(3 * k) * np.tile([0.0, 1.0, 1.0], k)  # tangential change

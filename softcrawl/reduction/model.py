@@ -4,10 +4,11 @@ A :class:`PartReduction` is what a reduction build produces for one part (the Pn
 the disk) in the part's own frame: the POD basis and the ECSW reduced integration domain.
 A :class:`RobotReduction` is the set of parts a crawler is made of (reduction.md: "reduce
 each part once; build any design by placing reduced parts"). A :class:`ReducedBody` is a
-part placed in a robot: the basis rotated to the leg's pose
-(reduction.md: every node's 3-vector in every column is rotated by ``R_i``; RID and weights
-are rotation invariant) and the RID element data computed from the placed rest mesh.
-Kinematics: ``x = X + Phi q`` (``X`` placed rest positions, ``q`` reduced coordinates).
+part placed in a robot by a rotation ``R_i``: its basis is the part's with every node's
+3-vector in every column rotated by ``R_i`` (reduction.md; RID and weights are rotation
+invariant), and its RID element data are the part's, in the part frame (the solver evaluates
+each leg there: :mod:`softcrawl.reduction.kernels`). Kinematics: ``x = X + Phi q`` (``X``
+placed rest positions, ``q`` reduced coordinates).
 """
 
 from __future__ import annotations
