@@ -432,6 +432,28 @@ def test_validation_report_shows_floor_and_grid_plot(tmp_path):
     assert (tmp_path / "grid.png").stat().st_size > 10_000
 
 
+def test_validation_ensemble_reports_the_chaos_floor(tiny, tmp_path):
+    """A short held-out scene with 2 perturbed full-order runs (1e-6 mm): each keeps its own
+    saved settings, their distance to the reference stays far below the reduced model's error
+    (1e-3 mm: the exact model is not chaotic at round-off scale), and the report carries the 3
+    full-order rewards and whether the reduced one lies among them."""
+    import json
+
+    from softcrawl.reduction.scenes import validation_scenes
+    from softcrawl.reduction.validate import validate_reduction
+
+    reduction, _, _ = tiny
+    scenes = validation_scenes(0.1)[1:2]
+    rep = validate_reduction(reduction, TINY, tmp_path, scenes=scenes, workers=1, progress=False, ensemble=2)
+    row = rep["scenes"][0]
+    assert len(row["ensemble_rewards_cm"]) == 3 and row["ensemble_rewards_cm"][0] == row["reward_full_cm"]
+    assert rep["floor_mean_node_error_mm"] < 1e-3 < rep["mean_node_error_mm"]
+    assert isinstance(row["reward_in_ensemble"], bool)
+    saved = json.loads((tmp_path / "perturbed2" / "baseline.json").read_text())
+    assert saved["perturbation"] == {"amplitude_mm": 1e-6, "seed": 2}
+    assert "perturbation" not in json.loads((tmp_path / "reference" / "baseline.json").read_text())
+
+
 def test_validation_ensemble_needs_a_perturbation_of_full_order_runs(tiny):
     """An ensemble without a positive perturbation would repeat the reference; a perturbed
     reduced robot would leave its basis' range: both are refused."""
