@@ -122,6 +122,84 @@ def test_reduced_body_must_be_the_part_in_the_given_pose():
         reduce_body(model.bodies[1], reduced[0].part, 2 * Rz)
 
 
+def test_reduced_element_terms_are_the_projected_full_order_force_and_tangent():
+    """Every element at unit weight, a basis with the 3 translations and 20 random modes, a
+    rotated body in a deformed pose: the kernels' reduced internal force, stiffness damping and
+    tangent equal ``Phi^T f``, ``Phi^T K_t Phi`` of the full-order corotational body (relative
+    1e-10: the same element formulas, only summed in another order), the translations are not
+    strain modes and get exactly zero internal force and stiffness."""
+    from softcrawl.reduction.pod import rigid_modes
+
+    model, _, Rz = _rotated_pair()
+    body = model.bodies[1]  # placed by Rz
+    soft = model.bodies[0]
+    rng = np.random.default_rng(3)
+    modes = np.hstack([rigid_modes(soft.mesh.points), rng.standard_normal((3 * soft.n_nodes, 20))])
+    basis = np.linalg.qr(modes)[0]
+    part = PartReduction.full(soft.mesh, basis, len(soft.membrane.triangles))
+    rb = reduce_body(body, part, Rz)
+    assert np.array_equal(rb.strain_modes, np.arange(3, 23))
+    rom = ReducedSolver(model, {1: rb})
+    group = rom.groups[0]
+    x = model.rest_state().x.copy()
+    sl = model.body_slice(1)
+    q = rng.standard_normal(23) * 2.0
+    x[sl] += (rb.basis @ q).reshape(-1, 3)  # a large deformation: corotational terms matter
+    qdot = rng.standard_normal((1, 23))
+    c = 0.11
+    f_int, kdata, n_bad = body.internal_forces(x[sl], tangent_coef=1.0)
+    assert n_bad == 0
+    K = body.pattern.matrix(kdata).toarray()
+    Phi = rb.basis
+    expect_K = Phi.T @ K @ Phi
+    expect_f = Phi.T @ f_int.ravel() - c * expect_K @ qdot[0]
+    from softcrawl.reduction.kernels import accumulate_terms, add_strain_terms
+
+    ms = len(group.strain_modes)
+    Ks, fs, K_r, f_r = np.zeros((1, ms, ms)), np.zeros((1, ms)), np.zeros((1, 23, 23)), np.zeros((1, 23))
+    qs = np.ascontiguousarray(qdot[:, group.strain_modes])
+    for fam in group.families:
+        rows = fam.factors.shape[1] * len(fam.conn)
+        accumulate_terms(x, group.offsets, group.rotations, fam.conn, fam.factors, fam.rest_terms, fam.rows, qs, c,
+                         np.empty((1, rows, ms)), np.empty((1, rows)), np.empty(rows), Ks, fs, np.zeros(1, np.int64))
+    add_strain_terms(Ks, fs, group.strain_modes, K_r, f_r)
+    assert np.abs(K_r[0] - expect_K).max() < 1e-10 * np.abs(expect_K).max()
+    assert np.abs(f_r[0] - expect_f).max() < 1e-10 * np.abs(expect_f).max()
+    assert not K_r[0, :3].any() and not K_r[0, :, :3].any() and not f_r[0, :3].any()
+
+
+def test_element_factors_need_translation_blind_stiffness():
+    """The edge factors C with D^T C^T C D = K exist only for stiffness matrices that do not
+    resist rigid translations; a spring to the ground (K with a translation stiffness) is refused."""
+    from softcrawl.reduction.kernels import edge_difference, stiffness_factors
+
+    rng = np.random.default_rng(4)
+    D = edge_difference(4)
+    A = rng.standard_normal((2, 6, 9))
+    K = np.einsum("eij,eik->ejk", A @ D, A @ D)  # rank 6, blind to translations
+    C = stiffness_factors(K, 6)
+    assert np.allclose(np.einsum("eij,eik->ejk", C @ D, C @ D), K, atol=1e-10 * np.abs(K).max())
+    with pytest.raises(ValueError, match="translations"):
+        stiffness_factors(K + np.eye(12), 6)  # springs to the ground
+    with pytest.raises(ValueError, match="rank 3"):
+        stiffness_factors(K, 3)
+
+
+def test_syrk_updates_the_upper_triangle_only():
+    """``syrk_upper`` (BLAS dsyrk bound for compiled code) adds Z^T Z to the upper triangle."""
+    from softcrawl.reduction.blas import syrk_upper
+
+    rng = np.random.default_rng(5)
+    Z, K0 = rng.standard_normal((40, 7)), rng.standard_normal((7, 7))
+    K = K0.copy()
+    syrk_upper(Z, K)
+    iu = np.triu_indices(7)
+    assert np.allclose(K[iu], (K0 + Z.T @ Z)[iu], atol=1e-12)
+    assert np.array_equal(np.tril(K, -1), np.tril(K0, -1))
+    syrk_upper(Z[:0], K)  # no rows: unchanged
+    assert np.allclose(K[iu], (K0 + Z.T @ Z)[iu], atol=1e-12)
+
+
 def test_floor_candidates_skip_only_nodes_that_cannot_reach_the_floor():
     """The velocity bound |v_n| <= |Phi_n|_F |qdot| lets the contact search skip nodes; the
     candidates must be exactly those of a search over every collision node with its exact
@@ -136,16 +214,17 @@ def test_floor_candidates_skip_only_nodes_that_cannot_reach_the_floor():
         x = model.rest_state().x
         x[:, 2] += rng.uniform(-0.2, 3.0)
         nodes, gaps, vz = group.floor_candidates(x, qd, h, floor)
-        v = group.velocities(qd)
+        v = np.zeros_like(x)
+        group.velocities(qd, v)
         expect = []
-        for j, o in enumerate(group.offsets):
+        for o in group.offsets:
             c = group.collision
             gap = x[o + c, 2] - floor.height
-            close = np.minimum(gap, gap + h * v[j, c, 2]) < floor.contact_distance
+            close = np.minimum(gap, gap + h * v[o + c, 2]) < floor.contact_distance
             expect.append(o + c[close])
         expect = np.concatenate(expect)
         assert np.array_equal(np.sort(nodes), np.sort(expect))
-        assert np.allclose(vz, v.reshape(-1, 3)[nodes - group.offsets[0], 2], atol=1e-9)
+        assert np.allclose(vz, v[nodes, 2], atol=1e-9)
 
 
 # -- POD ------------------------------------------------------------------------------------
@@ -230,7 +309,8 @@ from softcrawl.robot.assembly import REDUCED_DISK_REFACTOR_EVERY, RobotConfig, b
 
 TINY = RobotConfig(leg_mesh_size=12.0)
 # The tiny build reduces the disk too (not the default) so that both parts' paths are exercised.
-TINY_SETTINGS = BuildSettings(n_designs=2, sizes=(3,), state_seconds=0.05, ecsw_scenes=1, ecsw_every=3, disk=True)
+TINY_SETTINGS = BuildSettings(n_designs=2, sizes=(3,), state_seconds=0.05, gait_designs=1, gait_seconds=0.05,
+                              ecsw_scenes=1, ecsw_every=3, disk=True)
 
 
 @pytest.fixture(scope="module")
@@ -420,16 +500,38 @@ def test_validation_report_shows_floor_and_grid_plot(tmp_path):
            "mean_deformation_error_mm": 0.1, "mean_trajectory_error_mm": 1.4, "reward_full_cm": -1.15,
            "reward_reduced_cm": -1.0, "seconds_per_step_full": 0.3, "seconds_per_step_reduced": 0.02,
            "floor_mean_node_error_mm": 1.42, "floor_mean_deformation_error_mm": 0.06,
-           "ensemble_rewards_cm": [-1.15, -0.9, -1.3], "reward_in_ensemble": True}
+           "ensemble_rewards_cm": [-1.15, -0.9, -1.3], "reward_in_ensemble": True,
+           "reduced_ensemble_rewards_cm": [-1.0, -1.2, -0.95], "reduced_spread_mm": 0.25}
     text = _markdown({"scenes": [row], "ensemble": 2, "perturbation_mm": 1e-6})
-    assert "| baseline | 1.500 | 9.00 | 0.100 | 1.400 | 1.420 / 0.060 | -1.150 | -1.300 .. -0.900 | -1.000 (inside) |" \
-        in text and "Chaos floor" in text and "1e-06 mm" in text
-    plain = {k: v for k, v in row.items() if not k.startswith(("floor_", "ensemble_", "reward_in"))}
+    assert ("| baseline | 1.500 | 9.00 | 0.100 | 1.400 | 1.420 / 0.060 | -1.150 | -1.300 .. -0.900 | -1.000 (inside) "
+            "| -1.200 .. -0.950 | 0.250 |") in text and "Chaos floor" in text and "1e-06 mm" in text
+    plain = {k: v for k, v in row.items() if not k.startswith(("floor_", "ensemble_", "reward_in", "reduced_"))}
     assert "floor" not in _markdown({"scenes": [plain]})
     rows = [dict(plain, tol_modes=tm, tol_gie=tg, mean_seconds_per_step_reduced=0.01 * (i + 1))
             for i, (tm, tg) in enumerate([(0.01, 0.01), (0.01, 0.001), (0.001, 0.01)])]
     _plot_grid(tmp_path / "grid.png", rows)
     assert (tmp_path / "grid.png").stat().st_size > 10_000
+
+
+def test_crawling_training_scenes_hold_out_the_validation_designs():
+    """Crawling scenes (BuildSettings.gait_designs): distinct 3- and 4-leg slot sets, none a
+    validation design's, legs on regulators 1, 2, 3, 1 in slot order, sine gaits; they come after
+    the Gray-code walks and make up half of the ECSW training scenes."""
+    from softcrawl.reduction.build import BuildSettings
+    from softcrawl.reduction.scenes import gait_scenes, validation_scenes
+
+    scenes = gait_scenes(6)
+    slots = [sc.slots for sc in scenes]
+    assert len(set(slots)) == 6 and [len(s) for s in slots] == [3, 4, 3, 4, 3, 4]
+    assert not set(slots) & {sc.slots for sc in validation_scenes()}
+    assert all([c for _, c in sc.legs] == [i % 3 for i in range(len(sc.legs))] for sc in scenes)
+    assert [sc.name for sc in gait_scenes(6)] == [sc.name for sc in scenes]  # seeded
+    settings = BuildSettings(gait_designs=4)
+    names = [sc.name for sc in settings.scenes()]
+    assert names[:8] == [sc.name for sc in BuildSettings(gait_designs=0).scenes()] and names[8:] == [sc.name for sc in gait_scenes(4)]
+    assert [sc.name for sc in settings.ecsw_training_scenes()] == names[:2] + names[8:10]
+    with pytest.raises(ValueError):
+        gait_scenes(-1)
 
 
 def test_validation_ensemble_reports_the_chaos_floor(tiny, tmp_path):
@@ -449,23 +551,41 @@ def test_validation_ensemble_reports_the_chaos_floor(tiny, tmp_path):
     assert len(row["ensemble_rewards_cm"]) == 3 and row["ensemble_rewards_cm"][0] == row["reward_full_cm"]
     assert rep["floor_mean_node_error_mm"] < 1e-3 < rep["mean_node_error_mm"]
     assert isinstance(row["reward_in_ensemble"], bool)
+    rewards, errors = row["reduced_ensemble_rewards_cm"], row["reduced_ensemble_node_errors_mm"]
+    assert len(rewards) == len(errors) == 3 and rewards[0] == row["reward_reduced_cm"]
+    assert errors[0] == row["mean_node_error_mm"] and 0 < row["reduced_spread_mm"] < 1e-2
     saved = json.loads((tmp_path / "perturbed2" / "baseline.json").read_text())
     assert saved["perturbation"] == {"amplitude_mm": 1e-6, "seed": 2}
     assert "perturbation" not in json.loads((tmp_path / "reference" / "baseline.json").read_text())
 
 
-def test_validation_ensemble_needs_a_perturbation_of_full_order_runs(tiny):
-    """An ensemble without a positive perturbation would repeat the reference; a perturbed
-    reduced robot would leave its basis' range: both are refused."""
-    from softcrawl.reduction.scenes import reduced_scene_robot, run_scene, training_scenes
+def test_validation_ensemble_needs_a_perturbation(tiny):
+    """An ensemble without a positive perturbation would repeat the reference: refused."""
     from softcrawl.reduction.validate import validate_reduction
 
     reduction, _, work = tiny
     with pytest.raises(ValueError, match="perturbation"):
         validate_reduction(reduction, TINY, work, ensemble=2, perturbation=0.0, progress=False)
+
+
+def test_perturbed_reduced_run_stays_in_its_basis_range(tiny):
+    """A perturbed reduced robot gets the noise's projection on each POD-reduced body's basis,
+    so its nodes stay in ``X + range(Phi)`` (5e-5 mm: the float32 precision of recorded positions
+    near 100 mm), and it does move off the unperturbed run."""
+    from softcrawl.reduction.model import ReducedBody
+    from softcrawl.reduction.scenes import reduced_scene_robot, run_scene, training_scenes
+
+    reduction, _, _ = tiny
     scene = training_scenes(1, (1,))[0]
-    with pytest.raises(ValueError, match="full-order"):
-        run_scene(reduced_scene_robot(scene, TINY, reduction), scene.animation, duration=0.02, perturbation=1e-6)
+    robot = reduced_scene_robot(scene, TINY, reduction)
+    base = run_scene(robot, scene.animation, duration=0.02).positions[0].astype(float)
+    moved = run_scene(robot, scene.animation, duration=0.02, perturbation=1e-3, seed=1).positions[0].astype(float)
+    assert np.abs(moved - base).max() > 1e-6
+    X = robot.model.rest_state().x
+    for i, body in robot.reduced.items():
+        if isinstance(body, ReducedBody):
+            u = (moved - X)[robot.model.body_slice(i)].ravel()
+            assert np.abs(u - body.basis @ (body.basis.T @ u)).max() < 5e-5
 
 
 def test_saved_runs_with_tuple_parameters_are_reused(tmp_path, monkeypatch):

@@ -32,8 +32,8 @@ GRID_TOL_GIE = (0.01, 0.003, 0.001)
 
 
 def _settings(args: argparse.Namespace, **kw) -> BuildSettings:
-    return BuildSettings(n_designs=args.designs, rigid=args.rigid_modes, disk=args.reduce_disk,
-                         disk_tol_modes=args.disk_tol_modes, **kw)
+    return BuildSettings(n_designs=args.designs, gait_designs=args.gait_designs, rigid=args.rigid_modes,
+                         disk=args.reduce_disk, disk_tol_modes=args.disk_tol_modes, **kw)
 
 
 def _describe(name: str, part: PartReduction) -> str:
@@ -66,6 +66,7 @@ def _markdown(report: dict) -> str:
     head = ["scene", "mean node error (mm)", "max (mm)", "deformation error (mm)", "trajectory error (mm)"]
     head += ["chaos floor: node / deformation (mm)"] if floor else []
     head += ["reward full (cm)"] + (["full ensemble (cm)"] if floor else []) + ["reward reduced (cm)"]
+    head += ["reduced ensemble (cm)", "reduced spread (mm)"] if floor else []
     head += ["s/step full", "s/step reduced"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in report["scenes"]:
@@ -78,13 +79,18 @@ def _markdown(report: dict) -> str:
             rewards = r["ensemble_rewards_cm"]
             cells.append(f"{min(rewards):+.3f} .. {max(rewards):+.3f}")
         cells.append(f"{r['reward_reduced_cm']:+.3f}" + (" (inside)" if r.get("reward_in_ensemble") else ""))
+        if floor:
+            rewards = r["reduced_ensemble_rewards_cm"]
+            cells += [f"{min(rewards):+.3f} .. {max(rewards):+.3f}", f"{r['reduced_spread_mm']:.3f}"]
         cells += [f"{r['seconds_per_step_full']:.4f}", f"{r['seconds_per_step_reduced']:.5f}"]
         lines.append("| " + " | ".join(cells) + " |")
     if floor:
         lines.append("")
         lines.append(f"Chaos floor: the mean distance of {report.get('ensemble', '')} exact full-order runs whose rest "
                      f"nodes were perturbed by {report.get('perturbation_mm', 0):g} mm to the unperturbed reference; "
-                     "full ensemble: the rewards of the reference and those runs.")
+                     "full ensemble: the rewards of the reference and those runs; reduced ensemble and spread: "
+                     "the rewards of the reduced run and as many perturbed ones (noise projected on each leg's "
+                     "basis), and the mean node distance of those to the unperturbed reduced run.")
     return "\n".join(lines) + "\n"
 
 
@@ -158,6 +164,9 @@ def register(subparsers) -> None:
     common.add_argument("--workdir", default="runs/reduce", help="full-order runs, reused (default runs/reduce)")
     common.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size, help="leg mesh size, mm")
     common.add_argument("--designs", type=int, default=BuildSettings.n_designs, help="training designs")
+    common.add_argument("--gait-designs", type=int, default=BuildSettings.gait_designs,
+                        help=f"crawling training scenes (sine gaits) besides the Gray-code walks (default "
+                             f"{BuildSettings.gait_designs}; 0: the paper's training set)")
     common.add_argument("--rigid-modes", choices=("translations", "rigid"), default=BuildSettings.rigid,
                         help="rigid modes of the leg basis")
     common.add_argument("--reduce-disk", action="store_true",

@@ -24,6 +24,7 @@ import scipy.sparse as sp
 from softcrawl.fem.body import Body
 from softcrawl.fem.constraints import FixedRows, NodalCompliance, add_body, attachment_matrix, body_correction
 from softcrawl.fem.contact import solve_constraints
+from softcrawl.fem.kernels import advance_positions
 from softcrawl.fem.linalg import ReusedFactorization
 from softcrawl.fem.model import Model
 from softcrawl.fem.state import Control, State
@@ -322,10 +323,9 @@ class ImplicitEulerSolver:
         v_free = self._free_motion(state, control)
         corrections, nodes, impulses = self._constrain(state, v_free)
         v = self._velocity(v_free, corrections)
-        x = state.x + h * v
+        x, speed2, finite = advance_positions(state.x, v, h)
         t = state.t + h
-        speed2 = float(np.einsum("ij,ij->i", v, v).max())  # NaN or inf if any velocity is
-        if not (np.isfinite(speed2) and np.isfinite(x).all()):
+        if not finite:
             raise SimulationDiverged("non-finite positions or velocities", t)
         if speed2 > self.settings.max_speed ** 2:
             raise SimulationDiverged(f"node speed {np.sqrt(speed2):.3g} mm/s exceeds {self.settings.max_speed:.3g}", t)

@@ -17,8 +17,9 @@ import numpy as np
 
 from softcrawl.fem.constraints import FixedRows
 from softcrawl.fem.model import Model
-from softcrawl.reduction.kernels import (accumulate_terms, add_delassus, cavity_loads, corrections,
-                                         floor_candidates, implicit_steps, point_velocity)
+from softcrawl.reduction.kernels import (accumulate_terms, add_delassus, add_strain_terms, cavity_forces,
+                                         corrections, expand_velocities, floor_candidates, implicit_steps,
+                                         point_velocity)
 from softcrawl.reduction.model import ElementFactors, ReducedBody
 
 
@@ -46,11 +47,14 @@ class ModalGroup:
         rotations: ``(L, 3, 3)`` placement rotations (part frame -> world).
         basis: ``(3n, m)`` the part basis (part frame).
         families: the part's RID element families (part frame).
+        strain_modes: ``(m',)`` the modes the families' rows hold (the others, the rigid
+            translations, have no internal force or stiffness).
         mass: ``(L, m, m)`` reduced masses, kg.
         gravity: ``(L, m)`` reduced gravity loads, mN.
-        cavity_triangles: ``(T, 3)`` the part's cavity triangles; cavity_phi: ``(T, 3, m)``
-            the sums of their vertex basis rows; cavity_channel: ``(L, T)`` the pressure
-            channel of each body's triangle.
+        cavity_triangles: ``(T, 3)`` the part's cavity triangles; cavity_local: ``(T, 3)``
+            their vertices' indices into the ``c`` cavity nodes; cavity_basis: ``(3c, m)``
+            the cavity nodes' basis rows; cavity_channel: ``(L, T)`` the pressure channel of
+            each body's triangle.
         collision: ``(c,)`` part nodes that are floor contact candidates; collision_bound:
             ``(c,)`` the Frobenius norms of their basis rows (``|v_n| <= bound_n |qdot|``).
         fixed_rows: ``(L, 3F, m)`` world rows ``H_f Phi_b`` of each body's ``F`` attachment
@@ -64,10 +68,12 @@ class ModalGroup:
     rotations: np.ndarray
     basis: np.ndarray
     families: tuple[ElementFactors, ...]
+    strain_modes: np.ndarray
     mass: np.ndarray
     gravity: np.ndarray
     cavity_triangles: np.ndarray
-    cavity_phi: np.ndarray
+    cavity_local: np.ndarray
+    cavity_basis: np.ndarray
     cavity_channel: np.ndarray
     collision: np.ndarray
     collision_bound: np.ndarray
@@ -109,7 +115,8 @@ class ModalGroup:
         cavities = first.body.cavities
         tris = (np.concatenate([np.asarray(c.triangles, np.int64) for c in cavities])
                 if cavities else np.zeros((0, 3), np.int64))
-        phi = Phi.reshape(n, 3, m)[tris].sum(axis=1)
+        cavity_nodes, local = np.unique(tris, return_inverse=True)
+        node_rows = Phi.reshape(n, 3, m)
         channel = np.stack([np.concatenate([np.full(len(c.triangles), c.channel) for c in rb.body.cavities])
                             if cavities else np.zeros(0, np.int64) for rb in rbs]).astype(np.int64)
         coll = np.asarray(first.body.collision_nodes, np.int64)
@@ -121,8 +128,9 @@ class ModalGroup:
                 rows[j] = fixed[i].H @ bodies[i].basis
                 blocks[j] = fixed[i].blocks
         return cls(members, model.node_offsets[members].astype(np.int64), n, R, Phi, first.element_factors,
-                   np.stack([rb.reduced_mass for rb in rbs]), gravity, tris, phi, channel, coll,
-                   np.linalg.norm(Phi.reshape(n, 3, m)[coll], axis=(1, 2)), rows, blocks,
+                   first.strain_modes, np.stack([rb.reduced_mass for rb in rbs]), gravity, tris,
+                   local.reshape(tris.shape).astype(np.int64), node_rows[cavity_nodes].reshape(-1, m), channel,
+                   coll, np.linalg.norm(node_rows[coll], axis=(1, 2)), rows, blocks,
                    np.asarray(contact_frame, float) @ R)
 
     @property
@@ -157,29 +165,35 @@ class ModalGroup:
             Cholesky factors of the step matrices, ``(L,)`` inverted or degenerate RID elements
             and ``(L,)`` bool whether each step matrix was positive definite.
         """
-        L, m = self.n_bodies, self.n_modes
+        L, m, ms = self.n_bodies, self.n_modes, len(self.strain_modes)
         if not self._work:  # scratch kept between steps (fresh pages cost more than filling them)
             rows = ELEMENT_CHUNK * max(f.factors.shape[1] for f in self.families)
-            self._work.update(Z=np.empty((L, rows, m)), s=np.empty((L, rows)))
+            self._work.update(Z=np.empty((L, rows, ms)), s=np.empty((L, rows)), t=np.empty(rows))
         n_bad = np.zeros(L, np.int64)
         K, load = np.zeros((L, m, m)), self.gravity.copy()
         if len(self.cavity_triangles):
             scale = np.asarray(pressures, float)[self.cavity_channel] / 3.0
             if scale.any():
-                cavity_loads(x, self.offsets, self.rotations, self.cavity_triangles, self.cavity_phi, scale, load)
+                F = cavity_forces(x, self.offsets, self.rotations, self.cavity_triangles, self.cavity_local,
+                                  len(self.cavity_basis) // 3, scale)
+                load += F.reshape(L, -1) @ self.cavity_basis
         if forces is not None:
             load += self.project(forces)
+        Ks, fs = np.zeros((L, ms, ms)), np.zeros((L, ms))
+        qs = np.ascontiguousarray(qdot[:, self.strain_modes])
+        w = self._work
         for f in self.families:
-            accumulate_terms(x, self.offsets, self.rotations, f.conn, f.rest, f.factors, f.frames, f.sqrt_weights,
-                             f.basis_rows, qdot, h + r_stiff, self._work["Z"], self._work["s"], K, load, n_bad)
+            accumulate_terms(x, self.offsets, self.rotations, f.conn, f.factors, f.rest_terms, f.rows, qs,
+                             h + r_stiff, w["Z"], w["s"], w["t"], Ks, fs, n_bad)
+        add_strain_terms(Ks, fs, self.strain_modes, K, load)
         chol, qdot_free = np.empty((L, m, m)), np.empty((L, m))
         positive = implicit_steps(K, load, self.mass, qdot, h, r_mass, r_stiff, chol, qdot_free)
         return qdot_free, chol, n_bad, positive
 
-    def velocities(self, qdot: np.ndarray) -> np.ndarray:
-        """``(L, n, 3)`` world nodal velocities ``Phi_b qdot_b``, mm/s."""
-        V = (qdot @ self.basis.T).reshape(self.n_bodies, self.n_nodes, 3)
-        return np.matmul(V, self.rotations.transpose(0, 2, 1))
+    def velocities(self, qdot: np.ndarray, out: np.ndarray) -> None:
+        """Write every body's world nodal velocities ``R_b Phi_p qdot_b`` (mm/s; ``qdot``:
+        ``(L, m)``) into its rows of the stacked ``out`` ``(N, 3)``."""
+        expand_velocities(qdot, self.basis, self.rotations, self.offsets, out)
 
     def add_delassus(self, W: np.ndarray, u: np.ndarray, chol: np.ndarray, qdot: np.ndarray,
                      contacts: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:

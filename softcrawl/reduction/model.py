@@ -19,7 +19,7 @@ from functools import cached_property
 import numpy as np
 
 from softcrawl.fem.body import Body
-from softcrawl.fem.elements import membrane_triangles, tetrahedra
+from softcrawl.fem.elements import ElementSet, membrane_triangles, tetrahedra
 from softcrawl.geometry.mesh import TetMesh
 from softcrawl.reduction.kernels import stiffness_factors
 
@@ -112,17 +112,29 @@ class ElementFactors:
     :mod:`softcrawl.reduction.kernels`).
 
     Attributes:
-        conn: ``(E, k)`` node indices; rest: ``(E, k, 3)`` mm; factors: ``(E, r, 3k)``;
-        frames: ``(E, 3, 3)``; sqrt_weights: ``(E,)``; basis_rows: ``(E, 3k, m)`` the part
-        basis rows of each element's nodes.
+        conn: ``(E, k)`` node indices.
+        factors: ``(E, r, 3(k - 1))`` ``C~_e``: stiffness factors on the edge vectors in each
+            element's rest frame, scaled by the square roots of the ECSW weights (sqrt(mN/mm)).
+        rest_terms: ``(E, r)`` ``s0_e``: the factors times the rest edge vectors.
+        rows: ``(E, 3(k - 1), m')`` the edge basis rows ``D Phi_e`` of the part's strain modes
+            (:attr:`ReducedBody.strain_modes`).
     """
 
     conn: np.ndarray
-    rest: np.ndarray
     factors: np.ndarray
-    frames: np.ndarray
-    sqrt_weights: np.ndarray
-    basis_rows: np.ndarray
+    rest_terms: np.ndarray
+    rows: np.ndarray
+
+    @classmethod
+    def of(cls, elements: ElementSet, rank: int, weights: np.ndarray, rows: np.ndarray) -> ElementFactors:
+        """The data of corotational ``"large"`` elements with ECSW ``weights`` ``(E,)``, factor
+        ``rank`` (6 tetrahedra, 3 membrane triangles) and edge basis rows ``rows``."""
+        E, k = elements.conn.shape
+        C = np.sqrt(weights)[:, None, None] * stiffness_factors(elements.stiffness, rank)
+        edges = (elements.rest[:, 1:] - elements.rest[:, :1]).reshape(E, -1)
+        rest_frame = np.einsum("eiaj,ecj->eiac", C.reshape(E, rank, k - 1, 3), elements.frames)
+        return cls(elements.conn, np.ascontiguousarray(rest_frame.reshape(E, rank, -1)),
+                   np.einsum("eiq,eq->ei", C, edges), np.ascontiguousarray(rows))
 
     @property
     def n_rows(self) -> int:
@@ -182,24 +194,40 @@ class ReducedBody:
         return rotate_basis(self.part.basis, self.rotation)
 
     @cached_property
-    def element_factors(self) -> tuple[ElementFactors, ...]:
-        """RID tetrahedra and membrane triangles, from the part's rest mesh (part frame)."""
+    def _families(self) -> tuple[tuple[ElementSet, int, np.ndarray], ...]:
+        """``(elements, factor rank, ECSW weights)`` of the RID tetrahedra and membrane triangles."""
         b, p = self.body, self.part
-        pts, m = p.mesh.points, p.n_modes
-        rows = p.basis.reshape(-1, 3, m)
-        out = []
-        tets = p.mesh.tets[p.tet_rid]
-        es = tetrahedra(pts, tets, b.material, "large")
-        out.append(ElementFactors(tets, es.rest, stiffness_factors(es.stiffness, 6), es.frames,
-                                  np.sqrt(p.tet_weights), rows[tets].reshape(len(tets), -1, m)))
+        pts = p.mesh.points
+        out = [(tetrahedra(pts, p.mesh.tets[p.tet_rid], b.material, "large"), 6, p.tet_weights)]
         if len(p.tri_rid):
             if b.membrane is None or p.tri_rid.max() >= len(b.membrane.triangles):
                 raise ValueError(f"the reduction's RID has membrane triangles body {b.name!r} does not have")
             tris = np.asarray(b.membrane.triangles, np.int64)[p.tri_rid]
-            ms = membrane_triangles(pts, tris, b.membrane.material, b.membrane.thickness)
-            out.append(ElementFactors(tris, ms.rest, stiffness_factors(ms.stiffness, 3), ms.frames,
-                                      np.sqrt(p.tri_weights), rows[tris].reshape(len(tris), -1, m)))
+            out.append((membrane_triangles(pts, tris, b.membrane.material, b.membrane.thickness), 3, p.tri_weights))
         return tuple(out)
+
+    def _edge_rows(self, conn: np.ndarray) -> np.ndarray:
+        """``(E, 3(k - 1), m)`` edge basis rows ``D Phi_e`` of elements ``conn`` (all modes)."""
+        m = self.part.n_modes
+        rows = self.part.basis.reshape(-1, 3, m)[conn]  # (E, k, 3, m)
+        return (rows[:, 1:] - rows[:, :1]).reshape(len(conn), -1, m)
+
+    @cached_property
+    def strain_modes(self) -> np.ndarray:
+        """``(m',)`` the modes that move some RID element's edges: the others (the rigid
+        translations) have no internal force or stiffness and are left out of the kernels."""
+        scale = np.zeros(self.part.n_modes)
+        for es, _, _ in self._families:
+            if es.n_elements:
+                scale = np.maximum(scale, np.abs(self._edge_rows(es.conn)).max(axis=(0, 1)))
+        return np.flatnonzero(scale > 1e-12 * scale.max(initial=0.0))
+
+    @cached_property
+    def element_factors(self) -> tuple[ElementFactors, ...]:
+        """RID tetrahedra and membrane triangles, from the part's rest mesh (part frame)."""
+        modes = self.strain_modes
+        return tuple(ElementFactors.of(es, rank, w, self._edge_rows(es.conn)[:, :, modes])
+                     for es, rank, w in self._families)
 
     @cached_property
     def reduced_mass(self) -> np.ndarray:

@@ -26,7 +26,7 @@ from softcrawl.reduction.animations import (
     GaitAnimation,
     HamiltonianAnimation,
 )
-from softcrawl.reduction.model import RobotReduction
+from softcrawl.reduction.model import ReducedBody, RobotReduction
 from softcrawl.robot.assembly import Robot, RobotConfig, assemble_robot, reduce_robot
 from softcrawl.robot.episode import SETTLE_STEPS
 
@@ -105,6 +105,32 @@ def training_scenes(n_designs: int = 8, sizes: Sequence[int] = (3, 4), seed: int
     return tuple(scenes)
 
 
+def gait_scenes(n_designs: int, seed: int = 1, seconds: float = 4.0) -> tuple[Scene, ...]:
+    """Crawling training scenes: ``n_designs`` distinct slot subsets of 3 and 4 legs (alternately,
+    never a validation slot set), the legs on regulators 1, 2, 3, 1, ... in slot order, each
+    driven for ``seconds`` by the sine gait (:class:`softcrawl.gaits.SineGait`) at a phase lag
+    drawn from 0, 10, ..., 350 degrees (``seed``).
+
+    Raises:
+        ValueError: a negative count or a non-positive duration.
+    """
+    if n_designs < 0 or not seconds > 0:
+        raise ValueError(f"need n_designs >= 0 and seconds > 0, got {n_designs}, {seconds}")
+    held_out = {_BASELINE_SLOTS, _TWO_LEG_SLOTS, _SIX_LEG_SLOTS}
+    rng = np.random.default_rng(seed)
+    pools = {s: [c for c in itertools.combinations(range(N_SLOTS), s) if c not in held_out] for s in (3, 4)}
+    for s in pools:
+        pools[s] = [pools[s][i] for i in rng.permutation(len(pools[s]))]
+    scenes = []
+    for k in range(n_designs):
+        pick = pools[(3, 4)[k % 2]].pop(0)
+        phase = 10.0 * int(rng.integers(36))
+        scenes.append(Scene(f"gait{k:03d}_" + "".join(map(str, pick)) + f"_{phase:.0f}",
+                            tuple((s, i % 3) for i, s in enumerate(pick)),
+                            GaitAnimation(SineGait(phase_deg=phase), seconds)))
+    return tuple(scenes)
+
+
 def scene_robot(scene: Scene, config: RobotConfig, leg_mesh=None, disk_mesh_local=None) -> Robot:
     """The full-order robot of a scene (one channel per leg unless the scene says otherwise)."""
     return assemble_robot(scene.legs, config, leg_mesh=leg_mesh, disk_mesh_local=disk_mesh_local)
@@ -153,10 +179,8 @@ def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, durat
         perturbation: amplitude (mm) of independent uniform noise added to every rest node
             position before settling (``seed`` draws it): a run that differs from the
             unperturbed one only at round-off scale, to measure how far the model's own
-            trajectories drift apart (full-order robots only).
-
-    Raises:
-        ValueError: a perturbation of a reduced robot (its nodes must stay in its basis' range).
+            trajectories drift apart. A POD-reduced body gets the noise's projection on its
+            basis (its nodes stay in ``X + range(Phi)``).
     """
     solver = solver or robot.make_solver()
     dt = robot.config.dt
@@ -164,9 +188,11 @@ def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, durat
     nch = robot.model.n_channels
     state = robot.model.rest_state()
     if perturbation:
-        if robot.reduced:
-            raise ValueError("initial perturbations are for full-order robots (reduced nodes stay in their basis' range)")
         noise = np.random.default_rng(seed).uniform(-perturbation, perturbation, state.x.shape)
+        for i, body in robot.reduced.items():
+            if isinstance(body, ReducedBody):
+                sl = robot.model.body_slice(i)
+                noise[sl] = (body.basis @ (body.basis.T @ noise[sl].ravel())).reshape(-1, 3)
         state = dataclasses.replace(state, x=state.x + noise)
     times, frames, rx = [], [], []
     wall = time.perf_counter()

@@ -199,9 +199,7 @@ class ReducedSolver(ImplicitEulerSolver):
         for g, (group, (qd_free, _)) in enumerate(zip(self.groups, self._free)):
             qd = qd_free + corrections.modal[g] if corrections else qd_free
             self._qdot[g] = qd
-            vel = group.velocities(qd)
-            for j, o in enumerate(group.offsets):
-                v[o:o + group.n_nodes] = vel[j]
+            group.velocities(qd, v)
         return v
 
     def step(self, state: State, control: Control) -> State:

@@ -13,8 +13,11 @@ noise (``perturbation``, 1e-6 mm) end millimetres apart. So each scene is also r
 *ensemble* of such perturbed full-order runs, and reports their distance to the reference
 (the chaos floor: no model, the full one included, can be closer to the reference than
 that on average) and the spread of their rewards: a reduced reward inside the ensemble's
-range is as close as the full model's own reward is to itself. The deformation error
-separates the reduction's approximation from rigid drift.
+range is as close as the full model's own reward is to itself. The reduced model gets the
+same ensemble (its noise projected on each leg's basis): its spread says how much of a
+single reduced run's error is its own sensitivity to round-off, which is larger than the
+full model's (a reduced leg's contacts sit on fewer degrees of freedom). The deformation
+error separates the reduction's approximation from rigid drift.
 """
 
 from __future__ import annotations
@@ -79,10 +82,15 @@ def _reward(positions: np.ndarray, node: int) -> float:
 
 
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
-                  record_every: int = 2, ensemble: list[Path] = ()) -> dict:
-    """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run;
-    given perturbed full-order runs (``ensemble``), also their mean distance to the reference
-    (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first).
+                  record_every: int = 2, ensemble: list[Path] = (), perturbation: float = 0.0) -> dict:
+    """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run.
+
+    Given perturbed full-order runs (``ensemble``), also their mean distance to the reference
+    (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first); and
+    as many reduced runs perturbed by ``perturbation`` (mm, seeds 1, 2, ...): their rewards
+    (``reduced_ensemble_rewards_cm``, the unperturbed run's first), their mean node distance
+    to the unperturbed reduced run (``reduced_spread_mm``) and their mean node errors against
+    the reference (``reduced_ensemble_node_errors_mm``).
 
     Raises:
         ValueError: a reference was recorded on another mesh or at other times.
@@ -96,10 +104,10 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         raise ValueError(f"reference {reference} does not match the reduction's robot (mesh or duration differ)")
     bodies = [robot.model.body_slice(i) for i in range(len(robot.model.bodies))]
     node = robot.reward_node
-    reward_rom, reward_fom = _reward(rec.positions, node), _reward(fom_x[:k], node)
+    rom_x = rec.positions.astype(float)
+    reward_rom, reward_fom = _reward(rom_x, node), _reward(fom_x[:k], node)
     steps_fom = int(ref["steps"]) + SETTLE_STEPS
-    row = {"scene": scene.name, "diverged": rec.diverged, "frames": k,
-           **_errors(rec.positions.astype(float), fom_x[:k], bodies, node),
+    row = {"scene": scene.name, "diverged": rec.diverged, "frames": k, **_errors(rom_x, fom_x[:k], bodies, node),
            "reward_full_cm": reward_fom, "reward_reduced_cm": reward_rom,
            "reward_error_cm": abs(reward_rom - reward_fom),
            "seconds_per_step_full": float(ref["wall_seconds"]) / steps_fom,
@@ -112,6 +120,13 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         row.update({f"floor_{key}": float(np.mean([f[key] for f in floors])) for key in floors[0]})
         rewards = [reward_fom] + [_reward(x[:k], node) for x in members]
         row.update(ensemble_rewards_cm=rewards, reward_in_ensemble=bool(min(rewards) <= reward_rom <= max(rewards)))
+        reduced = [run_scene(robot, scene.animation, record_every=record_every, perturbation=perturbation,
+                             seed=seed).positions[:k].astype(float) for seed in range(1, len(ensemble) + 1)]
+        row.update(reduced_ensemble_rewards_cm=[reward_rom] + [_reward(x, node) for x in reduced],
+                   reduced_spread_mm=float(np.mean([np.linalg.norm(x - rom_x[:len(x)], axis=2).mean()
+                                                    for x in reduced])),
+                   reduced_ensemble_node_errors_mm=[row["mean_node_error_mm"]] + [
+                       float(np.linalg.norm(x - fom_x[:len(x)], axis=2).mean()) for x in reduced])
     return row
 
 
@@ -123,7 +138,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
 
     Args:
         ensemble: perturbed full-order runs per scene (the chaos floor and reward spread; 0:
-            none).
+            none), and as many perturbed reduced runs.
         perturbation: their initial noise amplitude, mm.
 
     Raises:
@@ -142,7 +157,9 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     refs = fom_references(workdir, config, scenes, record_every, workers, progress)
     members = [fom_references(workdir, config, scenes, record_every, workers, progress, perturbation, seed)
                for seed in range(1, ensemble + 1)]
-    rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members])
+    warm = scenes[0]  # compile the reduced kernels before anything is timed (numba's cache may be cold)
+    run_scene(reduced_scene_robot(warm, config, reduction), warm.animation, duration=config.dt)
+    rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation)
             for i, (s, r) in enumerate(tqdm(list(zip(scenes, refs)), desc="reduced runs", unit="scene",
                                             disable=not progress))]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
