@@ -98,6 +98,13 @@ class StepStats:
 MIN_CONTACT_GROWTH = 16
 
 _FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # normal, t1, t2
+_FLOOR_FRAMES = np.tile(_FLOOR_FRAME, (64, 1, 1))
+
+
+def _floor_frames(k: int) -> np.ndarray:
+    """``(k, 3, 3)`` copies of the floor contact frame (a view of a kept array for k <= 64:
+    ``np.broadcast_to`` costs more than the Delassus terms it feeds)."""
+    return _FLOOR_FRAMES[:k] if k <= len(_FLOOR_FRAMES) else np.tile(_FLOOR_FRAME, (k, 1, 1))
 
 
 class ImplicitEulerSolver:
@@ -271,7 +278,7 @@ class ImplicitEulerSolver:
             if b not in self._attach_rows and not len(on):
                 continue
             blocks[b] = add_body(W, u, self._compliance[b], v_free[m.body_slice(b)], nodes[on] - m.node_offsets[b],
-                                 np.broadcast_to(_FLOOR_FRAME, (len(on), 3, 3)), n_att + on)
+                                 _floor_frames(len(on)), n_att + on)
         return W, u, blocks
 
     def _corrections(self, lam: np.ndarray, blocks: dict) -> dict[int, np.ndarray]:

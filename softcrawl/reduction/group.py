@@ -17,9 +17,9 @@ import numpy as np
 
 from softcrawl.fem.constraints import FixedRows
 from softcrawl.fem.model import Model
-from softcrawl.reduction.kernels import (accumulate_terms, add_delassus, add_strain_terms, cavity_forces,
-                                         corrections, expand_velocities, floor_candidates, implicit_steps,
-                                         point_velocity)
+from softcrawl.reduction.kernels import (accumulate_terms, add_delassus, add_projected, add_strain_terms,
+                                         cavity_forces, corrections, expand_velocities, floor_candidates,
+                                         implicit_steps, point_velocity)
 from softcrawl.reduction.model import ElementFactors, ReducedBody
 
 
@@ -176,7 +176,7 @@ class ModalGroup:
             if scale.any():
                 F = cavity_forces(x, self.offsets, self.rotations, self.cavity_triangles, self.cavity_local,
                                   len(self.cavity_basis) // 3, scale)
-                load += F.reshape(L, -1) @ self.cavity_basis
+                add_projected(F.reshape(L, -1), self.cavity_basis, load)
         if forces is not None:
             load += self.project(forces)
         Ks, fs = np.zeros((L, ms, ms)), np.zeros((L, ms))
