@@ -189,7 +189,8 @@ def register(subparsers) -> None:
     v.add_argument("--out", default="runs/reduce/validation", help="report directory")
     v.add_argument("--grid", action="store_true", help="3 x 3 grid over (tol_modes, tol_gie) with a plot")
     v.add_argument("--ensemble", type=int, default=3,
-                   help="perturbed exact full-order runs per scene: the chaos floor and reward spread (0: none)")
+                   help="perturbed exact full-order runs per scene (the chaos floor and reward spread) and as "
+                        "many perturbed reduced runs (the reduced model's own spread); 0: none")
     v.add_argument("--perturbation", type=float, default=1e-6,
                    help="initial node noise of those runs, mm (default 1e-6)")
     v.set_defaults(func=_validate)

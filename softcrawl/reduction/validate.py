@@ -15,9 +15,9 @@ noise (``perturbation``, 1e-6 mm) end millimetres apart. So each scene is also r
 that on average) and the spread of their rewards: a reduced reward inside the ensemble's
 range is as close as the full model's own reward is to itself. The reduced model gets the
 same ensemble (its noise projected on each leg's basis): its spread says how much of a
-single reduced run's error is its own sensitivity to round-off, which is larger than the
-full model's (a reduced leg's contacts sit on fewer degrees of freedom). The deformation
-error separates the reduction's approximation from rigid drift.
+single reduced run's error is its own sensitivity to round-off (measured larger than the
+full model's). The deformation error separates the reduction's approximation from rigid
+drift.
 """
 
 from __future__ import annotations
