@@ -69,8 +69,15 @@ def deformation_error(a: np.ndarray, b: np.ndarray, bodies: list[slice]) -> np.n
     return out
 
 
+def _node_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(T, N)`` distances between the nodes of two runs ``(T', N, 3)`` over their common
+    frames (``T = min(T', T'')``), mm."""
+    k = min(len(a), len(b))
+    return np.linalg.norm(a[:k] - b[:k], axis=2)
+
+
 def _errors(a: np.ndarray, b: np.ndarray, bodies: list[slice], node: int) -> dict:
-    err = np.linalg.norm(a - b, axis=2)
+    err = _node_distances(a, b)
     return {"mean_node_error_mm": float(err.mean()), "max_node_error_mm": float(err.max()),
             "mean_deformation_error_mm": float(deformation_error(a, b, bodies).mean()),
             "mean_trajectory_error_mm": float(err[:, node].mean())}
@@ -123,10 +130,9 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         reduced = [run_scene(robot, scene.animation, record_every=record_every, perturbation=perturbation,
                              seed=seed).positions[:k].astype(float) for seed in range(1, len(ensemble) + 1)]
         row.update(reduced_ensemble_rewards_cm=[reward_rom] + [_reward(x, node) for x in reduced],
-                   reduced_spread_mm=float(np.mean([np.linalg.norm(x - rom_x[:len(x)], axis=2).mean()
-                                                    for x in reduced])),
+                   reduced_spread_mm=float(np.mean([_node_distances(x, rom_x).mean() for x in reduced])),
                    reduced_ensemble_node_errors_mm=[row["mean_node_error_mm"]] + [
-                       float(np.linalg.norm(x - fom_x[:len(x)], axis=2).mean()) for x in reduced])
+                       float(_node_distances(x, fom_x).mean()) for x in reduced])
     return row
 
 
