@@ -20,7 +20,6 @@ def make_env(**kw):
     kw.setdefault("steps_per_action", 2)
     kw.setdefault("n_actions", 4)
     kw.setdefault("designs", DESIGNS)
-    kw.setdefault("settle_steps", 3)
     return CrawlerEnv(**kw)
 
 

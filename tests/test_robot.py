@@ -13,7 +13,7 @@ import softcrawl.cli as cli
 from softcrawl.design.space import BASELINE_DESIGN, InvalidDesignError
 from softcrawl.fem.solver import SimulationDiverged, StepStats
 from softcrawl.gaits import SineGait
-from softcrawl.robot import Episode, PressureRangeError, RobotConfig, build_robot, leg_transform, run_episode
+from softcrawl.robot import NO_SETTLING, Episode, PressureRangeError, RobotConfig, build_robot, leg_transform, run_episode
 from softcrawl.robot.assembly import FLOOR_CLEARANCE
 from softcrawl.robot.output import CSV_COLUMNS, staged_directory
 
@@ -81,7 +81,7 @@ def test_settle_onto_floor(baseline):
     """0.5 s at zero pressure: no divergence, no penetration beyond the contact distance,
     and the floor carries the weight (loose check: total normal force within 5% of m g
     once the robot has come to rest; it still creeps slowly)."""
-    ep = Episode(baseline, settle_steps=0)
+    ep = Episode(baseline, settling=NO_SETTLING)
     ep.reset()
     for _ in range(50):
         state = ep.step(np.zeros(3))
@@ -105,7 +105,8 @@ class _FakeSolver:
 
 
 def test_run_episode_records_and_divergence(baseline, monkeypatch):
-    monkeypatch.setattr(type(baseline), "make_solver", lambda self: _FakeSolver(fail_at=15 + 11))
+    # settling takes a solver of its own (5 calm steps: the fake state never moves), the episode a fresh one
+    monkeypatch.setattr(type(baseline), "make_solver", lambda self: _FakeSolver(fail_at=11))
     res = run_episode(baseline, SineGait(phase_deg=110), duration=1.0, record_every=5, progress=False)
     assert res.diverged and "test" in res.reason and res.steps == 10
     assert res.time.shape == (11,) and res.position.shape == (11, 3) and res.contacts[1] == 7
@@ -113,6 +114,7 @@ def test_run_episode_records_and_divergence(baseline, monkeypatch):
     np.testing.assert_allclose(res.commanded[1], SineGait(phase_deg=110).pressure_at(0.0))
     np.testing.assert_allclose(res.applied[1], np.minimum(res.commanded[1], 1.5))  # 150 kPa/s * 0.01 s
     assert res.frames.shape == (3, baseline.model.n_nodes, 3) and list(res.frame_times) == [0.0, 0.05, 0.1]
+    assert res.settled == {"settle_steps": 5, "settle_seconds": 0.05, "rest_speed_mm_s": 0.0, "at_rest": True}
 
 
 def test_run_episode_rejects_out_of_range_gait(baseline, monkeypatch):

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass, field
 
 from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
 from softcrawl.robot.assembly import MODELS
+from softcrawl.robot.episode import Settling
 
 BACKENDS = ("serial", "subprocess")
 TIMEOUTS = ("bootstrap", "terminal")
@@ -45,7 +46,9 @@ class EnvConfig:
             of the full-order bodies (None: the robot's default, :class:`softcrawl.robot.RobotConfig`).
         dt: simulator step, s. steps_per_action: steps per action (hold = dt * steps_per_action s).
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
-        settle_steps: zero-pressure settling steps before each episode.
+        settle_speed, settle_hold, settle_max_seconds: the rest rule of the zero-pressure
+            settling before each episode (mm/s, s, s; :class:`softcrawl.robot.Settling`);
+            presets may change the threshold, not skip settling.
         legs: leg counts of the designs in play (default 3..6: all 6,972 canonical designs).
         max_cached_robots: robots kept per env (LRU).
     """
@@ -59,9 +62,16 @@ class EnvConfig:
     steps_per_action: int = 100
     n_actions: int = 20
     observe_state: bool = False
-    settle_steps: int = 15
+    settle_speed: float = 0.5
+    settle_hold: float = 0.05
+    settle_max_seconds: float = 3.0
     legs: tuple[int, ...] = (3, 4, 5, 6)
     max_cached_robots: int = 16
+
+    def settling(self) -> Settling:
+        """The :class:`Settling` these fields describe (ValueError if invalid)."""
+        return Settling(rest_speed=self.settle_speed, hold_seconds=self.settle_hold,
+                        max_seconds=self.settle_max_seconds)
 
     def designs(self) -> tuple[tuple[int, ...], ...]:
         """The canonical designs with a leg count in ``legs`` (sorted)."""
@@ -130,6 +140,9 @@ class TrainConfig:
             pos_int("env.refactor_every", self.env.refactor_every)
         for name in ("buffer_size", "batch_size"):
             pos_int(f"sac.{name}", getattr(self.sac, name))
+        settling = self.env.settling()
+        if settling.max_seconds <= 0:
+            raise ValueError("env.settle_max_seconds must be positive: episodes start from the robot at rest")
         if self.env.model not in MODELS:
             raise ValueError(f"env.model must be one of {MODELS}, got {self.env.model!r}")
         if self.backend not in BACKENDS:
@@ -172,9 +185,8 @@ PRESETS = ("paper", "demo", "smoke")
 
 def _coarse_env(steps_per_action: int, n_actions: int) -> EnvConfig:
     """The demo and smoke simulation: reduced 6 mm legs, 25 mm floating-frame disk, the
-    three-legged designs, 3 settling steps."""
-    return EnvConfig(disk_mesh_size=25, steps_per_action=steps_per_action, n_actions=n_actions, settle_steps=3,
-                     legs=(3,))
+    three-legged designs."""
+    return EnvConfig(disk_mesh_size=25, steps_per_action=steps_per_action, n_actions=n_actions, legs=(3,))
 
 
 def preset(name: str) -> TrainConfig:

@@ -77,7 +77,7 @@ class PolicyEvaluation:
         positions, and ParaView frames every ``record_every`` steps."""
         e = self.config.env
         return run_episode(self.env.episode.robot, self.gait(), episode_seconds(self.config), self.env.calibration,
-                           settle_steps=e.settle_steps, record_every=record_every, progress=progress)
+                           settling=e.settling(), record_every=record_every, progress=progress)
 
 
 def evaluate_policy(run: str | Path, design, episodes: int = 1,

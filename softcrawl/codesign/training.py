@@ -61,7 +61,7 @@ def env_fn(cfg: TrainConfig):
     e = cfg.env
     return partial(CrawlerEnv, robot_factory=robot_factory(cfg), steps_per_action=e.steps_per_action,
                    n_actions=e.n_actions, observe_state=e.observe_state, designs=e.designs(),
-                   settle_steps=e.settle_steps, max_cached=e.max_cached_robots)
+                   settling=e.settling(), max_cached=e.max_cached_robots)
 
 
 def make_vec_env(cfg: TrainConfig, sampler) -> DesignVecEnv:

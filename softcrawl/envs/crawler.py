@@ -19,11 +19,15 @@ when none is given).
   last valid state. ``truncated``: after ``n_actions`` actions (the time limit; learners should
   bootstrap through it, see :mod:`softcrawl.codesign.sac`).
 * ``info``: ``design``, ``t`` (s), ``disk_position_mm`` (3,), ``displacement_cm``,
-  ``applied_kpa`` (3,) and ``commanded_kpa`` (3,), ``diverged``, ``reason``.
+  ``applied_kpa`` (3,) and ``commanded_kpa`` (3,), ``diverged``, ``reason``, and how the
+  episode's start was reached (:meth:`softcrawl.robot.episode.SettledState.as_dict`):
+  ``settle_steps``, ``settle_seconds``, ``rest_speed_mm_s`` and ``at_rest`` (False: the robot
+  was still moving at the settling cap; its episode is scored but flagged).
 
 Robots are built with an injectable ``robot_factory(design) -> Robot`` (default
-:class:`BuildRobot`, the full-order model) and cached per design (LRU, ``max_cached``); each
-episode gets a fresh solver, so the same design and actions give the same return.
+:class:`BuildRobot`, the full-order model) and cached per design with their settled state
+(LRU, ``max_cached``: settling to rest costs once per design, not per episode); each episode
+gets a fresh solver, so the same design and actions give the same return.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from softcrawl.design.space import Design, canonical_designs, one_hot, validate_
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.robot.actuation import P_MAX_KPA, PressureCalibration
 from softcrawl.robot.assembly import Robot, RobotConfig, build_robot
-from softcrawl.robot.episode import MM_PER_CM, SETTLE_STEPS, Episode
+from softcrawl.robot.episode import MM_PER_CM, Episode, SettledState, Settling
 
 N_ACTIONS = 20
 HISTORY = 4
@@ -80,7 +84,7 @@ class CrawlerEnv(gym.Env):
         history: past actions in the observation (default 4).
         observe_state: append the 9-number robot-state summary to the observation.
         designs: designs drawn at reset when none is given (default: all canonical designs).
-        settle_steps: zero-pressure settling steps at reset (default 15, not counted).
+        settling: the rest rule before each episode (:class:`Settling`; not counted).
         calibration: real-to-sim pressure map (default ``PressureCalibration()``).
         max_cached: robots kept per env (LRU).
 
@@ -94,7 +98,7 @@ class CrawlerEnv(gym.Env):
 
     def __init__(self, robot_factory: Callable[[Design], Robot] | None = None, steps_per_action: int = 100,
                  n_actions: int = N_ACTIONS, history: int = HISTORY, observe_state: bool = False,
-                 designs: Sequence[Sequence[int]] | None = None, settle_steps: int = SETTLE_STEPS,
+                 designs: Sequence[Sequence[int]] | None = None, settling: Settling = Settling(),
                  calibration: PressureCalibration | None = None, max_cached: int = 16):
         super().__init__()
         for name, v in (("steps_per_action", steps_per_action), ("n_actions", n_actions), ("max_cached", max_cached)):
@@ -104,13 +108,13 @@ class CrawlerEnv(gym.Env):
             raise ValueError(f"history must be a non-negative integer, got {history!r}")
         self.robot_factory = robot_factory if robot_factory is not None else BuildRobot()
         self.steps_per_action, self.n_actions, self.history = int(steps_per_action), int(n_actions), int(history)
-        self.observe_state, self.settle_steps = bool(observe_state), int(settle_steps)
+        self.observe_state, self.settling = bool(observe_state), settling
         self.calibration = calibration if calibration is not None else PressureCalibration()
         self.designs = canonical_designs() if designs is None else tuple(validate_design(d) for d in designs)
         if not self.designs:
             raise ValueError("designs must not be empty")
         self.max_cached = int(max_cached)
-        self._robots: OrderedDict[Design, Robot] = OrderedDict()
+        self._robots: OrderedDict[Design, tuple[Robot, SettledState | None]] = OrderedDict()
         n_hist = 3 * self.history
         low = np.concatenate([np.zeros(DESIGN_DIM), -np.ones(n_hist)]).astype(np.float32)
         high = np.ones(DESIGN_DIM + n_hist, np.float32)
@@ -125,19 +129,20 @@ class CrawlerEnv(gym.Env):
         self._k = 0
         self._dead, self._reason = False, ""
         self._one_hot = np.zeros(DESIGN_DIM, np.float32)
+        self._settled_info: dict = {}
 
     # -- robots ---------------------------------------------------------------------------
     def _episode_for(self, design: Design) -> Episode:
         """A fresh :class:`Episode` (new solver: no factorization or warm start carried over
         from earlier episodes, so an episode is a function of design and actions only) on the
-        cached robot of ``design``."""
-        robot = self._robots.pop(design, None)
+        cached robot of ``design``, starting from its cached settled state."""
+        robot, settled = self._robots.pop(design, (None, None))
         if robot is None:
             robot = self.robot_factory(design)
-        self._robots[design] = robot
+        self._robots[design] = (robot, settled)
         while len(self._robots) > self.max_cached:
             self._robots.popitem(last=False)
-        return Episode(robot, self.calibration, self.settle_steps)
+        return Episode(robot, self.calibration, self.settling, settled=settled)
 
     # -- observation / info -----------------------------------------------------------------
     def _state_summary(self) -> np.ndarray:
@@ -160,7 +165,7 @@ class CrawlerEnv(gym.Env):
             "design": self.design, "t": self._k * self.steps_per_action * ep.dt,
             "disk_position_mm": np.array(pos, dtype=float), "displacement_cm": self._displacement(),
             "applied_kpa": ep.applied, "commanded_kpa": np.zeros(3) if commanded is None else commanded,
-            "diverged": self._dead, "reason": self._reason,
+            "diverged": self._dead, "reason": self._reason, **self._settled_info,
         }
 
     def _displacement(self) -> float:
@@ -187,6 +192,10 @@ class CrawlerEnv(gym.Env):
             self.episode.reset()
         except SimulationDiverged as exc:
             self._dead, self._reason = True, f"settling diverged: {exc}"
+        settled = self.episode.settled
+        if settled is not None and design in self._robots:
+            self._robots[design] = (self.episode.robot, settled)
+        self._settled_info = settled.as_dict() if settled is not None else {}
         return self._obs(), self._info()
 
     def step(self, action):

@@ -21,6 +21,7 @@ from softcrawl.geometry.io import replace_atomically
 from softcrawl.parallel import run_pool
 from softcrawl.reduction.scenes import Scene, disk_displacements, leg_displacements, run_scene, scene_robot
 from softcrawl.robot.assembly import RobotConfig
+from softcrawl.robot.episode import Settling
 
 #: RobotConfig fields a full-order run does not depend on (left out of its settings).
 REDUCED_ONLY_FIELDS = ("reduced_disk",)
@@ -34,7 +35,7 @@ def _settings(scene: Scene, config: RobotConfig, kind: str, record_every: int,
     that a finished run compares equal to its saved settings. Fields of ``config`` that only
     a reduced model reads are left out: they do not change a full-order run."""
     config = {k: v for k, v in dataclasses.asdict(config).items() if k not in REDUCED_ONLY_FIELDS}
-    settings = {"kind": kind, "scene": scene.describe(), "config": config,
+    settings = {"kind": kind, "scene": scene.describe(), "config": config, "settling": dataclasses.asdict(Settling()),
                 "record_every": record_every, "version": __version__}
     if perturbation[0]:
         settings["perturbation"] = {"amplitude_mm": perturbation[0], "seed": perturbation[1]}
@@ -72,7 +73,7 @@ def run_fom_scene(scene: Scene, config: RobotConfig, kind: str, record_every: in
     else:
         arrays = {"positions": rec.positions, "times": rec.times, "reward_x": rec.reward_x}
     arrays["wall_seconds"] = np.array(rec.wall_seconds)
-    arrays["steps"] = np.array(rec.steps)
+    arrays["steps"] = np.array(rec.steps + rec.settle_steps)  # all steps the wall time covers
     _save(Path(path), arrays, _settings(scene, config, kind, record_every, perturbation))
     return path
 

@@ -28,7 +28,7 @@ from softcrawl.reduction.animations import (
 )
 from softcrawl.reduction.model import ReducedBody, RobotReduction
 from softcrawl.robot.assembly import Robot, RobotConfig, assemble_robot, reduce_robot
-from softcrawl.robot.episode import SETTLE_STEPS
+from softcrawl.robot.episode import Settling, settle
 
 
 @dataclass(frozen=True)
@@ -152,8 +152,10 @@ class SceneRecord:
         times: ``(k,)`` s (0 = end of settling).
         positions: ``(k, N, 3)`` float32 positions of all nodes, mm.
         reward_x: ``(k,)`` x of the disk top centre, mm.
-        steps: steps run; wall_seconds: wall time of the stepping (settling included).
+        steps: steps run after settling; wall_seconds: wall time of the stepping (settling
+        included).
         diverged: reason, or "".
+        settle_steps: steps of the settling to rest.
     """
 
     times: np.ndarray
@@ -162,11 +164,13 @@ class SceneRecord:
     steps: int
     wall_seconds: float
     diverged: str = ""
+    settle_steps: int = 0
 
 
 def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, duration: float | None = None,
               on_step: Callable[[int], None] | None = None, perturbation: float = 0.0, seed: int = 0) -> SceneRecord:
-    """Settle ``SETTLE_STEPS`` at zero pressure, then play the animation, recording every
+    """Settle at zero pressure until at rest (the episodes' rule,
+    :class:`softcrawl.robot.episode.Settling`), then play the animation, recording every
     ``record_every`` steps (and at t = 0).
 
     Args:
@@ -196,12 +200,10 @@ def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, durat
         state = dataclasses.replace(state, x=state.x + noise)
     times, frames, rx = [], [], []
     wall = time.perf_counter()
-    reason = ""
+    reason, settle_steps = "", 0
     try:
-        zero = Control(np.zeros(nch))
-        for _ in range(SETTLE_STEPS):
-            state = solver.step(state, zero)
-        state = dataclasses.replace(state, t=0.0)
+        settled = settle(robot, Settling(), solver, state, Control(np.zeros(nch)))
+        state, settle_steps = settled.state, settled.steps
         for k in range(n + 1):
             if k % record_every == 0:
                 x = state.x
@@ -220,7 +222,7 @@ def run_scene(robot: Robot, animation, solver=None, record_every: int = 2, durat
         reason = str(exc)
     wall = time.perf_counter() - wall
     return SceneRecord(np.array(times), np.stack(frames) if frames else np.zeros((0, robot.model.n_nodes, 3), np.float32),
-                       np.array(rx), n, wall, reason)
+                       np.array(rx), n, wall, reason, settle_steps)
 
 
 def leg_displacements(robot: Robot, positions: np.ndarray) -> np.ndarray:

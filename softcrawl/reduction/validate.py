@@ -34,7 +34,7 @@ from softcrawl.reduction.model import RobotReduction
 from softcrawl.reduction.runs import run_fom_scenes
 from softcrawl.reduction.scenes import Scene, reduced_scene_robot, run_scene, validation_scenes
 from softcrawl.robot.assembly import RobotConfig
-from softcrawl.robot.episode import MM_PER_CM, SETTLE_STEPS
+from softcrawl.robot.episode import MM_PER_CM
 
 
 def fom_references(workdir: str | os.PathLike, config: RobotConfig, scenes: tuple[Scene, ...],
@@ -88,9 +88,28 @@ def _reward(positions: np.ndarray, node: int) -> float:
     return float((positions[-1, node, 0] - positions[0, node, 0]) / MM_PER_CM)
 
 
+def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float | None) -> tuple[RobotConfig, int]:
+    """The reduced runs' config and frame spacing (steps) for a reduced time step ``reduced_dt``
+    (s; None: the reference's), so that their frames fall on the reference's frame times.
+
+    Raises:
+        ValueError: ``reduced_dt`` does not divide the reference's frame spacing.
+    """
+    if reduced_dt is None or reduced_dt == config.dt:
+        return config, record_every
+    spacing = config.dt * record_every / reduced_dt
+    if not (reduced_dt > 0 and abs(spacing - round(spacing)) < 1e-9 and round(spacing) >= 1):
+        raise ValueError(f"the reduced time step must divide the reference frame spacing "
+                         f"{config.dt * record_every:g} s, got {reduced_dt!r} s")
+    return dataclasses.replace(config, dt=float(reduced_dt)), int(round(spacing))
+
+
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
-                  record_every: int = 2, ensemble: list[Path] = (), perturbation: float = 0.0) -> dict:
-    """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run.
+                  record_every: int = 2, ensemble: list[Path] = (), perturbation: float = 0.0,
+                  reduced_dt: float | None = None) -> dict:
+    """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run
+    (recorded every ``record_every`` steps of ``config.dt``); ``reduced_dt``: the reduced
+    model's time step (s; None: ``config.dt``), frames compared at the same times.
 
     Given perturbed full-order runs (``ensemble``), also their mean distance to the reference
     (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first); and
@@ -103,7 +122,8 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         ValueError: a reference was recorded on another mesh or at other times.
     """
     ref = np.load(reference)
-    robot = reduced_scene_robot(scene, config, reduction)
+    reduced_config, record_every = _reduced_recording(config, record_every, reduced_dt)
+    robot = reduced_scene_robot(scene, reduced_config, reduction)
     rec = run_scene(robot, scene.animation, record_every=record_every)
     fom_x = ref["positions"].astype(float)
     k = len(rec.positions)
@@ -113,12 +133,13 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
     node = robot.reward_node
     rom_x = rec.positions.astype(float)
     reward_rom, reward_fom = _reward(rom_x, node), _reward(fom_x[:k], node)
-    steps_fom = int(ref["steps"]) + SETTLE_STEPS
+    steps_fom = int(ref["steps"])
     row = {"scene": scene.name, "diverged": rec.diverged, "frames": k, **_errors(rom_x, fom_x[:k], bodies, node),
            "reward_full_cm": reward_fom, "reward_reduced_cm": reward_rom,
            "reward_error_cm": abs(reward_rom - reward_fom),
            "seconds_per_step_full": float(ref["wall_seconds"]) / steps_fom,
-           "seconds_per_step_reduced": rec.wall_seconds / (rec.steps + SETTLE_STEPS)}
+           "seconds_per_step_reduced": rec.wall_seconds / (rec.steps + rec.settle_steps),
+           "seconds_per_sim_second_reduced": rec.wall_seconds / ((rec.steps + rec.settle_steps) * reduced_config.dt)}
     if ensemble:
         members = [np.load(p)["positions"].astype(float) for p in ensemble]
         if any(x.shape != fom_x.shape for x in members):
@@ -139,10 +160,13 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
 def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: str | os.PathLike,
                        scenes: tuple[Scene, ...] | None = None, record_every: int = 2,
                        workers: int | None = None, progress: bool = True, ensemble: int = 3,
-                       perturbation: float = 1e-6) -> dict:
+                       perturbation: float = 1e-6, reduced_dt: float | None = None) -> dict:
     """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
+        reduced_dt: the reduced model's time step, s (None: ``config.dt``); the references stay
+            exact full-order runs at ``config.dt`` (the reference 0.01 s), so this measures what a
+            larger step costs in accuracy (issue 18's settings study).
         ensemble: perturbed full-order runs per scene (the chaos floor and reward spread; 0:
             none), and as many perturbed reduced runs.
         perturbation: their initial noise amplitude, mm.
@@ -165,17 +189,19 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
                for seed in range(1, ensemble + 1)]
     warm = scenes[0]  # compile the reduced kernels before anything is timed (numba's cache may be cold)
     run_scene(reduced_scene_robot(warm, config, reduction), warm.animation, duration=config.dt)
-    rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation)
+    rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation, reduced_dt)
             for i, (s, r) in enumerate(tqdm(list(zip(scenes, refs)), desc="reduced runs", unit="scene",
                                             disable=not progress))]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
     red = float(np.mean([r["seconds_per_step_reduced"] for r in rows]))
+    red_sim = float(np.mean([r["seconds_per_sim_second_reduced"] for r in rows]))
     means = {key: float(np.mean([r[key] for r in rows])) for key in
              ("mean_node_error_mm", "mean_deformation_error_mm", "floor_mean_node_error_mm",
               "floor_mean_deformation_error_mm") if key in rows[0]}
     return {"scenes": rows, **means, "ensemble": ensemble, "perturbation_mm": perturbation,
             "max_scene_node_error_mm": float(max(r["mean_node_error_mm"] for r in rows)),
             "mean_seconds_per_step_full": full, "mean_seconds_per_step_reduced": red, "speedup": full / red,
+            "reduced_dt": reduced_dt or config.dt, "mean_seconds_per_sim_second_reduced": red_sim,
             **reduction_sizes(reduction)}
 
 

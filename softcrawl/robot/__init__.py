@@ -19,12 +19,12 @@ from softcrawl.robot.assembly import (
     build_robot,
     leg_transform,
 )
-from softcrawl.robot.episode import SETTLE_STEPS, Episode, EpisodeResult, run_episode
+from softcrawl.robot.episode import NO_SETTLING, Episode, EpisodeResult, SettledState, Settling, run_episode, settle
 
 __all__ = [
     "P_MAX_KPA",
     "P_MIN_KPA",
-    "SETTLE_STEPS",
+    "NO_SETTLING",
     "Episode",
     "EpisodeResult",
     "LegSlot",
@@ -33,8 +33,11 @@ __all__ = [
     "RegulatorBank",
     "Robot",
     "RobotConfig",
+    "SettledState",
+    "Settling",
     "build_robot",
     "check_pressures",
     "leg_transform",
     "run_episode",
+    "settle",
 ]

@@ -4,9 +4,14 @@ Per step of ``dt`` seconds (physics.md, "Time stepping" and "Pneumatic actuation
 the gait's command (real kPa, checked against [0, 90]) goes through the rate-limited
 :class:`RegulatorBank` (150 kPa/s), the applied real pressures through the
 :class:`PressureCalibration` to sim kPa, and those drive one solver step. An episode
-starts with ``settle_steps`` steps at zero pressure (the robot settles onto the floor),
-which do not count towards the episode time; the reward is the +x displacement of the
-disk's top-centre point (cm) from the end of settling to the end of the episode.
+starts from the robot *at rest* on the floor: :func:`settle` steps it at zero pressure until
+every node is slower than :attr:`Settling.rest_speed` for :attr:`Settling.hold_seconds`
+(at most :attr:`Settling.max_seconds`; a robot that is still moving then is reported, not
+hidden: :attr:`SettledState.at_rest` is False). Settling does not count towards the episode
+time; the reward is the +x displacement of the disk's top-centre point (cm) from the rested
+pose to the end of the episode. The settled state depends on the robot only, so callers that
+run many episodes of one design keep it (:class:`Episode` takes a cached
+:class:`SettledState`) and every episode starts from it with a fresh solver.
 
 Gaits are duck-typed (anything with ``pressure_at(t) -> (3,)`` real kPa), so this module
 does not import :mod:`softcrawl.gaits` (which imports :mod:`softcrawl.robot`).
@@ -15,6 +20,7 @@ does not import :mod:`softcrawl.gaits` (which imports :mod:`softcrawl.robot`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,14 +30,110 @@ from tqdm.auto import tqdm
 
 from softcrawl.design.space import N_REGULATORS
 from softcrawl.fem.solver import SimulationDiverged
-from softcrawl.fem.state import State
+from softcrawl.fem.state import Control, State
 from softcrawl.robot.actuation import PressureCalibration, RegulatorBank
 from softcrawl.robot.assembly import Robot
 
-#: Settling steps at zero pressure before an episode (physics.md).
-SETTLE_STEPS = 15
 #: mm per cm (reward unit).
 MM_PER_CM = 10.0
+
+
+@dataclass(frozen=True)
+class Settling:
+    """When zero-pressure settling before an episode ends (issue 23: the paper's fixed 15 steps
+    left designs that tip over mid-fall at t = 0, and the fall was scored as crawling).
+
+    Attributes:
+        rest_speed: mm/s; at rest when every node (disk and legs) is slower than this.
+            Default 0.5: once a robot has landed its speed decays with a time constant of
+            about 0.1 s (Rayleigh damping; measured on the one-sided ``0,0,1,0,2,2,0,0``), so
+            the drift left after rest is about ``rest_speed x 0.1 s`` = 0.05 mm, 0.5% of a
+            1 cm reward.
+        hold_seconds: the speed must stay below ``rest_speed`` this long (s), so a robot
+            passing slowly through a tipping point is not taken for resting.
+        max_seconds: settling cap, s; a robot still moving then starts its episode anyway
+            and is reported (``SettledState.at_rest`` False).
+
+    Raises:
+        ValueError: a non-positive ``rest_speed``, a negative or non-finite time.
+    """
+
+    rest_speed: float = 0.5
+    hold_seconds: float = 0.05
+    max_seconds: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rest_speed) and self.rest_speed > 0):
+            raise ValueError(f"settling rest_speed must be a positive speed in mm/s, got {self.rest_speed!r}")
+        for name in ("hold_seconds", "max_seconds"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"settling {name} must be a non-negative number of seconds, got {v!r}")
+
+    def steps(self, dt: float) -> tuple[int, int]:
+        """``(hold, cap)`` in steps of ``dt`` s (hold at least 1)."""
+        return max(1, math.ceil(self.hold_seconds / dt - 1e-9)), math.ceil(self.max_seconds / dt - 1e-9)
+
+
+#: No settling at all (the robot starts as assembled, mid-air): for tests of the raw model only.
+NO_SETTLING = Settling(max_seconds=0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class SettledState:
+    """A robot after :func:`settle`.
+
+    Attributes:
+        state: the rested :class:`State` (``t = 0``).
+        steps: settling steps taken; seconds: ``steps * dt``, s.
+        rest_speed: fastest node speed at the end, mm/s.
+        at_rest: whether the rest criterion was met within the cap.
+    """
+
+    state: State
+    steps: int
+    seconds: float
+    rest_speed: float
+    at_rest: bool
+
+    def as_dict(self) -> dict:
+        """The statistics (no state) for logs and summaries."""
+        return {"settle_steps": self.steps, "settle_seconds": self.seconds,
+                "rest_speed_mm_s": self.rest_speed, "at_rest": self.at_rest}
+
+
+def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: State | None = None,
+           zero: Control | None = None) -> SettledState:
+    """Step ``robot`` at zero pressure until it is at rest (:class:`Settling`).
+
+    Args:
+        robot: the robot.
+        settling: the rest rule.
+        solver: the solver to step with (default: a new one, so that an episode started from
+            the result with a fresh solver is the same whether the result was computed now or
+            cached).
+        state: the start (default: the assembled rest state, mid-air).
+        zero: the zero-pressure control (default ``robot.control(0, 0, 0)``).
+
+    Returns:
+        The :class:`SettledState` (``at_rest`` False if the cap was reached first).
+
+    Raises:
+        SimulationDiverged: if settling diverges.
+    """
+    dt = robot.config.dt
+    hold, cap = settling.steps(dt)
+    solver = robot.make_solver() if solver is None else solver
+    state = robot.model.rest_state() if state is None else state
+    zero = robot.control(np.zeros(N_REGULATORS)) if zero is None else zero
+    speed, calm, steps = float(np.sqrt(np.einsum("ij,ij->i", state.v, state.v).max())), 0, 0
+    while steps < cap and calm < hold:
+        state = solver.step(state, zero)
+        steps += 1
+        speed = float(np.sqrt(np.einsum("ij,ij->i", state.v, state.v).max()))
+        calm = calm + 1 if speed < settling.rest_speed else 0
+    return SettledState(dataclasses.replace(state, t=0.0), steps, steps * dt, speed,
+                        calm >= hold or (cap == 0 and speed < settling.rest_speed))
 
 
 class Episode:
@@ -40,23 +142,26 @@ class Episode:
     Args:
         robot: the assembled robot.
         calibration: real-to-sim pressure map.
-        settle_steps: zero-pressure steps run by :meth:`reset` (not counted in time).
+        settling: the rest rule of :meth:`reset` (settling is not counted in time).
         rate_kpa_s: regulator slew-rate limit, kPa/s.
+        settled: this robot's :class:`SettledState` from an earlier :func:`settle` with the
+            same ``settling`` (a cache); None settles at the first :meth:`reset`.
 
     Attributes:
         state: the current :class:`State` (``t`` = episode time, 0 after :meth:`reset`).
         start: ``(3,)`` disk top-centre position after settling, mm.
         applied: ``(3,)`` applied real kPa of the regulators after the last step.
-        solver: the solver (its ``stats`` describe the last step).
+        solver: the solver (its ``stats`` describe the last step; None before :meth:`reset`).
+        settled: the :class:`SettledState` episodes start from (None before the first reset).
     """
 
     def __init__(self, robot: Robot, calibration: PressureCalibration = PressureCalibration(),
-                 settle_steps: int = SETTLE_STEPS, rate_kpa_s: float = 150.0):
-        if int(settle_steps) < 0:
-            raise ValueError(f"settle_steps must be >= 0, got {settle_steps}")
-        self.robot, self.calibration, self.settle_steps = robot, calibration, int(settle_steps)
+                 settling: Settling = Settling(), rate_kpa_s: float = 150.0,
+                 settled: SettledState | None = None):
+        self.robot, self.calibration, self.settling = robot, calibration, settling
         self.regulators = RegulatorBank(N_REGULATORS, rate_kpa_s)
-        self.solver = robot.make_solver()
+        self.solver = None  # made by reset()
+        self.settled = settled
         self.state: State = robot.model.rest_state()
         self.start = robot.reward_position(self.state.x)
 
@@ -69,17 +174,17 @@ class Episode:
         return self.regulators.state.copy()
 
     def reset(self) -> State:
-        """Rest state, regulators at 0 kPa, ``settle_steps`` zero-pressure steps; t := 0.
+        """Regulators at 0 kPa, the robot at rest (:func:`settle`, once per :class:`Episode`
+        unless a settled state was given), a fresh solver; t := 0.
 
         Raises:
             SimulationDiverged: if settling diverges.
         """
         self.regulators.reset()
-        state = self.robot.model.rest_state()
-        zero = self.robot.control(np.zeros(N_REGULATORS))
-        for _ in range(self.settle_steps):
-            state = self.solver.step(state, zero)
-        self.state = dataclasses.replace(state, t=0.0)
+        if self.settled is None:
+            self.settled = settle(self.robot, self.settling)
+        self.solver = self.robot.make_solver()
+        self.state = self.settled.state
         self.start = self.robot.reward_position(self.state.x)
         return self.state
 
@@ -121,6 +226,8 @@ class EpisodeResult:
         steps: completed episode steps ``n``; sim_seconds = ``n * dt``.
         wall_seconds: wall-clock time including settling.
         diverged: whether the solver failed; reason: its message ("" otherwise).
+        settled: the settling statistics (:meth:`SettledState.as_dict`; empty if settling
+            diverged).
     """
 
     time: np.ndarray
@@ -138,6 +245,7 @@ class EpisodeResult:
     wall_seconds: float
     diverged: bool = False
     reason: str = ""
+    settled: dict = dataclasses.field(default_factory=dict)
 
     @property
     def real_time_factor(self) -> float:
@@ -146,9 +254,10 @@ class EpisodeResult:
 
 
 def run_episode(robot: Robot, gait, duration: float = 20.0,
-                calibration: PressureCalibration = PressureCalibration(), settle_steps: int = SETTLE_STEPS,
+                calibration: PressureCalibration = PressureCalibration(), settling: Settling = Settling(),
                 record_every: int | None = 1, progress: bool = True,
-                on_frame: Callable[[float, np.ndarray], None] | None = None) -> EpisodeResult:
+                on_frame: Callable[[float, np.ndarray], None] | None = None,
+                settled: SettledState | None = None) -> EpisodeResult:
     """Simulate one open-loop episode.
 
     Args:
@@ -157,11 +266,12 @@ def run_episode(robot: Robot, gait, duration: float = 20.0,
             queried at the start ``t = k * dt`` of each step ``k``.
         duration: episode length, s (rounded to whole steps of ``robot.config.dt``).
         calibration: real-to-sim pressure map.
-        settle_steps: zero-pressure steps before the episode (not counted).
+        settling: the rest rule before the episode (not counted; :func:`settle`).
         record_every: store all node positions every this many steps (and at t = 0);
             None stores none.
         progress: show a tqdm bar (steps/s, ETA) on stderr.
         on_frame: called as ``on_frame(t, x)`` (s, ``(N, 3)`` mm) for each recorded frame.
+        settled: this robot's cached :func:`settle` result for ``settling`` (None: settle now).
 
     Returns:
         The :class:`EpisodeResult`. A :class:`SimulationDiverged` (settling included) is
@@ -177,7 +287,7 @@ def run_episode(robot: Robot, gait, duration: float = 20.0,
         raise ValueError(f"duration must be at least one time step ({dt} s), got {duration} s")
     if record_every is not None and record_every < 1:
         raise ValueError(f"record_every must be >= 1 or None, got {record_every}")
-    ep = Episode(robot, calibration, settle_steps)
+    ep = Episode(robot, calibration, settling, settled=settled)
     pos, cmd, app = np.zeros((n + 1, 3)), np.zeros((n + 1, 3)), np.zeros((n + 1, 3))
     contacts, sweeps = np.zeros(n + 1, np.int64), np.zeros(n + 1, np.int64)
     frame_times, frames = [], []
@@ -221,5 +331,5 @@ def run_episode(robot: Robot, gait, duration: float = 20.0,
         contacts=contacts[:m], contact_sweeps=sweeps[:m], factorizations=factorizations,
         frame_times=np.array(frame_times), frames=frames_arr, reward_cm=reward,
         steps=max(done, 0), sim_seconds=max(done, 0) * dt, wall_seconds=wall,
-        diverged=bool(reason), reason=reason,
+        diverged=bool(reason), reason=reason, settled=ep.settled.as_dict() if ep.settled else {},
     )

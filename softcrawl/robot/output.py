@@ -143,6 +143,7 @@ def summary(robot: Robot, gait, result: EpisodeResult, calibration: PressureCali
         "real_time_factor": result.real_time_factor,
         "diverged": result.diverged,
         "divergence_reason": result.reason,
+        "settling": result.settled,
         "model": robot.config.model,
         "config": dataclasses.asdict(robot.config),
         "calibration": {"a": calibration.a, "b": calibration.b},

@@ -38,12 +38,13 @@ from tqdm.auto import tqdm
 
 from softcrawl import __version__
 from softcrawl.design.space import validate_design
+from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.gaits import SineGait
 from softcrawl.geometry.io import replace_atomically
 from softcrawl.parallel import run_pool
 from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.assembly import RobotConfig, build_robot
-from softcrawl.robot.episode import SETTLE_STEPS, run_episode
+from softcrawl.robot.episode import SettledState, Settling, run_episode, settle
 from softcrawl.robot.output import (
     check_output_path,
     describe_gait,
@@ -149,20 +150,30 @@ def parse_phases(spec: str) -> tuple[float, ...]:
 def sweep_settings(design, config: RobotConfig, duration: float,
                    calibration: PressureCalibration = PressureCalibration()) -> dict:
     """JSON-ready dict of everything that determines an episode of the sweep except the phase:
-    design, the sine gait's other parameters, duration (s), robot config, calibration, settling
-    steps and the software version. Two sweeps may share finished phases only if these match."""
+    design, the sine gait's other parameters, duration (s), robot config, calibration, the
+    settling rule and the software version. Two sweeps may share finished phases only if these match."""
     gait = describe_gait(SineGait())
     gait.pop("phase_deg")
     return jsonable({
         "design": list(validate_design(design)), "gait": gait, "duration_s": float(duration),
         "config": dataclasses.asdict(config), "calibration": {"a": calibration.a, "b": calibration.b},
-        "settle_steps": SETTLE_STEPS, "softcrawl_version": __version__,
+        "settling": dataclasses.asdict(Settling()), "softcrawl_version": __version__,
     })
 
 
 @functools.lru_cache(maxsize=1)
 def _robot(design: tuple[int, ...], config: RobotConfig):
     return build_robot(design, config)  # one per worker process; episodes do not modify it
+
+
+@functools.lru_cache(maxsize=1)
+def _settled(design: tuple[int, ...], config: RobotConfig) -> SettledState | None:
+    """The robot at rest, once per worker process (None if settling diverged: each episode
+    then settles again and reports the divergence)."""
+    try:
+        return settle(_robot(design, config))
+    except SimulationDiverged:
+        return None
 
 
 def run_phase(design: Sequence[int], config: RobotConfig, phase_deg: float, duration: float,
@@ -174,8 +185,9 @@ def run_phase(design: Sequence[int], config: RobotConfig, phase_deg: float, dura
     Raises:
         InvalidDesignError, ValueError, MeshError: for invalid inputs (see :func:`build_robot`).
     """
-    res = run_episode(_robot(validate_design(design), config), SineGait(phase_deg=phase_deg), duration,
-                      calibration, record_every=None, progress=False)
+    design = validate_design(design)
+    res = run_episode(_robot(design, config), SineGait(phase_deg=phase_deg), duration, calibration,
+                      record_every=None, progress=False, settled=_settled(design, config))
     return PhaseResult(float(phase_deg), float("nan") if res.diverged else res.reward_cm, res.reward_cm,
                        res.diverged, res.reason, res.steps, res.wall_seconds)
 
