@@ -18,7 +18,8 @@ from softcrawl import __version__
 
 #: Subcommand modules, in the order they appear in ``softcrawl --help``.
 SUBCOMMANDS = ("softcrawl.cli.verify", "softcrawl.cli.designs", "softcrawl.cli.simulate", "softcrawl.cli.sweep",
-               "softcrawl.cli.reduce", "softcrawl.cli.train", "softcrawl.cli.evaluate", "softcrawl.cli.report")
+               "softcrawl.cli.reduce", "softcrawl.cli.train", "softcrawl.cli.evaluate", "softcrawl.cli.report",
+               "softcrawl.cli.rig", "softcrawl.cli.deploy", "softcrawl.cli.calibrate", "softcrawl.cli.compare")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,133 @@
+"""``softcrawl deploy``: run a gait on a rig (real or simulated), fail-safe.
+
+Examples::
+
+    softcrawl deploy --rig sim --run runs/smoke --design 1,0,0,2,2,0,0,0 --out deploy/sim1
+    softcrawl deploy --rig rig.toml --actions gait.csv --out deploy/real1
+    softcrawl deploy --rig rig.toml --gait sine --phase 110 --out deploy/baseline1
+
+Writes ``log.csv`` (>= 10 Hz samples: commanded kPa, set V, measured V, sensed kPa, overrun
+flags, events) and ``summary.json`` into ``--out``. The gait is range-checked (0-90 kPa and
+the rig's limit) before the rig is touched. Exit codes: 0 completed, 1 the fail-safe stopped
+the run (reason printed and logged), 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+import numpy as np
+
+GAITS = ("sine", "paper-best")
+
+
+def policy_actions(run: str, design: str, checkpoint: str | None = None):
+    """The trained run's deterministic actions ``(n, 3)`` real kPa for ``design`` and a
+    description dict. The one place that calls the co-design evaluation API."""
+    from softcrawl.codesign.evaluation import evaluate_policy
+
+    ev = evaluate_policy(run, design, episodes=1, checkpoint=checkpoint)
+    hold = ev.config.env.steps_per_action * ev.config.env.dt
+    return np.asarray(ev.actions_kpa, dtype=float), {
+        "source": "policy", "run": str(run), "checkpoint": ev.checkpoint, "design": list(ev.design),
+        "sim_return_cm": float(ev.returns_cm[0]), "sim_hold_s": hold}
+
+
+def gait_actions(args: argparse.Namespace):
+    """``(actions (n, 3) kPa, description)`` from --run / --actions / --gait."""
+    n = args.n_actions
+    if n < 1:
+        raise ValueError(f"--n-actions must be >= 1, got {n}")
+    if args.run is not None:
+        if args.design is None:
+            raise ValueError("--run needs --design")
+        return policy_actions(args.run, args.design, args.checkpoint)
+    if args.design is not None or args.checkpoint is not None:
+        raise ValueError("--design and --checkpoint go with --run")
+    if args.actions is not None:
+        from softcrawl.gaits import read_actions_csv
+
+        return read_actions_csv(args.actions).actions, {"source": "actions", "file": str(args.actions)}
+    from softcrawl.gaits import SineGait, paper_best_gait
+
+    if args.gait == "sine":
+        g = SineGait(phase_deg=args.phase)
+        return np.array([g.pressure_at(float(k)) for k in range(n)]), {"source": "sine", "phase_deg": args.phase}
+    return paper_best_gait(n_actions=n).actions, {"source": "paper-best"}
+
+
+def _run(args: argparse.Namespace) -> int:
+    from softcrawl.hardware.config import example_rig_path, load_rig_config
+    from softcrawl.hardware.deploy import deploy, validate_actions
+    from softcrawl.hardware.errors import RigError
+
+    sim = args.rig == "sim"
+    cfg = load_rig_config(args.sim_config or example_rig_path()) if sim else load_rig_config(args.rig)
+    if not (math.isfinite(args.jitter) and args.jitter >= 0):
+        raise ValueError(f"--jitter must be >= 0 s, got {args.jitter}")
+    calibration = None
+    if args.calibration is not None:
+        from softcrawl.hardware.calibration import load_calibration
+
+        calibration = load_calibration(args.calibration)
+    actions, meta = gait_actions(args)
+    actions = validate_actions(actions, cfg.rig.max_kpa)  # refuse before anything moves
+    if calibration is not None:
+        meta["calibration"] = {"file": str(args.calibration), "a": calibration.a, "b": calibration.b,
+                               "sim_kpa": calibration.to_sim(actions).tolist()}
+    if sim:
+        from softcrawl.hardware.simrig import SimRig
+
+        rig = SimRig(cfg, seed=args.seed, jitter_s=args.jitter).rig
+    else:
+        from softcrawl.hardware.rig import open_rig
+
+        try:
+            rig = open_rig(cfg)
+        except RigError as exc:
+            print(f"softcrawl deploy: error: {exc}", file=sys.stderr)
+            return 1
+    meta["rig_config"] = cfg.path
+    hold = meta.get("sim_hold_s")
+    if hold is not None and abs(hold - cfg.rig.control_period_s) > 1e-9:
+        print(f"softcrawl deploy: warning: the policy was trained with {hold:g} s actions; the rig holds each for "
+              f"{cfg.rig.control_period_s:g} s", file=sys.stderr)
+    res = deploy(rig, actions, args.out, meta=meta, progress=not args.no_progress)
+    sm = res.summary
+    print(f"{res.status}: {sm['n_actions']} actions on {rig.name}, {sm['samples']} samples "
+          f"({sm['sample_hz_achieved'] or 0:.1f} Hz), {sm['overruns']} overruns; wrote {res.out}")
+    if res.status != "completed":
+        print(f"softcrawl deploy: stopped by the fail-safe: {res.reason} ({'; '.join(res.fail_safe)})",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the ``deploy`` subcommand to ``subparsers``."""
+    p = subparsers.add_parser("deploy", help="run a gait on a real or simulated rig (fail-safe)",
+                              description="Run a gait (a trained run's policy for a design, an action CSV, or a "
+                              "built-in gait) on a rig at one action per control period; log at >= 10 Hz to "
+                              "--out/log.csv plus summary.json. Any fault vents all lines and turns the outputs off.")
+    p.add_argument("--rig", required=True, metavar="RIG.toml|sim", help="rig description, or 'sim' for the "
+                   "simulated rig (regulators fitted to recorded real runs)")
+    p.add_argument("--sim-config", metavar="RIG.toml", default=None,
+                   help="with --rig sim: the rig description to simulate (default: the shipped example)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--run", default=None, help="trained co-design run: deploy its policy for --design")
+    src.add_argument("--actions", metavar="FILE.csv", default=None, help="action CSV p1,p2,p3 (real kPa per action)")
+    src.add_argument("--gait", choices=GAITS, default="sine", help="built-in gait (default sine)")
+    p.add_argument("--design", default=None, help="with --run: 8 comma-separated slot values")
+    p.add_argument("--checkpoint", default=None, help="with --run: checkpoint folder (default: the latest)")
+    p.add_argument("--phase", type=float, default=110.0, help="sine gait: lag of regulator 2, degrees")
+    p.add_argument("--n-actions", type=int, default=20, help="built-in gaits: number of actions (default 20)")
+    p.add_argument("--calibration", metavar="FILE.json", default=None,
+                   help="pressure calibration from `softcrawl calibrate` (recorded with the log: the sim "
+                        "pressures the commands correspond to)")
+    p.add_argument("--out", required=True, help="output folder for log.csv and summary.json")
+    p.add_argument("--seed", type=int, default=0, help="simulated rig: noise and jitter seed")
+    p.add_argument("--jitter", type=float, default=0.002, help="simulated rig: mean sleep jitter, s")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run)

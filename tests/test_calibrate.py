@@ -1,0 +1,136 @@
+"""softcrawl calibrate: bend matching by root finding on the clamped PneuNet, the affine fit,
+the calibration file and its loader."""
+
+import json
+
+import numpy as np
+import pytest
+
+from softcrawl.hardware.calibration import (BendCurve, BendModel, calibrate, load_calibration, plot_calibration,
+                                            read_bends_csv, write_calibration)
+from softcrawl.robot.actuation import REAL_KPA_TABLE, SIM_KPA_TABLE, PressureCalibration
+
+A_REF, B_REF = 4.0785, -20.36
+
+
+def _analytic(p):
+    """A monotone, nonlinear stand-in for the FEM bend: (angle deg, deflection mm)."""
+    return 0.3 * p ** 0.95, 80 * (1 - np.exp(-p / 300))
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("SOFTCRAWL_CACHE_DIR", str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
+def test_round_trip_analytic_and_cache(cache):
+    fwd = BendCurve(BendModel(mesh_size=99.0), evaluate=_analytic, cache=False)
+    for measure in ("tip_angle_deg", "tip_deflection_mm"):
+        bends = [fwd.bend(p, measure) for p in SIM_KPA_TABLE]
+        curve = BendCurve(BendModel(mesh_size=99.0), evaluate=_analytic)
+        res = calibrate(REAL_KPA_TABLE, bends, measure, curve)
+        assert np.allclose(res.sim_kpa, SIM_KPA_TABLE, atol=0.02)
+        assert res.a == pytest.approx(A_REF, rel=1e-3) and res.b == pytest.approx(B_REF, rel=1e-2)
+        assert np.allclose(res.residual_kpa, res.a * np.array(REAL_KPA_TABLE) + res.b - res.sim_kpa)
+        again = BendCurve(BendModel(mesh_size=99.0), evaluate=_analytic)  # read back from the disk cache
+        res2 = calibrate(REAL_KPA_TABLE, bends, measure, again)
+        assert again.evaluations == 0 and np.allclose(res2.sim_kpa, res.sim_kpa)
+    assert len(list((cache / "bend_curves").glob("*.json"))) == 1
+
+
+def test_unreachable_or_bad_bends_are_refused():
+    curve = BendCurve(BendModel(mesh_size=99.0), evaluate=_analytic, cache=False)
+    with pytest.raises(ValueError, match="beyond"):
+        curve.find_pressure(10_000.0)
+    with pytest.raises(ValueError, match="> 0"):
+        curve.find_pressure(-1.0)
+    with pytest.raises(ValueError):
+        calibrate([10.0], [3.0], curve=curve)
+    with pytest.raises(ValueError, match="measure"):
+        calibrate([10.0, 20.0], [3.0, 6.0], "tip_twist", curve=curve)
+
+
+def test_calibration_file_round_trip_and_loader_errors(tmp_path):
+    curve = BendCurve(BendModel(mesh_size=99.0), evaluate=_analytic, cache=False)
+    res = calibrate([20.0, 50.0, 80.0], [_analytic(p)[0] for p in (60.0, 180.0, 300.0)], curve=curve)
+    path = write_calibration(res, tmp_path / "cal.json", source="bends.csv")
+    cal = load_calibration(path)
+    assert isinstance(cal, PressureCalibration) and cal.a == pytest.approx(4.0, abs=1e-3)
+    assert cal.b == pytest.approx(-20.0, abs=0.1)
+    d = json.loads(path.read_text())
+    assert d["format"] == "softcrawl-calibration" and len(d["points"]) == 3 and d["rms_residual_kpa"] < 0.05
+    assert plot_calibration(res, tmp_path / "cal.png").stat().st_size > 10_000
+    bad = {"not json": "{", "wrong format": json.dumps({"format": "x", "a": 1, "b": 0}),
+           "no a": json.dumps({"format": "softcrawl-calibration", "version": 1, "b": 0}),
+           "nan": '{"format": "softcrawl-calibration", "version": 1, "a": NaN, "b": 0}',
+           "string": json.dumps({"format": "softcrawl-calibration", "version": 1, "a": "4", "b": 0}),
+           "negative": json.dumps({"format": "softcrawl-calibration", "version": 1, "a": -4, "b": 0}),
+           "version": json.dumps({"format": "softcrawl-calibration", "version": 9, "a": 4, "b": 0})}
+    for name, text in bad.items():
+        p = tmp_path / f"{name}.json"
+        p.write_text(text)
+        with pytest.raises(ValueError, match=p.name):
+            load_calibration(p)
+    with pytest.raises(FileNotFoundError):
+        load_calibration(tmp_path / "missing.json")
+
+
+def test_read_bends_csv(tmp_path):
+    p = tmp_path / "b.csv"
+    p.write_text("real_kpa,tip_angle_deg\n10,5.5\n20,12.1\n")
+    real, bend, measure = read_bends_csv(p)
+    assert real.tolist() == [10, 20] and bend.tolist() == [5.5, 12.1] and measure == "tip_angle_deg"
+    for text, match in (("real,angle\n1,2\n3,4\n", "header"), ("real_kpa,tip_angle_deg\n10,x\n20,3\n", "line 2"),
+                        ("real_kpa,tip_angle_deg\n10,-1\n20,3\n", "> 0"),
+                        ("real_kpa,tip_angle_deg\n10,1\n", "at least 2")):
+        p.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            read_bends_csv(p)
+
+
+def test_fem_bend_inverts_to_its_pressure(cache):
+    """Root finding on the clamped full-order leg (coarse 12 mm mesh) returns the pressure the
+    bend was simulated at."""
+    model = BendModel(mesh_size=12.0)
+    fwd = BendCurve(model, cache=False)
+    targets = (65.67, 224.37)
+    bends = [fwd.bend(p) for p in targets]
+    assert 0 < bends[0] < bends[1]
+    curve = BendCurve(model)
+    for p, b in zip(targets, bends):
+        assert curve.find_pressure(b) == pytest.approx(p, abs=0.05)
+
+
+@pytest.mark.slow
+def test_paper_table_round_trip(cache):
+    """Issue #19: the paper's 10-point table reproduces sim = 4.0785 real - 20.36 within 1% when
+    its bends (simulated at the table's sim pressures) are fed back in (~40 s, 12 mm mesh)."""
+    model = BendModel(mesh_size=12.0)
+    fwd = BendCurve(model, cache=False)
+    bends = [fwd.bend(p) for p in SIM_KPA_TABLE]
+    assert np.all(np.diff(bends) > 0)
+    curve = BendCurve(model)  # empty cache: the root finder simulates
+    res = calibrate(REAL_KPA_TABLE, bends, curve=curve)
+    assert curve.evaluations >= 20
+    assert res.a == pytest.approx(A_REF, rel=0.01) and res.b == pytest.approx(B_REF, rel=0.01)
+    ref = A_REF * np.array(REAL_KPA_TABLE) + B_REF
+    assert np.all(np.abs(res.calibration.to_sim(REAL_KPA_TABLE) - ref) <= 0.01 * np.abs(ref))
+
+
+def test_cli_calibrate(tmp_path, cache, capsys):
+    from softcrawl.cli import main
+
+    fwd = BendCurve(BendModel(mesh_size=12.0))  # fills the cache the CLI then reads
+    bends = tmp_path / "bends.csv"
+    bends.write_text("real_kpa,tip_angle_deg\n" + "".join(f"{r},{fwd.bend(4.0785 * r - 20.36):.6f}\n"
+                                                          for r in (20.0, 60.0)))
+    out = tmp_path / "cal"
+    assert main(["calibrate", str(bends), "--out", str(out), "--mesh-size", "12", "--no-progress"]) == 0
+    cal = load_calibration(out / "calibration.json")
+    assert cal.a == pytest.approx(A_REF, rel=1e-3) and cal.b == pytest.approx(B_REF, rel=1e-2)
+    assert (out / "calibration.png").exists() and "sim = 4.07" in capsys.readouterr().out
+    assert main(["calibrate", str(bends), "--out", str(out), "--mesh-size", "12"]) == 2  # exists
+    bends.write_text("real_kpa,angle\n")
+    assert main(["calibrate", str(bends), "--out", str(tmp_path / "c2")]) == 2
+    assert "header" in capsys.readouterr().err

@@ -1,0 +1,106 @@
+"""softcrawl compare: sim vs real pressures and distances, importers, Markdown summary."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softcrawl.gaits import paper_best_gait
+from softcrawl.hardware.compare import compare, read_real, read_tracked
+from softcrawl.hardware.deploy import deploy
+from softcrawl.hardware.simrig import SimRig
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "auro2023"
+
+
+def _fake_sim_run(folder: Path, actions, hold=1.0, dt=0.01, speed_mm_s=2.0):
+    """A minimal `softcrawl simulate`-style trajectory.csv for the gait (rate-limited applied pressure)."""
+    folder.mkdir(parents=True)
+    n = int(round(len(actions) * hold / dt))
+    rows, p = [], np.zeros(3)
+    for k in range(n + 1):
+        t = k * dt
+        cmd = actions[min(int((t - 1e-9) / hold), len(actions) - 1)] if k else np.zeros(3)
+        p = p + np.clip(cmd - p, -150 * dt, 150 * dt)
+        rows.append([t, speed_mm_s * t, 0, 30, *cmd, *p, 10])
+    head = "t,x,y,z,cmd_1,cmd_2,cmd_3,applied_1,applied_2,applied_3,contacts"
+    np.savetxt(folder / "trajectory.csv", np.array(rows), delimiter=",", header=head, comments="", fmt="%.6g")
+    return folder
+
+
+def test_compare_deploy_logs_with_tracks(tmp_path):
+    actions = paper_best_gait(n_actions=6).actions
+    sim = _fake_sim_run(tmp_path / "sim", actions)
+    logs, tracks = [], []
+    for seed in range(3):
+        r = deploy(SimRig(seed=seed).rig, actions, tmp_path / f"real{seed}", progress=False)
+        assert r.status == "completed"
+        logs.append(tmp_path / f"real{seed}")
+        t = np.linspace(0, 6, 61)
+        tr = tmp_path / f"track{seed}.csv"
+        np.savetxt(tr, np.c_[t, 100 + (1.0 + 0.2 * seed) * t], delimiter=",", header="t_s,x_mm", comments="")
+        tracks.append(tr)
+    res = compare(sim, logs, tmp_path / "cmp", tracks)
+    assert res["sim_final_distance_cm"] == pytest.approx(1.2, abs=1e-6)
+    assert res["real_final_distances_cm"] == pytest.approx([0.6, 0.72, 0.84])
+    sp = res["spread"]
+    assert sp["n"] == 3 and sp["mean_cm"] == pytest.approx(0.72) and sp["std_cm"] == pytest.approx(0.12)
+    assert sp["real_over_sim"] == pytest.approx(0.6)
+    for row in res["logs"]:
+        assert row["max_command_mismatch_kpa"] < 1e-6  # same gait
+        rms = row["rms_sensed_minus_sim_kpa"]
+        assert all(0 < v < 30 for v in rms)
+    md = (tmp_path / "cmp" / "compare.md").read_text()
+    assert "| real0 | deploy | completed |" in md and "mean +0.72 cm" in md and "std 0.12 cm" in md
+    for f in ("pressures.png", "distance.png", "compare.json"):
+        assert (tmp_path / "cmp" / f).stat().st_size > 1000
+    assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["spread"]["n"] == 3
+
+
+def test_compare_flags_a_different_gait_and_bad_inputs(tmp_path):
+    sim = _fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=4).actions)
+    deploy(SimRig().rig, np.full((4, 3), 30.0), tmp_path / "real", progress=False)
+    res = compare(sim, [tmp_path / "real"], tmp_path / "cmp")
+    assert res["logs"][0]["max_command_mismatch_kpa"] > 50 and res["spread"] is None
+    assert "did not run the simulated gait" in (tmp_path / "cmp" / "compare.md").read_text()
+    with pytest.raises(ValueError, match="one per log"):
+        compare(sim, [tmp_path / "real"], tmp_path / "c2", [tmp_path / "a.csv", tmp_path / "b.csv"])
+    with pytest.raises(FileNotFoundError):
+        compare(tmp_path / "nosim", [tmp_path / "real"], tmp_path / "c3")
+    with pytest.raises(FileNotFoundError):
+        read_real(tmp_path / "missing.csv")
+    bad = tmp_path / "t.csv"
+    bad.write_text("t_s,x_mm\n0,1\n0,2\n")
+    with pytest.raises(ValueError, match="increasing"):
+        read_tracked(bad)
+    bad.write_text("time,x\n0,1\n1,2\n")
+    with pytest.raises(ValueError, match="header"):
+        read_tracked(bad)
+
+
+def test_compare_time_scale_for_a_policy_with_short_holds(tmp_path):
+    """A policy trained with 0.25-s holds, deployed at 1 s per action: simulated time is stretched."""
+    actions = paper_best_gait(n_actions=4).actions
+    sim = _fake_sim_run(tmp_path / "sim", actions, hold=0.25)
+    deploy(SimRig().rig, actions, tmp_path / "real", meta={"sim_hold_s": 0.25}, progress=False)
+    res = compare(sim, [tmp_path / "real"], tmp_path / "cmp")
+    assert res["sim_time_scale"] == pytest.approx(4.0) and res["logs"][0]["max_command_mismatch_kpa"] < 1e-6
+
+
+@pytest.mark.skipif(not (DATA / "policies").is_dir(), reason="recorded logs (../shared) absent")
+def test_compare_recorded_auro_logs_cli(tmp_path, capsys):
+    from softcrawl.cli import main
+
+    logs = sorted((DATA / "pressure_logs" / "trials-L1-noncoopt").glob("logs-*table*.csv"))
+    assert logs
+    run = read_real(logs[0])
+    assert run.kind == "auro2023" and run.sensed_kpa.shape == (20, 3)
+    # the simulated run: the L1 policy as recorded (rows: regulators), 1-s holds
+    pol = np.loadtxt(DATA / "policies" / "L1_pressure.csv", delimiter=",").T
+    sim = _fake_sim_run(tmp_path / "sim", np.clip(pol, 0, 90))
+    assert main(["compare", str(sim), *map(str, logs), "--out", str(tmp_path / "cmp")]) == 0
+    res = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert len(res["logs"]) == len(logs)
+    assert main(["compare", str(sim), str(DATA / "README.md"), "--out", str(tmp_path / "c2")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
