@@ -14,6 +14,12 @@ Components (one env in-process, SAC on a dummy env):
 End to end (``softcrawl train`` itself: the ``paper`` preset with ``--n-envs`` envs in one worker
 process per core, learning from the second round of transitions on, ``--rounds`` rounds):
   OMP_NUM_THREADS=1 python benchmarks/train_throughput.py --end-to-end --n-envs 96 --rounds 6
+       [--stepping batched|serial|both]
+``--stepping``: workers step their envs' robots as one batch (``batched``, the default of
+:class:`softcrawl.envs.vec.SubprocessBackend`) or one env after another (``serial``, the code
+before issue 18); ``both`` runs the two one after the other in this process (same seed, same
+designs) and reports each and their ratio. Each run also reports the largest worker RSS
+(sampled every 0.5 s).
 """
 
 from __future__ import annotations
@@ -80,31 +86,64 @@ def env_rates(args) -> dict:
             "episode_s": dt, "nodes": int(env.episode.robot.model.n_nodes)}
 
 
-def end_to_end(args) -> dict:
+class WorkerMemory:
+    """Largest RSS (MB) of this process's children, sampled every ``period`` s in a thread."""
+
+    def __init__(self, period: float = 0.5):
+        import threading
+
+        import psutil
+
+        self.peak_mb, self._stop, self._me = 0.0, threading.Event(), psutil.Process()
+        self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
+
+    def _run(self, period: float) -> None:
+        while not self._stop.wait(period):
+            for child in self._me.children(recursive=True):
+                try:
+                    self.peak_mb = max(self.peak_mb, child.memory_info().rss / 2**20)
+                except Exception:  # noqa: BLE001 - a child that just exited
+                    pass
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+
+def end_to_end(args, batched: bool = True) -> dict:
     """Transitions/s of :func:`softcrawl.codesign.training.train` (paper preset, ``n_envs`` envs,
-    learning starts after the first round) and the split of its wall time into learning
-    (``updates / sac_updates_per_s`` measured alone) and simulation."""
+    learning starts after the first round; workers step their robots as one batch if
+    ``batched``) and the split of its wall time into learning (``updates / sac_updates_per_s``
+    measured alone) and simulation."""
     import tempfile
 
+    import softcrawl.envs.vec as vec
     from softcrawl.codesign.config import override
     from softcrawl.codesign.training import train
 
     n = args.n_envs
     cfg = override(preset("paper"), [f"n_envs={n}", f"total_steps={n * args.rounds}", f"sac.learning_starts={n}",
                                      f"checkpoint_every={10 * n * args.rounds}", f"snapshot_every={n}"])
-    with tempfile.TemporaryDirectory() as tmp:
-        res = train(f"{tmp}/run", cfg, progress=True, report=False)
+    vec.BATCHED_WORKERS = batched
+    with tempfile.TemporaryDirectory() as tmp, WorkerMemory() as memory:
+        res = train(f"{tmp}/run", cfg, progress=True)
     updates_per_s = sac_updates_per_s(cfg.sac.batch_size, args.updates)
     learn_s = res.updates / updates_per_s
     sim_s_per_transition = (res.wall_seconds - learn_s) / res.steps
     cores = os.cpu_count()
     total = preset("paper").total_steps
     hours = {f"{c}_cores": total * (sim_s_per_transition * cores / c + 1 / updates_per_s) / 3600 for c in (cores, 32)}
-    return {"n_envs": n, "transitions": res.steps, "updates": res.updates, "wall_s": res.wall_seconds,
+    return {"stepping": "batched" if batched else "serial", "n_envs": n, "transitions": res.steps,
+            "updates": res.updates, "wall_s": res.wall_seconds,
             "transitions_per_s": res.steps / res.wall_seconds, "sac_updates_per_s": updates_per_s,
             "learning_s_estimate": learn_s, "simulation_s_per_transition_all_cores": sim_s_per_transition,
+            "episode_sim_steps_per_s_core": cfg.env.steps_per_action / (sim_s_per_transition * cores),
             "peak_rss_mb_learner": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-            "paper_preset_projected_hours": hours}
+            "peak_rss_mb_worker": memory.peak_mb, "paper_preset_projected_hours": hours}
 
 
 def main() -> None:
@@ -122,11 +161,18 @@ def main() -> None:
     p.add_argument("--end-to-end", action="store_true", help="time softcrawl train itself (paper preset)")
     p.add_argument("--n-envs", type=int, default=96)
     p.add_argument("--rounds", type=int, default=6, help="transitions per env (end to end)")
+    p.add_argument("--stepping", choices=("batched", "serial", "both"), default="batched",
+                   help="workers step their robots as one batch or one env after another (end to end)")
     args = p.parse_args()
     torch.set_num_threads(1)
     if args.end_to_end:
-        print(json.dumps({"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-                          **end_to_end(args)}, indent=2))
+        head = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__}
+        if args.stepping != "both":
+            print(json.dumps({**head, **end_to_end(args, args.stepping == "batched")}, indent=2))
+            return
+        runs = {mode: end_to_end(args, mode == "batched") for mode in ("serial", "batched")}
+        ratio = runs["batched"]["transitions_per_s"] / runs["serial"]["transitions_per_s"]
+        print(json.dumps({**head, "runs": runs, "batched_over_serial_transitions_per_s": ratio}, indent=2))
         return
     updates = sac_updates_per_s(args.batch, args.updates)
     env = env_rates(args)

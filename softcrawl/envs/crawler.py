@@ -225,3 +225,54 @@ class CrawlerEnv(gym.Env):
         terminated = self._dead
         truncated = (not terminated) and self._k >= self.n_actions
         return self._obs(), float(reward), terminated, truncated, self._info(kpa)
+
+    # -- stepping driven from outside (softcrawl.envs.batch: many envs' robots in one batch) ------
+    def begin_action(self, action) -> np.ndarray | None:
+        """The first part of :meth:`step`, for a driver that steps many envs' robots together
+        (:class:`softcrawl.envs.batch.BatchedBackend`): checks ``action`` and records it in the
+        history. Returns the commanded real kPa ``(3,)`` to hold for :attr:`steps_per_action`
+        simulator steps (:meth:`Episode.next_control` for each, the driver setting
+        ``episode.state``), or None if this episode's simulation has diverged (nothing to step).
+        Finish with :meth:`end_action`.
+
+        Raises:
+            RuntimeError: before :meth:`reset`. ValueError: an invalid action.
+        """
+        if self.episode is None:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(action, dtype=np.float32).reshape(-1)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be 3 finite numbers in [-1, 1], got {action!r}")
+        a = np.clip(a, -1.0, 1.0)
+        self._action_kpa, self._action_before = action_to_kpa(a), self._displacement()
+        if self.history:
+            self._hist[1:] = self._hist[:-1].copy()
+            self._hist[0] = a
+        return None if self._dead else self._action_kpa
+
+    def end_action(self, error: SimulationDiverged | None = None):
+        """The last part of :meth:`step` once the driver has stepped the episode (``error``: the
+        divergence that stopped it, if any): ``(obs, reward_cm, terminated, truncated, info)``."""
+        if error is not None:
+            self._dead, self._reason = True, str(error)
+        self._k += 1
+        reward = self._displacement() - self._action_before
+        if not math.isfinite(reward):
+            reward = 0.0
+        terminated = self._dead
+        truncated = (not terminated) and self._k >= self.n_actions
+        return self._obs(), float(reward), terminated, truncated, self._info(self._action_kpa)
+
+    def cached_robot(self, design) -> tuple[Robot, SettledState | None]:
+        """The robot of ``design`` from this env's cache (built and cached if missing) and its
+        settled state (None: not settled yet), for drivers that settle many robots together
+        before :meth:`reset` (:meth:`softcrawl.envs.batch.BatchedBackend.settle_together`)."""
+        episode = self._episode_for(validate_design(design))
+        return episode.robot, episode.settled
+
+    def store_settled(self, design, settled: SettledState) -> None:
+        """Cache ``settled`` (from :func:`~softcrawl.robot.episode.settle` of ``design``'s robot with
+        this env's :attr:`settling`) for ``design``'s cached robot: :meth:`reset` starts from it."""
+        design = validate_design(design)
+        if design in self._robots:
+            self._robots[design] = (self._robots[design][0], settled)

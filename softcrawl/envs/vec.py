@@ -6,8 +6,9 @@ The simulation runs in a small *backend* interface (:class:`EnvBackend`): ``rese
 env indices, designs and seeds, ``step`` of all envs, ``get_attr``/``set_attr``/``call`` and
 ``close``. Two backends: :class:`SerialBackend` (in-process, tests) and
 :class:`SubprocessBackend` (``multiprocessing`` workers connected by pipes, each worker
-holding a contiguous chunk of the envs, so 96 envs run on 2 cores with 2 workers). A Ray
-backend only needs to implement the same five methods.
+holding a contiguous chunk of the envs, so 96 envs run on 2 cores with 2 workers), and
+:class:`softcrawl.envs.ray_backend.RayBackend` (Ray actors, optional extra ``softcrawl[ray]``);
+:func:`make_backend` picks one by name.
 """
 
 from __future__ import annotations
@@ -90,10 +91,21 @@ class SerialBackend(EnvBackend):
             env.close()
 
 
-def _worker(remote, parent_remote, payload: bytes) -> None:
-    """Worker loop: holds a chunk of envs, answers commands from the pipe."""
+#: Default of :class:`SubprocessBackend`'s ``batched``: workers step their envs' reduced robots as
+#: one batch (:class:`softcrawl.envs.batch.BatchedBackend`; same transitions, issue 18).
+BATCHED_WORKERS = True
+
+
+def _worker(remote, parent_remote, payload: bytes, batched: bool = False) -> None:
+    """Worker loop: holds a chunk of envs (stepped one by one, or as one batch if ``batched``),
+    answers commands from the pipe."""
     parent_remote.close()
-    backend = SerialBackend(cloudpickle.loads(payload))
+    if batched:
+        from softcrawl.envs.batch import BatchedBackend  # imports this module
+
+        backend = BatchedBackend(cloudpickle.loads(payload))
+    else:
+        backend = SerialBackend(cloudpickle.loads(payload))
     try:
         while True:
             cmd, arg = remote.recv()
@@ -133,13 +145,16 @@ class SubprocessBackend(EnvBackend):
         n_workers: worker processes (default: ``min(len(env_fns), os.cpu_count())``).
         start_method: ``multiprocessing`` start method (default ``"forkserver"`` where available,
             else ``"spawn"``; ``fork`` is unsafe once torch has started threads).
+        batched: each worker steps its envs' reduced robots as one batch
+            (:class:`softcrawl.envs.batch.BatchedBackend`, the same transitions) instead of one
+            env after another (default :data:`BATCHED_WORKERS`).
 
     Worker processes inherit ``OMP_NUM_THREADS`` etc. (set to 1 here if unset). An exception
     in a worker is re-raised in the parent.
     """
 
     def __init__(self, env_fns: Sequence[Callable[[], gym.Env]], n_workers: int | None = None,
-                 start_method: str | None = None):
+                 start_method: str | None = None, batched: bool | None = None):
         n = len(env_fns)
         if n < 1:
             raise ValueError("need at least one env")
@@ -159,7 +174,9 @@ class SubprocessBackend(EnvBackend):
         for chunk in self._chunks:
             remote, work_remote = ctx.Pipe()
             payload = cloudpickle.dumps([env_fns[i] for i in chunk])
-            proc = ctx.Process(target=_worker, args=(work_remote, remote, payload), daemon=True)
+            proc = ctx.Process(target=_worker, args=(work_remote, remote, payload,
+                                                     BATCHED_WORKERS if batched is None else bool(batched)),
+                               daemon=True)
             proc.start()
             work_remote.close()
             self.remotes.append(remote)
@@ -228,6 +245,25 @@ class SubprocessBackend(EnvBackend):
             proc.join(timeout=10)
             if proc.is_alive():
                 proc.terminate()
+
+
+def make_backend(kind: str, env_fns: Sequence[Callable[[], gym.Env]], n_workers: int | None = None,
+                 ray_address: str | None = None) -> EnvBackend:
+    """The backend named ``kind``: ``"serial"``, ``"subprocess"`` (``n_workers`` processes) or
+    ``"ray"`` (``n_workers`` actors on a local Ray, or the cluster at ``ray_address``).
+
+    Raises:
+        ValueError: unknown kind. ImportError: ``"ray"`` without Ray installed.
+    """
+    if kind == "serial":
+        return SerialBackend(env_fns)
+    if kind == "subprocess":
+        return SubprocessBackend(env_fns, n_workers=n_workers)
+    if kind == "ray":
+        from softcrawl.envs.ray_backend import RayBackend
+
+        return RayBackend(env_fns, n_actors=n_workers, address=ray_address)
+    raise ValueError(f"unknown env backend {kind!r} (serial, subprocess, ray)")
 
 
 class DesignVecEnv(VecEnv):

@@ -165,13 +165,11 @@ def corotational_assemble(x, conn, X, K, frames, method, coef, f_out, data_out, 
 
 
 @njit(cache=True)
-def advance_positions(x, v, h):
-    """``(x + h v, max_n |v_n|^2, finite)`` for positions and velocities ``(N, 3)`` (mm, mm/s)
-    in one pass; ``finite`` is False if any velocity or new position is NaN or infinite."""
-    out = np.empty_like(x)
+def _advance(x, v, h, out, n0, n1):
+    """Rows ``n0 .. n1 - 1`` of :func:`advance_positions` into ``out``: ``(max |v_n|^2, finite)``."""
     speed2 = 0.0
     finite = True
-    for n in range(x.shape[0]):
+    for n in range(n0, n1):
         s = 0.0
         for i in range(3):
             out[n, i] = x[n, i] + h * v[n, i]
@@ -179,4 +177,27 @@ def advance_positions(x, v, h):
             finite &= np.isfinite(out[n, i])
         finite &= np.isfinite(s)
         speed2 = max(speed2, s)
+    return speed2, finite
+
+
+@njit(cache=True)
+def advance_positions(x, v, h):
+    """``(x + h v, max_n |v_n|^2, finite)`` for positions and velocities ``(N, 3)`` (mm, mm/s)
+    in one pass; ``finite`` is False if any velocity or new position is NaN or infinite."""
+    out = np.empty_like(x)
+    speed2, finite = _advance(x, v, h, out, 0, x.shape[0])
+    return out, speed2, finite
+
+
+@njit(cache=True)
+def advance_positions_ranges(x, v, h, starts):
+    """:func:`advance_positions` of stacked models: ``(x + h v, speed2, finite)`` with the
+    largest squared speed ``(M,)`` (mm^2/s^2) and the finiteness ``(M,)`` of each model's rows
+    ``starts[i] .. starts[i + 1] - 1`` (``starts``: ``(M + 1,)``)."""
+    out = np.empty_like(x)
+    M = starts.shape[0] - 1
+    speed2 = np.empty(M)
+    finite = np.empty(M, np.bool_)
+    for i in range(M):
+        speed2[i], finite[i] = _advance(x, v, h, out, starts[i], starts[i + 1])
     return out, speed2, finite

@@ -31,6 +31,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from softcrawl.fem.body import Body
+from softcrawl.fem.linalg import Factorization
 
 
 @njit(cache=True)
@@ -86,6 +87,22 @@ def floating_rhs(x, v, f, R, X, mass, indptr, indices, data, h, r_mass, r_stiff)
     return vb, rhs
 
 
+#: Static data shared by equal floating bodies of one process (e.g. the disks of all robots of a
+#: worker): key -> value, the oldest dropped beyond :data:`SHARED_MAX`.
+_SHARED: dict = {}
+SHARED_MAX = 16
+
+
+def shared(key, make):
+    """The value kept for ``key`` (exact bytes of everything it depends on), made by ``make()``
+    the first time. Equal keys give the same object, so it must not be modified."""
+    if key not in _SHARED:
+        while len(_SHARED) >= SHARED_MAX:
+            _SHARED.pop(next(iter(_SHARED)))
+        _SHARED[key] = make()
+    return _SHARED[key]
+
+
 @dataclass(frozen=True, eq=False)
 class FloatingFrameBody:
     """A full-order body simulated as linear elastic in its floating frame (see module doc).
@@ -115,10 +132,36 @@ class FloatingFrameBody:
         return X - self.weights @ X
 
     @cached_property
+    def _key(self) -> tuple | None:
+        """Exact bytes of everything :attr:`rest_stiffness` depends on (None: not shared)."""
+        b = self.body
+        if b.membrane is not None:
+            return None
+        return (b.mesh.points.tobytes(), b.mesh.tets.tobytes(), repr(b.material), b.rotation_method)
+
+    @cached_property
     def rest_stiffness(self) -> sp.csr_matrix:
-        """``(3n, 3n)`` ``K_0``, the tangent stiffness at rest (mN/mm)."""
-        _, data, _ = self.body.internal_forces(self.body.mesh.points, tangent_coef=1.0)
-        return self.body.pattern.matrix(data)
+        """``(3n, 3n)`` ``K_0``, the tangent stiffness at rest (mN/mm); one matrix per process for
+        equal bodies (:func:`shared`: every robot's disk is the same mesh at the same place)."""
+        b = self.body
+
+        def make():
+            _, data, _ = b.internal_forces(b.mesh.points, tangent_coef=1.0)
+            return b.pattern.matrix(data)
+
+        return make() if self._key is None else shared(("K0",) + self._key, make)
+
+    def step_factorization(self, h: float, r_mass: float, r_stiff: float) -> Factorization:
+        """The factorization of ``A_0 = (1 + h r_M) M + h (h + r_K) K_0`` (s, 1/s, s; one per
+        process for equal bodies and coefficients: :func:`shared`)."""
+        mass3 = np.repeat(self.body.nodal_mass, 3)
+
+        def make():
+            return Factorization(h * (h + r_stiff) * self.rest_stiffness + sp.diags((1 + h * r_mass) * mass3))
+
+        if self._key is None:
+            return make()
+        return shared(("A0",) + self._key + (mass3.tobytes(), float(h), float(r_mass), float(r_stiff)), make)
 
     @cached_property
     def weighted_rest(self) -> np.ndarray:
@@ -128,3 +171,36 @@ class FloatingFrameBody:
     def rotation(self, x: np.ndarray) -> np.ndarray:
         """``(3, 3)`` the floating frame's rotation at positions ``x`` ``(n, 3)`` mm."""
         return _kabsch(np.ascontiguousarray(x), self.weighted_rest)
+
+    def free_rhs(self, x: np.ndarray, v: np.ndarray, f: np.ndarray, h: float, r_mass: float,
+                 r_stiff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The body-frame system of :meth:`free_velocity` before its solve: ``(v', rhs, R)`` with
+        ``v' = R^T v`` ``(n, 3)``, the right-hand side ``(3n,)`` and the rotation ``(3, 3)``."""
+        R = self.rotation(x)
+        K = self.rest_stiffness
+        vb, rhs = floating_rhs(x, v, f, R, self.body.mesh.points, self.body.nodal_mass, K.indptr, K.indices,
+                               K.data, h, r_mass, r_stiff)
+        return vb, rhs, R
+
+    @staticmethod
+    def world_velocity(vb: np.ndarray, dv: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` world velocities ``(v' + dv') R^T`` from body-frame ones (``dv'``: ``(3n,)``)."""
+        return (vb + dv.reshape(-1, 3)) @ R.T
+
+    def free_velocity(self, factor: Factorization, x: np.ndarray, v: np.ndarray, f: np.ndarray, h: float,
+                      r_mass: float, r_stiff: float) -> tuple[np.ndarray, np.ndarray]:
+        """The body's implicit step without constraints, solved in its frame (module doc):
+        ``dv' = A_0^-1 h (R^T f - K_0 (R^T x - X + (h + r_K) R^T v) - r_M M R^T v)``.
+
+        Args:
+            factor: the factorization of ``A_0`` (:meth:`step_factorization`).
+            x, v: ``(n, 3)`` positions (mm) and velocities (mm/s) at the start of the step.
+            f: ``(n, 3)`` external forces (gravity, pressures, prescribed), mN.
+            h, r_mass, r_stiff: time step (s) and Rayleigh coefficients.
+
+        Returns:
+            ``(v_free, R)``: ``(n, 3)`` free world velocities (mm/s) and the frame's rotation
+            ``(3, 3)`` (the body's constraint coefficients are multiplied by it).
+        """
+        vb, rhs, R = self.free_rhs(x, v, f, h, r_mass, r_stiff)
+        return self.world_velocity(vb, factor.solve(rhs), R), R

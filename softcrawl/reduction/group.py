@@ -20,7 +20,7 @@ from softcrawl.fem.model import Model
 from softcrawl.reduction.kernels import (accumulate_terms, add_delassus, add_projected, add_strain_terms,
                                          cavity_forces, corrections, expand_velocities, floor_candidates,
                                          implicit_steps, point_velocity)
-from softcrawl.reduction.model import ElementFactors, ReducedBody
+from softcrawl.reduction.model import ElementFactors, ReducedBody, rotate_basis
 
 
 def _layout(body) -> tuple:
@@ -34,6 +34,11 @@ def _layout(body) -> tuple:
 
 #: RID elements whose ``Z`` rows are formed at once (a chunk of all bodies' rows stays in cache).
 ELEMENT_CHUNK = 64
+#: Bodies whose RID terms are formed in one pass over the RID data (a group of more bodies, e.g.
+#: the legs of a batch of robots, is run in blocks of this many, so a chunk of their ``Z`` rows
+#: stays in cache: 8 legs x 64 elements x 6 rows x 34 modes = 0.8 MB). A body's terms do not
+#: depend on the other bodies of its block (the same products in the same order).
+BODY_BLOCK = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,13 +130,46 @@ class ModalGroup:
         blocks = np.zeros((len(rbs), nf), np.int64)
         for j, i in enumerate(members):
             if nf:
-                rows[j] = fixed[i].H @ bodies[i].basis
+                # The rotated basis is formed for this product only (kept, it is 1.6 MB a leg).
+                rows[j] = fixed[i].H @ rotate_basis(bodies[i].part.basis, bodies[i].rotation)
                 blocks[j] = fixed[i].blocks
         return cls(members, model.node_offsets[members].astype(np.int64), n, R, Phi, first.element_factors,
                    first.strain_modes, np.stack([rb.reduced_mass for rb in rbs]), gravity, tris,
                    local.reshape(tris.shape).astype(np.int64), node_rows[cavity_nodes].reshape(-1, m), channel,
                    coll, np.linalg.norm(node_rows[coll], axis=(1, 2)), rows, blocks,
                    np.asarray(contact_frame, float) @ R)
+
+    @classmethod
+    def stack(cls, groups: list[ModalGroup], node_shift: np.ndarray, channel_shift: np.ndarray) -> ModalGroup:
+        """One group of the bodies of ``groups`` (groups of separate models placed from equal
+        parts, e.g. the legs of many robots), for positions and pressures stacked model after
+        model: group ``i``'s nodes are shifted by ``node_shift[i]`` and its pressure channels
+        by ``channel_shift[i]``. The part data (basis, RID families, cavity and collision
+        nodes) are the first group's, shared; ``members`` become the bodies' positions in the
+        stack. The attachment rows keep each model's own block numbers (constraints stay per
+        model).
+
+        Raises:
+            ValueError: no groups, or groups of parts of different shapes.
+        """
+        if not groups:
+            raise ValueError("need at least one group to stack")
+        first = groups[0]
+        for g in groups[1:]:
+            if (g.basis.shape != first.basis.shape or g.strain_modes.shape != first.strain_modes.shape
+                    or g.fixed_rows.shape[1:] != first.fixed_rows.shape[1:]
+                    or len(g.families) != len(first.families)
+                    or any(a.conn.shape != b.conn.shape for a, b in zip(g.families, first.families))):
+                raise ValueError("stacked modal groups must be placed from the same part")
+        cat = np.concatenate
+        return cls(np.arange(sum(g.n_bodies for g in groups), dtype=np.int64),
+                   cat([g.offsets + s for g, s in zip(groups, node_shift)]).astype(np.int64), first.n_nodes,
+                   cat([g.rotations for g in groups]), first.basis, first.families, first.strain_modes,
+                   cat([g.mass for g in groups]), cat([g.gravity for g in groups]), first.cavity_triangles,
+                   first.cavity_local, first.cavity_basis,
+                   cat([g.cavity_channel + s for g, s in zip(groups, channel_shift)]).astype(np.int64),
+                   first.collision, first.collision_bound, cat([g.fixed_rows for g in groups]),
+                   cat([g.fixed_blocks for g in groups]), cat([g.frame_rot for g in groups]))
 
     @property
     def n_bodies(self) -> int:
@@ -141,12 +179,15 @@ class ModalGroup:
     def n_modes(self) -> int:
         return self.basis.shape[1]
 
-    def project(self, v: np.ndarray) -> np.ndarray:
+    def project(self, v: np.ndarray, bodies: np.ndarray | None = None) -> np.ndarray:
         """``(L, m)`` modal velocities ``Phi_b^T v_b`` of the stacked velocities ``v`` ``(N, 3)``
-        (the basis is orthonormal)."""
-        out = np.empty((self.n_bodies, self.n_modes))
-        for j, o in enumerate(self.offsets):
-            out[j] = self.basis.T @ (v[o:o + self.n_nodes] @ self.rotations[j]).ravel()
+        (the basis is orthonormal); of the given ``bodies`` (positions in the group) only if
+        given."""
+        bodies = np.arange(self.n_bodies) if bodies is None else np.asarray(bodies)
+        out = np.empty((len(bodies), self.n_modes))
+        for i, j in enumerate(bodies):
+            o = self.offsets[j]
+            out[i] = self.basis.T @ (v[o:o + self.n_nodes] @ self.rotations[j]).ravel()
         return out
 
     def free_motion(self, x: np.ndarray, qdot: np.ndarray, pressures: np.ndarray, h: float, r_mass: float,
@@ -168,23 +209,29 @@ class ModalGroup:
         L, m, ms = self.n_bodies, self.n_modes, len(self.strain_modes)
         if not self._work:  # scratch kept between steps (fresh pages cost more than filling them)
             rows = ELEMENT_CHUNK * max(f.factors.shape[1] for f in self.families)
-            self._work.update(Z=np.empty((L, rows, ms)), s=np.empty((L, rows)), t=np.empty(rows))
+            nb = min(L, BODY_BLOCK)
+            self._work.update(Z=np.empty((nb, rows, ms)), s=np.empty((nb, rows)), t=np.empty(rows))
         n_bad = np.zeros(L, np.int64)
         K, load = np.zeros((L, m, m)), self.gravity.copy()
         if len(self.cavity_triangles):
             scale = np.asarray(pressures, float)[self.cavity_channel] / 3.0
-            if scale.any():
-                F = cavity_forces(x, self.offsets, self.rotations, self.cavity_triangles, self.cavity_local,
-                                  len(self.cavity_basis) // 3, scale)
-                add_projected(F.reshape(L, -1), self.cavity_basis, load)
+            for b0 in range(0, L, BODY_BLOCK):
+                b = slice(b0, min(L, b0 + BODY_BLOCK))
+                if scale[b].any():
+                    F = cavity_forces(x, self.offsets[b], self.rotations[b], self.cavity_triangles, self.cavity_local,
+                                      len(self.cavity_basis) // 3, scale[b])
+                    add_projected(F.reshape(b.stop - b0, -1), self.cavity_basis, load[b])
         if forces is not None:
             load += self.project(forces)
         Ks, fs = np.zeros((L, ms, ms)), np.zeros((L, ms))
         qs = np.ascontiguousarray(qdot[:, self.strain_modes])
         w = self._work
-        for f in self.families:
-            accumulate_terms(x, self.offsets, self.rotations, f.conn, f.factors, f.rest_terms, f.rows, qs,
-                             h + r_stiff, w["Z"], w["s"], w["t"], Ks, fs, n_bad)
+        for b0 in range(0, L, BODY_BLOCK):
+            b = slice(b0, min(L, b0 + BODY_BLOCK))
+            Z, s = w["Z"][:b.stop - b0], w["s"][:b.stop - b0]
+            for f in self.families:
+                accumulate_terms(x, self.offsets[b], self.rotations[b], f.conn, f.factors, f.rest_terms, f.rows,
+                                 qs[b], h + r_stiff, Z, s, w["t"], Ks[b], fs[b], n_bad[b])
         add_strain_terms(Ks, fs, self.strain_modes, K, load)
         chol, qdot_free = np.empty((L, m, m)), np.empty((L, m))
         positive = implicit_steps(K, load, self.mass, qdot, h, r_mass, r_stiff, chol, qdot_free)

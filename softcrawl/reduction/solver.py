@@ -23,15 +23,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from softcrawl.fem.body import Body
 from softcrawl.fem.constraints import NodalCompliance
-from softcrawl.fem.linalg import Factorization
 from softcrawl.fem.model import Model
 from softcrawl.fem.solver import _FLOOR_FRAME, ImplicitEulerSolver, SimulationDiverged, SolverSettings
 from softcrawl.fem.state import Control, State
-from softcrawl.reduction.floating import FloatingFrameBody, floating_rhs
+from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.reduction.group import ModalGroup
 from softcrawl.reduction.model import ReducedBody
 
@@ -75,8 +73,8 @@ class ReducedSolver(ImplicitEulerSolver):
         h, rM, rK = settings.dt, model.rayleigh_mass, model.rayleigh_stiffness
         self.floating = {i: fb for i, fb in reduced.items() if isinstance(fb, FloatingFrameBody)}
         for i, fb in self.floating.items():
-            A0 = h * (h + rK) * fb.rest_stiffness + sp.diags((1 + h * rM) * self._mass3[i])
-            self._compliance[i] = NodalCompliance(Factorization(A0), fb.body.free_dofs, self._attach_rows.get(i))
+            self._compliance[i] = NodalCompliance(fb.step_factorization(h, rM, rK), fb.body.free_dofs,
+                                                  self._attach_rows.get(i))
         self.reduced = {i: rb for i, rb in reduced.items() if i not in self.floating}
         by_part: dict[int, dict[int, ReducedBody]] = {}
         for i, rb in sorted(self.reduced.items()):
@@ -131,17 +129,18 @@ class ReducedSolver(ImplicitEulerSolver):
         full-order bodies as in the full solver."""
         if i not in self.floating:
             return super()._free_velocity(i, body, x, v, control, t)
-        h, m = self.settings.dt, self.model
-        fb, c = self.floating[i], self._compliance[i]
-        R = fb.rotation(x)
-        c.rotation = R
-        f = body.external_forces(x, control.pressures, np.asarray(m.gravity))
+        m, c = self.model, self._compliance[i]
+        v_free, c.rotation = self.floating[i].free_velocity(c.factor, x, v, self._external_forces(i, x, control),
+                                                            self.settings.dt, m.rayleigh_mass, m.rayleigh_stiffness)
+        return v_free
+
+    def _external_forces(self, i: int, x: np.ndarray, control: Control) -> np.ndarray:
+        """``(n, 3)`` gravity, pressure and prescribed forces on body ``i`` at its positions ``x``, mN."""
+        m = self.model
+        f = m.bodies[i].external_forces(x, control.pressures, np.asarray(m.gravity))
         if control.forces is not None:
             f = f + control.forces[m.body_slice(i)]
-        K = fb.rest_stiffness
-        vb, rhs = floating_rhs(x, v, f, R, body.mesh.points, body.nodal_mass, K.indptr, K.indices, K.data, h,
-                               m.rayleigh_mass, m.rayleigh_stiffness)
-        return (vb + c.factor.solve(rhs).reshape(-1, 3)) @ R.T
+        return f
 
     # -- constraints ---------------------------------------------------------------------
     def _contact_rows(self, x: np.ndarray, v_free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -204,6 +204,17 @@ class Episode:
         """+x displacement of the disk top centre since :meth:`reset`, cm (the episode return)."""
         return float(self.robot.reward_position(self.state.x)[0] - self.start[0]) / MM_PER_CM
 
+    def next_control(self, command: np.ndarray) -> Control:
+        """:meth:`step` without its solver step, for drivers that step many episodes' robots
+        together (:mod:`softcrawl.envs.batch`, which then sets :attr:`state`): the regulators
+        advance one ``dt`` with commands ``(3,)`` real kPa; returns that step's solver input.
+
+        Raises:
+            PressureRangeError: a command is non-finite or outside [0, 90] kPa.
+        """
+        applied = self.regulators.step(command, self.dt)
+        return self.robot.control(self.calibration.to_sim(applied))
+
 
 @dataclass(frozen=True, eq=False)
 class EpisodeResult:

@@ -1,0 +1,89 @@
+"""Batched stepping of many reduced robots (issue 18): every robot's trajectory in a batch equals
+its trajectory with its own single-robot :class:`ReducedSolver`, whatever the batch's other robots
+do (designs with 3 to 6 legs, different regulators, floor contact, varying pressures, robots
+joining and leaving)."""
+
+import numpy as np
+import pytest
+
+from softcrawl.fem.solver import SimulationDiverged
+from softcrawl.fem.state import Control
+from softcrawl.reduction.batch import BatchedReducedSolver
+from softcrawl.robot import RobotConfig, build_robot
+
+REDUCED = RobotConfig(model="reduced")
+#: 3, 4, 5 and 6 legs on different regulators.
+DESIGNS = [(1, 0, 0, 2, 0, 0, 3, 0), (1, 0, 2, 0, 2, 0, 1, 0), (0, 1, 3, 2, 0, 1, 2, 0), (1, 2, 3, 1, 2, 3, 0, 0)]
+
+
+def pressures(robot: int, k: int) -> np.ndarray:
+    """Sim kPa of robot ``robot`` at step ``k``: every channel on its own phase, 0..60 kPa."""
+    return 30.0 * (1.0 - np.cos(0.05 * k + np.array([0.0, 2.0, 4.0]) + robot))
+
+
+@pytest.fixture(scope="module")
+def robots():
+    return [build_robot(d, REDUCED) for d in DESIGNS]
+
+
+def solo(robot, index: int, steps: int, start: int = 0):
+    """States after each step of ``robot`` stepped alone from rest (pressures from step ``start``)."""
+    solver, state, out = robot.make_solver(), robot.model.rest_state(), []
+    for k in range(steps):
+        state = solver.step(state, robot.control(pressures(index, start + k)))
+        out.append(state)
+    return out
+
+
+def test_batched_trajectories_equal_single_robot_ones(robots):
+    steps = 300
+    batch = BatchedReducedSolver([r.make_solver() for r in robots])
+    states = [r.model.rest_state() for r in robots]
+    runs = [[] for _ in robots]
+    for k in range(steps):
+        states = batch.step(states, [r.control(pressures(i, k)) for i, r in enumerate(robots)])
+        for run, st in zip(runs, states):
+            run.append(st)
+    for i, robot in enumerate(robots):
+        ref = solo(robot, i, steps)
+        assert max(len(s.contact_nodes) for s in ref) > 0  # on the floor
+        for a, b in zip(runs[i], ref):
+            assert np.abs(a.x - b.x).max() <= 1e-9 and np.abs(a.v - b.v).max() <= 1e-9 * 1e3
+            np.testing.assert_array_equal(a.contact_nodes, b.contact_nodes)
+            assert a.t == b.t
+
+
+def test_robots_joining_and_leaving_do_not_disturb_the_others(robots):
+    """Robot 0 runs 150 steps; robot 1 joins at step 30 and leaves at 100; robot 2 joins at 60
+    (after robot 3 left at 40, which had run from the start): each equals its solo run."""
+    plan = {0: (0, 150), 1: (30, 100), 2: (60, 150), 3: (0, 40)}
+    solvers, states, runs, batch, members = {}, {}, {i: [] for i in plan}, None, ()
+    for k in range(150):
+        live = tuple(i for i, (a, b) in plan.items() if a <= k < b)
+        for i in live:
+            if i not in solvers:
+                solvers[i], states[i] = robots[i].make_solver(), robots[i].model.rest_state()
+        if live != members:  # a new batch of the same solvers (their kept velocities go on)
+            batch, members = BatchedReducedSolver([solvers[i] for i in live]), live
+        out = batch.step([states[i] for i in live], [robots[i].control(pressures(i, k - plan[i][0])) for i in live])
+        for i, st in zip(live, out):
+            states[i] = st
+            runs[i].append(st)
+    for i, (a, b) in plan.items():
+        ref = solo(robots[i], i, b - a)
+        assert len(runs[i]) == len(ref)
+        assert max(np.abs(s.x - r.x).max() for s, r in zip(runs[i], ref)) <= 1e-9
+
+
+def test_a_diverging_robot_is_reported_and_the_others_go_on(robots):
+    batch = BatchedReducedSolver([r.make_solver() for r in robots[:2]])
+    states = [r.model.rest_state() for r in robots[:2]]
+    bad = states[1].x.copy()
+    bad[5] = np.nan
+    states[1] = type(states[1])(bad, states[1].v)
+    out = batch.step(states, [r.control(np.zeros(3)) for r in robots[:2]])
+    assert isinstance(out[1], SimulationDiverged)
+    ref = robots[0].make_solver().step(robots[0].model.rest_state(), robots[0].control(np.zeros(3)))
+    assert np.abs(out[0].x - ref.x).max() == 0.0
+    with pytest.raises(ValueError):
+        batch.step(states[:1], [Control(np.zeros(3))])
