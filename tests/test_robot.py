@@ -147,7 +147,8 @@ def test_cli_simulate_writes_outputs(tmp_path, monkeypatch, capsys):
                    "--frames-every", 50, "--out", out)
     assert rc == 0, capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == [
-        "crawl.pvd", "frames", "summary.json", "trajectory.csv", "trajectory.npz", "trajectory.png"]
+        ".softcrawl-output", "crawl.pvd", "frames", "summary.json", "trajectory.csv", "trajectory.npz",
+        "trajectory.png"]
     assert [p.name for p in out.parent.iterdir()] == ["best"]  # no temporary leftovers
     s = json.loads((out / "summary.json").read_text())
     assert s["design"] == [1, 0, 0, 2, 2, 0, 0, 0] and s["steps"] == 100 and s["model"] == "full"

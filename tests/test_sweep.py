@@ -73,7 +73,8 @@ def test_sweep_outputs_and_resume_on_workers(tmp_path, monkeypatch, capsys):
                "--duration", DURATION, "--model", "full", "--mesh-size", 12, "--workers", 2, "--no-progress")
     captured = capsys.readouterr()
     assert rc == 0, captured.err
-    assert sorted(p.name for p in out.iterdir()) == ["reward_vs_phase.png", "sweep.csv", "sweep.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".softcrawl-output", "reward_vs_phase.png", "sweep.csv",
+                                                    "sweep.json"]
     assert [p.name for p in out.parent.iterdir()] == ["sweep"]  # work dir and temporaries gone
 
     s = json.loads((out / "sweep.json").read_text())

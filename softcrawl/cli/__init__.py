@@ -19,11 +19,19 @@ from softcrawl import __version__
 #: Subcommand modules, in the order they appear in ``softcrawl --help``.
 SUBCOMMANDS = ("softcrawl.cli.verify", "softcrawl.cli.designs", "softcrawl.cli.simulate", "softcrawl.cli.sweep",
                "softcrawl.cli.reduce", "softcrawl.cli.train", "softcrawl.cli.evaluate", "softcrawl.cli.report",
+               "softcrawl.cli.groundtruth", "softcrawl.cli.regret",
                "softcrawl.cli.rig", "softcrawl.cli.deploy", "softcrawl.cli.calibrate", "softcrawl.cli.compare")
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line (``softcrawl CMD: error: ...``), exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="softcrawl", description="Soft crawling robots: FEM simulation, reduction and co-design."
     )
     parser.add_argument("--version", action="version", version=f"softcrawl {__version__}")
@@ -33,13 +41,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def run_command(args: argparse.Namespace) -> int:
+    """Run a parsed subcommand: user errors (ValueError, OSError such as a missing file, a full
+    disk or a read-only folder) are one line on stderr and exit code 2, Ctrl-C is a one-line
+    note naming ``--out`` (where partial results are) and exit code 130; never a traceback."""
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as exc:  # user errors: one clear line, no traceback
-        print(f"softcrawl {args.command}: error: {exc}", file=sys.stderr)
+    except (ValueError, OSError) as exc:  # user errors: one clear line, no traceback
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"softcrawl {args.command}: error: {msg}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        out = getattr(args, "out", None)
+        where = f"; partial results, if any, are in {out}" if out else ""
+        hint = f" (continue with: softcrawl train --resume --out {out})" if args.command == "train" and out else ""
+        print(f"softcrawl {args.command}: interrupted{where}{hint}", file=sys.stderr)
+        return 130
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from pathlib import Path
 
 from softcrawl.design.space import BASELINE_DESIGN, validate_design
 from softcrawl.gaits import SineGait, paper_best_gait, read_actions_csv
@@ -24,6 +25,15 @@ from softcrawl.robot.episode import run_episode
 from softcrawl.robot.output import check_output_path, write_results
 
 GAITS = ("sine", "paper-best")
+#: Longest episode ``simulate`` and ``sweep-phase`` accept, s (1 h of robot time; the paper's are 20 s).
+MAX_DURATION_S = 3600.0
+
+
+def check_duration(duration: float) -> float:
+    """``--duration`` in (0, :data:`MAX_DURATION_S`] s, else ValueError (before any model is built)."""
+    if not (math.isfinite(duration) and 0 < duration <= MAX_DURATION_S):
+        raise ValueError(f"--duration must be > 0 and <= {MAX_DURATION_S:g} s, got {duration:g}")
+    return duration
 
 
 def _gait(args: argparse.Namespace):
@@ -37,8 +47,7 @@ def _gait(args: argparse.Namespace):
 
 def _run(args: argparse.Namespace) -> int:
     design = validate_design(args.design)
-    if not (math.isfinite(args.duration) and args.duration > 0):
-        raise ValueError(f"--duration must be > 0 s, got {args.duration}")
+    check_duration(args.duration)
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
     config = RobotConfig(leg_mesh_size=args.mesh_size, disk_mesh_size=args.disk_mesh_size, friction=args.friction,
@@ -77,7 +86,13 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def model_fields(args: argparse.Namespace) -> dict:
-    """The :class:`RobotConfig` fields set by :func:`add_model_arguments`."""
+    """The :class:`RobotConfig` fields set by :func:`add_model_arguments` (ValueError for
+    ``--reduction`` with ``--model full``, which would ignore it)."""
+    if args.reduction is not None and args.model != "reduced":
+        raise ValueError(f"--reduction is used only by --model reduced, not --model {args.model}")
+    if args.reduction is not None and not Path(args.reduction).is_file():
+        what = "is a directory" if Path(args.reduction).is_dir() else "does not exist"
+        raise ValueError(f"--reduction {args.reduction} {what}; give a reduction .npz file")
     return {"model": args.model, "reduction": args.reduction, "reduced_disk": args.reduced_disk}
 
 
@@ -97,7 +112,8 @@ def register(subparsers) -> None:
     p.add_argument("--phase", type=float, default=110.0, help="sine gait: lag of regulator 2, degrees (default 110)")
     p.add_argument("--actions", metavar="FILE.csv", default=None,
                    help="action sequence p1,p2,p3 (real kPa, one row per 1 s); overrides --gait")
-    p.add_argument("--duration", type=float, default=20.0, help="episode length, s (default 20)")
+    p.add_argument("--duration", type=float, default=20.0,
+                   help=f"episode length, s (default 20, at most {MAX_DURATION_S:g})")
     p.add_argument("--out", required=True, help="output directory (must not exist unless --overwrite)")
     add_model_arguments(p)
     p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size,

@@ -14,17 +14,19 @@ from __future__ import annotations
 import argparse
 import sys
 
-from softcrawl.cli.simulate import add_model_arguments, model_fields
+from softcrawl.cli.simulate import MAX_DURATION_S, add_model_arguments, check_duration, model_fields
 from softcrawl.design.space import BASELINE_DESIGN
 from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.sweep import format_table, parse_phases, run_sweep
 
 
 def _run(args: argparse.Namespace) -> int:
+    check_duration(args.duration)
+    fields = model_fields(args)
     try:
         result = run_sweep(args.out, parse_phases(args.phases), args.design,
                            RobotConfig(leg_mesh_size=args.mesh_size, refactor_every=args.refactor_every,
-                                       **model_fields(args)),
+                                       **fields),
                            args.duration, workers=args.workers, overwrite=args.overwrite,
                            progress=not args.no_progress)
     except KeyboardInterrupt:
@@ -50,7 +52,8 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="output directory (must not exist unless --overwrite)")
     p.add_argument("--phases", default="0:180:10",
                    help="phase lags, degrees: start:stop:step (stop included) or a comma list (default 0:180:10)")
-    p.add_argument("--duration", type=float, default=20.0, help="episode length, s (default 20)")
+    p.add_argument("--duration", type=float, default=20.0,
+                   help=f"episode length, s (default 20, at most {MAX_DURATION_S:g})")
     p.add_argument("--design", default=",".join(map(str, BASELINE_DESIGN)),
                    help='8 comma-separated slot values in {0..3} (default: the baseline "1,0,0,2,2,0,0,1")')
     add_model_arguments(p)

@@ -7,8 +7,9 @@ Examples::
     softcrawl train --preset paper --out runs/paper --set sac.batch_size=256 --set env.legs=[3,4]
     softcrawl train --resume --out runs/paper          # continue a killed run
 
-Writes the run folder described in :mod:`softcrawl.codesign.training` and, at the end, its
-report (:mod:`softcrawl.codesign.report`).
+Writes the run folder described in :mod:`softcrawl.codesign.run` (:mod:`softcrawl.codesign.training`)
+and, at the end, its report (:mod:`softcrawl.codesign.report`; :func:`train_and_report`). Ctrl-C
+stops the run; ``--resume`` continues it from its last checkpoint.
 """
 
 from __future__ import annotations
@@ -16,25 +17,55 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
-from softcrawl.codesign.config import BACKENDS, PRESETS, override, preset
+from softcrawl.codesign.config import BACKENDS, PRESETS, TrainConfig, override, preset
+from softcrawl.robot.output import check_output_path
+
+
+def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
+                     progress: bool = True, report: bool = True):
+    """What ``softcrawl train`` does: :func:`softcrawl.codesign.training.train` (arguments as
+    there), then, with ``report``, :func:`softcrawl.codesign.report.write_report` of the run.
+    Returns the :class:`TrainResult`."""
+    from softcrawl.codesign.report import write_report
+    from softcrawl.codesign.training import train  # heavy: torch, stable-baselines3
+
+    res = train(out, cfg, resume=resume, progress=progress)
+    if report:
+        write_report(res.run_dir)
+    return res
+
+
+def _check_out(out: str) -> None:
+    """``--out`` of a new run: a new folder that can be created, or an empty writable one."""
+    p = Path(out)
+    if p.exists() or p.is_symlink():
+        if not p.is_dir() or p.is_symlink():
+            raise ValueError(f"{p} exists and is not a directory")
+        if any(p.iterdir()):
+            raise ValueError(f"run directory {p} exists and is not empty (use --resume or another --out)")
+        if not os.access(p, os.W_OK | os.X_OK):
+            raise ValueError(f"run directory {p} is not writable")
+        return
+    check_output_path(p)
 
 
 def _run(args: argparse.Namespace) -> int:
-    from softcrawl.codesign.training import train  # heavy: torch, stable-baselines3
-
     if args.resume:
-        if args.set or args.total_steps or args.n_envs or args.backend or args.workers is not None or args.seed is not None:
-            raise ValueError("--resume uses the run's saved config.json; drop the other settings")
-        res = train(args.out, resume=True, progress=not args.no_progress)
+        if (args.set or args.total_steps or args.n_envs or args.backend or args.workers is not None
+                or args.seed is not None or args.preset is not None):
+            raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings")
+        res = train_and_report(args.out, resume=True, progress=not args.no_progress)
     else:
         sets = list(args.set or [])
         for flag, key in ((args.total_steps, "total_steps"), (args.n_envs, "n_envs"), (args.backend, "backend"),
                           (args.workers, "n_workers"), (args.seed, "seed")):
             if flag is not None:
                 sets.append(f"{key}={flag}" if key != "backend" else f'backend="{flag}"')
-        cfg = override(preset(args.preset), sets)
-        res = train(args.out, cfg, progress=not args.no_progress)
+        cfg = override(preset(args.preset or "demo"), sets)
+        _check_out(args.out)
+        res = train_and_report(args.out, cfg, progress=not args.no_progress)
     print(f"trained {res.steps} steps ({res.updates} SAC updates) in {res.wall_seconds:.1f} s; run in {res.run_dir}")
     report = res.run_dir / "report" / "summary.md"
     if report.exists():
@@ -50,7 +81,7 @@ def register(subparsers) -> None:
         description="Train the design-conditioned open-loop policy (SAC) and the Gibbs design distribution "
         "(codesign.md). Presets: paper (96 envs, 1M steps), demo (~15 min on 2 cores), smoke (CI, < 1 min).",
     )
-    p.add_argument("--preset", choices=PRESETS, default="demo", help="settings to start from (default demo)")
+    p.add_argument("--preset", choices=PRESETS, default=None, help="settings to start from (default demo)")
     p.add_argument("--out", required=True, help="run directory (new, or the run to --resume)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--total-steps", type=int, default=None, help="environment transitions in total")
@@ -72,11 +103,9 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
     args = parser.parse_args(["train", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"softcrawl train: error: {exc}", file=sys.stderr)
-        return 2
+    from softcrawl.cli import run_command
+
+    return run_command(args)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -33,13 +33,15 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import types
+import typing
 from dataclasses import asdict, dataclass, field
 
 from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
 from softcrawl.robot.assembly import MODELS
 from softcrawl.robot.episode import Settling
 
-BACKENDS = ("serial", "subprocess")
+BACKENDS = ("serial", "subprocess", "ray")
 TIMEOUTS = ("bootstrap", "terminal")
 
 
@@ -150,6 +152,17 @@ class TrainConfig:
             pos_int("env.refactor_every", self.env.refactor_every)
         for name in ("buffer_size", "batch_size"):
             pos_int(f"sac.{name}", getattr(self.sac, name))
+        if self.keep_checkpoints < 2:
+            raise ValueError(f"keep_checkpoints must be >= 2 (a damaged newest checkpoint falls back to the one "
+                             f"before), got {self.keep_checkpoints}")
+        if self.sac.batch_size > self.sac.buffer_size:
+            raise ValueError(f"sac.batch_size ({self.sac.batch_size}) must not exceed sac.buffer_size "
+                             f"({self.sac.buffer_size})")
+        if not self.sac.net_arch or any(isinstance(n, bool) or int(n) != n or n < 1 for n in self.sac.net_arch):
+            raise ValueError(f"sac.net_arch must be a non-empty list of positive layer widths, got {self.sac.net_arch}")
+        if self.env.reduction is not None and self.env.model != "reduced":
+            raise ValueError(f"env.reduction is set but env.model is {self.env.model!r}: a reduction file is used "
+                             "only by the reduced model")
         settling = self.env.settling()
         if settling.max_seconds <= 0:
             raise ValueError("env.settle_max_seconds must be positive: episodes start from the robot at rest")
@@ -176,18 +189,78 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
-        """Inverse of :meth:`to_dict`; unknown keys raise ValueError."""
-        def build(kind, data):
+        """Inverse of :meth:`to_dict`. Every value is checked against its field's type
+        (:func:`check_field`); lists become tuples.
+
+        Raises:
+            ValueError: an unknown key, a value of the wrong type (the message names the key),
+                or a setting :meth:`validate` refuses.
+        """
+        def build(kind, data, prefix):
+            if not isinstance(data, dict):
+                raise ValueError(f"{prefix.rstrip('.') or 'config'} must be an object, got {data!r}")
             names = {f.name: f for f in dataclasses.fields(kind)}
             unknown = set(data) - set(names)
             if unknown:
                 raise ValueError(f"unknown {kind.__name__} settings: {sorted(unknown)}")
+            hints = typing.get_type_hints(kind)
             kw = {}
             for k, v in data.items():
-                sub = {"env": EnvConfig, "sac": SACConfig, "design": DesignConfig}.get(k) if kind is cls else None
-                kw[k] = build(sub, v) if sub else (tuple(v) if isinstance(v, list) else v)
+                sub = hints[k] if dataclasses.is_dataclass(hints[k]) else None
+                kw[k] = build(sub, v, f"{prefix}{k}.") if sub else check_field(f"{prefix}{k}", v, hints[k])
             return kind(**kw)
-        return build(cls, d).validate()
+        return build(cls, d, "").validate()
+
+
+def _type_name(tp) -> str:
+    if typing.get_origin(tp) is tuple:
+        return f"a list of {_type_name(typing.get_args(tp)[0])}"
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def check_field(name: str, value, tp):
+    """``value`` checked against the annotation ``tp`` of setting ``name`` (bool, int, float,
+    str, ``X | None``, ``tuple[X, ...]``; other annotations pass through). Returns the value
+    (lists as tuples; integral floats for ``int`` as int).
+
+    Raises:
+        ValueError: the value does not fit the type (names ``name``).
+    """
+    def fail():
+        raise ValueError(f"{name} must be {_type_name(tp)}, got {value!r}")
+
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        for t in (a for a in args if a is not type(None)):
+            try:
+                return check_field(name, value, t)
+            except ValueError:
+                pass
+        fail()
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            fail()
+        elems = args[:1] * len(value) if len(args) == 2 and args[1] is Ellipsis else args
+        if len(elems) != len(value):
+            fail()
+        return tuple(check_field(f"{name}[{i}]", v, t) for i, (v, t) in enumerate(zip(value, elems)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            fail()
+    elif tp is int:
+        if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+            return int(value)
+        if isinstance(value, bool) or not isinstance(value, int):
+            fail()
+    elif tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            fail()
+    elif tp is str:
+        if not isinstance(value, str):
+            fail()
+    return value
 
 
 PRESETS = ("paper", "reference", "crawl", "demo", "smoke")
@@ -230,7 +303,12 @@ def preset(name: str) -> TrainConfig:
 
 def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
     """Apply ``"field=value"`` / ``"section.field=value"`` strings (value parsed as JSON if
-    possible); ValueError on an unknown field or malformed string. Returns a validated copy."""
+    possible, else taken as a string). Returns a validated copy.
+
+    Raises:
+        ValueError: a malformed string, an unknown field, a value of the wrong type for its
+            field (named), or a setting :meth:`TrainConfig.validate` refuses.
+    """
     d = cfg.to_dict()
     for a in assignments:
         if "=" not in a:

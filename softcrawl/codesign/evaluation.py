@@ -8,7 +8,6 @@ the run's episode length (codesign.md, "Expert baseline").
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,20 +15,18 @@ from pathlib import Path
 import numpy as np
 
 from softcrawl.codesign.config import TrainConfig
+from softcrawl.codesign.run import Run
 from softcrawl.gaits import ActionSequence
 from softcrawl.robot.episode import EpisodeResult, run_episode
 
 
 def load_run_config(run: str | Path) -> TrainConfig:
-    """The :class:`TrainConfig` saved in ``run/config.json``.
+    """The :class:`TrainConfig` saved in ``run/config.json`` (:meth:`Run.read_config`).
 
     Raises:
-        ValueError: ``run`` is not a training run.
+        ValueError: ``run`` is not a training run, or its config is malformed.
     """
-    path = Path(run) / "config.json"
-    if not path.exists():
-        raise ValueError(f"{run} is not a training run (no config.json)")
-    return TrainConfig.from_dict(json.loads(path.read_text())["config"])
+    return Run(run).read_config()
 
 
 def episode_seconds(cfg: TrainConfig) -> float:
@@ -88,29 +85,35 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     ``design`` is canonicalised first (regulators relabelled by first appearance; the policy
     only saw canonical designs).
 
+    ``checkpoint`` (default: the run's newest complete one) must be a complete checkpoint of
+    the run (its folder or its name); its weights are read with ``torch.load(weights_only=True)``.
+
     Raises:
-        ValueError: not a training run, no checkpoint, ``episodes < 1``.
+        ValueError: not a training run, no complete checkpoint, a damaged or crafted one,
+            ``episodes < 1``.
         InvalidDesignError: an invalid design.
     """
-    import torch
     from stable_baselines3.common.vec_env import DummyVecEnv
 
+    from softcrawl.codesign.factory import env_fn
     from softcrawl.codesign.sac import make_sac
-    from softcrawl.codesign.training import env_fn, latest_checkpoint
     from softcrawl.design.space import canonicalize
     from softcrawl.envs import action_to_kpa
 
-    cfg = load_run_config(run)
+    r = Run(run)
+    cfg = r.read_config()
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     design = canonicalize(design)
-    ck = Path(checkpoint) if checkpoint is not None else latest_checkpoint(Path(run))
-    if ck is None or not (ck / "model.pt").exists():
-        raise ValueError(f"no checkpoint found in {run}")
+    if checkpoint is None:
+        ck = r.require_checkpoint()
+    else:  # a folder, or a checkpoint's name (step-XXXXXXXXXX) in the run
+        ck = Path(checkpoint) if Path(checkpoint).exists() else r.checkpoints_dir / str(checkpoint)
+    weights = r.load_policy_weights(ck)
     env = env_fn(cfg)()
     cfg.sac.buffer_size = 1
     model = make_sac(DummyVecEnv([lambda: env]), cfg.sac)
-    model.policy.load_state_dict(torch.load(ck / "model.pt", weights_only=False)["policy"])
+    model.policy.load_state_dict(weights)
     returns, diverged, first = [], [], None
     for _ in range(episodes):
         obs, _ = env.reset(options={"design": design})
@@ -132,7 +135,7 @@ def baseline_sweep(run: str | Path, out: str | Path, phases, workers: int | None
     ``phases`` (degrees) with the run's robot settings and episode length, written to ``out``
     (a ``softcrawl sweep-phase`` output, resumable). Returns the
     :class:`softcrawl.robot.sweep.SweepResult`."""
-    from softcrawl.codesign.training import robot_factory
+    from softcrawl.codesign.factory import robot_factory
     from softcrawl.design.space import BASELINE_DESIGN
     from softcrawl.robot.sweep import run_sweep
 

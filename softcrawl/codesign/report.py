@@ -1,6 +1,8 @@
 """Report of a co-design run (``softcrawl report RUN``; also written at the end of training).
 
-Writes ``RUN/report/``:
+Writes ``RUN/report/`` (built in ``RUN/.report.partial-*`` and swapped in when complete, so a
+failed report leaves the previous one; a ``report`` that links out of the run is refused; the run
+is read through :class:`softcrawl.codesign.run.Run`):
 
 * ``summary.md``: run settings, steps, episodes, best return, final entropy/beta, and the
   top-k table (design, latest return R (cm; the score in the Gibbs weights), probability,
@@ -28,7 +30,6 @@ from __future__ import annotations
 
 import csv
 import json
-import pickle
 import shutil
 from pathlib import Path
 
@@ -36,66 +37,32 @@ import numpy as np
 
 from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.evaluation import episode_seconds
+from softcrawl.codesign.run import Run, note
 from softcrawl.design.picture import plot_design
 
 BASELINE_PHASES: tuple[float, ...] = tuple(range(0, 360, 30))
 """Phase lags (degrees) of the report's own baseline sweep."""
 
 
-def _episodes(run: Path) -> dict:
-    t, designs, r, div = [], [], [], []
-    path = run / "episodes.csv"
-    if path.exists():
-        with open(path, newline="") as f:
-            for row in csv.reader(f):
-                if row:
-                    t.append(int(row[0]))
-                    designs.append(tuple(int(c) for c in row[1]))
-                    r.append(float(row[2]))
-                    div.append(bool(int(row[3])))
-    return {"t": np.array(t, np.int64), "design": designs, "r": np.array(r), "diverged": np.array(div, bool)}
-
-
-def _checkpoint_steps(run: Path) -> int:
-    """Environment steps of the latest checkpoint."""
-    from softcrawl.codesign.training import latest_checkpoint
-
-    return int(latest_checkpoint(run).name.split("-")[1])
-
-
-def _wall_seconds(run: Path) -> float:
-    """Training wall time over all train/resume calls (``sessions.csv``), s."""
-    path = run / "sessions.csv"
-    if not path.exists():
-        return float("nan")
-    with open(path, newline="") as f:
-        return sum(float(row[2]) for row in csv.reader(f) if row)
-
-
-def load_final_sampler_state(run: Path) -> dict | None:
-    """The design-sampler state of the latest checkpoint, or None."""
-    from softcrawl.codesign.training import latest_checkpoint
-
-    ck = latest_checkpoint(run)
-    if ck is None:
-        return None
-    with open(ck / "state.pkl", "rb") as f:
-        return pickle.load(f)["sampler"]
+def load_final_sampler_state(run: str | Path) -> dict | None:
+    """The design-sampler state of the run's newest complete checkpoint, or None if it has none
+    (ValueError if that checkpoint's ``state.json`` is malformed)."""
+    r = Run(run)
+    ck = r.latest_checkpoint()
+    return None if ck is None else r.read_checkpoint_state(ck)["sampler"]
 
 
 def top_designs(run: str | Path, k: int = 5) -> list[dict]:
     """Top-k tried designs of a run (see the module docstring) as dicts with keys ``design``,
     ``latest_cm``, ``prob``, ``episodes``, ``mean_cm``, ``best_cm``."""
-    run = Path(run)
-    state = load_final_sampler_state(run)
-    if state is None:
-        raise ValueError(f"{run} has no checkpoint (not a training run, or it has not checkpointed yet)")
+    r = Run(run)
+    state = r.read_checkpoint_state(r.require_checkpoint())["sampler"]
     from softcrawl.codesign.distribution import GibbsDesignDistribution
 
     dist = GibbsDesignDistribution(state["distribution"]["designs"])
     dist.load_state_dict(state["distribution"])
     p = dist.probs()
-    ep = _episodes(run)
+    ep = r.read_episodes()
     tried = np.flatnonzero(dist.tried)
     order = tried[np.lexsort((tried, -dist.returns[tried]))][:k]
     rows = []
@@ -108,13 +75,20 @@ def top_designs(run: str | Path, k: int = 5) -> list[dict]:
     return rows
 
 
-def _histogram_figure(run: Path, ep: dict, path: Path) -> bool:
+def _histogram_figure(run: Run, ep: dict, path: Path) -> bool:
     from matplotlib.figure import Figure
 
-    snaps = sorted((run / "snapshots").glob("t-*.npz")) if (run / "snapshots").exists() else []
+    snaps = run.snapshots()
     if not snaps:
         return False
-    data = [np.load(s) for s in snaps]
+    data = []
+    for s in snaps:
+        try:
+            data.append(run.read_snapshot(s))
+        except ValueError as exc:
+            note(f"{exc}; left out of the reward histogram")
+    if not data:
+        return False
     ts = np.array([int(d["t"]) for d in data])
     allr = np.concatenate([d["scores"][d["tried"]] for d in data] + [ep["r"]] if len(ep["r"]) else
                           [d["scores"][d["tried"]] for d in data])
@@ -201,12 +175,12 @@ def _baseline_section(path: Path, data: dict, out: Path, cfg: TrainConfig, best_
     return lines
 
 
-def _best_design_section(run: Path, out: Path, design) -> list[str]:
+def _best_design_section(run: Path, out: Path, design, checkpoint: Path) -> list[str]:
     """Re-simulate ``design`` with the run's policy into ``out/best_design``; Markdown lines."""
     from softcrawl.codesign.evaluation import evaluate_policy
     from softcrawl.robot.output import write_results
 
-    ev = evaluate_policy(run, design)
+    ev = evaluate_policy(run, design, checkpoint=checkpoint)
     result = ev.resimulate(record_every=10)
     write_results(out / "best_design", ev.env.episode.robot, ev.gait(), result, ev.env.calibration, overwrite=True)
     name = ",".join(map(str, ev.design))
@@ -220,7 +194,7 @@ def _best_design_section(run: Path, out: Path, design) -> list[str]:
 def _baseline_best(cfg: TrainConfig, out: Path, data: dict) -> list[str]:
     """Re-simulate the swept baseline at its best phase (robot settings of ``cfg``) into
     ``out/baseline_best``."""
-    from softcrawl.codesign.training import robot_factory
+    from softcrawl.codesign.factory import robot_factory
     from softcrawl.design.space import BASELINE_DESIGN
     from softcrawl.gaits import SineGait
     from softcrawl.robot.episode import run_episode
@@ -248,21 +222,32 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         workers: processes of the baseline sweep (None: the CPU count).
 
     Raises:
-        ValueError: ``run`` is not a training run with at least one checkpoint, or
-            ``baseline`` is not a sweep output.
+        ValueError: ``run`` is not a training run with at least one complete checkpoint, a
+            run file is malformed, ``report`` is a link, or ``baseline`` is not a sweep output.
     """
-    run = Path(run)
-    if not (run / "config.json").exists():
-        raise ValueError(f"{run} is not a training run (no config.json)")
+    r = Run(run)
+    meta = r.read_meta()
     sweep = _load_sweep(baseline) if baseline is not None else None
-    meta = json.loads((run / "config.json").read_text())
-    top = top_designs(run, k)
-    out = run / "report"
-    out.mkdir(exist_ok=True)
-    ep = _episodes(run)
+    top = top_designs(r.path, k)
+    ckpt = r.require_checkpoint()
+    state = r.read_checkpoint_state(ckpt)["sampler"]
+    staged = r.report_staging()
+    try:
+        _write_report(r, staged, meta, top, state, ckpt, sweep, baseline_phases, simulate, workers)
+        return r.install_report(staged)
+    except BaseException:
+        shutil.rmtree(staged, ignore_errors=True)
+        raise
+
+
+def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: Path, sweep, baseline_phases,
+                  simulate: bool, workers: int | None) -> None:
+    """Everything of :func:`write_report` into ``out`` (the staging folder)."""
+    run = r.path
+    ep = r.read_episodes()
     for i, row in enumerate(top, 1):
         plot_design(row["design"], path=out / f"top-{i}.png")
-    has_hist = _histogram_figure(run, ep, out / "reward_histogram.png")
+    has_hist = _histogram_figure(r, ep, out / "reward_histogram.png")
     _returns_figure(ep, out / "returns.png")
     with open(out / "top_designs.csv", "w", newline="") as f:
         w = csv.writer(f)
@@ -270,16 +255,16 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         for i, row in enumerate(top, 1):
             w.writerow([i, ",".join(map(str, row["design"])), f"{row['latest_cm']:.4f}", f"{row['prob']:.4g}",
                         row["episodes"], f"{row['mean_cm']:.4f}", f"{row['best_cm']:.4f}"])
-    state = load_final_sampler_state(run)
     last = state["distribution"]["last"]
     cfg = meta["config"]
-    run_cfg = TrainConfig.from_dict(cfg)
+    run_cfg = r.read_config()
     lines = [
         f"# Co-design run `{run.name}`", "",
         (f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
          f"{cfg['total_steps']} steps planned; {len(ep['r'])} episodes logged, "
          f"{int(ep['diverged'].sum())} diverged."), "",
-        f"- steps done (last checkpoint): {_checkpoint_steps(run)}; training wall time {_wall_seconds(run) / 60:.1f} min",
+        (f"- steps done (last checkpoint): {r.checkpoint_steps(ckpt)}; "
+         f"training wall time {r.wall_seconds() / 60:.1f} min"),
         f"- design distribution last updated at step {state['timestep']} (the last episode end)",
         f"- best episode return: {ep['r'].max():+.3f} cm" if len(ep["r"]) else "- no episode finished",
         f"- design distribution: beta = {last.beta:.4g} /cm, entropy {last.entropy:.3f} nats "
@@ -297,7 +282,7 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
     lines += ["", "![episode returns](returns.png)"]
     best_cm = float(ep["r"].max()) if len(ep["r"]) else None
     if simulate and top:
-        lines += _best_design_section(run, out, top[0]["design"])
+        lines += _best_design_section(run, out, top[0]["design"], ckpt)
     own_sweep = sweep is None and simulate and len(baseline_phases) > 0
     if own_sweep:
         from softcrawl.codesign.evaluation import baseline_sweep
@@ -310,4 +295,3 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
             lines += _baseline_best(run_cfg, out, sweep[1])
     lines.append("")
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
-    return out

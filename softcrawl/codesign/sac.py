@@ -13,6 +13,7 @@ true terminal (no bootstrap).
 from __future__ import annotations
 
 from stable_baselines3 import SAC
+from stable_baselines3.common.logger import Logger
 
 from softcrawl.codesign.config import SACConfig
 
@@ -40,10 +41,11 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
     ``gradient_steps`` per vectorised step = ``round(cfg.utd_ratio * env.num_envs)`` (at least 1),
     i.e. ``utd_ratio`` updates per transition (paper: 1). Networks: MLP ``cfg.net_arch`` with ReLU
     for the actor and both critics; Adam(β1 0.9, β2 0.999); automatic temperature with target
-    entropy ``cfg.target_entropy`` (−3 = −dim A).
+    entropy ``cfg.target_entropy`` (−3 = −dim A). Its logger writes nowhere until
+    ``set_logger`` is called (SB3's default would create ``/tmp/SB3-<date>/``).
     """
     grad_steps = max(1, round(cfg.utd_ratio * env.num_envs))
-    return SplitLRSAC(
+    model = SplitLRSAC(
         "MlpPolicy", env,
         learning_rate=cfg.policy_lr, q_learning_rate=cfg.q_lr,
         buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
@@ -53,3 +55,6 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
         policy_kwargs={"net_arch": list(cfg.net_arch), "optimizer_kwargs": {"betas": (0.9, 0.999)}},
         seed=seed, device="cpu", verbose=0,
     )
+    # a logger writing nowhere until the caller sets one: SB3's default makes /tmp/SB3-<date>/
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model

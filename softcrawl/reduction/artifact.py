@@ -4,9 +4,13 @@ A file holds the parts of a :class:`~softcrawl.reduction.model.RobotReduction` (
 optionally, the disk). Arrays, prefixed ``<part>__``: the part mesh (points, tets, surfaces,
 node sets), the basis, singular values, the RIDs and weights. Key ``metadata`` holds UTF-8
 JSON: format version, software version, per part its mesh hash and sizes, the model
-parameters the reduction is valid for, tolerances and build statistics, and a SHA-256 over
-every array. :func:`load_reduction` rejects a file that is unreadable, of another format or
-version, altered (checksum), or whose mesh or parameters do not match.
+parameters the reduction is valid for, tolerances and build statistics, a SHA-256 over
+every array (``checksum``) and one over the metadata itself and that array checksum
+(``metadata_checksum``), so ``valid_for``, tolerances and ``n_rigid`` cannot be altered
+unnoticed either. :func:`load_reduction` rejects a file that is unreadable, of another format or
+version, altered (either checksum), inconsistent (``n_rigid`` against the basis), or whose mesh
+or parameters do not match. Files written before ``metadata_checksum`` existed are accepted only
+if their metadata is one of :data:`_TRUSTED_LEGACY_METADATA` (the shipped reduction).
 """
 
 from __future__ import annotations
@@ -76,6 +80,20 @@ def _checksum(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
+def _metadata_checksum(meta: dict) -> str:
+    """SHA-256 of the metadata (all of it but ``metadata_checksum``, canonical JSON; it holds
+    the array checksum, so this covers the arrays too)."""
+    body = {k: v for k, v in meta.items() if k != "metadata_checksum"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()
+
+
+#: ``_metadata_checksum`` of reduction files written before ``metadata_checksum`` existed that
+#: are trusted as they are: the shipped ``softcrawl/reduction/data/pneunet_6mm.npz``.
+_TRUSTED_LEGACY_METADATA = frozenset({
+    "dcbc9d43f1802c38709b645923eb48ef051b7eca66c62432a40d23020f6b45b5",  # pneunet_6mm.npz, built 2026-11 (RESULTS.md)
+})
+
+
 def save_reduction(path: str | os.PathLike, reduction: RobotReduction, valid_for: dict) -> Path:
     """Write ``reduction`` atomically to ``path`` (``.npz``).
 
@@ -94,6 +112,8 @@ def save_reduction(path: str | os.PathLike, reduction: RobotReduction, valid_for
                        "rid_triangles": len(part.tri_rid), "build": part.metadata}
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "software_version": __version__,
             "parts": parts, "valid_for": valid_for, "build": reduction.metadata, "checksum": _checksum(arrays)}
+    meta = json.loads(json.dumps(meta, default=str))  # what load_reduction will read back
+    meta["metadata_checksum"] = _metadata_checksum(meta)
     blob = np.frombuffer(json.dumps(meta, indent=1, default=str).encode(), np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
     replace_atomically(path, lambda tmp: np.savez_compressed(tmp, metadata=blob, **arrays))
@@ -119,6 +139,8 @@ def load_reduction(path: str | os.PathLike, expect: dict | None = None,
         ReductionMismatchError: a parameter in ``expect`` differs from the file's.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ReductionFileError(f"reduction file {path} is a directory; give the .npz file")
     if not path.is_file():
         raise ReductionFileError(f"reduction file {path} does not exist (build one with `softcrawl reduce build`)")
     try:
@@ -127,6 +149,10 @@ def load_reduction(path: str | os.PathLike, expect: dict | None = None,
         meta = json.loads(data.pop("metadata").tobytes().decode())
     except Exception as exc:  # zip, npy and JSON errors all mean "not a readable reduction"
         raise ReductionFileError(f"cannot read reduction file {path}: {exc}") from exc
+    if not isinstance(meta, dict) or not isinstance(meta.get("parts", {}), dict) \
+            or not isinstance(meta.get("valid_for", {}), dict):
+        raise ReductionFileError(f"reduction file {path}: its metadata is not a JSON object with 'parts' and "
+                                 "'valid_for' objects")
     if check:
         if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
             raise ReductionFileError(f"{path} is not a {FORMAT} file of version {FORMAT_VERSION} "
@@ -134,12 +160,24 @@ def load_reduction(path: str | os.PathLike, expect: dict | None = None,
                                      "rebuild it with `softcrawl reduce build`")
         if _checksum(data) != meta.get("checksum"):
             raise ReductionFileError(f"reduction file {path} is corrupt: its arrays do not match their checksum")
+        if "metadata_checksum" in meta:
+            if meta["metadata_checksum"] != _metadata_checksum(meta):
+                raise ReductionFileError(f"reduction file {path} is corrupt: its metadata (valid_for, tolerances, "
+                                         "n_rigid) does not match its checksum")
+        elif _metadata_checksum(meta) not in _TRUSTED_LEGACY_METADATA:
+            raise ReductionFileError(f"reduction file {path} has no metadata checksum (an older softcrawl wrote "
+                                     "it); rebuild it with `softcrawl reduce build`")
     parts_meta = meta.get("parts", {})
     try:
         parts = {name: _part(data, name, parts_meta[name]) for name in parts_meta}
+        for name, part in parts.items():
+            recorded = parts_meta[name].get("n_rigid", part.n_rigid)
+            if not 0 <= part.n_rigid <= part.basis.shape[1] or recorded != part.n_rigid:
+                raise ValueError(f"{name}: n_rigid {part.n_rigid} (metadata {recorded!r}) does not fit a basis of "
+                                 f"{part.basis.shape[1]} modes")
         reduction = RobotReduction(parts["leg"], parts.get("disk"), meta.get("build", {}))
-    except (KeyError, ValueError, TypeError) as exc:
-        raise ReductionFileError(f"reduction file {path} is incomplete or inconsistent: {exc!r}") from exc
+    except (KeyError, ValueError, TypeError, AttributeError, IndexError) as exc:
+        raise ReductionFileError(f"reduction file {path} is incomplete or inconsistent: {exc}") from exc
     if check:
         for name, part in parts.items():
             if mesh_hash(part.mesh) != parts_meta[name].get("mesh_hash"):

@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -51,22 +52,48 @@ class OutputExistsError(ValueError):
     """The output path exists and overwriting was not requested (or it is not a directory)."""
 
 
+#: Marker file in every output folder softcrawl writes; ``overwrite`` replaces only such folders.
+OUTPUT_MARKER = ".softcrawl-output"
+
+
+class OutputWriteError(ValueError):
+    """Writing the outputs failed for lack of space or a read-only file system; the message
+    names the folder where what was written is kept."""
+
+
 def check_output_path(out: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Validate a destination directory before any work is done.
+    """Validate a destination directory before any work is done (creates nothing).
+
+    ``out`` must name a folder (not ``.``/``..``) whose nearest existing ancestor is a writable
+    directory; an existing ``out`` is accepted only with ``overwrite`` and only if it is empty
+    or softcrawl wrote it (:data:`OUTPUT_MARKER`).
 
     Returns:
         ``out`` as a Path.
 
     Raises:
-        OutputExistsError: ``out`` exists and ``overwrite`` is False, or ``out`` exists and
-            is not a directory.
+        OutputExistsError: ``out`` exists and ``overwrite`` is False, exists and is not a
+            directory, or is not a softcrawl output; ``out`` is ``.``, or it cannot be created
+            or written (an ancestor is a file, or not writable).
     """
     out = Path(out)
+    if out.name in ("", ".", ".."):
+        raise OutputExistsError(f"{str(out) or '.'}: give a new folder as the output, not the current or a parent one")
     if out.exists() or out.is_symlink():
         if not out.is_dir() or out.is_symlink():
             raise OutputExistsError(f"{out} exists and is not a directory")
         if not overwrite:
             raise OutputExistsError(f"{out} already exists (use --overwrite to replace it)")
+        if not (out / OUTPUT_MARKER).is_file() and any(out.iterdir()):
+            raise OutputExistsError(f"{out} is not a softcrawl output (no {OUTPUT_MARKER}); --overwrite only "
+                                    "replaces folders softcrawl wrote")
+    parent = out.absolute().parent
+    while not parent.exists() and not parent.is_symlink() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputExistsError(f"cannot create {out}: {parent} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputExistsError(f"cannot create {out}: {parent} is not writable")
     return out
 
 
@@ -74,11 +101,15 @@ def check_output_path(out: str | os.PathLike, overwrite: bool = False) -> Path:
 def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Yield a fresh temporary directory next to ``out``; on success move it onto ``out``.
 
-    On an exception the temporary directory is removed and ``out`` is left untouched. With
-    ``overwrite``, an existing ``out`` directory is replaced (after the new one is complete).
+    On an exception the temporary directory is removed and ``out`` is left untouched, except
+    for a full disk or read-only file system: then the temporary directory (what was written)
+    is kept and named in the :class:`OutputWriteError`. With ``overwrite``, an existing
+    softcrawl output ``out`` is replaced (after the new one is complete). The result holds
+    :data:`OUTPUT_MARKER`.
 
     Raises:
         OutputExistsError: see :func:`check_output_path` (checked again at the end).
+        OutputWriteError: disk full / quota / read-only file system while writing.
     """
     out = check_output_path(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -87,6 +118,7 @@ def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterato
         umask = os.umask(0)
         os.umask(umask)
         tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; the result should not be
+        (tmp / OUTPUT_MARKER).write_text("written by softcrawl; --overwrite may replace this folder\n")
         yield tmp
         check_output_path(out, overwrite)
         old = None
@@ -96,6 +128,12 @@ def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterato
         os.replace(tmp, out)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS) and tmp.exists():
+            raise OutputWriteError(f"cannot write {out}: {exc.strerror or exc}; what was written is kept in "
+                                   f"{tmp}") from None
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -1,0 +1,70 @@
+"""Builders of a co-design run's simulation and design sampler from its :class:`TrainConfig`.
+
+Shared by training (:mod:`softcrawl.codesign.training`) and by everything that re-uses a
+trained run's settings (:mod:`softcrawl.codesign.evaluation`, the report, regret, deploy), so
+none of those has to import the training driver. Everything returned is picklable (the
+subprocess backend ships the env constructors to its workers).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+from softcrawl.codesign.config import TrainConfig
+from softcrawl.codesign.distribution import EntropySchedule, GibbsDesignDistribution
+from softcrawl.codesign.sampler import GibbsDesignSampler
+from softcrawl.envs.crawler import BuildRobot, CrawlerEnv
+from softcrawl.envs.vec import DesignVecEnv, make_backend
+from softcrawl.robot.assembly import RobotConfig
+
+
+def robot_factory(cfg: TrainConfig) -> BuildRobot:
+    """Picklable ``design -> Robot`` for ``cfg.env`` (full-order or reduced model)."""
+    e = cfg.env
+    return BuildRobot(RobotConfig(leg_mesh_size=e.leg_mesh_size, disk_mesh_size=e.disk_mesh_size,
+                                  refactor_every=e.refactor_every, dt=e.dt, model=e.model, reduction=e.reduction))
+
+
+def env_fn(cfg: TrainConfig):
+    """Zero-argument constructor of one :class:`CrawlerEnv` (picklable)."""
+    e = cfg.env
+    return partial(CrawlerEnv, robot_factory=robot_factory(cfg), steps_per_action=e.steps_per_action,
+                   n_actions=e.n_actions, observe_state=e.observe_state, designs=e.designs(),
+                   settling=e.settling(), max_cached=e.max_cached_robots)
+
+
+def make_vec_env(cfg: TrainConfig, sampler) -> DesignVecEnv:
+    """The vectorised env of ``cfg`` (``cfg.backend``: serial, subprocess or ray,
+    :func:`softcrawl.envs.vec.make_backend`) with ``sampler``, seeded with ``cfg.seed``."""
+    venv = DesignVecEnv(make_backend(cfg.backend, [env_fn(cfg)] * cfg.n_envs, n_workers=cfg.n_workers or None), sampler)
+    venv.seed(cfg.seed)
+    return venv
+
+
+def check_reduction(cfg: TrainConfig) -> None:
+    """Load and check the reduction file of a reduced-model config now (robots are built
+    lazily, at the first reset), so a bad file fails before a run is started.
+
+    Raises:
+        ReductionFileError, ReductionMismatchError (ValueErrors): see
+            :func:`softcrawl.reduction.artifact.load_reduction`.
+    """
+    if cfg.env.model != "reduced":
+        return
+    import dataclasses
+
+    from softcrawl.reduction.artifact import load_reduction
+    from softcrawl.reduction.data import default_reduction_path
+
+    config = robot_factory(cfg).config
+    load_reduction(config.reduction or default_reduction_path(), expect=dataclasses.asdict(config))
+
+
+def make_sampler(cfg: TrainConfig) -> GibbsDesignSampler:
+    """Design distribution over ``cfg.env.designs()`` with the entropy schedule of ``cfg``
+    (its own RNG seeded with ``cfg.seed + 1``)."""
+    dist = GibbsDesignDistribution(cfg.env.designs(), untried=cfg.design.untried, beta_max=cfg.design.beta_max)
+    sched = EntropySchedule(t0=int(cfg.design.t0_fraction * cfg.total_steps),
+                            t1=int(cfg.design.t1_fraction * cfg.total_steps), h_max=dist.h_max,
+                            h_end=min(cfg.design.h_end, dist.h_max))
+    return GibbsDesignSampler(dist, sched, seed=cfg.seed + 1)

@@ -1,0 +1,488 @@
+"""The run folder of a co-design training run: its layout, and every read and write of it.
+
+Training writes through :class:`Run`; evaluation, the report, regret and deploy read through
+it; nothing else builds a run's paths by hand. Layout::
+
+    RUN/
+    ├── config.json                {"version": softcrawl version, "config": TrainConfig.to_dict()}
+    │                              (written once the run has started: config valid, envs built)
+    ├── episodes.csv               t (transitions), design, return_cm, diverged; one row per episode
+    ├── distribution.csv           t, beta, entropy, target, effective_target, floor, clamped, top designs
+    ├── sessions.csv               first step, last step, wall seconds, version; one row per train/resume call
+    ├── snapshots/t-XXXXXXXXXX.npz p, scores (float32), tried (bool), t of the design distribution
+    ├── logs/                      SB3 logger: progress.csv (progress-<k>.csv: earlier calls), TensorBoard events
+    ├── checkpoints/
+    │   ├── latest                 text: name of the newest complete checkpoint (a hint, checked, never followed
+    │   │                          out of checkpoints/)
+    │   └── step-XXXXXXXXXX/       complete iff manifest.json's SHA-256 sums match:
+    │       ├── model.pt           tensors only (torch.load(weights_only=True)): policy, critics, targets,
+    │       │                      optimizers, log temperature, torch RNG
+    │       ├── replay_buffer.npz  the SB3 replay buffer's arrays and pos/full (np.load(allow_pickle=False))
+    │       ├── state.json         counters, design sampler (distribution + its RNG), numpy and python RNG
+    │       └── manifest.json      {"format": 1, "files": {name: sha256}}
+    └── report/                    softcrawl report (built in .report.partial-*, swapped in when complete)
+
+Nothing read from a run folder is executed: no pickle, tensors only with ``weights_only=True``,
+JSON and ``allow_pickle=False`` npz; the old pickle format (``state.pkl``, ``replay_buffer.pkl``)
+is refused. Checkpoints are written into ``step-*.tmp`` and renamed into place, ``latest`` is
+replaced atomically; a missing, dangling or damaged ``latest`` falls back to the newest complete
+checkpoint (said on stderr), and at least two complete checkpoints are kept.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import errno
+import hashlib
+import json
+import os
+import random
+import re
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from softcrawl import __version__
+from softcrawl.codesign.config import TrainConfig
+
+CHECKPOINT_FORMAT = 1
+CHECKPOINT_FILES = ("model.pt", "replay_buffer.npz", "state.json")
+_STEP = re.compile(r"step-(\d{10})")
+_BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+
+class NoSpaceError(ValueError):
+    """A write failed for lack of space or a read-only file system (the message says where
+    what was computed is kept)."""
+
+
+def is_no_space(exc: BaseException) -> bool:
+    """True for ENOSPC / EDQUOT / EROFS (disk full, quota, read-only file system)."""
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def note(msg: str) -> None:
+    """A one-line note on stderr (``softcrawl: ...``): what was skipped or substituted."""
+    print(f"softcrawl: {msg}", file=sys.stderr)
+
+
+class Run:
+    """A co-design run folder (module docstring).
+
+    Args:
+        path: the run folder (need not exist yet).
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+
+    # -- paths -----------------------------------------------------------------------------
+    config_path = property(lambda self: self.path / "config.json")
+    episodes_csv = property(lambda self: self.path / "episodes.csv")
+    distribution_csv = property(lambda self: self.path / "distribution.csv")
+    sessions_csv = property(lambda self: self.path / "sessions.csv")
+    snapshots_dir = property(lambda self: self.path / "snapshots")
+    logs_dir = property(lambda self: self.path / "logs")
+    checkpoints_dir = property(lambda self: self.path / "checkpoints")
+    report_dir = property(lambda self: self.path / "report")
+
+    def _inside(self, p: Path) -> bool:
+        """``p`` is a real (non-symlink) entry whose resolved path is inside the run."""
+        try:
+            return not p.is_symlink() and p.resolve().is_relative_to(self.path.resolve())
+        except OSError:
+            return False
+
+    # -- config ----------------------------------------------------------------------------
+    def exists(self) -> bool:
+        """The folder holds a ``config.json`` (a started run)."""
+        return self.config_path.is_file()
+
+    def read_meta(self) -> dict:
+        """``config.json`` as a dict with ``version`` and ``config``.
+
+        Raises:
+            ValueError: not a training run, or an unreadable / malformed ``config.json``.
+        """
+        if not self.exists():
+            raise ValueError(f"{self.path} is not a training run (no config.json)")
+        try:
+            meta = json.loads(self.config_path.read_text(encoding="utf-8"))
+            if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict):
+                raise ValueError("no 'config' object")
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{self.config_path}: not a softcrawl run config ({exc})") from None
+        return meta
+
+    def read_config(self) -> TrainConfig:
+        """The run's :class:`TrainConfig` (ValueError as :meth:`read_meta`, or a bad setting)."""
+        try:
+            return TrainConfig.from_dict(self.read_meta()["config"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{self.config_path}: {exc}") from None
+
+    def write_config(self, cfg: TrainConfig) -> None:
+        """Write ``config.json`` atomically (creates the folder)."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        _atomic_write_text(self.config_path, json.dumps({"version": __version__, "config": cfg.to_dict()}, indent=2))
+
+    # -- logs ------------------------------------------------------------------------------
+    def read_episodes(self) -> dict:
+        """``episodes.csv`` as arrays: ``t`` (int64), ``design`` (list of tuples), ``r`` (cm),
+        ``diverged`` (bool). ValueError naming the file and the 1-based line of a bad row."""
+        t, designs, r, div = [], [], [], []
+        if self.episodes_csv.exists():
+            with open(self.episodes_csv, newline="", encoding="utf-8") as f:
+                for line, row in enumerate(csv.reader(f), start=1):
+                    if not row:
+                        continue
+                    try:
+                        t.append(int(row[0]))
+                        designs.append(tuple(int(c) for c in row[1]))
+                        r.append(float(row[2]))
+                        div.append(bool(int(row[3])))
+                    except (IndexError, ValueError):
+                        raise ValueError(f"{self.episodes_csv}, line {line}: not an episode row: {row!r}") from None
+        return {"t": np.array(t, np.int64), "design": designs, "r": np.array(r), "diverged": np.array(div, bool)}
+
+    def has_history(self) -> bool:
+        """Anything logged: episode rows, snapshots or checkpoints."""
+        if self.episodes_csv.exists() and self.episodes_csv.stat().st_size > 0:
+            return True
+        return bool(self.snapshots()) or bool(self._step_dirs()) or (self.checkpoints_dir / "latest").exists()
+
+    def append_session(self, first_step: int, last_step: int, wall_seconds: float) -> None:
+        """One row of ``sessions.csv``."""
+        with open(self.sessions_csv, "a", newline="") as f:
+            csv.writer(f).writerow([first_step, last_step, f"{wall_seconds:.1f}", __version__])
+
+    def wall_seconds(self) -> float:
+        """Training wall time over all train/resume calls (``sessions.csv``), s (NaN if none)."""
+        if not self.sessions_csv.exists():
+            return float("nan")
+        with open(self.sessions_csv, newline="") as f:
+            try:
+                return sum(float(row[2]) for row in csv.reader(f) if row)
+            except (IndexError, ValueError):
+                raise ValueError(f"{self.sessions_csv}: malformed row") from None
+
+    def forget_after(self, t: int) -> None:
+        """Resume bookkeeping: drop episode/distribution rows and snapshots logged after step
+        ``t`` (the killed call's work past its checkpoint) and keep SB3's ``progress.csv`` of
+        the earlier part as ``progress-<k>.csv`` (SB3 would overwrite it)."""
+        for path in (self.episodes_csv, self.distribution_csv):
+            if path.exists():
+                with open(path, newline="") as f:
+                    rows = [r for r in csv.reader(f) if r and int(r[0]) <= t]
+                tmp = path.with_suffix(".tmp")
+                with open(tmp, "w", newline="") as f:
+                    csv.writer(f).writerows(rows)
+                os.replace(tmp, path)
+        for snap in self.snapshots():
+            if int(snap.stem.split("-")[1]) > t:
+                snap.unlink()
+        progress = self.logs_dir / "progress.csv"
+        if progress.exists():
+            k = len(list(self.logs_dir.glob("progress-*.csv")))
+            os.replace(progress, progress.with_name(f"progress-{k}.csv"))
+
+    # -- snapshots -------------------------------------------------------------------------
+    def snapshots(self) -> list[Path]:
+        """Snapshot files, oldest first."""
+        d = self.snapshots_dir
+        return sorted(d.glob("t-*.npz")) if d.is_dir() and self._inside(d) else []
+
+    def write_snapshot(self, distribution, t: int) -> None:
+        """Snapshot of a :class:`GibbsDesignDistribution` at step ``t``."""
+        self.snapshots_dir.mkdir(exist_ok=True)
+        np.savez_compressed(self.snapshots_dir / f"t-{t:010d}.npz", p=distribution.probs().astype(np.float32),
+                            scores=distribution.scores().astype(np.float32), tried=distribution.tried, t=t)
+
+    def read_snapshot(self, path: Path) -> dict:
+        """One snapshot's arrays (``p``, ``scores``, ``tried``, ``t``); ValueError if unreadable."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return {k: z[k] for k in ("p", "scores", "tried", "t")}
+        except Exception as exc:  # zip, npy, EOF errors: all mean "not a snapshot"
+            raise ValueError(f"{path}: not a design-distribution snapshot ({exc or type(exc).__name__})") from None
+
+    # -- checkpoints -----------------------------------------------------------------------
+    def _step_dirs(self) -> list[Path]:
+        root = self.checkpoints_dir
+        if not root.is_dir() or not self._inside(root):
+            return []
+        return sorted(p for p in root.iterdir() if _STEP.fullmatch(p.name) and p.is_dir() and self._inside(p))
+
+    def check_checkpoint(self, path: Path) -> str | None:
+        """None if ``path`` is a complete checkpoint of this run, else why not."""
+        path = Path(path)
+        if not _STEP.fullmatch(path.name) or not path.is_dir() or not self._inside(path):
+            return "not a checkpoint folder of this run"
+        if (path / "state.pkl").exists() or (path / "replay_buffer.pkl").exists():
+            return "old pickle format (can run code when loaded; not read)"
+        try:
+            manifest = json.loads((path / "manifest.json").read_text(encoding="utf-8"))
+            files = manifest["files"]
+            if manifest.get("format") != CHECKPOINT_FORMAT or set(files) != set(CHECKPOINT_FILES):
+                return "unknown checkpoint format"
+            for name in CHECKPOINT_FILES:
+                f = path / name
+                if f.is_symlink() or not f.is_file() or _sha256(f) != files[name]:
+                    return f"{name} is missing or damaged (checksum)"
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            return "manifest.json is missing or damaged"
+        return None
+
+    def checkpoints(self) -> list[Path]:
+        """Complete checkpoints, oldest first."""
+        return [p for p in self._step_dirs() if self.check_checkpoint(p) is None]
+
+    def latest_checkpoint(self, quiet: bool = False) -> Path | None:
+        """The checkpoint ``latest`` names if it is complete, else the newest complete one
+        (said on stderr unless ``quiet``), or None if there is none."""
+        ptr = self.checkpoints_dir / "latest"
+        why = "checkpoints/latest is missing"
+        if ptr.is_file() and not ptr.is_symlink():
+            try:
+                name = ptr.read_text(encoding="utf-8").strip()
+            except (OSError, UnicodeDecodeError):
+                name = ""
+            if not _STEP.fullmatch(name):
+                why = f"checkpoints/latest names {name[:80]!r}, not a checkpoint of this run"
+            else:
+                why = self.check_checkpoint(self.checkpoints_dir / name)
+                if why is None:
+                    return self.checkpoints_dir / name
+                why = f"checkpoint {name}: {why}"
+        elif ptr.exists() or ptr.is_symlink():
+            why = "checkpoints/latest is not a plain file"
+        complete = self.checkpoints()
+        if complete and not quiet and (ptr.exists() or ptr.is_symlink() or self._step_dirs()):
+            note(f"{why}; using {complete[-1].name}, the newest complete checkpoint")
+        return complete[-1] if complete else None
+
+    def require_checkpoint(self) -> Path:
+        """:meth:`latest_checkpoint`, or ValueError if the run has none."""
+        ck = self.latest_checkpoint()
+        if ck is None:
+            raise ValueError(f"{self.path} has no complete checkpoint (not a training run, or it has not "
+                             "checkpointed yet)")
+        return ck
+
+    def save_checkpoint(self, model, sampler, keep: int = 2) -> Path:
+        """Write a complete checkpoint of ``model`` (a :class:`SplitLRSAC`) and ``sampler`` (a
+        :class:`GibbsDesignSampler`) atomically, point ``latest`` at it and prune complete
+        checkpoints beyond the newest ``max(keep, 2)``. Returns its folder.
+
+        Raises:
+            NoSpaceError: disk full / read-only (the partial ``.tmp`` is removed, ``latest``
+                is unchanged).
+        """
+        import torch
+
+        root = self.checkpoints_dir
+        root.mkdir(parents=True, exist_ok=True)
+        name = f"step-{model.num_timesteps:010d}"
+        tmp = root / f"{name}.tmp"
+        try:
+            shutil.rmtree(tmp, ignore_errors=True)
+            tmp.mkdir()
+            torch.save({
+                "policy": model.policy.state_dict(),
+                "actor_optimizer": model.actor.optimizer.state_dict(),
+                "critic_optimizer": model.critic.optimizer.state_dict(),
+                "log_ent_coef": model.log_ent_coef.detach().clone(),
+                "ent_coef_optimizer": model.ent_coef_optimizer.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+            }, tmp / "model.pt")
+            rb = model.replay_buffer
+            arrays = {k: getattr(rb, k) for k in _BUFFER_ARRAYS if getattr(rb, k, None) is not None}
+            np.savez(tmp / "replay_buffer.npz", pos=np.int64(rb.pos), full=np.bool_(rb.full), **arrays)
+            np_rng = np.random.get_state()
+            py_rng = random.getstate()
+            state = {
+                "format": CHECKPOINT_FORMAT, "version": __version__,
+                "num_timesteps": int(model.num_timesteps), "n_updates": int(model._n_updates),
+                "episode_num": int(model._episode_num),
+                "sampler": sampler_state_to_json(sampler.state_dict()),
+                "numpy_rng": {"name": np_rng[0], "key": np_rng[1].tolist(), "pos": int(np_rng[2]),
+                              "has_gauss": int(np_rng[3]), "cached_gaussian": float(np_rng[4])},
+                "python_rng": [py_rng[0], list(py_rng[1]), py_rng[2]],
+            }
+            (tmp / "state.json").write_text(json.dumps(state), encoding="utf-8")
+            manifest = {"format": CHECKPOINT_FORMAT, "files": {f: _sha256(tmp / f) for f in CHECKPOINT_FILES}}
+            (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
+            final = root / name
+            shutil.rmtree(final, ignore_errors=True)
+            os.replace(tmp, final)
+            _atomic_write_text(root / "latest", name)
+        except OSError as exc:
+            shutil.rmtree(tmp, ignore_errors=True)
+            if is_no_space(exc):
+                raise NoSpaceError(f"no space left to write checkpoint {name} in {root} ({exc.strerror}); the "
+                                   f"previous checkpoint stays latest") from None
+            raise
+        complete = self.checkpoints()
+        for p in complete[:-max(keep, 2)]:
+            shutil.rmtree(p, ignore_errors=True)
+        return final
+
+    def _load_model_file(self, path: Path) -> dict:
+        import torch
+
+        why = self.check_checkpoint(path)
+        if why is not None:
+            raise ValueError(f"{path}: {why}")
+        try:
+            data = torch.load(Path(path) / "model.pt", weights_only=True, map_location="cpu")
+        except Exception as exc:  # UnpicklingError (refused), zip and EOF errors
+            raise ValueError(f"{path / 'model.pt'}: refused: not a tensors-only checkpoint "
+                             f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
+        if not isinstance(data, dict) or "policy" not in data:
+            raise ValueError(f"{path / 'model.pt'}: not a softcrawl checkpoint")
+        return data
+
+    def load_policy_weights(self, path: Path) -> dict:
+        """The policy's ``state_dict`` (actor, critics, targets) of checkpoint ``path``
+        (ValueError if incomplete, damaged or not tensors-only)."""
+        return self._load_model_file(path)["policy"]
+
+    def read_checkpoint_state(self, path: Path) -> dict:
+        """``state.json`` of checkpoint ``path`` with ``sampler`` decoded
+        (:func:`sampler_state_from_json`). ValueError if incomplete or malformed."""
+        why = self.check_checkpoint(path)
+        if why is not None:
+            raise ValueError(f"{path}: {why}")
+        try:
+            state = json.loads((Path(path) / "state.json").read_text(encoding="utf-8"))
+            state["sampler"] = sampler_state_from_json(state["sampler"])
+            for key in ("num_timesteps", "n_updates", "episode_num"):
+                state[key] = int(state[key])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"{path / 'state.json'}: malformed ({exc!r})") from None
+        return state
+
+    def load_checkpoint(self, path: Path, model, sampler) -> None:
+        """Restore checkpoint ``path`` into a freshly built model / sampler (same config), and
+        the torch / numpy / python RNGs. ``model._last_obs`` is cleared so ``learn()`` starts
+        fresh episodes.
+
+        Raises:
+            ValueError: incomplete, damaged, not tensors-only, or built for another config.
+        """
+        import torch
+
+        ck = self._load_model_file(path)
+        state = self.read_checkpoint_state(path)
+        try:
+            with np.load(Path(path) / "replay_buffer.npz", allow_pickle=False) as z:
+                buffer = {k: z[k] for k in z.files}
+            rb = model.replay_buffer
+            for k in _BUFFER_ARRAYS:
+                have = getattr(rb, k, None)
+                if have is None:
+                    continue
+                if k not in buffer or buffer[k].shape != have.shape or buffer[k].dtype != have.dtype:
+                    raise ValueError(f"replay buffer array {k!r} does not match this run's config")
+            model.policy.load_state_dict(ck["policy"])
+            model.actor.optimizer.load_state_dict(ck["actor_optimizer"])
+            model.critic.optimizer.load_state_dict(ck["critic_optimizer"])
+            with torch.no_grad():
+                model.log_ent_coef.copy_(ck["log_ent_coef"])
+            model.ent_coef_optimizer.load_state_dict(ck["ent_coef_optimizer"])
+            sampler.load_state_dict(state["sampler"])
+            for k in _BUFFER_ARRAYS:
+                if getattr(rb, k, None) is not None:
+                    getattr(rb, k)[...] = buffer[k]
+            rb.pos, rb.full = int(buffer["pos"]), bool(buffer["full"])
+            torch.set_rng_state(ck["torch_rng"])
+            r = state["numpy_rng"]
+            np.random.set_state((r["name"], np.array(r["key"], dtype=np.uint32), r["pos"], r["has_gauss"],
+                                 r["cached_gaussian"]))
+            v, key, gauss = state["python_rng"]
+            random.setstate((v, tuple(key), gauss))
+        except Exception as exc:  # zip/npy errors, shapes, state_dict keys: all mean "not restorable"
+            msg = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+            raise ValueError(f"{path}: cannot restore checkpoint ({msg})") from None
+        model.num_timesteps, model._n_updates = state["num_timesteps"], state["n_updates"]
+        model._episode_num = state["episode_num"]
+        model._last_obs = None  # forces env.reset() in learn(): fresh episodes
+
+    def checkpoint_steps(self, path: Path) -> int:
+        """Environment steps of checkpoint ``path`` (from its name)."""
+        return int(_STEP.fullmatch(Path(path).name).group(1))
+
+    # -- report ----------------------------------------------------------------------------
+    def report_staging(self) -> Path:
+        """A fresh ``.report.partial-*`` folder inside the run (stale ones are removed first).
+
+        Raises:
+            ValueError: ``report`` is a symlink or otherwise points out of the run.
+        """
+        rep = self.report_dir
+        if rep.is_symlink() or (rep.exists() and (not rep.is_dir() or not self._inside(rep))):
+            raise ValueError(f"{rep} is a link or not a folder of the run; refusing to write the report")
+        for stale in self.path.glob(".report.partial-*"):
+            if stale.is_dir() and not stale.is_symlink():
+                shutil.rmtree(stale, ignore_errors=True)
+        return Path(tempfile.mkdtemp(prefix=".report.partial-", dir=self.path))
+
+    def install_report(self, staged: Path) -> Path:
+        """Swap a complete staged report in as ``report/`` (the old one is removed). Returns it."""
+        rep = self.report_dir
+        old = None
+        if rep.exists():
+            old = Path(tempfile.mkdtemp(prefix=".report.old-", dir=self.path))
+            os.replace(rep, old / "report")
+        os.replace(staged, rep)
+        rep.chmod(0o755)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        return rep
+
+
+def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
+    """Shortcut for ``Run(run_dir).latest_checkpoint(quiet=True)``."""
+    return Run(run_dir).latest_checkpoint(quiet=True)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def sampler_state_to_json(state: dict) -> dict:
+    """A :meth:`GibbsDesignSampler.state_dict` as JSON-ready data (exact: floats round-trip)."""
+    dist = dict(state["distribution"])
+    last = dist.get("last")
+    dist["designs"] = [list(d) for d in dist["designs"]]
+    dist["returns"] = [float(v) for v in np.asarray(dist["returns"], dtype=float)]
+    dist["last"] = None if last is None else {k: (v.item() if isinstance(v, np.generic) else v)
+                                              for k, v in dataclasses.asdict(last).items()}
+    return {"distribution": dist, "rng": state["rng"], "timestep": int(state["timestep"])}
+
+
+def sampler_state_from_json(data: dict) -> dict:
+    """Inverse of :func:`sampler_state_to_json` (TypeError/KeyError/ValueError if malformed)."""
+    from softcrawl.codesign.distribution import BetaUpdate
+
+    dist = dict(data["distribution"])
+    dist["designs"] = tuple(tuple(int(c) for c in d) for d in dist["designs"])
+    dist["returns"] = np.array(dist["returns"], dtype=float)
+    dist["last"] = None if dist.get("last") is None else BetaUpdate(**dist["last"])
+    if not isinstance(data["rng"], dict):
+        raise TypeError("sampler rng state is not an object")
+    return {"distribution": dist, "rng": data["rng"], "timestep": int(data["timestep"])}

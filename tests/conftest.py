@@ -1,0 +1,31 @@
+"""Test-session isolation: the suite writes only into temporary folders.
+
+Set before any softcrawl module is imported: a fresh mesh / calibration cache
+(``SOFTCRAWL_CACHE_DIR``, unless the caller set one, as CI does) instead of ``~/.cache``, and a
+temporary ``HOME`` so gmsh, matplotlib and friends keep their preference files out of the
+user's home; hypothesis keeps its example database and caches in the session folder too
+(not ``.hypothesis/`` in the working directory). SB3 loggers are set by :func:`softcrawl.codesign.sac.make_sac`, so no
+``/tmp/SB3-*`` folders appear. The session folder is removed at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+
+_SESSION = tempfile.mkdtemp(prefix="softcrawl-tests-")
+os.environ.setdefault("SOFTCRAWL_CACHE_DIR", os.path.join(_SESSION, "cache"))
+os.environ["HOME"] = os.path.join(_SESSION, "home")
+os.makedirs(os.environ["HOME"], exist_ok=True)
+os.environ.setdefault("MPLCONFIGDIR", os.path.join(_SESSION, "mpl"))
+try:
+    from hypothesis.configuration import set_hypothesis_home_dir
+except ImportError:  # pragma: no cover - hypothesis is in the test extra
+    pass
+else:
+    set_hypothesis_home_dir(os.path.join(_SESSION, "hypothesis"))
+
+
+def pytest_unconfigure(config):
+    shutil.rmtree(_SESSION, ignore_errors=True)
