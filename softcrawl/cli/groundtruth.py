@@ -1,0 +1,102 @@
+"""``softcrawl groundtruth --out GT``: every design of a set with its best open-loop gait
+(:mod:`softcrawl.codesign.groundtruth`), in parallel and resumable: re-running the same command
+(or ``--resume``) continues a killed run and never recomputes a finished design. Writes
+``results.jsonl`` (per design, as they finish), ``groundtruth.csv``, ``ranked.png``,
+``references.json`` and ``summary.json``."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+
+def _floats(text: str, what: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in text.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise ValueError(f"{what} must be comma-separated numbers, got {text!r}") from None
+
+
+def _phases(text: str) -> tuple[float, ...]:
+    if text.strip().lower() in ("none", ""):
+        return ()
+    if ":" in text:
+        try:
+            a, b, s = (float(v) for v in text.split(":"))
+        except ValueError:
+            raise ValueError(f"--baseline-phases START:STOP:STEP needs 3 numbers, got {text!r}") from None
+        if s <= 0 or b < a:
+            raise ValueError(f"--baseline-phases needs STEP > 0 and STOP >= START, got {text!r}")
+        return tuple(float(v) for v in np.arange(a, b + 1e-9, s))
+    return _floats(text, "--baseline-phases")
+
+
+def _run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from softcrawl.codesign.groundtruth import EXECUTORS, GroundTruthConfig, parse_designs, run_groundtruth
+
+    if args.executor not in EXECUTORS:
+        raise ValueError(f"--executor must be one of {EXECUTORS}")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    designs = parse_designs(args.designs)
+    if args.resume:
+        if not (Path(args.out) / "config.json").exists():
+            raise ValueError(f"--resume: {args.out} is not a ground-truth folder (no config.json)")
+        cfg = None
+    else:
+        screen = None if args.screen_duration.strip().lower() == "none" else float(args.screen_duration)
+        cycles = _floats(args.cycles, "--cycles")
+        if any(c != int(c) for c in cycles):
+            raise ValueError(f"--cycles must be integers, got {args.cycles!r}")
+        cfg = GroundTruthConfig(duration=args.duration, screen_duration=screen, hold=args.hold,
+                                cycles=tuple(int(c) for c in cycles), evals_per_cycle=args.evals_per_cycle,
+                                finalists=args.finalists, seed=args.seed, leg_mesh_size=args.leg_mesh_size,
+                                disk_mesh_size=args.disk_mesh_size, dt=args.dt, reduction=args.reduction,
+                                baseline_phases=_phases(args.baseline_phases)).validate()
+    s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
+                        progress=not args.no_progress, ray_address=args.ray_address)
+    best = s["best"][0] if s["best"] else None
+    print(f"{s['designs']} of {s['requested']} designs done; best {','.join(map(str, best['design']))} "
+          f"{best['reward_cm']:+.2f} cm ({best['gait']})" if best else "no design finished")
+    for key, name in (("paper_l1", "paper L1"), ("expert_design", "expert design")):
+        if s.get(key):
+            print(f"{name}: rank {s[key]['rank']} of {s['designs']} ({s[key]['reward_cm']:+.2f} cm)")
+    if "expert_baseline" in s["references"]:
+        b = s["references"]["expert_baseline"]
+        print(f"expert baseline (sine, {b['best_phase_deg']:.0f} deg): {b['reward_cm']:+.2f} cm; "
+              f"{s.get('designs_beating_expert_baseline', 0)} designs beat it")
+    print(f"wrote {args.out}/groundtruth.csv, ranked.png, summary.json")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the ``groundtruth`` subcommand to ``subparsers``."""
+    p = subparsers.add_parser(
+        "groundtruth", help="best open-loop gait of every design (ground truth of the design space)",
+        description="Optimize a periodic open-loop gait per design with CMA-ES on the reduced model and rank "
+        "the designs. Resumable: run the same command again (or with --resume) to continue.")
+    p.add_argument("--out", required=True, help="ground-truth folder (created, or continued)")
+    p.add_argument("--designs", default="3", help='"3" (the 280 three-legged designs, default), leg counts '
+                   'like "3,4", "all" (6,972), or designs separated by ";" e.g. "1,0,0,2,2,0,0,0;1,0,0,2,2,0,0,1"')
+    p.add_argument("--resume", action="store_true", help="continue with the folder's saved settings")
+    p.add_argument("--workers", type=int, default=None, help="processes (or Ray CPUs); default: all cores")
+    p.add_argument("--executor", default="process", help="process (default), serial or ray")
+    p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local Ray)")
+    p.add_argument("--duration", type=float, default=20.0, help="full episode, s (default 20)")
+    p.add_argument("--screen-duration", default="6", help="search episode, s, or none (default 6)")
+    p.add_argument("--hold", type=float, default=1.0, help="seconds per action / knot (default 1)")
+    p.add_argument("--cycles", default="2,3,4,5", help="pattern lengths searched (default 2,3,4,5)")
+    p.add_argument("--evals-per-cycle", type=int, default=36, help="CMA-ES episodes per cycle length")
+    p.add_argument("--finalists", type=int, default=2, help="candidates re-run at full length")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--leg-mesh-size", type=float, default=6.0, help="mm (the reduction's)")
+    p.add_argument("--disk-mesh-size", type=float, default=10.0, help="mm (10: paper preset, 25: demo)")
+    p.add_argument("--dt", type=float, default=None, help="time step, s (default: the robot's default)")
+    p.add_argument("--reduction", default=None, help="reduction file (default: shipped)")
+    p.add_argument("--baseline-phases", default="0:180:10",
+                   help="expert-baseline lags swept, START:STOP:STEP or a list, degrees, or none")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=_run)

@@ -1,0 +1,161 @@
+"""Regret of a co-design run against the ground truth (issue 21, ``softcrawl regret``).
+
+The run's *chosen design* is the most probable design of its final design distribution (ties:
+the higher latest return); it is placed in a ground truth
+(:mod:`softcrawl.codesign.groundtruth`): its true rank and percentile among the ground truth's
+designs, its regret (best ground-truth reward − its ground-truth reward, cm per episode of the
+ground truth), and its learned policy's reward next to its ground-truth gait's.
+
+The rewards are only comparable when the run and the ground truth simulate the same episodes;
+:func:`compute_regret` lists every setting that differs (``settings_differ``) and the Markdown
+says so.
+
+All calls into the training-run code (:mod:`softcrawl.codesign.report`,
+:mod:`softcrawl.codesign.evaluation`) are in :func:`run_choice` and :func:`policy_reward`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from softcrawl.codesign.groundtruth import GroundTruthConfig, PeriodicGait, load_groundtruth
+from softcrawl.design.space import canonicalize
+
+
+# -- the one place that reads a training run -----------------------------------------------------
+def run_choice(run: str | Path) -> dict:
+    """The run's chosen design: ``{"design", "prob", "latest_cm", "episodes"}``, the most probable
+    design of the latest checkpoint's design distribution (ties: higher latest return).
+
+    Raises:
+        ValueError: not a training run / no checkpoint.
+    """
+    from softcrawl.codesign.report import top_designs
+
+    rows = top_designs(run, k=10**6)
+    if not rows:
+        raise ValueError(f"{run}: no design has been tried yet")
+    best = max(rows, key=lambda r: (r["prob"], r["latest_cm"]))
+    return {"design": tuple(best["design"]), "prob": best["prob"], "latest_cm": best["latest_cm"],
+            "episodes": best["episodes"]}
+
+
+def policy_reward(run: str | Path, design) -> dict:
+    """The run's learned policy on ``design`` (deterministic, the run's settings):
+    ``{"reward_cm", "diverged", "actions_kpa", "episode_seconds", "hold_s"}``."""
+    from softcrawl.codesign.evaluation import episode_seconds, evaluate_policy
+
+    ev = evaluate_policy(run, design, episodes=1)
+    e = ev.config.env
+    return {"reward_cm": float(ev.returns_cm[0]), "diverged": bool(ev.diverged[0]),
+            "actions_kpa": np.asarray(ev.actions_kpa).round(2).tolist(),
+            "episode_seconds": episode_seconds(ev.config), "hold_s": e.dt * e.steps_per_action}
+
+
+def run_settings(run: str | Path) -> dict:
+    """Simulation settings of a run comparable with a ground truth's (:func:`gt_settings`), read
+    from the raw ``config.json`` (so runs saved by older versions still compare).
+
+    Raises:
+        ValueError: no ``config.json``.
+    """
+    import json
+
+    path = Path(run) / "config.json"
+    if not path.exists():
+        raise ValueError(f"{run} is not a training run (no config.json)")
+    e = json.loads(path.read_text())["config"]["env"]
+    hold = float(e["dt"]) * float(e["steps_per_action"])
+    return {"model": e.get("model", "reduced"), "leg_mesh_size": float(e.get("leg_mesh_size", 6.0)),
+            "disk_mesh_size": float(e.get("disk_mesh_size", 10.0)), "dt": float(e["dt"]), "hold_s": round(hold, 9),
+            "episode_seconds": round(hold * float(e["n_actions"]), 9), "reduction": e.get("reduction")}
+# -------------------------------------------------------------------------------------------------
+
+
+def gt_settings(cfg: GroundTruthConfig) -> dict:
+    """The ground truth's settings in the keys of :func:`run_settings`."""
+    return {"model": "reduced", "leg_mesh_size": float(cfg.leg_mesh_size), "disk_mesh_size": float(cfg.disk_mesh_size),
+            "dt": float(cfg.robot_config().dt), "hold_s": round(cfg.hold, 9), "episode_seconds": round(cfg.duration, 9),
+            "reduction": cfg.reduction}
+
+
+def place_design(design, gt_dir: str | Path) -> dict:
+    """Rank of ``design`` in a ground truth: ``{"design", "reward_cm", "rank", "of",
+    "percentile", "best_design", "best_cm", "regret_cm", "gait"}`` (rank 1 = best; percentile =
+    share of designs it beats or ties, %).
+
+    Raises:
+        ValueError: ``design`` is not in the ground truth, or the folder is not one.
+    """
+    _, res, _ = load_groundtruth(gt_dir)
+    d = canonicalize(design)
+    if d not in res:
+        raise ValueError(f"design {','.join(map(str, d))} is not in the ground truth {gt_dir} ({len(res)} designs)")
+    rewards = np.array([r.reward_cm for r in res.values()])
+    mine = res[d].reward_cm
+    best = max(res.values(), key=lambda r: (r.reward_cm, tuple(-v for v in r.design)))
+    rank = 1 + int(np.sum(rewards > mine))
+    return {"design": list(d), "reward_cm": mine, "rank": rank, "of": len(res),
+            "percentile": 100.0 * float(np.mean(rewards <= mine)), "best_design": list(best.design),
+            "best_cm": best.reward_cm, "regret_cm": best.reward_cm - mine, "gait": res[d].gait}
+
+
+def compute_regret(run: str | Path, gt_dir: str | Path, policy: bool = True) -> dict:
+    """Regret of ``run``'s chosen design in the ground truth ``gt_dir`` (module docstring).
+
+    Args:
+        policy: also roll out the learned policy on the chosen design (one episode).
+
+    Returns:
+        dict: ``run``, ``groundtruth``, ``choice`` (:func:`run_choice`), ``placement``
+        (:func:`place_design`), ``policy`` (:func:`policy_reward` or None),
+        ``settings_differ`` (``{key: [run, ground truth]}``).
+
+    Raises:
+        ValueError: not a run / ground truth, or the chosen design is not in the ground truth.
+    """
+    cfg, _, _ = load_groundtruth(gt_dir)
+    choice = run_choice(run)
+    placement = place_design(choice["design"], gt_dir)
+    rs, gs = run_settings(run), gt_settings(cfg)
+    differ = {k: [rs[k], gs[k]] for k in rs if rs[k] != gs[k]}
+    pol = policy_reward(run, choice["design"]) if policy else None
+    return {"run": str(run), "groundtruth": str(gt_dir), "choice": {**choice, "design": list(choice["design"])},
+            "placement": placement, "policy": pol, "settings_differ": differ}
+
+
+def regret_markdown(r: dict) -> list[str]:
+    """Markdown lines of a :func:`compute_regret` dict."""
+    p, c = r["placement"], r["choice"]
+    d = ",".join(map(str, p["design"]))
+    lines = ["## Regret against the ground truth", "",
+             f"Ground truth: `{r['groundtruth']}` ({p['of']} designs, best open-loop gait each).", "",
+             "| | |", "|---|---|",
+             f"| chosen design (most probable, p = {c['prob']:.3f}) | `{d}` |",
+             f"| true rank | {p['rank']} of {p['of']} (percentile {p['percentile']:.1f}) |",
+             f"| its ground-truth reward | {p['reward_cm']:+.2f} cm "
+             f"({PeriodicGait.from_dict(p['gait']).describe()} kPa) |",
+             f"| best design | `{','.join(map(str, p['best_design']))}` {p['best_cm']:+.2f} cm |",
+             f"| regret | {p['regret_cm']:.2f} cm |"]
+    if r.get("policy"):
+        pol = r["policy"]
+        lines.append(f"| learned policy on the chosen design | {pol['reward_cm']:+.2f} cm"
+                     f"{' (diverged)' if pol['diverged'] else ''} per {pol['episode_seconds']:g} s |")
+        lines.append(f"| ground-truth gait on it | {p['reward_cm']:+.2f} cm |")
+    lines.append("")
+    if r["settings_differ"]:
+        diffs = "; ".join(f"{k}: run {a} vs ground truth {b}" for k, (a, b) in r["settings_differ"].items())
+        lines += [f"The run and the ground truth simulate different episodes ({diffs}): the rank and regret "
+                  "say how good the chosen design is under the ground truth's episodes; the policy's reward "
+                  "is under the run's.", ""]
+    return lines
+
+
+def regret_section(run: str | Path, gt_dir: str | Path, policy: bool = True) -> tuple[list[str], dict]:
+    """For ``softcrawl report``: ``(Markdown lines, the compute_regret dict)``."""
+    r = compute_regret(run, gt_dir, policy=policy)
+    return regret_markdown(r), r
+
+

@@ -1,0 +1,272 @@
+"""Ray backend of the vectorised crawler env, and Ray tasks for the ground truth (issue 21).
+
+Optional: ``pip install softcrawl[ray]`` (``ray>=2``). Runs on a local Ray started here
+(:func:`ensure_ray`) unless an address of an existing cluster is given (``"auto"`` or
+``"ray://host:10001"``).
+
+:class:`RayBackend` implements :class:`softcrawl.envs.vec.EnvBackend` (``reset``, ``step``,
+``get_attr``, ``set_attr``, ``call``, ``close``) with Ray actors each holding a contiguous chunk
+of the envs (like the subprocess backend's workers). **Fault tolerance**: actors are created with
+``max_restarts``; the driver keeps, per env, the design and actions of its current
+episode and its RNG state after the reset. When an actor dies (``RayActorError``, or
+``ActorUnavailableError`` mid-call), Ray restarts it (fresh envs); the backend then resets its
+envs with the same designs, restores their RNG states, replays the actions of the current
+episodes, and re-issues the failed call. Simulation is deterministic, so the run goes on with
+the same results as if nothing had happened; only that actor's episodes are re-simulated.
+State changed through ``set_attr``/``call`` on a dead actor's envs is not replayed.
+
+:func:`ray_map` runs ``fn(*args)`` for each argument tuple as Ray tasks and yields the results
+as they finish (``max_retries``: a task whose worker died is retried, only that task), used by
+:func:`softcrawl.codesign.groundtruth.run_groundtruth` with ``executor="ray"``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+
+import cloudpickle
+import numpy as np
+
+from softcrawl.envs.vec import EnvBackend, SerialBackend
+
+#: Environment of Ray workers: one BLAS/OpenMP thread (parallelism comes from processes).
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def _ray():
+    try:
+        import ray
+    except ImportError:
+        raise ImportError("the Ray backend needs Ray: pip install 'softcrawl[ray]' (ray>=2)") from None
+    return ray
+
+
+def ensure_ray(address: str | None = None, num_cpus: int | None = None):
+    """Connect to Ray: the running one if this process already did, else a cluster at
+    ``address``, else a new local Ray with ``num_cpus`` CPUs (default: all). Workers get
+    :data:`WORKER_ENV`. Returns the ``ray`` module.
+
+    Raises:
+        ImportError: Ray is not installed. ConnectionError: no cluster at ``address``.
+    """
+    ray = _ray()
+    if not ray.is_initialized():
+        kw = {"runtime_env": {"env_vars": dict(WORKER_ENV)}, "log_to_driver": False}
+        if address:
+            ray.init(address=address, **kw)
+        else:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, **kw)
+    return ray
+
+
+class _EnvChunk:
+    """Actor body: a :class:`SerialBackend` of some envs (constructors pickled with cloudpickle)."""
+
+    def __init__(self, payload: bytes):
+        for k, v in WORKER_ENV.items():
+            os.environ.setdefault(k, v)
+        self.backend = SerialBackend(cloudpickle.loads(payload))
+
+    def spaces(self):
+        return self.backend.observation_space, self.backend.action_space
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def reset(self, indices, designs, seeds):
+        """The envs' reset results and their RNG states after the reset (for a replay)."""
+        out = self.backend.reset(indices, designs, seeds)
+        return [(o, self._rng_state(j)) for o, j in zip(out, indices)]
+
+    def _rng_state(self, j: int):
+        rng = getattr(self.backend.envs[j], "np_random", None)
+        return rng.bit_generator.state if rng is not None else None
+
+    def step(self, actions):
+        return self.backend.step(actions)
+
+    def replay(self, designs, rng_states, actions):
+        """Reset every env of the chunk with its design, restore its RNG state after that reset
+        and re-run its episode's actions (lists of ``(3,)`` arrays); returns nothing."""
+        idx = list(range(len(designs)))
+        self.backend.reset(idx, designs, [None] * len(idx))
+        for j, st in enumerate(rng_states):
+            if st is not None:
+                self.backend.envs[j].np_random.bit_generator.state = st
+        for j, acts in enumerate(actions):
+            for a in acts:
+                self.backend.envs[j].step(a)
+
+    def get_attr(self, name, indices):
+        return self.backend.get_attr(name, indices)
+
+    def set_attr(self, name, value, indices):
+        return self.backend.set_attr(name, value, indices)
+
+    def call(self, method, args, kwargs, indices):
+        return self.backend.call(method, args, kwargs, indices)
+
+    def close(self):
+        self.backend.close()
+
+
+class RayBackend(EnvBackend):
+    """Envs spread over ``n_actors`` Ray actors (contiguous chunks).
+
+    Args:
+        env_fns: one zero-argument env constructor per env (cloudpickled).
+        n_actors: actors (default: ``min(len(env_fns), Ray's CPUs)``).
+        address: Ray cluster address (None: local Ray, :func:`ensure_ray`).
+        num_cpus: CPUs of a local Ray started here (None: all).
+        max_restarts: restarts per actor before a death is raised (:class:`ray.exceptions.RayActorError`).
+
+    Raises:
+        ValueError: no envs. ImportError: Ray missing.
+    """
+
+    def __init__(self, env_fns: Sequence[Callable], n_actors: int | None = None, address: str | None = None,
+                 num_cpus: int | None = None, max_restarts: int = 3):
+        n = len(env_fns)
+        if n < 1:
+            raise ValueError("need at least one env")
+        ray = ensure_ray(address, num_cpus)
+        self._ray = ray
+        cpus = int(ray.cluster_resources().get("CPU", 1))
+        n_actors = max(1, min(n, n_actors or cpus))
+        bounds = np.linspace(0, n, n_actors + 1).round().astype(int)
+        self._chunks = [list(range(bounds[w], bounds[w + 1])) for w in range(n_actors)]
+        self._owner = {i: (w, j) for w, chunk in enumerate(self._chunks) for j, i in enumerate(chunk)}
+        cls = ray.remote(num_cpus=1, max_restarts=max_restarts, max_task_retries=0)(_EnvChunk)
+        self.actors = [cls.remote(cloudpickle.dumps([env_fns[i] for i in chunk])) for chunk in self._chunks]
+        self.num_envs = n
+        self.restarts, self.max_restarts = 0, max_restarts
+        self._design: list = [None] * n
+        self._rng: list = [None] * n  # env RNG states after their last reset
+        self._actions: list[list[np.ndarray]] = [[] for _ in range(n)]
+        self._closed = False
+        self.observation_space, self.action_space = ray.get(self.actors[0].spaces.remote())
+
+    # fault handling ---------------------------------------------------------------------------
+    def _recover(self, w: int) -> None:
+        """Actor ``w`` died (or was unavailable mid-call) and Ray restarts it: rebuild its
+        episodes by resetting its envs and replaying their actions (whatever state it was in)."""
+        from ray.exceptions import ActorUnavailableError, RayActorError
+
+        self.restarts += 1
+        chunk = self._chunks[w]
+        designs = [self._design[i] for i in chunk]
+        if any(d is None for d in designs):  # never reset yet: nothing to replay
+            return
+        for _attempt in range(60):
+            try:
+                self._ray.get(self.actors[w].replay.remote(designs, [self._rng[i] for i in chunk],
+                                                           [list(self._actions[i]) for i in chunk]))
+                return
+            except ActorUnavailableError:  # still restarting
+                time.sleep(0.5)
+            except RayActorError:
+                pass
+        raise RuntimeError(f"actor {w} could not be restarted")  # pragma: no cover
+
+    def _gather(self, workers: Sequence[int], submit: Callable[[int], object]) -> list:
+        """``submit(w)`` on each actor, results in order; a dead or unavailable actor is
+        recovered (:meth:`_recover`) and its call re-issued. A call that fails this way may or may
+        not have run on the old actor; the replay resets that state either way."""
+        from ray.exceptions import ActorUnavailableError, RayActorError
+
+        refs = {w: submit(w) for w in workers}
+        out = {}
+        for w in workers:
+            for _attempt in range(max(2, self.max_restarts + 2)):
+                try:
+                    out[w] = self._ray.get(refs[w])
+                    break
+                except (RayActorError, ActorUnavailableError):
+                    self._recover(w)
+                    refs[w] = submit(w)
+            else:
+                raise RuntimeError(f"actor {w} kept dying")
+        return [out[w] for w in workers]
+
+    def _by_worker(self, indices):
+        groups: dict[int, list[tuple[int, int]]] = {}
+        for pos, i in enumerate(indices):
+            w, j = self._owner[int(i)]
+            groups.setdefault(w, []).append((pos, j))
+        return groups
+
+    def _scatter(self, indices, method: str, make_args) -> list:
+        groups = self._by_worker(indices)
+        workers = list(groups)
+        outs = self._gather(workers, lambda w: getattr(self.actors[w], method).remote(*make_args(groups[w])))
+        result: list = [None] * len(indices)
+        for w, out in zip(workers, outs):
+            for (pos, _), o in zip(groups[w], out if out is not None else [None] * len(groups[w])):
+                result[pos] = o
+        return result
+
+    # EnvBackend -------------------------------------------------------------------------------
+    def reset(self, indices, designs, seeds):
+        both = self._scatter(indices, "reset", lambda g: ([j for _, j in g], [designs[p] for p, _ in g],
+                                                           [seeds[p] for p, _ in g]))
+        for i, ((_, info), rng) in zip(indices, both):
+            self._design[int(i)] = info.get("design")
+            self._rng[int(i)] = rng
+            self._actions[int(i)] = []
+        return [o for o, _ in both]
+
+    def step(self, actions):
+        actions = np.asarray(actions)
+        outs = self._gather(range(len(self._chunks)), lambda w: self.actors[w].step.remote(actions[self._chunks[w]]))
+        for i, a in enumerate(actions):
+            self._actions[i].append(a.copy())
+        return [r for out in outs for r in out]
+
+    def get_attr(self, name, indices):
+        return self._scatter(indices, "get_attr", lambda g: (name, [j for _, j in g]))
+
+    def set_attr(self, name, value, indices):
+        self._scatter(indices, "set_attr", lambda g: (name, value, [j for _, j in g]))
+
+    def call(self, method, args, kwargs, indices):
+        return self._scatter(indices, "call", lambda g: (method, args, kwargs, [j for _, j in g]))
+
+    def actor_pids(self) -> list[int]:
+        """Process ids of the actors (tests kill one)."""
+        return self._ray.get([a.pid.remote() for a in self.actors])
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._ray.get([a.close.remote() for a in self.actors], timeout=30)
+        except Exception:  # noqa: BLE001 - closing anyway
+            pass
+        for a in self.actors:
+            self._ray.kill(a, no_restart=True)
+
+
+def _apply(fn: Callable, *args):
+    """Ray task body: ``fn(*args)`` (``fn`` may be any picklable callable, e.g. a partial)."""
+    return fn(*args)
+
+
+def ray_map(fn: Callable, args: Iterable[tuple], address: str | None = None, num_cpus: int | None = None,
+            max_retries: int = 3) -> Iterator:
+    """``fn(*a)`` for each ``a`` in ``args`` as Ray tasks (1 CPU each), yielding results as they
+    finish (not in order). A task whose worker process died is retried up to ``max_retries``
+    times (only that task); an exception raised by ``fn`` is re-raised here.
+
+    Raises:
+        ImportError: Ray missing.
+    """
+    ray = ensure_ray(address, num_cpus)
+    task = ray.remote(num_cpus=1, max_retries=max_retries)(_apply)
+    fn_ref = ray.put(fn)
+    pending = [task.remote(fn_ref, *a) for a in args]
+    while pending:
+        done, pending = ray.wait(pending, num_returns=1)
+        yield ray.get(done[0])
