@@ -7,6 +7,7 @@ import concurrent.futures as cf
 import contextlib
 import multiprocessing
 import os
+import signal
 import threading
 from collections.abc import Callable, Iterator
 
@@ -30,18 +31,31 @@ def _one_blas_thread() -> Iterator[None]:
                 os.environ[v] = val
 
 
+def _init_worker() -> None:
+    """Worker initializer. Ctrl-C reaches the whole process group, but only the parent acts on
+    it (it stops the workers), so workers ignore SIGINT and print no traceback of their own.
+    tqdm's bars get a thread lock instead of their default multiprocessing lock: that named
+    semaphore is never unlinked in a stopped worker (a "leaked semaphore" warning at exit)."""
+    from tqdm import tqdm
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    tqdm.set_lock(threading.RLock())
+
+
 def run_pool(fn: Callable, workers: int | None, tasks: list[tuple], finished: Callable) -> None:
     """``finished(fn(*task))`` for each task, as tasks complete, on ``workers`` spawned
     processes (None: the CPU count; never more than there are tasks; 1: in this process, in
     order). On an error or interrupt, results already computed are still passed to
-    ``finished``, the workers are stopped and the error is re-raised."""
+    ``finished``, the workers are stopped and the error is re-raised. The workers ignore
+    SIGINT: Ctrl-C is a ``KeyboardInterrupt`` in the caller only."""
     workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
     if workers == 1:
         for task in tasks:
             finished(fn(*task))
         return
     with _one_blas_thread():  # the workers are spawned on submit, inside this block
-        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                      initializer=_init_worker)
         futures = [pool.submit(fn, *task) for task in tasks]
     seen = set()
     try:

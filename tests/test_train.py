@@ -93,6 +93,12 @@ def test_kill_and_resume(tmp_path):
     assert ts == [40, 40, 80, 80, 120, 120, 160, 160]
     # SAC kept its counters: 1 update per transition after learning_starts (40) over the whole run
     assert res.updates == 160 - 40
+    # ... and so does the final checkpoint (the one `report` loads): checkpoints are written after
+    # the step's gradient updates (issue 20, item 4; `res.updates` alone passed when the kill came
+    # at step 40, before any update)
+    from softcrawl.codesign.run import Run
+
+    assert Run(run).read_checkpoint_state(latest_checkpoint(run))["n_updates"] == 160 - 40
     # truncation at the time limit is bootstrapped: stored as done with timeout, sampled as not done
     rb = _restored_replay_buffer(run)
     assert rb.dones.sum() > 0 and np.all(rb.timeouts[rb.dones > 0] == 1)

@@ -20,8 +20,6 @@ simulated seconds and records the ground-truth reward of the incumbent after eac
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -192,20 +190,22 @@ class GibbsSACReplay(CodesignAlgorithm):
 
     def __init__(self, run: str | Path, designs: Sequence | None = None, batch: int | None = None):
         super().__init__()
-        run = Path(run)
-        if not (run / "episodes.csv").exists() or not (run / "config.json").exists():
+        from softcrawl.codesign.run import Run
+
+        r = Run(run)
+        if not r.episodes_csv.exists() or not r.exists():
             raise ValueError(f"{run} is not a training run with episodes (episodes.csv, config.json)")
-        cfg = json.loads((run / "config.json").read_text())["config"]
-        e = cfg["env"]
-        self.episode_seconds = float(e["n_actions"]) * float(e["steps_per_action"]) * float(e["dt"])
+        cfg = r.read_meta()["config"]  # the raw settings: runs of older versions replay too
+        try:
+            e = cfg["env"]
+            self.episode_seconds = float(e["n_actions"]) * float(e["steps_per_action"]) * float(e["dt"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{r.config_path}: no env settings n_actions, steps_per_action, dt ({exc!r})") from None
         keep = None if designs is None else {canonicalize(d) for d in designs}
         self.keep = keep
-        self.rows = []
-        with open(run / "episodes.csv", newline="") as f:
-            for row in csv.reader(f):
-                if row:
-                    d = tuple(int(c) for c in row[1])
-                    self.rows.append((int(row[0]), d, float(row[2]), keep is None or d in keep))
+        ep = r.read_episodes()  # ValueError naming the file and line of a bad row
+        self.rows = [(int(t), d, float(ret), keep is None or d in keep)
+                     for t, d, ret in zip(ep["t"], ep["design"], ep["r"])]
         self.batch = int(batch or cfg.get("n_envs", 1))
         self._i = 0
 

@@ -11,7 +11,8 @@ The rewards are only comparable when the run and the ground truth simulate the s
 says so.
 
 All calls into the training-run code (:mod:`softcrawl.codesign.report`,
-:mod:`softcrawl.codesign.evaluation`) are in :func:`run_choice` and :func:`policy_reward`.
+:mod:`softcrawl.codesign.evaluation`) are in :func:`run_choice` and :func:`policy_reward`; the run
+folder is read only through :class:`softcrawl.codesign.run.Run` (:func:`run_settings`).
 """
 
 from __future__ import annotations
@@ -56,18 +57,22 @@ def policy_reward(run: str | Path, design) -> dict:
 
 def run_settings(run: str | Path) -> dict:
     """Simulation settings of a run comparable with a ground truth's (:func:`gt_settings`), read
-    from the raw ``config.json`` (so runs saved by older versions still compare).
+    from the raw ``config.json`` (:meth:`softcrawl.codesign.run.Run.read_meta`; so runs saved by
+    older versions still compare).
 
     Raises:
-        ValueError: no ``config.json``.
+        ValueError: not a training run, or a ``config.json`` without the settings.
     """
-    import json
+    from softcrawl.codesign.run import Run
 
-    path = Path(run) / "config.json"
-    if not path.exists():
-        raise ValueError(f"{run} is not a training run (no config.json)")
-    e = json.loads(path.read_text())["config"]["env"]
-    hold = float(e["dt"]) * float(e["steps_per_action"])
+    r = Run(run)
+    meta = r.read_meta()  # ValueError: not a run, or no config object
+    try:
+        e = meta["config"]["env"]
+        hold = float(e["dt"]) * float(e["steps_per_action"])
+        float(e["n_actions"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{r.config_path}: no env settings dt, steps_per_action, n_actions ({exc!r})") from None
     return {"model": e.get("model", "reduced"), "leg_mesh_size": float(e.get("leg_mesh_size", 6.0)),
             "disk_mesh_size": float(e.get("disk_mesh_size", 10.0)), "dt": float(e["dt"]), "hold_s": round(hold, 9),
             "episode_seconds": round(hold * float(e["n_actions"]), 9), "reduction": e.get("reduction")}

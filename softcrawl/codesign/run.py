@@ -9,6 +9,7 @@ it; nothing else builds a run's paths by hand. Layout::
     ├── episodes.csv               t (transitions), design, return_cm, diverged; one row per episode
     ├── distribution.csv           t, beta, entropy, target, effective_target, floor, clamped, top designs
     ├── sessions.csv               first step, last step, wall seconds, version; one row per train/resume call
+    ├── domain.csv                 domain-randomized runs only: t, design, return, diverged, the draw's values
     ├── snapshots/t-XXXXXXXXXX.npz p, scores (float32), tried (bool), t of the design distribution
     ├── logs/                      SB3 logger: progress.csv (progress-<k>.csv: earlier calls), TensorBoard events
     ├── checkpoints/
@@ -24,9 +25,16 @@ it; nothing else builds a run's paths by hand. Layout::
 
 Nothing read from a run folder is executed: no pickle, tensors only with ``weights_only=True``,
 JSON and ``allow_pickle=False`` npz; the old pickle format (``state.pkl``, ``replay_buffer.pkl``)
-is refused. Checkpoints are written into ``step-*.tmp`` and renamed into place, ``latest`` is
-replaced atomically; a missing, dangling or damaged ``latest`` falls back to the newest complete
-checkpoint (said on stderr), and at least two complete checkpoints are kept.
+is refused. Nothing is read or written through links out of the run: a run whose entries above
+are symbolic links is refused (:meth:`Run.check_links`), and ``latest`` is only a name.
+
+Checkpoints are written into ``step-*.tmp`` and renamed into place, ``latest`` is replaced
+atomically; a missing, dangling or damaged ``latest`` falls back to the newest complete
+checkpoint (said on stderr), as does a ``latest`` older than a complete checkpoint on disk, and
+at least two complete checkpoints are kept. When the disk is full (or read-only) a checkpoint
+that cannot be written into the run is written into a ``softcrawl-rescue-*`` folder of the
+system's temporary directory instead and named in the error (move it into ``checkpoints/`` to
+resume from it). Errors about a run's CSV files name the file and the 1-based line.
 """
 
 from __future__ import annotations
@@ -93,6 +101,7 @@ class Run:
     episodes_csv = property(lambda self: self.path / "episodes.csv")
     distribution_csv = property(lambda self: self.path / "distribution.csv")
     sessions_csv = property(lambda self: self.path / "sessions.csv")
+    domain_csv = property(lambda self: self.path / "domain.csv")
     snapshots_dir = property(lambda self: self.path / "snapshots")
     logs_dir = property(lambda self: self.path / "logs")
     checkpoints_dir = property(lambda self: self.path / "checkpoints")
@@ -110,14 +119,30 @@ class Run:
         """The folder holds a ``config.json`` (a started run)."""
         return self.config_path.is_file()
 
-    def read_meta(self) -> dict:
-        """``config.json`` as a dict with ``version`` and ``config``.
+    def check_links(self) -> None:
+        """Refuse a run whose own files or folders (config, logs, snapshots, checkpoints,
+        report) are symbolic links: through them, reading a run someone sent, or resuming it,
+        would read or write files outside the run.
 
         Raises:
-            ValueError: not a training run, or an unreadable / malformed ``config.json``.
+            ValueError: naming the first such link.
+        """
+        for p in (self.config_path, self.episodes_csv, self.distribution_csv, self.sessions_csv, self.domain_csv,
+                  self.snapshots_dir, self.logs_dir, self.checkpoints_dir, self.report_dir):
+            if p.is_symlink():
+                raise ValueError(f"{p} is a symbolic link: a run's files must be inside its folder (refusing to "
+                                 "read or write through it)")
+
+    def read_meta(self) -> dict:
+        """``config.json`` as a dict with ``version`` and ``config`` (:meth:`check_links` first).
+
+        Raises:
+            ValueError: not a training run, a run with linked files, or an unreadable /
+                malformed ``config.json``.
         """
         if not self.exists():
             raise ValueError(f"{self.path} is not a training run (no config.json)")
+        self.check_links()
         try:
             meta = json.loads(self.config_path.read_text(encoding="utf-8"))
             if not isinstance(meta, dict) or not isinstance(meta.get("config"), dict):
@@ -141,20 +166,18 @@ class Run:
     # -- logs ------------------------------------------------------------------------------
     def read_episodes(self) -> dict:
         """``episodes.csv`` as arrays: ``t`` (int64), ``design`` (list of tuples), ``r`` (cm),
-        ``diverged`` (bool). ValueError naming the file and the 1-based line of a bad row."""
+        ``diverged`` (bool); an unfinished last row (a killed writer) is left out, said on
+        stderr. ValueError naming the file and the 1-based line of a bad row."""
         t, designs, r, div = [], [], [], []
         if self.episodes_csv.exists():
-            with open(self.episodes_csv, newline="", encoding="utf-8") as f:
-                for line, row in enumerate(csv.reader(f), start=1):
-                    if not row:
-                        continue
-                    try:
-                        t.append(int(row[0]))
-                        designs.append(tuple(int(c) for c in row[1]))
-                        r.append(float(row[2]))
-                        div.append(bool(int(row[3])))
-                    except (IndexError, ValueError):
-                        raise ValueError(f"{self.episodes_csv}, line {line}: not an episode row: {row!r}") from None
+            for line, row in _csv_rows(self.episodes_csv, say=True):
+                try:
+                    t.append(int(row[0]))
+                    designs.append(tuple(int(c) for c in row[1]))
+                    r.append(float(row[2]))
+                    div.append(bool(int(row[3])))
+                except (IndexError, ValueError):
+                    raise ValueError(f"{self.episodes_csv}, line {line}: not an episode row: {row!r}") from None
         return {"t": np.array(t, np.int64), "design": designs, "r": np.array(r), "diverged": np.array(div, bool)}
 
     def has_history(self) -> bool:
@@ -172,24 +195,31 @@ class Run:
         """Training wall time over all train/resume calls (``sessions.csv``), s (NaN if none)."""
         if not self.sessions_csv.exists():
             return float("nan")
-        with open(self.sessions_csv, newline="") as f:
+        total = 0.0
+        for line, row in _csv_rows(self.sessions_csv):
             try:
-                return sum(float(row[2]) for row in csv.reader(f) if row)
+                total += float(row[2])
             except (IndexError, ValueError):
-                raise ValueError(f"{self.sessions_csv}: malformed row") from None
+                raise ValueError(f"{self.sessions_csv}, line {line}: not a session row: {row!r}") from None
+        return total
 
     def forget_after(self, t: int) -> None:
         """Resume bookkeeping: drop episode/distribution rows and snapshots logged after step
         ``t`` (the killed call's work past its checkpoint) and keep SB3's ``progress.csv`` of
-        the earlier part as ``progress-<k>.csv`` (SB3 would overwrite it)."""
-        for path in (self.episodes_csv, self.distribution_csv):
-            if path.exists():
-                with open(path, newline="") as f:
-                    rows = [r for r in csv.reader(f) if r and int(r[0]) <= t]
-                tmp = path.with_suffix(".tmp")
-                with open(tmp, "w", newline="") as f:
-                    csv.writer(f).writerows(rows)
-                os.replace(tmp, path)
+        the earlier part as ``progress-<k>.csv`` (SB3 would overwrite it). An unfinished last
+        line (a call killed, or a full disk, while writing it: written after the checkpoint's
+        flush) is dropped too.
+
+        Raises:
+            ValueError: a malformed row (the message names the file and its 1-based line);
+                nothing is changed then.
+        """
+        kept = {path: _rows_up_to(path, t) for path in (self.episodes_csv, self.distribution_csv) if path.exists()}
+        for path, rows in kept.items():
+            tmp = path.with_suffix(".tmp")
+            with open(tmp, "w", newline="") as f:
+                csv.writer(f).writerows(rows)
+            os.replace(tmp, path)
         for snap in self.snapshots():
             if int(snap.stem.split("-")[1]) > t:
                 snap.unlink()
@@ -250,8 +280,9 @@ class Run:
         return [p for p in self._step_dirs() if self.check_checkpoint(p) is None]
 
     def latest_checkpoint(self, quiet: bool = False) -> Path | None:
-        """The checkpoint ``latest`` names if it is complete, else the newest complete one
-        (said on stderr unless ``quiet``), or None if there is none."""
+        """The checkpoint ``latest`` names if it is complete and no complete one on disk is
+        newer, else the newest complete one (said on stderr unless ``quiet``), or None if there
+        is none."""
         ptr = self.checkpoints_dir / "latest"
         why = "checkpoints/latest is missing"
         if ptr.is_file() and not ptr.is_symlink():
@@ -264,8 +295,12 @@ class Run:
             else:
                 why = self.check_checkpoint(self.checkpoints_dir / name)
                 if why is None:
-                    return self.checkpoints_dir / name
-                why = f"checkpoint {name}: {why}"
+                    newer = [p for p in self._step_dirs() if p.name > name and self.check_checkpoint(p) is None]
+                    if not newer:
+                        return self.checkpoints_dir / name
+                    why = f"checkpoints/latest names {name}, older than the complete {newer[-1].name}"
+                else:
+                    why = f"checkpoint {name}: {why}"
         elif ptr.exists() or ptr.is_symlink():
             why = "checkpoints/latest is not a plain file"
         complete = self.checkpoints()
@@ -287,43 +322,18 @@ class Run:
         checkpoints beyond the newest ``max(keep, 2)``. Returns its folder.
 
         Raises:
-            NoSpaceError: disk full / read-only (the partial ``.tmp`` is removed, ``latest``
-                is unchanged).
+            NoSpaceError: disk full / read-only: the partial ``.tmp`` is removed, ``latest`` is
+                unchanged, and the checkpoint is written into a ``softcrawl-rescue-*`` folder of
+                the system's temporary directory instead if it fits there (named in the message).
         """
-        import torch
-
         root = self.checkpoints_dir
-        root.mkdir(parents=True, exist_ok=True)
         name = f"step-{model.num_timesteps:010d}"
         tmp = root / f"{name}.tmp"
         try:
+            root.mkdir(parents=True, exist_ok=True)
             shutil.rmtree(tmp, ignore_errors=True)
             tmp.mkdir()
-            torch.save({
-                "policy": model.policy.state_dict(),
-                "actor_optimizer": model.actor.optimizer.state_dict(),
-                "critic_optimizer": model.critic.optimizer.state_dict(),
-                "log_ent_coef": model.log_ent_coef.detach().clone(),
-                "ent_coef_optimizer": model.ent_coef_optimizer.state_dict(),
-                "torch_rng": torch.get_rng_state(),
-            }, tmp / "model.pt")
-            rb = model.replay_buffer
-            arrays = {k: getattr(rb, k) for k in _BUFFER_ARRAYS if getattr(rb, k, None) is not None}
-            np.savez(tmp / "replay_buffer.npz", pos=np.int64(rb.pos), full=np.bool_(rb.full), **arrays)
-            np_rng = np.random.get_state()
-            py_rng = random.getstate()
-            state = {
-                "format": CHECKPOINT_FORMAT, "version": __version__,
-                "num_timesteps": int(model.num_timesteps), "n_updates": int(model._n_updates),
-                "episode_num": int(model._episode_num),
-                "sampler": sampler_state_to_json(sampler.state_dict()),
-                "numpy_rng": {"name": np_rng[0], "key": np_rng[1].tolist(), "pos": int(np_rng[2]),
-                              "has_gauss": int(np_rng[3]), "cached_gaussian": float(np_rng[4])},
-                "python_rng": [py_rng[0], list(py_rng[1]), py_rng[2]],
-            }
-            (tmp / "state.json").write_text(json.dumps(state), encoding="utf-8")
-            manifest = {"format": CHECKPOINT_FORMAT, "files": {f: _sha256(tmp / f) for f in CHECKPOINT_FILES}}
-            (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
+            _write_checkpoint(tmp, model, sampler)
             final = root / name
             shutil.rmtree(final, ignore_errors=True)
             os.replace(tmp, final)
@@ -331,8 +341,11 @@ class Run:
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             if is_no_space(exc):
+                kept = _rescue_checkpoint(name, model, sampler)
+                where = (f"it is kept in {kept} (move that folder into {root}/ to resume from it)" if kept else
+                         "it could not be kept elsewhere either")
                 raise NoSpaceError(f"no space left to write checkpoint {name} in {root} ({exc.strerror}); the "
-                                   f"previous checkpoint stays latest") from None
+                                   f"previous checkpoint stays latest; {where}") from None
             raise
         complete = self.checkpoints()
         for p in complete[:-max(keep, 2)]:
@@ -451,6 +464,87 @@ class Run:
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         return rep
+
+
+def _write_checkpoint(folder: Path, model, sampler) -> None:
+    """The checkpoint files of ``model`` and ``sampler`` (module docstring) into ``folder``."""
+    import torch
+
+    torch.save({
+        "policy": model.policy.state_dict(),
+        "actor_optimizer": model.actor.optimizer.state_dict(),
+        "critic_optimizer": model.critic.optimizer.state_dict(),
+        "log_ent_coef": model.log_ent_coef.detach().clone(),
+        "ent_coef_optimizer": model.ent_coef_optimizer.state_dict(),
+        "torch_rng": torch.get_rng_state(),
+    }, folder / "model.pt")
+    rb = model.replay_buffer
+    arrays = {k: getattr(rb, k) for k in _BUFFER_ARRAYS if getattr(rb, k, None) is not None}
+    np.savez(folder / "replay_buffer.npz", pos=np.int64(rb.pos), full=np.bool_(rb.full), **arrays)
+    np_rng = np.random.get_state()
+    py_rng = random.getstate()
+    state = {
+        "format": CHECKPOINT_FORMAT, "version": __version__,
+        "num_timesteps": int(model.num_timesteps), "n_updates": int(model._n_updates),
+        "episode_num": int(model._episode_num),
+        "sampler": sampler_state_to_json(sampler.state_dict()),
+        "numpy_rng": {"name": np_rng[0], "key": np_rng[1].tolist(), "pos": int(np_rng[2]),
+                      "has_gauss": int(np_rng[3]), "cached_gaussian": float(np_rng[4])},
+        "python_rng": [py_rng[0], list(py_rng[1]), py_rng[2]],
+    }
+    (folder / "state.json").write_text(json.dumps(state), encoding="utf-8")
+    manifest = {"format": CHECKPOINT_FORMAT, "files": {f: _sha256(folder / f) for f in CHECKPOINT_FILES}}
+    (folder / "manifest.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
+
+
+def _rescue_checkpoint(name: str, model, sampler) -> Path | None:
+    """Write checkpoint ``name`` into a fresh ``softcrawl-rescue-*`` folder of the system's
+    temporary directory (another file system, often); its path, or None if that fails too."""
+    try:
+        rescue = Path(tempfile.mkdtemp(prefix="softcrawl-rescue-"))
+    except OSError:
+        return None
+    try:
+        (rescue / name).mkdir()
+        _write_checkpoint(rescue / name, model, sampler)
+        return rescue / name
+    except OSError:
+        shutil.rmtree(rescue, ignore_errors=True)
+        return None
+
+
+def _csv_rows(path: Path, say: bool = False) -> list[tuple[int, list[str]]]:
+    """``(1-based line, row)`` of the non-empty rows of a run CSV. An unfinished last line (no
+    newline: the writer was killed, or the disk filled, mid-row) is left out (noted with ``say``).
+
+    Raises:
+        ValueError: the file cannot be read or decoded (named).
+    """
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            text = f.read()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read ({exc})") from None
+    if text and not text.endswith("\n"):
+        cut = text.rfind("\n") + 1
+        if say:
+            note(f"{path}, line {text.count(chr(10)) + 1}: unfinished last row (the writer was stopped); left out")
+        text = text[:cut]
+    return [(line, row) for line, row in enumerate(csv.reader(text.splitlines()), start=1) if row]
+
+
+def _rows_up_to(path: Path, t: int) -> list[list[str]]:
+    """The rows of a run CSV (first column: step) with step <= ``t``; an unfinished last line
+    (no newline) is left out. ValueError naming the file and the 1-based line of a bad row."""
+    rows = []
+    for line, row in _csv_rows(path):
+        try:
+            step = int(row[0])
+        except ValueError:
+            raise ValueError(f"{path}, line {line}: not a row of this run (step {row[0]!r})") from None
+        if step <= t:
+            rows.append(row)
+    return rows
 
 
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:

@@ -1,4 +1,9 @@
-"""Open-loop gaits for the 3 pressure regulators, in real kPa."""
+"""Open-loop gaits for the 3 pressure regulators, in real kPa.
+
+Below the simulator: imports nothing of :mod:`softcrawl.robot`, :mod:`softcrawl.envs` or
+:mod:`softcrawl.fem` (the regulators' command range is :mod:`softcrawl.gaits.pressure`, which
+:mod:`softcrawl.robot.actuation` re-exports; ``tests/test_import_graph.py`` checks this).
+"""
 
 from softcrawl.gaits.gaits import (
     CSV_HEADER,
@@ -9,14 +14,17 @@ from softcrawl.gaits.gaits import (
     read_actions_csv,
     write_actions_csv,
 )
-from softcrawl.robot.actuation import PressureRangeError
+from softcrawl.gaits.pressure import P_MAX_KPA, P_MIN_KPA, PressureRangeError, check_pressures
 
 __all__ = [
     "CSV_HEADER",
     "ActionSequence",
     "Gait",
+    "P_MAX_KPA",
+    "P_MIN_KPA",
     "PressureRangeError",
     "SineGait",
+    "check_pressures",
     "paper_best_gait",
     "read_actions_csv",
     "write_actions_csv",

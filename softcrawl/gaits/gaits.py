@@ -16,7 +16,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from softcrawl.robot.actuation import P_MAX_KPA, P_MIN_KPA, PressureRangeError, check_pressures
+from softcrawl.gaits.pressure import P_MAX_KPA, P_MIN_KPA, PressureRangeError, check_pressures, pressure_problem
 
 N_REGULATORS = 3
 CSV_HEADER = ("p1", "p2", "p3")
@@ -78,9 +78,11 @@ def read_actions_csv(path: str | Path, hold: float = 1.0) -> ActionSequence:
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
-        ValueError: if the file cannot be read / decoded, a row does not have 3 numbers
-            (message names the line number), or it has no actions.
-        PressureRangeError: for out-of-range pressures (row = action index).
+        ValueError: if the file cannot be read / decoded (or is a directory), a row does not
+            have 3 numbers, or it has no actions.
+        PressureRangeError: for a non-finite or out-of-range pressure.
+
+    Every error about a row names the file and its 1-based line (``a.csv, line 4, p3: ...``).
     """
     path = Path(path)
     try:
@@ -99,9 +101,13 @@ def read_actions_csv(path: str | Path, hold: float = 1.0) -> ActionSequence:
         if len(cells) != N_REGULATORS:
             raise ValueError(f"{path}, line {lineno}: expected {N_REGULATORS} columns, got {len(cells)}: {row!r}")
         try:
-            rows.append([float(c) for c in cells])
+            values = [float(c) for c in cells]
         except ValueError:
             raise ValueError(f"{path}, line {lineno}: non-numeric pressure in {row!r}") from None
+        for name, v in zip(CSV_HEADER, values):
+            if (problem := pressure_problem(v)) is not None:
+                raise PressureRangeError(f"{path}, line {lineno}, {name}: {v:g} kPa {problem}")
+        rows.append(values)
     if not rows:
         raise ValueError(f"{path}: no actions found")
     return ActionSequence(np.array(rows), hold=hold)

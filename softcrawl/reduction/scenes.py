@@ -5,6 +5,10 @@ The leg-local displacement of leg ``i`` (placed by rotation ``R_i``) is
 ``u_local = R_i^T (x - X_placed)`` per node: snapshots from every slot are pooled in one
 frame (reduction.md, "Design-reconfigurable reduction"). The disk is placed unrotated in
 every design: its snapshots are ``x - X_placed``.
+
+Part of the reduction's build pipeline, which sits above :mod:`softcrawl.robot` (a scene is an
+assembled robot, settled and stepped by the robot's episode code); :mod:`softcrawl.reduction`
+says why that arrow is right and the robot never imports this module.
 """
 
 from __future__ import annotations

@@ -11,35 +11,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# The regulators' command range lives below the simulator, so that softcrawl.gaits needs nothing
+# of this package; re-exported here (P_MIN_KPA, P_MAX_KPA, PressureRangeError, check_pressures).
+from softcrawl.gaits.pressure import P_MAX_KPA, P_MIN_KPA, PressureRangeError, check_pressures  # noqa: F401
+
 #: Reference calibration table (paper Sec. "Sim-to-real"): real kPa 10, 20, ..., 100 ...
 REAL_KPA_TABLE: tuple[float, ...] = tuple(float(p) for p in range(10, 101, 10))
 #: ... and the sim kPa that reproduce the measured bending at each real pressure.
 SIM_KPA_TABLE: tuple[float, ...] = (29.54, 65.67, 93.51, 128.17, 178.47, 224.37, 277.59, 316.16, 343.51, 382.57)
-
-#: Command range of the real pressure regulators, kPa.
-P_MIN_KPA = 0.0
-P_MAX_KPA = 90.0
-
-
-class PressureRangeError(ValueError):
-    """A commanded pressure is not finite or lies outside [P_MIN_KPA, P_MAX_KPA]."""
-
-
-def check_pressures(p: np.ndarray, what: str = "pressure") -> None:
-    """Raise PressureRangeError naming the first non-finite or out-of-range entry of ``p``.
-
-    ``p`` is 1-D ``(m,)`` (entry named by column) or 2-D ``(k, m)`` (named by row and column).
-    """
-    p = np.asarray(p, dtype=float)
-    bad = ~np.isfinite(p) | (p < P_MIN_KPA) | (p > P_MAX_KPA)
-    if bad.any():
-        idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        names = {0: (), 1: ("column",), 2: ("row", "column")}.get(len(idx), ("index",) * len(idx))
-        where = (" " + ", ".join(f"{name} {i}" for name, i in zip(names, idx)) + " (0-based)") if idx else ""
-        v = float(p[idx])
-        problem = "is not finite" if not np.isfinite(v) else f"is outside [{P_MIN_KPA:g}, {P_MAX_KPA:g}] kPa"
-        raise PressureRangeError(f"{what}{where}: {v:g} kPa {problem}")
-
 
 def _fit_line(real_kpa, sim_kpa) -> tuple[float, float]:
     """Validated least-squares ``(a, b)`` for ``sim = a * real + b`` (see PressureCalibration.from_table)."""

@@ -14,7 +14,11 @@ Layout of an output directory:
 
 Everything is written into a hidden temporary directory next to the destination and
 renamed onto it only when complete (:func:`staged_directory`), so a failed run leaves no
-partial directory that looks like a result.
+partial directory that looks like a result. A full disk or a read-only file system after a long
+run does not lose it: the staged directory keeps what was written, the essential results go
+to a ``softcrawl-rescue-*`` folder of the system's temporary directory, and the one-line error
+names both (:class:`OutputWriteError`). ``--overwrite`` replaces only folders softcrawl wrote
+(:data:`OUTPUT_MARKER`).
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -97,24 +101,38 @@ def check_output_path(out: str | os.PathLike, overwrite: bool = False) -> Path:
     return out
 
 
+#: ``errno`` values of "the disk is full" (space, quota) and "the file system is read-only".
+NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+
+
+def rescue_directory(name: str) -> Path:
+    """A fresh ``softcrawl-rescue-<name>-*`` folder in the system's temporary directory
+    (``$TMPDIR``; often another file system than the output's): where results go that could
+    not be written where they belong (OSError if it cannot be created either)."""
+    return Path(tempfile.mkdtemp(prefix=f"softcrawl-rescue-{name}-"))
+
+
 @contextlib.contextmanager
-def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+def staged_directory(out: str | os.PathLike, overwrite: bool = False,
+                     rescue: Callable[[Path], None] | None = None) -> Iterator[Path]:
     """Yield a fresh temporary directory next to ``out``; on success move it onto ``out``.
 
     On an exception the temporary directory is removed and ``out`` is left untouched, except
-    for a full disk or read-only file system: then the temporary directory (what was written)
-    is kept and named in the :class:`OutputWriteError`. With ``overwrite``, an existing
-    softcrawl output ``out`` is replaced (after the new one is complete). The result holds
-    :data:`OUTPUT_MARKER`.
+    for a full disk or read-only file system (:data:`NO_SPACE_ERRNOS`), also when the temporary
+    directory cannot even be created: then what was written is kept there, ``rescue`` (if
+    given) writes the essential results into a :func:`rescue_directory`, and the
+    :class:`OutputWriteError` names both. With ``overwrite``, an existing softcrawl output
+    ``out`` is replaced (after the new one is complete). The result holds :data:`OUTPUT_MARKER`.
 
     Raises:
         OutputExistsError: see :func:`check_output_path` (checked again at the end).
         OutputWriteError: disk full / quota / read-only file system while writing.
     """
     out = check_output_path(out, overwrite)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    tmp = None
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
         umask = os.umask(0)
         os.umask(umask)
         tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; the result should not be
@@ -129,13 +147,37 @@ def staged_directory(out: str | os.PathLike, overwrite: bool = False) -> Iterato
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except OSError as exc:
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS) and tmp.exists():
-            raise OutputWriteError(f"cannot write {out}: {exc.strerror or exc}; what was written is kept in "
-                                   f"{tmp}") from None
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        if exc.errno not in NO_SPACE_ERRNOS:
+            if tmp is not None:
+                shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        kept = []
+        try:
+            written = tmp is not None and any(p.name != OUTPUT_MARKER for p in tmp.iterdir())
+        except OSError:
+            written = False
+        if written:
+            kept.append(f"what was written is kept in {tmp}")
+        elif tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+        if rescue is not None:
+            try:
+                saved = rescue_directory(out.name)
+            except OSError:
+                saved = None
+            if saved is not None:
+                try:
+                    rescue(saved)
+                except OSError:
+                    shutil.rmtree(saved, ignore_errors=True)
+                    saved = None
+            kept.append(f"the results are saved in {saved}" if saved is not None else
+                        "the results could not be saved elsewhere either")
+        raise OutputWriteError(f"cannot write {out}: {exc.strerror or exc}; "
+                               + ("; ".join(kept) or "nothing was kept")) from None
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
         raise
 
 
@@ -270,23 +312,39 @@ def write_paraview(directory: Path, robot: Robot, result: EpisodeResult, name: s
 
 def write_results(out: str | os.PathLike, robot: Robot, gait, result: EpisodeResult,
                   calibration: PressureCalibration = PressureCalibration(), overwrite: bool = False,
-                  video: bool = False) -> Path:
+                  video: bool = False, extra: Callable[[Path], None] | None = None) -> Path:
     """Write all outputs (module docstring) into ``out`` atomically (:func:`staged_directory`).
 
-    With ``video``, also ``crawl.mp4`` (:func:`softcrawl.robot.video.write_video`).
+    With ``video``, also ``crawl.mp4`` (:func:`softcrawl.robot.video.write_video`);
+    ``extra(folder)`` writes a caller's own files into the same staged folder (e.g.
+    ``softcrawl evaluate``'s ``evaluation.json``), so they are kept like the rest.
+
+    If the disk fills up (or turns read-only) the staged folder keeps what was written and
+    ``summary.json``, ``trajectory.npz`` / ``.csv`` and ``extra``'s files are saved into a
+    :func:`rescue_directory` (the :class:`OutputWriteError` names both).
 
     Returns:
         ``out`` as a Path.
 
     Raises:
         OutputExistsError: ``out`` exists and ``overwrite`` is False.
+        OutputWriteError: disk full / read-only (see above).
         VideoUnavailableError: ``video`` without pyvista / imageio-ffmpeg (nothing is written).
-        OSError: on write failures (nothing is left at ``out`` then).
+        OSError: on other write failures (nothing is left at ``out`` then).
     """
-    with staged_directory(out, overwrite) as tmp:
-        (tmp / "summary.json").write_text(json.dumps(summary(robot, gait, result, calibration), indent=2) + "\n",
-                                          encoding="utf-8")
+    info = json.dumps(summary(robot, gait, result, calibration), indent=2) + "\n"
+
+    def essentials(folder: Path) -> None:
+        (folder / "summary.json").write_text(info, encoding="utf-8")
+        write_trajectory(folder, result)
+        if extra is not None:
+            extra(folder)
+
+    with staged_directory(out, overwrite, rescue=essentials) as tmp:
+        (tmp / "summary.json").write_text(info, encoding="utf-8")
         write_trajectory(tmp, result)
+        if extra is not None:
+            extra(tmp)
         plot_trajectory(tmp / "trajectory.png", robot, result)
         write_paraview(tmp, robot, result)
         if video:

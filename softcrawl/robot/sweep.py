@@ -14,7 +14,10 @@ Resuming: while it runs, each finished phase is written to ``<out>.partial/parti
 in ``<out>.partial/settings.json``). Running the same sweep again reuses those phases (the list
 of phases may differ; every other setting must match, see :func:`sweep_settings`); a work
 directory from a sweep with other settings is refused (:class:`SweepSettingsMismatch`). The
-work directory is removed once ``out`` is complete.
+work directory is removed once ``out`` is complete. A full disk or read-only file system does
+not stop the sweep: phases that cannot be saved stay in memory, and if ``out`` cannot be
+written either, ``sweep.json`` / ``sweep.csv`` go to a rescue folder named in the error, which
+also names the work directory.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import json
 import math
 import os
 import shutil
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -46,6 +50,8 @@ from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.assembly import RobotConfig, build_robot
 from softcrawl.robot.episode import SettledState, Settling, run_episode, settle
 from softcrawl.robot.output import (
+    NO_SPACE_ERRNOS,
+    OutputWriteError,
     check_output_path,
     describe_gait,
     jsonable,
@@ -282,9 +288,19 @@ def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: R
     bar = tqdm(total=len(todo), unit="episode", desc=f"sweep ({len(done)} reused)" if done else "sweep",
                disable=not progress, dynamic_ncols=True)
 
+    unsaved = []
+
     def finished(r: PhaseResult) -> None:
-        _save_phase(work, r)
         done[r.phase_deg] = r
+        try:
+            _save_phase(work, r)
+        except OSError as exc:  # a full disk: keep sweeping, the results are written (or rescued) at the end
+            if exc.errno not in NO_SPACE_ERRNOS:
+                raise
+            if not unsaved:
+                bar.write(f"softcrawl: cannot save finished phases in {work} ({exc.strerror}); carrying on, "
+                          "the sweep is written (or rescued) at the end", file=sys.stderr)
+            unsaved.append(r.phase_deg)
         bar.set_postfix(phase=f"{r.phase_deg:g}", reward="diverged" if r.diverged else f"{r.reward_cm:+.2f}cm",
                         refresh=False)
         bar.update()
@@ -294,7 +310,12 @@ def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: R
     finally:
         bar.close()
     result = SweepResult(settings, tuple(done[p] for p in phases), time.perf_counter() - wall, workers)
-    write_sweep(out, result, overwrite)
+    try:
+        write_sweep(out, result, overwrite)
+    except OutputWriteError as exc:
+        saved = len(done) - len(unsaved)
+        raise OutputWriteError(f"{exc}; {saved} finished phase(s) are also kept in {work} (the same command "
+                               "resumes from them)") from None
     shutil.rmtree(work, ignore_errors=True)
     return result
 
@@ -359,18 +380,24 @@ def plot_reward_vs_phase(path: Path, result: SweepResult) -> None:
 
 
 def write_sweep(out: str | os.PathLike, result: SweepResult, overwrite: bool = False) -> Path:
-    """Write ``sweep.json``, ``sweep.csv`` and ``reward_vs_phase.png`` into ``out`` atomically.
+    """Write ``sweep.json``, ``sweep.csv`` and ``reward_vs_phase.png`` into ``out`` atomically
+    (on a full or read-only disk, ``sweep.json`` and ``sweep.csv`` are saved into a rescue
+    folder instead: :func:`softcrawl.robot.output.staged_directory`).
 
     Raises:
         OutputExistsError: ``out`` exists and ``overwrite`` is False.
+        OutputWriteError: disk full / read-only (names where the results are kept).
     """
-    with staged_directory(out, overwrite) as tmp:
-        (tmp / "sweep.json").write_text(json.dumps(sweep_json(result), indent=2) + "\n", encoding="utf-8")
-        with (tmp / "sweep.csv").open("w", newline="", encoding="utf-8") as f:
+    def tables(folder: Path) -> None:
+        (folder / "sweep.json").write_text(json.dumps(sweep_json(result), indent=2) + "\n", encoding="utf-8")
+        with (folder / "sweep.csv").open("w", newline="", encoding="utf-8") as f:
             w = csv.writer(f)
             w.writerow(CSV_COLUMNS)
             for r in result.phases:
                 w.writerow([f"{r.phase_deg:g}", "" if r.diverged else f"{r.reward_cm:.6g}",
                             f"{r.displacement_cm:.6g}", int(r.diverged), r.steps, f"{r.wall_seconds:.2f}"])
+
+    with staged_directory(out, overwrite, rescue=tables) as tmp:
+        tables(tmp)
         plot_reward_vs_phase(tmp / "reward_vs_phase.png", result)
     return Path(out)
