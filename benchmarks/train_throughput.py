@@ -11,15 +11,20 @@ Components (one env in-process, SAC on a dummy env):
         --actions 20] [--design 1,0,0,2,2,0,0,0]
   Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --steps-per-action 100
 
-End to end (``softcrawl train`` itself: the ``paper`` preset with ``--n-envs`` envs in one worker
-process per core, learning from the second round of transitions on, ``--rounds`` rounds):
+End to end (``softcrawl train`` itself: ``--preset`` (default ``paper``) with ``--n-envs`` envs in
+one worker process per core, learning from the second round of transitions on, ``--rounds``
+rounds):
   OMP_NUM_THREADS=1 python benchmarks/train_throughput.py --end-to-end --n-envs 96 --rounds 6
-       [--stepping batched|serial|both]
+       [--stepping batched|serial|both] [--preset paper|reference|crawl|demo] [--set KEY=VALUE]
+       [--no-overlap] [--learner-cost]
 ``--stepping``: workers step their envs' robots as one batch (``batched``, the default of
-:class:`softcrawl.envs.vec.SubprocessBackend`) or one env after another (``serial``, the code
-before issue 18); ``both`` runs the two one after the other in this process (same seed, same
-designs) and reports each and their ratio. Each run also reports the largest worker RSS
-(sampled every 0.5 s).
+:class:`softcrawl.envs.vec.SubprocessBackend`) or one env after another (``serial``); ``both``
+runs the two one after the other in this process (same seed, same designs) and reports each and
+their ratio. Each run reports the wall seconds of its gradient updates (overlapped with the
+simulation unless ``--no-overlap``) and the largest worker RSS (sampled every 0.5 s).
+``--learner-cost`` also runs the same without any update: the learner's share of the wall time is
+``1 - wall(no updates) / wall(updates)``, and the ``paper`` preset is projected from the
+simulation-only rate and the learner's rate (overlapped: the larger of the two; serial: their sum).
 """
 
 from __future__ import annotations
@@ -114,11 +119,11 @@ class WorkerMemory:
         self._thread.join()
 
 
-def end_to_end(args, batched: bool = True) -> dict:
-    """Transitions/s of :func:`softcrawl.codesign.training.train` (paper preset, ``n_envs`` envs,
-    learning starts after the first round; workers step their robots as one batch if
-    ``batched``) and the split of its wall time into learning (``updates / sac_updates_per_s``
-    measured alone) and simulation."""
+def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
+    """Transitions/s of :func:`softcrawl.codesign.training.train` (preset ``args.preset``,
+    ``n_envs`` envs, learning from the second round on, or never if not ``updates``; workers
+    step their robots as one batch if ``batched``), the wall seconds of its gradient updates
+    (overlapped with the simulation unless ``--no-overlap``) and the peak worker RSS."""
     import tempfile
 
     import softcrawl.envs.vec as vec
@@ -126,29 +131,39 @@ def end_to_end(args, batched: bool = True) -> dict:
     from softcrawl.codesign.training import train
 
     n = args.n_envs
-    cfg = override(preset("paper"), [f"n_envs={n}", f"total_steps={n * args.rounds}", f"sac.learning_starts={n}",
-                                     f"checkpoint_every={10 * n * args.rounds}", f"snapshot_every={n}"])
+    total = n * args.rounds
+    sets = [f"n_envs={n}", f"total_steps={total}", f"sac.learning_starts={n if updates else total}",
+            f"checkpoint_every={10 * total}", f"snapshot_every={n}", f"sac.overlap={str(not args.no_overlap).lower()}"]
+    cfg = override(preset(args.preset), sets + list(args.set or []))
     vec.BATCHED_WORKERS = batched
     with tempfile.TemporaryDirectory() as tmp, WorkerMemory() as memory:
         res = train(f"{tmp}/run", cfg, progress=True)
-    updates_per_s = sac_updates_per_s(cfg.sac.batch_size, args.updates)
-    learn_s = res.updates / updates_per_s
-    sim_s_per_transition = (res.wall_seconds - learn_s) / res.steps
+    sim_s_per_transition = res.wall_seconds / res.steps
     cores = os.cpu_count()
-    total = preset("paper").total_steps
-    hours = {f"{c}_cores": total * (sim_s_per_transition * cores / c + 1 / updates_per_s) / 3600 for c in (cores, 32)}
-    return {"stepping": "batched" if batched else "serial", "n_envs": n, "transitions": res.steps,
-            "updates": res.updates, "wall_s": res.wall_seconds,
-            "transitions_per_s": res.steps / res.wall_seconds, "sac_updates_per_s": updates_per_s,
-            "learning_s_estimate": learn_s, "simulation_s_per_transition_all_cores": sim_s_per_transition,
-            "episode_sim_steps_per_s_core": cfg.env.steps_per_action / (sim_s_per_transition * cores),
+    return {"preset": args.preset, "stepping": "batched" if batched else "serial", "n_envs": n,
+            "transitions": res.steps, "updates": res.updates, "overlap": cfg.sac.overlap, "wall_s": res.wall_seconds,
+            "transitions_per_s": res.steps / res.wall_seconds, "learner_s": res.learner_seconds,
+            "learner_share_of_wall_upper_bound": res.learner_seconds / res.wall_seconds,
+            "wall_s_per_transition_all_cores": sim_s_per_transition,
+            "sim_steps_per_s_core": cfg.env.steps_per_action / (sim_s_per_transition * cores),
             "peak_rss_mb_learner": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-            "peak_rss_mb_worker": memory.peak_mb, "paper_preset_projected_hours": hours}
+            "peak_rss_mb_worker": memory.peak_mb}
+
+
+def project(run: dict, updates_per_s: float, cores: int) -> dict:
+    """Projected hours of the ``paper`` preset (1M transitions, one update per transition) from
+    an end-to-end run without updates (simulation only, all cores) and the learner's rate: the
+    simulation spreads over ``c`` cores, the learner is one thread, overlapped (max) or not (sum)."""
+    total = preset("paper").total_steps
+    sim = run["wall_s_per_transition_all_cores"] * cores
+    return {f"{c}_cores": {"overlapped": total * max(sim / c, 1 / updates_per_s) / 3600,
+                           "serial": total * (sim / c + 1 / updates_per_s) / 3600} for c in (cores, 32)}
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--batch", type=int, default=512)
+    p.add_argument("--threads", type=int, default=1, help="torch threads of the SAC updates (components)")
     p.add_argument("--updates", type=int, default=200)
     p.add_argument("--model", choices=("full", "reduced"), default="full")
     p.add_argument("--leg-mesh", type=float, default=16)
@@ -163,16 +178,32 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=6, help="transitions per env (end to end)")
     p.add_argument("--stepping", choices=("batched", "serial", "both"), default="batched",
                    help="workers step their robots as one batch or one env after another (end to end)")
+    p.add_argument("--preset", default="paper", help="end to end: the preset to time (default paper)")
+    p.add_argument("--set", action="append", help="end to end: extra section.field=value settings")
+    p.add_argument("--no-overlap", action="store_true", help="end to end: updates after each step, not overlapped")
+    p.add_argument("--learner-cost", action="store_true",
+                   help="end to end: also run without updates; report the learner's share of the wall time "
+                        "and the paper preset's projection")
     args = p.parse_args()
-    torch.set_num_threads(1)
+    torch.set_num_threads(1 if args.end_to_end else args.threads)
     if args.end_to_end:
         head = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__}
-        if args.stepping != "both":
-            print(json.dumps({**head, **end_to_end(args, args.stepping == "batched")}, indent=2))
-            return
-        runs = {mode: end_to_end(args, mode == "batched") for mode in ("serial", "batched")}
-        ratio = runs["batched"]["transitions_per_s"] / runs["serial"]["transitions_per_s"]
-        print(json.dumps({**head, "runs": runs, "batched_over_serial_transitions_per_s": ratio}, indent=2))
+        modes = ("serial", "batched") if args.stepping == "both" else (args.stepping,)
+        runs = {mode: end_to_end(args, mode == "batched") for mode in modes}
+        out = {**head, "runs": runs}
+        if len(runs) == 2:
+            out["batched_over_serial_transitions_per_s"] = (runs["batched"]["transitions_per_s"]
+                                                            / runs["serial"]["transitions_per_s"])
+        if args.learner_cost:
+            last = runs[modes[-1]]
+            sim_only = end_to_end(args, modes[-1] == "batched", updates=False)
+            rate = sac_updates_per_s(preset(args.preset).sac.batch_size, args.updates)
+            out["without_updates"] = sim_only
+            out["learner_share_of_wall"] = 1 - last["wall_s"] / sim_only["wall_s"] * (
+                sim_only["transitions"] / last["transitions"])
+            out["sac_updates_per_s"] = rate
+            out["paper_preset_projected_hours"] = project(sim_only, rate, os.cpu_count())
+        print(json.dumps(out, indent=2))
         return
     updates = sac_updates_per_s(args.batch, args.updates)
     env = env_rates(args)

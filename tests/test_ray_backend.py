@@ -137,3 +137,22 @@ def test_real_groundtruth_on_ray(tmp_path):
                             disk_mesh_size=25, baseline_phases=(90,))
     s = run_groundtruth([PAPER_BEST_DESIGN, (1, 1, 1, 0, 0, 0, 0, 0)], tmp_path, cfg, executor="ray", progress=False)
     assert s["designs"] == 2 and s["paper_l1"]["rank"] in (1, 2)
+
+
+def test_train_smoke_run_on_ray(tmp_path, capsys):
+    """``softcrawl train --preset smoke --set backend="ray"``: the whole run (training on 2 Ray
+    actors, checkpoints, report) on the local Ray of this module; a Ray address with another
+    backend is refused."""
+    import json
+
+    from softcrawl.cli import main
+
+    out = tmp_path / "run"
+    rc = main(["train", "--preset", "smoke", "--set", 'backend="ray"', "--workers", "2", "--out", str(out),
+               "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    cfg = json.loads((out / "config.json").read_text())["config"]
+    assert cfg["backend"] == "ray" and (out / "report" / "summary.md").exists()
+    assert (out / "checkpoints" / "latest").read_text().strip() == "step-0000000160"
+    rc = main(["train", "--preset", "smoke", "--ray-address", "127.0.0.1:6379", "--out", str(tmp_path / "x")])
+    assert rc == 2 and "only by backend" in capsys.readouterr().err

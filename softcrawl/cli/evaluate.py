@@ -8,6 +8,12 @@ The episodes run in :class:`softcrawl.envs.CrawlerEnv` with the run's settings; 
 trajectory is a re-run of the first episode's actions as a
 :class:`softcrawl.gaits.ActionSequence` through :func:`softcrawl.robot.run_episode` (same
 physics; its reward is reported next to the env's).
+
+``--randomize N`` instead runs N domain-randomized episodes (ranges: the run's
+``env.randomize``, or ``--set env.randomize...``; env RNG seeded with ``--seed``) plus one
+nominal episode and writes the reward distribution: ``randomization.json`` (mean, std, min,
+max, quartiles, every draw), ``randomization.csv`` and the histogram ``randomization.png``
+(:mod:`softcrawl.codesign.randomization`); no trajectory is re-simulated.
 """
 
 from __future__ import annotations
@@ -18,26 +24,69 @@ import json
 import numpy as np
 
 
+def _randomize_ranges(run, sets):
+    """The run's ``env.randomize`` after ``--set`` overrides (only ``env.randomize...`` keys).
+
+    Raises:
+        ValueError: another key, or a setting :func:`softcrawl.codesign.config.override` refuses.
+    """
+    from softcrawl.codesign.config import override
+    from softcrawl.codesign.evaluation import load_run_config
+
+    for a in sets:
+        key = a.split("=", 1)[0].strip()
+        if key != "env.randomize" and not key.startswith("env.randomize."):
+            raise ValueError(f"--set {a!r}: evaluate only takes env.randomize settings (the rest is the run's)")
+    return override(load_run_config(run), list(sets)).env.randomize
+
+
+def _run_randomized(args: argparse.Namespace) -> int:
+    from softcrawl.codesign.randomization import evaluate_randomized, write_randomized
+    from softcrawl.robot.output import check_output_path
+
+    check_output_path(args.out, args.overwrite)
+    if args.episodes is not None:
+        raise ValueError("give --episodes or --randomize N, not both")
+    if args.randomize < 1:
+        raise ValueError(f"--randomize must be >= 1 episodes, got {args.randomize}")
+    ranges = _randomize_ranges(args.run, args.set or [])
+    res = evaluate_randomized(args.run, args.design, args.randomize, ranges, seed=args.seed)
+    out = write_randomized(args.out, res, overwrite=args.overwrite)
+    st = res.stats()
+    print(f"design {','.join(map(str, res.design))}: {st['n']} randomized episodes, return {st['mean_cm']:+.3f} "
+          f"+/- {st['std_cm']:.3f} cm (min {st['min_cm']:+.3f}, max {st['max_cm']:+.3f}; nominal "
+          f"{res.nominal_return_cm:+.3f} cm; {st['n_diverged']} diverged); wrote {out}")
+    return 1 if st["n_diverged"] or res.nominal_diverged else 0
+
+
 def _run(args: argparse.Namespace) -> int:
     from softcrawl.codesign.evaluation import evaluate_policy
     from softcrawl.gaits import write_actions_csv
     from softcrawl.robot.output import check_output_path, write_results
 
+    if args.randomize is not None:
+        return _run_randomized(args)
+    if args.set:
+        raise ValueError("--set env.randomize... needs --randomize N")
+    args.episodes = 1 if args.episodes is None else args.episodes
     check_output_path(args.out, args.overwrite)
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
     ev = evaluate_policy(args.run, args.design, args.episodes)
     gait, robot = ev.gait(), ev.env.episode.robot
     result = ev.resimulate(record_every=args.frames_every, progress=not args.no_progress)
-    out = write_results(args.out, robot, gait, result, ev.env.calibration, overwrite=args.overwrite)
-    write_actions_csv(gait, out / "actions.csv")
-    (out / "evaluation.json").write_text(json.dumps({
-        "run": str(args.run), "checkpoint": ev.checkpoint, "design": list(ev.design),
-        "episodes": args.episodes, "returns_cm": ev.returns_cm, "mean_return_cm": float(np.mean(ev.returns_cm)),
-        "diverged": ev.diverged, "rerun_reward_cm": result.reward_cm,
-        "hold_s": ev.config.env.steps_per_action * ev.config.env.dt,
-        "actions_kpa": np.asarray(ev.actions_kpa).tolist(),
-    }, indent=2) + "\n")
+
+    def extra(folder):  # written into the staged output: kept (or rescued) with it on a full disk
+        write_actions_csv(gait, folder / "actions.csv")
+        (folder / "evaluation.json").write_text(json.dumps({
+            "run": str(args.run), "checkpoint": ev.checkpoint, "design": list(ev.design),
+            "episodes": args.episodes, "returns_cm": ev.returns_cm, "mean_return_cm": float(np.mean(ev.returns_cm)),
+            "diverged": ev.diverged, "rerun_reward_cm": result.reward_cm,
+            "hold_s": ev.config.env.steps_per_action * ev.config.env.dt,
+            "actions_kpa": np.asarray(ev.actions_kpa).tolist(),
+        }, indent=2) + "\n")
+
+    out = write_results(args.out, robot, gait, result, ev.env.calibration, overwrite=args.overwrite, extra=extra)
     print(f"design {','.join(map(str, ev.design))}: returns {', '.join(f'{r:+.3f}' for r in ev.returns_cm)} cm "
           f"(re-run {result.reward_cm:+.3f} cm); wrote {out}")
     return 1 if result.diverged or any(ev.diverged) else 0
@@ -51,7 +100,13 @@ def register(subparsers) -> None:
                               "and actions.csv into --out.")
     p.add_argument("run", help="training run directory")
     p.add_argument("--design", required=True, help='8 comma-separated slot values, e.g. "1,0,0,2,2,0,0,0"')
-    p.add_argument("--episodes", type=int, default=1, help="episodes to run (default 1)")
+    p.add_argument("--episodes", type=int, default=None, help="episodes to run (default 1)")
+    p.add_argument("--randomize", type=int, default=None, metavar="N",
+                   help="run N domain-randomized episodes (the run's env.randomize ranges or --set ones) and write "
+                   "the reward distribution (randomization.json/.csv/.png) instead of a trajectory")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="with --randomize: ranges, e.g. env.randomize=rig, env.randomize.friction=[0.8,1.6]")
+    p.add_argument("--seed", type=int, default=0, help="with --randomize: seed of the draws (default 0)")
     p.add_argument("--out", required=True, help="output directory (must not exist unless --overwrite)")
     p.add_argument("--frames-every", type=int, default=10, metavar="K", help="ParaView frame every K steps")
     p.add_argument("--overwrite", action="store_true")

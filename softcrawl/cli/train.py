@@ -24,16 +24,43 @@ from softcrawl.robot.output import check_output_path
 
 
 def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
-                     progress: bool = True, report: bool = True):
+                     progress: bool = True, report: bool = True, ray_address: str | None = None):
     """What ``softcrawl train`` does: :func:`softcrawl.codesign.training.train` (arguments as
     there), then, with ``report``, :func:`softcrawl.codesign.report.write_report` of the run.
-    Returns the :class:`TrainResult`."""
+    Returns the :class:`TrainResult`.
+
+    Raises:
+        NoSpaceError: the disk filled up (or turned read-only) while training: the message
+            names the run's last complete checkpoint (and a rescued one, if any) and how to
+            continue.
+        ValueError: as :func:`~softcrawl.codesign.training.train`; or the report failed after
+            a finished training (the message says so and how to write the report later).
+    """
     from softcrawl.codesign.report import write_report
+    from softcrawl.codesign.run import NoSpaceError, Run, is_no_space
     from softcrawl.codesign.training import train  # heavy: torch, stable-baselines3
 
-    res = train(out, cfg, resume=resume, progress=progress)
+    run = Run(out)
+    try:
+        res = train(out, cfg, resume=resume, progress=progress, ray_address=ray_address)
+    except (NoSpaceError, OSError) as exc:
+        if not isinstance(exc, NoSpaceError) and not is_no_space(exc):
+            raise
+        try:
+            ck = run.latest_checkpoint(quiet=True)
+        except (OSError, ValueError):
+            ck = None
+        what = str(exc) if isinstance(exc, NoSpaceError) else f"training stopped: {exc.strerror} writing {run.path}"
+        kept = f"the run keeps its checkpoint {ck.name}" if ck is not None else "the run has no complete checkpoint"
+        raise NoSpaceError(f"{what}; {kept}; free some space, then continue with: softcrawl train --resume "
+                           f"--out {run.path}") from None
     if report:
-        write_report(res.run_dir)
+        try:
+            write_report(res.run_dir)
+        except (ValueError, OSError) as exc:
+            msg = " ".join(str(exc).split()) or type(exc).__name__
+            raise ValueError(f"training finished ({res.steps} steps, run in {res.run_dir}) but the report failed: "
+                             f"{msg}; write it later with: softcrawl report {res.run_dir}") from None
     return res
 
 
@@ -53,10 +80,10 @@ def _check_out(out: str) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     if args.resume:
-        if (args.set or args.total_steps or args.n_envs or args.backend or args.workers is not None
-                or args.seed is not None or args.preset is not None):
+        if args.set or any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.workers,
+                                                   args.seed, args.preset)):
             raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings")
-        res = train_and_report(args.out, resume=True, progress=not args.no_progress)
+        res = train_and_report(args.out, resume=True, progress=not args.no_progress, ray_address=args.ray_address)
     else:
         sets = list(args.set or [])
         for flag, key in ((args.total_steps, "total_steps"), (args.n_envs, "n_envs"), (args.backend, "backend"),
@@ -65,9 +92,11 @@ def _run(args: argparse.Namespace) -> int:
                 sets.append(f"{key}={flag}" if key != "backend" else f'backend="{flag}"')
         cfg = override(preset(args.preset or "demo"), sets)
         _check_out(args.out)
-        res = train_and_report(args.out, cfg, progress=not args.no_progress)
+        res = train_and_report(args.out, cfg, progress=not args.no_progress, ray_address=args.ray_address)
     print(f"trained {res.steps} steps ({res.updates} SAC updates) in {res.wall_seconds:.1f} s; run in {res.run_dir}")
-    report = res.run_dir / "report" / "summary.md"
+    from softcrawl.codesign.run import Run
+
+    report = Run(res.run_dir).report_dir / "summary.md"
     if report.exists():
         print(report.read_text(encoding="utf-8"))
         print(f"report: {report}")
@@ -89,6 +118,8 @@ def register(subparsers) -> None:
     p.add_argument("--backend", choices=BACKENDS, default=None, help="where envs run")
     p.add_argument("--workers", type=int, default=None, help="worker processes of the subprocess backend (0: cores)")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--ray-address", default=None,
+                   help='Ray cluster of --backend ray / --set backend="ray" (default: start a local Ray)')
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override any setting, e.g. sac.batch_size=256, env.legs=[3], design.untried=\"zero\"")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -39,6 +39,7 @@ from dataclasses import asdict, dataclass, field
 
 from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
 from softcrawl.robot.assembly import MODELS
+from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import Settling
 
 BACKENDS = ("serial", "subprocess", "ray")
@@ -63,6 +64,10 @@ class EnvConfig:
             presets may change the threshold, not skip settling.
         legs: leg counts of the designs in play (default 3..6: all 6,972 canonical designs).
         max_cached_robots: robots kept per env (LRU).
+        randomize: domain randomization ranges drawn per episode
+            (:class:`softcrawl.robot.domain.DomainRanges`; default: off, every range null).
+            ``--set env.randomize.friction=[0.8,1.6]`` sets one range,
+            ``--set env.randomize=rig`` the rig's measured ranges, ``env.randomize=off`` none.
     """
 
     model: str = "reduced"
@@ -79,6 +84,7 @@ class EnvConfig:
     settle_max_seconds: float = 3.0
     legs: tuple[int, ...] = (3, 4, 5, 6)
     max_cached_robots: int = 16
+    randomize: DomainRanges = field(default_factory=DomainRanges)
 
     def settling(self) -> Settling:
         """The :class:`Settling` these fields describe (ValueError if invalid)."""
@@ -95,7 +101,12 @@ class SACConfig:
     """SAC hyper-parameters (paper table; see :mod:`softcrawl.codesign.sac`).
 
     ``timeout``: ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"``
-    (reference implementation)."""
+    (reference implementation). ``overlap``: run the gradient updates of a vectorised step
+    while the envs simulate the next one (:class:`softcrawl.codesign.sac.SplitLRSAC`; the
+    policy acting lags one vectorised step behind the updates). ``threads``: torch threads of
+    the learner (1: the simulation has the other cores; more where cores are plentiful: the
+    ``paper`` preset's million updates of batch 512 are learner-bound on many cores,
+    ``benchmarks/RESULTS.md``)."""
 
     policy_lr: float = 6e-4
     q_lr: float = 2e-3
@@ -108,6 +119,8 @@ class SACConfig:
     net_arch: tuple[int, ...] = (400, 200, 100)
     target_entropy: float = -3.0
     timeout: str = "bootstrap"
+    overlap: bool = True
+    threads: int = 1
 
 
 @dataclass
@@ -150,7 +163,7 @@ class TrainConfig:
             pos_int(f"env.{name}", getattr(self.env, name))
         if self.env.refactor_every is not None:
             pos_int("env.refactor_every", self.env.refactor_every)
-        for name in ("buffer_size", "batch_size"):
+        for name in ("buffer_size", "batch_size", "threads"):
             pos_int(f"sac.{name}", getattr(self.sac, name))
         if self.keep_checkpoints < 2:
             raise ValueError(f"keep_checkpoints must be >= 2 (a damaged newest checkpoint falls back to the one "
@@ -164,6 +177,9 @@ class TrainConfig:
             raise ValueError(f"env.reduction is set but env.model is {self.env.model!r}: a reduction file is used "
                              "only by the reduced model")
         settling = self.env.settling()
+        if not isinstance(self.env.randomize, DomainRanges):
+            raise ValueError(f"env.randomize must be DomainRanges, got {type(self.env.randomize).__name__}")
+        self.env.randomize.check_steps(self.env.steps_per_action)
         if settling.max_seconds <= 0:
             raise ValueError("env.settle_max_seconds must be positive: episodes start from the robot at rest")
         if self.env.model not in MODELS:
@@ -185,6 +201,7 @@ class TrainConfig:
         return self
 
     def to_dict(self) -> dict:
+        """A JSON-ready nested dict (tuples stay tuples; ``json`` writes them as lists)."""
         return asdict(self)
 
     @classmethod
@@ -192,11 +209,16 @@ class TrainConfig:
         """Inverse of :meth:`to_dict`. Every value is checked against its field's type
         (:func:`check_field`); lists become tuples.
 
+        A sub-config given as a string names one of its presets (a class with a ``preset``
+        classmethod: ``"env": {"randomize": "rig"}``, :meth:`DomainRanges.preset`).
+
         Raises:
             ValueError: an unknown key, a value of the wrong type (the message names the key),
                 or a setting :meth:`validate` refuses.
         """
         def build(kind, data, prefix):
+            if isinstance(data, str) and callable(getattr(kind, "preset", None)):
+                data = asdict(kind.preset(data))
             if not isinstance(data, dict):
                 raise ValueError(f"{prefix.rstrip('.') or 'config'} must be an object, got {data!r}")
             names = {f.name: f for f in dataclasses.fields(kind)}
@@ -213,8 +235,13 @@ class TrainConfig:
 
 
 def _type_name(tp) -> str:
-    if typing.get_origin(tp) is tuple:
-        return f"a list of {_type_name(typing.get_args(tp)[0])}"
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis or len(set(args)) != 1:
+            return f"a list of {_type_name(args[0])}"
+        return f"a list of {len(args)} {_type_name(args[0])}"
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join("null" if a is type(None) else _type_name(a) for a in args)
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
@@ -305,6 +332,9 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
     """Apply ``"field=value"`` / ``"section.field=value"`` strings (value parsed as JSON if
     possible, else taken as a string). Returns a validated copy.
 
+    A sub-config with presets may be set by name (``env.randomize=rig``,
+    :meth:`TrainConfig.from_dict`).
+
     Raises:
         ValueError: a malformed string, an unknown field, a value of the wrong type for its
             field (named), or a setting :meth:`TrainConfig.validate` refuses.
@@ -319,12 +349,17 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
         except json.JSONDecodeError:
             value = raw
         parts = key.strip().split(".")
-        target = d
+        target, kind = d, TrainConfig
         for p in parts[:-1]:
             if p not in target or not isinstance(target[p], dict):
                 raise ValueError(f"unknown setting {key!r}")
-            target = target[p]
-        if parts[-1] not in target or isinstance(target[parts[-1]], dict):
+            target, kind = target[p], typing.get_type_hints(kind)[p]
+        if parts[-1] not in target:
             raise ValueError(f"unknown setting {key!r}")
+        if isinstance(target[parts[-1]], dict):  # a sub-config: only by preset name
+            sub = typing.get_type_hints(kind)[parts[-1]]
+            if not (isinstance(value, str) and callable(getattr(sub, "preset", None))):
+                raise ValueError(f"unknown setting {key!r}")
+            value = asdict(sub.preset(value))
         target[parts[-1]] = value
     return TrainConfig.from_dict(d)

@@ -9,7 +9,7 @@ the run's episode length (codesign.md, "Expert baseline").
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +17,7 @@ import numpy as np
 from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.run import Run
 from softcrawl.gaits import ActionSequence
+from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import EpisodeResult, run_episode
 
 
@@ -51,8 +52,11 @@ class PolicyEvaluation:
         design: the canonical design (regulator k of the outputs is the canonical k).
         returns_cm: return of each episode, cm. diverged: per episode.
         actions_kpa: ``(n_actions, 3)`` real kPa commanded in the first episode.
-        env: the :class:`softcrawl.envs.CrawlerEnv` (its robot cached). config: the run's config.
+        env: the :class:`softcrawl.envs.CrawlerEnv` (its robot cached). config: the run's config
+            (its ``env.randomize`` the ranges the episodes were drawn from).
         checkpoint: the checkpoint folder the policy came from.
+        domains: per episode, its domain draw (:meth:`softcrawl.robot.domain.DomainSample.as_dict`;
+            empty without randomization).
     """
 
     design: tuple[int, ...]
@@ -62,6 +66,7 @@ class PolicyEvaluation:
     env: object
     config: TrainConfig
     checkpoint: str
+    domains: list = field(default_factory=list)
 
     def gait(self) -> ActionSequence:
         """The first episode's actions as a gait with the run's hold time."""
@@ -71,16 +76,27 @@ class PolicyEvaluation:
     def resimulate(self, record_every: int | None = 10, progress: bool = False) -> EpisodeResult:
         """Re-run the first episode's actions through :func:`softcrawl.robot.run_episode` (same
         robot, calibration and settling as the env): per-step commanded/applied pressures and
-        positions, and ParaView frames every ``record_every`` steps."""
+        positions, and ParaView frames every ``record_every`` steps.
+
+        Raises:
+            ValueError: a randomized evaluation (its episodes had other robots and rigs).
+        """
+        if self.domains:
+            raise ValueError("resimulate re-runs a nominal episode; this evaluation was randomized")
         e = self.config.env
         return run_episode(self.env.episode.robot, self.gait(), episode_seconds(self.config), self.env.calibration,
                            settling=e.settling(), record_every=record_every, progress=progress)
 
 
 def evaluate_policy(run: str | Path, design, episodes: int = 1,
-                    checkpoint: str | Path | None = None) -> PolicyEvaluation:
+                    checkpoint: str | Path | None = None, randomize: DomainRanges | None = None,
+                    seed: int | None = None) -> PolicyEvaluation:
     """Roll out the trained policy (deterministic actions) on ``design`` for ``episodes``
     episodes in a :class:`softcrawl.envs.CrawlerEnv` with the run's settings.
+
+    The episodes are nominal (no domain randomization, even if the run trained with it) unless
+    ``randomize`` gives ranges: then each episode draws its own domain from the env's RNG,
+    seeded with ``seed`` at the first reset (:mod:`softcrawl.envs.crawler`).
 
     ``design`` is canonicalised first (regulators relabelled by first appearance; the policy
     only saw canonical designs).
@@ -90,7 +106,7 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
 
     Raises:
         ValueError: not a training run, no complete checkpoint, a damaged or crafted one,
-            ``episodes < 1``.
+            ``episodes < 1``, ranges the run's action timing cannot take.
         InvalidDesignError: an invalid design.
     """
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -110,13 +126,16 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     else:  # a folder, or a checkpoint's name (step-XXXXXXXXXX) in the run
         ck = Path(checkpoint) if Path(checkpoint).exists() else r.checkpoints_dir / str(checkpoint)
     weights = r.load_policy_weights(ck)
+    cfg.env.randomize = randomize if randomize is not None else DomainRanges()
     env = env_fn(cfg)()
     cfg.sac.buffer_size = 1
     model = make_sac(DummyVecEnv([lambda: env]), cfg.sac)
     model.policy.load_state_dict(weights)
-    returns, diverged, first = [], [], None
-    for _ in range(episodes):
-        obs, _ = env.reset(options={"design": design})
+    returns, diverged, first, domains = [], [], None, []
+    for k in range(episodes):
+        obs, info = env.reset(seed=seed if k == 0 else None, options={"design": design})
+        if "domain" in info:
+            domains.append(info["domain"])
         total, acts, done, info = 0.0, [], False, {}
         while not done:
             a, _ = model.predict(obs, deterministic=True)
@@ -127,7 +146,7 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
         returns.append(total)
         diverged.append(bool(info.get("diverged")))
         first = first if first is not None else np.array(acts)
-    return PolicyEvaluation(design, returns, diverged, first, env, cfg, str(ck))
+    return PolicyEvaluation(design, returns, diverged, first, env, cfg, str(ck), domains)
 
 
 def baseline_sweep(run: str | Path, out: str | Path, phases, workers: int | None = None, progress: bool = False):

@@ -30,13 +30,15 @@ def env_fn(cfg: TrainConfig):
     e = cfg.env
     return partial(CrawlerEnv, robot_factory=robot_factory(cfg), steps_per_action=e.steps_per_action,
                    n_actions=e.n_actions, observe_state=e.observe_state, designs=e.designs(),
-                   settling=e.settling(), max_cached=e.max_cached_robots)
+                   settling=e.settling(), max_cached=e.max_cached_robots, randomize=e.randomize)
 
 
-def make_vec_env(cfg: TrainConfig, sampler) -> DesignVecEnv:
-    """The vectorised env of ``cfg`` (``cfg.backend``: serial, subprocess or ray,
-    :func:`softcrawl.envs.vec.make_backend`) with ``sampler``, seeded with ``cfg.seed``."""
-    venv = DesignVecEnv(make_backend(cfg.backend, [env_fn(cfg)] * cfg.n_envs, n_workers=cfg.n_workers or None), sampler)
+def make_vec_env(cfg: TrainConfig, sampler, ray_address: str | None = None) -> DesignVecEnv:
+    """The vectorised env of ``cfg`` (``cfg.backend``: serial, subprocess or ray on the cluster
+    at ``ray_address`` or a local one, :func:`softcrawl.envs.vec.make_backend`) with
+    ``sampler``, seeded with ``cfg.seed``."""
+    venv = DesignVecEnv(make_backend(cfg.backend, [env_fn(cfg)] * cfg.n_envs, n_workers=cfg.n_workers or None,
+                                     ray_address=ray_address), sampler)
     venv.seed(cfg.seed)
     return venv
 

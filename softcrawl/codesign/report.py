@@ -15,7 +15,11 @@ is read through :class:`softcrawl.codesign.run.Run`):
 * ``top_designs.csv``: the top-k table;
 * ``best_design/``: the top design re-simulated with the trained policy (deterministic actions,
   :mod:`softcrawl.codesign.evaluation`): the outputs of ``softcrawl simulate`` (``trajectory.png``
-  shows commanded vs applied pressures and x(t); ParaView frames; ``summary.json``);
+  shows commanded vs applied pressures and x(t); ParaView frames; ``summary.json``), and what
+  the gait does (:func:`gait_analysis`: its cycle, if any, and the +x distance of each quarter of
+  the episode: a crawler moves in every quarter, a push does not);
+* ``summary.json``: the numbers of ``summary.md`` (steps, wall time, top designs, the best
+  design's policy reward, actions and gait analysis, the baseline's best phase and reward);
 * "Expert baseline": the baseline design's sine gait swept over ``baseline_phases`` with the
   run's robot settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase``
   output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
@@ -175,8 +179,64 @@ def _baseline_section(path: Path, data: dict, out: Path, cfg: TrainConfig, best_
     return lines
 
 
-def _best_design_section(run: Path, out: Path, design, checkpoint: Path) -> list[str]:
-    """Re-simulate ``design`` with the run's policy into ``out/best_design``; Markdown lines."""
+#: Two actions are "the same" in :func:`gait_period` if no regulator differs by more (real kPa).
+PERIOD_TOLERANCE_KPA = 3.0
+
+
+def gait_period(actions_kpa: np.ndarray, tol_kpa: float = PERIOD_TOLERANCE_KPA) -> tuple[int, int] | None:
+    """The gait's cycle: the smallest period ``P`` (actions) such that, from some action
+    ``t0`` on, ``actions[t] == actions[t + P]`` (to ``tol_kpa`` on every regulator) for every
+    later ``t``, over at least half of the episode and two whole cycles; ``(P, t0)`` with the
+    earliest such ``t0``, or None. A constant command (``P = 1``) counts as a cycle of one
+    action (it cannot crawl).
+
+    Args:
+        actions_kpa: ``(n, 3)`` commanded real kPa per action.
+    """
+    a = np.asarray(actions_kpa, dtype=float)
+    n = len(a)
+    for P in range(1, n // 2 + 1):
+        same = np.all(np.abs(a[P:] - a[:-P]) <= tol_kpa, axis=1)  # same[t]: a[t] == a[t + P]
+        bad = np.flatnonzero(~same)
+        t0 = int(bad[-1]) + 1 if len(bad) else 0
+        if n - t0 >= max(2 * P, n / 2):
+            return P, t0
+    return None
+
+
+def gait_analysis(actions_kpa: np.ndarray, time_s: np.ndarray, x_mm: np.ndarray, parts: int = 4) -> dict:
+    """How a gait moves the robot over an episode: its cycle (:func:`gait_period`) and the +x
+    distance (cm) of each of ``parts`` equal parts of the episode; ``crawls_throughout`` when
+    every part moves forward by at least 10% of the mean part (a crawler, not one push).
+
+    Args:
+        actions_kpa: ``(n, 3)`` commanded real kPa per action.
+        time_s: ``(k,)`` times, s; x_mm: ``(k,)`` disk top-centre x, mm.
+    """
+    period = gait_period(actions_kpa)
+    edges = np.linspace(time_s[0], time_s[-1], parts + 1)
+    x_at = np.interp(edges, time_s, x_mm)
+    legs = np.diff(x_at) / 10.0
+    mean = float(legs.mean())
+    return {"period_actions": None if period is None else period[0],
+            "periodic_from_action": None if period is None else period[1],
+            "part_seconds": float(edges[1] - edges[0]), "distance_per_part_cm": [round(float(v), 4) for v in legs],
+            "crawls_throughout": bool(mean > 0 and np.all(legs >= 0.1 * mean))}
+
+
+def _describe_gait(g: dict) -> str:
+    P = g["period_actions"]
+    cyc = ("no repeating cycle" if P is None else "a constant command (no cycle)" if P == 1 else
+           f"a {P}-action cycle from action {g['periodic_from_action'] + 1} on")
+    parts = " / ".join(f"{v:+.2f}" for v in g["distance_per_part_cm"])
+    verdict = "it crawls throughout" if g["crawls_throughout"] else "it does NOT crawl throughout"
+    return (f"Gait: {cyc}; +x per {g['part_seconds']:g}-s part of the episode: {parts} cm ({verdict}: every "
+            "part at least 10% of the mean).")
+
+
+def _best_design_section(run: Path, out: Path, design, checkpoint: Path) -> tuple[list[str], dict]:
+    """Re-simulate ``design`` with the run's policy into ``out/best_design``; Markdown lines and
+    the numbers for ``summary.json``."""
     from softcrawl.codesign.evaluation import evaluate_policy
     from softcrawl.robot.output import write_results
 
@@ -184,11 +244,16 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path) -> list
     result = ev.resimulate(record_every=10)
     write_results(out / "best_design", ev.env.episode.robot, ev.gait(), result, ev.env.calibration, overwrite=True)
     name = ",".join(map(str, ev.design))
+    g = gait_analysis(ev.actions_kpa, result.time, result.position[:, 0])
+    numbers = {"design": name, "policy_cm": float(ev.returns_cm[0]), "resimulated_cm": float(result.reward_cm),
+               "diverged": bool(result.diverged), "gait": g,
+               "actions_kpa": np.round(np.asarray(ev.actions_kpa, float), 2).tolist()}
     return ["", "## Best design's gait", "",
             (f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} cm per episode "
              f"(re-run {result.reward_cm:+.3f} cm{', DIVERGED' if result.diverged else ''}); commanded (dashed) "
              f"vs applied (solid) pressures and x(t); ParaView series in `best_design/crawl.pvd`."), "",
-            "![best design's gait](best_design/trajectory.png)"]
+            _describe_gait(g), "",
+            "![best design's gait](best_design/trajectory.png)"], numbers
 
 
 def _baseline_best(cfg: TrainConfig, out: Path, data: dict) -> list[str]:
@@ -281,8 +346,13 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         lines.append("![reward histogram weighted by the design distribution](reward_histogram.png)")
     lines += ["", "![episode returns](returns.png)"]
     best_cm = float(ep["r"].max()) if len(ep["r"]) else None
+    numbers = {"run": run.name, "preset": cfg["preset"], "steps": r.checkpoint_steps(ckpt),
+               "training_wall_seconds": r.wall_seconds(), "episodes": int(len(ep["r"])),
+               "best_episode_cm": best_cm, "top_designs": [
+                   {**row, "design": ",".join(map(str, row["design"]))} for row in top]}
     if simulate and top:
-        lines += _best_design_section(run, out, top[0]["design"], ckpt)
+        more, numbers["best_design"] = _best_design_section(run, out, top[0]["design"], ckpt)
+        lines += more
     own_sweep = sweep is None and simulate and len(baseline_phases) > 0
     if own_sweep:
         from softcrawl.codesign.evaluation import baseline_sweep
@@ -293,5 +363,9 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         lines += _baseline_section(*sweep, out, run_cfg, best_cm)
         if own_sweep and sweep[1]["best"] is not None:
             lines += _baseline_best(run_cfg, out, sweep[1])
+    if sweep is not None and sweep[1]["best"] is not None:
+        numbers["baseline"] = {"best_phase_deg": sweep[1]["best"]["phase_deg"],
+                               "best_cm": sweep[1]["best"]["reward_cm"]}
     lines.append("")
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
+    (out / "summary.json").write_text(json.dumps(numbers, indent=1, default=float) + "\n", encoding="utf-8")

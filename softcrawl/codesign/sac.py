@@ -12,6 +12,8 @@ true terminal (no bootstrap).
 
 from __future__ import annotations
 
+import time
+
 from stable_baselines3 import SAC
 from stable_baselines3.common.logger import Logger
 
@@ -20,11 +22,47 @@ from softcrawl.codesign.config import SACConfig
 
 class SplitLRSAC(SAC):
     """SAC whose critic optimizer uses ``q_learning_rate`` (a float); the actor and the entropy
-    temperature use ``learning_rate`` (SB3's). Everything else is SB3's SAC."""
+    temperature use ``learning_rate`` (SB3's).
 
-    def __init__(self, *args, q_learning_rate: float | None = None, **kwargs):
+    With ``overlap`` (and an env with a ``while_stepping`` hook, :class:`DesignVecEnv`), the
+    gradient updates due after a vectorised step are deferred and run while the envs simulate
+    the next one (the workers are separate processes), so the learner costs wall time only
+    where it takes longer than the simulation. The policy that picks the actions of step
+    ``t + 1`` is then the one before the updates of step ``t`` (a lag of one vectorised step,
+    as in asynchronous actor-learner schemes); the number of updates and the data they sample
+    are those of SB3's schedule. :meth:`flush` runs deferred updates now (before a checkpoint,
+    at the end of ``learn``). Everything else is SB3's SAC.
+
+    Attributes:
+        learner_seconds: wall seconds spent in gradient updates (all of them).
+    """
+
+    def __init__(self, *args, q_learning_rate: float | None = None, overlap: bool = False, **kwargs):
         self.q_learning_rate = q_learning_rate
+        self.overlap = overlap
+        self._deferred = 0
+        self.learner_seconds = 0.0
         super().__init__(*args, **kwargs)
+        if overlap and hasattr(self.env, "while_stepping"):
+            self.env.while_stepping = self.flush
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        """SB3's updates, or (``overlap``) deferred to the next env step (:meth:`flush`)."""
+        if self.overlap and getattr(self.env, "while_stepping", None) == self.flush:
+            self._deferred += gradient_steps
+            return
+        self._train(gradient_steps, batch_size)
+
+    def flush(self) -> None:
+        """Run the deferred gradient updates now."""
+        n, self._deferred = self._deferred, 0
+        if n:
+            self._train(n, self.batch_size)
+
+    def _train(self, gradient_steps: int, batch_size: int) -> None:
+        t = time.perf_counter()
+        super().train(gradient_steps, batch_size)
+        self.learner_seconds += time.perf_counter() - t
 
     def _update_learning_rate(self, optimizers) -> None:
         critic_opt = self.critic.optimizer
@@ -41,7 +79,8 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
     ``gradient_steps`` per vectorised step = ``round(cfg.utd_ratio * env.num_envs)`` (at least 1),
     i.e. ``utd_ratio`` updates per transition (paper: 1). Networks: MLP ``cfg.net_arch`` with ReLU
     for the actor and both critics; Adam(β1 0.9, β2 0.999); automatic temperature with target
-    entropy ``cfg.target_entropy`` (−3 = −dim A). Its logger writes nowhere until
+    entropy ``cfg.target_entropy`` (−3 = −dim A); updates overlapped with the simulation if
+    ``cfg.overlap`` (:class:`SplitLRSAC`). Its logger writes nowhere until
     ``set_logger`` is called (SB3's default would create ``/tmp/SB3-<date>/``).
     """
     grad_steps = max(1, round(cfg.utd_ratio * env.num_envs))
@@ -53,7 +92,7 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
         ent_coef="auto", target_entropy=cfg.target_entropy,
         replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"},
         policy_kwargs={"net_arch": list(cfg.net_arch), "optimizer_kwargs": {"betas": (0.9, 0.999)}},
-        seed=seed, device="cpu", verbose=0,
+        seed=seed, device="cpu", verbose=0, overlap=cfg.overlap,
     )
     # a logger writing nowhere until the caller sets one: SB3's default makes /tmp/SB3-<date>/
     model.set_logger(Logger(folder=None, output_formats=[]))

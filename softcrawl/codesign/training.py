@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 
 from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.factory import check_reduction, make_sampler, make_vec_env
+from softcrawl.codesign.randomization import DomainLog
 from softcrawl.codesign.run import Run
 from softcrawl.codesign.sac import make_sac
 from softcrawl.codesign.sampler import GibbsDesignSampler
@@ -58,6 +59,7 @@ class CodesignCallback(BaseCallback):
         self.ep_writer = csv.writer(self.episodes)
         self.dist_file = open(self.run.distribution_csv, "a", newline="")  # noqa: SIM115
         self.dist_writer = csv.writer(self.dist_file)
+        self.domain_log = DomainLog(self.run.domain_csv, self.cfg.env.randomize, self.num_timesteps)
         self.best = -np.inf
 
     def _on_rollout_start(self) -> None:
@@ -72,6 +74,7 @@ class CodesignCallback(BaseCallback):
             r = info["episode"]["r"]
             self.best = max(self.best, r)
             self.ep_writer.writerow([t, _design_str(info.get("design")), f"{r:.6g}", int(info.get("diverged", False))])
+            self.domain_log.write(t, info)
         if rows:
             up = self.sampler.distribution.last
             top = self.sampler.distribution.top(3)
@@ -103,6 +106,8 @@ class CodesignCallback(BaseCallback):
         if not self.episodes.closed:
             self.episodes.flush()
             self.dist_file.flush()
+            self.domain_log.flush()
+        self.model.flush()  # deferred (overlapped) updates of the steps done so far
         self.run.save_checkpoint(self.model, self.sampler, self.cfg.keep_checkpoints)
         self.checkpoint_due = False
 
@@ -110,18 +115,21 @@ class CodesignCallback(BaseCallback):
         self.bar.close()
         self.episodes.close()
         self.dist_file.close()
+        self.domain_log.close()
 
 
 # -- the driver -------------------------------------------------------------------------------
 @dataclass
 class TrainResult:
     """Outcome of :func:`train`: run folder, transitions done, wall seconds of this call,
-    SAC gradient updates."""
+    SAC gradient updates (all calls), wall seconds of this call's updates (overlapped with the
+    simulation unless ``sac.overlap`` is off)."""
 
     run_dir: Path
     steps: int
     wall_seconds: float
     updates: int
+    learner_seconds: float = 0.0
 
 
 def _resume_point(run: Run) -> Path | None:
@@ -138,7 +146,7 @@ def _resume_point(run: Run) -> Path | None:
 
 
 def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
-          progress: bool = True) -> TrainResult:
+          progress: bool = True, ray_address: str | None = None) -> TrainResult:
     """Train (or, with ``resume``, continue) a co-design run in ``run_dir`` (no report; see
     :func:`softcrawl.cli.train.train_and_report`).
 
@@ -149,6 +157,8 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         resume: continue from the newest complete checkpoint (:meth:`Run.latest_checkpoint`;
             from scratch if the run never logged anything).
         progress: tqdm progress bar on stderr.
+        ray_address: the Ray cluster of ``backend="ray"`` (None: a local Ray); a property of
+            where the run is, not of the run, so not in its config.
 
     ``config.json`` is written only after the config is validated, the envs and sampler are
     built and the reduction file is checked, so a failed start leaves an empty folder that the same command can reuse.
@@ -170,12 +180,14 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
             raise ValueError(f"run directory {run.path} exists and is not an empty folder "
                              "(use --resume or another --out)")
         ckpt = None
-    torch.set_num_threads(1)
+    if ray_address is not None and cfg.backend != "ray":
+        raise ValueError(f"a Ray address is used only by backend \"ray\", not {cfg.backend!r}")
+    torch.set_num_threads(cfg.sac.threads)
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
     torch.manual_seed(cfg.seed)
     sampler = make_sampler(cfg)
-    venv = make_vec_env(cfg, sampler)
+    venv = make_vec_env(cfg, sampler, ray_address)
     wall = time.perf_counter()
     try:
         model = make_sac(venv, cfg.sac, seed=cfg.seed)
@@ -194,11 +206,13 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         if remaining > 0:
             model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=ckpt is None and not resume,
                         log_interval=max(1, cfg.n_envs))
+            model.flush()  # the last step's updates, deferred to a next step that never came
             last = run.latest_checkpoint(quiet=True)
             if last is None or run.checkpoint_steps(last) != model.num_timesteps:
                 callback.write_snapshot()
                 run.save_checkpoint(model, sampler, cfg.keep_checkpoints)
-        result = TrainResult(run.path, model.num_timesteps, time.perf_counter() - wall, model._n_updates)
+        result = TrainResult(run.path, model.num_timesteps, time.perf_counter() - wall, model._n_updates,
+                             model.learner_seconds)
         run.append_session(start, result.steps, result.wall_seconds)
     finally:
         venv.close()

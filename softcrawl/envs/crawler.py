@@ -22,12 +22,28 @@ when none is given).
   ``applied_kpa`` (3,) and ``commanded_kpa`` (3,), ``diverged``, ``reason``, and how the
   episode's start was reached (:meth:`softcrawl.robot.episode.SettledState.as_dict`):
   ``settle_steps``, ``settle_seconds``, ``rest_speed_mm_s`` and ``at_rest`` (False: the robot
-  was still moving at the settling cap; its episode is scored but flagged).
+  was still moving at the settling cap; its episode is scored but flagged). With domain
+  randomization on, also ``domain``: the episode's draw
+  (:meth:`softcrawl.robot.domain.DomainSample.as_dict`); without it there is no such key.
 
 Robots are built with an injectable ``robot_factory(design) -> Robot`` (default
 :class:`BuildRobot`, the full-order model) and cached per design with their settled state
 (LRU, ``max_cached``: settling to rest costs once per design, not per episode); each episode
 gets a fresh solver, so the same design and actions give the same return.
+
+**Domain randomization** (``randomize``, :class:`~softcrawl.robot.domain.DomainRanges`): at
+every reset, after the design, a :class:`~softcrawl.robot.domain.DomainSample` is drawn from the
+env's RNG (``np_random``: reproducible per reset seed; nothing is drawn when randomization is
+off, so an env without it behaves exactly as before). Pressure gains and offsets give the
+episode its own calibration, lags its own regulators, the control-period dilation its own step
+count per action (:attr:`CrawlerEnv.steps_per_action` is then that of the current action).
+A sample that changes the robot (friction, Young's moduli, masses) gets a robot built from the
+cached nominal one (:meth:`~softcrawl.robot.domain.DomainSample.apply`) and is settled for that
+episode alone (its rest pose is its own; at the ``demo`` preset the new robot and its settling
+cost 0.18-0.19 s, 8-10% of a 20-action episode); the cached nominal robot and its settled state are
+left as they are (the batched backend, :mod:`softcrawl.envs.batch`, still settles a new
+design's nominal robot once, before the reset that draws the sample: wasted, once per design
+and worker).
 """
 
 from __future__ import annotations
@@ -45,6 +61,7 @@ from softcrawl.design.space import Design, canonical_designs, one_hot, validate_
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.robot.actuation import P_MAX_KPA, PressureCalibration
 from softcrawl.robot.assembly import Robot, RobotConfig, build_robot
+from softcrawl.robot.domain import DomainRanges, DomainSample
 from softcrawl.robot.episode import MM_PER_CM, Episode, SettledState, Settling
 
 N_ACTIONS = 20
@@ -87,10 +104,17 @@ class CrawlerEnv(gym.Env):
         settling: the rest rule before each episode (:class:`Settling`; not counted).
         calibration: real-to-sim pressure map (default ``PressureCalibration()``).
         max_cached: robots kept per env (LRU).
+        randomize: per-episode domain randomization ranges (None or all-None ranges: off;
+            module docstring).
+
+    Attributes:
+        nominal_steps_per_action: simulator steps per action without control-period dilation.
+        domain: the current episode's :class:`DomainSample` (None: randomization off).
 
     Raises:
         ValueError: non-positive ``steps_per_action``/``n_actions``/``max_cached``, negative
-            ``history``, an empty or invalid ``designs`` list.
+            ``history``, an empty or invalid ``designs`` list, a control-period range that
+            gives actions of less than one step.
     """
 
     metadata: ClassVar[dict] = {"render_modes": []}
@@ -99,7 +123,8 @@ class CrawlerEnv(gym.Env):
     def __init__(self, robot_factory: Callable[[Design], Robot] | None = None, steps_per_action: int = 100,
                  n_actions: int = N_ACTIONS, history: int = HISTORY, observe_state: bool = False,
                  designs: Sequence[Sequence[int]] | None = None, settling: Settling = Settling(),
-                 calibration: PressureCalibration | None = None, max_cached: int = 16):
+                 calibration: PressureCalibration | None = None, max_cached: int = 16,
+                 randomize: DomainRanges | None = None):
         super().__init__()
         for name, v in (("steps_per_action", steps_per_action), ("n_actions", n_actions), ("max_cached", max_cached)):
             if int(v) != v or v < 1:
@@ -107,7 +132,16 @@ class CrawlerEnv(gym.Env):
         if int(history) != history or history < 0:
             raise ValueError(f"history must be a non-negative integer, got {history!r}")
         self.robot_factory = robot_factory if robot_factory is not None else BuildRobot()
-        self.steps_per_action, self.n_actions, self.history = int(steps_per_action), int(n_actions), int(history)
+        self.nominal_steps_per_action, self.n_actions = int(steps_per_action), int(n_actions)
+        self.history = int(history)
+        if randomize is not None and not isinstance(randomize, DomainRanges):
+            raise ValueError(f"randomize must be DomainRanges or None, got {type(randomize).__name__}")
+        self.randomize = randomize if randomize is not None and randomize.enabled else None
+        if self.randomize is not None:
+            self.randomize.check_steps(self.nominal_steps_per_action)
+        self.domain: DomainSample | None = None
+        self._action_steps = self.nominal_steps_per_action
+        self._t_steps = 0
         self.observe_state, self.settling = bool(observe_state), settling
         self.calibration = calibration if calibration is not None else PressureCalibration()
         self.designs = canonical_designs() if designs is None else tuple(validate_design(d) for d in designs)
@@ -131,18 +165,33 @@ class CrawlerEnv(gym.Env):
         self._one_hot = np.zeros(DESIGN_DIM, np.float32)
         self._settled_info: dict = {}
 
+    @property
+    def steps_per_action(self) -> int:
+        """Simulator steps of the current action (of the next one between actions): the
+        nominal count unless the control-period dilation is randomized
+        (:meth:`DomainSample.action_steps`)."""
+        return self._action_steps
+
     # -- robots ---------------------------------------------------------------------------
-    def _episode_for(self, design: Design) -> Episode:
+    def _episode_for(self, design: Design, sample: DomainSample | None = None) -> Episode:
         """A fresh :class:`Episode` (new solver: no factorization or warm start carried over
         from earlier episodes, so an episode is a function of design and actions only) on the
-        cached robot of ``design``, starting from its cached settled state."""
+        cached robot of ``design``, starting from its cached settled state; with a domain
+        ``sample``, on the randomized robot (settled anew if the sample is physical) with the
+        sample's calibration and regulators."""
         robot, settled = self._robots.pop(design, (None, None))
         if robot is None:
             robot = self.robot_factory(design)
         self._robots[design] = (robot, settled)
         while len(self._robots) > self.max_cached:
             self._robots.popitem(last=False)
-        return Episode(robot, self.calibration, self.settling, settled=settled)
+        if sample is None:
+            return Episode(robot, self.calibration, self.settling, settled=settled)
+        if sample.physical:
+            robot, settled = sample.apply(robot), None
+        episode = Episode(robot, sample.calibration(self.calibration), self.settling, settled=settled)
+        episode.regulators = sample.regulators(episode.regulators.rate_kpa_s)
+        return episode
 
     # -- observation / info -----------------------------------------------------------------
     def _state_summary(self) -> np.ndarray:
@@ -162,14 +211,25 @@ class CrawlerEnv(gym.Env):
         ep = self.episode
         pos = ep.robot.reward_position(ep.state.x) if not self._dead or self._k > 0 else np.full(3, np.nan)
         return {
-            "design": self.design, "t": self._k * self.steps_per_action * ep.dt,
+            "design": self.design, "t": self._t_steps * ep.dt,
             "disk_position_mm": np.array(pos, dtype=float), "displacement_cm": self._displacement(),
             "applied_kpa": ep.applied, "commanded_kpa": np.zeros(3) if commanded is None else commanded,
             "diverged": self._dead, "reason": self._reason, **self._settled_info,
+            **({"domain": self.domain.as_dict()} if self.domain is not None else {}),
         }
 
     def _displacement(self) -> float:
         return self.episode.displacement_cm if (not self._dead or self._k > 0) else 0.0
+
+    def _steps_of(self, k: int) -> int:
+        n = self.nominal_steps_per_action
+        return n if self.domain is None else self.domain.action_steps(n, k)
+
+    def _next_action(self) -> None:
+        """Count the action just held (its planned steps: a diverged episode's clock runs on)."""
+        self._t_steps += self._action_steps
+        self._k += 1
+        self._action_steps = self._steps_of(self._k)
 
     # -- gymnasium API ----------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -183,17 +243,19 @@ class CrawlerEnv(gym.Env):
         else:
             design = self.designs[int(self.np_random.integers(len(self.designs)))]
         self.design = design
+        self.domain = self.randomize.draw(self.np_random) if self.randomize is not None else None
         self._one_hot = one_hot(design)
         self._hist[:] = 0.0
-        self._k = 0
+        self._k = self._t_steps = 0
+        self._action_steps = self._steps_of(0)
         self._dead, self._reason = False, ""
-        self.episode = self._episode_for(design)
+        self.episode = self._episode_for(design, self.domain)
         try:
             self.episode.reset()
         except SimulationDiverged as exc:
             self._dead, self._reason = True, f"settling diverged: {exc}"
         settled = self.episode.settled
-        if settled is not None and design in self._robots:
+        if settled is not None and design in self._robots and self._robots[design][0] is self.episode.robot:
             self._robots[design] = (self.episode.robot, settled)
         self._settled_info = settled.as_dict() if settled is not None else {}
         return self._obs(), self._info()
@@ -218,7 +280,7 @@ class CrawlerEnv(gym.Env):
                     self.episode.step(kpa)
             except SimulationDiverged as exc:
                 self._dead, self._reason = True, str(exc)
-        self._k += 1
+        self._next_action()
         reward = self._displacement() - before
         if not math.isfinite(reward):
             reward = 0.0
@@ -255,7 +317,7 @@ class CrawlerEnv(gym.Env):
         divergence that stopped it, if any): ``(obs, reward_cm, terminated, truncated, info)``."""
         if error is not None:
             self._dead, self._reason = True, str(error)
-        self._k += 1
+        self._next_action()
         reward = self._displacement() - self._action_before
         if not math.isfinite(reward):
             reward = 0.0

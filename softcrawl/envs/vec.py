@@ -43,6 +43,16 @@ class EnvBackend:
         """Step all envs with ``actions`` ``(N, 3)``; no auto-reset."""
         raise NotImplementedError
 
+    def step_send(self, actions: np.ndarray) -> None:
+        """Start :meth:`step` (backends whose envs run elsewhere start them now and return);
+        finish with :meth:`step_recv`."""
+        self._sent = actions
+
+    def step_recv(self) -> list[StepResult]:
+        """The results of the step started by :meth:`step_send`."""
+        actions, self._sent = self._sent, None
+        return self.step(actions)
+
     def get_attr(self, name: str, indices: Sequence[int]) -> list:  # pragma: no cover
         raise NotImplementedError
 
@@ -218,9 +228,16 @@ class SubprocessBackend(EnvBackend):
                                                           [seeds[p] for p, _ in g]))
 
     def step(self, actions):
+        self.step_send(actions)
+        return self.step_recv()
+
+    def step_send(self, actions):
         actions = np.asarray(actions)
-        outs = self._ask(range(len(self._chunks)), "step", lambda w: actions[self._chunks[w]])
-        return [r for out in outs for r in out]
+        for w, chunk in enumerate(self._chunks):
+            self.remotes[w].send(("step", actions[chunk]))
+
+    def step_recv(self):
+        return [r for w in range(len(self._chunks)) for r in self._recv(w)]
 
     def get_attr(self, name, indices):
         return self._scatter(indices, "get_attr", lambda g: (name, [j for _, j in g]))
@@ -282,6 +299,10 @@ class DesignVecEnv(VecEnv):
     (auto-reset, SB3 convention: ``infos[i]["terminal_observation"]``, ``"TimeLimit.truncated"``
     and Monitor-style ``"episode": {"r": return cm, "l": actions, "t": s}``, plus
     ``"design"`` and ``"diverged"``).
+
+    :attr:`while_stepping` (None, or a zero-argument callable) runs in :meth:`step_wait` while
+    the backend's envs step (they were started by :meth:`step_async`): the learner's gradient
+    updates overlap the simulation (:class:`softcrawl.codesign.sac.SplitLRSAC`).
     """
 
     def __init__(self, backend: EnvBackend, sampler=None):
@@ -292,6 +313,7 @@ class DesignVecEnv(VecEnv):
         self._returns = np.zeros(self.num_envs)
         self._lengths = np.zeros(self.num_envs, np.int64)
         self._actions: np.ndarray | None = None
+        self.while_stepping = None
 
     def _new_designs(self, k: int) -> list[Design | None]:
         return list(self.sampler.sample(k)) if self.sampler is not None else [None] * k
@@ -313,11 +335,14 @@ class DesignVecEnv(VecEnv):
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions, dtype=np.float32).reshape(self.num_envs, -1)
+        self.backend.step_send(self._actions)
 
     def step_wait(self):
         if self._actions is None:
             raise RuntimeError("step_async must be called before step_wait")
-        results = self.backend.step(self._actions)
+        if self.while_stepping is not None:
+            self.while_stepping()
+        results = self.backend.step_recv()
         self._actions = None
         self.num_transitions += self.num_envs
         obs = np.stack([r[0] for r in results])

@@ -100,8 +100,12 @@ def pgs_coulomb(W, q, mu, lam, tol, max_iter):
 
 _SEP, _STICK, _SLIP = 0, 1, 2
 #: Extra chunks of ``max_iter`` Gauss-Seidel sweeps allowed when the first chunk neither
-#: converges nor yields a consistent active set (a fallback: rare, cheap for few contacts).
-EXTRA_SWEEP_CHUNKS = 8
+#: converges nor yields a consistent active set. One: the recorded ill-conditioned problem
+#: (tests/data/ill_conditioned_contact.npz) needs it; more almost never help (over 516 problems
+#: recorded in co-design training, 8 chunks polished 490 and 1 chunk 467, for 3.2x the contact
+#: time, the rest being rank-deficient Delassus operators of reduced legs whose Gauss-Seidel
+#: impulses stay unconverged however long it runs: benchmarks/RESULTS.md, wave 2).
+EXTRA_SWEEP_CHUNKS = 1
 #: Above this many contacts every violated contact switches in every round of the polish
 #: (each round is a dense solve: one switch per round would cost too much).
 SINGLE_SWITCH_MAX_CONTACTS = 40

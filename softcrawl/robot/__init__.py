@@ -1,7 +1,9 @@
 """The crawler: actuation (calibration, regulators), assembly of the FEM model, episodes.
 
-Does not import :mod:`softcrawl.gaits` (which imports :mod:`softcrawl.robot.actuation`),
-nor the output writers (:mod:`softcrawl.robot.output`, heavy plotting/IO imports).
+Imports of :mod:`softcrawl.gaits` only the regulators' command range
+(:mod:`softcrawl.gaits.pressure`, re-exported by :mod:`softcrawl.robot.actuation`; gaits sit
+below the robot and import nothing of it), and not the output writers
+(:mod:`softcrawl.robot.output`, heavy plotting/IO imports).
 """
 
 from softcrawl.robot.actuation import (
@@ -19,12 +21,15 @@ from softcrawl.robot.assembly import (
     build_robot,
     leg_transform,
 )
+from softcrawl.robot.domain import DomainRanges, DomainSample
 from softcrawl.robot.episode import NO_SETTLING, Episode, EpisodeResult, SettledState, Settling, run_episode, settle
 
 __all__ = [
     "P_MAX_KPA",
     "P_MIN_KPA",
     "NO_SETTLING",
+    "DomainRanges",
+    "DomainSample",
     "Episode",
     "EpisodeResult",
     "LegSlot",

@@ -1,0 +1,64 @@
+"""The learner's updates overlapped with the simulation (issue 18, item 3): same number of
+updates as SB3's schedule, run while the envs step, and none left behind at the end."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from softcrawl.codesign.config import SACConfig
+from softcrawl.codesign.sac import make_sac
+from softcrawl.envs.vec import DesignVecEnv, SerialBackend
+
+
+class _Tiny(gym.Env):
+    """Episodes of 5 steps with the crawler's spaces (44 observations, 3 actions)."""
+
+    observation_space = gym.spaces.Box(-1, 1, (44,), np.float32)
+    action_space = gym.spaces.Box(-1, 1, (3,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        self.k = 0
+        return np.zeros(44, np.float32), {}
+
+    def step(self, a):
+        self.k += 1
+        return np.full(44, 0.1 * self.k, np.float32), float(a[0]), False, self.k >= 5, {}
+
+
+class _Spy(SerialBackend):
+    """Counts the gradient updates made while a step is in flight (between send and receive)."""
+
+    def __init__(self, fns):
+        super().__init__(fns)
+        self.in_flight, self.model, self.during = False, None, 0
+
+    def step_send(self, actions):
+        super().step_send(actions)
+        self.in_flight, self.before = True, self.model._n_updates
+
+    def step_recv(self):
+        self.during += self.model._n_updates - self.before
+        self.in_flight = False
+        return super().step_recv()
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+def test_overlapped_updates_follow_the_schedule(overlap):
+    backend = _Spy([_Tiny] * 2)
+    venv = DesignVecEnv(backend)
+    cfg = SACConfig(buffer_size=200, batch_size=8, learning_starts=10, net_arch=(8,), overlap=overlap)
+    model = make_sac(venv, cfg, seed=0)
+    backend.model = model
+    model.learn(total_timesteps=40)
+    model.flush()
+    # one update per transition after learning_starts: 2 per vectorised step of 2 envs; the
+    # first come after step 6 (12 transitions > 10), the last after step 20: 15 x 2
+    assert model._n_updates == 30
+    if overlap:
+        # all but the last step's updates ran while the next step was simulated
+        assert backend.during == 30 - 2 and model._deferred == 0
+    else:
+        assert backend.during == 0
+    assert model.learner_seconds > 0
