@@ -39,12 +39,15 @@ def main(argv=None) -> int:
     s.add_argument("--gaits", type=int, default=5, help="random gaits per design (plus one structured)")
     s.add_argument("--short", default="4,6,10", help="short episode lengths, s")
     s.add_argument("--disk-mesh-size", type=float, default=10.0)
+    s.add_argument("--dt", type=float, default=None, help="time step, s (default: the robot's)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", help="write the full JSON here")
     c = sub.add_parser("cost")
     c.add_argument("--design", default="1,0,0,2,2,0,0,0")
     c.add_argument("--evals-per-cycle", type=int, default=None)
     c.add_argument("--disk-mesh-size", type=float, default=10.0)
+    c.add_argument("--dt", type=float, default=None, help="time step, s (default: the robot's)")
+    c.add_argument("--cycles", default=None, help="pattern lengths, e.g. 2,3,4 (default: the config's)")
     c.add_argument("--n-designs", type=int, default=280)
     c.add_argument("--cores", type=int, default=2)
     a = p.parse_args(argv)
@@ -52,14 +55,16 @@ def main(argv=None) -> int:
         rng = np.random.default_rng(a.seed)
         three = parse_designs("3")
         pick = [PAPER_BEST_DESIGN] + [three[i] for i in rng.choice(len(three), a.designs - 1, replace=False)]
-        cfg = GroundTruthConfig(disk_mesh_size=a.disk_mesh_size)
+        cfg = GroundTruthConfig(disk_mesh_size=a.disk_mesh_size, dt=a.dt)
         res = screening_agreement(pick, cfg, a.gaits, [float(x) for x in a.short.split(",")], seed=a.seed)
         if a.out:
             with open(a.out, "w") as f:
                 json.dump(res, f, indent=2)
         print(json.dumps({k: v for k, v in res.items() if k != "pairs"} | {"n_pairs": len(res["pairs"])}, indent=2))
     else:
-        cfg = GroundTruthConfig(disk_mesh_size=a.disk_mesh_size)
+        cfg = GroundTruthConfig(disk_mesh_size=a.disk_mesh_size, dt=a.dt)
+        if a.cycles:
+            cfg.cycles = tuple(int(c) for c in a.cycles.split(","))
         if a.evals_per_cycle:
             cfg.evals_per_cycle = a.evals_per_cycle
         r = optimize_design(a.design, cfg)

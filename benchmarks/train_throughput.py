@@ -199,8 +199,7 @@ def main() -> None:
             sim_only = end_to_end(args, modes[-1] == "batched", updates=False)
             rate = sac_updates_per_s(preset(args.preset).sac.batch_size, args.updates)
             out["without_updates"] = sim_only
-            out["learner_share_of_wall"] = 1 - last["wall_s"] / sim_only["wall_s"] * (
-                sim_only["transitions"] / last["transitions"])
+            out["learner_share_of_wall"] = 1 - sim_only["wall_s"] / last["wall_s"]
             out["sac_updates_per_s"] = rate
             out["paper_preset_projected_hours"] = project(sim_only, rate, os.cpu_count())
         print(json.dumps(out, indent=2))
