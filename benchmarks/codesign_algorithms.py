@@ -11,6 +11,10 @@ paper post hoc: each training run's ``episodes.csv`` replayed (one run per seed)
 the first simulated second at which the best ground-truth design was the incumbent; an incumbent
 chosen by short-episode returns can move away from it again) and writes
 ``DIR/codesign_algorithms.json`` and ``DIR/codesign_algorithms.png``.
+
+    python benchmarks/codesign_algorithms.py --groundtruth GT --merge DIR1 DIR2 ... --out DIR
+
+merges results computed separately (e.g. one algorithm per process) into one JSON and plot.
 """
 
 from __future__ import annotations
@@ -68,6 +72,11 @@ def compare(gt: str | Path, algorithms, seeds: int, budget_seconds: float, runs=
         tr = run_algorithm(algo, None, gt_cm, budget_seconds)
         tr["seed"], tr["run"] = i, str(run)
         traces.setdefault("gibbs-sac", []).append(tr)
+    return summarize(str(gt), len(designs), best_cm, budget_seconds, traces)
+
+
+def summarize(gt: str, n_designs: int, best_cm: float, budget_seconds: float, traces: dict) -> dict:
+    """The result of :func:`compare` from its traces (``algorithm -> [trace per seed]``)."""
     summary = {}
     for name, trs in traces.items():
         final = np.array([t["gt_cm"][-1] if t["gt_cm"] else np.nan for t in trs], float)
@@ -80,8 +89,22 @@ def compare(gt: str | Path, algorithms, seeds: int, budget_seconds: float, runs=
                          "final_regret_cm_mean": float(best_cm - np.nanmean(final)),
                          "sim_seconds": [t["sim_seconds"][-1] if t["sim_seconds"] else 0.0 for t in trs],
                          "first_sim_seconds_best_design_chosen": reach}
-    return {"groundtruth": str(gt), "designs": len(designs), "best_gt_cm": best_cm,
+    return {"groundtruth": gt, "designs": n_designs, "best_gt_cm": best_cm,
             "budget_seconds": budget_seconds, "summary": summary, "traces": traces}
+
+
+def merge(paths) -> dict:
+    """One result from several ``codesign_algorithms.json`` of the same ground truth (e.g. one
+    algorithm per process)."""
+    parts = [json.loads((Path(p) / "codesign_algorithms.json").read_text()) for p in paths]
+    traces: dict = {}
+    for part in parts:
+        if (part["groundtruth"], part["best_gt_cm"]) != (parts[0]["groundtruth"], parts[0]["best_gt_cm"]):
+            raise ValueError("results of different ground truths cannot be merged")
+        for name, trs in part["traces"].items():
+            traces.setdefault(name, []).extend(trs)
+    return summarize(parts[0]["groundtruth"], parts[0]["designs"], parts[0]["best_gt_cm"],
+                     max(p["budget_seconds"] for p in parts), traces)
 
 
 def _no_nan(x):
@@ -136,7 +159,16 @@ def main(argv=None) -> int:
     p.add_argument("--evals-per-design", type=int, default=24, help="random search: CMA-ES episodes per design")
     p.add_argument("--cycles", default="3,4")
     p.add_argument("--out", default="codesign_algorithms")
+    p.add_argument("--merge", nargs="+", metavar="DIR", help="merge earlier results (their --out folders) instead")
     a = p.parse_args(argv)
+    if a.merge:
+        res = merge(a.merge)
+        out = Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
+        plot(res, out / "codesign_algorithms.png")
+        (out / "codesign_algorithms.json").write_text(json.dumps(_no_nan(res), indent=1) + "\n")
+        print(json.dumps({k: v for k, v in _no_nan(res).items() if k != "traces"}, indent=2))
+        return 0
     try:
         if a.seeds < 1 or a.budget_seconds <= 0:
             raise ValueError("--seeds must be >= 1 and --budget-seconds > 0")

@@ -120,3 +120,12 @@ def test_benchmark_compare_and_plot(tmp_path):
     assert res["summary"]["gibbs-sac"]["final_gt_cm_mean"] == GT[BEST]
     bench.plot(res, tmp_path / "p.png")
     assert (tmp_path / "p.png").stat().st_size > 1000
+    # results computed in separate processes merge into the same summary
+    import json
+
+    for name in ("random", "tpe"):
+        part = {**res, "traces": {name: res["traces"][name]}}
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "codesign_algorithms.json").write_text(json.dumps(part))
+    merged = bench.merge([tmp_path / "random", tmp_path / "tpe"])
+    assert merged["summary"]["random"] == res["summary"]["random"] and set(merged["summary"]) == {"random", "tpe"}

@@ -17,6 +17,7 @@ import pytest
 
 from softcrawl.cli import main
 from softcrawl.codesign.config import override, preset
+from helpers import restored_learner
 
 
 class Evil:
@@ -203,18 +204,8 @@ def test_3_corrupt_latest_falls_back_to_the_previous_one(run, capsys):
 
 def test_3_disk_full_while_checkpointing_keeps_the_previous_latest(run, monkeypatch):
     import softcrawl.codesign.run as run_mod
-    from softcrawl.codesign.factory import make_sampler, make_vec_env
-    from softcrawl.codesign.sac import make_sac
 
-    r = run_mod.Run(run)
-    cfg = r.read_config()
-    sampler = make_sampler(cfg)
-    venv = make_vec_env(cfg, sampler)
-    try:
-        model = make_sac(venv, cfg.sac, seed=cfg.seed)
-        r.load_checkpoint(r.latest_checkpoint(), model, sampler)
-    finally:
-        venv.close()
+    model, sampler, r = restored_learner(run)
     model.num_timesteps = 200
 
     def full(*a, **k):

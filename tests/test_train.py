@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from softcrawl.codesign.config import PRESETS, SACConfig, TrainConfig, override, preset
+from helpers import restored_learner
 
 
 def test_presets_and_overrides():
@@ -100,7 +101,7 @@ def test_kill_and_resume(tmp_path):
 
     assert Run(run).read_checkpoint_state(latest_checkpoint(run))["n_updates"] == 160 - 40
     # truncation at the time limit is bootstrapped: stored as done with timeout, sampled as not done
-    rb = _restored_replay_buffer(run)
+    rb = restored_learner(run)[0].replay_buffer
     assert rb.dones.sum() > 0 and np.all(rb.timeouts[rb.dones > 0] == 1)
     assert float(rb.sample(64).dones.max()) == 0.0
     assert (run / "logs" / "progress-0.csv").exists()  # the killed part's SB3 log is kept
@@ -145,24 +146,6 @@ def test_kill_and_resume(tmp_path):
         write_report(run, baseline=sweep, simulate=False)
     assert (run / "logs" / "progress.csv").exists()
     assert any(p.name.startswith("events.out.tfevents") for p in (run / "logs").iterdir())
-
-
-def _restored_replay_buffer(run):
-    """The replay buffer of the run's latest checkpoint, restored into a freshly built learner."""
-    from softcrawl.codesign.factory import make_sampler, make_vec_env
-    from softcrawl.codesign.run import Run
-    from softcrawl.codesign.sac import make_sac
-
-    r = Run(run)
-    cfg = r.read_config()
-    sampler = make_sampler(cfg)
-    venv = make_vec_env(cfg, sampler)
-    try:
-        model = make_sac(venv, cfg.sac, seed=cfg.seed)
-        r.load_checkpoint(r.latest_checkpoint(), model, sampler)
-    finally:
-        venv.close()
-    return model.replay_buffer
 
 
 def test_hold_matches_integer_step_schedule():

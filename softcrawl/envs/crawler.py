@@ -263,30 +263,15 @@ class CrawlerEnv(gym.Env):
     def step(self, action):
         """Apply one action for ``steps_per_action`` steps; returns
         ``(obs, reward_cm, terminated, truncated, info)``."""
-        if self.episode is None:
-            raise RuntimeError("call reset() before step()")
-        a = np.asarray(action, dtype=np.float32).reshape(-1)
-        if a.shape != (3,) or not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be 3 finite numbers in [-1, 1], got {action!r}")
-        a = np.clip(a, -1.0, 1.0)
-        kpa = action_to_kpa(a)
-        before = self._displacement()
-        if self.history:
-            self._hist[1:] = self._hist[:-1].copy()
-            self._hist[0] = a
-        if not self._dead:
+        kpa = self.begin_action(action)
+        error = None
+        if kpa is not None:
             try:
                 for _ in range(self.steps_per_action):
                     self.episode.step(kpa)
             except SimulationDiverged as exc:
-                self._dead, self._reason = True, str(exc)
-        self._next_action()
-        reward = self._displacement() - before
-        if not math.isfinite(reward):
-            reward = 0.0
-        terminated = self._dead
-        truncated = (not terminated) and self._k >= self.n_actions
-        return self._obs(), float(reward), terminated, truncated, self._info(kpa)
+                error = exc
+        return self.end_action(error)
 
     # -- stepping driven from outside (softcrawl.envs.batch: many envs' robots in one batch) ------
     def begin_action(self, action) -> np.ndarray | None:

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 import cloudpickle
 import numpy as np
 
-from softcrawl.envs.vec import EnvBackend, SerialBackend
+from softcrawl.envs.vec import ChunkedBackend, SerialBackend
 
 #: Environment of Ray workers: one BLAS/OpenMP thread (parallelism comes from processes).
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -112,7 +112,7 @@ class _EnvChunk:
         self.backend.close()
 
 
-class RayBackend(EnvBackend):
+class RayBackend(ChunkedBackend):
     """Envs spread over ``n_actors`` Ray actors (contiguous chunks).
 
     Args:
@@ -135,12 +135,9 @@ class RayBackend(EnvBackend):
         self._ray = ray
         cpus = int(ray.cluster_resources().get("CPU", 1))
         n_actors = max(1, min(n, n_actors or cpus))
-        bounds = np.linspace(0, n, n_actors + 1).round().astype(int)
-        self._chunks = [list(range(bounds[w], bounds[w + 1])) for w in range(n_actors)]
-        self._owner = {i: (w, j) for w, chunk in enumerate(self._chunks) for j, i in enumerate(chunk)}
+        self._set_chunks(n, n_actors)
         cls = ray.remote(num_cpus=1, max_restarts=max_restarts, max_task_retries=0)(_EnvChunk)
         self.actors = [cls.remote(cloudpickle.dumps([env_fns[i] for i in chunk])) for chunk in self._chunks]
-        self.num_envs = n
         self.restarts, self.max_restarts = 0, max_restarts
         self._design: list = [None] * n
         self._rng: list = [None] * n  # env RNG states after their last reset
@@ -190,22 +187,8 @@ class RayBackend(EnvBackend):
                 raise RuntimeError(f"actor {w} kept dying")
         return [out[w] for w in workers]
 
-    def _by_worker(self, indices):
-        groups: dict[int, list[tuple[int, int]]] = {}
-        for pos, i in enumerate(indices):
-            w, j = self._owner[int(i)]
-            groups.setdefault(w, []).append((pos, j))
-        return groups
-
-    def _scatter(self, indices, method: str, make_args) -> list:
-        groups = self._by_worker(indices)
-        workers = list(groups)
-        outs = self._gather(workers, lambda w: getattr(self.actors[w], method).remote(*make_args(groups[w])))
-        result: list = [None] * len(indices)
-        for w, out in zip(workers, outs):
-            for (pos, _), o in zip(groups[w], out if out is not None else [None] * len(groups[w])):
-                result[pos] = o
-        return result
+    def _call(self, workers, method, args_of):
+        return self._gather(workers, lambda w: getattr(self.actors[w], method).remote(*args_of(w)))
 
     # EnvBackend -------------------------------------------------------------------------------
     def reset(self, indices, designs, seeds):
@@ -223,15 +206,6 @@ class RayBackend(EnvBackend):
         for i, a in enumerate(actions):
             self._actions[i].append(a.copy())
         return [r for out in outs for r in out]
-
-    def get_attr(self, name, indices):
-        return self._scatter(indices, "get_attr", lambda g: (name, [j for _, j in g]))
-
-    def set_attr(self, name, value, indices):
-        self._scatter(indices, "set_attr", lambda g: (name, value, [j for _, j in g]))
-
-    def call(self, method, args, kwargs, indices):
-        return self._scatter(indices, "call", lambda g: (method, args, kwargs, [j for _, j in g]))
 
     def actor_pids(self) -> list[int]:
         """Process ids of the actors (tests kill one)."""

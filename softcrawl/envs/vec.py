@@ -101,6 +101,53 @@ class SerialBackend(EnvBackend):
             env.close()
 
 
+class ChunkedBackend(EnvBackend):
+    """Envs in contiguous chunks, one chunk per worker (a process or a Ray actor): the chunking,
+    and ``reset`` / ``get_attr`` / ``set_attr`` / ``call`` sent to the workers that own the
+    given envs. Subclasses implement :meth:`_call` (and ``step``, ``close``)."""
+
+    def _set_chunks(self, n: int, n_workers: int) -> None:
+        self.num_envs = n
+        bounds = np.linspace(0, n, n_workers + 1).round().astype(int)
+        self._chunks = [list(range(bounds[w], bounds[w + 1])) for w in range(n_workers)]
+        self._owner = {i: (w, j) for w, chunk in enumerate(self._chunks) for j, i in enumerate(chunk)}
+
+    def _call(self, workers: Sequence[int], method: str, args_of: Callable[[int], tuple]) -> list:
+        """``method(*args_of(w))`` on each worker ``w`` of ``workers``; their results in order."""
+        raise NotImplementedError  # pragma: no cover
+
+    def _by_worker(self, indices: Sequence[int]) -> dict[int, list[tuple[int, int]]]:
+        """``worker -> [(position in indices, local index)]``."""
+        groups: dict[int, list[tuple[int, int]]] = {}
+        for pos, i in enumerate(indices):
+            w, j = self._owner[int(i)]
+            groups.setdefault(w, []).append((pos, j))
+        return groups
+
+    def _scatter(self, indices, method: str, make_args: Callable[[list[tuple[int, int]]], tuple]) -> list:
+        groups = self._by_worker(indices)
+        workers = list(groups)
+        outs = self._call(workers, method, lambda w: make_args(groups[w]))
+        result: list = [None] * len(indices)
+        for w, out in zip(workers, outs):
+            for (pos, _), o in zip(groups[w], out if out is not None else [None] * len(groups[w])):
+                result[pos] = o
+        return result
+
+    def reset(self, indices, designs, seeds):
+        return self._scatter(indices, "reset", lambda g: ([j for _, j in g], [designs[p] for p, _ in g],
+                                                          [seeds[p] for p, _ in g]))
+
+    def get_attr(self, name, indices):
+        return self._scatter(indices, "get_attr", lambda g: (name, [j for _, j in g]))
+
+    def set_attr(self, name, value, indices):
+        self._scatter(indices, "set_attr", lambda g: (name, value, [j for _, j in g]))
+
+    def call(self, method, args, kwargs, indices):
+        return self._scatter(indices, "call", lambda g: (method, args, kwargs, [j for _, j in g]))
+
+
 #: Default of :class:`SubprocessBackend`'s ``batched``: workers step their envs' reduced robots as
 #: one batch (:class:`softcrawl.envs.batch.BatchedBackend`; same transitions, issue 18).
 BATCHED_WORKERS = True
@@ -147,7 +194,7 @@ def _worker(remote, parent_remote, payload: bytes, batched: bool = False) -> Non
         remote.close()
 
 
-class SubprocessBackend(EnvBackend):
+class SubprocessBackend(ChunkedBackend):
     """Envs spread over ``n_workers`` processes (contiguous chunks), talked to through pipes.
 
     Args:
@@ -176,10 +223,7 @@ class SubprocessBackend(EnvBackend):
         if start_method is None:
             start_method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
         ctx = mp.get_context(start_method)
-        self.num_envs = n
-        bounds = np.linspace(0, n, n_workers + 1).round().astype(int)
-        self._chunks = [list(range(bounds[w], bounds[w + 1])) for w in range(n_workers)]
-        self._owner = {i: (w, j) for w, chunk in enumerate(self._chunks) for j, i in enumerate(chunk)}
+        self._set_chunks(n, n_workers)
         self.remotes, self.processes = [], []
         for chunk in self._chunks:
             remote, work_remote = ctx.Pipe()
@@ -192,7 +236,7 @@ class SubprocessBackend(EnvBackend):
             self.remotes.append(remote)
             self.processes.append(proc)
         self._closed = False
-        self.observation_space, self.action_space = self._ask([0], "spaces", lambda j: None)[0]
+        self.observation_space, self.action_space = self._call([0], "spaces", lambda j: None)[0]
 
     def _recv(self, w: int):
         status, out = self.remotes[w].recv()
@@ -200,32 +244,10 @@ class SubprocessBackend(EnvBackend):
             raise out
         return out
 
-    def _ask(self, workers: Sequence[int], cmd: str, arg_of: Callable[[int], object]) -> list:
+    def _call(self, workers: Sequence[int], cmd: str, arg_of: Callable[[int], object]) -> list:
         for w in workers:
             self.remotes[w].send((cmd, arg_of(w)))
         return [self._recv(w) for w in workers]
-
-    def _by_worker(self, indices: Sequence[int]) -> dict[int, list[tuple[int, int]]]:
-        """``worker -> [(position in indices, local index)]``."""
-        groups: dict[int, list[tuple[int, int]]] = {}
-        for pos, i in enumerate(indices):
-            w, j = self._owner[int(i)]
-            groups.setdefault(w, []).append((pos, j))
-        return groups
-
-    def _scatter(self, indices, cmd: str, make_arg: Callable[[list[tuple[int, int]]], object]) -> list:
-        groups = self._by_worker(indices)
-        workers = list(groups)
-        outs = self._ask(workers, cmd, lambda w: make_arg(groups[w]))
-        result: list = [None] * len(indices)
-        for w, out in zip(workers, outs):
-            for (pos, _), o in zip(groups[w], out if out is not None else [None] * len(groups[w])):
-                result[pos] = o
-        return result
-
-    def reset(self, indices, designs, seeds):
-        return self._scatter(indices, "reset", lambda g: ([j for _, j in g], [designs[p] for p, _ in g],
-                                                          [seeds[p] for p, _ in g]))
 
     def step(self, actions):
         self.step_send(actions)
@@ -238,15 +260,6 @@ class SubprocessBackend(EnvBackend):
 
     def step_recv(self):
         return [r for w in range(len(self._chunks)) for r in self._recv(w)]
-
-    def get_attr(self, name, indices):
-        return self._scatter(indices, "get_attr", lambda g: (name, [j for _, j in g]))
-
-    def set_attr(self, name, value, indices):
-        self._scatter(indices, "set_attr", lambda g: (name, value, [j for _, j in g]))
-
-    def call(self, method, args, kwargs, indices):
-        return self._scatter(indices, "call", lambda g: (method, args, kwargs, [j for _, j in g]))
 
     def close(self):
         if self._closed:
