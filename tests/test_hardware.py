@@ -372,21 +372,32 @@ def test_failsafe_hung_call_real_clock_watchdog_thread(tmp_path):
     sim = SimRig()
     sim.rig.clock = MonotonicClock()
     sim.rig.simulated = False  # run the watchdog thread
-    sim.rig.settings = type(sim.rig.settings)(watchdog_s=0.1, sample_hz=20.0, control_period_s=0.2)
+    # a watchdog of 0.5 s: a shorter one can trip on an ordinary loop iteration of a loaded machine,
+    # and the hang then falls into the fail-safe shutdown (SIGINT ignored there by design)
+    sim.rig.settings = type(sim.rig.settings)(watchdog_s=0.5, sample_hz=20.0, control_period_s=0.2)
     orig = sim.rig.sensors.read_kpa
     calls = {"n": 0}
 
     def hang():
         calls["n"] += 1
         if calls["n"] == 4:
-            time.sleep(5.0)  # hung I2C read; interrupt_main lands here
+            time.sleep(10.0)  # hung I2C read; the watchdog thread's SIGINT lands here after 2 x 0.5 s
         return orig()
 
     sim.rig.sensors.read_kpa = hang
-    t = time.monotonic()
-    res = deploy(sim.rig, GAIT[:3], tmp_path / "d", progress=False)
-    assert time.monotonic() - t < 2.0
-    _assert_failsafe(sim, res, tmp_path / "d", "watchdog")
+    # the caller ignores SIGINT, as a background job of a non-interactive shell does (regression: the
+    # watchdog's SIGINT was then ignored too and the hung call ran on)
+    import signal
+
+    caller = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        t = time.monotonic()
+        res = deploy(sim.rig, GAIT[:3], tmp_path / "d", progress=False)
+        assert time.monotonic() - t < 5.0
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # the caller's handler is back
+    finally:
+        signal.signal(signal.SIGINT, caller)
+    _assert_failsafe(sim, res, tmp_path / "d", "watchdog: the loop hung inside a call")
 
 
 # -- CLI --------------------------------------------------------------------------------------------

@@ -689,9 +689,11 @@ def test_9_ctrl_c_stops_worker_processes_cleanly(tmp_path):
     import time
 
     (tmp_path / "pool.py").write_text(_POOL_SCRIPT)
+    # a terminal's Ctrl-C: SIGINT at its default even when the test suite itself runs as a background
+    # job of a non-interactive shell (which ignores SIGINT, and exec keeps that)
     proc = subprocess.Popen([sys.executable, str(tmp_path / "pool.py"), str(tmp_path / "started-")],
                             cwd=tmp_path, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120
         while len(list(tmp_path.glob("started-*"))) < 2 and time.monotonic() < deadline:

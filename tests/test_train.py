@@ -128,7 +128,11 @@ def test_kill_and_resume(tmp_path):
     assert len(sweep["phases"]) == 12 and sweep["settings"]["duration_s"] == pytest.approx(0.4)
     assert (report / "baseline_best" / "trajectory.png").exists()
     assert f"best phase lag: {sweep['best']['phase_deg']:g}°" in summary
-    assert len(_rows(run / "sessions.csv")) == 1  # the killed call never finished; the resume did
+    # the killed call keeps its wall time up to its last checkpoint (its row is written before each
+    # checkpoint); the resume's row starts at that checkpoint
+    sessions = _rows(run / "sessions.csv")
+    assert len(sessions) == 2 and sessions[0][0] == "0" and int(sessions[0][1]) >= killed_at
+    assert sessions[1][:2] == [str(killed_at), "160"] and float(sessions[0][2]) > 0
     # the report compares with the expert baseline's phase sweep when given one
     from softcrawl.codesign.report import write_report
 

@@ -20,9 +20,9 @@ the steps; ``--set env.dt=0.01 env.steps_per_action=100`` restores the reference
 * ``crawl``: the paper's episode (20 actions of 1 s) on the 280 three-legged designs with the
   coarse 25 mm disk, 16 envs in 2 worker processes, 64K transitions (3,200 episodes, about 11
   per design), one update per 2 transitions (batch 256), the entropy schedule of the paper
-  scaled to the run: 17.5 transitions/s end to end on the quiet 2-core VM (learner 6% of the
-  wall time), about 1 h 10 min of training.
-* ``demo``: the README's first command, about 15 min on 2 cores: the same simulation as
+  scaled to the run: 15.9 transitions/s end to end on the quiet 2-core VM (19.0 without
+  updates: the overlapped learner costs 16% of the wall time), 64 min of training for seed 0.
+* ``demo``: the README's first command, 9 min on the quiet 2-core VM: the same simulation as
   ``crawl`` (20 s episodes of 1 s actions, 280 three-legged designs), 8 envs in 2 workers,
   8K transitions (400 episodes), one update per 2 transitions (batch 128).
 * ``smoke``: CI, < 1 min: the reduced model at 0.01 s, 2 envs in-process, 2 steps per action,

@@ -8,7 +8,8 @@ it; nothing else builds a run's paths by hand. Layout::
     │                              (written once the run has started: config valid, envs built)
     ├── episodes.csv               t (transitions), design, return_cm, diverged; one row per episode
     ├── distribution.csv           t, beta, entropy, target, effective_target, floor, clamped, top designs
-    ├── sessions.csv               first step, last step, wall seconds, version; one row per train/resume call
+    ├── sessions.csv               first step, last step, wall seconds, version; one row per train/resume call,
+    │                              updated at each of its checkpoints (a killed call keeps its time)
     ├── domain.csv                 domain-randomized runs only: t, design, return, diverged, the draw's values
     ├── snapshots/t-XXXXXXXXXX.npz p, scores (float32), tried (bool), t of the design distribution
     ├── logs/                      SB3 logger: progress.csv (progress-<k>.csv: earlier calls), TensorBoard events
@@ -43,6 +44,7 @@ import csv
 import dataclasses
 import errno
 import hashlib
+import io
 import json
 import os
 import random
@@ -186,10 +188,17 @@ class Run:
             return True
         return bool(self.snapshots()) or bool(self._step_dirs()) or (self.checkpoints_dir / "latest").exists()
 
-    def append_session(self, first_step: int, last_step: int, wall_seconds: float) -> None:
-        """One row of ``sessions.csv``."""
-        with open(self.sessions_csv, "a", newline="") as f:
-            csv.writer(f).writerow([first_step, last_step, f"{wall_seconds:.1f}", __version__])
+    def record_session(self, first_step: int, last_step: int, wall_seconds: float, replace_last: bool) -> None:
+        """Write this train/resume call's row of ``sessions.csv`` (atomically): appended at the
+        call's first checkpoint, then replaced (``replace_last``) at each later one and at its end,
+        so a killed call keeps its wall time up to its last checkpoint."""
+        rows = [row for _, row in _csv_rows(self.sessions_csv)] if self.sessions_csv.exists() else []
+        if replace_last and rows:
+            rows.pop()
+        rows.append([str(first_step), str(last_step), f"{wall_seconds:.1f}", __version__])
+        buf = io.StringIO()
+        csv.writer(buf, lineterminator="\n").writerows(rows)
+        _atomic_write_text(self.sessions_csv, buf.getvalue())
 
     def wall_seconds(self) -> float:
         """Training wall time over all train/resume calls (``sessions.csv``), s (NaN if none)."""

@@ -42,13 +42,21 @@ class CodesignCallback(BaseCallback):
     """Per step: progress bar, episode rows, codesign/* scalars, snapshots; checkpoints at the
     start of the next rollout, i.e. after the step's gradient updates."""
 
-    def __init__(self, cfg: TrainConfig, run: Run, sampler: GibbsDesignSampler, progress: bool = True):
+    def __init__(self, cfg: TrainConfig, run: Run, sampler: GibbsDesignSampler, progress: bool = True,
+                 wall_start: float | None = None):
         super().__init__()
         self.cfg, self.run, self.sampler, self.progress = cfg, run, sampler, progress
         self.bar = None
-        self.t_start = time.perf_counter()
+        self.t_start = time.perf_counter() if wall_start is None else wall_start
         self.start_steps = 0
         self.checkpoint_due = False
+        self.session_recorded = False
+
+    def record_session(self) -> None:
+        """This call's ``sessions.csv`` row, up to the current step (see :meth:`Run.record_session`)."""
+        self.run.record_session(self.start_steps, self.num_timesteps, time.perf_counter() - self.t_start,
+                                replace_last=self.session_recorded)
+        self.session_recorded = True
 
     def _on_training_start(self) -> None:
         self.start_steps = self.num_timesteps
@@ -108,6 +116,7 @@ class CodesignCallback(BaseCallback):
             self.dist_file.flush()
             self.domain_log.flush()
         self.model.flush()  # deferred (overlapped) updates of the steps done so far
+        self.record_session()  # before the checkpoint: a kill after it never loses the call's time
         self.run.save_checkpoint(self.model, self.sampler, self.cfg.keep_checkpoints)
         self.checkpoint_due = False
 
@@ -201,7 +210,7 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
             run.forget_after(model.num_timesteps)
         model.set_logger(configure(str(run.logs_dir), ["csv", "tensorboard"]))
         start = model.num_timesteps
-        callback = CodesignCallback(cfg, run, sampler, progress)
+        callback = CodesignCallback(cfg, run, sampler, progress, wall_start=wall)
         remaining = cfg.total_steps - start
         if remaining > 0:
             model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=ckpt is None and not resume,
@@ -213,7 +222,7 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
                 run.save_checkpoint(model, sampler, cfg.keep_checkpoints)
         result = TrainResult(run.path, model.num_timesteps, time.perf_counter() - wall, model._n_updates,
                              model.learner_seconds)
-        run.append_session(start, result.steps, result.wall_seconds)
+        run.record_session(start, result.steps, result.wall_seconds, replace_last=callback.session_recorded)
     finally:
         venv.close()
     return result

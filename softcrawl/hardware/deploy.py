@@ -138,6 +138,8 @@ def deploy(rig, actions, out: str | Path, meta: dict | None = None, progress: bo
     w = csv.writer(f)
     w.writerow(DEPLOY_COLUMNS)
     wd = None
+    main_thread = threading.current_thread() is threading.main_thread()  # signal handlers: main thread only
+    caller_sigint = signal.getsignal(signal.SIGINT) if main_thread else None
     last = {"cmd": np.zeros(3), "set_v": np.zeros(3), "step": -1}
 
     def row(meas_v, sensed, overrun=0, event="", t_abs=None):
@@ -153,8 +155,12 @@ def deploy(rig, actions, out: str | Path, meta: dict | None = None, progress: bo
 
             bar = tqdm(total=n, desc=f"deploy on {rig.name}", unit="action")
         idn = rig.start()
-        wd = _Watchdog(clock, s.watchdog_s, thread=not getattr(rig, "simulated", False)
-                       and threading.current_thread() is threading.main_thread())
+        watch_thread = not getattr(rig, "simulated", False) and main_thread
+        if watch_thread:
+            # the watchdog thread breaks a hung call with SIGINT: it must raise KeyboardInterrupt even
+            # where the caller ignores SIGINT (a background job of a non-interactive shell does)
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        wd = _Watchdog(clock, s.watchdog_s, thread=watch_thread)
         t0 = clock.now()
         disagree_since = None
         for k in range(n):
@@ -211,9 +217,8 @@ def deploy(rig, actions, out: str | Path, meta: dict | None = None, progress: bo
         status, reason = "aborted", f"exception: {type(exc).__name__}: {one_line(exc)}"
     finally:
         # a further Ctrl-C must not interrupt the shutdown: ignore SIGINT until the lines are vented
-        old_sigint = None
-        if threading.current_thread() is threading.main_thread():
-            old_sigint = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if main_thread:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         if wd is not None:
             wd.stop()
         if bar is not None:
@@ -221,8 +226,8 @@ def deploy(rig, actions, out: str | Path, meta: dict | None = None, progress: bo
         try:
             fail_safe_done = rig.fail_safe()
         finally:
-            if old_sigint is not None:
-                signal.signal(signal.SIGINT, old_sigint)
+            if main_thread:  # the caller's handler (None: one not set from Python; the default then)
+                signal.signal(signal.SIGINT, signal.default_int_handler if caller_sigint is None else caller_sigint)
         last["cmd"], last["set_v"], last["step"] = np.zeros(3), np.full(3, np.nan), -1  # step -1: not an action
         event = ("fail-safe: " + reason if reason else "completed") + "; " + "; ".join(fail_safe_done)
         row(np.full(3, np.nan), np.full(3, np.nan), 0, event)
