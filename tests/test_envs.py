@@ -172,3 +172,42 @@ def test_vec_env(backend):
             be.reset([2], [(1, 1, 0, 0, 0, 0, 0, 0)], [None])
     finally:
         venv.close()
+
+
+def test_envs_of_a_process_share_one_bounded_robot_cache():
+    """Training's envs (``share_robots``) share their process's robots and settled states; the
+    cache holds one robot per env plus ``max_cached`` spare (regression: 16 robots per env, up to
+    768 per worker of the paper preset)."""
+    from softcrawl.envs.robot_cache import RobotCache, process_cache
+
+    factory = BuildRobot(COARSE)
+    a, b = make_env(robot_factory=factory, share_robots=True, max_cached=1), make_env(
+        robot_factory=BuildRobot(COARSE), share_robots=True, max_cached=1)
+    assert a._robots is b._robots is process_cache(factory, a.settling, 1) and a._robots.capacity >= 3
+    a.reset(seed=0, options={"design": PAPER_BEST_DESIGN})
+    _, info = b.reset(seed=0, options={"design": PAPER_BEST_DESIGN})
+    assert b.episode.robot is a.episode.robot and b.episode.settled is a.episode.settled  # settled once
+    assert info["settle_steps"] == a.episode.settled.steps
+    assert make_env(robot_factory=factory)._robots is not a._robots  # private by default
+
+    built = []
+    cache = RobotCache(spare=1).attach().attach()  # 2 envs + 1 spare
+
+    def build(design):
+        built.append(design)
+        return object()
+
+    for d in ("a", "b", "c", "a", "d"):
+        cache.fetch(d, build)
+    assert list(cache) == ["c", "a", "d"] and built == ["a", "b", "c", "d"]  # LRU, at most 3
+    robot = cache["a"][0]
+    cache.keep_settled("a", robot, "rested")
+    cache.keep_settled("c", object(), "stale")  # not the cached robot: ignored
+    assert cache["a"] == (robot, "rested") and cache["c"][1] is None
+    cache.detach()  # an env closed: 1 env + 1 spare
+    assert list(cache) == ["a", "d"]
+    with pytest.raises(ValueError, match="spare"):
+        RobotCache(0)
+    n = a._robots.envs
+    a.close()
+    assert b._robots.envs == n - 1

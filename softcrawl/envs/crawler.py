@@ -28,8 +28,9 @@ when none is given).
 
 Robots are built with an injectable ``robot_factory(design) -> Robot`` (default
 :class:`BuildRobot`, the full-order model) and cached per design with their settled state
-(LRU, ``max_cached``: settling to rest costs once per design, not per episode); each episode
-gets a fresh solver, so the same design and actions give the same return.
+(LRU, ``max_cached``: settling to rest costs once per design, not per episode; the envs of a
+training worker share one cache, :mod:`softcrawl.envs.robot_cache`); each episode gets a fresh
+solver, so the same design and actions give the same return.
 
 **Domain randomization** (``randomize``, :class:`~softcrawl.robot.domain.DomainRanges`): at
 every reset, after the design, a :class:`~softcrawl.robot.domain.DomainSample` is drawn from the
@@ -49,7 +50,6 @@ and worker).
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -58,6 +58,7 @@ import gymnasium as gym
 import numpy as np
 
 from softcrawl.design.space import Design, canonical_designs, one_hot, validate_design
+from softcrawl.envs.robot_cache import RobotCache, process_cache
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.robot.actuation import P_MAX_KPA, PressureCalibration
 from softcrawl.robot.assembly import Robot, RobotConfig, build_robot
@@ -103,9 +104,13 @@ class CrawlerEnv(gym.Env):
         designs: designs drawn at reset when none is given (default: all canonical designs).
         settling: the rest rule before each episode (:class:`Settling`; not counted).
         calibration: real-to-sim pressure map (default ``PressureCalibration()``).
-        max_cached: robots kept per env (LRU).
+        max_cached: robots kept beyond the one in use (LRU, :class:`RobotCache`).
         randomize: per-episode domain randomization ranges (None or all-None ranges: off;
             module docstring).
+        share_robots: keep robots in the process's cache for this robot factory and settling
+            rule, shared with every other env of the process that asks for it
+            (:func:`softcrawl.envs.robot_cache.process_cache`; training's envs do), instead of
+            a cache of this env's own.
 
     Attributes:
         nominal_steps_per_action: simulator steps per action without control-period dilation.
@@ -124,7 +129,7 @@ class CrawlerEnv(gym.Env):
                  n_actions: int = N_ACTIONS, history: int = HISTORY, observe_state: bool = False,
                  designs: Sequence[Sequence[int]] | None = None, settling: Settling = Settling(),
                  calibration: PressureCalibration | None = None, max_cached: int = 16,
-                 randomize: DomainRanges | None = None):
+                 randomize: DomainRanges | None = None, share_robots: bool = False):
         super().__init__()
         for name, v in (("steps_per_action", steps_per_action), ("n_actions", n_actions), ("max_cached", max_cached)):
             if int(v) != v or v < 1:
@@ -148,7 +153,8 @@ class CrawlerEnv(gym.Env):
         if not self.designs:
             raise ValueError("designs must not be empty")
         self.max_cached = int(max_cached)
-        self._robots: OrderedDict[Design, tuple[Robot, SettledState | None]] = OrderedDict()
+        self._robots = (process_cache(self.robot_factory, settling, self.max_cached) if share_robots
+                        else RobotCache(self.max_cached)).attach()
         n_hist = 3 * self.history
         low = np.concatenate([np.zeros(DESIGN_DIM), -np.ones(n_hist)]).astype(np.float32)
         high = np.ones(DESIGN_DIM + n_hist, np.float32)
@@ -179,12 +185,7 @@ class CrawlerEnv(gym.Env):
         cached robot of ``design``, starting from its cached settled state; with a domain
         ``sample``, on the randomized robot (settled anew if the sample is physical) with the
         sample's calibration and regulators."""
-        robot, settled = self._robots.pop(design, (None, None))
-        if robot is None:
-            robot = self.robot_factory(design)
-        self._robots[design] = (robot, settled)
-        while len(self._robots) > self.max_cached:
-            self._robots.popitem(last=False)
+        robot, settled = self._robots.fetch(design, self.robot_factory)
         if sample is None:
             return Episode(robot, self.calibration, self.settling, settled=settled)
         if sample.physical:
@@ -255,8 +256,8 @@ class CrawlerEnv(gym.Env):
         except SimulationDiverged as exc:
             self._dead, self._reason = True, f"settling diverged: {exc}"
         settled = self.episode.settled
-        if settled is not None and design in self._robots and self._robots[design][0] is self.episode.robot:
-            self._robots[design] = (self.episode.robot, settled)
+        if settled is not None:
+            self._robots.keep_settled(design, self.episode.robot, settled)
         self._settled_info = settled.as_dict() if settled is not None else {}
         return self._obs(), self._info()
 
@@ -309,6 +310,13 @@ class CrawlerEnv(gym.Env):
         terminated = self._dead
         truncated = (not terminated) and self._k >= self.n_actions
         return self._obs(), float(reward), terminated, truncated, self._info(self._action_kpa)
+
+    def close(self) -> None:
+        """Leave the robot cache (a shared one keeps its robots for the other envs)."""
+        if self._robots is not None:
+            self._robots.detach()
+            self._robots = None
+        super().close()
 
     def cached_robot(self, design) -> tuple[Robot, SettledState | None]:
         """The robot of ``design`` from this env's cache (built and cached if missing) and its
