@@ -42,12 +42,11 @@ class CodesignCallback(BaseCallback):
     """Per step: progress bar, episode rows, codesign/* scalars, snapshots; checkpoints at the
     start of the next rollout, i.e. after the step's gradient updates."""
 
-    def __init__(self, cfg: TrainConfig, run: Run, sampler: GibbsDesignSampler, progress: bool = True,
-                 wall_start: float | None = None):
+    def __init__(self, cfg: TrainConfig, run: Run, sampler: GibbsDesignSampler, progress: bool, wall_start: float):
         super().__init__()
         self.cfg, self.run, self.sampler, self.progress = cfg, run, sampler, progress
         self.bar = None
-        self.t_start = time.perf_counter() if wall_start is None else wall_start
+        self.t_start = wall_start  # time.perf_counter() when this train/resume call began
         self.start_steps = 0
         self.checkpoint_due = False
         self.session_recorded = False

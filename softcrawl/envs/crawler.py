@@ -330,4 +330,4 @@ class CrawlerEnv(gym.Env):
         this env's :attr:`settling`) for ``design``'s cached robot: :meth:`reset` starts from it."""
         design = validate_design(design)
         if design in self._robots:
-            self._robots[design] = (self._robots[design][0], settled)
+            self._robots.keep_settled(design, self._robots[design][0], settled)
