@@ -225,8 +225,10 @@ class ImplicitEulerSolver:
         loaded = state.contact_nodes[state.contact_impulses[:, 0] > 0] if len(state.contact_nodes) else near[:0]
         at = np.minimum(np.searchsorted(loaded, near), max(len(loaded) - 1, 0))  # loaded is sorted
         active = loaded[at] == near if len(loaded) else np.zeros(len(near), bool)
-        if not active.any():
-            active = gaps + h * v_free[near, 2] < 0
+        if not active.any():  # first touch: the deepest penetrating candidates, the rest grow in
+            pred = gaps + h * v_free[near, 2]
+            first = np.flatnonzero(pred < 0)
+            active[first[np.argsort(pred[first])[:MIN_CONTACT_GROWTH]]] = True
         n_att = len(m.attachments)
         nb = 3 * n_att
         drift = self._attach_drift @ state.x.ravel()  # attachment violation x_a - x_b
