@@ -11,7 +11,6 @@ from softcrawl.fem.state import Control
 from softcrawl.reduction.batch import BatchedReducedSolver
 from softcrawl.robot import RobotConfig, build_robot
 
-REDUCED = RobotConfig(model="reduced")
 #: 3, 4, 5 and 6 legs on different regulators.
 DESIGNS = [(1, 0, 0, 2, 0, 0, 3, 0), (1, 0, 2, 0, 2, 0, 1, 0), (0, 1, 3, 2, 0, 1, 2, 0), (1, 2, 3, 1, 2, 3, 0, 0)]
 
@@ -21,9 +20,10 @@ def pressures(robot: int, k: int) -> np.ndarray:
     return 30.0 * (1.0 - np.cos(0.05 * k + np.array([0.0, 2.0, 4.0]) + robot))
 
 
-@pytest.fixture(scope="module")
-def robots():
-    return [build_robot(d, REDUCED) for d in DESIGNS]
+@pytest.fixture(scope="module", params=["float64", "float32"])
+def robots(request):
+    """The designs' reduced robots, with the RID products in double or single precision."""
+    return [build_robot(d, RobotConfig(model="reduced", rid_dtype=request.param)) for d in DESIGNS]
 
 
 def solo(robot, index: int, steps: int, start: int = 0):
@@ -38,6 +38,7 @@ def solo(robot, index: int, steps: int, start: int = 0):
 def test_batched_trajectories_equal_single_robot_ones(robots):
     steps = 150  # lands within ~15 steps, then 1.35 s of pressurised contact
     batch = BatchedReducedSolver([r.make_solver() for r in robots])
+    assert batch._compiled is not None  # all robots' constraints in one compiled pass
     states = [r.model.rest_state() for r in robots]
     runs = [[] for _ in robots]
     for k in range(steps):

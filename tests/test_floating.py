@@ -2,10 +2,8 @@
 and agreement with the corotational full-order body."""
 
 import numpy as np
-import scipy.sparse as sp
 
 from softcrawl.fem.body import Body
-from softcrawl.fem.linalg import Factorization
 from softcrawl.fem.materials import LinearElastic
 from softcrawl.fem.model import Floor, Model
 from softcrawl.fem.solver import ImplicitEulerSolver, SolverSettings

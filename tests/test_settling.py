@@ -8,8 +8,8 @@ a one-sided design tips over in about 0.1 s and rests after about 0.5 s."""
 import numpy as np
 import pytest
 
-from softcrawl.envs import BuildRobot, CrawlerEnv
-from softcrawl.robot import Episode, RobotConfig, Settling, build_robot, run_episode, settle
+from softcrawl.envs import CrawlerEnv
+from softcrawl.robot import RobotConfig, Settling, build_robot, run_episode, settle
 
 ONE_SIDED = (0, 0, 1, 0, 2, 2, 0, 0)  # three legs at 112.5, 202.5, 247.5 deg: tips over
 CONFIG = RobotConfig(model="reduced", disk_mesh_size=25)

@@ -150,6 +150,24 @@ def test_kill_and_resume(tmp_path):
         write_report(run, baseline=sweep, simulate=False)
     assert (run / "logs" / "progress.csv").exists()
     assert any(p.name.startswith("events.out.tfevents") for p in (run / "logs").iterdir())
+    # `softcrawl report --groundtruth GT` places the chosen design in a ground truth (here one of
+    # the run's tried designs with made-up rewards: reward = the design's index among them)
+    from softcrawl.cli import main as cli_main
+    from softcrawl.codesign.groundtruth import DesignResult, GroundTruthConfig, PeriodicGait, run_groundtruth
+
+    tried = [tuple(row["design"]) for row in top_designs(run, 10**6)]
+    score = {d: float(i) for i, d in enumerate(tried)}
+    fake = lambda d, _cfg: DesignResult(tuple(d), score[tuple(d)], PeriodicGait.paper_cycle().to_dict(), 3, "step",
+                                        10, 2, 80.0, 0.1).to_dict()
+    run_groundtruth(tried, tmp_path / "gt", GroundTruthConfig(baseline_phases=()), executor="serial", task=fake,
+                    progress=False, refs=False)
+    assert cli_main(["report", str(run), "--groundtruth", str(tmp_path / "gt"), "--no-simulate"]) == 0
+    summary = (report / "summary.md").read_text()
+    numbers = json.loads((report / "summary.json").read_text())["regret"]
+    chosen = tuple(numbers["choice"]["design"])
+    assert "## Regret against the ground truth" in summary
+    assert numbers["placement"]["rank"] == len(tried) - tried.index(chosen)
+    assert numbers["placement"]["regret_cm"] == pytest.approx(len(tried) - 1 - score[chosen])
 
 
 def test_hold_matches_integer_step_schedule():

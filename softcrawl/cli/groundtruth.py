@@ -55,7 +55,7 @@ def _run(args: argparse.Namespace) -> int:
                                 cycles=tuple(int(c) for c in cycles), evals_per_cycle=args.evals_per_cycle,
                                 finalists=args.finalists, seed=args.seed, leg_mesh_size=args.leg_mesh_size,
                                 disk_mesh_size=args.disk_mesh_size, dt=args.dt, reduction=args.reduction,
-                                baseline_phases=_phases(args.baseline_phases)).validate()
+                                baseline_phases=_phases(args.baseline_phases), rid_dtype=args.rid_dtype).validate()
     s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
                         progress=not args.no_progress, ray_address=args.ray_address)
     best = s["best"][0] if s["best"] else None
@@ -96,6 +96,8 @@ def register(subparsers) -> None:
     p.add_argument("--disk-mesh-size", type=float, default=10.0, help="mm (10: paper preset, 25: demo)")
     p.add_argument("--dt", type=float, default=None, help="time step, s (default: the robot's default)")
     p.add_argument("--reduction", default=None, help="reduction file (default: shipped)")
+    p.add_argument("--rid-dtype", choices=("float64", "float32"), default="float32",
+                   help="precision of the reduced legs' RID products (default float32, validated)")
     p.add_argument("--baseline-phases", default="0:180:10",
                    help="expert-baseline lags swept, START:STOP:STEP or a list, degrees, or none")
     p.add_argument("--no-progress", action="store_true")

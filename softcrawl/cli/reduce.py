@@ -18,6 +18,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.reduction.artifact import load_reduction, save_reduction
 from softcrawl.reduction.build import BuildSettings, build_reduction, build_reductions
 from softcrawl.reduction.data import default_reduction_path
@@ -145,12 +146,14 @@ def _validate(args: argparse.Namespace) -> int:
     path = args.reduction or default_reduction_path()
     reduction, _ = load_reduction(path, expect=dataclasses.asdict(config))
     rep = validate_reduction(reduction, config, args.workdir, workers=args.workers, progress=progress,
-                             ensemble=args.ensemble, perturbation=args.perturbation, reduced_dt=args.dt)
+                             ensemble=args.ensemble, perturbation=args.perturbation, reduced_dt=args.dt,
+                             rid_dtype=args.rid_dtype)
     rep["reduction"] = str(path)
     (out / "validation.json").write_text(json.dumps(jsonable(rep), indent=1) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(_markdown(rep), encoding="utf-8")
     print(_markdown(rep))
-    print(f"reduced dt {rep['reduced_dt']:g} s: mean node error {rep['mean_node_error_mm']:.3f} mm "
+    print(f"reduced dt {rep['reduced_dt']:g} s, RID products in {rep['rid_dtype']}: "
+          f"mean node error {rep['mean_node_error_mm']:.3f} mm "
           f"(deformation {rep['mean_deformation_error_mm']:.3f} mm); "
           f"reduced step {rep['speedup']:.0f}x faster; "
           f"wrote {out}")
@@ -197,4 +200,6 @@ def register(subparsers) -> None:
     v.add_argument("--dt", type=float, default=None,
                    help="the reduced model's time step, s (default: the reference 0.01; must divide the 0.02 s "
                         "frame spacing); the full-order references stay exact at 0.01 s")
+    v.add_argument("--rid-dtype", choices=RID_DTYPES, default="float64",
+                   help="precision of the reduced model's RID element products (default float64)")
     v.set_defaults(func=_validate)

@@ -1,6 +1,7 @@
 """``softcrawl report RUN``: write RUN/report/ (top designs with pictures, reward histogram
 weighted by the design distribution, the best design's gait re-simulated with the policy, the
-expert baseline at its best phase, Markdown summary; :mod:`softcrawl.codesign.report`)."""
+expert baseline at its best phase, with ``--groundtruth GT`` the regret against a ground truth,
+Markdown summary; :mod:`softcrawl.codesign.report`)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,15 @@ def _run(args: argparse.Namespace) -> int:
     from softcrawl.robot.sweep import parse_phases
 
     phases = BASELINE_PHASES if args.phases is None else parse_phases(args.phases) if args.phases else ()
+    extra = {}
+    if args.groundtruth is not None:
+        from functools import partial
+
+        from softcrawl.codesign.groundtruth_regret import regret_section
+
+        extra["regret"] = partial(regret_section, args.run, args.groundtruth, policy=not args.no_simulate)
     out = write_report(args.run, k=args.top, baseline=args.baseline, baseline_phases=phases,
-                       simulate=not args.no_simulate, workers=args.workers)
+                       simulate=not args.no_simulate, workers=args.workers, extra=extra)
     print((out / "summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out}")
     return 0
@@ -38,6 +46,9 @@ def register(subparsers) -> None:
                    help="phase lags of the baseline sweep, degrees: start:stop:step or a comma list (default "
                    "0:330:30); empty: no baseline")
     p.add_argument("--workers", type=int, default=None, help="processes of the baseline sweep (default: cores)")
+    p.add_argument("--groundtruth", default=None, metavar="GT",
+                   help="a softcrawl groundtruth folder: add where the run's chosen design ranks in it and its "
+                   "regret (as softcrawl regret)")
     p.add_argument("--no-simulate", action="store_true",
                    help="only what the logs hold: no re-simulation of the best design, no baseline sweep")
     p.set_defaults(func=_run)

@@ -39,6 +39,7 @@ import typing
 from dataclasses import asdict, dataclass, field
 
 from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
+from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.robot.assembly import MODELS
 from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import Settling
@@ -57,6 +58,11 @@ class EnvConfig:
             the shipped one).
         leg_mesh_size, disk_mesh_size: mm. refactor_every: factorization reuse
             of the full-order bodies (None: the robot's default, :class:`softcrawl.robot.RobotConfig`).
+            rid_dtype: precision of the reduced legs' RID element products (``"float32"``:
+            ``softcrawl reduce validate --dt 0.02 --rid-dtype float32`` gave the same node error
+            as float64, 0.95 mm, and a baseline reward error of 3.0%, for a 1.14x faster robot
+            step; ``"float64"``: the reference; :class:`softcrawl.robot.RobotConfig`). A run
+            saved before this setting existed is read back as ``"float64"``.
         dt: simulator step, s (0.02: validated against the exact 0.01 s model, see the module
             docstring). steps_per_action: steps per action (hold = dt * steps_per_action s).
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
@@ -76,6 +82,7 @@ class EnvConfig:
     leg_mesh_size: float = 6.0
     disk_mesh_size: float = 10.0
     refactor_every: int | None = None
+    rid_dtype: str = "float32"
     dt: float = 0.02
     steps_per_action: int = 50
     n_actions: int = 20
@@ -183,6 +190,8 @@ class TrainConfig:
         self.env.randomize.check_steps(self.env.steps_per_action)
         if settling.max_seconds <= 0:
             raise ValueError("env.settle_max_seconds must be positive: episodes start from the robot at rest")
+        if self.env.rid_dtype not in RID_DTYPES:
+            raise ValueError(f"env.rid_dtype must be one of {RID_DTYPES}, got {self.env.rid_dtype!r}")
         if self.env.model not in MODELS:
             raise ValueError(f"env.model must be one of {MODELS}, got {self.env.model!r}")
         if self.backend not in BACKENDS:
@@ -232,6 +241,8 @@ class TrainConfig:
                 sub = hints[k] if dataclasses.is_dataclass(hints[k]) else None
                 kw[k] = build(sub, v, f"{prefix}{k}.") if sub else check_field(f"{prefix}{k}", v, hints[k])
             return kind(**kw)
+        if isinstance(d, dict) and isinstance(d.get("env"), dict) and "rid_dtype" not in d["env"]:
+            d = {**d, "env": {**d["env"], "rid_dtype": "float64"}}  # saved before the setting: double precision
         return build(cls, d, "").validate()
 
 

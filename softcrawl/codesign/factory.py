@@ -22,7 +22,8 @@ def robot_factory(cfg: TrainConfig) -> BuildRobot:
     """Picklable ``design -> Robot`` for ``cfg.env`` (full-order or reduced model)."""
     e = cfg.env
     return BuildRobot(RobotConfig(leg_mesh_size=e.leg_mesh_size, disk_mesh_size=e.disk_mesh_size,
-                                  refactor_every=e.refactor_every, dt=e.dt, model=e.model, reduction=e.reduction))
+                                  refactor_every=e.refactor_every, rid_dtype=e.rid_dtype, dt=e.dt, model=e.model,
+                                  reduction=e.reduction))
 
 
 def env_fn(cfg: TrainConfig):

@@ -209,6 +209,9 @@ class GroundTruthConfig:
             :func:`softcrawl.codesign.training.robot_factory`.
         baseline_phases: expert-baseline phase lags swept for ``references.json`` (degrees;
             empty: no sweep).
+        rid_dtype: precision of the reduced legs' RID products (``"float32"``: validated like
+            the training presets' model, ``benchmarks/RESULTS.md``; folders written before this
+            setting existed were computed in ``"float64"`` and read back as such).
     """
 
     duration: float = 20.0
@@ -225,6 +228,7 @@ class GroundTruthConfig:
     dt: float | None = None
     reduction: str | None = None
     baseline_phases: tuple[float, ...] = tuple(range(0, 181, 10))
+    rid_dtype: str = "float32"
 
     def validate(self) -> GroundTruthConfig:
         """Raise ValueError naming the first bad setting; returns self."""
@@ -241,6 +245,8 @@ class GroundTruthConfig:
         for name in ("evals_per_cycle", "finalists"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
+        if self.rid_dtype not in ("float64", "float32"):
+            raise ValueError(f"rid_dtype must be 'float64' or 'float32', got {self.rid_dtype!r}")
         if self.popsize is not None and self.popsize < 2:
             raise ValueError(f"popsize must be >= 2, got {self.popsize}")
         return self
@@ -257,6 +263,7 @@ class GroundTruthConfig:
         if unknown:
             raise ValueError(f"unknown ground-truth settings: {sorted(unknown)}")
         kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        kw.setdefault("rid_dtype", "float64")  # written before the setting: computed in double precision
         return cls(**kw).validate()
 
     def robot_config(self):
@@ -265,7 +272,7 @@ class GroundTruthConfig:
 
         kw = {} if self.dt is None else {"dt": self.dt}
         return RobotConfig(model="reduced", leg_mesh_size=self.leg_mesh_size, disk_mesh_size=self.disk_mesh_size,
-                           reduction=self.reduction, **kw)
+                           reduction=self.reduction, rid_dtype=self.rid_dtype, **kw)
 
 
 # -- evaluating gaits on one design -------------------------------------------------------------

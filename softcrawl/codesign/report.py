@@ -24,7 +24,10 @@ is read through :class:`softcrawl.codesign.run.Run`):
   run's robot settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase``
   output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
   sweep's best phase and reward (comparable only when its episode length and model match the
-  run's; the section states both), its ``reward_vs_phase.png`` copied in.
+  run's; the section states both), its ``reward_vs_phase.png`` copied in;
+* with a ground truth (``softcrawl report RUN --groundtruth GT``): where the run's chosen design
+  ranks in it, its regret in cm and its learned policy's reward next to the ground-truth gait's
+  (:mod:`softcrawl.codesign.groundtruth_regret`; ``summary.json`` key ``regret``).
 
 Top-k ranking: designs that were tried, by their latest return ``R`` (the quantity the
 distribution concentrates on), ties broken by design order.
@@ -35,6 +38,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -273,7 +277,8 @@ def _baseline_best(cfg: TrainConfig, out: Path, data: dict) -> list[str]:
 
 
 def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None,
-                 baseline_phases=BASELINE_PHASES, simulate: bool = True, workers: int | None = None) -> Path:
+                 baseline_phases=BASELINE_PHASES, simulate: bool = True, workers: int | None = None,
+                 extra: dict[str, Callable[[], tuple[list[str], dict]]] | None = None) -> Path:
     """Write ``run/report/`` (module docstring) and return its path.
 
     Args:
@@ -285,10 +290,15 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         simulate: re-simulate the best design (and run the baseline sweep); False writes only
             what the logs hold.
         workers: processes of the baseline sweep (None: the CPU count).
+        extra: more sections, ``summary.json`` key -> a callable giving ``(Markdown lines,
+            numbers)``, appended in order (``softcrawl report --groundtruth``: the regret against
+            a ground truth, :func:`softcrawl.codesign.groundtruth_regret.regret_section`, which
+            reads the run itself and so is passed in rather than imported here).
 
     Raises:
         ValueError: ``run`` is not a training run with at least one complete checkpoint, a
-            run file is malformed, ``report`` is a link, or ``baseline`` is not a sweep output.
+            run file is malformed, ``report`` is a link, or ``baseline`` is not a sweep output;
+            and what an ``extra`` section raises.
     """
     r = Run(run)
     meta = r.read_meta()
@@ -298,7 +308,7 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
     state = r.read_checkpoint_state(ckpt)["sampler"]
     staged = r.report_staging()
     try:
-        _write_report(r, staged, meta, top, state, ckpt, sweep, baseline_phases, simulate, workers)
+        _write_report(r, staged, meta, top, state, ckpt, sweep, baseline_phases, simulate, workers, extra or {})
         return r.install_report(staged)
     except BaseException:
         shutil.rmtree(staged, ignore_errors=True)
@@ -306,7 +316,7 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
 
 
 def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: Path, sweep, baseline_phases,
-                  simulate: bool, workers: int | None) -> None:
+                  simulate: bool, workers: int | None, extra: dict) -> None:
     """Everything of :func:`write_report` into ``out`` (the staging folder)."""
     run = r.path
     ep = r.read_episodes()
@@ -367,5 +377,8 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         numbers["baseline"] = {"best_phase_deg": sweep[1]["best"]["phase_deg"],
                                "best_cm": sweep[1]["best"]["reward_cm"]}
     lines.append("")
+    for key, section in extra.items():
+        more, numbers[key] = section()
+        lines += more
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     (out / "summary.json").write_text(json.dumps(numbers, indent=1, default=float) + "\n", encoding="utf-8")

@@ -140,7 +140,6 @@ def _align_slip(W, q, mu, mode, d, lam, vtol, max_iterations):
     for c in range(npl):
         j = 3 * slip[c]
         turn[c] = np.hypot(u0[j + 1], u0[j + 2]) > vtol and lam[j] > 0.0
-    nt = int(turn.sum())
     tcol = np.full(npl, -1, np.int64)
     col = ns + npl
     for c in range(npl):

@@ -87,17 +87,21 @@ class Factorization:
             raise np.linalg.LinAlgError(f"sparse LDL^T refactorization failed: {exc}") from exc
         self._factors = None
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """Solve ``A x = b`` for ``b`` of shape ``(n,)`` or ``(n, k)``."""
-        b = np.asarray(b, dtype=np.float64)
-        if b.ndim == 1:
-            return self._solver.solve(b)
+    def ldl_factors(self) -> tuple[np.ndarray, ...]:
+        """``(Lp, Li, Lx, d, perm)``: the factors as :func:`ldl_solve_many` takes them."""
         if self._factors is None:
             L, d, p = self._solver.factors()
             L = sp.csc_matrix(L)
             self._factors = (L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data,
                              np.asarray(d, np.float64), np.asarray(p, np.int64))
-        return ldl_solve_many(*self._factors, np.ascontiguousarray(b))
+        return self._factors
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Solve ``A x = b`` for ``b`` of shape ``(n,)`` or ``(n, k)``."""
+        b = np.asarray(b, dtype=np.float64)
+        if b.ndim == 1:
+            return self._solver.solve(b)
+        return ldl_solve_many(*self.ldl_factors(), np.ascontiguousarray(b))
 
 
 class ReusedFactorization:

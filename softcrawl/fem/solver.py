@@ -43,6 +43,10 @@ class SimulationDiverged(RuntimeError):
         self.reason, self.time = reason, time
 
 
+#: Precisions of the reduced bodies' RID element products (:attr:`SolverSettings.rid_dtype`).
+RID_DTYPES = ("float64", "float32")
+
+
 @dataclass(frozen=True)
 class SolverSettings:
     """Settings of :class:`ImplicitEulerSolver`.
@@ -60,6 +64,9 @@ class SolverSettings:
         contact_tolerance: Gauss-Seidel relative impulse change to stop at (physics.md: 1e-8).
         contact_max_iterations: Gauss-Seidel sweep limit (physics.md: 250).
         max_speed: any node faster than this (mm/s) means divergence.
+        rid_dtype: reduced bodies only (:class:`softcrawl.reduction.solver.ReducedSolver`): the
+            precision of their RID element products, ``"float64"`` (the reference) or
+            ``"float32"`` (:func:`softcrawl.reduction.kernels.accumulate_terms32`).
 
     Raises:
         ValueError: non-positive dt or iteration counts.
@@ -72,12 +79,15 @@ class SolverSettings:
     contact_tolerance: float = 1e-8
     contact_max_iterations: int = 250
     max_speed: float = 1e5
+    rid_dtype: str = "float64"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"time step dt must be positive, got {self.dt!r} s")
         if min(self.newton_iterations, self.refactor_every, self.contact_max_iterations) < 1:
             raise ValueError("newton_iterations, refactor_every and contact_max_iterations must be >= 1")
+        if self.rid_dtype not in RID_DTYPES:
+            raise ValueError(f"rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
 
 
 @dataclass

@@ -35,6 +35,7 @@ import numpy as np
 from softcrawl.fem.kernels import advance_positions_ranges
 from softcrawl.fem.solver import SimulationDiverged, StepStats
 from softcrawl.fem.state import Control, State
+from softcrawl.reduction.constrain import ConstraintBatch
 from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.reduction.group import ModalGroup
 from softcrawl.reduction.solver import ReducedSolver
@@ -111,6 +112,11 @@ class BatchedReducedSolver:
         self._body_robot = [np.repeat([r for r, _ in mem], [self.solvers[r].groups[g].n_bodies for r, g in mem])
                             for mem in members]
         self._members = members
+        # the compiled constraint stage of all robots when they are all of its kind (legs of one part)
+        self._compiled = None
+        if len(self.groups) == 1:
+            leg_start = [self._where[r][0][1].start for r in range(len(self.solvers))] + [self.groups[0].n_bodies]
+            self._compiled = ConstraintBatch.of(self.solvers, self.groups[0], leg_start, self.starts)
         self._x = self._v = None  # the stacked arrays of the last step's states
         self._views: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.solvers)
 
@@ -181,7 +187,7 @@ class BatchedReducedSolver:
             robots = self._body_robot[k]
             qd = self._modal_velocities(k, v, own)
             qd_free, chol, n_bad, positive = group.free_motion(x, qd, pressures, h, m.rayleigh_mass,
-                                                               m.rayleigh_stiffness, forces)
+                                                               m.rayleigh_stiffness, forces, self.settings.rid_dtype)
             for j in np.flatnonzero((n_bad > 0) | ~positive):
                 r = robots[j]
                 if failed[r] is None:
@@ -207,29 +213,40 @@ class BatchedReducedSolver:
             except SimulationDiverged as exc:
                 failed[r] = exc
         self._floating_free_motion(x, v, v_free, controls, failed)
-        for r, (s, st, c) in enumerate(zip(self.solvers, states, controls)):
-            if failed[r] is not None:
-                continue
-            rows = slice(self.starts[r], self.starts[r + 1])
-            vf = v_free[rows]
-            try:
-                s._free = [(free[k][0][sl], free[k][1][sl]) for k, sl in self._where[r]]
-                corr, nodes, impulses = s._constrain(st, vf)
-            except SimulationDiverged as exc:
-                failed[r] = exc
-                continue
-            finally:
-                s._free = []
-            corrections[r], contacts[r] = corr, (nodes, impulses)
-            v_new[rows] = vf
-            for i, d in (corr.nodal if corr else {}).items():
-                v_new[rows][s.model.body_slice(i)] += d
-        # Velocities of the modal bodies (kept as modal velocities) and positions.
-        qdot = [qd_free.copy() for qd_free, _ in free]
-        for r, corr in enumerate(corrections):
-            if corr is not None:
-                for (k, sl), dq in zip(self._where[r], corr.modal):
-                    qdot[k][sl] += dq
+        if self._compiled is not None:  # every robot's constraints in one compiled pass
+            dv, dq, contacts = self._compiled.run(x, v_free, free[0][0], free[0][1], states,
+                                                  np.array([f is not None for f in failed]))
+            for r, s in enumerate(self.solvers):
+                if failed[r] is None:
+                    rows = slice(self.starts[r], self.starts[r + 1])
+                    v_new[rows] = v_free[rows]
+                    sl = s.model.body_slice(self._compiled.disks[r])
+                    v_new[rows][sl] += dv[rows][sl]
+            qdot = [free[0][0] + dq]
+        else:  # each robot's own solver code
+            for r, (s, st) in enumerate(zip(self.solvers, states)):
+                if failed[r] is not None:
+                    continue
+                rows = slice(self.starts[r], self.starts[r + 1])
+                vf = v_free[rows]
+                try:
+                    s._free = [(free[k][0][sl], free[k][1][sl]) for k, sl in self._where[r]]
+                    corr, nodes, impulses = s._constrain(st, vf)
+                except SimulationDiverged as exc:
+                    failed[r] = exc
+                    continue
+                finally:
+                    s._free = []
+                corrections[r], contacts[r] = corr, (nodes, impulses)
+                v_new[rows] = vf
+                for i, d in (corr.nodal if corr else {}).items():
+                    v_new[rows][s.model.body_slice(i)] += d
+            # velocities of the modal bodies (kept as modal velocities)
+            qdot = [qd_free.copy() for qd_free, _ in free]
+            for r, corr in enumerate(corrections):
+                if corr is not None:
+                    for (k, sl), dq in zip(self._where[r], corr.modal):
+                        qdot[k][sl] += dq
         for group, qd in zip(self.groups, qdot):
             group.velocities(qd, v_new)
         x_new, speed2, finite = advance_positions_ranges(x, v_new, h, self.starts)

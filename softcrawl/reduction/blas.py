@@ -1,4 +1,4 @@
-"""BLAS ``dsyrk`` for compiled (numba) kernels.
+"""BLAS ``dsyrk`` / ``ssyrk`` for compiled (numba) kernels.
 
 numba's ``np.dot(Z.T, Z)`` is a general ``dgemm`` into a fresh array; the symmetric rank-k
 update ``dsyrk`` does half the work in place (about 1.4x faster on the reduced legs'
@@ -21,6 +21,10 @@ llvm.add_symbol(_SYMBOL, get_cython_function_address("scipy.linalg.cython_blas",
 _i4, _f8, _c1 = types.CPointer(types.int32), types.CPointer(types.float64), types.CPointer(types.int8)
 # Fortran dsyrk(uplo, trans, n, k, alpha, a, lda, beta, c, ldc)
 _dsyrk = types.ExternalFunction(_SYMBOL, types.void(_c1, _c1, _i4, _i4, _f8, _f8, _i4, _f8, _f8, _i4))
+_SYMBOL32 = "softcrawl_cython_blas_ssyrk"
+llvm.add_symbol(_SYMBOL32, get_cython_function_address("scipy.linalg.cython_blas", "ssyrk"))
+_f4 = types.CPointer(types.float32)
+_ssyrk = types.ExternalFunction(_SYMBOL32, types.void(_c1, _c1, _i4, _i4, _f4, _f4, _i4, _f4, _f4, _i4))
 
 
 @njit(cache=True)
@@ -42,4 +46,19 @@ def syrk_upper(Z, K):
     flags[0], flags[1] = ord("L"), ord("N")
     one = np.ones(1)
     _dsyrk(flags[0:].ctypes, flags[1:].ctypes, dims[0:].ctypes, dims[1:].ctypes, one.ctypes, Z.ctypes,
+           dims[2:].ctypes, one.ctypes, K.ctypes, dims[2:].ctypes)
+
+
+@njit(cache=True)
+def syrk_upper32(Z, K):
+    """:func:`syrk_upper` in single precision (``Z``, ``K`` float32; BLAS ``ssyrk``)."""
+    n, m = Z.shape
+    if n == 0 or m == 0:
+        return
+    dims = np.empty(3, np.int32)
+    dims[0], dims[1], dims[2] = m, n, m
+    flags = np.empty(2, np.int8)
+    flags[0], flags[1] = ord("L"), ord("N")
+    one = np.ones(1, np.float32)
+    _ssyrk(flags[0:].ctypes, flags[1:].ctypes, dims[0:].ctypes, dims[1:].ctypes, one.ctypes, Z.ctypes,
            dims[2:].ctypes, one.ctypes, K.ctypes, dims[2:].ctypes)

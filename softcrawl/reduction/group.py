@@ -17,9 +17,9 @@ import numpy as np
 
 from softcrawl.fem.constraints import FixedRows
 from softcrawl.fem.model import Model
-from softcrawl.reduction.kernels import (accumulate_terms, add_delassus, add_projected, add_strain_terms,
-                                         cavity_forces, corrections, expand_velocities, floor_candidates,
-                                         implicit_steps, point_velocity)
+from softcrawl.reduction.kernels import (accumulate_terms, accumulate_terms32, add_delassus, add_projected,
+                                         add_strain_terms, cavity_forces, corrections, expand_velocities,
+                                         floor_candidates, implicit_steps, point_velocity)
 from softcrawl.reduction.model import ElementFactors, ReducedBody, rotate_basis
 
 
@@ -191,7 +191,8 @@ class ModalGroup:
         return out
 
     def free_motion(self, x: np.ndarray, qdot: np.ndarray, pressures: np.ndarray, h: float, r_mass: float,
-                    r_stiff: float, forces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    r_stiff: float, forces: np.ndarray | None = None,
+                    rid_dtype: str = "float64") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The linearly implicit step of every body without constraints.
 
         Args:
@@ -200,6 +201,8 @@ class ModalGroup:
             pressures: ``(channels,)`` cavity pressures, kPa.
             h, r_mass, r_stiff: time step (s), Rayleigh coefficients.
             forces: optional ``(N, 3)`` prescribed nodal forces, mN.
+            rid_dtype: ``"float64"`` or ``"float32"``: precision of the RID element products
+                (:func:`~softcrawl.reduction.kernels.accumulate_terms32`).
 
         Returns:
             ``(qdot_free, chol, n_bad, positive)``: ``(L, m)`` free modal velocities, ``(L, m, m)``
@@ -207,10 +210,14 @@ class ModalGroup:
             and ``(L,)`` bool whether each step matrix was positive definite.
         """
         L, m, ms = self.n_bodies, self.n_modes, len(self.strain_modes)
-        if not self._work:  # scratch kept between steps (fresh pages cost more than filling them)
+        single = rid_dtype == "float32"
+        if (rid_dtype, "Z") not in self._work:  # scratch kept between steps (fresh pages cost more than filling them)
             rows = ELEMENT_CHUNK * max(f.factors.shape[1] for f in self.families)
             nb = min(L, BODY_BLOCK)
-            self._work.update(Z=np.empty((nb, rows, ms)), s=np.empty((nb, rows)), t=np.empty(rows))
+            self._work.update({(rid_dtype, "Z"): np.empty((nb, rows, ms), rid_dtype), "s": np.empty((nb, rows)),
+                               "t": np.empty(rows)})
+            if single:
+                self._work["rows32"] = [f.rows.astype(np.float32) for f in self.families]
         n_bad = np.zeros(L, np.int64)
         K, load = np.zeros((L, m, m)), self.gravity.copy()
         if len(self.cavity_triangles):
@@ -223,16 +230,20 @@ class ModalGroup:
                     add_projected(F.reshape(b.stop - b0, -1), self.cavity_basis, load[b])
         if forces is not None:
             load += self.project(forces)
-        Ks, fs = np.zeros((L, ms, ms)), np.zeros((L, ms))
+        Ks, fs = np.zeros((L, ms, ms), rid_dtype), np.zeros((L, ms))
         qs = np.ascontiguousarray(qdot[:, self.strain_modes])
         w = self._work
         for b0 in range(0, L, BODY_BLOCK):
             b = slice(b0, min(L, b0 + BODY_BLOCK))
-            Z, s = w["Z"][:b.stop - b0], w["s"][:b.stop - b0]
-            for f in self.families:
-                accumulate_terms(x, self.offsets[b], self.rotations[b], f.conn, f.factors, f.rest_terms, f.rows,
-                                 qs[b], h + r_stiff, Z, s, w["t"], Ks[b], fs[b], n_bad[b])
-        add_strain_terms(Ks, fs, self.strain_modes, K, load)
+            Z, s = w[(rid_dtype, "Z")][:b.stop - b0], w["s"][:b.stop - b0]
+            for i, f in enumerate(self.families):
+                if single:
+                    accumulate_terms32(x, self.offsets[b], self.rotations[b], f.conn, f.factors, f.rest_terms,
+                                       w["rows32"][i], qs[b], h + r_stiff, Z, s, Ks[b], fs[b], n_bad[b])
+                else:
+                    accumulate_terms(x, self.offsets[b], self.rotations[b], f.conn, f.factors, f.rest_terms, f.rows,
+                                     qs[b], h + r_stiff, Z, s, w["t"], Ks[b], fs[b], n_bad[b])
+        add_strain_terms(Ks.astype(np.float64, copy=False), fs, self.strain_modes, K, load)
         chol, qdot_free = np.empty((L, m, m)), np.empty((L, m))
         positive = implicit_steps(K, load, self.mass, qdot, h, r_mass, r_stiff, chol, qdot_free)
         return qdot_free, chol, n_bad, positive

@@ -41,7 +41,7 @@ import numpy as np
 from numba import njit
 
 from softcrawl.fem.kernels import _triangle_frame
-from softcrawl.reduction.blas import syrk_upper
+from softcrawl.reduction.blas import syrk_upper, syrk_upper32
 
 
 @njit(cache=True)
@@ -65,7 +65,8 @@ def element_terms(x, offsets, rotations, conn, C, s0, rows, Z, s, e0, e1, n_bad)
 
     The ``Z_e`` of all bodies are one BLAS product per element, ``[CR_1; ...; CR_L] H_e``
     with ``CR_b = C~_e blockdiag(F R_b)`` (1.6x faster than compiled loops for the shipped
-    leg, ``benchmarks/RESULTS.md``).
+    leg, ``benchmarks/RESULTS.md``), in the precision of ``Z`` and ``rows`` (float64, or float32
+    for :func:`accumulate_terms32`); ``s`` is float64.
     """
     L = offsets.shape[0]
     k = conn.shape[1]
@@ -75,8 +76,8 @@ def element_terms(x, offsets, rotations, conn, C, s0, rows, Z, s, e0, e1, n_bad)
     Q = np.empty((3, 3))
     d = np.empty((k - 1, 3))
     g = np.empty(nd)
-    CR = np.empty((L * r, nd))  # body b's rows b*r..: C~_e blockdiag(F R_b)
-    Ze = np.empty((L * r, rows.shape[2]))
+    CR = np.empty((L * r, nd), Z.dtype)  # body b's rows b*r..: C~_e blockdiag(F R_b)
+    Ze = np.empty((L * r, rows.shape[2]), Z.dtype)
     for e in range(e0, e1):
         row = (e - e0) * r
         for b in range(L):
@@ -245,6 +246,38 @@ def accumulate_terms(x, offsets, rotations, conn, C, s0, rows, qdot, c, Zc, sc, 
             np.dot(Zb.T, tb, ft)
             f[b] -= ft
             syrk_upper(Zb, K[b])
+
+
+@njit(cache=True)
+def accumulate_terms32(x, offsets, rotations, conn, C, s0, rows32, qdot, c, Zc, sc, K32, f, n_bad):
+    """:func:`accumulate_terms` with ``Z`` in single precision: ``Z`` formed from float32 basis
+    rows ``rows32``, ``K_r = Z^T Z`` by ``ssyrk`` into ``K32`` ``(L, m', m')`` (float32, upper
+    triangle) and ``-Z^T (s + c Z qdot)`` by float32 products added to ``f`` (float64); the
+    element rotations and ``s`` stay in double precision. 1.5x faster than double precision on
+    the shipped leg; ``K_r`` and ``f_r`` agree with it to about 3e-7 of their largest entries
+    (``RobotConfig.rid_dtype``, validated in ``benchmarks/RESULTS.md``). ``Zc`` is float32."""
+    E = conn.shape[0]
+    r = C.shape[1]
+    chunk = Zc.shape[1] // r
+    m = rows32.shape[2]
+    tb = np.empty(Zc.shape[1], np.float32)
+    q = np.empty(m, np.float32)
+    for e0 in range(0, E, chunk):
+        e1 = min(E, e0 + chunk)
+        element_terms(x, offsets, rotations, conn, C, s0, rows32, Zc, sc, e0, e1, n_bad)
+        n = (e1 - e0) * r
+        for b in range(offsets.shape[0]):
+            Zb = Zc[b, :n]
+            for j in range(m):
+                q[j] = qdot[b, j]
+            t = tb[:n]
+            np.dot(Zb, q, t)
+            for i in range(n):
+                t[i] = sc[b, i] + c * t[i]
+            ft = np.dot(Zb.T, t)
+            for j in range(m):
+                f[b, j] -= ft[j]
+            syrk_upper32(Zb, K32[b])
 
 
 @njit(cache=True)

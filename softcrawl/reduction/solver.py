@@ -29,6 +29,7 @@ from softcrawl.fem.constraints import NodalCompliance
 from softcrawl.fem.model import Model
 from softcrawl.fem.solver import _FLOOR_FRAME, ImplicitEulerSolver, SimulationDiverged, SolverSettings
 from softcrawl.fem.state import Control, State
+from softcrawl.reduction.constrain import ConstraintBatch
 from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.reduction.group import ModalGroup
 from softcrawl.reduction.model import ReducedBody
@@ -92,6 +93,7 @@ class ReducedSolver(ImplicitEulerSolver):
         self._qdot = [np.zeros((g.n_bodies, g.n_modes)) for g in self.groups]
         self._free: list[tuple[np.ndarray, np.ndarray]] = []  # per group: (qdot_free, chol) of this step
         self._modal_valid, self._last_v = False, None
+        self._compiled: ConstraintBatch | None | bool = None  # made at the first constraint stage
 
     # -- free motion ---------------------------------------------------------------------
     def _free_motion(self, state: State, control: Control) -> np.ndarray:
@@ -112,7 +114,8 @@ class ReducedSolver(ImplicitEulerSolver):
         for g, group in enumerate(self.groups):
             qd = self._qdot[g] if self._modal_valid else group.project(state.v)
             qd_free, chol, n_bad, positive = group.free_motion(state.x, qd, control.pressures, h, m.rayleigh_mass,
-                                                               m.rayleigh_stiffness, control.forces)
+                                                               m.rayleigh_stiffness, control.forces,
+                                                               self.settings.rid_dtype)
             for j in np.flatnonzero(n_bad):
                 raise SimulationDiverged(f"{n_bad[j]} inverted elements in reduced body "
                                          f"{m.bodies[group.members[j]].name!r}", state.t)
@@ -143,6 +146,24 @@ class ReducedSolver(ImplicitEulerSolver):
         return f
 
     # -- constraints ---------------------------------------------------------------------
+    def _constrain(self, state: State, v_free: np.ndarray):
+        """The constraint stage: compiled (:mod:`softcrawl.reduction.constrain`, the same as in a
+        :class:`~softcrawl.reduction.batch.BatchedReducedSolver`) for a robot of the default kind
+        (a floating-frame disk and one modal group), else the full solver's with this class's
+        reduced rows."""
+        if self._compiled is None:
+            m = self.model
+            leg_start = [0, self.groups[0].n_bodies] if self.groups else [0, 0]
+            self._compiled = ConstraintBatch.of([self], self.groups[0] if self.groups else None, leg_start,
+                                                [0, m.n_nodes]) or False
+        if not self._compiled:
+            return super()._constrain(state, v_free)
+        qd_free, chol = self._free[0]
+        dv, dq, ((nodes, impulses),) = self._compiled.run(state.x, v_free, qd_free, chol, [state], np.zeros(1, bool))
+        disk = self._compiled.disks[0]
+        sl = self.model.body_slice(disk)
+        return _Corrections({disk: dv[sl]}, [dq]), nodes, impulses
+
     def _contact_rows(self, x: np.ndarray, v_free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """As the full solver, and for a modal group's collision nodes: a node can only be a
         candidate if ``gap - h |v| < d`` with the bound ``|v_n| <= |Phi_p[n]|_F |qdot|``

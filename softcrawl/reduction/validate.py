@@ -88,13 +88,16 @@ def _reward(positions: np.ndarray, node: int) -> float:
     return float((positions[-1, node, 0] - positions[0, node, 0]) / MM_PER_CM)
 
 
-def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float | None) -> tuple[RobotConfig, int]:
+def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float | None,
+                       rid_dtype: str = "float64") -> tuple[RobotConfig, int]:
     """The reduced runs' config and frame spacing (steps) for a reduced time step ``reduced_dt``
-    (s; None: the reference's), so that their frames fall on the reference's frame times.
+    (s; None: the reference's), so that their frames fall on the reference's frame times, with
+    the RID products in ``rid_dtype``.
 
     Raises:
         ValueError: ``reduced_dt`` does not divide the reference's frame spacing.
     """
+    config = dataclasses.replace(config, rid_dtype=rid_dtype)
     if reduced_dt is None or reduced_dt == config.dt:
         return config, record_every
     spacing = config.dt * record_every / reduced_dt
@@ -106,10 +109,11 @@ def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float
 
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
                   record_every: int = 2, ensemble: list[Path] = (), perturbation: float = 0.0,
-                  reduced_dt: float | None = None) -> dict:
+                  reduced_dt: float | None = None, rid_dtype: str = "float64") -> dict:
     """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run
     (recorded every ``record_every`` steps of ``config.dt``); ``reduced_dt``: the reduced
-    model's time step (s; None: ``config.dt``), frames compared at the same times.
+    model's time step (s; None: ``config.dt``), frames compared at the same times;
+    ``rid_dtype``: the precision of its RID products (:class:`RobotConfig`).
 
     Given perturbed full-order runs (``ensemble``), also their mean distance to the reference
     (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first); and
@@ -122,7 +126,7 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         ValueError: a reference was recorded on another mesh or at other times.
     """
     ref = np.load(reference)
-    reduced_config, record_every = _reduced_recording(config, record_every, reduced_dt)
+    reduced_config, record_every = _reduced_recording(config, record_every, reduced_dt, rid_dtype)
     robot = reduced_scene_robot(scene, reduced_config, reduction)
     rec = run_scene(robot, scene.animation, record_every=record_every)
     fom_x = ref["positions"].astype(float)
@@ -160,13 +164,16 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
 def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: str | os.PathLike,
                        scenes: tuple[Scene, ...] | None = None, record_every: int = 2,
                        workers: int | None = None, progress: bool = True, ensemble: int = 3,
-                       perturbation: float = 1e-6, reduced_dt: float | None = None) -> dict:
+                       perturbation: float = 1e-6, reduced_dt: float | None = None,
+                       rid_dtype: str = "float64") -> dict:
     """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
         reduced_dt: the reduced model's time step, s (None: ``config.dt``); the references stay
             exact full-order runs at ``config.dt`` (the reference 0.01 s), so this measures what a
             larger step costs in accuracy (issue 18's settings study).
+        rid_dtype: the precision of the reduced model's RID products (``"float32"``: what single
+            precision costs in accuracy).
         ensemble: perturbed full-order runs per scene (the chaos floor and reward spread; 0:
             none), and as many perturbed reduced runs.
         perturbation: their initial noise amplitude, mm.
@@ -189,7 +196,8 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
                for seed in range(1, ensemble + 1)]
     warm = scenes[0]  # compile the reduced kernels before anything is timed (numba's cache may be cold)
     run_scene(reduced_scene_robot(warm, config, reduction), warm.animation, duration=config.dt)
-    rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation, reduced_dt)
+    rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation, reduced_dt,
+                          rid_dtype)
             for i, (s, r) in enumerate(tqdm(list(zip(scenes, refs)), desc="reduced runs", unit="scene",
                                             disable=not progress))]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
@@ -201,7 +209,8 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     return {"scenes": rows, **means, "ensemble": ensemble, "perturbation_mm": perturbation,
             "max_scene_node_error_mm": float(max(r["mean_node_error_mm"] for r in rows)),
             "mean_seconds_per_step_full": full, "mean_seconds_per_step_reduced": red, "speedup": full / red,
-            "reduced_dt": reduced_dt or config.dt, "mean_seconds_per_sim_second_reduced": red_sim,
+            "reduced_dt": reduced_dt or config.dt, "rid_dtype": rid_dtype,
+            "mean_seconds_per_sim_second_reduced": red_sim,
             **reduction_sizes(reduction)}
 
 

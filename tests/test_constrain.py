@@ -1,0 +1,99 @@
+"""The compiled constraint stage of reduced robots (softcrawl.reduction.constrain, issue 18) and the
+single-precision RID terms: each against the double-precision / Python reference it replaces."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from softcrawl.reduction.constrain import DiskColumns
+from softcrawl.reduction.kernels import accumulate_terms, accumulate_terms32
+from softcrawl.robot import RobotConfig, build_robot
+from softcrawl.robot.episode import settle
+
+DESIGN = (1, 0, 2, 0, 3, 0, 1, 0)  # 4 legs on 3 regulators
+
+
+@pytest.fixture(scope="module")
+def crawling():
+    """A reduced robot after settling and 0.4 s of pressure (legs bent, several floor contacts)."""
+    robot = build_robot(DESIGN, RobotConfig(model="reduced", dt=0.02))
+    state = settle(robot).state
+    solver = robot.make_solver()
+    for k in range(20):
+        state = solver.step(state, robot.control(60.0 * np.array([1.0, 0.5, 0.0]) * min(1.0, k / 10)))
+    assert len(state.contact_nodes) >= 4
+    return robot, state
+
+
+def test_compiled_constraint_stage_matches_the_python_one(crawling):
+    """One step from the same state through the compiled stage and through the solver's Python
+    constraint code (the full solver's, with the reduced rows): the same contact set and the
+    same velocities to 1e-9 of the largest speed. Both solve the same problems by the same
+    rules; only the order of round-off differs (the disk's compliance block is symmetrised, the
+    bilateral Schur complement uses another Cholesky routine), and the polish solves each
+    contact problem exactly, so the difference stays at round-off."""
+    from softcrawl.fem.solver import ImplicitEulerSolver
+
+    robot, state = crawling
+    control = robot.control(np.array([60.0, 30.0, 0.0]))
+    compiled = robot.make_solver()
+    python = robot.make_solver()
+    python._constrain = lambda st, vf: ImplicitEulerSolver._constrain(python, st, vf)
+    a, b = compiled.step(state, control), python.step(state, control)
+    assert compiled._compiled and compiled.stats.n_contacts == python.stats.n_contacts
+    np.testing.assert_array_equal(a.contact_nodes, b.contact_nodes)
+    scale = np.abs(b.v).max()
+    assert np.abs(a.v - b.v).max() <= 1e-9 * scale
+    assert np.abs(a.contact_impulses - b.contact_impulses).max() <= 1e-9 * np.abs(b.contact_impulses).max()
+
+
+def test_disk_columns_do_not_depend_on_the_order_designs_arrive(crawling):
+    """Two processes that meet the attachment blocks in different orders give every robot the
+    same attachment block ``T`` to the bit (each entry comes from its own pair of blocks), so a
+    design's trajectory does not depend on which designs a worker met before."""
+    robot, _ = crawling
+    c = robot.make_solver()._compliance[robot.disk_body]
+    H = c.fixed.H
+    blocks = [H[3 * b:3 * b + 3] for b in range(H.shape[0] // 3)]
+    one = DiskColumns(c.factor, robot.model.bodies[robot.disk_body].collision_nodes)
+    two = DiskColumns(c.factor, robot.model.bodies[robot.disk_body].collision_nodes)
+    import scipy.sparse as sp
+
+    ia = one.block_columns(H)
+    two.block_columns(sp.vstack(blocks[::-1]).tocsr())  # the same blocks, reversed
+    ib = two.block_columns(H)
+    np.testing.assert_array_equal(one.attachment_gram(ia), two.attachment_gram(ib))
+    # and T is that of the dense compliance: E^T A^-1 E
+    E = H.toarray().T
+    ref = E.T @ c.factor.solve(E)
+    assert np.abs(one.attachment_gram(ia) - ref).max() <= 1e-12 * np.abs(ref).max()
+
+
+def test_single_precision_rid_terms_agree_with_double_precision(crawling):
+    """``accumulate_terms32`` (float32 ``Z``, ``ssyrk``) against ``accumulate_terms`` on a bent
+    robot's legs: ``K_r`` and ``f_r`` agree to 2e-6 of their largest entries. Single precision
+    rounds each product to 6e-8 relative; a ``K_r`` entry sums ~2,000 of them (the RID rows),
+    so sqrt(2000) x 6e-8 = 3e-6 bounds the random round-off (measured: ~3e-7)."""
+    robot, state = crawling
+    g = robot.make_solver().groups[0]
+    L, ms = g.n_bodies, len(g.strain_modes)
+    rows = 64 * 6
+    qs = np.random.default_rng(0).normal(0.0, 1.0, (L, ms))
+    K64, f64, K32, f32 = np.zeros((L, ms, ms)), np.zeros((L, ms)), np.zeros((L, ms, ms), np.float32), np.zeros((L, ms))
+    for f in g.families:
+        accumulate_terms(state.x, g.offsets, g.rotations, f.conn, f.factors, f.rest_terms, f.rows, qs, 0.12,
+                         np.empty((L, rows, ms)), np.empty((L, rows)), np.empty(rows), K64, f64, np.zeros(L, np.int64))
+        accumulate_terms32(state.x, g.offsets, g.rotations, f.conn, f.factors, f.rest_terms,
+                           f.rows.astype(np.float32), qs, 0.12, np.empty((L, rows, ms), np.float32),
+                           np.empty((L, rows)), K32, f32, np.zeros(L, np.int64))
+    iu = np.triu_indices(ms)
+    assert np.abs(K64[:, iu[0], iu[1]] - K32[:, iu[0], iu[1]]).max() <= 2e-6 * np.abs(K64).max()
+    assert np.abs(f64 - f32).max() <= 2e-6 * np.abs(f64).max()
+
+
+def test_robot_config_rejects_an_unknown_precision():
+    with pytest.raises(ValueError, match="rid_dtype"):
+        RobotConfig(model="reduced", rid_dtype="float16")
+    with pytest.raises(ValueError, match="rid_dtype"):
+        dataclasses.replace(RobotConfig(), rid_dtype="half")
