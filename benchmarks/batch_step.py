@@ -10,7 +10,10 @@ step and sim steps per second per core of each path and their ratio; optionally 
 the batch step's time by function (cProfile, top 15); and the peak RSS.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/batch_step.py [--robots 12] [--steps 20] [--rounds 4]
-       [--settle 60] [--legs 3 4 5 6] [--no-mixed] [--profile]
+       [--settle 60] [--legs 3 4 5 6] [--no-mixed] [--profile] [--dt 0.02] [--rid-dtype float32]
+       [--disk-mesh-size 10]
+Training's settings are ``--dt 0.02 --rid-dtype float32`` (``paper``: 10 mm disk; ``crawl``, ``demo``:
+25 mm).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import numpy as np  # noqa: E402
 
 from softcrawl.design.space import canonical_designs  # noqa: E402
 from softcrawl.reduction.batch import BatchedReducedSolver  # noqa: E402
+from softcrawl.fem.solver import RID_DTYPES  # noqa: E402
 from softcrawl.robot import RobotConfig, build_robot  # noqa: E402
 
 
@@ -109,9 +113,13 @@ def main() -> None:
     p.add_argument("--no-mixed", action="store_true", help="skip the batch of all leg counts together")
     p.add_argument("--profile", action="store_true")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dt", type=float, default=None, help="time step, s (default: the robot's)")
+    p.add_argument("--rid-dtype", choices=RID_DTYPES, default="float64", help="precision of the RID products")
+    p.add_argument("--disk-mesh-size", type=float, default=None, help="mm (default: the robot's)")
     args = p.parse_args()
     rng = np.random.default_rng(args.seed)
-    config = RobotConfig(model="reduced")
+    extra = {k: v for k, v in (("dt", args.dt), ("disk_mesh_size", args.disk_mesh_size)) if v is not None}
+    config = RobotConfig(model="reduced", rid_dtype=args.rid_dtype, **extra)
     sets = {legs: [build_robot(d, config) for d in designs_with(legs, args.robots, rng)] for legs in args.legs}
     results = {}
     for legs, robots in sets.items():

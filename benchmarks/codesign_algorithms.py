@@ -15,6 +15,13 @@ chosen by short-episode returns can move away from it again) and writes
     python benchmarks/codesign_algorithms.py --groundtruth GT --merge DIR1 DIR2 ... --out DIR
 
 merges results computed separately (e.g. one algorithm per process) into one JSON and plot.
+
+Resumable: each finished (algorithm, seed) run is kept as ``DIR/traces/<algorithm>-<seed>.json``
+(its incumbents per simulated second and its settings) and not recomputed when the command is
+run again with the same settings (other settings: an error). The incumbents are graded against
+the ground truth when the summary is written, so ``--designs 3`` lets the algorithms run while
+the ground truth of those designs is still being computed: run the command again once it is
+complete to grade them all.
 """
 
 from __future__ import annotations
@@ -39,72 +46,103 @@ from softcrawl.codesign.algorithms import (  # noqa: E402
     make_algorithm,
     run_algorithm,
 )
-from softcrawl.codesign.groundtruth import load_groundtruth  # noqa: E402
+from softcrawl.codesign.groundtruth import load_groundtruth, parse_designs  # noqa: E402
 
 
 def compare(gt: str | Path, algorithms, seeds: int, budget_seconds: float, runs=(), duration=None,
-            evals_per_design: int = 24, cycles=(3, 4), evaluate=None, progress: bool = True) -> dict:
+            evals_per_design: int = 24, cycles=(3, 4), evaluate=None, progress: bool = True,
+            designs: str | None = None, out: str | Path | None = None) -> dict:
     """Run each algorithm ``seeds`` times (and replay ``runs``); returns the traces and a summary.
 
     ``evaluate``: ``(design, gait, duration) -> cm`` (default: the reduced model with the ground
-    truth's settings, :class:`SimEvaluator`)."""
+    truth's settings, :class:`SimEvaluator`). ``designs``: the design set searched, as
+    ``softcrawl groundtruth --designs`` reads it (default: the ground truth's finished designs).
+    ``out``: keep each finished run in ``out/traces`` and reuse it (module doc).
+
+    Raises:
+        ValueError: an unknown algorithm, or a kept run with other settings.
+    """
     cfg, res, _ = load_groundtruth(gt)
     gt_cm = {d: r.reward_cm for d, r in res.items()}
-    designs = sorted(res)
-    best_cm = max(gt_cm.values())
+    space = sorted(set(parse_designs(designs))) if designs else sorted(res)
+    settings = {"groundtruth_config": cfg.to_dict(), "designs": [list(d) for d in space],
+                "budget_seconds": budget_seconds, "duration": duration, "evals_per_design": evals_per_design,
+                "cycles": list(cycles)}
+    kept = Path(out) / "traces" if out is not None else None
     traces: dict[str, list] = {}
     for name in algorithms:
         if name not in ALGORITHMS:
             raise ValueError(f"unknown algorithm {name!r} (choose from {ALGORITHMS})")
         for seed in range(seeds):
+            path = kept / f"{name}-{seed}.json" if kept is not None else None
+            if path is not None and path.exists():
+                saved = json.loads(path.read_text())
+                if saved.get("settings") != settings:
+                    raise ValueError(f"{path} was computed with other settings; use another --out")
+                traces.setdefault(name, []).append(saved["trace"])
+                continue
             t0 = time.perf_counter()
             ev = evaluate or SimEvaluator(cfg)
-            algo = make_algorithm(name, designs, cfg, seed, evals_per_design, cycles, duration)
+            algo = make_algorithm(name, space, cfg, seed, evals_per_design, cycles, duration)
             tr = run_algorithm(algo, ev, gt_cm, budget_seconds)
             tr["seed"], tr["wall_seconds"] = seed, time.perf_counter() - t0
             traces.setdefault(name, []).append(tr)
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_suffix(".tmp")
+                tmp.write_text(json.dumps(_no_nan({"settings": settings, "trace": tr})) + "\n")
+                os.replace(tmp, path)
             if progress:
                 print(f"{name} seed {seed}: {tr['episodes']} episodes, final incumbent "
-                      f"{tr['incumbent'][-1]} gt {tr['gt_cm'][-1]:+.2f} cm ({tr['wall_seconds']:.0f} s)",
-                      file=sys.stderr)
+                      f"{tr['incumbent'][-1]} ({tr['wall_seconds']:.0f} s)", file=sys.stderr)
     for i, run in enumerate(runs):
-        algo = GibbsSACReplay(run, designs)
+        algo = GibbsSACReplay(run, space)
         tr = run_algorithm(algo, None, gt_cm, budget_seconds)
         tr["seed"], tr["run"] = i, str(run)
         traces.setdefault("gibbs-sac", []).append(tr)
-    return summarize(str(gt), len(designs), best_cm, budget_seconds, traces)
+    return summarize(str(gt), len(space), budget_seconds, traces, gt_cm)
 
 
-def summarize(gt: str, n_designs: int, best_cm: float, budget_seconds: float, traces: dict) -> dict:
-    """The result of :func:`compare` from its traces (``algorithm -> [trace per seed]``)."""
+def summarize(gt: str, n_designs: int, budget_seconds: float, traces: dict, gt_cm: dict) -> dict:
+    """The result of :func:`compare` from its traces (``algorithm -> [trace per seed]``), each
+    incumbent graded (again) with ``gt_cm`` (ground-truth reward per design, cm; NaN where
+    unknown): a run kept from before the ground truth was complete gets its missing grades."""
+    best_cm = max(gt_cm.values())
+    for trs in traces.values():
+        for t in trs:
+            t["gt_cm"] = [float(gt_cm.get(tuple(inc), np.nan)) if inc else np.nan for inc in t["incumbent"]]
     summary = {}
     for name, trs in traces.items():
         final = np.array([t["gt_cm"][-1] if t["gt_cm"] else np.nan for t in trs], float)
+        known = final[np.isfinite(final)]  # incumbents not (yet) in the ground truth are left out
         reach = []
         for t in trs:
             hit = [s for s, g in zip(t["sim_seconds"], t["gt_cm"]) if g == best_cm]
             reach.append(hit[0] if hit else None)
-        summary[name] = {"seeds": len(trs), "final_gt_cm_mean": float(np.nanmean(final)),
-                         "final_gt_cm_min": float(np.nanmin(final)), "final_gt_cm_max": float(np.nanmax(final)),
-                         "final_regret_cm_mean": float(best_cm - np.nanmean(final)),
+        mean = float(known.mean()) if len(known) else None
+        summary[name] = {"seeds": len(trs), "graded_seeds": len(known), "final_gt_cm_mean": mean,
+                         "final_gt_cm_min": float(known.min()) if len(known) else None,
+                         "final_gt_cm_max": float(known.max()) if len(known) else None,
+                         "final_regret_cm_mean": best_cm - mean if len(known) else None,
                          "sim_seconds": [t["sim_seconds"][-1] if t["sim_seconds"] else 0.0 for t in trs],
                          "first_sim_seconds_best_design_chosen": reach}
-    return {"groundtruth": gt, "designs": n_designs, "best_gt_cm": best_cm,
+    return {"groundtruth": gt, "designs": n_designs, "groundtruth_designs": len(gt_cm), "best_gt_cm": best_cm,
             "budget_seconds": budget_seconds, "summary": summary, "traces": traces}
 
 
-def merge(paths) -> dict:
-    """One result from several ``codesign_algorithms.json`` of the same ground truth (e.g. one
-    algorithm per process)."""
+def merge(gt: str | Path, paths) -> dict:
+    """One result from several ``codesign_algorithms.json`` (e.g. one algorithm per process),
+    graded with the ground truth ``gt``."""
     parts = [json.loads((Path(p) / "codesign_algorithms.json").read_text()) for p in paths]
     traces: dict = {}
     for part in parts:
-        if (part["groundtruth"], part["best_gt_cm"]) != (parts[0]["groundtruth"], parts[0]["best_gt_cm"]):
-            raise ValueError("results of different ground truths cannot be merged")
+        if part["designs"] != parts[0]["designs"]:
+            raise ValueError("results over different design sets cannot be merged")
         for name, trs in part["traces"].items():
             traces.setdefault(name, []).extend(trs)
-    return summarize(parts[0]["groundtruth"], parts[0]["designs"], parts[0]["best_gt_cm"],
-                     max(p["budget_seconds"] for p in parts), traces)
+    _, res, _ = load_groundtruth(gt)
+    return summarize(str(gt), parts[0]["designs"], max(p["budget_seconds"] for p in parts), traces,
+                     {d: r.reward_cm for d, r in res.items()})
 
 
 def _no_nan(x):
@@ -158,11 +196,13 @@ def main(argv=None) -> int:
     p.add_argument("--duration", type=float, default=None, help="episode s (default: the ground truth's)")
     p.add_argument("--evals-per-design", type=int, default=24, help="random search: CMA-ES episodes per design")
     p.add_argument("--cycles", default="3,4")
+    p.add_argument("--designs", default=None,
+                   help='design set searched, e.g. "3" (default: the ground truth\'s finished designs)')
     p.add_argument("--out", default="codesign_algorithms")
     p.add_argument("--merge", nargs="+", metavar="DIR", help="merge earlier results (their --out folders) instead")
     a = p.parse_args(argv)
     if a.merge:
-        res = merge(a.merge)
+        res = merge(a.groundtruth, a.merge)
         out = Path(a.out)
         out.mkdir(parents=True, exist_ok=True)
         plot(res, out / "codesign_algorithms.png")
@@ -174,7 +214,7 @@ def main(argv=None) -> int:
             raise ValueError("--seeds must be >= 1 and --budget-seconds > 0")
         algos = [s for s in a.algorithms.split(",") if s]
         res = compare(a.groundtruth, algos, a.seeds, a.budget_seconds, a.runs, a.duration, a.evals_per_design,
-                      tuple(int(c) for c in a.cycles.split(",")))
+                      tuple(int(c) for c in a.cycles.split(",")), designs=a.designs, out=a.out)
     except ValueError as exc:
         print(f"codesign_algorithms: error: {exc}", file=sys.stderr)
         return 2

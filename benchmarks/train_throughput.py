@@ -18,7 +18,7 @@ rounds):
        [--stepping batched|serial|both] [--preset paper|reference|crawl|demo] [--set KEY=VALUE]
        [--no-overlap] [--learner-cost]
 ``--stepping``: workers step their envs' robots as one batch (``batched``, the default of
-:class:`softcrawl.envs.vec.SubprocessBackend`) or one env after another (``serial``); ``both``
+:class:`softcrawl.envs.backends.SubprocessBackend`) or one env after another (``serial``); ``both``
 runs the two one after the other in this process (same seed, same designs) and reports each and
 their ratio. Each run reports the wall seconds of its gradient updates (overlapped with the
 simulation unless ``--no-overlap``) and the largest worker RSS (sampled every 0.5 s).
@@ -43,7 +43,8 @@ from softcrawl.codesign.config import SACConfig, preset
 from softcrawl.codesign.sac import make_sac
 from softcrawl.design.space import validate_design
 from softcrawl.envs import BuildRobot, CrawlerEnv
-from softcrawl.envs.vec import DesignVecEnv, SerialBackend
+from softcrawl.envs.backends import SerialBackend
+from softcrawl.envs.vec import DesignVecEnv
 from softcrawl.robot import RobotConfig
 
 
@@ -126,7 +127,7 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
     (overlapped with the simulation unless ``--no-overlap``) and the peak worker RSS."""
     import tempfile
 
-    import softcrawl.envs.vec as vec
+    import softcrawl.envs.backends as backends
     from softcrawl.codesign.config import override
     from softcrawl.codesign.training import train
 
@@ -135,7 +136,7 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
     sets = [f"n_envs={n}", f"total_steps={total}", f"sac.learning_starts={n if updates else total}",
             f"checkpoint_every={10 * total}", f"snapshot_every={n}", f"sac.overlap={str(not args.no_overlap).lower()}"]
     cfg = override(preset(args.preset), sets + list(args.set or []))
-    vec.BATCHED_WORKERS = batched
+    backends.BATCHED_WORKERS = batched
     with tempfile.TemporaryDirectory() as tmp, WorkerMemory() as memory:
         res = train(f"{tmp}/run", cfg, progress=True)
     sim_s_per_transition = res.wall_seconds / res.steps

@@ -127,5 +127,35 @@ def test_benchmark_compare_and_plot(tmp_path):
         part = {**res, "traces": {name: res["traces"][name]}}
         (tmp_path / name).mkdir()
         (tmp_path / name / "codesign_algorithms.json").write_text(json.dumps(part))
-    merged = bench.merge([tmp_path / "random", tmp_path / "tpe"])
+    merged = bench.merge(tmp_path / "gt", [tmp_path / "random", tmp_path / "tpe"])
     assert merged["summary"]["random"] == res["summary"]["random"] and set(merged["summary"]) == {"random", "tpe"}
+
+
+def test_benchmark_keeps_finished_runs_and_grades_them_once_the_ground_truth_is_complete(tmp_path):
+    """The algorithms may run while the ground truth is being computed (``designs``): their
+    finished runs are kept in ``out/traces``, not recomputed by the same command, and graded
+    against the ground truth as it stands when the summary is written."""
+    def task(d, c):
+        return DesignResult(tuple(d), GT[tuple(d)], PeriodicGait.paper_cycle().to_dict(), 3, "step",
+                            1, 1, 1.0, 0.0).to_dict()
+
+    gt = tmp_path / "gt"
+    cfg = GroundTruthConfig(baseline_phases=())
+    run_groundtruth(DESIGNS[:2], gt, cfg, executor="serial", task=task, progress=False, refs=False)
+    bench = _load_bench()
+    spec = ";".join(",".join(map(str, d)) for d in DESIGNS)
+    calls = []
+    kw = dict(duration=1.0, evals_per_design=5, cycles=(2,), evaluate=fake_eval(calls), progress=False,
+              designs=spec, out=tmp_path / "out")
+    first = bench.compare(gt, ["random"], 2, 40.0, **kw)
+    assert first["designs"] == len(DESIGNS) and first["groundtruth_designs"] == 2
+    assert len(sorted((tmp_path / "out" / "traces").glob("random-*.json"))) == 2 and calls
+    n_calls = len(calls)
+    run_groundtruth(DESIGNS, gt, cfg, executor="serial", task=task, progress=False, refs=False)
+    again = bench.compare(gt, ["random"], 2, 40.0, **kw)
+    assert len(calls) == n_calls  # nothing simulated again
+    assert again["best_gt_cm"] == GT[BEST] and again["groundtruth_designs"] == len(DESIGNS)
+    for tr in again["traces"]["random"]:
+        assert tr["gt_cm"] == [GT[tuple(d)] for d in tr["incumbent"]]
+    with pytest.raises(ValueError, match="other settings"):
+        bench.compare(gt, ["random"], 2, 80.0, **kw)

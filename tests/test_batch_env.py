@@ -9,7 +9,8 @@ import pytest
 
 from softcrawl.envs import BuildRobot, CrawlerEnv
 from softcrawl.envs.batch import BatchedBackend
-from softcrawl.envs.vec import DesignVecEnv, SerialBackend
+from softcrawl.envs.backends import SerialBackend
+from softcrawl.envs.vec import DesignVecEnv
 from softcrawl.fem.state import State
 from softcrawl.robot import RobotConfig
 from softcrawl.robot.episode import Settling

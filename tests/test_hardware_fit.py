@@ -48,10 +48,15 @@ def test_regulator_fit_on_held_out_logs(trials):
     fit, held = rm.split_trials(good)
     assert len(fit) == 205 and len(held) == 68
     params = rm.fit_regulators(fit)
+    hold = 1.067  # s, the rig's mean control period
     for p, q in zip(params, rm.FITTED):  # the shipped constants are this fit
         assert p.gain == pytest.approx(q.gain, abs=2e-3) and p.offset == pytest.approx(q.offset, abs=0.02)
-        assert p.tau_inflate == pytest.approx(q.tau_inflate, rel=0.02, abs=2e-3)
-        assert p.tau_vent == pytest.approx(q.tau_vent, rel=0.02)
+        # The logs see a time constant only through the part of a step left at the end of a
+        # hold, exp(-hold / tau): regulator 2 inflates within a hold (tau ~0.03 s leaves e^-40),
+        # so its tau_inflate is not identifiable and the fit lands anywhere below ~0.1 s with
+        # the machine's rounding (0.027 or 0.041 s seen). Compare what the data determine.
+        for a, b in ((p.tau_inflate, q.tau_inflate), (p.tau_vent, q.tau_vent)):
+            assert np.exp(-hold / a) == pytest.approx(np.exp(-hold / b), abs=5e-3)
     err = rm.prediction_errors(rm.FITTED, held)
     naive = rm.prediction_errors([rm.RegulatorParams(1.0, 0.0, 1e-3, 1e-3)] * 3, held)
     # held-out one-step error of the sensed pressure at the end of a 1.067-s hold (kPa)

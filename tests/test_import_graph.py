@@ -139,14 +139,15 @@ def test_graph_counts_the_parent_packages_a_target_runs():
 
 
 #: Deferred imports (inside functions) that close a cycle, with why each is right. Both are the
-#: vector env's backend lookup: :func:`softcrawl.envs.vec.make_backend` /
-#: :class:`~softcrawl.envs.vec.SubprocessBackend` return subclasses of ``vec.EnvBackend`` that
-#: live in their own modules (the batched stepper; the optional Ray backend, whose import needs
-#: ``ray``), so those modules import ``vec`` and ``vec`` imports them only when asked for one.
+#: vector env's backend lookup: :func:`softcrawl.envs.backends.make_backend` /
+#: :class:`~softcrawl.envs.backends.SubprocessBackend` return subclasses of
+#: ``backends.EnvBackend`` that live in their own modules (the batched stepper; the optional Ray
+#: backend, whose import needs ``ray``), so those modules import ``backends`` and ``backends``
+#: imports them only when asked for one.
 #: One package, no import-time effect; any other deferred cycle fails the test below.
 DEFERRED_BACK_EDGES = {
-    ("softcrawl.envs.vec", "softcrawl.envs.batch"),
-    ("softcrawl.envs.vec", "softcrawl.envs.ray_backend"),
+    ("softcrawl.envs.backends", "softcrawl.envs.batch"),
+    ("softcrawl.envs.backends", "softcrawl.envs.ray_backend"),
 }
 
 

@@ -9,7 +9,8 @@ import pytest
 
 from softcrawl.codesign.config import SACConfig
 from softcrawl.codesign.sac import make_sac
-from softcrawl.envs.vec import DesignVecEnv, SerialBackend
+from softcrawl.envs.backends import SerialBackend
+from softcrawl.envs.vec import DesignVecEnv
 
 
 class _Tiny(gym.Env):

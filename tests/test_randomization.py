@@ -19,7 +19,8 @@ from softcrawl.codesign.config import TrainConfig, override, preset
 from softcrawl.codesign.factory import env_fn, robot_factory
 from softcrawl.envs import CrawlerEnv
 from softcrawl.envs.batch import BatchedBackend
-from softcrawl.envs.vec import DesignVecEnv, SerialBackend
+from softcrawl.envs.backends import SerialBackend
+from softcrawl.envs.vec import DesignVecEnv
 from softcrawl.robot.actuation import PressureCalibration, RegulatorBank
 from softcrawl.robot.domain import DomainRanges, DomainSample, LaggedRegulatorBank, RegulatorWarp
 from softcrawl.robot.episode import Episode

@@ -538,7 +538,11 @@ def test_validation_ensemble_reports_the_chaos_floor(tiny, tmp_path):
     """A short held-out scene with 2 perturbed full-order runs (1e-6 mm): each keeps its own
     saved settings, their distance to the reference stays far below the reduced model's error
     (1e-3 mm: the exact model is not chaotic at round-off scale), and the report carries the 3
-    full-order rewards and whether the reduced one lies among them."""
+    full-order rewards and whether the reduced one lies among them. The reduced model is more
+    sensitive (a round-off-sized change can flip which of a flat-landing leg's nearly equally
+    deep nodes start its contact set: under 0.01 mm on this scene on one machine, 0.016 mm on
+    another with other BLAS rounding), but its spread must stay below 2% of its error against the exact
+    model, or that error would measure chaos rather than the reduction."""
     import json
 
     from softcrawl.reduction.scenes import validation_scenes
@@ -553,7 +557,7 @@ def test_validation_ensemble_reports_the_chaos_floor(tiny, tmp_path):
     assert isinstance(row["reward_in_ensemble"], bool)
     rewards, errors = row["reduced_ensemble_rewards_cm"], row["reduced_ensemble_node_errors_mm"]
     assert len(rewards) == len(errors) == 3 and rewards[0] == row["reward_reduced_cm"]
-    assert errors[0] == row["mean_node_error_mm"] and 0 < row["reduced_spread_mm"] < 1e-2
+    assert errors[0] == row["mean_node_error_mm"] and 0 < row["reduced_spread_mm"] < 0.02 * row["mean_node_error_mm"]
     saved = json.loads((tmp_path / "perturbed2" / "baseline.json").read_text())
     assert saved["perturbation"] == {"amplitude_mm": 1e-6, "seed": 2}
     assert "perturbation" not in json.loads((tmp_path / "reference" / "baseline.json").read_text())

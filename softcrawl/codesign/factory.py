@@ -14,7 +14,8 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.distribution import EntropySchedule, GibbsDesignDistribution
 from softcrawl.codesign.sampler import GibbsDesignSampler
 from softcrawl.envs.crawler import BuildRobot, CrawlerEnv
-from softcrawl.envs.vec import DesignVecEnv, make_backend
+from softcrawl.envs.backends import make_backend
+from softcrawl.envs.vec import DesignVecEnv
 from softcrawl.robot.assembly import RobotConfig
 
 
@@ -36,7 +37,7 @@ def env_fn(cfg: TrainConfig):
 
 def make_vec_env(cfg: TrainConfig, sampler, ray_address: str | None = None) -> DesignVecEnv:
     """The vectorised env of ``cfg`` (``cfg.backend``: serial, subprocess or ray on the cluster
-    at ``ray_address`` or a local one, :func:`softcrawl.envs.vec.make_backend`) with
+    at ``ray_address`` or a local one, :func:`softcrawl.envs.backends.make_backend`) with
     ``sampler``, seeded with ``cfg.seed``."""
     venv = DesignVecEnv(make_backend(cfg.backend, [env_fn(cfg)] * cfg.n_envs, n_workers=cfg.n_workers or None,
                                      ray_address=ray_address), sampler)

@@ -1,6 +1,7 @@
 """Reinforcement-learning environments of the crawler: the single-episode gymnasium env
 (:mod:`softcrawl.envs.crawler`) and the design-sampling vectorised env with serial and
-process-parallel backends (:mod:`softcrawl.envs.vec`, imports stable-baselines3)."""
+where they run (:mod:`softcrawl.envs.backends`) and the SB3 vector env (:mod:`softcrawl.envs.vec`, imports
+stable-baselines3)."""
 
 from softcrawl.envs.crawler import (
     DESIGN_DIM,

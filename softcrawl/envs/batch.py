@@ -1,6 +1,6 @@
 """Crawler envs whose robots are stepped together (issue 18): the batched backend of a worker.
 
-:class:`BatchedBackend` holds envs like :class:`~softcrawl.envs.vec.SerialBackend`, but its
+:class:`BatchedBackend` holds envs like :class:`~softcrawl.envs.backends.SerialBackend`, but its
 :meth:`~BatchedBackend.step` advances all of them through their actions in lockstep: every
 env starts its action (:meth:`CrawlerEnv.begin_action`), then for each of the
 ``steps_per_action`` simulator steps every live episode steps its regulators
@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 from softcrawl.design.space import validate_design
 from softcrawl.envs.crawler import CrawlerEnv
-from softcrawl.envs.vec import SerialBackend, StepResult
+from softcrawl.envs.backends import SerialBackend, StepResult
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.reduction.batch import BatchedReducedSolver, run_in_lockstep
 from softcrawl.reduction.solver import ReducedSolver

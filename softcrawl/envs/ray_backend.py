@@ -4,7 +4,7 @@ Optional: ``pip install softcrawl[ray]`` (``ray>=2``). Runs on a local Ray start
 (:func:`ensure_ray`) unless an address of an existing cluster is given (``"auto"`` or
 ``"ray://host:10001"``).
 
-:class:`RayBackend` implements :class:`softcrawl.envs.vec.EnvBackend` (``reset``, ``step``,
+:class:`RayBackend` implements :class:`softcrawl.envs.backends.EnvBackend` (``reset``, ``step``,
 ``get_attr``, ``set_attr``, ``call``, ``close``) with Ray actors each holding a contiguous chunk
 of the envs (like the subprocess backend's workers). **Fault tolerance**: actors are created with
 ``max_restarts``; the driver keeps, per env, the design and actions of its current
@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 import cloudpickle
 import numpy as np
 
-from softcrawl.envs.vec import ChunkedBackend, SerialBackend
+from softcrawl.envs.backends import ChunkedBackend, SerialBackend
 
 #: Environment of Ray workers: one BLAS/OpenMP thread (parallelism comes from processes).
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
