@@ -37,15 +37,16 @@ import resource
 import time
 
 import numpy as np
-import torch
 
 from softcrawl.codesign.config import SACConfig, preset
-from softcrawl.codesign.sac import make_sac
 from softcrawl.design.space import validate_design
 from softcrawl.envs import BuildRobot, CrawlerEnv
 from softcrawl.envs.backends import SerialBackend
-from softcrawl.envs.vec import DesignVecEnv
 from softcrawl.robot import RobotConfig
+
+# torch, stable-baselines3 and what imports them are imported in the functions that use them:
+# the env workers re-run this module's top-level imports (forkserver/spawn), and the peak
+# worker RSS this benchmark reports should be that of a training worker, which has no torch.
 
 
 def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100)) -> float:
@@ -62,6 +63,8 @@ def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100)) -> flo
 
         def step(self, a):
             return self.observation_space.sample(), 0.0, False, False, {}
+
+    from softcrawl.codesign.sac import make_sac
 
     model = make_sac(DummyVecEnv([Dummy]), SACConfig(batch_size=batch, buffer_size=10_000, net_arch=tuple(net_arch)))
     rb, rng = model.replay_buffer, np.random.default_rng(0)
@@ -80,6 +83,8 @@ def env_rates(args) -> dict:
                       model=args.model)
     design = validate_design(args.design)
     env = CrawlerEnv(BuildRobot(cfg), steps_per_action=args.steps_per_action, n_actions=args.actions, designs=[design])
+    from softcrawl.envs.vec import DesignVecEnv
+
     venv = DesignVecEnv(SerialBackend([lambda: env]))
     venv.reset()  # builds the robot (not timed)
     rng = np.random.default_rng(0)
@@ -186,6 +191,8 @@ def main() -> None:
                    help="end to end: also run without updates; report the learner's share of the wall time "
                         "and the paper preset's projection")
     args = p.parse_args()
+    import torch
+
     torch.set_num_threads(1 if args.end_to_end else args.threads)
     if args.end_to_end:
         head = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__}
