@@ -27,6 +27,18 @@ _f4 = types.CPointer(types.float32)
 _ssyrk = types.ExternalFunction(_SYMBOL32, types.void(_c1, _c1, _i4, _i4, _f4, _f4, _i4, _f4, _f4, _i4))
 
 
+@njit(cache=True, inline="always")
+def _syrk_arguments(n, m):
+    """``(dims, flags)`` of the BLAS call for ``Z`` ``(n, m)``: column-major, ``Z`` is the
+    m x n matrix ``Z^T`` and ``K``'s upper triangle is the lower one, so
+    ``K_F(lower) += Z_F Z_F^T``: uplo = 'L', trans = 'N', n = m, k = n, lda = ldc = m."""
+    dims = np.empty(3, np.int32)
+    dims[0], dims[1], dims[2] = m, n, m
+    flags = np.empty(2, np.int8)
+    flags[0], flags[1] = ord("L"), ord("N")
+    return dims, flags
+
+
 @njit(cache=True)
 def syrk_upper(Z, K):
     """``K += Z^T Z`` on the upper triangle of ``K`` (the strict lower triangle is untouched).
@@ -38,12 +50,7 @@ def syrk_upper(Z, K):
     n, m = Z.shape
     if n == 0 or m == 0:
         return
-    # Column-major, Z is the m x n matrix Z^T and K's upper triangle is the lower one:
-    # K_F(lower) += Z_F Z_F^T, i.e. uplo = 'L', trans = 'N', lda = ldc = m.
-    dims = np.empty(3, np.int32)
-    dims[0], dims[1], dims[2] = m, n, m
-    flags = np.empty(2, np.int8)
-    flags[0], flags[1] = ord("L"), ord("N")
+    dims, flags = _syrk_arguments(n, m)
     one = np.ones(1)
     _dsyrk(flags[0:].ctypes, flags[1:].ctypes, dims[0:].ctypes, dims[1:].ctypes, one.ctypes, Z.ctypes,
            dims[2:].ctypes, one.ctypes, K.ctypes, dims[2:].ctypes)
@@ -55,10 +62,7 @@ def syrk_upper32(Z, K):
     n, m = Z.shape
     if n == 0 or m == 0:
         return
-    dims = np.empty(3, np.int32)
-    dims[0], dims[1], dims[2] = m, n, m
-    flags = np.empty(2, np.int8)
-    flags[0], flags[1] = ord("L"), ord("N")
+    dims, flags = _syrk_arguments(n, m)
     one = np.ones(1, np.float32)
     _ssyrk(flags[0:].ctypes, flags[1:].ctypes, dims[0:].ctypes, dims[1:].ctypes, one.ctypes, Z.ctypes,
            dims[2:].ctypes, one.ctypes, K.ctypes, dims[2:].ctypes)

@@ -40,7 +40,7 @@ from softcrawl.fem.constraints import add_block_delassus, block_impulses
 from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, _polish, pgs_coulomb
 from softcrawl.fem.linalg import Factorization, ldl_solve_many
 from softcrawl.fem.solver import MIN_CONTACT_GROWTH
-from softcrawl.reduction.kernels import add_delassus, corrections, point_velocity
+from softcrawl.reduction.kernels import add_delassus, body_floor_candidates, corrections, point_velocity
 
 #: Active-set rounds and relative tolerance of the polish (as :func:`softcrawl.fem.contact.polish_active_set`).
 POLISH_ROUNDS, POLISH_RTOL = 30, 1e-9
@@ -447,23 +447,13 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
                 k += 1
         for b in range(L):
             bb = b0 + b
-            speed = 0.0
-            for j in range(m):
-                speed += qd_free[bb, j] * qd_free[bb, j]
-            reach = h * np.sqrt(speed)
-            for i in range(nc_leg):
-                node = offsets[bb] + collision[i]
-                gap = x[node, 2] - floor_height
-                if gap - reach * bound[i] >= distance:
-                    continue
-                rr = 3 * collision[i]
-                vz = 0.0
-                for j in range(m):
-                    vz += (z_axes[bb, 0] * basis[rr, j] + z_axes[bb, 1] * basis[rr + 1, j]
-                           + z_axes[bb, 2] * basis[rr + 2, j]) * qd_free[bb, j]
-                if min(gap, gap + h * vz) < distance:
-                    c_node[k], c_gap[k], c_vz[k], c_leg[k], c_local[k] = node - s0, gap, vz, b, collision[i]
-                    k += 1
+            k1 = body_floor_candidates(x, offsets[bb], collision, bound, qd_free[bb], z_axes[bb], basis, h,
+                                       floor_height, distance, c_node, c_gap, c_vz, c_local, k)
+            for q in range(k, k1):  # robot-local node, leg in robot, part node
+                c_node[q] -= s0
+                c_leg[q] = b
+                c_local[q] = collision[c_local[q]]
+            k = k1
         order = np.argsort(c_node[:k], kind="mergesort")
         near, gaps, vzf = c_node[:k][order], c_gap[:k][order], c_vz[:k][order]
         near_leg, near_local = c_leg[:k][order], c_local[:k][order]

@@ -488,31 +488,44 @@ def floor_candidates(x, offsets, collision, bound, qdot, direction, basis, h, he
         ``(nodes, gaps, vz)``: global node indices ``(k,)``, their gaps (mm) and free z
         velocities (mm/s), in body then collision order.
     """
-    L, m = qdot.shape
+    L = qdot.shape[0]
     c = collision.shape[0]
     nodes = np.empty(L * c, np.int64)
     gaps = np.empty(L * c)
     vz = np.empty(L * c)
+    which = np.empty(L * c, np.int64)
     k = 0
     for b in range(L):
-        speed = 0.0
-        for j in range(m):
-            speed += qdot[b, j] * qdot[b, j]
-        reach = h * np.sqrt(speed)
-        for i in range(c):
-            node = offsets[b] + collision[i]
-            gap = x[node, 2] - height
-            if gap - reach * bound[i] >= distance:
-                continue
-            r = 3 * collision[i]
-            v = 0.0
-            for j in range(m):
-                v += (direction[b, 0] * basis[r, j] + direction[b, 1] * basis[r + 1, j]
-                      + direction[b, 2] * basis[r + 2, j]) * qdot[b, j]
-            if min(gap, gap + h * v) < distance:
-                nodes[k], gaps[k], vz[k] = node, gap, v
-                k += 1
+        k = body_floor_candidates(x, offsets[b], collision, bound, qdot[b], direction[b], basis, h, height, distance,
+                                  nodes, gaps, vz, which, k)
     return nodes[:k], gaps[:k], vz[:k]
+
+
+@njit(cache=True, inline="always")
+def body_floor_candidates(x, offset, collision, bound, qd, direction, basis, h, height, distance,
+                          nodes, gaps, vz, which, k):
+    """One body's part of :func:`floor_candidates`: its candidates appended at ``k`` to
+    ``nodes``, ``gaps``, ``vz`` and ``which`` (the index into ``collision``); returns the new
+    count. ``offset``: its first node; ``qd`` ``(m,)``, ``direction`` ``(3,)``: its free modal
+    velocities and world z axis in the part frame."""
+    m = qd.shape[0]
+    speed = 0.0
+    for j in range(m):
+        speed += qd[j] * qd[j]
+    reach = h * np.sqrt(speed)
+    for i in range(collision.shape[0]):
+        node = offset + collision[i]
+        gap = x[node, 2] - height
+        if gap - reach * bound[i] >= distance:
+            continue
+        r = 3 * collision[i]
+        v = 0.0
+        for j in range(m):
+            v += (direction[0] * basis[r, j] + direction[1] * basis[r + 1, j] + direction[2] * basis[r + 2, j]) * qd[j]
+        if min(gap, gap + h * v) < distance:
+            nodes[k], gaps[k], vz[k], which[k] = node, gap, v, i
+            k += 1
+    return k
 
 
 @njit(cache=True, fastmath=True)
