@@ -10,6 +10,8 @@ import argparse
 
 import numpy as np
 
+from softcrawl.fem.solver import RID_DTYPES
+
 
 def _floats(text: str, what: str) -> tuple[float, ...]:
     try:
@@ -96,7 +98,7 @@ def register(subparsers) -> None:
     p.add_argument("--disk-mesh-size", type=float, default=10.0, help="mm (10: paper preset, 25: demo)")
     p.add_argument("--dt", type=float, default=None, help="time step, s (default: the robot's default)")
     p.add_argument("--reduction", default=None, help="reduction file (default: shipped)")
-    p.add_argument("--rid-dtype", choices=("float64", "float32"), default="float32",
+    p.add_argument("--rid-dtype", choices=RID_DTYPES, default="float32",
                    help="precision of the reduced legs' RID products (default float32, validated)")
     p.add_argument("--baseline-phases", default="0:180:10",
                    help="expert-baseline lags swept, START:STOP:STEP or a list, degrees, or none")

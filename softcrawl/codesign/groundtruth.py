@@ -60,6 +60,7 @@ from softcrawl.design.space import (
     canonical_designs,
     canonicalize,
 )
+from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.robot.actuation import P_MAX_KPA, P_MIN_KPA
 
 #: Objective value (cm) given to an episode whose simulation diverged.
@@ -245,8 +246,8 @@ class GroundTruthConfig:
         for name in ("evals_per_cycle", "finalists"):
             if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
-        if self.rid_dtype not in ("float64", "float32"):
-            raise ValueError(f"rid_dtype must be 'float64' or 'float32', got {self.rid_dtype!r}")
+        if self.rid_dtype not in RID_DTYPES:
+            raise ValueError(f"rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
         if self.popsize is not None and self.popsize < 2:
             raise ValueError(f"popsize must be >= 2, got {self.popsize}")
         return self
