@@ -49,8 +49,9 @@ from softcrawl.robot import RobotConfig
 # worker RSS this benchmark reports should be that of a training worker, which has no torch.
 
 
-def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100)) -> float:
-    """Gradient updates/s of SAC on a filled replay buffer (observations 44, actions 3)."""
+def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100), device: str = "cpu") -> float:
+    """Gradient updates/s of SAC on a filled replay buffer (observations 44, actions 3) on torch
+    ``device``."""
     import gymnasium as gym
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -66,7 +67,8 @@ def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100)) -> flo
 
     from softcrawl.codesign.sac import make_sac
 
-    model = make_sac(DummyVecEnv([Dummy]), SACConfig(batch_size=batch, buffer_size=10_000, net_arch=tuple(net_arch)))
+    model = make_sac(DummyVecEnv([Dummy]), SACConfig(batch_size=batch, buffer_size=10_000, net_arch=tuple(net_arch),
+                                                    device=device))
     rb, rng = model.replay_buffer, np.random.default_rng(0)
     for _ in range(2 * batch):
         o = rng.uniform(-1, 1, (1, 44)).astype(np.float32)
@@ -171,6 +173,8 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=512)
     p.add_argument("--threads", type=int, default=1, help="torch threads of the SAC updates (components)")
     p.add_argument("--updates", type=int, default=200)
+    p.add_argument("--device", default="cpu", help="torch device of the SAC updates (components; end to end: "
+                                                    "--set sac.device=...)")
     p.add_argument("--model", choices=("full", "reduced"), default="full")
     p.add_argument("--leg-mesh", type=float, default=16)
     p.add_argument("--disk-mesh", type=float, default=25)
@@ -212,13 +216,13 @@ def main() -> None:
             out["paper_preset_projected_hours"] = project(sim_only, rate, os.cpu_count())
         print(json.dumps(out, indent=2))
         return
-    updates = sac_updates_per_s(args.batch, args.updates)
+    updates = sac_updates_per_s(args.batch, args.updates, device=args.device)
     env = env_rates(args)
     transitions = preset("paper").total_steps
     hours = {f"{n}_cores": transitions * (1 / env["transitions_per_s"] / n + 1 / updates) / 3600
              for n in (os.cpu_count(), 32)}
     out = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-           "torch_threads": torch.get_num_threads(), "batch": args.batch, "sac_updates_per_s": updates,
+           "torch_threads": torch.get_num_threads(), "device": args.device, "batch": args.batch, "sac_updates_per_s": updates,
            "env": {**vars(args), **env}, "paper_preset_projected_hours": hours}
     print(json.dumps(out, indent=2))
 

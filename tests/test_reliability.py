@@ -477,6 +477,35 @@ def test_6_bad_reduction_fails_before_the_run_starts(tmp_path):
     assert not (tmp_path / "run" / "config.json").exists()
 
 
+def test_6_a_gpu_torch_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatch):
+    import torch
+
+    from softcrawl.codesign.training import train
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="sac.device='cuda:1'.*no CUDA GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+    assert not (tmp_path / "run").exists()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match="sees 1 CUDA GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_6_a_run_trained_on_a_gpu_is_evaluated_on_the_cpu(run, monkeypatch):
+    import torch
+
+    from softcrawl.codesign.evaluation import evaluate_policy
+
+    on_cpu = evaluate_policy(run, "1,0,0,2,2,0,0,0").returns_cm
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["config"]["sac"]["device"] = "cuda"
+    (run / "config.json").write_text(json.dumps(cfg))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert evaluate_policy(run, "1,0,0,2,2,0,0,0").returns_cm == on_cpu
+
+
 @pytest.mark.parametrize("setting, key", [('sac.batch_size="64"', "sac.batch_size"), ("n_envs=2.5", "n_envs"),
                                           ("env.observe_state=1", "env.observe_state"), ("env.legs=3", "env.legs"),
                                           ("sac.net_arch=[0]", "sac.net_arch"), ("sac.batch_size=5000", "batch_size"),

@@ -30,7 +30,8 @@ def test_presets_and_overrides():
     cfg = override(paper, ["sac.batch_size=64", "env.legs=[3, 4]", 'backend="serial"', "design.untried=zero"])
     assert cfg.sac.batch_size == 64 and cfg.env.legs == (3, 4) and cfg.backend == "serial"
     assert cfg.design.untried == "zero"
-    for bad in (["sac.nope=1"], ["n_envs=0"], ["env.legs=[2]"], ["backend=\"mpi\""], ["sac.timeout=\"x\""], ["n_envs"]):
+    for bad in (["sac.nope=1"], ["n_envs=0"], ["env.legs=[2]"], ["backend=\"mpi\""], ["sac.timeout=\"x\""], ["n_envs"],
+                ['sac.device="gpu"'], ['sac.device="cuda:x"']):
         with pytest.raises(ValueError):
             override(paper, bad)
     with pytest.raises(ValueError):

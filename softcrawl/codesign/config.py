@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import types
 import typing
 from dataclasses import asdict, dataclass, field
@@ -115,7 +116,10 @@ class SACConfig:
     policy acting lags one vectorised step behind the updates). ``threads``: torch threads of
     the learner (1: the simulation has the other cores; more where cores are plentiful: the
     ``paper`` preset's million updates of batch 512 are learner-bound on many cores,
-    ``benchmarks/RESULTS.md``)."""
+    ``benchmarks/RESULTS.md``). ``device``: torch device of the networks and their updates,
+    ``"cpu"`` or ``"cuda"`` / ``"cuda:N"`` (a GPU takes the learner off the simulation's cores;
+    the env workers never use it; checkpoints are read onto the CPU, so ``report`` and
+    ``evaluate`` need no GPU)."""
 
     policy_lr: float = 6e-4
     q_lr: float = 2e-3
@@ -130,6 +134,7 @@ class SACConfig:
     timeout: str = "bootstrap"
     overlap: bool = True
     threads: int = 1
+    device: str = "cpu"
 
 
 @dataclass
@@ -197,6 +202,8 @@ class TrainConfig:
             raise ValueError(f"env.model must be one of {MODELS}, got {self.env.model!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+        if not re.fullmatch(r"cpu|cuda(:\d+)?", self.sac.device):
+            raise ValueError(f"sac.device must be 'cpu', 'cuda' or 'cuda:N', got {self.sac.device!r}")
         if self.sac.timeout not in TIMEOUTS:
             raise ValueError(f"sac.timeout must be one of {TIMEOUTS}, got {self.sac.timeout!r}")
         if not self.env.legs or any(k not in range(MIN_LEGS, MAX_LEGS + 1) for k in self.env.legs):

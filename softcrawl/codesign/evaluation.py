@@ -129,6 +129,7 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     cfg.env.randomize = randomize if randomize is not None else DomainRanges()
     env = env_fn(cfg)()
     cfg.sac.buffer_size = 1
+    cfg.sac.device = "cpu"  # whatever the run trained on: 20 actions need no GPU
     model = make_sac(DummyVecEnv([lambda: env]), cfg.sac)
     model.policy.load_state_dict(weights)
     returns, diverged, first, domains = [], [], None, []

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import time
 
+import torch
+
 from stable_baselines3 import SAC
 from stable_baselines3.common.logger import Logger
 
@@ -73,6 +75,18 @@ class SplitLRSAC(SAC):
             self.logger.record("train/q_learning_rate", float(self.q_learning_rate))
 
 
+def check_device(device: str) -> None:
+    """Raise ValueError unless torch can place tensors on ``device`` ("cpu", "cuda", "cuda:N")."""
+    if device == "cpu":
+        return
+    if not torch.cuda.is_available():
+        raise ValueError(f"sac.device={device!r}, but torch {torch.__version__} sees no CUDA GPU "
+                         "(use sac.device=cpu, or install a CUDA build of torch)")
+    index = int(device.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise ValueError(f"sac.device={device!r}, but torch sees {torch.cuda.device_count()} CUDA GPU(s)")
+
+
 def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
     """The SAC learner for a vectorised crawler env.
 
@@ -80,9 +94,13 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
     i.e. ``utd_ratio`` updates per transition (paper: 1). Networks: MLP ``cfg.net_arch`` with ReLU
     for the actor and both critics; Adam(β1 0.9, β2 0.999); automatic temperature with target
     entropy ``cfg.target_entropy`` (−3 = −dim A); updates overlapped with the simulation if
-    ``cfg.overlap`` (:class:`SplitLRSAC`). Its logger writes nowhere until
-    ``set_logger`` is called (SB3's default would create ``/tmp/SB3-<date>/``).
+    ``cfg.overlap`` (:class:`SplitLRSAC`), on torch device ``cfg.device``. Its logger writes
+    nowhere until ``set_logger`` is called (SB3's default would create ``/tmp/SB3-<date>/``).
+
+    Raises:
+        ValueError: ``cfg.device`` is a GPU this torch cannot use.
     """
+    check_device(cfg.device)
     grad_steps = max(1, round(cfg.utd_ratio * env.num_envs))
     model = SplitLRSAC(
         "MlpPolicy", env,
@@ -92,7 +110,7 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
         ent_coef="auto", target_entropy=cfg.target_entropy,
         replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"},
         policy_kwargs={"net_arch": list(cfg.net_arch), "optimizer_kwargs": {"betas": (0.9, 0.999)}},
-        seed=seed, device="cpu", verbose=0, overlap=cfg.overlap,
+        seed=seed, device=cfg.device, verbose=0, overlap=cfg.overlap,
     )
     # a logger writing nowhere until the caller sets one: SB3's default makes /tmp/SB3-<date>/
     model.set_logger(Logger(folder=None, output_formats=[]))

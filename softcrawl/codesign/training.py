@@ -29,7 +29,7 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.factory import check_reduction, make_sampler, make_vec_env
 from softcrawl.codesign.randomization import DomainLog
 from softcrawl.codesign.run import Run
-from softcrawl.codesign.sac import make_sac
+from softcrawl.codesign.sac import check_device, make_sac
 from softcrawl.codesign.sampler import GibbsDesignSampler
 
 
@@ -190,6 +190,7 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         ckpt = None
     if ray_address is not None and cfg.backend != "ray":
         raise ValueError(f"a Ray address is used only by backend \"ray\", not {cfg.backend!r}")
+    check_device(cfg.sac.device)  # before the workers start
     torch.set_num_threads(cfg.sac.threads)
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
