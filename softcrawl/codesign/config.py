@@ -21,9 +21,9 @@ the steps; with float32 RID products, ``env.rid_dtype``, 0.95 mm and 3.0%;
 * ``crawl``: the paper's episode (20 actions of 1 s) on the 280 three-legged designs with the
   coarse 25 mm disk, 16 envs in 2 worker processes, 64K transitions (3,200 episodes, about 11
   per design), one update per 2 transitions (batch 256), the entropy schedule of the paper
-  scaled to the run: 15.9 transitions/s end to end on the quiet 2-core VM (19.0 without
-  updates: the overlapped learner costs 16% of the wall time), 64 min of training for seed 0.
-* ``demo``: the README's first command, 9 min on the quiet 2-core VM: the same simulation as
+  scaled to the run: 41 min of training for seed 0 on the quiet 2-core VM (25.8 transitions/s;
+  the overlapped learner cost 16% of the wall time when measured at 15.9 transitions/s).
+* ``demo``: the README's first command, 5 min on the quiet 2-core VM: the same simulation as
   ``crawl`` (20 s episodes of 1 s actions, 280 three-legged designs), 8 envs in 2 workers,
   8K transitions (400 episodes), one update per 2 transitions (batch 128).
 * ``smoke``: CI, < 1 min: the reduced model at 0.01 s, 2 envs in-process, 2 steps per action,
