@@ -1,5 +1,6 @@
-"""The learner's updates overlapped with the simulation (issue 18, item 3): same number of
-updates as SB3's schedule, run while the envs step, and none left behind at the end."""
+"""The learner (issue 18, item 3): updates overlapped with the simulation (same number as SB3's
+schedule, run while the envs step, none left behind at the end), and the actor's step without
+the critics' weight gradients (the same updates to the bit)."""
 
 from __future__ import annotations
 
@@ -63,3 +64,39 @@ def test_overlapped_updates_follow_the_schedule(overlap):
     else:
         assert backend.during == 0
     assert model.learner_seconds > 0
+
+
+def test_the_actor_step_skips_the_critics_weight_gradients_and_changes_nothing():
+    """SplitLRSAC freezes the critics' weights during the actor's step (their weight gradients
+    were computed and discarded); the networks after 30 updates equal those of SB3's own SAC to
+    the bit, and the critics train again afterwards."""
+    from stable_baselines3 import SAC
+
+    from softcrawl.codesign.sac import SplitLRSAC
+
+    def trained(frozen: bool):
+        cfg = SACConfig(buffer_size=200, batch_size=16, learning_starts=0, net_arch=(16, 8), overlap=False)
+        model = make_sac(DesignVecEnv(SerialBackend([_Tiny])), cfg, seed=0)
+        rng = np.random.default_rng(0)
+        for _ in range(64):
+            o = rng.uniform(-1, 1, (1, 44)).astype(np.float32)
+            model.replay_buffer.add(o, o, rng.uniform(-1, 1, (1, 3)), rng.uniform(-1, 1, 1), np.zeros(1), [{}])
+        model._setup_learn(1)
+        if not frozen:  # SB3's update, without the hooks' effect
+            model._critic_weight_grads = lambda on: None
+            SAC.train(model, gradient_steps=30, batch_size=16)
+        else:
+            model.train(gradient_steps=30, batch_size=16)
+        return model
+
+    plain, frozen = trained(False), trained(True)
+    assert isinstance(frozen, SplitLRSAC)
+    for a, b in zip(plain.policy.state_dict().values(), frozen.policy.state_dict().values()):
+        assert np.array_equal(a.numpy(), b.numpy())
+    assert plain.log_ent_coef.item() == frozen.log_ent_coef.item()
+    assert all(p.requires_grad for p in frozen.critic.parameters())
+    # the critics' gradients after the last step are theirs alone (none from the actor's loss)
+    g_plain = [p.grad for p in plain.critic.parameters()]
+    g_frozen = [p.grad for p in frozen.critic.parameters()]
+    assert all(g is not None for g in g_frozen)
+    assert any(not np.array_equal(a.numpy(), b.numpy()) for a, b in zip(g_plain, g_frozen))
