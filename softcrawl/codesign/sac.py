@@ -38,9 +38,9 @@ class SplitLRSAC(SAC):
     The actor's step differentiates the critics' Q values with respect to the action only: the
     critics' weights are frozen from their optimizer's step to the actor optimizer's step
     (optimizer hooks), so the actor's backward pass skips their weight gradients, which SB3
-    computes and then discards (about 11% of an update's matrix products, 9-10% of its time;
-    the updates are the same to the bit, ``tests/test_learner.py``). Everything else is SB3's
-    SAC.
+    computes and then discards (about 11% of an update's matrix products; updates 1.15-1.19x
+    faster, ``benchmarks/RESULTS.md``, and the same to the bit, ``tests/test_learner.py``).
+    Everything else is SB3's SAC.
 
     Attributes:
         learner_seconds: wall seconds spent in gradient updates (all of them).
