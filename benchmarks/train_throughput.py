@@ -222,7 +222,8 @@ def main() -> None:
     hours = {f"{n}_cores": transitions * (1 / env["transitions_per_s"] / n + 1 / updates) / 3600
              for n in (os.cpu_count(), 32)}
     out = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-           "torch_threads": torch.get_num_threads(), "device": args.device, "batch": args.batch, "sac_updates_per_s": updates,
+           "torch_threads": torch.get_num_threads(), "device": args.device, "batch": args.batch,
+           "sac_updates_per_s": updates,
            "env": {**vars(args), **env}, "paper_preset_projected_hours": hours}
     print(json.dumps(out, indent=2))
 
