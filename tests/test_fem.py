@@ -382,6 +382,35 @@ def test_polish_does_not_cycle_on_a_reduced_leg_contact_problem():
     _assert_contact_conditions(out.reshape(-1, 3), (W @ out + q).reshape(-1, 3), mu, tol)
 
 
+@pytest.mark.parametrize("case", ["failing", "found"])
+def test_polish_stops_at_a_repeated_state_with_the_result_of_running_out_of_rounds(monkeypatch, case):
+    """Regression (issue 18, contact time): a failing active-set polish used to run all 30 of
+    its rounds, one dense solve each, though from round 1 on a round depends only on the
+    stick/slip pattern, the slip directions and the alignment count, so a repeated state
+    repeats until the limit. Two condensed problems of a 24-robot training batch (12 contacts
+    of 5- and 6-legged robots, warm-started from last step's impulses) whose polish repeats
+    a state: it now stops at the repeat, in fewer rounds, with exactly the result of running
+    out of rounds (``failing``: no consistent pattern; ``found``: the consistent solution met
+    before a slip alignment changed the pattern), compiled and in Python alike."""
+    from pathlib import Path
+
+    import softcrawl.fem.contact as contact
+
+    z = np.load(Path(__file__).parent / "data" / "repeating_polish.npz")
+    W, q, mu, warm = (z[f"{case}_{key}"] for key in ("W", "q", "mu", "warm_start"))
+    real, checks = contact._seen_before, []
+    monkeypatch.setattr(contact, "_seen_before", lambda *a: checks.append(real(*a)) or checks[-1])
+    stopped = contact._polish.py_func(W, q, mu, warm.copy(), 30, 1e-9)
+    assert checks[-1] and len(checks) < 29  # stopped at a repeat
+    monkeypatch.setattr(contact, "_seen_before", lambda *a: False)
+    full = contact._polish.py_func(W, q, mu, warm.copy(), 30, 1e-9)
+    compiled = contact._polish(W, q, mu, warm.copy(), 30, 1e-9)
+    assert stopped[0] == full[0] == compiled[0] == (case == "found")
+    if case == "found":
+        np.testing.assert_array_equal(stopped[1], full[1])
+        np.testing.assert_array_equal(compiled[1], full[1])
+
+
 def test_first_touch_starts_from_the_deepest_contacts_and_still_keeps_every_node_out_of_the_floor():
     """Regression: with no contact loaded, the contact set started from *every* candidate whose
     free motion penetrates (a reduced leg landing flat: up to 258 contacts on a Delassus operator

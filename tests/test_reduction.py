@@ -615,3 +615,22 @@ def test_saved_runs_with_tuple_parameters_are_reused(tmp_path, monkeypatch):
     runs.run_fom_scenes(tmp_path, [scene], dataclasses.replace(TINY, friction=0.9), "reference", record_every=2,
                         workers=1, progress=False)
     assert calls == [0, 0, 1]
+
+
+def test_validation_compares_a_larger_reduced_step_at_the_reference_frames():
+    """``reduce validate --dt``: a reduced step that divides the references' 0.02 s frame
+    spacing is recorded every few steps against every reference frame; one that is a multiple
+    of it (0.04 s, issue 18's time-step study) is recorded every step against every other
+    reference frame, so the frames compared fall on the same times; any other step is
+    refused."""
+    from softcrawl.reduction.validate import _reduced_recording
+    from softcrawl.robot import RobotConfig
+
+    cfg = RobotConfig(model="reduced", dt=0.01)
+    for dt, every, stride in ((None, 2, 1), (0.005, 4, 1), (0.02, 1, 1), (0.04, 1, 2), (0.1, 1, 5)):
+        reduced, e, s = _reduced_recording(cfg, 2, dt, "float32")
+        assert (reduced.dt, e, s, reduced.rid_dtype) == (dt or 0.01, every, stride, "float32")
+        assert math.isclose(reduced.dt * e, 0.02 * s)
+    for dt in (0.03, 0.015, -0.04):
+        with pytest.raises(ValueError, match="divide or be a multiple"):
+            _reduced_recording(cfg, 2, dt)

@@ -198,8 +198,8 @@ def register(subparsers) -> None:
     v.add_argument("--perturbation", type=float, default=1e-6,
                    help="initial node noise of those runs, mm (default 1e-6)")
     v.add_argument("--dt", type=float, default=None,
-                   help="the reduced model's time step, s (default: the reference 0.01; must divide the 0.02 s "
-                        "frame spacing); the full-order references stay exact at 0.01 s")
+                   help="the reduced model's time step, s (default: the reference 0.01; must divide or be a "
+                        "multiple of the 0.02 s frame spacing); the full-order references stay exact at 0.01 s")
     v.add_argument("--rid-dtype", choices=RID_DTYPES, default="float64",
                    help="precision of the reduced model's RID element products (default float64)")
     v.set_defaults(func=_validate)

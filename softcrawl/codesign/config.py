@@ -8,7 +8,8 @@ Presets (all but ``smoke`` step the reduced model at dt = 0.02 s, 50 steps per 1
 ``softcrawl reduce validate --dt 0.02`` against the exact 0.01 s full-order references gave a
 mean node error of 0.96 mm (0.79 mm at 0.01 s) and a baseline reward error of 1.3% (1.1%), and
 the paper-best 20 s crawl +11.36 cm (0.01 s: +11.69 cm; full-order exact +10.66 cm), for half
-the steps; with float32 RID products, ``env.rid_dtype``, 0.95 mm and 3.0%;
+the steps; with float32 RID products, ``env.rid_dtype``, 0.95 mm and 3.0%; 0.04 s fails both
+targets, 1.72 mm and 17%, at about twice the cost per step, ``benchmarks/RESULTS.md``;
 ``--set env.dt=0.01 env.steps_per_action=100 env.rid_dtype=float64`` restores the reference step):
 
 * ``paper``: the paper's table: 96 envs, 1M transitions, buffer 100K, batch 512, γ 0.95,

@@ -237,6 +237,22 @@ def _align_slip(W, q, mu, mode, d, lam, vtol, max_iterations):
 
 
 @njit(cache=True)
+def _seen_before(mode, d, alignments, seen_mode, seen_d, seen_align, rnd):
+    """Whether the polish state ``(mode, d, alignments)`` is that of one of rounds ``1 .. rnd - 1``."""
+    for p in range(1, rnd):
+        if seen_align[p] != alignments:
+            continue
+        same = True
+        for i in range(mode.shape[0]):
+            if seen_mode[p, i] != mode[i] or seen_d[p, i, 0] != d[i, 0] or seen_d[p, i, 1] != d[i, 1]:
+                same = False
+                break
+        if same:
+            return True
+    return False
+
+
+@njit(cache=True)
 def _polish(W, q, mu, lam, max_rounds, rtol):
     """Compiled body of :func:`polish_active_set`: ``(consistent, impulses)``."""
     k = mu.shape[0]
@@ -255,7 +271,18 @@ def _polish(W, q, mu, lam, max_rounds, rtol):
     single = k <= SINGLE_SWITCH_MAX_CONTACTS
     alignments, have_found = 0, False
     found = np.zeros(3 * k)  # the last consistent solution before an alignment
-    for rnd in range(max_rounds if single else min(max_rounds, MULTI_SWITCH_ROUNDS)):
+    rounds = max_rounds if single else min(max_rounds, MULTI_SWITCH_ROUNDS)
+    # From round 1 on, a round is a function of (mode, d, alignments) alone; a state met before
+    # repeats its rounds until the limit without returning, so the iteration stops at once
+    # (the same result as running out of rounds, in fewer dense solves).
+    seen_mode = np.empty((rounds, k), np.int64)
+    seen_d = np.empty((rounds, k, 2))
+    seen_align = np.empty(rounds, np.int64)
+    for rnd in range(rounds):
+        if rnd > 0:
+            if _seen_before(mode, d, alignments, seen_mode, seen_d, seen_align, rnd):
+                break
+            seen_mode[rnd], seen_d[rnd], seen_align[rnd] = mode, d, alignments
         # Unknowns: 3 impulses per sticking contact, the normal impulse per slipping one
         # (its tangential impulse is mu lam_n d). Equations: u = 0 / u_n = 0 on those rows.
         stick = np.flatnonzero(mode == _STICK)
@@ -357,7 +384,9 @@ def polish_active_set(W, q, mu, lam, max_rounds=30, rtol=1e-9):
     conditions (penetration -> stick, pulling -> separate, outside the cone -> slip, slip
     along the force -> stick) until it is consistent (compiled: :func:`_polish`): all of
     them in the first round, then the most violated one per round (up to
-    :data:`SINGLE_SWITCH_MAX_CONTACTS` contacts), which avoids cycling.
+    :data:`SINGLE_SWITCH_MAX_CONTACTS` contacts), which avoids cycling. An iteration that returns
+    to an earlier state (pattern, directions, alignments) stops there with what running out of
+    rounds would give, since it would only repeat itself.
 
     Args:
         W, q, mu: as in :func:`pgs_coulomb`.

@@ -89,22 +89,28 @@ def _reward(positions: np.ndarray, node: int) -> float:
 
 
 def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float | None,
-                       rid_dtype: str = "float64") -> tuple[RobotConfig, int]:
-    """The reduced runs' config and frame spacing (steps) for a reduced time step ``reduced_dt``
-    (s; None: the reference's), so that their frames fall on the reference's frame times, with
-    the RID products in ``rid_dtype``.
+                       rid_dtype: str = "float64") -> tuple[RobotConfig, int, int]:
+    """The reduced runs' config, their frame spacing (steps) and the stride over the reference's
+    frames for a reduced time step ``reduced_dt`` (s; None: the reference's), so that the frames
+    compared fall on the same times, with the RID products in ``rid_dtype``. A step that divides
+    the reference's frame spacing is recorded every few steps against every reference frame; a
+    step that is a multiple of it is recorded every step against every few reference frames.
 
     Raises:
-        ValueError: ``reduced_dt`` does not divide the reference's frame spacing.
+        ValueError: ``reduced_dt`` neither divides nor is a multiple of the reference's frame
+            spacing.
     """
     config = dataclasses.replace(config, rid_dtype=rid_dtype)
     if reduced_dt is None or reduced_dt == config.dt:
-        return config, record_every
-    spacing = config.dt * record_every / reduced_dt
-    if not (reduced_dt > 0 and abs(spacing - round(spacing)) < 1e-9 and round(spacing) >= 1):
-        raise ValueError(f"the reduced time step must divide the reference frame spacing "
-                         f"{config.dt * record_every:g} s, got {reduced_dt!r} s")
-    return dataclasses.replace(config, dt=float(reduced_dt)), int(round(spacing))
+        return config, record_every, 1
+    frame = config.dt * record_every
+    spacing, stride = frame / reduced_dt, reduced_dt / frame
+    whole = lambda r: abs(r - round(r)) < 1e-9 and round(r) >= 1
+    if not (reduced_dt > 0 and (whole(spacing) or whole(stride))):
+        raise ValueError(f"the reduced time step must divide or be a multiple of the reference frame spacing "
+                         f"{frame:g} s, got {reduced_dt!r} s")
+    reduced = dataclasses.replace(config, dt=float(reduced_dt))
+    return (reduced, int(round(spacing)), 1) if whole(spacing) else (reduced, 1, int(round(stride)))
 
 
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
@@ -126,10 +132,10 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         ValueError: a reference was recorded on another mesh or at other times.
     """
     ref = np.load(reference)
-    reduced_config, record_every = _reduced_recording(config, record_every, reduced_dt, rid_dtype)
+    reduced_config, record_every, stride = _reduced_recording(config, record_every, reduced_dt, rid_dtype)
     robot = reduced_scene_robot(scene, reduced_config, reduction)
     rec = run_scene(robot, scene.animation, record_every=record_every)
-    fom_x = ref["positions"].astype(float)
+    fom_x = ref["positions"][::stride].astype(float)
     k = len(rec.positions)
     if rec.positions.shape[1:] != fom_x.shape[1:] or k > len(fom_x):
         raise ValueError(f"reference {reference} does not match the reduction's robot (mesh or duration differ)")
@@ -145,7 +151,7 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
            "seconds_per_step_reduced": rec.wall_seconds / (rec.steps + rec.settle_steps),
            "seconds_per_sim_second_reduced": rec.wall_seconds / ((rec.steps + rec.settle_steps) * reduced_config.dt)}
     if ensemble:
-        members = [np.load(p)["positions"].astype(float) for p in ensemble]
+        members = [np.load(p)["positions"][::stride].astype(float) for p in ensemble]
         if any(x.shape != fom_x.shape for x in members):
             raise ValueError(f"the perturbed runs do not match {reference} (mesh or duration differ)")
         floors = [_errors(x[:k], fom_x[:k], bodies, node) for x in members]
