@@ -410,14 +410,15 @@ def add_delassus(W, u, chol, qdot, fixed_rows, fixed_blocks, frame_rot, basis, c
         nb = _jacobian(b, fixed_rows, frame_rot, basis, c_body, c_node, J)
         blocks = _blocks(b, fixed_blocks, c_body, c_block)
         Jb = J[:3 * nb]
-        Y = np.empty((m, 3 * nb))  # L^-1 J^T by forward substitution
-        Lb = chol[b]
-        for col in range(3 * nb):
-            for i in range(m):
-                acc = Jb[col, i]
-                for j in range(i):
-                    acc -= Lb[i, j] * Y[j, col]
-                Y[i, col] = acc / Lb[i, i]
+        Y = np.ascontiguousarray(Jb.T)  # L^-1 J^T by forward substitution, row by row over all
+        Lb = chol[b]                     # columns (vectorised; each entry reduced in column order)
+        for i in range(m):
+            for j in range(i):
+                lij = Lb[i, j]
+                for col in range(3 * nb):
+                    Y[i, col] -= lij * Y[j, col]
+            for col in range(3 * nb):
+                Y[i, col] /= Lb[i, i]
         Wb = Y.T @ Y
         ub = Jb @ qdot[b]
         for p in range(nb):
