@@ -410,8 +410,10 @@ def add_delassus(W, u, chol, qdot, fixed_rows, fixed_blocks, frame_rot, basis, c
         nb = _jacobian(b, fixed_rows, frame_rot, basis, c_body, c_node, J)
         blocks = _blocks(b, fixed_blocks, c_body, c_block)
         Jb = J[:3 * nb]
-        Y = np.ascontiguousarray(Jb.T)  # L^-1 J^T by forward substitution, row by row over all
-        Lb = chol[b]                     # columns (vectorised; each entry reduced in column order)
+        # L^-1 J^T by forward substitution, row by row over all columns (vectorised; each entry
+        # reduced in the order of column-by-column substitution, so the same bits)
+        Y = np.ascontiguousarray(Jb.T)
+        Lb = chol[b]
         for i in range(m):
             for j in range(i):
                 lij = Lb[i, j]
