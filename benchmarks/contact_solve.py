@@ -39,7 +39,7 @@ import softcrawl.fem.solver as fem_solver  # noqa: E402
 from softcrawl.design.space import canonical_designs  # noqa: E402
 from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, _polish, pgs_coulomb  # noqa: E402
 from softcrawl.reduction.batch import BatchedReducedSolver  # noqa: E402
-from softcrawl.reduction.constrain import POLISH_ROUNDS, POLISH_RTOL, _cholesky_solve_many, solve_condensed  # noqa: E402
+from softcrawl.reduction.constrain import POLISH_ROUNDS, POLISH_RTOL, condense, solve_condensed  # noqa: E402
 from softcrawl.robot import RobotConfig, build_robot  # noqa: E402
 
 
@@ -74,17 +74,11 @@ def record(robots_per_count: int, legs: list[int], settle: int, steps: int, seed
     return problems, steps * len(robots)
 
 
-def _condensed(W, q, nb):
-    X = _cholesky_solve_many(np.linalg.cholesky(W[:nb, :nb]), np.column_stack([q[:nb], W[:nb, nb:]]))
-    Wcb = np.ascontiguousarray(W[nb:, :nb])
-    return np.ascontiguousarray(W[nb:, nb:] - Wcb @ np.ascontiguousarray(X[:, 1:])), q[nb:] - Wcb @ X[:, 0]
-
-
 def time_parts(problems: list) -> dict:
     """ms per problem of the Schur complement, the warm polish, Gauss-Seidel and the polishes
     after it, run as :func:`solve_condensed` runs them, and how often each path is taken."""
     t = time.perf_counter()
-    cond = [_condensed(W, q, nb) + (mu, warm, tol, mx) for W, q, nb, mu, warm, tol, mx in problems]
+    cond = [condense(W, q, nb)[1:] + (mu, warm, tol, mx) for W, q, nb, mu, warm, tol, mx in problems]
     schur = time.perf_counter() - t
     warm_s = pgs_s = after_s = 0.0
     n_warm_failed = n_after = n_after_ok = sweeps = 0

@@ -40,7 +40,8 @@ from softcrawl.fem.constraints import add_block_delassus, block_impulses
 from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, _polish, pgs_coulomb
 from softcrawl.fem.linalg import Factorization, ldl_solve_many
 from softcrawl.fem.solver import MIN_CONTACT_GROWTH
-from softcrawl.reduction.kernels import add_delassus, body_floor_candidates, corrections, point_velocity
+from softcrawl.reduction.kernels import (add_delassus, back_substitute_transposed, body_floor_candidates, corrections,
+                                        forward_substitute, point_velocity)
 
 #: Active-set rounds and relative tolerance of the polish (as :func:`softcrawl.fem.contact.polish_active_set`).
 POLISH_ROUNDS, POLISH_RTOL = 30, 1e-9
@@ -293,29 +294,14 @@ class ConstraintBatch:
 
 @njit(cache=True)
 def _cholesky_solve_many(L, B):
-    """``A^-1 B`` from the lower Cholesky factor ``L`` of ``A`` (``B``: ``(n, k)``).
-
-    Row by row, each row's update over all ``k`` columns at once (a loop the compiler
-    vectorizes): every entry is reduced in the same order as by column-wise substitution, so
-    the result is the same to the bit, 3.5x faster for the Schur complements of
-    :func:`solve_condensed` (``n`` ~ 66 attachment rows, ``k`` ~ 47 contact rows and one more
-    column; ``benchmarks/RESULTS.md``, session 7)."""
-    n, k = B.shape
+    """``A^-1 B`` from the lower Cholesky factor ``L`` of ``A`` (``B``: ``(n, k)``), by
+    :func:`~softcrawl.reduction.kernels.forward_substitute` and
+    :func:`~softcrawl.reduction.kernels.back_substitute_transposed` (column-by-column
+    substitution's bits; 3.5x faster than it for the Schur complements of :func:`condense`,
+    ``n`` ~ 66 attachment rows, ``k`` ~ 47 contact rows and one more column)."""
     Y = B.copy()
-    for i in range(n):  # L y = b
-        for j in range(i):
-            lij = L[i, j]
-            for c in range(k):
-                Y[i, c] -= lij * Y[j, c]
-        for c in range(k):
-            Y[i, c] /= L[i, i]
-    for i in range(n - 1, -1, -1):  # L^T x = y
-        for j in range(i + 1, n):
-            lji = L[j, i]
-            for c in range(k):
-                Y[i, c] -= lji * Y[j, c]
-        for c in range(k):
-            Y[i, c] /= L[i, i]
+    forward_substitute(L, Y)
+    back_substitute_transposed(L, Y)
     return Y
 
 
@@ -339,6 +325,27 @@ def _disk_dv(kinds, which, node_Gt, fixed_Gt, g, node, R):
 
 
 @njit(cache=True)
+def condense(W, q, nb):
+    """The contact problem left when the bilateral rows ``0 .. nb - 1`` of ``u = W lam + q``
+    are eliminated (their ``u = 0``; Schur complement by the Cholesky factor of their block,
+    least squares if it is singular): ``(X, Wc, qc)`` with ``X = W_bb^-1 [q_b, W_bc]``
+    ``(nb, nc + 1)``, the condensed ``Wc`` ``(nc, nc)`` and ``qc`` ``(nc,)``; the bilateral
+    impulses are then ``-(X[:, 0] + X[:, 1:] lam_c)``."""
+    nc = W.shape[0] - nb
+    if not nb:
+        return np.zeros((0, nc + 1)), W[nb:, nb:].copy(), q[nb:].copy()
+    rhs = np.empty((nb, nc + 1))
+    rhs[:, 0] = q[:nb]
+    rhs[:, 1:] = W[:nb, nb:]
+    try:
+        X = _cholesky_solve_many(np.linalg.cholesky(W[:nb, :nb]), rhs)
+    except Exception:  # redundant attachments: least-squares impulses
+        X = np.linalg.pinv(np.ascontiguousarray(W[:nb, :nb])) @ rhs
+    Wcb = np.ascontiguousarray(W[nb:, :nb])
+    return X, W[nb:, nb:] - Wcb @ np.ascontiguousarray(X[:, 1:]), q[nb:] - Wcb @ np.ascontiguousarray(X[:, 0])
+
+
+@njit(cache=True)
 def solve_condensed(W, q, nb, mu, warm, tol, max_iter, extra_chunks):
     """Compiled :func:`softcrawl.fem.contact.solve_constraints`: bilateral rows ``0 .. nb - 1``
     eliminated (Cholesky of their block; least squares if it is singular), the contacts solved
@@ -347,20 +354,7 @@ def solve_condensed(W, q, nb, mu, warm, tol, max_iter, extra_chunks):
     relative_change, polished)``."""
     n = W.shape[0]
     nc = n - nb
-    X = np.zeros((nb, nc + 1))
-    if nb:
-        rhs = np.empty((nb, nc + 1))
-        rhs[:, 0] = q[:nb]
-        rhs[:, 1:] = W[:nb, nb:]
-        try:
-            X = _cholesky_solve_many(np.linalg.cholesky(W[:nb, :nb]), rhs)
-        except Exception:  # redundant attachments: least-squares impulses
-            X = np.linalg.pinv(np.ascontiguousarray(W[:nb, :nb])) @ rhs
-        Wcb = np.ascontiguousarray(W[nb:, :nb])
-        Wc = W[nb:, nb:] - Wcb @ np.ascontiguousarray(X[:, 1:])
-        qc = q[nb:] - Wcb @ np.ascontiguousarray(X[:, 0])
-    else:
-        Wc, qc = W[nb:, nb:].copy(), q[nb:].copy()
+    X, Wc, qc = condense(W, q, nb)
     lam_c = warm.copy()
     sweeps, rel, polished = 0, 0.0, False
     if nc:

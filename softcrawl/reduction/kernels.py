@@ -224,6 +224,37 @@ def add_projected(F, rows, out):
 
 
 @njit(cache=True)
+def forward_substitute(L, Y):
+    """``Y <- L^-1 Y`` in place for a lower triangular ``L`` ``(n, n)`` and ``Y`` ``(n, k)``.
+
+    Row by row, each row's update over all ``k`` columns at once (a loop the compiler
+    vectorises): every entry is reduced in the order of column-by-column substitution, so the
+    result is that substitution's to the bit (issue 18; ``benchmarks/RESULTS.md``, session 7)."""
+    n, k = Y.shape
+    for i in range(n):
+        for j in range(i):
+            lij = L[i, j]
+            for c in range(k):
+                Y[i, c] -= lij * Y[j, c]
+        for c in range(k):
+            Y[i, c] /= L[i, i]
+
+
+@njit(cache=True)
+def back_substitute_transposed(L, Y):
+    """``Y <- L^-T Y`` in place (``L``, ``Y`` as in :func:`forward_substitute`, the same
+    row-by-row order)."""
+    n, k = Y.shape
+    for i in range(n - 1, -1, -1):
+        for j in range(i + 1, n):
+            lji = L[j, i]
+            for c in range(k):
+                Y[i, c] -= lji * Y[j, c]
+        for c in range(k):
+            Y[i, c] /= L[i, i]
+
+
+@njit(cache=True)
 def _cholesky_solve(L, b):
     """``A^-1 b`` from the lower Cholesky factor ``L`` of ``A`` (``b``: ``(m,)``)."""
     m = b.shape[0]
@@ -410,17 +441,8 @@ def add_delassus(W, u, chol, qdot, fixed_rows, fixed_blocks, frame_rot, basis, c
         nb = _jacobian(b, fixed_rows, frame_rot, basis, c_body, c_node, J)
         blocks = _blocks(b, fixed_blocks, c_body, c_block)
         Jb = J[:3 * nb]
-        # L^-1 J^T by forward substitution, row by row over all columns (vectorised; each entry
-        # reduced in the order of column-by-column substitution, so the same bits)
         Y = np.ascontiguousarray(Jb.T)
-        Lb = chol[b]
-        for i in range(m):
-            for j in range(i):
-                lij = Lb[i, j]
-                for col in range(3 * nb):
-                    Y[i, col] -= lij * Y[j, col]
-            for col in range(3 * nb):
-                Y[i, col] /= Lb[i, i]
+        forward_substitute(chol[b], Y)  # L^-1 J^T
         Wb = Y.T @ Y
         ub = Jb @ qdot[b]
         for p in range(nb):
