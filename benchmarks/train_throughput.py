@@ -21,7 +21,7 @@ rounds):
 :class:`softcrawl.envs.backends.SubprocessBackend`) or one env after another (``serial``); ``both``
 runs the two one after the other in this process (same seed, same designs) and reports each and
 their ratio. Each run reports the wall seconds of its gradient updates (overlapped with the
-simulation unless ``--no-overlap``) and the largest worker RSS (sampled every 0.5 s).
+simulation unless ``--no-overlap``) and the largest worker RSS and the workers' CPU seconds (sampled every 0.5 s).
 ``--learner-cost`` also runs the same without any update: the learner's share of the wall time is
 ``1 - wall(no updates) / wall(updates)``, and the ``paper`` preset is projected from the
 simulation-only rate and the learner's rate (overlapped: the larger of the two; serial: their sum).
@@ -100,7 +100,8 @@ def env_rates(args) -> dict:
 
 
 class WorkerMemory:
-    """Largest RSS (MB) of this process's children, sampled every ``period`` s in a thread."""
+    """Largest RSS (MB) of this process's children and the CPU seconds (user + system) each has
+    used, sampled every ``period`` s in a thread (``cpu_s``: their sum at the last samples)."""
 
     def __init__(self, period: float = 0.5):
         import threading
@@ -108,13 +109,20 @@ class WorkerMemory:
         import psutil
 
         self.peak_mb, self._stop, self._me = 0.0, threading.Event(), psutil.Process()
+        self._cpu: dict[int, float] = {}
         self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
+
+    @property
+    def cpu_s(self) -> float:
+        return sum(self._cpu.values())
 
     def _run(self, period: float) -> None:
         while not self._stop.wait(period):
             for child in self._me.children(recursive=True):
                 try:
                     self.peak_mb = max(self.peak_mb, child.memory_info().rss / 2**20)
+                    t = child.cpu_times()
+                    self._cpu[child.pid] = t.user + t.system
                 except Exception:  # noqa: BLE001 - a child that just exited
                     pass
 
@@ -144,6 +152,7 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
             f"checkpoint_every={10 * total}", f"snapshot_every={n}", f"sac.overlap={str(not args.no_overlap).lower()}"]
     cfg = override(preset(args.preset), sets + list(args.set or []))
     backends.BATCHED_WORKERS = batched
+    cpu0 = time.process_time()
     with tempfile.TemporaryDirectory() as tmp, WorkerMemory() as memory:
         res = train(f"{tmp}/run", cfg, progress=True)
     sim_s_per_transition = res.wall_seconds / res.steps
@@ -155,7 +164,8 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
             "wall_s_per_transition_all_cores": sim_s_per_transition,
             "sim_steps_per_s_core": cfg.env.steps_per_action / (sim_s_per_transition * cores),
             "peak_rss_mb_learner": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-            "peak_rss_mb_worker": memory.peak_mb}
+            "peak_rss_mb_worker": memory.peak_mb, "worker_cpu_s": memory.cpu_s,
+            "learner_process_cpu_s": time.process_time() - cpu0}
 
 
 def project(run: dict, updates_per_s: float, cores: int) -> dict:

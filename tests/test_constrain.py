@@ -48,6 +48,26 @@ def test_compiled_constraint_stage_matches_the_python_one(crawling):
     assert np.abs(a.contact_impulses - b.contact_impulses).max() <= 1e-9 * np.abs(b.contact_impulses).max()
 
 
+def test_the_sweep_limit_reaches_the_solver_and_is_checked(crawling):
+    """``RobotConfig.contact_max_iterations`` is the solver's Gauss-Seidel limit: a step with a
+    limit of 1 stops its sweeps there (the sweep count of a step is at most limit x (1 + extra
+    chunks)), and a bad limit is refused."""
+    from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS
+
+    robot, state = crawling
+    one = build_robot(DESIGN, dataclasses.replace(robot.config, contact_max_iterations=1))
+    solver = one.make_solver()
+    assert solver.settings.contact_max_iterations == 1
+    control = robot.control(np.array([60.0, 30.0, 0.0]))
+    st = state
+    for _ in range(5):
+        st = solver.step(st, control)
+        assert solver.stats.contact_sweeps <= 1 + EXTRA_SWEEP_CHUNKS
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="contact_max_iterations"):
+            RobotConfig(model="reduced", contact_max_iterations=bad)
+
+
 def test_disk_columns_do_not_depend_on_the_order_designs_arrive(crawling):
     """Two processes that meet the attachment blocks in different orders give every robot the
     same attachment block ``T`` to the bit (each entry comes from its own pair of blocks), so a

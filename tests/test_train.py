@@ -38,6 +38,25 @@ def test_presets_and_overrides():
         preset("huge")
 
 
+def test_run_config_saved_before_a_setting_reads_back_with_its_reference_value():
+    """A run's config.json written before ``env.rid_dtype`` and ``env.contact_max_iterations``
+    existed resumes with the values it was trained with (the reference), not the presets' newer
+    defaults; the factory hands the sweep limit to the robots."""
+    from softcrawl.codesign.factory import robot_factory
+
+    d = preset("demo").to_dict()
+    for key in ("rid_dtype", "contact_max_iterations"):
+        del d["env"][key]
+    old = TrainConfig.from_dict(json.loads(json.dumps(d)))
+    assert (old.env.rid_dtype, old.env.contact_max_iterations) == ("float64", 250)
+    new = preset("demo")
+    assert new.env.contact_max_iterations == 100 and robot_factory(new).config.contact_max_iterations == 100
+    assert robot_factory(old).config.contact_max_iterations == 250
+    for bad in (["env.contact_max_iterations=0"], ["env.contact_max_iterations=2.5"]):
+        with pytest.raises(ValueError, match="env.contact_max_iterations"):
+            override(new, bad)
+
+
 def test_sac_split_learning_rates_and_update_ratio():
     from stable_baselines3.common.vec_env import DummyVecEnv
 

@@ -147,12 +147,13 @@ def _validate(args: argparse.Namespace) -> int:
     reduction, _ = load_reduction(path, expect=dataclasses.asdict(config))
     rep = validate_reduction(reduction, config, args.workdir, workers=args.workers, progress=progress,
                              ensemble=args.ensemble, perturbation=args.perturbation, reduced_dt=args.dt,
-                             rid_dtype=args.rid_dtype)
+                             rid_dtype=args.rid_dtype, contact_max_iterations=args.contact_max_iterations)
     rep["reduction"] = str(path)
     (out / "validation.json").write_text(json.dumps(jsonable(rep), indent=1) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(_markdown(rep), encoding="utf-8")
     print(_markdown(rep))
-    print(f"reduced dt {rep['reduced_dt']:g} s, RID products in {rep['rid_dtype']}: "
+    print(f"reduced dt {rep['reduced_dt']:g} s, RID products in {rep['rid_dtype']}, "
+          f"{rep['contact_max_iterations']} Gauss-Seidel sweeps per chunk: "
           f"mean node error {rep['mean_node_error_mm']:.3f} mm "
           f"(deformation {rep['mean_deformation_error_mm']:.3f} mm); "
           f"reduced step {rep['speedup']:.0f}x faster; "
@@ -202,4 +203,6 @@ def register(subparsers) -> None:
                         "multiple of the 0.02 s frame spacing); the full-order references stay exact at 0.01 s")
     v.add_argument("--rid-dtype", choices=RID_DTYPES, default="float64",
                    help="precision of the reduced model's RID element products (default float64)")
+    v.add_argument("--contact-max-iterations", type=int, default=RobotConfig.contact_max_iterations,
+                   help="the reduced model's Gauss-Seidel sweep limit per chunk (default: the reference 250)")
     v.set_defaults(func=_validate)

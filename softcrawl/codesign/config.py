@@ -9,8 +9,10 @@ Presets (all but ``smoke`` step the reduced model at dt = 0.02 s, 50 steps per 1
 mean node error of 0.96 mm (0.79 mm at 0.01 s) and a baseline reward error of 1.3% (1.1%), and
 the paper-best 20 s crawl +11.36 cm (0.01 s: +11.69 cm; full-order exact +10.66 cm), for half
 the steps; with float32 RID products, ``env.rid_dtype``, 0.95 mm and 3.0%; 0.04 s fails both
-targets, 1.72 mm and 17%, at about twice the cost per step, ``benchmarks/RESULTS.md``;
-``--set env.dt=0.01 env.steps_per_action=100 env.rid_dtype=float64`` restores the reference step):
+targets, 1.72 mm and 17%, at about twice the cost per step, ``benchmarks/RESULTS.md``; and with
+at most 100 Gauss-Seidel sweeps per chunk (``env.contact_max_iterations``), 0.95 mm and 0.6%;
+``--set env.dt=0.01 env.steps_per_action=100 env.rid_dtype=float64
+env.contact_max_iterations=250`` restores the reference step):
 
 * ``paper``: the paper's table: 96 envs, 1M transitions, buffer 100K, batch 512, γ 0.95,
   policy lr 6e-4, Q lr 2e-3, τ 0.01, learning starts 10K, 1 update per transition,
@@ -48,6 +50,8 @@ from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import Settling
 
 BACKENDS = ("serial", "subprocess", "ray")
+#: ``env`` settings added after runs were saved, and the value that reproduces those runs.
+_BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250}
 TIMEOUTS = ("bootstrap", "terminal")
 
 
@@ -68,6 +72,13 @@ class EnvConfig:
             saved before this setting existed is read back as ``"float64"``.
         dt: simulator step, s (0.02: validated against the exact 0.01 s model, see the module
             docstring). steps_per_action: steps per action (hold = dt * steps_per_action s).
+        contact_max_iterations: the contact solve's Gauss-Seidel sweep limit per chunk
+            (:class:`softcrawl.robot.RobotConfig`; reference 250). 100: ``softcrawl reduce
+            validate --dt 0.02 --rid-dtype float32 --contact-max-iterations 100`` gave a mean
+            node error of 0.946 mm (0.952 with 250) and a baseline reward error of 0.6% (3.0%);
+            the settling before an episode costs about 1.2x less, a step after it about 3% less
+            (``benchmarks/RESULTS.md``, wave 2 session 8). A run saved before this setting
+            existed is read back with 250.
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
         settle_speed, settle_hold, settle_max_seconds: the rest rule of the zero-pressure
             settling before each episode (mm/s, s, s; :class:`softcrawl.robot.Settling`);
@@ -88,6 +99,7 @@ class EnvConfig:
     rid_dtype: str = "float32"
     dt: float = 0.02
     steps_per_action: int = 50
+    contact_max_iterations: int = 100
     n_actions: int = 20
     observe_state: bool = False
     settle_speed: float = 0.5
@@ -174,7 +186,7 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         for name in ("n_envs", "total_steps", "checkpoint_every", "snapshot_every", "keep_checkpoints"):
             pos_int(name, getattr(self, name))
-        for name in ("steps_per_action", "n_actions", "max_cached_robots"):
+        for name in ("steps_per_action", "n_actions", "max_cached_robots", "contact_max_iterations"):
             pos_int(f"env.{name}", getattr(self.env, name))
         if self.env.refactor_every is not None:
             pos_int("env.refactor_every", self.env.refactor_every)
@@ -250,8 +262,8 @@ class TrainConfig:
                 sub = hints[k] if dataclasses.is_dataclass(hints[k]) else None
                 kw[k] = build(sub, v, f"{prefix}{k}.") if sub else check_field(f"{prefix}{k}", v, hints[k])
             return kind(**kw)
-        if isinstance(d, dict) and isinstance(d.get("env"), dict) and "rid_dtype" not in d["env"]:
-            d = {**d, "env": {**d["env"], "rid_dtype": "float64"}}  # saved before the setting: double precision
+        if isinstance(d, dict) and isinstance(d.get("env"), dict):  # saved before a setting: its reference value
+            d = {**d, "env": {**_BEFORE_SETTING, **d["env"]}}
         return build(cls, d, "").validate()
 
 

@@ -25,6 +25,9 @@ from softcrawl.robot.episode import Settling
 
 #: RobotConfig fields a full-order run does not depend on (left out of its settings).
 REDUCED_ONLY_FIELDS = ("reduced_disk",)
+#: Fields of :class:`RobotConfig` added after runs were saved, and the value those runs used:
+#: left out of a run's settings at that value, so the saved runs still match.
+LATER_FIELDS = {"contact_max_iterations": 250}
 #: Part -> its array in a snapshot run file.
 SNAPSHOT_KEYS = {"leg": "u", "disk": "u_disk"}
 
@@ -34,7 +37,8 @@ def _settings(scene: Scene, config: RobotConfig, kind: str, record_every: int,
     """The settings of a run as they read back from its ``.json`` (tuples become lists), so
     that a finished run compares equal to its saved settings. Fields of ``config`` that only
     a reduced model reads are left out: they do not change a full-order run."""
-    config = {k: v for k, v in dataclasses.asdict(config).items() if k not in REDUCED_ONLY_FIELDS}
+    config = {k: v for k, v in dataclasses.asdict(config).items()
+              if k not in REDUCED_ONLY_FIELDS and not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
     settings = {"kind": kind, "scene": scene.describe(), "config": config, "settling": dataclasses.asdict(Settling()),
                 "record_every": record_every, "version": __version__}
     if perturbation[0]:

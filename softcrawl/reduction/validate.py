@@ -89,10 +89,12 @@ def _reward(positions: np.ndarray, node: int) -> float:
 
 
 def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float | None,
-                       rid_dtype: str = "float64") -> tuple[RobotConfig, int, int]:
+                       rid_dtype: str = "float64", contact_max_iterations: int | None = None
+                       ) -> tuple[RobotConfig, int, int]:
     """The reduced runs' config, their frame spacing (steps) and the stride over the reference's
     frames for a reduced time step ``reduced_dt`` (s; None: the reference's), so that the frames
-    compared fall on the same times, with the RID products in ``rid_dtype``. A step that divides
+    compared fall on the same times, with the RID products in ``rid_dtype`` and the Gauss-Seidel
+    sweep limit ``contact_max_iterations`` (None: ``config``'s). A step that divides
     the reference's frame spacing is recorded every few steps against every reference frame; a
     step that is a multiple of it is recorded every step against every few reference frames.
 
@@ -100,7 +102,8 @@ def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float
         ValueError: ``reduced_dt`` neither divides nor is a multiple of the reference's frame
             spacing.
     """
-    config = dataclasses.replace(config, rid_dtype=rid_dtype)
+    config = dataclasses.replace(config, rid_dtype=rid_dtype,
+                                 contact_max_iterations=contact_max_iterations or config.contact_max_iterations)
     if reduced_dt is None or reduced_dt == config.dt:
         return config, record_every, 1
     frame = config.dt * record_every
@@ -115,11 +118,13 @@ def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float
 
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
                   record_every: int = 2, ensemble: list[Path] = (), perturbation: float = 0.0,
-                  reduced_dt: float | None = None, rid_dtype: str = "float64") -> dict:
+                  reduced_dt: float | None = None, rid_dtype: str = "float64",
+                  contact_max_iterations: int | None = None) -> dict:
     """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run
     (recorded every ``record_every`` steps of ``config.dt``); ``reduced_dt``: the reduced
     model's time step (s; None: ``config.dt``), frames compared at the same times;
-    ``rid_dtype``: the precision of its RID products (:class:`RobotConfig`).
+    ``rid_dtype``: the precision of its RID products and ``contact_max_iterations`` its
+    Gauss-Seidel sweep limit (:class:`RobotConfig`; None: ``config``'s).
 
     Given perturbed full-order runs (``ensemble``), also their mean distance to the reference
     (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first); and
@@ -132,7 +137,8 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         ValueError: a reference was recorded on another mesh or at other times.
     """
     ref = np.load(reference)
-    reduced_config, record_every, stride = _reduced_recording(config, record_every, reduced_dt, rid_dtype)
+    reduced_config, record_every, stride = _reduced_recording(config, record_every, reduced_dt, rid_dtype,
+                                                              contact_max_iterations)
     robot = reduced_scene_robot(scene, reduced_config, reduction)
     rec = run_scene(robot, scene.animation, record_every=record_every)
     fom_x = ref["positions"][::stride].astype(float)
@@ -171,7 +177,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
                        scenes: tuple[Scene, ...] | None = None, record_every: int = 2,
                        workers: int | None = None, progress: bool = True, ensemble: int = 3,
                        perturbation: float = 1e-6, reduced_dt: float | None = None,
-                       rid_dtype: str = "float64") -> dict:
+                       rid_dtype: str = "float64", contact_max_iterations: int | None = None) -> dict:
     """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
@@ -180,6 +186,8 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
             larger step costs in accuracy (issue 18's settings study).
         rid_dtype: the precision of the reduced model's RID products (``"float32"``: what single
             precision costs in accuracy).
+        contact_max_iterations: the reduced model's Gauss-Seidel sweep limit per chunk (None:
+            ``config``'s): what a cheaper contact solve costs in accuracy.
         ensemble: perturbed full-order runs per scene (the chaos floor and reward spread; 0:
             none), and as many perturbed reduced runs.
         perturbation: their initial noise amplitude, mm.
@@ -203,7 +211,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     warm = scenes[0]  # compile the reduced kernels before anything is timed (numba's cache may be cold)
     run_scene(reduced_scene_robot(warm, config, reduction), warm.animation, duration=config.dt)
     rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation, reduced_dt,
-                          rid_dtype)
+                          rid_dtype, contact_max_iterations)
             for i, (s, r) in enumerate(tqdm(list(zip(scenes, refs)), desc="reduced runs", unit="scene",
                                             disable=not progress))]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
@@ -216,6 +224,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
             "max_scene_node_error_mm": float(max(r["mean_node_error_mm"] for r in rows)),
             "mean_seconds_per_step_full": full, "mean_seconds_per_step_reduced": red, "speedup": full / red,
             "reduced_dt": reduced_dt or config.dt, "rid_dtype": rid_dtype,
+            "contact_max_iterations": contact_max_iterations or config.contact_max_iterations,
             "mean_seconds_per_sim_second_reduced": red_sim,
             **reduction_sizes(reduction)}
 

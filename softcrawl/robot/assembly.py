@@ -112,6 +112,8 @@ class RobotConfig:
         rid_dtype: precision of the reduced legs' RID element products: ``"float64"`` (the
             reference) or ``"float32"`` (1.5x faster RID terms; see
             :class:`softcrawl.fem.solver.SolverSettings`). Ignored by full-order bodies.
+        contact_max_iterations: Gauss-Seidel sweep limit of the contact solve, per chunk
+            (physics.md reference: 250; :class:`softcrawl.fem.solver.SolverSettings`).
         attachment_patch: ``"ring"``: each of a leg's 4 attachment points ties the disk to
             the average of the corner node and its one-ring (the nodes sharing a tetrahedron
             with it); a single-node tie concentrates the leg's reaction in one element, which
@@ -135,6 +137,7 @@ class RobotConfig:
     contact_distance: float = 0.5
     refactor_every: int | None = None
     rid_dtype: str = "float64"
+    contact_max_iterations: int = 250
     attachment_patch: str = "ring"
     model: str = "full"
     reduction: str | None = None
@@ -149,6 +152,10 @@ class RobotConfig:
             raise ValueError(f"RobotConfig.attachment_patch must be 'ring' or 'node', got {self.attachment_patch!r}")
         if self.rid_dtype not in RID_DTYPES:
             raise ValueError(f"RobotConfig.rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
+        if isinstance(self.contact_max_iterations, bool) or int(self.contact_max_iterations) != self.contact_max_iterations \
+                or self.contact_max_iterations < 1:
+            raise ValueError(f"RobotConfig.contact_max_iterations must be a positive integer, "
+                             f"got {self.contact_max_iterations!r}")
         if self.refactor_every is not None and (int(self.refactor_every) != self.refactor_every
                                                 or self.refactor_every < 1):
             raise ValueError(f"RobotConfig.refactor_every must be a positive integer, got {self.refactor_every!r}")
@@ -243,7 +250,9 @@ class Robot:
         :attr:`reduced` is not empty)."""
         corotational_disk = self.reduced and self.disk_body not in self.reduced
         reuse = self.config.refactor_every or (REDUCED_DISK_REFACTOR_EVERY if corotational_disk else 1)
-        settings = SolverSettings(dt=self.config.dt, refactor_every=reuse, rid_dtype=self.config.rid_dtype)
+        c = self.config
+        settings = SolverSettings(dt=c.dt, refactor_every=reuse, rid_dtype=c.rid_dtype,
+                                  contact_max_iterations=int(c.contact_max_iterations))
         if self.reduced:
             return ReducedSolver(self.model, dict(self.reduced), settings)
         return ImplicitEulerSolver(self.model, settings)
