@@ -615,6 +615,14 @@ def test_saved_runs_with_tuple_parameters_are_reused(tmp_path, monkeypatch):
     runs.run_fom_scenes(tmp_path, [scene], dataclasses.replace(TINY, friction=0.9), "reference", record_every=2,
                         workers=1, progress=False)
     assert calls == [0, 0, 1]
+    # A field added later matches runs saved before it at the value they used (250 sweeps), and
+    # only there (regression: adding RobotConfig.contact_max_iterations re-ran every reference).
+    saved = {k: v for k, v in settings["config"].items() if k not in runs.LATER_FIELDS}
+    path.with_suffix(".json").write_text(__import__("json").dumps({**settings, "config": saved}), encoding="utf-8")
+    runs.run_fom_scenes(tmp_path, [scene], TINY, "reference", record_every=2, workers=1, progress=False)
+    runs.run_fom_scenes(tmp_path, [scene], dataclasses.replace(TINY, contact_max_iterations=100), "reference",
+                        record_every=2, workers=1, progress=False)
+    assert calls == [0, 0, 1, 0, 1]
 
 
 def test_validation_compares_a_larger_reduced_step_at_the_reference_frames():

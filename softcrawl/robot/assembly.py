@@ -248,9 +248,9 @@ class Robot:
     def make_solver(self) -> ImplicitEulerSolver:
         """A fresh solver for :attr:`model` with the config's time step (reduced if
         :attr:`reduced` is not empty)."""
-        corotational_disk = self.reduced and self.disk_body not in self.reduced
-        reuse = self.config.refactor_every or (REDUCED_DISK_REFACTOR_EVERY if corotational_disk else 1)
         c = self.config
+        corotational_disk = self.reduced and self.disk_body not in self.reduced
+        reuse = c.refactor_every or (REDUCED_DISK_REFACTOR_EVERY if corotational_disk else 1)
         settings = SolverSettings(dt=c.dt, refactor_every=reuse, rid_dtype=c.rid_dtype,
                                   contact_max_iterations=int(c.contact_max_iterations))
         if self.reduced:
