@@ -21,7 +21,8 @@ rounds):
 :class:`softcrawl.envs.backends.SubprocessBackend`) or one env after another (``serial``); ``both``
 runs the two one after the other in this process (same seed, same designs) and reports each and
 their ratio. Each run reports the wall seconds of its gradient updates (overlapped with the
-simulation unless ``--no-overlap``) and the largest worker RSS and the workers' CPU seconds (sampled every 0.5 s).
+simulation unless ``--no-overlap``), the largest worker RSS and the workers' CPU seconds
+(sampled every 0.5 s).
 ``--learner-cost`` also runs the same without any update: the learner's share of the wall time is
 ``1 - wall(no updates) / wall(updates)``, and the ``paper`` preset is projected from the
 simulation-only rate and the learner's rate (overlapped: the larger of the two; serial: their sum).

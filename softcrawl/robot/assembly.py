@@ -152,8 +152,8 @@ class RobotConfig:
             raise ValueError(f"RobotConfig.attachment_patch must be 'ring' or 'node', got {self.attachment_patch!r}")
         if self.rid_dtype not in RID_DTYPES:
             raise ValueError(f"RobotConfig.rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
-        if isinstance(self.contact_max_iterations, bool) or int(self.contact_max_iterations) != self.contact_max_iterations \
-                or self.contact_max_iterations < 1:
+        n = self.contact_max_iterations
+        if isinstance(n, bool) or int(n) != n or n < 1:
             raise ValueError(f"RobotConfig.contact_max_iterations must be a positive integer, "
                              f"got {self.contact_max_iterations!r}")
         if self.refactor_every is not None and (int(self.refactor_every) != self.refactor_every
