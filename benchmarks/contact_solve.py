@@ -36,21 +36,18 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import softcrawl.fem.solver as fem_solver  # noqa: E402
-from softcrawl.design.space import canonical_designs  # noqa: E402
 from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, _polish, pgs_coulomb  # noqa: E402
 from softcrawl.reduction.batch import BatchedReducedSolver  # noqa: E402
 from softcrawl.reduction.constrain import POLISH_ROUNDS, POLISH_RTOL, condense, solve_condensed  # noqa: E402
 from softcrawl.robot import RobotConfig, build_robot  # noqa: E402
+from batch_step import designs_with  # noqa: E402  (this folder's script)
 
 
 def record(robots_per_count: int, legs: list[int], settle: int, steps: int, seed: int) -> tuple[list, int]:
     """The contact problems ``(W, q, nb, mu, warm, tol, max_iter)`` of ``steps`` batched steps
     of training-like robots (module doc), and the number of robot steps they came from."""
     rng = np.random.default_rng(seed)
-    designs = []
-    for n in legs:
-        pool = [d for d in canonical_designs() if sum(v > 0 for v in d) == n]
-        designs += [pool[i] for i in rng.choice(len(pool), robots_per_count, replace=False)]
+    designs = [d for n in legs for d in designs_with(n, robots_per_count, rng)]
     cfg = RobotConfig(model="reduced", dt=0.02, rid_dtype="float32")
     robots = [build_robot(d, cfg) for d in designs]
     batch = BatchedReducedSolver([r.make_solver() for r in robots])

@@ -24,9 +24,9 @@ import time
 import numpy as np
 
 from softcrawl.codesign.config import EnvConfig
-from softcrawl.design.space import canonical_designs
 from softcrawl.reduction.batch import BatchedReducedSolver, run_in_lockstep
 from softcrawl.robot import RobotConfig, Settling, build_robot, settle
+from batch_step import designs_with  # this folder's script
 
 
 def main() -> None:
@@ -41,10 +41,7 @@ def main() -> None:
     env = EnvConfig()
     iterations = args.contact_max_iterations or env.contact_max_iterations
     rng = np.random.default_rng(args.seed)
-    designs = []
-    for n in args.legs:
-        pool = [d for d in canonical_designs() if sum(v > 0 for v in d) == n]
-        designs += [pool[i] for i in rng.choice(len(pool), args.robots, replace=False)]
+    designs = [d for n in args.legs for d in designs_with(n, args.robots, rng)]
     cfg = RobotConfig(model="reduced", dt=env.dt, rid_dtype=env.rid_dtype, contact_max_iterations=iterations)
     robots = [build_robot(d, cfg) for d in designs]
     solvers = [r.make_solver() for r in robots]
