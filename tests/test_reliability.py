@@ -176,6 +176,37 @@ def test_2_dangling_latest_resumes_from_newest_complete_checkpoint(run):
     assert Run(run).latest_checkpoint().name == "step-0000000160"
 
 
+def test_2_a_run_resumed_at_an_episode_boundary_is_the_uninterrupted_run(trained, run):
+    """Regression (issue 18): the checkpoint at 80 steps (every env between episodes) keeps the
+    designs the run had just drawn for the next episodes; resumed from it, the run logs the same
+    episodes and design distribution as the uninterrupted one (it drew new designs instead and
+    went its own way from the first episode after the checkpoint)."""
+    from softcrawl.codesign.run import Run
+    from softcrawl.codesign.training import train
+
+    state = Run(run).read_checkpoint_state(run / "checkpoints" / "step-0000000080")
+    assert state["next_designs"] is not None and len(state["next_designs"]) == 2
+    for name in ("step-0000000120", "step-0000000160"):
+        shutil.rmtree(run / "checkpoints" / name)
+    (run / "checkpoints" / "latest").write_text("step-0000000080")
+    assert train(run, resume=True, progress=False).steps == 160
+    for name in ("episodes.csv", "distribution.csv"):
+        assert (run / name).read_text() == (trained / name).read_text(), name
+
+
+def test_2_malformed_next_designs_are_refused(run, capsys):
+    """A checkpoint whose ``next_designs`` are not designs is not restorable: one clear line."""
+    ck = run / "checkpoints" / "step-0000000160"
+    st = json.loads((ck / "state.json").read_text())
+    st["next_designs"] = [[9, 9, 9, 9, 9, 9, 9, 9], [1, 0, 0, 2, 2, 0, 0, 0]]
+    (ck / "state.json").write_text(json.dumps(st))
+    _rehash(ck)
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["config"]["total_steps"] = 200
+    (run / "config.json").write_text(json.dumps(cfg))
+    _one_line_error(capsys, main(["train", "--resume", "--out", str(run), "--no-progress"]), "malformed")
+
+
 def test_2_no_complete_checkpoint_refuses_and_keeps_everything(run):
     from softcrawl.codesign.run import latest_checkpoint
     from softcrawl.codesign.training import train

@@ -85,7 +85,9 @@ class EnvConfig:
             settling before each episode (mm/s, s, s; :class:`softcrawl.robot.Settling`);
             presets may change the threshold, not skip settling.
         legs: leg counts of the designs in play (default 3..6: all 6,972 canonical designs).
-        max_cached_robots: robots kept per worker process beyond one per env (LRU, shared by its envs).
+        max_cached_robots: robots kept per worker process beyond one per env (LRU, shared by its envs;
+            the settled states of dropped robots stay longer, up to 128 MB per worker:
+            :mod:`softcrawl.envs.robot_cache`).
         randomize: domain randomization ranges drawn per episode
             (:class:`softcrawl.robot.domain.DomainRanges`; default: off, every range null).
             ``--set env.randomize.friction=[0.8,1.6]`` sets one range,

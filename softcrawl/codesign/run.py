@@ -20,7 +20,8 @@ it; nothing else builds a run's paths by hand. Layout::
     │       ├── model.pt           tensors only (torch.load(weights_only=True)): policy, critics, targets,
     │       │                      optimizers, log temperature, torch RNG
     │       ├── replay_buffer.npz  the SB3 replay buffer's arrays and pos/full (np.load(allow_pickle=False))
-    │       ├── state.json         counters, design sampler (distribution + its RNG), numpy and python RNG
+    │       ├── state.json         counters, design sampler (distribution + its RNG), numpy and python RNG,
+    │       │                      the designs of the episodes just begun (at an episode boundary, else null)
     │       └── manifest.json      {"format": 1, "files": {name: sha256}}
     └── report/                    softcrawl report (built in .report.partial-*, swapped in when complete)
 
@@ -58,6 +59,7 @@ import numpy as np
 
 from softcrawl import __version__
 from softcrawl.codesign.config import TrainConfig
+from softcrawl.design.space import validate_design
 
 CHECKPOINT_FORMAT = 1
 CHECKPOINT_FILES = ("model.pt", "replay_buffer.npz", "state.json")
@@ -392,6 +394,8 @@ class Run:
             state["sampler"] = sampler_state_from_json(state["sampler"])
             for key in ("num_timesteps", "n_updates", "episode_num"):
                 state[key] = int(state[key])
+            nxt = state.get("next_designs")  # absent in checkpoints written before it existed
+            state["next_designs"] = None if nxt is None else [validate_design(d) for d in nxt]
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"{path / 'state.json'}: malformed ({exc!r})") from None
         return state
@@ -441,6 +445,9 @@ class Run:
         model.num_timesteps, model._n_updates = state["num_timesteps"], state["n_updates"]
         model._episode_num = state["episode_num"]
         model._last_obs = None  # forces env.reset() in learn(): fresh episodes
+        env = _vec_env(model)
+        if env is not None and state["next_designs"] is not None:
+            env.resume_with(state["next_designs"])  # the designs the uninterrupted run had drawn
 
     def checkpoint_steps(self, path: Path) -> int:
         """Environment steps of checkpoint ``path`` (from its name)."""
@@ -500,10 +507,27 @@ def _write_checkpoint(folder: Path, model, sampler) -> None:
         "numpy_rng": {"name": np_rng[0], "key": np_rng[1].tolist(), "pos": int(np_rng[2]),
                       "has_gauss": int(np_rng[3]), "cached_gaussian": float(np_rng[4])},
         "python_rng": [py_rng[0], list(py_rng[1]), py_rng[2]],
+        "next_designs": _starting_designs(model),
     }
     (folder / "state.json").write_text(json.dumps(state), encoding="utf-8")
     manifest = {"format": CHECKPOINT_FORMAT, "files": {f: _sha256(folder / f) for f in CHECKPOINT_FILES}}
     (folder / "manifest.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
+
+
+def _vec_env(model):
+    """The :class:`~softcrawl.envs.DesignVecEnv` under ``model``'s env wrappers (None if none)."""
+    env = model.get_env()
+    while env is not None and not hasattr(env, "starting_designs"):
+        env = getattr(env, "venv", None)
+    return env
+
+
+def _starting_designs(model) -> list | None:
+    """The designs of the episodes every env has just started (a checkpoint at an episode
+    boundary), as lists; None if some env is inside an episode."""
+    env = _vec_env(model)
+    designs = None if env is None else env.starting_designs()
+    return None if designs is None else [list(d) for d in designs]
 
 
 def _rescue_checkpoint(name: str, model, sampler) -> Path | None:

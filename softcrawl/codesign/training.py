@@ -3,10 +3,13 @@
 The run folder's layout, checkpoint formats and integrity checks are those of
 :mod:`softcrawl.codesign.run`; this module writes through it. A checkpoint is written after the
 gradient updates of the vectorised step it is named after, so a resumed run has every update
-the uninterrupted one had. On resume the episodes that were running at the checkpoint are
-discarded (their transitions are in the replay buffer; their returns never reach the design
-distribution) and every env starts a new episode with a freshly sampled design; the counters
-continue. The report is not written here (``softcrawl train`` calls
+the uninterrupted one had. A checkpoint at an episode boundary (every env just reset, as with
+the ``crawl``, ``demo`` and ``smoke`` presets' checkpoints) also keeps the designs drawn for the
+next episodes, and a run resumed from it continues as the uninterrupted run did (the same
+episodes, to the bit, with domain randomization off: the envs' own random draws restart from
+their seeds). From a checkpoint inside episodes, the running episodes are discarded (their
+transitions are in the replay buffer; their returns never reach the design distribution) and
+every env starts a new episode with a freshly sampled design; the counters continue. The report is not written here (``softcrawl train`` calls
 :func:`softcrawl.codesign.report.write_report` afterwards).
 """
 

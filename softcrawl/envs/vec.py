@@ -43,13 +43,33 @@ class DesignVecEnv(VecEnv):
         self._returns = np.zeros(self.num_envs)
         self._lengths = np.zeros(self.num_envs, np.int64)
         self._actions: np.ndarray | None = None
+        self._resume: list[Design] | None = None
         self.while_stepping = None
 
     def _new_designs(self, k: int) -> list[Design | None]:
         return list(self.sampler.sample(k)) if self.sampler is not None else [None] * k
 
-    def _reset_envs(self, indices: list[int]) -> list[tuple[np.ndarray, dict]]:
-        designs = self._new_designs(len(indices))
+    def starting_designs(self) -> list[Design] | None:
+        """The designs of the episodes every env has just started (none has taken an action),
+        for a checkpoint; None if some env is inside an episode or has no design yet."""
+        if self._lengths.any() or any(d is None for d in self.designs):
+            return None
+        return list(self.designs)
+
+    def resume_with(self, designs) -> None:
+        """Start the next :meth:`reset` with ``designs`` (one per env; from
+        :meth:`starting_designs` of a checkpoint) instead of new draws from the sampler, so a
+        run resumed at an episode boundary continues as the uninterrupted one did.
+
+        Raises:
+            ValueError: not one design per env.
+        """
+        if len(designs) != self.num_envs:
+            raise ValueError(f"{len(designs)} designs to resume {self.num_envs} envs with")
+        self._resume = list(designs)
+
+    def _reset_envs(self, indices: list[int], designs: list | None = None) -> list[tuple[np.ndarray, dict]]:
+        designs = self._new_designs(len(indices)) if designs is None else designs
         seeds = [self._seeds[i] for i in indices]
         out = self.backend.reset(indices, designs, seeds)
         for i, (_, info) in zip(indices, out):
@@ -60,7 +80,8 @@ class DesignVecEnv(VecEnv):
         return out
 
     def reset(self) -> np.ndarray:
-        out = self._reset_envs(list(range(self.num_envs)))
+        designs, self._resume = self._resume, None
+        out = self._reset_envs(list(range(self.num_envs)), designs)
         return np.stack([o for o, _ in out])
 
     def step_async(self, actions: np.ndarray) -> None:

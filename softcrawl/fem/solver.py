@@ -45,6 +45,8 @@ class SimulationDiverged(RuntimeError):
 
 #: Precisions of the reduced bodies' RID element products (:attr:`SolverSettings.rid_dtype`).
 RID_DTYPES = ("float64", "float32")
+#: The reference Gauss-Seidel sweep limit of the contact solve, per chunk (physics.md: 250).
+CONTACT_MAX_ITERATIONS = 250
 
 
 @dataclass(frozen=True)
@@ -77,7 +79,7 @@ class SolverSettings:
     refactor_every: int = 1
     cg_rtol: float = 1e-9
     contact_tolerance: float = 1e-8
-    contact_max_iterations: int = 250
+    contact_max_iterations: int = CONTACT_MAX_ITERATIONS
     max_speed: float = 1e5
     rid_dtype: str = "float64"
 

@@ -256,7 +256,10 @@ def back_substitute_transposed(L, Y):
 
 @njit(cache=True)
 def _cholesky_solve(L, b):
-    """``A^-1 b`` from the lower Cholesky factor ``L`` of ``A`` (``b``: ``(m,)``)."""
+    """``A^-1 b`` from the lower Cholesky factor ``L`` of ``A`` (``b``: ``(m,)``). The
+    arithmetic of :func:`forward_substitute` then :func:`back_substitute_transposed` with one
+    column, written out: calling them on a ``(m, 1)`` view gives the same bits but took 2.6x as
+    long per call (8 against 3 us for m = 36, measured in a compiled loop), on the hot path."""
     m = b.shape[0]
     y = b.copy()
     for i in range(m):

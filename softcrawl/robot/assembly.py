@@ -35,7 +35,7 @@ from softcrawl.design.space import (
 from softcrawl.fem.body import Body, Cavity, Membrane
 from softcrawl.fem.materials import DRAGONSKIN_30, PAPER, PRINTED_POLYMER
 from softcrawl.fem.model import Attachment, Floor, Model, PointRef, embed_point
-from softcrawl.fem.solver import RID_DTYPES, ImplicitEulerSolver, SolverSettings
+from softcrawl.fem.solver import CONTACT_MAX_ITERATIONS, RID_DTYPES, ImplicitEulerSolver, SolverSettings
 from softcrawl.fem.state import Control
 from softcrawl.geometry.disk import DiskParams, disk_mesh
 from softcrawl.geometry.mesh import TetMesh
@@ -137,7 +137,7 @@ class RobotConfig:
     contact_distance: float = 0.5
     refactor_every: int | None = None
     rid_dtype: str = "float64"
-    contact_max_iterations: int = 250
+    contact_max_iterations: int = CONTACT_MAX_ITERATIONS
     attachment_patch: str = "ring"
     model: str = "full"
     reduction: str | None = None
