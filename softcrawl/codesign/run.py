@@ -403,7 +403,8 @@ class Run:
     def load_checkpoint(self, path: Path, model, sampler) -> None:
         """Restore checkpoint ``path`` into a freshly built model / sampler (same config), and
         the torch / numpy / python RNGs. ``model._last_obs`` is cleared so ``learn()`` starts
-        fresh episodes.
+        fresh episodes: with the checkpoint's ``next_designs`` (an episode boundary) if it has
+        them (:meth:`softcrawl.envs.DesignVecEnv.resume_with`), else with new draws.
 
         Raises:
             ValueError: incomplete, damaged, not tensors-only, or built for another config.
@@ -439,15 +440,15 @@ class Run:
                                  r["cached_gaussian"]))
             v, key, gauss = state["python_rng"]
             random.setstate((v, tuple(key), gauss))
+            env = _vec_env(model)
+            if env is not None and state["next_designs"] is not None:
+                env.resume_with(state["next_designs"])  # the designs the uninterrupted run had drawn
         except Exception as exc:  # zip/npy errors, shapes, state_dict keys: all mean "not restorable"
             msg = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
             raise ValueError(f"{path}: cannot restore checkpoint ({msg})") from None
         model.num_timesteps, model._n_updates = state["num_timesteps"], state["n_updates"]
         model._episode_num = state["episode_num"]
         model._last_obs = None  # forces env.reset() in learn(): fresh episodes
-        env = _vec_env(model)
-        if env is not None and state["next_designs"] is not None:
-            env.resume_with(state["next_designs"])  # the designs the uninterrupted run had drawn
 
     def checkpoint_steps(self, path: Path) -> int:
         """Environment steps of checkpoint ``path`` (from its name)."""

@@ -9,8 +9,9 @@ next episodes, and a run resumed from it continues as the uninterrupted run did 
 episodes, to the bit, with domain randomization off: the envs' own random draws restart from
 their seeds). From a checkpoint inside episodes, the running episodes are discarded (their
 transitions are in the replay buffer; their returns never reach the design distribution) and
-every env starts a new episode with a freshly sampled design; the counters continue. The report is not written here (``softcrawl train`` calls
-:func:`softcrawl.codesign.report.write_report` afterwards).
+every env starts a new episode with a freshly sampled design; the counters continue. The report
+is not written here (``softcrawl train`` calls :func:`softcrawl.codesign.report.write_report`
+afterwards).
 """
 
 from __future__ import annotations
