@@ -1,6 +1,6 @@
 """How many settlings a training run's robot cache saves (issue 18): replays the designs of a
 recorded run (``episodes.csv``, in order: each block of ``n_envs`` rows is one reset of every env,
-env ``i`` on worker ``i // (n_envs / n_workers)``) through each worker's
+env ``i`` on the worker whose chunk holds it, :func:`softcrawl.envs.backends.env_chunks`) through each worker's
 :class:`softcrawl.envs.robot_cache.RobotCache` (``max_cached_robots`` spare robots), once keeping
 no settled state beyond its robot (``--settled-mb 0``, the cache before this benchmark) and once
 with the default memory bound, and counts the episodes that had to settle. Each kept state has
@@ -24,26 +24,29 @@ import numpy as np
 
 from softcrawl.codesign.factory import robot_factory
 from softcrawl.codesign.run import Run
+from softcrawl.envs.backends import env_chunks
 from softcrawl.envs.robot_cache import SETTLED_MB, RobotCache
 from softcrawl.fem.state import State
 from softcrawl.reduction.batch import run_in_lockstep
 from softcrawl.robot.episode import SettledState, settle
 
 
-def replay(designs: list, n_envs: int, n_workers: int, spare: int, settled_mb: float, nbytes: dict) -> int:
-    """Settlings of the run's resets (module doc) with caches keeping ``settled_mb`` MB of states."""
-    per = -(-n_envs // n_workers)
-    caches = [RobotCache(spare, settled_mb) for _ in range(n_workers)]
-    for w, cache in enumerate(caches):
-        for _ in range(min(per, n_envs - w * per)):
+def replay(designs: list, n_envs: int, n_workers: int, spare: int, settled_mb: float, nodes: dict) -> int:
+    """Settlings of the run's resets (module doc) with caches keeping ``settled_mb`` MB of states
+    (``nodes``: a robot's node count per leg count)."""
+    chunks = env_chunks(n_envs, n_workers)
+    worker = {i: w for w, chunk in enumerate(chunks) for i in chunk}
+    caches = [RobotCache(spare, settled_mb) for _ in chunks]
+    for cache, chunk in zip(caches, chunks):
+        for _ in chunk:
             cache.attach()
     settles = 0
     for i, design in enumerate(designs):
-        cache = caches[(i % n_envs) // per]
+        cache = caches[worker[i % n_envs]]
         robot, settled = cache.fetch(design, lambda d: object())
         if settled is None:
             settles += 1
-            n = nbytes[sum(v > 0 for v in design)] // 48  # nodes: positions and velocities, 2 x 3 x 8 bytes
+            n = nodes[sum(v > 0 for v in design)]
             cache.keep_settled(design, robot, SettledState(State(np.empty((n, 3)), np.empty((n, 3))), 0, 0.0, 0.0, True))
     return settles
 
@@ -59,17 +62,17 @@ def main() -> None:
     cfg = run.read_config()
     designs = [tuple(int(c) for c in d) for d in run.read_episodes()["design"]]
     build = robot_factory(cfg)
-    nbytes = {}
+    nodes = {}
     for d in designs:
         legs = sum(v > 0 for v in d)
-        if legs not in nbytes:
-            nbytes[legs] = 48 * build(d).model.n_nodes
-    kw = {"n_envs": cfg.n_envs, "n_workers": cfg.n_workers, "spare": cfg.env.max_cached_robots, "nbytes": nbytes}
+        if legs not in nodes:
+            nodes[legs] = build(d).model.n_nodes
+    kw = {"n_envs": cfg.n_envs, "n_workers": cfg.n_workers, "spare": cfg.env.max_cached_robots, "nodes": nodes}
     before = replay(designs, settled_mb=0.0, **kw)
     after = replay(designs, settled_mb=args.settled_mb, **kw)
     out = {"machine": platform.platform(), "run": str(run.path), "preset": cfg.preset, "episodes": len(designs),
            "distinct_designs": len(set(designs)), "max_cached_robots": cfg.env.max_cached_robots,
-           "settled_mb": args.settled_mb, "state_mb_by_legs": {k: v / 1e6 for k, v in sorted(nbytes.items())},
+           "settled_mb": args.settled_mb, "state_mb_by_legs": {k: 48 * n / 1e6 for k, n in sorted(nodes.items())},  # x and v: 2 x 3 x 8 bytes a node
            "settlings_robots_only": before, "settlings_with_kept_states": after}
     if args.measure:
         rng = np.random.default_rng(args.seed)

@@ -240,7 +240,8 @@ def test_settled_states_outlive_their_robots_within_a_memory_bound():
     assert list(cache.settled) == ["c", "d"]
     big = RobotCache(spare=1, settled_mb=0.1).attach()  # a state larger than the bound is not kept
     big.keep_settled("a", big.fetch("a", lambda d: object())[0], rested(10_000))
-    big.fetch("b", lambda d: object()), big.fetch("c", lambda d: object())
+    for d in "bc":
+        big.fetch(d, lambda d: object())
     assert not big.settled
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="settled_mb"):

@@ -100,6 +100,13 @@ class SerialBackend(EnvBackend):
             env.close()
 
 
+def env_chunks(n: int, n_workers: int) -> list[list[int]]:
+    """The env indices of each of ``n_workers`` workers for ``n`` envs: contiguous chunks of
+    sizes differing by at most one (what :class:`ChunkedBackend` gives each worker)."""
+    bounds = np.linspace(0, n, n_workers + 1).round().astype(int)
+    return [list(range(bounds[w], bounds[w + 1])) for w in range(n_workers)]
+
+
 class ChunkedBackend(EnvBackend):
     """Envs in contiguous chunks, one chunk per worker (a process or a Ray actor): the chunking,
     and ``reset`` / ``get_attr`` / ``set_attr`` / ``call`` sent to the workers that own the
@@ -107,8 +114,7 @@ class ChunkedBackend(EnvBackend):
 
     def _set_chunks(self, n: int, n_workers: int) -> None:
         self.num_envs = n
-        bounds = np.linspace(0, n, n_workers + 1).round().astype(int)
-        self._chunks = [list(range(bounds[w], bounds[w + 1])) for w in range(n_workers)]
+        self._chunks = env_chunks(n, n_workers)
         self._owner = {i: (w, j) for w, chunk in enumerate(self._chunks) for j, i in enumerate(chunk)}
 
     def _call(self, workers: Sequence[int], method: str, args_of: Callable[[int], tuple]) -> list:

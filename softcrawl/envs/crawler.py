@@ -100,12 +100,14 @@ def _validated_tuple(designs: tuple) -> tuple[Design, ...]:
 
 
 def _validated(designs: Sequence) -> tuple[Design, ...]:
-    """``designs`` validated (:func:`validate_design`); a hashable tuple is validated once per
-    process (the 48 envs of a ``paper`` worker share one tuple of 6,972 designs: 65 ms each)."""
+    """``designs`` validated (:func:`validate_design`); hashable ones once per process (the 48
+    envs of a ``paper`` worker share one tuple of 6,972 designs: 65 ms each)."""
+    designs = tuple(designs)
     try:
-        return _validated_tuple(designs) if isinstance(designs, tuple) else tuple(validate_design(d) for d in designs)
-    except TypeError:  # unhashable entries
+        hash(designs)
+    except TypeError:  # unhashable entries (lists)
         return tuple(validate_design(d) for d in designs)
+    return _validated_tuple(designs)
 
 
 class CrawlerEnv(gym.Env):

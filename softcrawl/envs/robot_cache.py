@@ -99,8 +99,7 @@ class RobotCache(OrderedDict):
             size = _nbytes(settled)
             if size > self.settled_bytes:
                 continue
-            self._drop_settled(design)
-            self.settled[design] = (settled, size)
+            self.settled[design] = (settled, size)  # not there: fetch() took it out with the robot
             self._settled_total += size
             while self._settled_total > self.settled_bytes:
                 self._drop_settled(next(iter(self.settled)))
