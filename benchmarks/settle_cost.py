@@ -6,12 +6,12 @@ assembled state (the landing before every episode, ``softcrawl.robot.settle`` in
 steps as one batch under training-like pressures (every regulator holds a random 0..90 sim kPa
 for 1 s). Prints JSON: CPU seconds and ms per robot step of each part, settling steps.
 
-``--contact-max-iterations`` sets the Gauss-Seidel sweep limit (``RobotConfig``; default: the
-``paper`` preset's). To compare two checkouts, run each with ``PYTHONPATH=<checkout>``,
+``--contact-max-iterations`` sets the Gauss-Seidel sweep limit and ``--leg-collision-spacing`` the
+legs' contact points (``RobotConfig``; default: the ``paper`` preset's). To compare two checkouts, run each with ``PYTHONPATH=<checkout>``,
 alternately (this machine's speed drifts by ±15%).
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/settle_cost.py [--robots 12] [--legs 5 6] [--steps 150]
-       [--seed 0] [--contact-max-iterations N]
+       [--seed 0] [--contact-max-iterations N] [--leg-collision-spacing MM]
 """
 
 from __future__ import annotations
@@ -35,14 +35,17 @@ def main() -> None:
     p.add_argument("--legs", type=int, nargs="+", default=[5, 6])
     p.add_argument("--steps", type=int, default=150, help="batched steps after settling")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--leg-collision-spacing", type=float, default=None, help="mm (default: the paper preset's)")
     p.add_argument("--contact-max-iterations", type=int, default=None,
                    help="Gauss-Seidel sweeps per chunk (default: the paper preset's)")
     args = p.parse_args()
     env = EnvConfig()
     iterations = args.contact_max_iterations or env.contact_max_iterations
+    spacing = env.leg_collision_spacing if args.leg_collision_spacing is None else args.leg_collision_spacing
     rng = np.random.default_rng(args.seed)
     designs = [d for n in args.legs for d in designs_with(n, args.robots, rng)]
-    cfg = RobotConfig(model="reduced", dt=env.dt, rid_dtype=env.rid_dtype, contact_max_iterations=iterations)
+    cfg = RobotConfig(model="reduced", dt=env.dt, rid_dtype=env.rid_dtype, contact_max_iterations=iterations,
+                      leg_collision_spacing=spacing)
     robots = [build_robot(d, cfg) for d in designs]
     solvers = [r.make_solver() for r in robots]
     c0 = time.process_time()
@@ -56,7 +59,7 @@ def main() -> None:
     c2 = time.process_time()
     settle_steps = sum(s.steps for s in settled)
     print(json.dumps({"machine": platform.platform(), "robots": len(robots), "legs": args.legs,
-                      "contact_max_iterations": iterations, "settle_cpu_s": c1 - c0, "settle_robot_steps": settle_steps,
+                      "contact_max_iterations": iterations, "leg_collision_spacing": spacing, "settle_cpu_s": c1 - c0, "settle_robot_steps": settle_steps,
                       "settle_ms_per_robot_step": 1e3 * (c1 - c0) / settle_steps, "episode_cpu_s": c2 - c1,
                       "episode_ms_per_robot_step": 1e3 * (c2 - c1) / (args.steps * len(robots))}, indent=1))
 

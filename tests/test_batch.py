@@ -20,10 +20,14 @@ def pressures(robot: int, k: int) -> np.ndarray:
     return 30.0 * (1.0 - np.cos(0.05 * k + np.array([0.0, 2.0, 4.0]) + robot))
 
 
-@pytest.fixture(scope="module", params=["float64", "float32"])
+@pytest.fixture(scope="module", params=[{"rid_dtype": "float64"}, {"rid_dtype": "float32"},
+                                        {"rid_dtype": "float32", "tangent_every": 3, "leg_collision_spacing": 8.0}],
+                ids=["float64", "float32", "training"])
 def robots(request):
-    """The designs' reduced robots, with the RID products in double or single precision."""
-    return [build_robot(d, RobotConfig(model="reduced", rid_dtype=request.param)) for d in DESIGNS]
+    """The designs' reduced robots, with the RID products in double or single precision, and with
+    the training presets' kept tangents and coarse leg contact points (robots joining a batch
+    then form their tangents while the others keep theirs)."""
+    return [build_robot(d, RobotConfig(model="reduced", **request.param)) for d in DESIGNS]
 
 
 def solo(robot, index: int, steps: int, start: int = 0):

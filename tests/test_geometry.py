@@ -250,3 +250,25 @@ def test_pneunet_cache(tmp_path, monkeypatch):
     assert_meshes_equal(pneunet_mesh(p), built)
     assert_meshes_equal(pneunet_mesh(p, cache=False), built)  # gmsh is deterministic
     assert len(list(tmp_path.glob("disk-*.vtu"))) == 0
+
+
+def test_spaced_nodes_are_a_spaced_cover_of_the_candidates():
+    """``spaced_nodes``: no two chosen nodes closer than the spacing, every candidate within the
+    spacing of a chosen one (farthest-point sampling stops only then), the same set on every
+    call, all candidates at spacing 0, and a bad spacing refused."""
+    from softcrawl.geometry.mesh import spaced_nodes
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(0.0, 40.0, (600, 3))
+    candidates = np.arange(0, 600, 2)
+    for spacing in (3.0, 7.5, 20.0):
+        chosen = spaced_nodes(points, candidates, spacing)
+        assert np.isin(chosen, candidates).all() and np.all(np.diff(chosen) > 0)
+        d = np.linalg.norm(points[chosen][:, None] - points[chosen][None], axis=2)
+        assert d[~np.eye(len(chosen), dtype=bool)].min() >= spacing
+        cover = np.linalg.norm(points[candidates][:, None] - points[chosen][None], axis=2).min(axis=1)
+        assert cover.max() < spacing
+        np.testing.assert_array_equal(chosen, spaced_nodes(points, candidates, spacing))
+    np.testing.assert_array_equal(spaced_nodes(points, candidates[::-1], 0.0), candidates)
+    with pytest.raises(ValueError, match="spacing"):
+        spaced_nodes(points, candidates, float("nan"))

@@ -1,5 +1,6 @@
 """Reduced model (POD + ECSW): exactness limits, basis and RID construction, artifacts."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -561,6 +562,31 @@ def test_validation_ensemble_reports_the_chaos_floor(tiny, tmp_path):
     saved = json.loads((tmp_path / "perturbed2" / "baseline.json").read_text())
     assert saved["perturbation"] == {"amplitude_mm": 1e-6, "seed": 2}
     assert "perturbation" not in json.loads((tmp_path / "reference" / "baseline.json").read_text())
+
+
+def test_a_reduced_run_that_diverges_fails_its_scene(tiny, tmp_path, monkeypatch):
+    """Regression: a reduced run that diverged while settling (no frame recorded) crashed
+    ``reduce validate`` (IndexError), and one that diverged later was scored on its frames
+    before the divergence. Now the scene reports the divergence with infinite errors and no
+    reduced reward, the means are infinite, and an ensemble is not run for it."""
+    from softcrawl.reduction import validate
+    from softcrawl.reduction.scenes import validation_scenes
+
+    reduction, _, _ = tiny
+    scenes = validation_scenes(0.1)[1:2]
+    real = validate.run_scene
+
+    def diverging(robot, animation, **kw):
+        rec = real(robot, animation, **kw)
+        return dataclasses.replace(rec, positions=rec.positions[:0], diverged="node speed exceeds the limit")
+
+    monkeypatch.setattr(validate, "run_scene", diverging)
+    rep = validate.validate_reduction(reduction, TINY, tmp_path, scenes=scenes, workers=1, progress=False,
+                                      ensemble=1)
+    row = rep["scenes"][0]
+    assert row["diverged"] and row["frames"] == 0 and np.isnan(row["reward_reduced_cm"])
+    assert rep["mean_node_error_mm"] == row["max_node_error_mm"] == np.inf
+    assert "reduced_ensemble_rewards_cm" not in row
 
 
 def test_validation_ensemble_needs_a_perturbation(tiny):

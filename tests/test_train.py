@@ -39,9 +39,9 @@ def test_presets_and_overrides():
 
 
 def test_run_config_saved_before_a_setting_reads_back_with_its_reference_value():
-    """A run's config.json written before ``env.rid_dtype`` and ``env.contact_max_iterations``
-    existed resumes with the values it was trained with (the reference), not the presets' newer
-    defaults; the factory hands the sweep limit to the robots."""
+    """A run's config.json written before ``env.rid_dtype``, ``env.contact_max_iterations`` and
+    ``env.leg_collision_spacing`` existed resumes with the values it was trained with (the
+    reference), not the presets' newer defaults; the factory hands them to the robots."""
     from softcrawl.codesign.factory import robot_factory
 
     d = preset("demo").to_dict()
@@ -52,6 +52,14 @@ def test_run_config_saved_before_a_setting_reads_back_with_its_reference_value()
     new = preset("demo")
     assert new.env.contact_max_iterations == 100 and robot_factory(new).config.contact_max_iterations == 100
     assert robot_factory(old).config.contact_max_iterations == 250
+    d = preset("demo").to_dict()
+    del d["env"]["leg_collision_spacing"]
+    old = TrainConfig.from_dict(json.loads(json.dumps(d)))
+    assert old.env.leg_collision_spacing == 0.0 and robot_factory(old).config.leg_collision_spacing == 0.0
+    assert robot_factory(new).config.leg_collision_spacing == new.env.leg_collision_spacing
+    for bad in (["env.leg_collision_spacing=-1"], ['env.leg_collision_spacing="8"']):
+        with pytest.raises(ValueError, match="env.leg_collision_spacing"):
+            override(new, bad)
     for bad in (["env.contact_max_iterations=0"], ["env.contact_max_iterations=2.5"]):
         with pytest.raises(ValueError, match="env.contact_max_iterations"):
             override(new, bad)

@@ -52,7 +52,8 @@ from softcrawl.robot.episode import Settling
 
 BACKENDS = ("serial", "subprocess", "ray")
 #: ``env`` settings added after runs were saved, and the value that reproduces those runs.
-_BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250}
+_BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250, "leg_collision_spacing": 0.0,
+                   "tangent_every": 1}
 TIMEOUTS = ("bootstrap", "terminal")
 
 
@@ -80,6 +81,12 @@ class EnvConfig:
             the settling before an episode costs about 1.2x less, a step after it about 3% less
             (``benchmarks/RESULTS.md``, wave 2 session 8). A run saved before this setting
             existed is read back with 250.
+        leg_collision_spacing: the legs' floor contact points, mm apart (0: every surface node,
+            the reference; :attr:`softcrawl.robot.RobotConfig.leg_collision_spacing`). A run saved
+            before this setting existed is read back with 0.
+        tangent_every: the reduced legs' tangents and step matrices formed every this many
+            steps (1: every step, the reference; :class:`softcrawl.robot.RobotConfig`). A run saved
+            before this setting existed is read back with 1.
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
         settle_speed, settle_hold, settle_max_seconds: the rest rule of the zero-pressure
             settling before each episode (mm/s, s, s; :class:`softcrawl.robot.Settling`);
@@ -103,6 +110,8 @@ class EnvConfig:
     dt: float = 0.02
     steps_per_action: int = 50
     contact_max_iterations: int = 100
+    leg_collision_spacing: float = 0.0
+    tangent_every: int = 1
     n_actions: int = 20
     observe_state: bool = False
     settle_speed: float = 0.5
@@ -189,10 +198,14 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         for name in ("n_envs", "total_steps", "checkpoint_every", "snapshot_every", "keep_checkpoints"):
             pos_int(name, getattr(self, name))
-        for name in ("steps_per_action", "n_actions", "max_cached_robots", "contact_max_iterations"):
+        for name in ("steps_per_action", "n_actions", "max_cached_robots", "contact_max_iterations",
+                     "tangent_every"):
             pos_int(f"env.{name}", getattr(self.env, name))
         if self.env.refactor_every is not None:
             pos_int("env.refactor_every", self.env.refactor_every)
+        if not (isinstance(self.env.leg_collision_spacing, (int, float)) and math.isfinite(self.env.leg_collision_spacing)
+                and self.env.leg_collision_spacing >= 0):
+            raise ValueError(f"env.leg_collision_spacing must be >= 0 mm, got {self.env.leg_collision_spacing!r}")
         for name in ("buffer_size", "batch_size", "threads"):
             pos_int(f"sac.{name}", getattr(self.sac, name))
         if self.keep_checkpoints < 2:

@@ -145,3 +145,40 @@ def boundary_triangles(tets: np.ndarray) -> np.ndarray:
     key = np.sort(faces, axis=1)
     _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     return faces[counts[inv.ravel()] == 1]
+
+
+def spaced_nodes(points: np.ndarray, nodes: np.ndarray, spacing: float) -> np.ndarray:
+    """A subset of ``nodes`` no two of which are closer than ``spacing`` and with every node of
+    ``nodes`` within ``spacing`` of one of them: greedy farthest-point sampling from the node
+    farthest from their centroid (so corners and edges come first), deterministic.
+
+    A coarse set of contact points on a surface, in the spirit of the paper's simplified
+    collision surface (physics.md, "Geometry": base and a 104 x 20 x 16 block).
+
+    Args:
+        points: ``(n, 3)`` node positions, mm.
+        nodes: ``(c,)`` candidate node indices (e.g. the surface nodes).
+        spacing: minimum distance between chosen nodes, mm (``<= 0``: all of ``nodes``).
+
+    Returns:
+        ``(k,)`` the chosen node indices, sorted.
+
+    Raises:
+        ValueError: ``spacing`` is not finite.
+    """
+    nodes = np.asarray(nodes, np.int64)
+    if not np.isfinite(spacing):
+        raise ValueError(f"spacing must be finite, got {spacing!r}")
+    if spacing <= 0 or len(nodes) == 0:
+        return np.sort(nodes)
+    p = np.asarray(points, float)[nodes]
+    dist = np.linalg.norm(p - p.mean(axis=0), axis=1)
+    chosen = [int(np.argmax(dist))]
+    dist = np.linalg.norm(p - p[chosen[0]], axis=1)
+    while True:
+        far = int(np.argmax(dist))
+        if dist[far] < spacing:
+            break
+        chosen.append(far)
+        dist = np.minimum(dist, np.linalg.norm(p - p[far], axis=1))
+    return np.sort(nodes[chosen])

@@ -89,12 +89,14 @@ def _reward(positions: np.ndarray, node: int) -> float:
 
 
 def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float | None,
-                       rid_dtype: str = "float64", contact_max_iterations: int | None = None
-                       ) -> tuple[RobotConfig, int, int]:
+                       rid_dtype: str = "float64", contact_max_iterations: int | None = None,
+                       leg_collision_spacing: float = 0.0, tangent_every: int = 1) -> tuple[RobotConfig, int, int]:
     """The reduced runs' config, their frame spacing (steps) and the stride over the reference's
     frames for a reduced time step ``reduced_dt`` (s; None: the reference's), so that the frames
     compared fall on the same times, with the RID products in ``rid_dtype`` and the Gauss-Seidel
-    sweep limit ``contact_max_iterations`` (None: ``config``'s). A step that divides
+    sweep limit ``contact_max_iterations`` (None: ``config``'s) and the legs' contact points
+    ``leg_collision_spacing`` (mm; 0: every surface node, the reference), its tangents formed every
+    ``tangent_every`` steps. A step that divides
     the reference's frame spacing is recorded every few steps against every reference frame; a
     step that is a multiple of it is recorded every step against every few reference frames.
 
@@ -103,7 +105,8 @@ def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float
             spacing.
     """
     config = dataclasses.replace(config, rid_dtype=rid_dtype,
-                                 contact_max_iterations=contact_max_iterations or config.contact_max_iterations)
+                                 contact_max_iterations=contact_max_iterations or config.contact_max_iterations,
+                                 leg_collision_spacing=float(leg_collision_spacing), tangent_every=int(tangent_every))
     if reduced_dt is None or reduced_dt == config.dt:
         return config, record_every, 1
     frame = config.dt * record_every
@@ -119,12 +122,15 @@ def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
                   record_every: int = 2, ensemble: list[Path] = (), perturbation: float = 0.0,
                   reduced_dt: float | None = None, rid_dtype: str = "float64",
-                  contact_max_iterations: int | None = None) -> dict:
+                  contact_max_iterations: int | None = None, leg_collision_spacing: float = 0.0,
+                  tangent_every: int = 1) -> dict:
     """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run
     (recorded every ``record_every`` steps of ``config.dt``); ``reduced_dt``: the reduced
     model's time step (s; None: ``config.dt``), frames compared at the same times;
     ``rid_dtype``: the precision of its RID products and ``contact_max_iterations`` its
-    Gauss-Seidel sweep limit (:class:`RobotConfig`; None: ``config``'s).
+    Gauss-Seidel sweep limit (:class:`RobotConfig`; None: ``config``'s), ``leg_collision_spacing``
+    its legs' contact points (mm, :attr:`RobotConfig.leg_collision_spacing`) and ``tangent_every``
+    how often its legs' tangents are formed (:attr:`RobotConfig.tangent_every`).
 
     Given perturbed full-order runs (``ensemble``), also their mean distance to the reference
     (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first); and
@@ -133,12 +139,17 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
     to the unperturbed reduced run (``reduced_spread_mm``) and their mean node errors against
     the reference (``reduced_ensemble_node_errors_mm``).
 
+    A reduced run that diverges fails its scene: its errors are infinite and its reward NaN (the
+    frames before the divergence are not compared; without this a run that diverged early was
+    scored on its first frames only, and one that diverged while settling crashed the report).
+
     Raises:
         ValueError: a reference was recorded on another mesh or at other times.
     """
     ref = np.load(reference)
     reduced_config, record_every, stride = _reduced_recording(config, record_every, reduced_dt, rid_dtype,
-                                                              contact_max_iterations)
+                                                              contact_max_iterations, leg_collision_spacing,
+                                                              tangent_every)
     robot = reduced_scene_robot(scene, reduced_config, reduction)
     rec = run_scene(robot, scene.animation, record_every=record_every)
     fom_x = ref["positions"][::stride].astype(float)
@@ -148,15 +159,21 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
     bodies = [robot.model.body_slice(i) for i in range(len(robot.model.bodies))]
     node = robot.reward_node
     rom_x = rec.positions.astype(float)
-    reward_rom, reward_fom = _reward(rom_x, node), _reward(fom_x[:k], node)
+    if rec.diverged:  # a diverged run fails the scene: its frames before the divergence do not count
+        errors = dict.fromkeys(("mean_node_error_mm", "max_node_error_mm", "mean_deformation_error_mm",
+                                "mean_trajectory_error_mm"), float("inf"))
+        reward_rom, reward_fom = float("nan"), _reward(fom_x, node)
+    else:
+        errors = _errors(rom_x, fom_x[:k], bodies, node)
+        reward_rom, reward_fom = _reward(rom_x, node), _reward(fom_x[:k], node)
     steps_fom = int(ref["steps"])
-    row = {"scene": scene.name, "diverged": rec.diverged, "frames": k, **_errors(rom_x, fom_x[:k], bodies, node),
+    row = {"scene": scene.name, "diverged": rec.diverged, "frames": k, **errors,
            "reward_full_cm": reward_fom, "reward_reduced_cm": reward_rom,
            "reward_error_cm": abs(reward_rom - reward_fom),
            "seconds_per_step_full": float(ref["wall_seconds"]) / steps_fom,
            "seconds_per_step_reduced": rec.wall_seconds / (rec.steps + rec.settle_steps),
            "seconds_per_sim_second_reduced": rec.wall_seconds / ((rec.steps + rec.settle_steps) * reduced_config.dt)}
-    if ensemble:
+    if ensemble and not rec.diverged:
         members = [np.load(p)["positions"][::stride].astype(float) for p in ensemble]
         if any(x.shape != fom_x.shape for x in members):
             raise ValueError(f"the perturbed runs do not match {reference} (mesh or duration differ)")
@@ -177,7 +194,8 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
                        scenes: tuple[Scene, ...] | None = None, record_every: int = 2,
                        workers: int | None = None, progress: bool = True, ensemble: int = 3,
                        perturbation: float = 1e-6, reduced_dt: float | None = None,
-                       rid_dtype: str = "float64", contact_max_iterations: int | None = None) -> dict:
+                       rid_dtype: str = "float64", contact_max_iterations: int | None = None,
+                       leg_collision_spacing: float = 0.0, tangent_every: int = 1) -> dict:
     """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
@@ -188,6 +206,10 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
             precision costs in accuracy).
         contact_max_iterations: the reduced model's Gauss-Seidel sweep limit per chunk (None:
             ``config``'s): what a cheaper contact solve costs in accuracy.
+        leg_collision_spacing: the reduced model's leg contact points, mm (0: every surface
+            node; :attr:`RobotConfig.leg_collision_spacing`): what coarser contact costs in
+            accuracy. The references keep every surface node.
+        tangent_every: the reduced legs' tangents formed every this many steps (1: every step).
         ensemble: perturbed full-order runs per scene (the chaos floor and reward spread; 0:
             none), and as many perturbed reduced runs.
         perturbation: their initial noise amplitude, mm.
@@ -211,13 +233,13 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     warm = scenes[0]  # compile the reduced kernels before anything is timed (numba's cache may be cold)
     run_scene(reduced_scene_robot(warm, config, reduction), warm.animation, duration=config.dt)
     rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation, reduced_dt,
-                          rid_dtype, contact_max_iterations)
+                          rid_dtype, contact_max_iterations, leg_collision_spacing, tangent_every)
             for i, (s, r) in enumerate(tqdm(list(zip(scenes, refs)), desc="reduced runs", unit="scene",
                                             disable=not progress))]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
     red = float(np.mean([r["seconds_per_step_reduced"] for r in rows]))
     red_sim = float(np.mean([r["seconds_per_sim_second_reduced"] for r in rows]))
-    means = {key: float(np.mean([r[key] for r in rows])) for key in
+    means = {key: float(np.mean([r.get(key, np.nan) for r in rows])) for key in
              ("mean_node_error_mm", "mean_deformation_error_mm", "floor_mean_node_error_mm",
               "floor_mean_deformation_error_mm") if key in rows[0]}
     return {"scenes": rows, **means, "ensemble": ensemble, "perturbation_mm": perturbation,
@@ -225,6 +247,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
             "mean_seconds_per_step_full": full, "mean_seconds_per_step_reduced": red, "speedup": full / red,
             "reduced_dt": reduced_dt or config.dt, "rid_dtype": rid_dtype,
             "contact_max_iterations": contact_max_iterations or config.contact_max_iterations,
+            "leg_collision_spacing": float(leg_collision_spacing), "tangent_every": int(tangent_every),
             "mean_seconds_per_sim_second_reduced": red_sim,
             **reduction_sizes(reduction)}
 

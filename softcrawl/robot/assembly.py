@@ -38,7 +38,7 @@ from softcrawl.fem.model import Attachment, Floor, Model, PointRef, embed_point
 from softcrawl.fem.solver import CONTACT_MAX_ITERATIONS, RID_DTYPES, ImplicitEulerSolver, SolverSettings
 from softcrawl.fem.state import Control
 from softcrawl.geometry.disk import DiskParams, disk_mesh
-from softcrawl.geometry.mesh import TetMesh
+from softcrawl.geometry.mesh import TetMesh, boundary_triangles, spaced_nodes
 from softcrawl.geometry.pneunet import PneuNetParams, pneunet_mesh
 from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.reduction.model import ReducedBody, RobotReduction, reduce_body
@@ -114,6 +114,16 @@ class RobotConfig:
             :class:`softcrawl.fem.solver.SolverSettings`). Ignored by full-order bodies.
         contact_max_iterations: Gauss-Seidel sweep limit of the contact solve, per chunk
             (physics.md reference: 250; :class:`softcrawl.fem.solver.SolverSettings`).
+        tangent_every: reduced legs only: form their reduced tangents and step matrices every
+            this many steps (1: every step, the reference; :class:`softcrawl.fem.solver.SolverSettings`).
+        leg_collision_spacing: the legs' floor contact points, mm: ``0`` (the reference) makes
+            every outer-surface node a candidate (1,179 per 6 mm leg); a positive spacing keeps
+            a subset of them no two closer than it (:func:`softcrawl.geometry.mesh.spaced_nodes`,
+            farthest-point sampling from the corners: 158 nodes at 6 mm, 98 at 8 mm), like the
+            paper's simplified collision surface (physics.md). A reduced leg of 36 modes cannot
+            take more than about a dozen independent contacts: the rest make its Delassus
+            operator rank-deficient and its contact solve slow (``benchmarks/RESULTS.md``,
+            wave 2 session 10, validated there against the exact full-order model).
         attachment_patch: ``"ring"``: each of a leg's 4 attachment points ties the disk to
             the average of the corner node and its one-ring (the nodes sharing a tetrahedron
             with it); a single-node tie concentrates the leg's reaction in one element, which
@@ -138,6 +148,8 @@ class RobotConfig:
     refactor_every: int | None = None
     rid_dtype: str = "float64"
     contact_max_iterations: int = CONTACT_MAX_ITERATIONS
+    tangent_every: int = 1
+    leg_collision_spacing: float = 0.0
     attachment_patch: str = "ring"
     model: str = "full"
     reduction: str | None = None
@@ -152,10 +164,12 @@ class RobotConfig:
             raise ValueError(f"RobotConfig.attachment_patch must be 'ring' or 'node', got {self.attachment_patch!r}")
         if self.rid_dtype not in RID_DTYPES:
             raise ValueError(f"RobotConfig.rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
-        n = self.contact_max_iterations
-        if isinstance(n, bool) or int(n) != n or n < 1:
-            raise ValueError(f"RobotConfig.contact_max_iterations must be a positive integer, "
-                             f"got {self.contact_max_iterations!r}")
+        for name in ("contact_max_iterations", "tangent_every"):
+            n = getattr(self, name)
+            if isinstance(n, bool) or int(n) != n or n < 1:
+                raise ValueError(f"RobotConfig.{name} must be a positive integer, got {n!r}")
+        if not (math.isfinite(self.leg_collision_spacing) and self.leg_collision_spacing >= 0):
+            raise ValueError(f"RobotConfig.leg_collision_spacing must be >= 0 mm, got {self.leg_collision_spacing!r}")
         if self.refactor_every is not None and (int(self.refactor_every) != self.refactor_every
                                                 or self.refactor_every < 1):
             raise ValueError(f"RobotConfig.refactor_every must be a positive integer, got {self.refactor_every!r}")
@@ -252,7 +266,7 @@ class Robot:
         corotational_disk = self.reduced and self.disk_body not in self.reduced
         reuse = c.refactor_every or (REDUCED_DISK_REFACTOR_EVERY if corotational_disk else 1)
         settings = SolverSettings(dt=c.dt, refactor_every=reuse, rid_dtype=c.rid_dtype,
-                                  contact_max_iterations=int(c.contact_max_iterations))
+                                  contact_max_iterations=int(c.contact_max_iterations), tangent_every=int(c.tangent_every))
         if self.reduced:
             return ReducedSolver(self.model, dict(self.reduced), settings)
         return ImplicitEulerSolver(self.model, settings)
@@ -383,6 +397,11 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
     disk, *leg_meshes = [m.transformed(R, t + shift) for m, R, t in parts]
 
     disk_body = Body(disk, PRINTED_POLYMER, config.disk_mass, mass_lumping=config.mass_lumping, name="disk")
+    leg_collision = None  # the mesh's own collision nodes
+    if config.leg_collision_spacing:  # the same local nodes in every leg (legs share one reduced part)
+        surface = leg_local.node_sets.get("collision")
+        leg_collision = spaced_nodes(leg_local.points, np.unique(boundary_triangles(leg_local.tets))
+                                     if surface is None else surface, config.leg_collision_spacing)
     bodies, leg_slots, attachments = [disk_body], [], []
     for (slot, channel), mesh, (_, R, _) in zip(legs, leg_meshes, parts[1:]):
         index = len(bodies)
@@ -390,7 +409,7 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
             mesh, DRAGONSKIN_30, config.leg_mass, mass_lumping=config.mass_lumping,
             membrane=Membrane(mesh.surfaces["paper"], PAPER, 1.0),
             cavities=(Cavity(mesh.surfaces["cavity"], channel=channel),),
-            name=f"leg{slot}",
+            collision_nodes=leg_collision, name=f"leg{slot}",
         ))
         leg_slots.append(LegSlot(index, slot, SLOT_ANGLES_DEG[slot], channel + 1, channel, R))
         for node in mesh.node_sets["attachment"]:
