@@ -11,8 +11,7 @@ the batch step's time by function (cProfile, top 15); and the peak RSS.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/batch_step.py [--robots 12] [--steps 20] [--rounds 4]
        [--settle 60] [--legs 3 4 5 6] [--no-mixed] [--profile] [--dt 0.02] [--rid-dtype float32]
-       [--disk-mesh-size 10] [--contact-max-iterations 100] [--leg-collision-spacing 8]
-       [--tangent-every 3]
+       [--disk-mesh-size 10] [--contact-max-iterations 100] [--leg-collision-spacing 4]
 Training's settings are ``--dt 0.02 --rid-dtype float32 --contact-max-iterations 100`` (``paper``:
 10 mm disk; ``crawl``, ``demo``: 25 mm).
 """
@@ -119,13 +118,11 @@ def main() -> None:
     p.add_argument("--disk-mesh-size", type=float, default=None, help="mm (default: the robot's)")
     p.add_argument("--contact-max-iterations", type=int, default=None, help="Gauss-Seidel sweeps per chunk")
     p.add_argument("--leg-collision-spacing", type=float, default=None, help="mm (RobotConfig.leg_collision_spacing)")
-    p.add_argument("--tangent-every", type=int, default=None, help="steps (RobotConfig.tangent_every)")
     args = p.parse_args()
     rng = np.random.default_rng(args.seed)
     extra = {k: v for k, v in (("dt", args.dt), ("disk_mesh_size", args.disk_mesh_size),
                                ("contact_max_iterations", args.contact_max_iterations),
-                               ("leg_collision_spacing", args.leg_collision_spacing),
-                               ("tangent_every", args.tangent_every)) if v is not None}
+                               ("leg_collision_spacing", args.leg_collision_spacing)) if v is not None}
     config = RobotConfig(model="reduced", rid_dtype=args.rid_dtype, **extra)
     sets = {legs: [build_robot(d, config) for d in designs_with(legs, args.robots, rng)] for legs in args.legs}
     results = {}

@@ -21,12 +21,11 @@ def pressures(robot: int, k: int) -> np.ndarray:
 
 
 @pytest.fixture(scope="module", params=[{"rid_dtype": "float64"}, {"rid_dtype": "float32"},
-                                        {"rid_dtype": "float32", "tangent_every": 3, "leg_collision_spacing": 8.0}],
-                ids=["float64", "float32", "training"])
+                                        {"rid_dtype": "float32", "leg_collision_spacing": 4.0}],
+                ids=["float64", "float32", "coarse-contact"])
 def robots(request):
     """The designs' reduced robots, with the RID products in double or single precision, and with
-    the training presets' kept tangents and coarse leg contact points (robots joining a batch
-    then form their tangents while the others keep theirs)."""
+    the legs' contact points 4 mm apart (``RobotConfig.leg_collision_spacing``)."""
     return [build_robot(d, RobotConfig(model="reduced", **request.param)) for d in DESIGNS]
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from softcrawl.reduction.constrain import DiskColumns
-from softcrawl.reduction.kernels import accumulate_forces, accumulate_terms, accumulate_terms32
+from softcrawl.reduction.kernels import accumulate_terms, accumulate_terms32
 from softcrawl.robot import RobotConfig, build_robot
 from softcrawl.robot.episode import settle
 
@@ -221,16 +221,15 @@ def test_leg_delassus_blocks_are_the_projected_compliance():
 def test_coarse_leg_contact_points_are_the_same_in_every_leg_and_hold_the_robot_up():
     """``RobotConfig.leg_collision_spacing``: every leg gets the same spaced subset of its surface
     nodes (the legs share one reduced part), a bad spacing is refused, and the robot still
-    stands on its contact points: after settling and 0.4 s of pressure no leg node is more than
-    the contact distance (0.5 mm) below the floor (measured: 0.45 mm at 8 mm spacing, 0.02 mm
-    with every surface node), and the disk's travel stays within 0.2 mm of the reference's
-    (measured 0.08 mm over 1 s)."""
-    spacing = 8.0
+    stands on its contact points. At 4 mm (the spacing that passes ``reduce validate``), after
+    settling and 1 s of rising pressure no leg node is more than 0.1 mm below the floor
+    (measured 0.05 mm; 0.02 mm with every surface node), and the disk's travel stays within
+    0.2 mm of the reference's (measured 0.05 mm)."""
     reference = build_robot(DESIGN, RobotConfig(model="reduced", dt=0.02, contact_max_iterations=100))
-    coarse = build_robot(DESIGN, dataclasses.replace(reference.config, leg_collision_spacing=spacing))
+    coarse = build_robot(DESIGN, dataclasses.replace(reference.config, leg_collision_spacing=4.0))
     legs = [coarse.model.bodies[b] for b in coarse.leg_bodies]
     full = reference.model.bodies[reference.leg_bodies[0]].collision_nodes
-    assert 50 < len(legs[0].collision_nodes) < len(full) / 5 and np.isin(legs[0].collision_nodes, full).all()
+    assert 100 < len(legs[0].collision_nodes) < len(full) / 2 and np.isin(legs[0].collision_nodes, full).all()
     for leg in legs[1:]:
         np.testing.assert_array_equal(leg.collision_nodes, legs[0].collision_nodes)
     x_end = []
@@ -241,53 +240,9 @@ def test_coarse_leg_contact_points_are_the_same_in_every_leg_and_hold_the_robot_
         for k in range(50):
             state = solver.step(state, robot.control(60.0 * np.array([1.0, 0.5, 0.0]) * min(1.0, k / 10)))
             lowest = min(lowest, min(state.x[robot.model.body_slice(b), 2].min() for b in robot.leg_bodies))
-        assert lowest > -robot.config.contact_distance
+        assert lowest > -0.1
         x_end.append(state.x[robot.reward_node, 0])
     assert abs(x_end[1] - x_end[0]) < 0.2
     for bad in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="leg_collision_spacing"):
             RobotConfig(model="reduced", leg_collision_spacing=bad)
-
-
-def test_forces_without_the_tangent_equal_those_with_it(crawling):
-    """``accumulate_forces`` (the step of a leg that keeps its tangent) gives the same
-    ``-Z^T (s + c Z qdot)`` as ``accumulate_terms``, which forms ``Z``, to 1e-12 of the largest
-    entry (only the order of the sums differs), and counts the same bad elements."""
-    robot, state = crawling
-    g = robot.make_solver().groups[0]
-    L, ms = g.n_bodies, len(g.strain_modes)
-    rows = 64 * 6
-    qs = np.random.default_rng(1).normal(0.0, 10.0, (L, ms))
-    ref, out = np.zeros((L, ms)), np.zeros((L, ms))
-    bad_ref, bad = np.zeros(L, np.int64), np.zeros(L, np.int64)
-    for f in g.families:
-        accumulate_terms(state.x, g.offsets, g.rotations, f.conn, f.factors, f.rest_terms, f.rows, qs, 0.12,
-                         np.empty((L, rows, ms)), np.empty((L, rows)), np.empty(rows), np.zeros((L, ms, ms)), ref,
-                         bad_ref)
-        accumulate_forces(state.x, g.offsets, g.rotations, f.conn, f.factors, f.rest_terms, f.rows, qs, 0.12, out, bad)
-    assert np.abs(out - ref).max() <= 1e-12 * np.abs(ref).max() and np.abs(ref).max() > 0
-    np.testing.assert_array_equal(bad, bad_ref)
-
-
-def test_a_kept_tangent_is_used_for_its_steps_only_and_refreshed_on_a_foreign_state(crawling):
-    """``tangent_every = 3``: the step matrices' factors are formed at the first step, kept for
-    the next two (the same factors) and formed again at the fourth; a state the solver did not
-    produce makes it form them at once. With ``tangent_every = 1`` nothing is kept. A kept
-    tangent changes the trajectory (it is not the reference step), but at most by 1% of the
-    legs' motion over those steps."""
-    robot, state = crawling
-    control = robot.control(np.array([60.0, 30.0, 0.0]))
-    ref, kept = robot.make_solver(), build_robot(DESIGN, dataclasses.replace(robot.config, tangent_every=3)).make_solver()
-    a, b, factors = state, state, []
-    for _ in range(4):
-        a, b = ref.step(a, control), kept.step(b, control)
-        factors.append(kept._free[0][1])
-    assert ref._kept is None
-    same = [np.array_equal(f, factors[0]) for f in factors]
-    assert same == [True, True, True, False]
-    assert not np.array_equal(a.x, b.x)
-    assert np.abs(a.x - b.x).max() <= 0.01 * np.abs(a.x - state.x).max()
-    kept.step(state, control)  # not its own last state: a new tangent
-    assert kept._kept_age == 0 and not np.array_equal(kept._free[0][1], factors[3])
-    with pytest.raises(ValueError, match="tangent_every"):
-        RobotConfig(model="reduced", tangent_every=0)

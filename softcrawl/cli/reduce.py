@@ -148,15 +148,14 @@ def _validate(args: argparse.Namespace) -> int:
     rep = validate_reduction(reduction, config, args.workdir, workers=args.workers, progress=progress,
                              ensemble=args.ensemble, perturbation=args.perturbation, reduced_dt=args.dt,
                              rid_dtype=args.rid_dtype, contact_max_iterations=args.contact_max_iterations,
-                             leg_collision_spacing=args.leg_collision_spacing, tangent_every=args.tangent_every)
+                             leg_collision_spacing=args.leg_collision_spacing)
     rep["reduction"] = str(path)
     (out / "validation.json").write_text(json.dumps(jsonable(rep), indent=1) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(_markdown(rep), encoding="utf-8")
     print(_markdown(rep))
     print(f"reduced dt {rep['reduced_dt']:g} s, RID products in {rep['rid_dtype']}, "
           f"{rep['contact_max_iterations']} Gauss-Seidel sweeps per chunk, leg contact points "
-          f"{rep['leg_collision_spacing']:g} mm apart (0: every surface node), tangents every "
-          f"{rep['tangent_every']} steps: "
+          f"{rep['leg_collision_spacing']:g} mm apart (0: every surface node): "
           f"mean node error {rep['mean_node_error_mm']:.3f} mm "
           f"(deformation {rep['mean_deformation_error_mm']:.3f} mm); "
           f"reduced step {rep['speedup']:.0f}x faster; "
@@ -211,7 +210,4 @@ def register(subparsers) -> None:
     v.add_argument("--leg-collision-spacing", type=float, default=0.0,
                    help="the reduced model's leg contact points, mm apart (default 0: every surface node, "
                         "the reference; see RobotConfig.leg_collision_spacing)")
-    v.add_argument("--tangent-every", type=int, default=1,
-                   help="form the reduced legs' tangents every this many steps (default 1: every step, the "
-                        "reference; see RobotConfig.tangent_every)")
     v.set_defaults(func=_validate)

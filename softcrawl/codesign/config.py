@@ -52,8 +52,7 @@ from softcrawl.robot.episode import Settling
 
 BACKENDS = ("serial", "subprocess", "ray")
 #: ``env`` settings added after runs were saved, and the value that reproduces those runs.
-_BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250, "leg_collision_spacing": 0.0,
-                   "tangent_every": 1}
+_BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250, "leg_collision_spacing": 0.0}
 TIMEOUTS = ("bootstrap", "terminal")
 
 
@@ -82,11 +81,9 @@ class EnvConfig:
             (``benchmarks/RESULTS.md``, wave 2 session 8). A run saved before this setting
             existed is read back with 250.
         leg_collision_spacing: the legs' floor contact points, mm apart (0: every surface node,
-            the reference; :attr:`softcrawl.robot.RobotConfig.leg_collision_spacing`). A run saved
-            before this setting existed is read back with 0.
-        tangent_every: the reduced legs' tangents and step matrices formed every this many
-            steps (1: every step, the reference; :class:`softcrawl.robot.RobotConfig`). A run saved
-            before this setting existed is read back with 1.
+            the reference and every preset's; 4 passes ``reduce validate`` for about 1.1x,
+            :attr:`softcrawl.robot.RobotConfig.leg_collision_spacing`). A run saved before this
+            setting existed is read back with 0.
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
         settle_speed, settle_hold, settle_max_seconds: the rest rule of the zero-pressure
             settling before each episode (mm/s, s, s; :class:`softcrawl.robot.Settling`);
@@ -111,7 +108,6 @@ class EnvConfig:
     steps_per_action: int = 50
     contact_max_iterations: int = 100
     leg_collision_spacing: float = 0.0
-    tangent_every: int = 1
     n_actions: int = 20
     observe_state: bool = False
     settle_speed: float = 0.5
@@ -198,8 +194,7 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         for name in ("n_envs", "total_steps", "checkpoint_every", "snapshot_every", "keep_checkpoints"):
             pos_int(name, getattr(self, name))
-        for name in ("steps_per_action", "n_actions", "max_cached_robots", "contact_max_iterations",
-                     "tangent_every"):
+        for name in ("steps_per_action", "n_actions", "max_cached_robots", "contact_max_iterations"):
             pos_int(f"env.{name}", getattr(self.env, name))
         if self.env.refactor_every is not None:
             pos_int("env.refactor_every", self.env.refactor_every)

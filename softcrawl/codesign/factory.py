@@ -25,7 +25,7 @@ def robot_factory(cfg: TrainConfig) -> BuildRobot:
     return BuildRobot(RobotConfig(leg_mesh_size=e.leg_mesh_size, disk_mesh_size=e.disk_mesh_size,
                                   refactor_every=e.refactor_every, rid_dtype=e.rid_dtype, dt=e.dt, model=e.model,
                                   reduction=e.reduction, contact_max_iterations=e.contact_max_iterations,
-                                  leg_collision_spacing=e.leg_collision_spacing, tangent_every=e.tangent_every))
+                                  leg_collision_spacing=e.leg_collision_spacing))
 
 
 def env_fn(cfg: TrainConfig):

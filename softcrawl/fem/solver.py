@@ -69,11 +69,6 @@ class SolverSettings:
         rid_dtype: reduced bodies only (:class:`softcrawl.reduction.solver.ReducedSolver`): the
             precision of their RID element products, ``"float64"`` (the reference) or
             ``"float32"`` (:func:`softcrawl.reduction.kernels.accumulate_terms32`).
-        tangent_every: reduced bodies only: form their reduced tangents ``K_r`` and the step
-            matrices' Cholesky factors every this many steps (1 = every step: the reference).
-            In between a body keeps its factor and gets only its current forces and stiffness
-            damping (:func:`softcrawl.reduction.kernels.accumulate_forces`); a state the solver
-            did not produce itself starts a new tangent.
 
     Raises:
         ValueError: non-positive dt or iteration counts.
@@ -87,13 +82,12 @@ class SolverSettings:
     contact_max_iterations: int = CONTACT_MAX_ITERATIONS
     max_speed: float = 1e5
     rid_dtype: str = "float64"
-    tangent_every: int = 1
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"time step dt must be positive, got {self.dt!r} s")
-        if min(self.newton_iterations, self.refactor_every, self.contact_max_iterations, self.tangent_every) < 1:
-            raise ValueError("newton_iterations, refactor_every, contact_max_iterations and tangent_every must be >= 1")
+        if min(self.newton_iterations, self.refactor_every, self.contact_max_iterations) < 1:
+            raise ValueError("newton_iterations, refactor_every and contact_max_iterations must be >= 1")
         if self.rid_dtype not in RID_DTYPES:
             raise ValueError(f"rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
 

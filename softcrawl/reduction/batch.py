@@ -181,15 +181,13 @@ class BatchedReducedSolver:
             forces = np.concatenate([c.forces if c.forces is not None else np.zeros_like(st.x)
                                      for st, c in zip(states, controls)])
         m = self.solvers[0].model
-        reuse = [s.keeps_tangent(bool(o)) for s, o in zip(self.solvers, own)]
         # Free motion of all modal bodies: one pass per part.
         free = []
         for k, group in enumerate(self.groups):
             robots = self._body_robot[k]
             qd = self._modal_velocities(k, v, own)
             qd_free, chol, n_bad, positive = group.free_motion(x, qd, pressures, h, m.rayleigh_mass,
-                                                               m.rayleigh_stiffness, forces, self.settings.rid_dtype,
-                                                               self._kept_factors(k, reuse))
+                                                               m.rayleigh_stiffness, forces, self.settings.rid_dtype)
             for j in np.flatnonzero((n_bad > 0) | ~positive):
                 r = robots[j]
                 if failed[r] is None:
@@ -272,23 +270,10 @@ class BatchedReducedSolver:
             self._views[r] = (new.x, new.v)
             s = self.solvers[r]  # the solver keeps the modal velocities of the state it produced
             s._qdot = [qdot[k][sl] for k, sl in self._where[r]]
-            s.keep_tangent([free[k][1][sl] for k, sl in self._where[r]], reuse[r])
             s._last_v = new.v
             out.append(new)
         self._x, self._v = x_new, v_new
         return out
-
-    def _kept_factors(self, k: int, reuse: list[bool]) -> np.ndarray | None:
-        """``(L, m, m)`` the factors the robots that keep their tangents (``reuse``) kept for
-        stacked group ``k``, NaN for the others (None: no robot keeps them)."""
-        if not any(reuse):
-            return None
-        group = self.groups[k]
-        kept = np.full((group.n_bodies, group.n_modes, group.n_modes), np.nan)
-        for r, g in self._members[k]:
-            if reuse[r]:
-                kept[self._where[r][g][1]] = self.solvers[r]._kept[g]
-        return kept
 
     def _floating_free_motion(self, x: np.ndarray, v: np.ndarray, v_free: np.ndarray, controls: Sequence[Control],
                               failed: list) -> None:

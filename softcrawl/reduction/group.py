@@ -11,17 +11,15 @@ velocities, the step matrices' Cholesky factors) are passed in and out; the grou
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from softcrawl.fem.constraints import FixedRows
 from softcrawl.fem.model import Model
-from softcrawl.reduction.kernels import (accumulate_forces, accumulate_terms, accumulate_terms32, add_delassus,
-                                         add_projected, add_strain_terms, cavity_forces, corrections,
-                                         expand_velocities, floor_candidates, implicit_steps, kept_tangent_steps,
-                                         point_velocity)
+from softcrawl.reduction.kernels import (accumulate_terms, accumulate_terms32, add_delassus, add_projected,
+                                         add_strain_terms, cavity_forces, corrections, expand_velocities,
+                                         floor_candidates, implicit_steps, point_velocity)
 from softcrawl.reduction.model import ElementFactors, ReducedBody, rotate_basis
 
 
@@ -193,8 +191,8 @@ class ModalGroup:
         return out
 
     def free_motion(self, x: np.ndarray, qdot: np.ndarray, pressures: np.ndarray, h: float, r_mass: float,
-                    r_stiff: float, forces: np.ndarray | None = None, rid_dtype: str = "float64",
-                    kept: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    r_stiff: float, forces: np.ndarray | None = None,
+                    rid_dtype: str = "float64") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The linearly implicit step of every body without constraints.
 
         Args:
@@ -205,34 +203,33 @@ class ModalGroup:
             forces: optional ``(N, 3)`` prescribed nodal forces, mN.
             rid_dtype: ``"float64"`` or ``"float32"``: precision of the RID element products
                 (:func:`~softcrawl.reduction.kernels.accumulate_terms32`).
-            kept: optional ``(L, m, m)`` Cholesky factors of earlier steps' matrices, NaN for
-                bodies that form theirs now: a body with a kept factor gets only its forces
-                (:func:`~softcrawl.reduction.kernels.accumulate_forces`, float64) and steps
-                with that factor (:func:`~softcrawl.reduction.kernels.kept_tangent_steps`;
-                ``SolverSettings.tangent_every``). The others are computed as without it, to
-                the bit.
 
         Returns:
             ``(qdot_free, chol, n_bad, positive)``: ``(L, m)`` free modal velocities, ``(L, m, m)``
-            Cholesky factors of the step matrices (the kept ones where given), ``(L,)`` inverted
-            or degenerate RID elements and ``(L,)`` bool whether each step matrix was positive
-            definite.
+            Cholesky factors of the step matrices, ``(L,)`` inverted or degenerate RID elements
+            and ``(L,)`` bool whether each step matrix was positive definite.
         """
-        reuse = None if kept is None else ~np.isnan(kept[:, 0, 0])
-        if reuse is not None and reuse.any():
-            return self._kept_free_motion(x, qdot, pressures, h, r_mass, r_stiff, forces, rid_dtype, kept, reuse)
         L, m, ms = self.n_bodies, self.n_modes, len(self.strain_modes)
         single = rid_dtype == "float32"
-        nb = min(L, BODY_BLOCK)
-        if (rid_dtype, "Z") not in self._work or len(self._work[(rid_dtype, "Z")]) < nb:
-            # scratch kept between steps (fresh pages cost more than filling them)
+        if (rid_dtype, "Z") not in self._work:  # scratch kept between steps (fresh pages cost more than filling them)
             rows = ELEMENT_CHUNK * max(f.factors.shape[1] for f in self.families)
+            nb = min(L, BODY_BLOCK)
             self._work.update({(rid_dtype, "Z"): np.empty((nb, rows, ms), rid_dtype), "s": np.empty((nb, rows)),
                                "t": np.empty(rows)})
             if single:
                 self._work["rows32"] = [f.rows.astype(np.float32) for f in self.families]
         n_bad = np.zeros(L, np.int64)
-        K, load = np.zeros((L, m, m)), self._loads(x, pressures, forces)
+        K, load = np.zeros((L, m, m)), self.gravity.copy()
+        if len(self.cavity_triangles):
+            scale = np.asarray(pressures, float)[self.cavity_channel] / 3.0
+            for b0 in range(0, L, BODY_BLOCK):
+                b = slice(b0, min(L, b0 + BODY_BLOCK))
+                if scale[b].any():
+                    F = cavity_forces(x, self.offsets[b], self.rotations[b], self.cavity_triangles, self.cavity_local,
+                                      len(self.cavity_basis) // 3, scale[b])
+                    add_projected(F.reshape(b.stop - b0, -1), self.cavity_basis, load[b])
+        if forces is not None:
+            load += self.project(forces)
         Ks, fs = np.zeros((L, ms, ms), rid_dtype), np.zeros((L, ms))
         qs = np.ascontiguousarray(qdot[:, self.strain_modes])
         w = self._work
@@ -250,55 +247,6 @@ class ModalGroup:
         chol, qdot_free = np.empty((L, m, m)), np.empty((L, m))
         positive = implicit_steps(K, load, self.mass, qdot, h, r_mass, r_stiff, chol, qdot_free)
         return qdot_free, chol, n_bad, positive
-
-    def _subset(self, bodies: np.ndarray) -> ModalGroup:
-        """The group of ``bodies`` (positions in this group) only, sharing the part data."""
-        return dataclasses.replace(self, members=self.members[bodies], offsets=self.offsets[bodies],
-                                   rotations=self.rotations[bodies], mass=self.mass[bodies],
-                                   gravity=self.gravity[bodies], cavity_channel=self.cavity_channel[bodies],
-                                   fixed_rows=self.fixed_rows[bodies], fixed_blocks=self.fixed_blocks[bodies],
-                                   frame_rot=self.frame_rot[bodies], _work=self._work)
-
-    def _kept_free_motion(self, x, qdot, pressures, h, r_mass, r_stiff, forces, rid_dtype, kept, reuse):
-        """:meth:`free_motion` when some bodies keep their step matrices (``reuse``): the others
-        through :meth:`free_motion` on their own (the same bits: a body's terms do not depend on
-        the others), the kept ones by their forces alone."""
-        L, m = self.n_bodies, self.n_modes
-        qdot_free, chol = np.empty((L, m)), kept.copy()
-        n_bad, positive = np.zeros(L, np.int64), np.ones(L, np.bool_)
-        fresh = np.flatnonzero(~reuse)
-        if len(fresh):
-            qdot_free[fresh], chol[fresh], n_bad[fresh], positive[fresh] = self._subset(fresh).free_motion(
-                x, qdot[fresh], pressures, h, r_mass, r_stiff, forces, rid_dtype)
-        old = np.flatnonzero(reuse)
-        group = self._subset(old)
-        load = group._loads(x, pressures, forces)
-        fs = np.zeros((len(old), len(self.strain_modes)))
-        qs = np.ascontiguousarray(qdot[old][:, self.strain_modes])
-        bad = np.zeros(len(old), np.int64)
-        for f in self.families:
-            accumulate_forces(x, group.offsets, group.rotations, f.conn, f.factors, f.rest_terms, f.rows, qs,
-                              h + r_stiff, fs, bad)
-        load[:, self.strain_modes] += fs
-        out = np.empty((len(old), m))
-        kept_tangent_steps(load, group.mass, np.ascontiguousarray(qdot[old]), h, r_mass, chol[old], out)
-        qdot_free[old], n_bad[old] = out, bad
-        return qdot_free, chol, n_bad, positive
-
-    def _loads(self, x: np.ndarray, pressures: np.ndarray, forces: np.ndarray | None) -> np.ndarray:
-        """``(L, m)`` reduced gravity, cavity pressure and prescribed loads, mN."""
-        L, load = self.n_bodies, self.gravity.copy()
-        if len(self.cavity_triangles):
-            scale = np.asarray(pressures, float)[self.cavity_channel] / 3.0
-            for b0 in range(0, L, BODY_BLOCK):
-                b = slice(b0, min(L, b0 + BODY_BLOCK))
-                if scale[b].any():
-                    F = cavity_forces(x, self.offsets[b], self.rotations[b], self.cavity_triangles, self.cavity_local,
-                                      len(self.cavity_basis) // 3, scale[b])
-                    add_projected(F.reshape(b.stop - b0, -1), self.cavity_basis, load[b])
-        if forces is not None:
-            load += self.project(forces)
-        return load
 
     def velocities(self, qdot: np.ndarray, out: np.ndarray) -> None:
         """Write every body's world nodal velocities ``R_b Phi_p qdot_b`` (mm/s; ``qdot``:

@@ -24,7 +24,7 @@ from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.episode import Settling
 
 #: RobotConfig fields a full-order run does not depend on (left out of its settings).
-REDUCED_ONLY_FIELDS = ("reduced_disk", "tangent_every")
+REDUCED_ONLY_FIELDS = ("reduced_disk",)
 #: Fields of :class:`RobotConfig` added after runs were saved, and the value those runs used:
 #: left out of a run's settings at that value, so the saved runs still match.
 LATER_FIELDS = {"contact_max_iterations": 250, "leg_collision_spacing": 0.0}

@@ -93,8 +93,6 @@ class ReducedSolver(ImplicitEulerSolver):
         self._qdot = [np.zeros((g.n_bodies, g.n_modes)) for g in self.groups]
         self._free: list[tuple[np.ndarray, np.ndarray]] = []  # per group: (qdot_free, chol) of this step
         self._modal_valid, self._last_v = False, None
-        self._kept: list[np.ndarray] | None = None  # per group: the step matrices' factors kept
-        self._kept_age = 0  # steps since they were formed
         self._compiled: ConstraintBatch | None | bool = None  # made at the first constraint stage
 
     # -- free motion ---------------------------------------------------------------------
@@ -113,13 +111,11 @@ class ReducedSolver(ImplicitEulerSolver):
             sl = m.body_slice(i)
             v_free[sl] = self._free_velocity(i, m.bodies[i], state.x[sl], state.v[sl], control, state.t)
         self._free = []
-        reuse = self.keeps_tangent(self._modal_valid)
         for g, group in enumerate(self.groups):
             qd = self._qdot[g] if self._modal_valid else group.project(state.v)
             qd_free, chol, n_bad, positive = group.free_motion(state.x, qd, control.pressures, h, m.rayleigh_mass,
                                                                m.rayleigh_stiffness, control.forces,
-                                                               self.settings.rid_dtype,
-                                                               self._kept[g] if reuse else None)
+                                                               self.settings.rid_dtype)
             for j in np.flatnonzero(n_bad):
                 raise SimulationDiverged(f"{n_bad[j]} inverted elements in reduced body "
                                          f"{m.bodies[group.members[j]].name!r}", state.t)
@@ -127,19 +123,8 @@ class ReducedSolver(ImplicitEulerSolver):
                 raise SimulationDiverged(f"reduced matrix of body {m.bodies[group.members[j]].name!r} "
                                          "is not positive definite", state.t)
             self._free.append((qd_free, chol))
-        self.keep_tangent([chol for _, chol in self._free], reuse)
         return v_free
 
-    def keeps_tangent(self, own_state: bool) -> bool:
-        """Whether this step keeps the groups' step matrices of the last one
-        (``settings.tangent_every``): only from a state this solver produced (``own_state``),
-        and for ``tangent_every - 1`` steps after they were formed."""
-        return own_state and self._kept is not None and self._kept_age + 1 < self.settings.tangent_every
-
-    def keep_tangent(self, chols: list[np.ndarray], reused: bool) -> None:
-        """Record this step's factors per group (``(L, m, m)``) and whether they were kept."""
-        if self.settings.tangent_every > 1:
-            self._kept, self._kept_age = chols, self._kept_age + 1 if reused else 0
     def _free_velocity(self, i: int, body: Body, x: np.ndarray, v: np.ndarray,
                        control: Control, t: float) -> np.ndarray:
         """The implicit step of a :class:`FloatingFrameBody`, solved in its frame:

@@ -90,13 +90,12 @@ def _reward(positions: np.ndarray, node: int) -> float:
 
 def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float | None,
                        rid_dtype: str = "float64", contact_max_iterations: int | None = None,
-                       leg_collision_spacing: float = 0.0, tangent_every: int = 1) -> tuple[RobotConfig, int, int]:
+                       leg_collision_spacing: float = 0.0) -> tuple[RobotConfig, int, int]:
     """The reduced runs' config, their frame spacing (steps) and the stride over the reference's
     frames for a reduced time step ``reduced_dt`` (s; None: the reference's), so that the frames
     compared fall on the same times, with the RID products in ``rid_dtype`` and the Gauss-Seidel
     sweep limit ``contact_max_iterations`` (None: ``config``'s) and the legs' contact points
-    ``leg_collision_spacing`` (mm; 0: every surface node, the reference), its tangents formed every
-    ``tangent_every`` steps. A step that divides
+    ``leg_collision_spacing`` (mm; 0: every surface node, the reference). A step that divides
     the reference's frame spacing is recorded every few steps against every reference frame; a
     step that is a multiple of it is recorded every step against every few reference frames.
 
@@ -106,7 +105,7 @@ def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float
     """
     config = dataclasses.replace(config, rid_dtype=rid_dtype,
                                  contact_max_iterations=contact_max_iterations or config.contact_max_iterations,
-                                 leg_collision_spacing=float(leg_collision_spacing), tangent_every=int(tangent_every))
+                                 leg_collision_spacing=float(leg_collision_spacing))
     if reduced_dt is None or reduced_dt == config.dt:
         return config, record_every, 1
     frame = config.dt * record_every
@@ -122,15 +121,13 @@ def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
                   record_every: int = 2, ensemble: list[Path] = (), perturbation: float = 0.0,
                   reduced_dt: float | None = None, rid_dtype: str = "float64",
-                  contact_max_iterations: int | None = None, leg_collision_spacing: float = 0.0,
-                  tangent_every: int = 1) -> dict:
+                  contact_max_iterations: int | None = None, leg_collision_spacing: float = 0.0) -> dict:
     """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run
     (recorded every ``record_every`` steps of ``config.dt``); ``reduced_dt``: the reduced
     model's time step (s; None: ``config.dt``), frames compared at the same times;
     ``rid_dtype``: the precision of its RID products and ``contact_max_iterations`` its
     Gauss-Seidel sweep limit (:class:`RobotConfig`; None: ``config``'s), ``leg_collision_spacing``
-    its legs' contact points (mm, :attr:`RobotConfig.leg_collision_spacing`) and ``tangent_every``
-    how often its legs' tangents are formed (:attr:`RobotConfig.tangent_every`).
+    its legs' contact points (mm, :attr:`RobotConfig.leg_collision_spacing`).
 
     Given perturbed full-order runs (``ensemble``), also their mean distance to the reference
     (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first); and
@@ -148,8 +145,7 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
     """
     ref = np.load(reference)
     reduced_config, record_every, stride = _reduced_recording(config, record_every, reduced_dt, rid_dtype,
-                                                              contact_max_iterations, leg_collision_spacing,
-                                                              tangent_every)
+                                                              contact_max_iterations, leg_collision_spacing)
     robot = reduced_scene_robot(scene, reduced_config, reduction)
     rec = run_scene(robot, scene.animation, record_every=record_every)
     fom_x = ref["positions"][::stride].astype(float)
@@ -195,7 +191,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
                        workers: int | None = None, progress: bool = True, ensemble: int = 3,
                        perturbation: float = 1e-6, reduced_dt: float | None = None,
                        rid_dtype: str = "float64", contact_max_iterations: int | None = None,
-                       leg_collision_spacing: float = 0.0, tangent_every: int = 1) -> dict:
+                       leg_collision_spacing: float = 0.0) -> dict:
     """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
@@ -209,7 +205,6 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
         leg_collision_spacing: the reduced model's leg contact points, mm (0: every surface
             node; :attr:`RobotConfig.leg_collision_spacing`): what coarser contact costs in
             accuracy. The references keep every surface node.
-        tangent_every: the reduced legs' tangents formed every this many steps (1: every step).
         ensemble: perturbed full-order runs per scene (the chaos floor and reward spread; 0:
             none), and as many perturbed reduced runs.
         perturbation: their initial noise amplitude, mm.
@@ -233,7 +228,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     warm = scenes[0]  # compile the reduced kernels before anything is timed (numba's cache may be cold)
     run_scene(reduced_scene_robot(warm, config, reduction), warm.animation, duration=config.dt)
     rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation, reduced_dt,
-                          rid_dtype, contact_max_iterations, leg_collision_spacing, tangent_every)
+                          rid_dtype, contact_max_iterations, leg_collision_spacing)
             for i, (s, r) in enumerate(tqdm(list(zip(scenes, refs)), desc="reduced runs", unit="scene",
                                             disable=not progress))]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
@@ -247,7 +242,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
             "mean_seconds_per_step_full": full, "mean_seconds_per_step_reduced": red, "speedup": full / red,
             "reduced_dt": reduced_dt or config.dt, "rid_dtype": rid_dtype,
             "contact_max_iterations": contact_max_iterations or config.contact_max_iterations,
-            "leg_collision_spacing": float(leg_collision_spacing), "tangent_every": int(tangent_every),
+            "leg_collision_spacing": float(leg_collision_spacing),
             "mean_seconds_per_sim_second_reduced": red_sim,
             **reduction_sizes(reduction)}
 

@@ -114,16 +114,18 @@ class RobotConfig:
             :class:`softcrawl.fem.solver.SolverSettings`). Ignored by full-order bodies.
         contact_max_iterations: Gauss-Seidel sweep limit of the contact solve, per chunk
             (physics.md reference: 250; :class:`softcrawl.fem.solver.SolverSettings`).
-        tangent_every: reduced legs only: form their reduced tangents and step matrices every
-            this many steps (1: every step, the reference; :class:`softcrawl.fem.solver.SolverSettings`).
         leg_collision_spacing: the legs' floor contact points, mm: ``0`` (the reference) makes
             every outer-surface node a candidate (1,179 per 6 mm leg); a positive spacing keeps
             a subset of them no two closer than it (:func:`softcrawl.geometry.mesh.spaced_nodes`,
-            farthest-point sampling from the corners: 158 nodes at 6 mm, 98 at 8 mm), like the
-            paper's simplified collision surface (physics.md). A reduced leg of 36 modes cannot
-            take more than about a dozen independent contacts: the rest make its Delassus
-            operator rank-deficient and its contact solve slow (``benchmarks/RESULTS.md``,
-            wave 2 session 10, validated there against the exact full-order model).
+            farthest-point sampling from the corners: 459 nodes at 4 mm, 158 at 6 mm), like the
+            paper's simplified collision surface (physics.md). Fewer contacts per reduced leg
+            make its contact problems smaller and better conditioned, but nodes between the
+            points may sink a little. ``softcrawl reduce validate --dt 0.02 --rid-dtype float32
+            --contact-max-iterations 100`` against the exact full-order model: 4 mm gives a mean
+            node error of 0.978 mm and a baseline reward error of 4.8% (every node: 0.955 mm,
+            0.3%), for a 1.23x cheaper landing and 1.10x cheaper episode steps; 5, 6, 8, 10 and
+            12 mm fail the 1 mm target (1.27 to 2.02 mm). Not used by any preset
+            (``benchmarks/RESULTS.md``, wave 2 session 10).
         attachment_patch: ``"ring"``: each of a leg's 4 attachment points ties the disk to
             the average of the corner node and its one-ring (the nodes sharing a tetrahedron
             with it); a single-node tie concentrates the leg's reaction in one element, which
@@ -148,7 +150,6 @@ class RobotConfig:
     refactor_every: int | None = None
     rid_dtype: str = "float64"
     contact_max_iterations: int = CONTACT_MAX_ITERATIONS
-    tangent_every: int = 1
     leg_collision_spacing: float = 0.0
     attachment_patch: str = "ring"
     model: str = "full"
@@ -164,10 +165,10 @@ class RobotConfig:
             raise ValueError(f"RobotConfig.attachment_patch must be 'ring' or 'node', got {self.attachment_patch!r}")
         if self.rid_dtype not in RID_DTYPES:
             raise ValueError(f"RobotConfig.rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
-        for name in ("contact_max_iterations", "tangent_every"):
-            n = getattr(self, name)
-            if isinstance(n, bool) or int(n) != n or n < 1:
-                raise ValueError(f"RobotConfig.{name} must be a positive integer, got {n!r}")
+        n = self.contact_max_iterations
+        if isinstance(n, bool) or int(n) != n or n < 1:
+            raise ValueError(f"RobotConfig.contact_max_iterations must be a positive integer, "
+                             f"got {self.contact_max_iterations!r}")
         if not (math.isfinite(self.leg_collision_spacing) and self.leg_collision_spacing >= 0):
             raise ValueError(f"RobotConfig.leg_collision_spacing must be >= 0 mm, got {self.leg_collision_spacing!r}")
         if self.refactor_every is not None and (int(self.refactor_every) != self.refactor_every
@@ -266,7 +267,7 @@ class Robot:
         corotational_disk = self.reduced and self.disk_body not in self.reduced
         reuse = c.refactor_every or (REDUCED_DISK_REFACTOR_EVERY if corotational_disk else 1)
         settings = SolverSettings(dt=c.dt, refactor_every=reuse, rid_dtype=c.rid_dtype,
-                                  contact_max_iterations=int(c.contact_max_iterations), tangent_every=int(c.tangent_every))
+                                  contact_max_iterations=int(c.contact_max_iterations))
         if self.reduced:
             return ReducedSolver(self.model, dict(self.reduced), settings)
         return ImplicitEulerSolver(self.model, settings)
