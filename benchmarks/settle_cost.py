@@ -7,8 +7,9 @@ steps as one batch under training-like pressures (every regulator holds a random
 for 1 s). Prints JSON: CPU seconds and ms per robot step of each part, settling steps.
 
 ``--contact-max-iterations`` sets the Gauss-Seidel sweep limit and ``--leg-collision-spacing`` the
-legs' contact points (``RobotConfig``; default: the ``paper`` preset's). To compare two checkouts, run each with ``PYTHONPATH=<checkout>``,
-alternately (this machine's speed drifts by ±15%).
+legs' contact points (``RobotConfig``; default: the ``paper`` preset's). To compare two
+checkouts, run each with ``PYTHONPATH=<checkout>``, alternately (this machine's speed drifts by
+±15%).
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/settle_cost.py [--robots 12] [--legs 5 6] [--steps 150]
        [--seed 0] [--contact-max-iterations N] [--leg-collision-spacing MM]
@@ -59,7 +60,8 @@ def main() -> None:
     c2 = time.process_time()
     settle_steps = sum(s.steps for s in settled)
     print(json.dumps({"machine": platform.platform(), "robots": len(robots), "legs": args.legs,
-                      "contact_max_iterations": iterations, "leg_collision_spacing": spacing, "settle_cpu_s": c1 - c0, "settle_robot_steps": settle_steps,
+                      "contact_max_iterations": iterations, "leg_collision_spacing": spacing,
+                      "settle_cpu_s": c1 - c0, "settle_robot_steps": settle_steps,
                       "settle_ms_per_robot_step": 1e3 * (c1 - c0) / settle_steps, "episode_cpu_s": c2 - c1,
                       "episode_ms_per_robot_step": 1e3 * (c2 - c1) / (args.steps * len(robots))}, indent=1))
 

@@ -81,7 +81,7 @@ class EnvConfig:
             (``benchmarks/RESULTS.md``, wave 2 session 8). A run saved before this setting
             existed is read back with 250.
         leg_collision_spacing: the legs' floor contact points, mm apart (0: every surface node,
-            the reference and every preset's; 4 passes ``reduce validate`` for about 1.1x,
+            the reference and every preset's; 4 passes ``reduce validate`` for 1.04x end to end,
             :attr:`softcrawl.robot.RobotConfig.leg_collision_spacing`). A run saved before this
             setting existed is read back with 0.
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
@@ -198,9 +198,10 @@ class TrainConfig:
             pos_int(f"env.{name}", getattr(self.env, name))
         if self.env.refactor_every is not None:
             pos_int("env.refactor_every", self.env.refactor_every)
-        if not (isinstance(self.env.leg_collision_spacing, (int, float)) and math.isfinite(self.env.leg_collision_spacing)
-                and self.env.leg_collision_spacing >= 0):
-            raise ValueError(f"env.leg_collision_spacing must be >= 0 mm, got {self.env.leg_collision_spacing!r}")
+        spacing = self.env.leg_collision_spacing
+        if isinstance(spacing, bool) or not isinstance(spacing, (int, float)) or not (math.isfinite(spacing)
+                                                                                      and spacing >= 0):
+            raise ValueError(f"env.leg_collision_spacing must be >= 0 mm, got {spacing!r}")
         for name in ("buffer_size", "batch_size", "threads"):
             pos_int(f"sac.{name}", getattr(self.sac, name))
         if self.keep_checkpoints < 2:
