@@ -15,7 +15,7 @@ from softcrawl.fem.elements import ElementSet, SparsePattern, membrane_triangles
 from softcrawl.fem.kernels import corotational_assemble
 from softcrawl.fem.materials import LinearElastic
 from softcrawl.fem.pressure import pressure_forces
-from softcrawl.geometry.mesh import TetMesh, boundary_triangles
+from softcrawl.geometry.mesh import TetMesh, collision_nodes
 
 MASS_LUMPING = ("uniform", "volume")
 
@@ -92,10 +92,7 @@ class Body:
             raise ValueError(f"body {self.name!r}: fixed mask must have shape {(n, 3)}, got {fixed.shape}")
         object.__setattr__(self, "fixed", fixed)
         if self.collision_nodes is None:
-            coll = self.mesh.node_sets.get("collision")
-            if coll is None:
-                coll = np.unique(boundary_triangles(self.mesh.tets))
-            object.__setattr__(self, "collision_nodes", np.asarray(coll, np.int64))
+            object.__setattr__(self, "collision_nodes", collision_nodes(self.mesh))
 
     @property
     def n_nodes(self) -> int:

@@ -147,6 +147,15 @@ def boundary_triangles(tets: np.ndarray) -> np.ndarray:
     return faces[counts[inv.ravel()] == 1]
 
 
+def collision_nodes(mesh: TetMesh) -> np.ndarray:
+    """``(c,)`` the nodes of ``mesh`` that can touch the floor: its ``"collision"`` node set if it
+    has one, else every boundary node (the default of a body's collision nodes)."""
+    coll = mesh.node_sets.get("collision")
+    if coll is None:
+        coll = np.unique(boundary_triangles(mesh.tets))
+    return np.asarray(coll, np.int64)
+
+
 def spaced_nodes(points: np.ndarray, nodes: np.ndarray, spacing: float) -> np.ndarray:
     """A subset of ``nodes`` no two of which are closer than ``spacing`` and with every node of
     ``nodes`` within ``spacing`` of one of them: greedy farthest-point sampling from the node

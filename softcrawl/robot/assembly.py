@@ -38,7 +38,7 @@ from softcrawl.fem.model import Attachment, Floor, Model, PointRef, embed_point
 from softcrawl.fem.solver import CONTACT_MAX_ITERATIONS, RID_DTYPES, ImplicitEulerSolver, SolverSettings
 from softcrawl.fem.state import Control
 from softcrawl.geometry.disk import DiskParams, disk_mesh
-from softcrawl.geometry.mesh import TetMesh, boundary_triangles, spaced_nodes
+from softcrawl.geometry.mesh import TetMesh, collision_nodes, spaced_nodes
 from softcrawl.geometry.pneunet import PneuNetParams, pneunet_mesh
 from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.reduction.model import ReducedBody, RobotReduction, reduce_body
@@ -400,9 +400,7 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
     disk_body = Body(disk, PRINTED_POLYMER, config.disk_mass, mass_lumping=config.mass_lumping, name="disk")
     leg_collision = None  # the mesh's own collision nodes
     if config.leg_collision_spacing:  # the same local nodes in every leg (legs share one reduced part)
-        surface = leg_local.node_sets.get("collision")
-        leg_collision = spaced_nodes(leg_local.points, np.unique(boundary_triangles(leg_local.tets))
-                                     if surface is None else surface, config.leg_collision_spacing)
+        leg_collision = spaced_nodes(leg_local.points, collision_nodes(leg_local), config.leg_collision_spacing)
     bodies, leg_slots, attachments = [disk_body], [], []
     for (slot, channel), mesh, (_, R, _) in zip(legs, leg_meshes, parts[1:]):
         index = len(bodies)
