@@ -7,6 +7,7 @@ simulation parallel over cores, learning serial in the learner process (SB3 SAC 
 
 Components (one env in-process, SAC on a dummy env):
   OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--batch 512] [--updates 200]
+       [--threads 1] [--device cpu] [--autocast none|bf16]
        [--model full|reduced --leg-mesh 16 --disk-mesh 25 --refactor-every 5 --steps-per-action 2
         --actions 20] [--design 1,0,0,2,2,0,0,0]
   Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --steps-per-action 100
@@ -50,10 +51,15 @@ from softcrawl.robot import RobotConfig
 # worker RSS this benchmark reports should be that of a training worker, which has no torch.
 
 
-def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100), device: str = "cpu") -> float:
+def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100), device: str = "cpu",
+                      autocast: str = "none") -> float:
     """Gradient updates/s of SAC on a filled replay buffer (observations 44, actions 3) on torch
-    ``device``."""
+    ``device``; ``autocast="bf16"`` runs the updates under ``torch.autocast`` in bfloat16 (a probe
+    of what a lower-precision learner would cost: no preset trains that way)."""
+    import contextlib
+
     import gymnasium as gym
+    import torch
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     class Dummy(gym.Env):
@@ -75,9 +81,12 @@ def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100), device
         o = rng.uniform(-1, 1, (1, 44)).astype(np.float32)
         rb.add(o, o, rng.uniform(-1, 1, (1, 3)), np.zeros(1), np.zeros(1), [{}])
     model._setup_learn(1)
-    model.train(gradient_steps=5, batch_size=batch)  # warm-up
-    t = time.perf_counter()
-    model.train(gradient_steps=updates, batch_size=batch)
+    precision = (torch.autocast(torch.device(device).type, dtype=torch.bfloat16) if autocast == "bf16"
+                 else contextlib.nullcontext())
+    with precision:
+        model.train(gradient_steps=5, batch_size=batch)  # warm-up
+        t = time.perf_counter()
+        model.train(gradient_steps=updates, batch_size=batch)
     return updates / (time.perf_counter() - t)
 
 
@@ -186,6 +195,8 @@ def main() -> None:
     p.add_argument("--updates", type=int, default=200)
     p.add_argument("--device", default="cpu", help="torch device of the SAC updates (components; end to end: "
                                                     "--set sac.device=...)")
+    p.add_argument("--autocast", choices=("none", "bf16"), default="none",
+                   help="components: SAC updates under torch.autocast in bfloat16 (a probe; no preset uses it)")
     p.add_argument("--model", choices=("full", "reduced"), default="full")
     p.add_argument("--leg-mesh", type=float, default=16)
     p.add_argument("--disk-mesh", type=float, default=25)
@@ -227,13 +238,14 @@ def main() -> None:
             out["paper_preset_projected_hours"] = project(sim_only, rate, os.cpu_count())
         print(json.dumps(out, indent=2))
         return
-    updates = sac_updates_per_s(args.batch, args.updates, device=args.device)
+    updates = sac_updates_per_s(args.batch, args.updates, device=args.device, autocast=args.autocast)
     env = env_rates(args)
     transitions = preset("paper").total_steps
     hours = {f"{n}_cores": transitions * (1 / env["transitions_per_s"] / n + 1 / updates) / 3600
              for n in (os.cpu_count(), 32)}
     out = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-           "torch_threads": torch.get_num_threads(), "device": args.device, "batch": args.batch,
+           "torch_threads": torch.get_num_threads(), "device": args.device, "autocast": args.autocast,
+           "batch": args.batch,
            "sac_updates_per_s": updates,
            "env": {**vars(args), **env}, "paper_preset_projected_hours": hours}
     print(json.dumps(out, indent=2))
