@@ -60,6 +60,7 @@ import numpy as np
 from softcrawl import __version__
 from softcrawl.codesign.config import TrainConfig
 from softcrawl.design.space import validate_design
+from softcrawl.safeio import atomic_write_text
 
 CHECKPOINT_FORMAT = 1
 CHECKPOINT_FILES = ("model.pt", "replay_buffer.npz", "state.json")
@@ -165,7 +166,7 @@ class Run:
     def write_config(self, cfg: TrainConfig) -> None:
         """Write ``config.json`` atomically (creates the folder)."""
         self.path.mkdir(parents=True, exist_ok=True)
-        _atomic_write_text(self.config_path, json.dumps({"version": __version__, "config": cfg.to_dict()}, indent=2))
+        atomic_write_text(self.config_path, json.dumps({"version": __version__, "config": cfg.to_dict()}, indent=2))
 
     # -- logs ------------------------------------------------------------------------------
     def read_episodes(self) -> dict:
@@ -200,7 +201,7 @@ class Run:
         rows.append([str(first_step), str(last_step), f"{wall_seconds:.1f}", __version__])
         buf = io.StringIO()
         csv.writer(buf, lineterminator="\n").writerows(rows)
-        _atomic_write_text(self.sessions_csv, buf.getvalue())
+        atomic_write_text(self.sessions_csv, buf.getvalue())
 
     def wall_seconds(self) -> float:
         """Training wall time over all train/resume calls (``sessions.csv``), s (NaN if none)."""
@@ -348,7 +349,7 @@ class Run:
             final = root / name
             shutil.rmtree(final, ignore_errors=True)
             os.replace(tmp, final)
-            _atomic_write_text(root / "latest", name)
+            atomic_write_text(root / "latest", name)
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             if is_no_space(exc):
@@ -584,12 +585,6 @@ def _rows_up_to(path: Path, t: int) -> list[list[str]]:
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
     """Shortcut for ``Run(run_dir).latest_checkpoint(quiet=True)``."""
     return Run(run_dir).latest_checkpoint(quiet=True)
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
 
 
 def sampler_state_to_json(state: dict) -> dict:
