@@ -206,8 +206,8 @@ def write_animation(path: str | os.PathLike, robot: Robot, result: EpisodeResult
     """
     from PIL import Image
 
-    _check(result, robot.model.n_nodes, fps, size)
     idx = frame_indices(len(result.frames), max_frames)
+    _check(result, robot.model.n_nodes, fps, size)
     frames = result.frames
     renderer = _Renderer(robot, robot_surface(robot), frames[0].astype(np.float64), size)
     x0 = robot.reward_position(frames[0])[0]
