@@ -2,8 +2,8 @@
 
 :func:`write_animation` draws the robot's outer surface (the ``"boundary"`` triangles of each
 body's tet mesh, :func:`robot_surface`) at up to :data:`MAX_FRAMES` of the episode's recorded
-frames, evenly spaced in time, and plays them at :data:`FPS` (a 20 s episode becomes a 5 s
-time-lapse). Each frame: the disk grey, each leg in its regulator's colour
+frames, evenly spaced in time, and plays them at :data:`FPS` (a 20 s episode recorded every
+0.2 s becomes a 5 s time-lapse). Each frame: the disk grey, each leg in its regulator's colour
 (:data:`softcrawl.design.picture.REGULATOR_COLOURS`) from pale at 0 kPa to full at
 :data:`~softcrawl.gaits.pressure.P_MAX_KPA` (the applied pressure of that regulator at the
 frame's time), flat-shaded by a fixed light; a 20 mm floor grid at ``z = 0`` fixed in the world,
@@ -33,10 +33,10 @@ from softcrawl.geometry.mesh import boundary_triangles
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import MM_PER_CM, EpisodeResult
 
-#: Frames per second of the GIF.
-FPS = 12
+#: Frames per second of the GIF (a GIF stores frame durations in whole 10 ms).
+FPS = 10
 #: Most frames drawn (recorded frames are subsampled evenly in time): 5 s at :data:`FPS`.
-MAX_FRAMES = 60
+MAX_FRAMES = 50
 #: Default image size, pixels (width, height).
 SIZE = (480, 320)
 #: Camera elevation above the floor and azimuth from +x (counter-clockwise seen from above), degrees.
@@ -119,16 +119,16 @@ def _check(result: EpisodeResult, n_nodes: int, fps, size) -> None:
 class _Renderer:
     """One figure, reused for every frame."""
 
-    def __init__(self, robot: Robot, surface: RobotSurface, rest: np.ndarray, size: tuple[int, int]):
+    def __init__(self, robot: Robot, surface: RobotSurface, first: np.ndarray, size: tuple[int, int]):
         from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
-        self.robot, self.surface = robot, surface
+        self.surface = surface
         self.disk = robot.model.body_slice(robot.disk_body)
-        lo, hi = rest[:, :2].min(axis=0), rest[:, :2].max(axis=0)
-        # the camera aims at the robot's footprint centre, moved with the disk
-        self.offset = 0.5 * (lo + hi) - rest[self.disk, :2].mean(axis=0)
+        lo, hi = first[:, :2].min(axis=0), first[:, :2].max(axis=0)
+        # the camera aims at the robot's footprint centre in the first frame, moved with the disk
+        self.offset = 0.5 * (lo + hi) - first[self.disk, :2].mean(axis=0)
         self.radius = 0.5 * float((hi - lo).max()) * 1.1
-        self.height = float(rest[:, 2].max()) * 1.6
+        self.height = float(first[:, 2].max()) * 1.6
         e, a = np.radians(ELEVATION_DEG), np.radians(AZIMUTH_DEG)
         self.eye = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
         self.light = _unit(self.eye + np.array([-0.4, 0.2, 1.2]))
@@ -143,7 +143,7 @@ class _Renderer:
         ax.set_proj_type("ortho")
         ax.view_init(elev=ELEVATION_DEG, azim=AZIMUTH_DEG)
         ax.set_axis_off()
-        ax.set_box_aspect((2 * self.radius, 2 * self.radius, self.height), zoom=1.5)
+        ax.set_box_aspect((2 * self.radius, 2 * self.radius, self.height), zoom=1.5)  # equal mm on every axis
         self.ax = ax
         self.floor = Line3DCollection([], colors="#c9c4b5", linewidths=0.6, zorder=0)
         ax.add_collection3d(self.floor, autolim=False)
