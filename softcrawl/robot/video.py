@@ -15,7 +15,6 @@ from __future__ import annotations
 import os
 
 import numpy as np
-
 from matplotlib.colors import to_hex
 
 from softcrawl.design.picture import REGULATOR_COLOURS
