@@ -48,11 +48,13 @@ def episode(robot, k: int = 7, step_mm: float = 2.0, pressure_kpa: float | None 
 
 
 def _frames(path: Path) -> list[np.ndarray]:
+    """The GIF's frames as ``(height, width, 3)`` float RGB, without their top quarter (the
+    caption and the pressure labels, which are coloured too)."""
     with Image.open(path) as im:
         out = []
         for i in range(im.n_frames):
             im.seek(i)
-            out.append(np.asarray(im.convert("RGB"), dtype=float))
+            out.append(np.asarray(im.convert("RGB"), dtype=float)[im.size[1] // 4:])
     return out
 
 

@@ -9,7 +9,8 @@ frames, evenly spaced in time, and plays them at :data:`FPS` (a 20 s episode rec
 frame's time), flat-shaded by a fixed light; a 20 mm floor grid at ``z = 0`` fixed in the world,
 so forward motion shows against it; an orthographic 3/4 view from the front right (elevation
 :data:`ELEVATION_DEG`, azimuth :data:`AZIMUTH_DEG`) that follows the disk; a caption with the
-time, the +x displacement of the disk's top centre and the applied pressures.
+time, the +x displacement of the disk's top centre and each used regulator's applied pressure
+(in its colour).
 
 Faces turned away from the camera are dropped before drawing (the surface is closed and the
 view orthographic, so they are hidden anyway): matplotlib's painter's algorithm then sorts about
@@ -119,7 +120,8 @@ def _check(result: EpisodeResult, n_nodes: int, fps, size) -> None:
 class _Renderer:
     """One figure, reused for every frame."""
 
-    def __init__(self, robot: Robot, surface: RobotSurface, first: np.ndarray, size: tuple[int, int]):
+    def __init__(self, robot: Robot, surface: RobotSurface, first: np.ndarray, size: tuple[int, int],
+                 regulators: list[int]):
         from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
         self.surface = surface
@@ -149,7 +151,11 @@ class _Renderer:
         ax.add_collection3d(self.floor, autolim=False)
         self.body = Poly3DCollection([], linewidths=0.0, antialiased=False, zorder=1)
         ax.add_collection3d(self.body, autolim=False)
-        self.caption = self.fig.text(0.02, 0.97, "", ha="left", va="top", fontsize=9, family="monospace")
+        font = dict(ha="left", va="top", family="monospace", fontsize=max(5.0, 9.0 * size[1] / SIZE[1]))
+        self.caption = self.fig.text(0.02, 0.97, "", **font)
+        # one label per used regulator, in its legs' colour
+        self.labels = {k: self.fig.text(0.02 + 0.3 * j, 0.90, "", color=REGULATOR_COLOURS[k], **font)
+                       for j, k in enumerate(regulators)}
 
     def _grid(self, cx: float, cy: float) -> np.ndarray:
         r = self.radius
@@ -160,8 +166,9 @@ class _Renderer:
         return np.array(lx + ly)
 
     def draw(self, x: np.ndarray, pressure_kpa: np.ndarray, caption: str) -> np.ndarray:
-        """Render one frame: ``x`` ``(N, 3)`` mm, ``pressure_kpa`` ``(3,)`` applied real kPa;
-        returns the ``(height, width, 3)`` uint8 image."""
+        """Render one frame: ``x`` ``(N, 3)`` mm, ``pressure_kpa`` ``(3,)`` applied real kPa
+        (regulators 1..3), ``caption`` above the pressures; returns the ``(height, width, 3)``
+        uint8 image."""
         cx, cy = x[self.disk, :2].mean(axis=0) + self.offset
         r = self.radius
         self.ax.set_xlim(cx - r, cx + r)
@@ -178,6 +185,8 @@ class _Renderer:
         self.body.set_verts(verts[front])
         self.body.set_facecolor(np.clip(colour[front] * shade[front], 0, 1))
         self.caption.set_text(caption)
+        for k, label in self.labels.items():
+            label.set_text(f"p{k} = {pressure_kpa[k - 1]:4.1f} kPa")
         self.canvas.draw()
         return np.asarray(self.canvas.buffer_rgba())[:, :, :3].copy()
 
@@ -209,16 +218,15 @@ def write_animation(path: str | os.PathLike, robot: Robot, result: EpisodeResult
     idx = frame_indices(len(result.frames), max_frames)
     _check(result, robot.model.n_nodes, fps, size)
     frames = result.frames
-    renderer = _Renderer(robot, robot_surface(robot), frames[0].astype(np.float64), size)
+    renderer = _Renderer(robot, robot_surface(robot), frames[0].astype(np.float64), size,
+                         sorted({leg.regulator for leg in robot.legs}))
     x0 = robot.reward_position(frames[0])[0]
     times = result.frame_times[idx]
     applied = np.column_stack([np.interp(times, result.time, col) for col in result.applied.T])
-    used = sorted({leg.regulator for leg in robot.legs})
     images = []
     for t, i, p in zip(times, idx, applied):
         x = frames[i].astype(np.float64)
-        caption = (frame_caption(t, (robot.reward_position(x)[0] - x0) / MM_PER_CM) + "\n"
-                   + "   ".join(f"p{k} = {p[k - 1]:4.1f} kPa" for k in used))
+        caption = frame_caption(t, (robot.reward_position(x)[0] - x0) / MM_PER_CM)
         image = Image.fromarray(renderer.draw(x, p, caption))
         images.append(image.quantize(colors=128, method=Image.Quantize.FASTOCTREE, dither=Image.Dither.NONE))
     images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
