@@ -146,6 +146,7 @@ def test_non_finite_positions_are_refused_naming_the_frame(robot, tmp_path):
     (dict(fps=float("nan")), "fps must be"),
     (dict(size=(10, 120)), "size must be"),
     (dict(size=(160,)), "size must be"),
+    (dict(size=160), "size must be"),
 ])
 def test_bad_arguments_are_refused_before_drawing(robot, tmp_path, kw, message):
     with pytest.raises(ValueError, match=message):
@@ -223,3 +224,16 @@ def test_evaluate_writes_the_animation_unless_told_not_to(run, tmp_path, capsys)
     assert _gif_frames(tmp_path / "a" / "crawl.gif") == 3  # t = 0, 0.2, 0.4 s
     assert main([*args, str(tmp_path / "b"), "--no-animation"]) == 0, capsys.readouterr().err
     assert (tmp_path / "b" / "evaluation.json").exists() and not (tmp_path / "b" / "crawl.gif").exists()
+
+
+def test_evaluate_randomize_refuses_the_animation_flags(run, tmp_path, capsys):
+    """``--randomize N`` writes a reward distribution, no trajectory: an animation flag would be
+    ignored, so it is a one-line error before any episode runs."""
+    from softcrawl.cli import main
+
+    for flag in ("--animation", "--no-animation"):
+        rc = main(["evaluate", str(run), "--design", "1,0,0,2,2,0,0,0", "--randomize", "2", flag,
+                   "--out", str(tmp_path / "r"), "--no-progress"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "writes no trajectory to animate" in err and "\n" not in err
+        assert not (tmp_path / "r").exists()

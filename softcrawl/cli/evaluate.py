@@ -47,6 +47,8 @@ def _run_randomized(args: argparse.Namespace) -> int:
     check_output_path(args.out, args.overwrite)
     if args.episodes is not None:
         raise ValueError("give --episodes or --randomize N, not both")
+    if args.animation is not None:
+        raise ValueError("--randomize N writes no trajectory to animate; drop --animation / --no-animation")
     if args.randomize < 1:
         raise ValueError(f"--randomize must be >= 1 episodes, got {args.randomize}")
     ranges = _randomize_ranges(args.run, args.set or [])
@@ -87,7 +89,7 @@ def _run(args: argparse.Namespace) -> int:
         }, indent=2) + "\n")
 
     out = write_results(args.out, robot, gait, result, ev.env.calibration, overwrite=args.overwrite, extra=extra,
-                        animation=args.animation)
+                        animation=args.animation is not False)
     print(f"design {','.join(map(str, ev.design))}: returns {', '.join(f'{r:+.3f}' for r in ev.returns_cm)} cm "
           f"(re-run {result.reward_cm:+.3f} cm); wrote {out}")
     return 1 if result.diverged or any(ev.diverged) else 0

@@ -64,7 +64,7 @@ def _run(args: argparse.Namespace) -> int:
     result = run_episode(robot, gait, args.duration, calibration, record_every=args.frames_every,
                          progress=not args.no_progress)
     out = write_results(args.out, robot, gait, result, calibration, overwrite=args.overwrite, video=args.video,
-                        animation=args.animation)
+                        animation=args.animation is not False)
     print(f"reward {result.reward_cm:+.3f} cm after {result.sim_seconds:g} s "
           f"({result.steps} steps, {result.wall_seconds:.1f} s wall, {result.real_time_factor:.3f}x real time); "
           f"wrote {out}")
@@ -100,8 +100,9 @@ def model_fields(args: argparse.Namespace) -> dict:
 
 def add_animation_argument(p: argparse.ArgumentParser) -> None:
     """``--animation`` / ``--no-animation`` (shared with ``evaluate``): write ``crawl.gif``
-    (:func:`softcrawl.robot.animation.write_animation`), on by default."""
-    p.add_argument("--animation", action=argparse.BooleanOptionalAction, default=True,
+    (:func:`softcrawl.robot.animation.write_animation`); ``args.animation`` is None when neither
+    is given (the default: write it), so a command that writes no trajectory can refuse them."""
+    p.add_argument("--animation", action=argparse.BooleanOptionalAction, default=None,
                    help=f"write crawl.gif, the robot crawling: up to {MAX_FRAMES} of the recorded frames at {FPS:g} "
                         "frames per second, drawn with matplotlib (default; --no-animation skips it)")
 
