@@ -1,8 +1,9 @@
 """What the animation (``crawl.gif``, :func:`softcrawl.robot.animation.write_animation`) adds to
 a report: the ``demo`` preset's robot (reduced 6 mm legs, 25 mm disk, dt 0.02 s) of ``--design``
-crawls one 20 s episode with the sine gait (110° phase lag), recorded every 10 steps as the report's re-run is;
-the GIF of that episode is then rendered ``--repeats`` times. Prints JSON: the simulation's wall
-seconds, and per render the wall and CPU seconds, the frames drawn and the file size.
+crawls one 20 s episode with the sine gait (110° phase lag), recorded every 10 steps as the
+report's re-run is; the GIF of that episode is then rendered ``--repeats`` times. Prints JSON: the
+simulation's wall seconds, and per render the wall and CPU seconds, the frames drawn and the file
+size.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/animation_cost.py [--design 0,0,1,0,2,1,0,0] [--repeats 3]
        [--out /tmp/crawl.gif]

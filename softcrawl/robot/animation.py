@@ -113,7 +113,8 @@ def _check(result: EpisodeResult, n_nodes: int, fps, size) -> None:
                          "cannot animate it")
     if isinstance(fps, bool) or not isinstance(fps, (int, float, np.number)) or not (0 < fps <= 100):
         raise ValueError(f"fps must be in (0, 100], got {fps!r}")
-    if not isinstance(size, (tuple, list)) or len(size) != 2 or not all(isinstance(s, (int, np.integer)) and 64 <= s <= 4096 for s in size):
+    pair = isinstance(size, (tuple, list)) and len(size) == 2
+    if not pair or not all(isinstance(s, (int, np.integer)) and 64 <= s <= 4096 for s in size):
         raise ValueError(f"size must be (width, height) with integers in [64, 4096] pixels, got {size!r}")
 
 
