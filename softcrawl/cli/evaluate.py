@@ -47,6 +47,8 @@ def _run_randomized(args: argparse.Namespace) -> int:
     check_output_path(args.out, args.overwrite)
     if args.episodes is not None:
         raise ValueError("give --episodes or --randomize N, not both")
+    if args.animation is not None:
+        raise ValueError("--randomize N writes no trajectory to animate; drop --animation / --no-animation")
     if args.randomize < 1:
         raise ValueError(f"--randomize must be >= 1 episodes, got {args.randomize}")
     ranges = _randomize_ranges(args.run, args.set or [])
@@ -86,7 +88,8 @@ def _run(args: argparse.Namespace) -> int:
             "actions_kpa": np.asarray(ev.actions_kpa).tolist(),
         }, indent=2) + "\n")
 
-    out = write_results(args.out, robot, gait, result, ev.env.calibration, overwrite=args.overwrite, extra=extra)
+    out = write_results(args.out, robot, gait, result, ev.env.calibration, overwrite=args.overwrite, extra=extra,
+                        animation=args.animation is not False)
     print(f"design {','.join(map(str, ev.design))}: returns {', '.join(f'{r:+.3f}' for r in ev.returns_cm)} cm "
           f"(re-run {result.reward_cm:+.3f} cm); wrote {out}")
     return 1 if result.diverged or any(ev.diverged) else 0
@@ -94,6 +97,8 @@ def _run(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     """Add the ``evaluate`` subcommand to ``subparsers``."""
+    from softcrawl.cli.simulate import add_animation_argument
+
     p = subparsers.add_parser("evaluate", help="re-simulate a design with a trained policy",
                               description="Run the trained policy (deterministic) on a design with the run's "
                               "simulation settings; write the outputs of `softcrawl simulate` plus evaluation.json "
@@ -109,6 +114,7 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="with --randomize: seed of the draws (default 0)")
     p.add_argument("--out", required=True, help="output directory (must not exist unless --overwrite)")
     p.add_argument("--frames-every", type=int, default=10, metavar="K", help="ParaView frame every K steps")
+    add_animation_argument(p)
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run)

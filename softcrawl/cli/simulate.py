@@ -20,6 +20,7 @@ from pathlib import Path
 from softcrawl.design.space import BASELINE_DESIGN, validate_design
 from softcrawl.gaits import SineGait, paper_best_gait, read_actions_csv
 from softcrawl.robot.actuation import PressureCalibration
+from softcrawl.robot.animation import FPS, MAX_FRAMES
 from softcrawl.robot.assembly import MODELS, REDUCED_DISKS, RobotConfig, build_robot
 from softcrawl.robot.episode import run_episode
 from softcrawl.robot.output import check_output_path, write_results
@@ -62,7 +63,8 @@ def _run(args: argparse.Namespace) -> int:
     calibration = PressureCalibration()
     result = run_episode(robot, gait, args.duration, calibration, record_every=args.frames_every,
                          progress=not args.no_progress)
-    out = write_results(args.out, robot, gait, result, calibration, overwrite=args.overwrite, video=args.video)
+    out = write_results(args.out, robot, gait, result, calibration, overwrite=args.overwrite, video=args.video,
+                        animation=args.animation is not False)
     print(f"reward {result.reward_cm:+.3f} cm after {result.sim_seconds:g} s "
           f"({result.steps} steps, {result.wall_seconds:.1f} s wall, {result.real_time_factor:.3f}x real time); "
           f"wrote {out}")
@@ -96,13 +98,22 @@ def model_fields(args: argparse.Namespace) -> dict:
     return {"model": args.model, "reduction": args.reduction, "reduced_disk": args.reduced_disk}
 
 
+def add_animation_argument(p: argparse.ArgumentParser) -> None:
+    """``--animation`` / ``--no-animation`` (shared with ``evaluate``): write ``crawl.gif``
+    (:func:`softcrawl.robot.animation.write_animation`); ``args.animation`` is None when neither
+    is given (the default: write it), so a command that writes no trajectory can refuse them."""
+    p.add_argument("--animation", action=argparse.BooleanOptionalAction, default=None,
+                   help=f"write crawl.gif, the robot crawling: up to {MAX_FRAMES} of the recorded frames at {FPS:g} "
+                        "frames per second, drawn with matplotlib (default; --no-animation skips it)")
+
+
 def register(subparsers) -> None:
     """Add the ``simulate`` subcommand to ``subparsers``."""
     p = subparsers.add_parser(
         "simulate", help="simulate one episode of a design and gait (reduced or full-order FEM)",
         description="Simulate one episode of a crawler design with an open-loop gait and write summary.json, "
-        "trajectory.{npz,csv,png}, a ParaView series (crawl.pvd + frames/) and, with --video, crawl.mp4 "
-        "into --out.",
+        "trajectory.{npz,csv,png}, a ParaView series (crawl.pvd + frames/), the animation crawl.gif and, with "
+        "--video, crawl.mp4 into --out.",
     )
     p.add_argument("--design", default=",".join(map(str, BASELINE_DESIGN)),
                    help='8 comma-separated slot values in {0..3} (default: the baseline "1,0,0,2,2,0,0,1")')
@@ -129,6 +140,7 @@ def register(subparsers) -> None:
                         "5 for the reduced model's corotational disk)")
     p.add_argument("--frames-every", type=int, default=10, metavar="K",
                    help="write a ParaView frame every K steps (default 10)")
+    add_animation_argument(p)
     p.add_argument("--video", action="store_true",
                    help="also render crawl.mp4 off-screen (one frame per --frames-every steps, 25 fps; "
                         "needs: pip install softcrawl[video])")

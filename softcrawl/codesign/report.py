@@ -14,8 +14,9 @@ is read through :class:`softcrawl.codesign.run.Run`):
 * ``returns.png``: episode returns over training with a running mean;
 * ``top_designs.csv``: the top-k table;
 * ``best_design/``: the top design re-simulated with the trained policy (deterministic actions,
-  :mod:`softcrawl.codesign.evaluation`): the outputs of ``softcrawl simulate`` (``trajectory.png``
-  shows commanded vs applied pressures and x(t); ParaView frames; ``summary.json``), and what
+  :mod:`softcrawl.codesign.evaluation`): the outputs of ``softcrawl simulate`` (``crawl.gif``
+  shows it crawling, :mod:`softcrawl.robot.animation`; ``trajectory.png`` shows commanded vs
+  applied pressures and x(t); ParaView frames; ``summary.json``), and what
   the gait does (:func:`gait_analysis`: its cycle, if any, and the +x distance of each quarter of
   the episode: a crawler moves in every quarter, a push does not);
 * ``summary.json``: the numbers of ``summary.md`` (steps, wall time, top designs, the best
@@ -246,7 +247,8 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path) -> tupl
 
     ev = evaluate_policy(run, design, checkpoint=checkpoint)
     result = ev.resimulate(record_every=10)
-    write_results(out / "best_design", ev.env.episode.robot, ev.gait(), result, ev.env.calibration, overwrite=True)
+    write_results(out / "best_design", ev.env.episode.robot, ev.gait(), result, ev.env.calibration, overwrite=True,
+                  animation=True)
     name = ",".join(map(str, ev.design))
     g = gait_analysis(ev.actions_kpa, result.time, result.position[:, 0])
     numbers = {"design": name, "policy_cm": float(ev.returns_cm[0]), "resimulated_cm": float(result.reward_cm),
@@ -257,6 +259,8 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path) -> tupl
              f"(re-run {result.reward_cm:+.3f} cm{', DIVERGED' if result.diverged else ''}); commanded (dashed) "
              f"vs applied (solid) pressures and x(t); ParaView series in `best_design/crawl.pvd`."), "",
             _describe_gait(g), "",
+            *(["![best design crawling](best_design/crawl.gif)", ""] if (out / "best_design" / "crawl.gif").exists()
+              else []),
             "![best design's gait](best_design/trajectory.png)"], numbers
 
 

@@ -9,6 +9,8 @@ Layout of an output directory:
   applied solid).
 - ``crawl.pvd`` + ``frames/frame_NNNNN.vtu``: all bodies' tetrahedra in one grid per frame
   with point field ``"displacement"`` (mm, from rest) and cell field ``"body"``.
+- ``crawl.gif`` (only with ``animation=True``): the robot crawling, a few seconds drawn from
+  the recorded frames with matplotlib (:mod:`softcrawl.robot.animation`).
 - ``crawl.mp4`` (only with ``video=True``; needs ``softcrawl[video]``): the recorded frames
   rendered off-screen, 25 fps (:mod:`softcrawl.robot.video`).
 
@@ -44,6 +46,7 @@ from matplotlib.figure import Figure
 from softcrawl import __version__
 from softcrawl.design.space import N_REGULATORS
 from softcrawl.robot.actuation import PressureCalibration
+from softcrawl.robot.animation import write_animation
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import MM_PER_CM, EpisodeResult
 
@@ -312,10 +315,13 @@ def write_paraview(directory: Path, robot: Robot, result: EpisodeResult, name: s
 
 def write_results(out: str | os.PathLike, robot: Robot, gait, result: EpisodeResult,
                   calibration: PressureCalibration = PressureCalibration(), overwrite: bool = False,
-                  video: bool = False, extra: Callable[[Path], None] | None = None) -> Path:
+                  video: bool = False, extra: Callable[[Path], None] | None = None,
+                  animation: bool = False) -> Path:
     """Write all outputs (module docstring) into ``out`` atomically (:func:`staged_directory`).
 
-    With ``video``, also ``crawl.mp4`` (:func:`softcrawl.robot.video.write_video`);
+    With ``animation``, also ``crawl.gif`` (:func:`softcrawl.robot.animation.write_animation`;
+    left out if the episode recorded no frames); with ``video``, also
+    ``crawl.mp4`` (:func:`softcrawl.robot.video.write_video`);
     ``extra(folder)`` writes a caller's own files into the same staged folder (e.g.
     ``softcrawl evaluate``'s ``evaluation.json``), so they are kept like the rest.
 
@@ -347,6 +353,8 @@ def write_results(out: str | os.PathLike, robot: Robot, gait, result: EpisodeRes
             extra(tmp)
         plot_trajectory(tmp / "trajectory.png", robot, result)
         write_paraview(tmp, robot, result)
+        if animation and len(result.frames):
+            write_animation(tmp / "crawl.gif", robot, result)
         if video:
             from softcrawl.robot.video import write_video  # optional extra, heavy import
 

@@ -1,8 +1,9 @@
 """MP4 video of an episode, rendered off-screen with pyvista (optional extra ``softcrawl[video]``).
 
 One video frame per recorded episode frame (``EpisodeResult.frames``, i.e. one per
-``--frames-every`` steps), 25 frames per second: the outer surface of all bodies (disk grey,
-legs coloured by regulator), a floor grid (20 mm squares) at ``z = 0``, a camera that follows
+``--frames-every`` steps), 25 frames per second: the outer surface of all bodies
+(:func:`softcrawl.robot.animation.robot_surface`; disk grey, legs coloured by regulator as in
+the design pictures), a floor grid (20 mm squares) at ``z = 0``, a camera that follows
 the disk from a 3/4 view (front right, above), and a label with the time and the reward so far.
 
 Without a display, VTK renders through EGL: unless ``VTK_DEFAULT_OPENGL_WINDOW`` is already set,
@@ -14,8 +15,10 @@ from __future__ import annotations
 import os
 
 import numpy as np
+from matplotlib.colors import to_hex
 
-from softcrawl.geometry.mesh import boundary_triangles
+from softcrawl.design.picture import REGULATOR_COLOURS
+from softcrawl.robot.animation import DISK_COLOUR, frame_caption, robot_surface
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import MM_PER_CM, EpisodeResult
 
@@ -26,7 +29,7 @@ SIZE = (640, 360)
 #: Camera offset from the disk centre, mm (front right, above: a 3/4 view).
 CAMERA_OFFSET = np.array([260.0, -340.0, 240.0])
 _INSTALL = "pip install softcrawl[video]"
-_COLORS = ("#9a9a9a", "#1f77b4", "#d62728", "#2ca02c")  # disk, regulators 1..3
+_COLORS = tuple(to_hex(c) for c in (DISK_COLOUR, *(REGULATOR_COLOURS[k] for k in (1, 2, 3))))  # disk, regs 1..3
 
 
 class VideoUnavailableError(ValueError):
@@ -88,17 +91,12 @@ def write_video(path: str | os.PathLike, robot: Robot, result: EpisodeResult,
         raise ValueError("the episode recorded no frames (record_every=None?); nothing to render")
     if size[0] % 2 or size[1] % 2:
         raise ValueError(f"video size must be even (H.264), got {size}")
-    model = robot.model
-    tris, face_color = [], []
-    for i, (b, off) in enumerate(zip(model.bodies, model.node_offsets)):
-        tri = boundary_triangles(b.mesh.tets) + off
-        tris.append(tri)
-        face_color.append(np.full(len(tri), next((g.regulator for g in robot.legs if g.body == i), 0)))
-    tris = np.concatenate(tris)
+    outer = robot_surface(robot)
+    tris = outer.triangles
     surface = pv.PolyData(result.frames[0].astype(np.float64),
                           np.column_stack([np.full(len(tris), 3), tris]).ravel())
-    surface.cell_data["color"] = np.concatenate(face_color)  # disk 0, a leg its regulator
-    disk = model.body_slice(robot.disk_body)
+    surface.cell_data["color"] = outer.regulator  # disk 0, a leg its regulator
+    disk = robot.model.body_slice(robot.disk_body)
 
     centre0 = result.frames[0][disk].mean(axis=0)
     x0 = robot.reward_position(result.frames[0])[0]
@@ -119,7 +117,7 @@ def write_video(path: str | os.PathLike, robot: Robot, result: EpisodeResult,
                 pl.camera.focal_point = centre
                 pl.camera.position = centre + CAMERA_OFFSET
                 pl.camera.up = (0.0, 0.0, 1.0)
-                label.SetText(2, f"t = {t:5.2f} s   x = {(robot.reward_position(x)[0] - x0) / MM_PER_CM:+.2f} cm")
+                label.SetText(2, frame_caption(t, (robot.reward_position(x)[0] - x0) / MM_PER_CM))
                 pl.render()
                 img = pl.screenshot(return_img=True)
                 writer.send(np.ascontiguousarray(img[:, :, :3]))
