@@ -21,6 +21,9 @@ from softcrawl.hardware.supply import BK9129B
 from softcrawl.robot.actuation import PressureRangeError
 
 GAIT = np.array([[0, 90, 0], [90, 0, 0], [0, 0, 0]] * 2, dtype=float)  # paper-best cycle, 6 s
+#: What a confirmed fail-safe reports (the fake supply measures exactly 0 V with its outputs off).
+FAIL_SAFE_OK = ["vented to 0 kPa (set 0.000,0.000,0.000 V read back)",
+                "outputs off (read back off; measured 0.000,0.000,0.000 V)", "front panel local"]
 
 
 # -- supply driver: the exact SCPI exchange ---------------------------------------------------------
@@ -31,11 +34,12 @@ def test_bk9129b_exact_exchange():
     rig.start()
     rig.source.set_kpa([90.0, 45.0, 0.0])
     v = rig.source.measure_volts()
-    rig.fail_safe()
+    fs = rig.fail_safe()
     assert sim.supply.sent() == [
-        "*IDN?", "SYST:REM", "APP:VOLT 0.000,0.000,0.000", "APP:VOLT?", "OUTP 1",
+        "*IDN?", "SYST:REM", "APP:VOLT 0.000,0.000,0.000", "APP:VOLT?", "OUTP 1", "OUTP?",
         "APP:VOLT 4.500,2.250,0.000", "APP:VOLT?", "MEAS:VOLT:ALL?",
-        "APP:VOLT 0.000,0.000,0.000", "APP:VOLT?", "OUTP 0", "SYST:LOC"]
+        "APP:VOLT 0.000,0.000,0.000", "APP:VOLT?", "OUTP 0", "OUTP?", "MEAS:VOLT:ALL?", "SYST:LOC"]
+    assert fs.confirmed and fs.steps == FAIL_SAFE_OK
     assert sim.supply.transcript[1] == ("<", IDN)
     assert np.allclose(v, [4.5, 2.25, 0.0], atol=0.003)
     assert not sim.supply.on and not sim.supply.remote
@@ -199,7 +203,7 @@ def _rows(out):
 
 def _assert_failsafe(sim, res, out, reason):
     assert res.status == "aborted" and reason in res.reason
-    assert res.fail_safe == ["vented to 0 kPa", "outputs off"]
+    assert res.fail_safe == FAIL_SAFE_OK and res.fail_safe_confirmed
     sent = sim.supply.sent()
     sets = [c for c in sent if c.startswith("APP:VOLT ")]
     assert sets[-1] == "APP:VOLT 0.000,0.000,0.000" and "OUTP 0" in sent[sent.index(sets[-1]):]
@@ -207,9 +211,9 @@ def _assert_failsafe(sim, res, out, reason):
     sim.clock.sleep(5.0)  # the lines empty once vented
     assert np.all(sim.plant.p < 1.0)
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["status"] == "aborted" and reason in summary["reason"]
+    assert summary["status"] == "aborted" and reason in summary["reason"] and summary["fail_safe_confirmed"]
     last = _rows(out)[-1]["event"]
-    assert last.startswith("fail-safe: ") and reason in last and "vented to 0 kPa; outputs off" in last
+    assert last.startswith("fail-safe: ") and reason in last and last.endswith("; ".join(FAIL_SAFE_OK))
 
 
 def test_deploy_sim_completes_and_logs(tmp_path):
@@ -227,7 +231,8 @@ def test_deploy_sim_completes_and_logs(tmp_path):
     end0 = log.sensed_kpa[(log.step == 0)][-1]
     assert 75 < end0[1] < 95 and abs(end0[0]) < 3 and abs(end0[2]) < 3
     assert np.allclose(log.set_v[log.step == 0][0], [0, 4.5, 0])
-    assert _rows(tmp_path / "d")[-1]["event"] == "completed; vented to 0 kPa; outputs off"
+    assert _rows(tmp_path / "d")[-1]["event"] == "completed; " + "; ".join(FAIL_SAFE_OK)
+    assert res.fail_safe_confirmed and s["fail_safe_confirmed"] and s["log_error"] is None
     assert not sim.supply.on
 
 
@@ -283,8 +288,9 @@ def test_failsafe_dead_connection_still_logs(tmp_path):
     res = deploy(sim.rig, GAIT, tmp_path / "d", progress=False)
     assert res.status == "aborted" and "lost connection" in res.reason
     assert all(s.startswith("FAILED") for s in res.fail_safe)  # said, not hidden
+    assert not res.fail_safe_confirmed and not res.summary["fail_safe_confirmed"]
     last = _rows(tmp_path / "d")[-1]["event"]
-    assert "lost connection" in last and "FAILED" in last
+    assert "lost connection" in last and "FAILED" in last and "NOT CONFIRMED" in last
 
 
 def test_failsafe_sensor_lost(tmp_path):
@@ -360,7 +366,8 @@ def test_second_ctrl_c_does_not_stop_the_shutdown():
 
     sim.clock.on_advance(interrupt_once)
     done = sim.rig.fail_safe()
-    assert done == ["FAILED (vented): interrupted", "outputs off"] and not sim.supply.on
+    assert done.steps[0] == "FAILED (vent): interrupted" and done.steps[1:] == FAIL_SAFE_OK[1:]
+    assert not done.confirmed and not sim.supply.on
 
 
 def test_failsafe_hung_call_real_clock_watchdog_thread(tmp_path):
@@ -464,5 +471,5 @@ def test_failsafe_lines_not_vented_at_start(tmp_path):
     sim.plant.params = tuple(type(p)(p.gain, p.offset, p.tau_inflate, 1e6) for p in sim.plant.params)  # no vent
     res = deploy(sim.rig, GAIT, tmp_path / "d", progress=False)
     assert res.status == "aborted" and "atmospheric zero" in res.reason
-    assert not sim.supply.on and sim.supply.sent()[-2:] == ["OUTP 0", "SYST:LOC"]
+    assert not sim.supply.on and sim.supply.sent()[-4:] == ["OUTP 0", "OUTP?", "MEAS:VOLT:ALL?", "SYST:LOC"]
     assert "APP:VOLT 0.000,4.500,0.000" not in sim.supply.sent()  # no action was sent
