@@ -178,6 +178,16 @@ def test_example_rig_config_loads():
     (("mux_address = 0x70", "# no mux"), "mux_address"),
     (("[rig]", "[rigg]"), "unknown table"),
     (("[rig]", "[rig"), "not a readable TOML"),
+    (('name = "PneuNet crawler rig"', 'name = "rig\\n\\u001b[2Jcleared"'), "printable"),
+    (('name = "PneuNet crawler rig"', 'name = ""'), "printable"),
+    (('address = "ASRL/dev/ttyUSB0::INSTR"', 'address = "ASRL\\u001b[31m::INSTR"'), "printable"),
+    (("volts_per_kpa = 0.05", "volts_per_kpa = 1e-300"), "volts_per_kpa must be finite and >= 0.001"),
+    (("bus = 1 ", "bus = -1 "), r"sensors.bus must be in \[0, 255\]"),
+    (("bus = 1 ", "bus = 100000000000000000 "), r"sensors.bus must be in \[0, 255\]"),
+    (("mux_address = 0x70", "mux_address = -5"), "mux_address -5 is not a 7-bit"),
+    (("mux_address = 0x70", "mux_address = 0x78"), "mux_address 120 is not a 7-bit"),
+    (("address = 0x28", "address = 0x7f"), "sensors.address 127 is not a 7-bit"),
+    (("[rig]", "x = " + "[" * 5000 + "]" * 5000 + "\n[rig]"), "nested"),
 ])
 def test_bad_rig_configs_are_refused(tmp_path, edit, match):
     text = example_rig_path().read_text()
@@ -192,6 +202,31 @@ def test_bad_rig_configs_are_refused(tmp_path, edit, match):
 def test_missing_rig_config(tmp_path):
     with pytest.raises(FileNotFoundError):
         load_rig_config(tmp_path / "nope.toml")
+
+
+def test_rig_config_device_or_folder_is_refused(tmp_path):
+    link = tmp_path / "rig.toml"
+    link.symlink_to("/dev/zero")
+    for p in (link, tmp_path):
+        with pytest.raises(RigConfigError, match="not a regular file"):
+            load_rig_config(p)
+
+
+def test_cli_rig_check_and_deploy_refuse_deep_nesting_in_one_line(tmp_path, capsys):
+    """5,000 nested arrays in rig.toml (rig check, deploy --sim-config) or calibration.json
+    (deploy --calibration): one line, exit 2, no RecursionError traceback."""
+    from softcrawl.cli import main
+
+    deep = tmp_path / "deep.toml"
+    deep.write_text(example_rig_path().read_text().replace("[rig]", "x = " + "[" * 5000 + "]" * 5000 + "\n[rig]"))
+    cal = tmp_path / "calibration.json"
+    cal.write_text("[" * 5000 + "]" * 5000)
+    for argv in (["rig", "check", str(deep), "--sim"],
+                 ["deploy", "--rig", "sim", "--sim-config", str(deep), "--out", str(tmp_path / "a")],
+                 ["deploy", "--rig", "sim", "--calibration", str(cal), "--out", str(tmp_path / "b")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "nested" in err and "Traceback" not in err
 
 
 # -- deploy: normal run ----------------------------------------------------------------------------
