@@ -73,6 +73,7 @@ def _fit(args: argparse.Namespace) -> int:
 
     from softcrawl.hardware import regulator_model as rm
     from softcrawl.hardware.logs import read_auro_logs
+    from softcrawl.safeio import atomic_write_text
 
     good, bad = read_auro_logs(args.logs)
     if len(good) < 4:
@@ -90,10 +91,12 @@ def _fit(args: argparse.Namespace) -> int:
     print(f"held-out one-step error over {err['n_holds']} holds: RMSE {err['rmse']:.2f} kPa, MAE {err['mae']:.2f}, "
           f"median {err['median_abs']:.2f}, 90th percentile {err['p90_abs']:.2f} (sensor = command: RMSE "
           f"{naive['rmse']:.2f}, median {naive['median_abs']:.2f})")
+    for path, why in bad:
+        print(f"  refused: {why}")
     if args.out:
-        with open(args.out, "w", encoding="utf-8") as f:
-            json.dump({"regulators": rm.params_to_dict(params), "held_out": err, "naive_held_out": naive,
-                       "n_fit": len(fit), "n_held_out": len(held), "refused": bad}, f, indent=2)
+        atomic_write_text(args.out, json.dumps({"regulators": rm.params_to_dict(params), "held_out": err,
+                                                "naive_held_out": naive, "n_fit": len(fit), "n_held_out": len(held),
+                                                "refused": bad}, indent=2))
         print(f"wrote {args.out}")
     return 0
 
