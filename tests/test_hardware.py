@@ -467,6 +467,16 @@ def test_cli_deploy_sim_and_bad_input(tmp_path, capsys):
     assert capsys.readouterr().err.count("\n") == 1
 
 
+def test_cli_deploy_accepts_an_action_csv_with_a_bom(tmp_path):
+    """A spreadsheet export starts with a UTF-8 byte-order mark: the header is still recognised."""
+    from softcrawl.cli import main
+
+    gait = tmp_path / "gait.csv"
+    gait.write_bytes(b"\xef\xbb\xbfp1,p2,p3\r\n0,90,0\r\n90,0,0\r\n")
+    assert main(["deploy", "--rig", "sim", "--actions", str(gait), "--out", str(tmp_path / "d"), "--no-progress"]) == 0
+    assert json.loads((tmp_path / "d" / "summary.json").read_text())["actions_kpa"] == [[0, 90, 0], [90, 0, 0]]
+
+
 def test_replay_sensor_follows_the_clock():
     from softcrawl.hardware.clock import SimClock
     from softcrawl.hardware.sensors import ReplaySensor
