@@ -173,7 +173,7 @@ def test_fitted_slope_outside_the_physical_range_is_refused(tmp_path):
     wrong unit) give a = 0.01: refused, and so is a calibration file with such a slope."""
     curve = BendCurve(BendModel(mesh_size=99.0), evaluate=_analytic, cache=False)
     real = [20.0, 60.0]
-    with pytest.raises(ValueError, match=r"slope a = 0\.01\d* sim kPa per real kPa is outside the plausible \[0\.2, 20\]"):
+    with pytest.raises(ValueError, match=r"slope a = 0\.01\d* sim kPa per real kPa is outside the plausible \[0\.2,"):
         calibrate(real, [_analytic(0.01 * r)[0] for r in real], curve=curve)
     for a in (9.3e-19, 25.0):
         p = tmp_path / f"cal{a}.json"

@@ -132,8 +132,8 @@ def _synthetic_log(path, rng):
     cmd = rng.choice([0.0, 45.0, 90.0], size=(20, 3))
     p, cells = np.zeros(3), []
     for k in range(20):
-        cells.append('"' + str({"regulator": [round(float(x), 3) for x in p[::-1]], "honeywell": [round(float(x), 3) for x in p],
-                                "commanded": cmd[k].tolist()}) + '"')
+        r = [round(float(x), 3) for x in p]
+        cells.append('"' + str({"regulator": r[::-1], "honeywell": r, "commanded": cmd[k].tolist()}) + '"')
         p = np.array([prm.advance(x, c, 1.0) for prm, x, c in zip(rm.FITTED, p, cmd[k])])
     lines = [",".join(str(1000 * k) for k in range(20)), *(",".join(f"{x:g}" for x in cmd[:, j]) for j in range(3)),
              ",".join(cells)]

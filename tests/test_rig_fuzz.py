@@ -25,7 +25,8 @@ from softcrawl.hardware.deploy import deploy
 from softcrawl.hardware.logs import read_auro_log
 from softcrawl.hardware.simrig import SimRig
 
-FUZZ = settings(max_examples=40, deadline=None, database=None, derandomize=True, suppress_health_check=list(HealthCheck))
+FUZZ = settings(max_examples=40, deadline=None, database=None, derandomize=True,
+                suppress_health_check=list(HealthCheck))
 
 
 def _one_line(exc: BaseException) -> str:

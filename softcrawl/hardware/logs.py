@@ -185,7 +185,8 @@ def check_summary(summary, where: str) -> dict:
             continue
         if want is float:
             positive = k in ("control_period_s", "sim_hold_s")
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v > 0 or not positive)
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            ok = ok and (v > 0 or not positive)
             what = "a positive number" if positive else "a finite number"
         else:
             ok = isinstance(v, want) and (want is bool or not isinstance(v, bool))
