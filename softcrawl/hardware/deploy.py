@@ -316,41 +316,44 @@ def deploy(rig, actions, out: str | Path, meta: dict | None = None, progress: bo
         status, reason = "aborted", _reason(exc, wd)
         stop_signal = signal.Signals(exc.signum).name if isinstance(exc, StopSignal) else None
     finally:
-        guard.shield()  # a further signal must not interrupt the shutdown
-        if wd is not None:
-            wd.stop()
         try:
-            if bar is not None:
-                bar.close()
-        except Exception:  # a closed terminal: the shutdown goes on
-            pass
-        fail_safe = rig.fail_safe()
-        last["cmd"], last["set_v"], last["step"] = np.zeros(3), np.full(3, np.nan), -1  # step -1: not an action
-        event = ("fail-safe: " + reason if reason else "completed") + "; " + "; ".join(fail_safe.steps)
-        if not fail_safe.confirmed:
-            event += "; FAIL-SAFE NOT CONFIRMED: the supply may still be on"
-        try:
-            row(np.full(3, np.nan), np.full(3, np.nan), 0, event)
-        except _LogWriteError:
-            pass  # kept in log.error, reported in the summary
-        log.close()
-        rig.close()
-        elapsed = (clock.now() - t0) if t0 is not None else 0.0
-        summary = {
-            "status": status, "reason": reason, "fail_safe": fail_safe.steps,
-            "fail_safe_confirmed": fail_safe.confirmed, "signal": stop_signal, "signals_during_shutdown": guard.late,
-            "log_error": log.error, "rig": rig.name, "simulated": rig.simulated, "supply_idn": idn, "n_actions": n,
-            "actions_kpa": actions.tolist(), "control_period_s": period, "sample_hz_target": s.sample_hz,
-            "samples": counts["samples"], "sample_hz_achieved": counts["samples"] / elapsed if elapsed > 0 else None,
-            "elapsed_s": elapsed, "overruns": counts["overruns"], "max_lateness_s": max_late,
-            "overrun_tolerance_s": s.overrun_tolerance_s, "settings": dict(s.__dict__), **(meta or {}),
-        }
-        errors = [log.error] if log.error else []
-        try:
-            atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=_json_default) + "\n")
-        except OSError as exc:
-            errors.append(f"writing {out / 'summary.json'} failed: {one_line(exc)}")
-        guard.restore()
+            guard.shield()  # a further signal must not interrupt the shutdown
+            if wd is not None:
+                wd.stop()
+            try:
+                if bar is not None:
+                    bar.close()
+            except Exception:  # a closed terminal: the shutdown goes on
+                pass
+            fail_safe = rig.fail_safe()
+            last["cmd"], last["set_v"], last["step"] = np.zeros(3), np.full(3, np.nan), -1  # step -1: not an action
+            event = ("fail-safe: " + reason if reason else "completed") + "; " + "; ".join(fail_safe.steps)
+            if not fail_safe.confirmed:
+                event += "; FAIL-SAFE NOT CONFIRMED: the supply may still be on"
+            try:
+                row(np.full(3, np.nan), np.full(3, np.nan), 0, event)
+            except _LogWriteError:
+                pass  # kept in log.error, reported in the summary
+            log.close()
+            rig.close()
+            elapsed = (clock.now() - t0) if t0 is not None else 0.0
+            summary = {
+                "status": status, "reason": reason, "fail_safe": fail_safe.steps,
+                "fail_safe_confirmed": fail_safe.confirmed, "signal": stop_signal,
+                "signals_during_shutdown": guard.late, "log_error": log.error, "rig": rig.name,
+                "simulated": rig.simulated, "supply_idn": idn, "n_actions": n, "actions_kpa": actions.tolist(),
+                "control_period_s": period, "sample_hz_target": s.sample_hz, "samples": counts["samples"],
+                "sample_hz_achieved": counts["samples"] / elapsed if elapsed > 0 else None,
+                "elapsed_s": elapsed, "overruns": counts["overruns"], "max_lateness_s": max_late,
+                "overrun_tolerance_s": s.overrun_tolerance_s, "settings": dict(s.__dict__), **(meta or {}),
+            }
+            errors = [log.error] if log.error else []
+            try:
+                atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=_json_default) + "\n")
+            except OSError as exc:
+                errors.append(f"writing {out / 'summary.json'} failed: {one_line(exc)}")
+        finally:
+            guard.restore()  # the caller's handlers, even if the shutdown failed
     return DeployResult(status, reason, fail_safe.steps, summary, str(out), fail_safe.confirmed, errors)
 
 
