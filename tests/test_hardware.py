@@ -518,3 +518,13 @@ def test_failsafe_lines_not_vented_at_start(tmp_path):
     assert res.status == "aborted" and "atmospheric zero" in res.reason
     assert not sim.supply.on and sim.supply.sent()[-4:] == ["OUTP 0", "OUTP?", "MEAS:VOLT:ALL?", "SYST:LOC"]
     assert "APP:VOLT 0.000,4.500,0.000" not in sim.supply.sent()  # no action was sent
+
+
+def test_smbus_device_on_a_missing_bus_is_a_sensor_error():
+    """The real I2C path through smbus2 (in the test extra): a bus that does not exist is a
+    SensorError naming it, not an OSError traceback."""
+    pytest.importorskip("smbus2")
+    from softcrawl.hardware.sensors import SMBusDevice
+
+    with pytest.raises(SensorError, match="cannot open I2C bus 250"):
+        SMBusDevice(250, mux_address=0x70, mux_channel=0)

@@ -5,7 +5,8 @@
   zero), and print what it sees. Nothing moves: the supply is set to 0 V with its outputs off.
   ``--sim`` runs the same check on the simulated rig (no hardware).
 - ``softcrawl rig fit LOG_DIR``: fit the regulator model (:mod:`softcrawl.hardware.regulator_model`)
-  to recorded logs and print its error on held-out logs.
+  to recorded logs and print its error on held-out logs; a file that cannot be read (malformed,
+  a value that does not fit, not a regular file) is refused and listed, the others are fitted.
 - ``softcrawl rig example``: print the example ``rig.toml`` shipped with softcrawl.
 
 Exit codes: 0 all good, 1 an instrument did not answer, 2 a bad rig file.
@@ -91,7 +92,7 @@ def _fit(args: argparse.Namespace) -> int:
     print(f"held-out one-step error over {err['n_holds']} holds: RMSE {err['rmse']:.2f} kPa, MAE {err['mae']:.2f}, "
           f"median {err['median_abs']:.2f}, 90th percentile {err['p90_abs']:.2f} (sensor = command: RMSE "
           f"{naive['rmse']:.2f}, median {naive['median_abs']:.2f})")
-    for path, why in bad:
+    for _, why in bad:  # each reason names its file
         print(f"  refused: {why}")
     if args.out:
         atomic_write_text(args.out, json.dumps({"regulators": rm.params_to_dict(params), "held_out": err,

@@ -2,10 +2,11 @@
 
 Layout (see ``softcrawl/hardware/data/example_rig.toml``)::
 
-    [rig]        name (printable, <= 80 characters), max_kpa (<= 90), control_period_s, sample_hz (>= 10), watchdog_s,
-                 disagreement_kpa, disagreement_s, overrun_tolerance_s
-    [supply]     model = "BK9129B", address (VISA name), timeout_ms, retries, max_volts = [3 V]
-    [[regulator]] x 3, in regulator order: channel (1..3), volts_per_kpa, offset_v
+    [rig]        name (printable, <= 80 characters), max_kpa (<= 90), control_period_s,
+                 sample_hz (>= 10), watchdog_s, disagreement_kpa, disagreement_s, overrun_tolerance_s
+    [supply]     model = "BK9129B", address (VISA name, printable), timeout_ms, retries,
+                 max_volts = [3 V]
+    [[regulator]] x 3, in regulator order: channel (1..3), volts_per_kpa (>= 0.001), offset_v
     [sensors]    kind = "honeywell-ssc" | "none"; for SSC: buses = [3 ints] or bus + mux_address
                  + mux_channels = [3 ints], address (0x28), p_max_psi (30); bus numbers
                  0..255, I2C addresses 7-bit (0x08..0x77)
