@@ -528,3 +528,20 @@ def test_smbus_device_on_a_missing_bus_is_a_sensor_error():
 
     with pytest.raises(SensorError, match="cannot open I2C bus 250"):
         SMBusDevice(250, mux_address=0x70, mux_channel=0)
+
+
+def test_cli_rig_check_reports_a_supply_it_cannot_confirm_off(tmp_path, capsys, monkeypatch):
+    """A supply that stops answering during `rig check`: exit 3 and a warning, not "outputs off"."""
+    import softcrawl.hardware.simrig as simrig
+    from softcrawl.cli import main
+
+    orig = simrig.SimRig.__init__
+
+    def dying(self, *a, **k):
+        orig(self, *a, **k)
+        self.supply.fail_from = 2  # *IDN? and SYST:REM answer, nothing after
+
+    monkeypatch.setattr(simrig.SimRig, "__init__", dying)
+    assert main(["rig", "check", str(example_rig_path()), "--sim"]) == 3
+    err = capsys.readouterr().err
+    assert "lost connection" in err and "DANGER" in err

@@ -9,7 +9,8 @@
   a value that does not fit, not a regular file) is refused and listed, the others are fitted.
 - ``softcrawl rig example``: print the example ``rig.toml`` shipped with softcrawl.
 
-Exit codes: 0 all good, 1 an instrument did not answer, 2 a bad rig file.
+Exit codes: 0 all good, 1 an instrument did not answer (the supply was then read back off at
+0 V, or never opened), 2 a bad rig file, 3 the supply could not be confirmed off.
 """
 
 from __future__ import annotations
@@ -61,7 +62,10 @@ def _check(args: argparse.Namespace) -> int:
         src.supply.local()
     except RigError as exc:
         print(f"softcrawl rig check: error: {exc}", file=sys.stderr)
-        rig.fail_safe()
+        if not rig.fail_safe().confirmed:
+            print("softcrawl rig check: DANGER: could not confirm that the supply is off and at 0 V: switch it off "
+                  "by hand", file=sys.stderr)
+            return 3
         return 1
     finally:
         rig.close()
