@@ -545,3 +545,47 @@ def test_cli_rig_check_reports_a_supply_it_cannot_confirm_off(tmp_path, capsys, 
     assert main(["rig", "check", str(example_rig_path()), "--sim"]) == 3
     err = capsys.readouterr().err
     assert "lost connection" in err and "DANGER" in err
+
+
+class _LateAnswers:
+    """A resource whose answers queue up on the line, as on a serial port: a query cut short by a
+    signal leaves its answer behind, to be read by the next query unless the buffer is discarded."""
+
+    def __init__(self, fake):
+        self.fake, self.line, self.cut, self.flushes = fake, [], False, 0
+
+    def write(self, cmd):
+        self.fake.write(cmd)
+
+    def query(self, cmd):
+        self.line.append(self.fake.query(cmd))
+        if self.cut:
+            self.cut = False
+            raise KeyboardInterrupt  # the signal lands while the answer is in transit
+        return self.line.pop(0)
+
+    def flush(self, mask):
+        self.flushes += 1
+        self.line.clear()
+
+    def close(self):
+        pass
+
+
+def test_answer_of_a_query_cut_short_is_not_read_as_the_next_answer(monkeypatch):
+    import softcrawl.hardware.supply as supply
+
+    monkeypatch.setattr(supply, "LATE_ANSWER_S", 0.0)
+    sim = SimRig()
+    res = _LateAnswers(sim.supply)
+    drv = BK9129B(res, max_v=(5.0, 5.0, 5.0))
+    drv.remote()
+    drv.set_volts([1.0, 2.0, 3.0])
+    drv.output(True)
+    res.cut = True
+    with pytest.raises(KeyboardInterrupt):
+        drv.measure_volts()
+    assert np.allclose(drv.set_volts([0.0, 0.0, 0.0]), 0.0)  # read back its own answer, not the stale one
+    drv.output(False)
+    assert np.allclose(drv.confirm_zero(), 0.0) and res.flushes == 1
+    assert sim.supply.sent().count("APP:VOLT 0.000,0.000,0.000") == 1  # no retry needed

@@ -23,6 +23,8 @@ example driver does); a voltage beyond a channel's limit is refused before anyth
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from softcrawl.hardware.errors import SupplyError, VoltageLimitError, one_line
@@ -32,6 +34,9 @@ BK9129B_MAX_V = (30.0, 30.0, 5.0)
 #: A channel measuring at most this much with its output off counts as off, V (the 9129B's
 #: voltage read-back resolution is 1 mV; 0.05 V is 1 kPa on the example rig's 0.05 V/kPa maps).
 OFF_TOL_V = 0.05
+#: How long a late answer to a query cut short may take to arrive, s: the longest answer
+#: (``*IDN?``, about 55 bytes) takes 57 ms at 9600 baud, plus the instrument's reply latency.
+LATE_ANSWER_S = 0.2
 #: Serial settings of the 9129B's USB-serial (VCP) interface.
 SERIAL = {"baud_rate": 9600, "data_bits": 8, "parity": "none", "stop_bits": "one", "termination": "\n"}
 
@@ -80,6 +85,7 @@ class BK9129B:
         self.max_v = max_v
         self.retries = int(retries)
         self.tol_v = float(tol_v)
+        self._unanswered = False
 
     @classmethod
     def open(cls, address: str, timeout_ms: int = 1000, backend: str = "@py", **kwargs) -> BK9129B:
@@ -115,10 +121,32 @@ class BK9129B:
             raise SupplyError(f"supply: lost connection sending {cmd!r}: {one_line(exc)}") from None
 
     def _query(self, cmd: str) -> str:
+        if self._unanswered:
+            self._discard_late_answer()
+        self._unanswered = True  # until the answer is read: a signal or a timeout can cut the query short
         try:
-            return str(self.resource.query(cmd))
+            ans = str(self.resource.query(cmd))
         except Exception as exc:
             raise SupplyError(f"supply: lost connection on {cmd!r}: {one_line(exc)}") from None
+        self._unanswered = False
+        return ans
+
+    def _discard_late_answer(self) -> None:
+        """Drop the answer of a query that was cut short (a signal, a timeout): it arrives late and
+        would otherwise be read as the next query's answer. Waits :data:`LATE_ANSWER_S` for it,
+        then discards the resource's input buffer (pyvisa ``flush``; a resource without one has
+        no buffer to discard)."""
+        self._unanswered = False
+        flush = getattr(self.resource, "flush", None)
+        if flush is None:
+            return
+        time.sleep(LATE_ANSWER_S)
+        try:
+            from pyvisa.constants import BufferOperation
+
+            flush(BufferOperation.discard_read_buffer)
+        except Exception:  # nothing to discard, or the port is gone: the query that follows says which
+            pass
 
     # -- commands --
     def identify(self) -> str:
