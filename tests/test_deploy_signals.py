@@ -29,9 +29,10 @@ from softcrawl.hardware.config import example_rig_path
 from softcrawl.hardware.deploy import STOP_SIGNALS, deploy
 from softcrawl.hardware.simrig import SimRig
 
+pytest.importorskip("termios")  # pseudo-terminals: POSIX
 pytest.importorskip("pyvisa")
-pytest.importorskip("pyvisa_sim")  # noqa: E402 (pyvisa-py's serial backend needs pyserial too)
-pytest.importorskip("serial")
+pytest.importorskip("pyvisa_py")
+pytest.importorskip("serial")  # pyvisa-py's serial backend
 
 from softcrawl.hardware.ptysupply import PtySupply  # noqa: E402
 

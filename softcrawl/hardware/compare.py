@@ -25,7 +25,7 @@ import numpy as np
 
 from softcrawl.hardware.errors import one_line
 from softcrawl.hardware.logs import read_auro_log, read_deploy_log
-from softcrawl.safeio import read_text
+from softcrawl.safeio import atomic_write_text, read_text
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,8 +213,8 @@ def compare(sim_run: str | Path, real_logs, out: str | Path, tracked=None, time_
     result = {"sim_run": str(sim_run), "sim_final_distance_cm": sim_final_cm, "sim_time_scale": time_scale,
               "logs": rows,
               "real_final_distances_cm": finals, "spread": spread}
-    (out / "compare.json").write_text(json.dumps(result, indent=2, default=str) + "\n")
-    (out / "compare.md").write_text(markdown(result))
+    atomic_write_text(out / "compare.json", json.dumps(result, indent=2, default=str) + "\n")
+    atomic_write_text(out / "compare.md", markdown(result))
     return result
 
 
