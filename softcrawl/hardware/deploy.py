@@ -17,9 +17,23 @@ Safety:
   a **lost connection** or another instrument fault (:class:`SupplyError` / :class:`SensorError`:
   no answer, a setting not taken after the retries, a sensor status fault), a **sensor/command
   disagreement** (``|sensed - commanded| > disagreement_kpa`` continuously for
-  ``disagreement_s``), **any exception**, and **Ctrl-C**. The reason goes into the log's last
-  row, the summary (``status: "aborted"``, ``reason``, ``fail_safe``) and the return value.
-  A completed run vents and turns the outputs off too.
+  ``disagreement_s``), **any exception** (a failed write of the log included: a full disk, a
+  file-size limit), and the **stop signals** SIGINT (Ctrl-C), SIGTERM (``kill``, ``timeout``),
+  SIGHUP (a closed terminal or SSH session; a SIGHUP the caller ignores, as under ``nohup``,
+  stays ignored) and SIGQUIT. Their handlers are installed for the duration of the deploy only
+  (main thread) and the caller's are restored afterwards; a further signal during the shutdown
+  is recorded (``signals_during_shutdown``), not obeyed. The reason goes into the log's last
+  row, the summary (``status: "aborted"``, ``reason``, ``signal``, ``fail_safe``) and the
+  return value. A completed run vents and turns the outputs off too;
+- the fail-safe reads back what it did (:meth:`Rig.fail_safe`): the 0 V settings
+  (``APP:VOLT?``) and the outputs off (``OUTP?``, then ``MEAS:VOLT:ALL?`` at most
+  :data:`softcrawl.hardware.supply.OFF_TOL_V` per channel). When that cannot be read back,
+  ``fail_safe_confirmed`` is false in the summary and the result, and the log's last row says
+  so: the supply may still be on;
+- ``log.csv`` gets its header at once and every row is flushed as it is written, so a kill that
+  no handler can catch (SIGKILL, a power cut) loses at most the row being written; a log or
+  summary that cannot be written is reported (``log_error``, ``write_errors``), the rig is
+  vented all the same.
 """
 
 from __future__ import annotations
