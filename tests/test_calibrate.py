@@ -199,11 +199,8 @@ def test_bends_csv_refuses_implausible_pressures_with_file_and_line(tmp_path):
 
 
 def test_load_calibration_refuses_devices_and_deep_nesting(tmp_path):
-    link = tmp_path / "cal.json"
-    link.symlink_to("/dev/zero")
-    with pytest.raises(ValueError, match="not a regular file"):
-        load_calibration(link)
-    deep = tmp_path / "deep.json"
-    deep.write_text('{"format": "softcrawl-calibration", "x": ' + "[" * 5000 + "]" * 5000 + "}")
-    with pytest.raises(ValueError, match="nested"):
-        load_calibration(deep)
+    (tmp_path / "zero.json").symlink_to("/dev/zero")
+    (tmp_path / "deep.json").write_text('{"format": "softcrawl-calibration", "x": ' + "[" * 5000 + "]" * 5000 + "}")
+    for name, match in (("zero.json", "zero.json: not a regular file"), ("deep.json", "deep.json: nested")):
+        with pytest.raises(ValueError, match=match):
+            load_calibration(tmp_path / name)
