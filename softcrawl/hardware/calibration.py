@@ -51,8 +51,8 @@ REFERENCE = (4.0785, -20.36)
 #: (physics.md, 10..100 kPa), 10 kPa above the regulators' 90 kPa command range.
 MAX_REAL_KPA = 100.0
 #: Plausible slopes ``a`` of the warp, sim kPa per real kPa: within a factor of about 20 of the
-#: reference 4.08. A pressure logged in psi instead of kPa gives 6.9x the slope (28), one
-#: in bar 0.01x; a slope outside this range means mismatched units, bends or model.
+#: reference 4.08. Pressures logged in psi instead of kPa give 6.9x the slope (28), in bar
+#: 100x (408); a slope outside this range means mismatched units, bends or model.
 A_RANGE = (0.2, 20.0)
 
 
