@@ -204,3 +204,14 @@ def test_load_calibration_refuses_devices_and_deep_nesting(tmp_path):
     for name, match in (("zero.json", "zero.json: not a regular file"), ("deep.json", "deep.json: nested")):
         with pytest.raises(ValueError, match=match):
             load_calibration(tmp_path / name)
+
+
+def test_cli_calibrate_refuses_implausible_bends_before_creating_out(tmp_path, capsys):
+    from softcrawl.cli import main
+
+    bends = tmp_path / "bends.csv"
+    bends.write_text("real_kpa,tip_angle_deg\n10,30\n20,12\n30,40\n")  # not increasing with pressure
+    assert main(["calibrate", str(bends), "--out", str(tmp_path / "cal"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bends must increase with pressure: 30 at 10 kPa but 12 at 20 kPa" in err
+    assert not (tmp_path / "cal").exists()
