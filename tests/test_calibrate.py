@@ -134,3 +134,84 @@ def test_cli_calibrate(tmp_path, cache, capsys):
     bends.write_text("real_kpa,angle\n")
     assert main(["calibrate", str(bends), "--out", str(tmp_path / "c2")]) == 2
     assert "header" in capsys.readouterr().err
+
+
+def test_unreachable_bend_raises_value_error():
+    """A model that does not settle at the pressures a bend needs (the FEM at hundreds of kPa):
+    ValueError as documented, not the solver's RuntimeError."""
+    def stiff(p):
+        if p > 100:
+            raise RuntimeError(f"clamped PneuNet at {p:g} kPa did not settle in 60 s")
+        return _analytic(p)
+
+    curve = BendCurve(BendModel(mesh_size=99.0), evaluate=stiff, cache=False)
+    with pytest.raises(ValueError, match="cannot be reached by the model: clamped PneuNet at 150 kPa did not settle"):
+        curve.find_pressure(150.0)
+    with pytest.raises(ValueError, match="cannot be reached"):
+        calibrate([10.0, 90.0], [5.0, 150.0], curve=curve)
+
+
+@pytest.mark.parametrize("real, bend, match", [
+    ([10.0, 20.0, 30.0], [5.0, 3.0, 8.0], "bends must increase with pressure: 5 at 10 kPa but 3 at 20 kPa"),
+    ([10.0, 20.0], [5.0, 5.0], "bends must increase with pressure"),
+    ([10.0, 5000.0], [5.0, 8.0], r"measurement 2: real pressure 5000 kPa must be in \(0, 100\]"),
+    ([10.0, 1e308], [5.0, 8.0], "real pressure 1e\\+308 kPa"),
+    ([0.0, 20.0], [1.0, 8.0], "measurement 1: real pressure 0 kPa"),
+    ([20.0, 20.0], [5.0, 6.0], "need at least 2 pressures"),
+    ([10.0, 20.0], [5.0, np.inf], "bend inf must be finite"),
+])
+def test_implausible_measurements_are_refused_before_any_simulation(real, bend, match):
+    calls = []
+    curve = BendCurve(BendModel(mesh_size=99.0), evaluate=lambda p: calls.append(p) or _analytic(p), cache=False)
+    with pytest.raises(ValueError, match=match):
+        calibrate(real, bend, curve=curve)
+    assert calls == []
+
+
+def test_fitted_slope_outside_the_physical_range_is_refused(tmp_path):
+    """Bends that the model reaches at a hundredth of the real pressure (pressures logged in the
+    wrong unit) give a = 0.01: refused, and so is a calibration file with such a slope."""
+    curve = BendCurve(BendModel(mesh_size=99.0), evaluate=_analytic, cache=False)
+    real = [20.0, 60.0]
+    with pytest.raises(ValueError, match=r"slope a = 0\.01\d* sim kPa per real kPa is outside the plausible \[0\.2,"):
+        calibrate(real, [_analytic(0.01 * r)[0] for r in real], curve=curve)
+    for a in (9.3e-19, 25.0):
+        p = tmp_path / f"cal{a}.json"
+        p.write_text(json.dumps({"format": "softcrawl-calibration", "version": 1, "a": a, "b": 0.0}))
+        with pytest.raises(ValueError, match=f"{p.name}: slope a = .* outside the plausible"):
+            load_calibration(p)
+
+
+def test_bends_csv_refuses_implausible_pressures_with_file_and_line(tmp_path):
+    p = tmp_path / "b.csv"
+    for text, match in (("real_kpa,tip_angle_deg\n10,5\n5000,9\n", "b.csv, line 3: real pressure 5000 kPa"),
+                        ("real_kpa,tip_angle_deg\n0,1\n20,3\n", "b.csv, line 2: real pressure 0 kPa"),
+                        ("real_kpa,tip_angle_deg\n10,1\n99999999999999999999,3\n", "line 3: real pressure 1e\\+20")):
+        p.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            read_bends_csv(p)
+    p.write_bytes(b"\xef\xbb\xbfreal_kpa,tip_angle_deg\n10,5\n20,9\n")  # spreadsheet export with a BOM
+    assert read_bends_csv(p)[0].tolist() == [10, 20]
+    link = tmp_path / "z.csv"
+    link.symlink_to("/dev/zero")
+    with pytest.raises(ValueError, match="not a regular file"):
+        read_bends_csv(link)
+
+
+def test_load_calibration_refuses_devices_and_deep_nesting(tmp_path):
+    (tmp_path / "zero.json").symlink_to("/dev/zero")
+    (tmp_path / "deep.json").write_text('{"format": "softcrawl-calibration", "x": ' + "[" * 5000 + "]" * 5000 + "}")
+    for name, match in (("zero.json", "zero.json: not a regular file"), ("deep.json", "deep.json: nested")):
+        with pytest.raises(ValueError, match=match):
+            load_calibration(tmp_path / name)
+
+
+def test_cli_calibrate_refuses_implausible_bends_before_creating_out(tmp_path, capsys):
+    from softcrawl.cli import main
+
+    bends = tmp_path / "bends.csv"
+    bends.write_text("real_kpa,tip_angle_deg\n10,30\n20,12\n30,40\n")  # not increasing with pressure
+    assert main(["calibrate", str(bends), "--out", str(tmp_path / "cal"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bends must increase with pressure: 30 at 10 kPa but 12 at 20 kPa" in err
+    assert not (tmp_path / "cal").exists()

@@ -104,3 +104,57 @@ def test_compare_recorded_auro_logs_cli(tmp_path, capsys):
     assert len(res["logs"]) == len(logs)
     assert main(["compare", str(sim), str(DATA / "README.md"), "--out", str(tmp_path / "c2")]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def _deploy_folder(tmp_path: Path) -> Path:
+    out = tmp_path / "real"
+    deploy(SimRig().rig, paper_best_gait(n_actions=2).actions, out, progress=False)
+    return out
+
+
+@pytest.mark.parametrize("edit, match", [
+    ({"control_period_s": "1.0"}, "field 'control_period_s' must be a positive number, got str"),
+    ({"sim_hold_s": [0.25]}, "field 'sim_hold_s' must be a positive number, got list"),
+    ({"status": {"a": 1}}, "field 'status' must be str, got dict"),
+    ({"samples": True}, "field 'samples' must be int, got bool"),
+    ({"control_period_s": 1e999}, "field 'control_period_s' must be a positive number"),
+])
+def test_deploy_summary_with_a_wrong_type_is_a_clear_error(tmp_path, edit, match):
+    sim = _fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
+    out = _deploy_folder(tmp_path)
+    s = json.loads((out / "summary.json").read_text())
+    s.update(edit)
+    (out / "summary.json").write_text(json.dumps(s).replace("Infinity", "1e999"))
+    with pytest.raises(ValueError, match=match):
+        compare(sim, [out], tmp_path / "cmp")
+    (out / "summary.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match="must be a JSON object, got list"):
+        read_real(out)
+
+
+def test_log_values_that_do_not_fit_and_device_links_are_refused(tmp_path, capsys):
+    """A 401-digit number in log.csv (inf), a recorded log with a 401-digit integer reading
+    (OverflowError), log.csv -> /dev/zero: one-line errors naming the file, never a traceback or
+    an endless read."""
+    from softcrawl.cli import main
+
+    sim = _fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
+    out = _deploy_folder(tmp_path)
+    rows = (out / "log.csv").read_text().splitlines()
+    cells = rows[3].split(",")
+    cells[11] = "1" * 401
+    (out / "log.csv").write_text("\n".join(rows[:3] + [",".join(cells)] + rows[4:]) + "\n")
+    with pytest.raises(ValueError, match=r"log.csv, line 4: .*infinite"):
+        read_real(out)
+    ok = "{'regulator': [1, 2, 3], 'honeywell': [4, 5, 6]}"
+    rec = tmp_path / "logs-x.csv"
+    rec.write_text("\n".join([",".join(str(1000 * i) for i in range(20)), *[",".join(["10"] * 20)] * 3,
+                              ",".join(f'"{ok}"' for _ in range(19)) + f',"{ok.replace("4,", "1" * 401 + ",")}"'])
+                   + "\n")
+    assert main(["compare", str(sim), str(rec), "--out", str(tmp_path / "c1")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "logs-x.csv, line 5: reading 19" in err
+    (out / "log.csv").unlink()
+    (out / "log.csv").symlink_to("/dev/zero")
+    assert main(["compare", str(sim), str(out), "--out", str(tmp_path / "c2")]) == 2
+    assert "not a regular file" in capsys.readouterr().err

@@ -21,6 +21,9 @@ from softcrawl.hardware.supply import BK9129B
 from softcrawl.robot.actuation import PressureRangeError
 
 GAIT = np.array([[0, 90, 0], [90, 0, 0], [0, 0, 0]] * 2, dtype=float)  # paper-best cycle, 6 s
+#: What a confirmed fail-safe reports (the fake supply measures exactly 0 V with its outputs off).
+FAIL_SAFE_OK = ["vented to 0 kPa (set 0.000,0.000,0.000 V read back)",
+                "outputs off (read back off; measured 0.000,0.000,0.000 V)", "front panel local"]
 
 
 # -- supply driver: the exact SCPI exchange ---------------------------------------------------------
@@ -31,11 +34,12 @@ def test_bk9129b_exact_exchange():
     rig.start()
     rig.source.set_kpa([90.0, 45.0, 0.0])
     v = rig.source.measure_volts()
-    rig.fail_safe()
+    fs = rig.fail_safe()
     assert sim.supply.sent() == [
-        "*IDN?", "SYST:REM", "APP:VOLT 0.000,0.000,0.000", "APP:VOLT?", "OUTP 1",
+        "*IDN?", "SYST:REM", "APP:VOLT 0.000,0.000,0.000", "APP:VOLT?", "OUTP 1", "OUTP?",
         "APP:VOLT 4.500,2.250,0.000", "APP:VOLT?", "MEAS:VOLT:ALL?",
-        "APP:VOLT 0.000,0.000,0.000", "APP:VOLT?", "OUTP 0", "SYST:LOC"]
+        "APP:VOLT 0.000,0.000,0.000", "APP:VOLT?", "OUTP 0", "OUTP?", "MEAS:VOLT:ALL?", "SYST:LOC"]
+    assert fs.confirmed and fs.steps == FAIL_SAFE_OK
     assert sim.supply.transcript[1] == ("<", IDN)
     assert np.allclose(v, [4.5, 2.25, 0.0], atol=0.003)
     assert not sim.supply.on and not sim.supply.remote
@@ -174,6 +178,16 @@ def test_example_rig_config_loads():
     (("mux_address = 0x70", "# no mux"), "mux_address"),
     (("[rig]", "[rigg]"), "unknown table"),
     (("[rig]", "[rig"), "not a readable TOML"),
+    (('name = "PneuNet crawler rig"', 'name = "rig\\n\\u001b[2Jcleared"'), "printable"),
+    (('name = "PneuNet crawler rig"', 'name = ""'), "printable"),
+    (('address = "ASRL/dev/ttyUSB0::INSTR"', 'address = "ASRL\\u001b[31m::INSTR"'), "printable"),
+    (("volts_per_kpa = 0.05", "volts_per_kpa = 1e-300"), "volts_per_kpa must be finite and >= 0.001"),
+    (("bus = 1 ", "bus = -1 "), r"sensors.bus must be in \[0, 255\]"),
+    (("bus = 1 ", "bus = 100000000000000000 "), r"sensors.bus must be in \[0, 255\]"),
+    (("mux_address = 0x70", "mux_address = -5"), "mux_address -5 is not a 7-bit"),
+    (("mux_address = 0x70", "mux_address = 0x78"), "mux_address 120 is not a 7-bit"),
+    (("address = 0x28", "address = 0x7f"), "sensors.address 127 is not a 7-bit"),
+    (("[rig]", "x = " + "[" * 5000 + "]" * 5000 + "\n[rig]"), "nested"),
 ])
 def test_bad_rig_configs_are_refused(tmp_path, edit, match):
     text = example_rig_path().read_text()
@@ -190,6 +204,31 @@ def test_missing_rig_config(tmp_path):
         load_rig_config(tmp_path / "nope.toml")
 
 
+def test_rig_config_device_or_folder_is_refused(tmp_path):
+    link = tmp_path / "rig.toml"
+    link.symlink_to("/dev/zero")
+    for p in (link, tmp_path):
+        with pytest.raises(RigConfigError, match="not a regular file"):
+            load_rig_config(p)
+
+
+def test_cli_rig_check_and_deploy_refuse_deep_nesting_in_one_line(tmp_path, capsys):
+    """5,000 nested arrays in rig.toml (rig check, deploy --sim-config) or calibration.json
+    (deploy --calibration): one line, exit 2, no RecursionError traceback."""
+    from softcrawl.cli import main
+
+    deep = tmp_path / "deep.toml"
+    deep.write_text(example_rig_path().read_text().replace("[rig]", "x = " + "[" * 5000 + "]" * 5000 + "\n[rig]"))
+    cal = tmp_path / "calibration.json"
+    cal.write_text("[" * 5000 + "]" * 5000)
+    for argv in (["rig", "check", str(deep), "--sim"],
+                 ["deploy", "--rig", "sim", "--sim-config", str(deep), "--out", str(tmp_path / "a")],
+                 ["deploy", "--rig", "sim", "--calibration", str(cal), "--out", str(tmp_path / "b")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "nested" in err and "Traceback" not in err
+
+
 # -- deploy: normal run ----------------------------------------------------------------------------
 
 def _rows(out):
@@ -199,7 +238,7 @@ def _rows(out):
 
 def _assert_failsafe(sim, res, out, reason):
     assert res.status == "aborted" and reason in res.reason
-    assert res.fail_safe == ["vented to 0 kPa", "outputs off"]
+    assert res.fail_safe == FAIL_SAFE_OK and res.fail_safe_confirmed
     sent = sim.supply.sent()
     sets = [c for c in sent if c.startswith("APP:VOLT ")]
     assert sets[-1] == "APP:VOLT 0.000,0.000,0.000" and "OUTP 0" in sent[sent.index(sets[-1]):]
@@ -207,9 +246,9 @@ def _assert_failsafe(sim, res, out, reason):
     sim.clock.sleep(5.0)  # the lines empty once vented
     assert np.all(sim.plant.p < 1.0)
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["status"] == "aborted" and reason in summary["reason"]
+    assert summary["status"] == "aborted" and reason in summary["reason"] and summary["fail_safe_confirmed"]
     last = _rows(out)[-1]["event"]
-    assert last.startswith("fail-safe: ") and reason in last and "vented to 0 kPa; outputs off" in last
+    assert last.startswith("fail-safe: ") and reason in last and last.endswith("; ".join(FAIL_SAFE_OK))
 
 
 def test_deploy_sim_completes_and_logs(tmp_path):
@@ -227,7 +266,8 @@ def test_deploy_sim_completes_and_logs(tmp_path):
     end0 = log.sensed_kpa[(log.step == 0)][-1]
     assert 75 < end0[1] < 95 and abs(end0[0]) < 3 and abs(end0[2]) < 3
     assert np.allclose(log.set_v[log.step == 0][0], [0, 4.5, 0])
-    assert _rows(tmp_path / "d")[-1]["event"] == "completed; vented to 0 kPa; outputs off"
+    assert _rows(tmp_path / "d")[-1]["event"] == "completed; " + "; ".join(FAIL_SAFE_OK)
+    assert res.fail_safe_confirmed and s["fail_safe_confirmed"] and s["log_error"] is None
     assert not sim.supply.on
 
 
@@ -283,8 +323,9 @@ def test_failsafe_dead_connection_still_logs(tmp_path):
     res = deploy(sim.rig, GAIT, tmp_path / "d", progress=False)
     assert res.status == "aborted" and "lost connection" in res.reason
     assert all(s.startswith("FAILED") for s in res.fail_safe)  # said, not hidden
+    assert not res.fail_safe_confirmed and not res.summary["fail_safe_confirmed"]
     last = _rows(tmp_path / "d")[-1]["event"]
-    assert "lost connection" in last and "FAILED" in last
+    assert "lost connection" in last and "FAILED" in last and "NOT CONFIRMED" in last
 
 
 def test_failsafe_sensor_lost(tmp_path):
@@ -360,7 +401,8 @@ def test_second_ctrl_c_does_not_stop_the_shutdown():
 
     sim.clock.on_advance(interrupt_once)
     done = sim.rig.fail_safe()
-    assert done == ["FAILED (vented): interrupted", "outputs off"] and not sim.supply.on
+    assert done.steps[0] == "FAILED (vent): interrupted" and done.steps[1:] == FAIL_SAFE_OK[1:]
+    assert not done.confirmed and not sim.supply.on
 
 
 def test_failsafe_hung_call_real_clock_watchdog_thread(tmp_path):
@@ -425,6 +467,16 @@ def test_cli_deploy_sim_and_bad_input(tmp_path, capsys):
     assert capsys.readouterr().err.count("\n") == 1
 
 
+def test_cli_deploy_accepts_an_action_csv_with_a_bom(tmp_path):
+    """A spreadsheet export starts with a UTF-8 byte-order mark: the header is still recognised."""
+    from softcrawl.cli import main
+
+    gait = tmp_path / "gait.csv"
+    gait.write_bytes(b"\xef\xbb\xbfp1,p2,p3\r\n0,90,0\r\n90,0,0\r\n")
+    assert main(["deploy", "--rig", "sim", "--actions", str(gait), "--out", str(tmp_path / "d"), "--no-progress"]) == 0
+    assert json.loads((tmp_path / "d" / "summary.json").read_text())["actions_kpa"] == [[0, 90, 0], [90, 0, 0]]
+
+
 def test_replay_sensor_follows_the_clock():
     from softcrawl.hardware.clock import SimClock
     from softcrawl.hardware.sensors import ReplaySensor
@@ -464,5 +516,76 @@ def test_failsafe_lines_not_vented_at_start(tmp_path):
     sim.plant.params = tuple(type(p)(p.gain, p.offset, p.tau_inflate, 1e6) for p in sim.plant.params)  # no vent
     res = deploy(sim.rig, GAIT, tmp_path / "d", progress=False)
     assert res.status == "aborted" and "atmospheric zero" in res.reason
-    assert not sim.supply.on and sim.supply.sent()[-2:] == ["OUTP 0", "SYST:LOC"]
+    assert not sim.supply.on and sim.supply.sent()[-4:] == ["OUTP 0", "OUTP?", "MEAS:VOLT:ALL?", "SYST:LOC"]
     assert "APP:VOLT 0.000,4.500,0.000" not in sim.supply.sent()  # no action was sent
+
+
+def test_smbus_device_on_a_missing_bus_is_a_sensor_error():
+    """The real I2C path through smbus2 (in the test extra): a bus that does not exist is a
+    SensorError naming it, not an OSError traceback."""
+    pytest.importorskip("smbus2")
+    from softcrawl.hardware.sensors import SMBusDevice
+
+    with pytest.raises(SensorError, match="cannot open I2C bus 250"):
+        SMBusDevice(250, mux_address=0x70, mux_channel=0)
+
+
+def test_cli_rig_check_reports_a_supply_it_cannot_confirm_off(tmp_path, capsys, monkeypatch):
+    """A supply that stops answering during `rig check`: exit 3 and a warning, not "outputs off"."""
+    import softcrawl.hardware.simrig as simrig
+    from softcrawl.cli import main
+
+    orig = simrig.SimRig.__init__
+
+    def dying(self, *a, **k):
+        orig(self, *a, **k)
+        self.supply.fail_from = 2  # *IDN? and SYST:REM answer, nothing after
+
+    monkeypatch.setattr(simrig.SimRig, "__init__", dying)
+    assert main(["rig", "check", str(example_rig_path()), "--sim"]) == 3
+    err = capsys.readouterr().err
+    assert "lost connection" in err and "DANGER" in err
+
+
+class _LateAnswers:
+    """A resource whose answers queue up on the line, as on a serial port: a query cut short by a
+    signal leaves its answer behind, to be read by the next query unless the buffer is discarded."""
+
+    def __init__(self, fake):
+        self.fake, self.line, self.cut, self.flushes = fake, [], False, 0
+
+    def write(self, cmd):
+        self.fake.write(cmd)
+
+    def query(self, cmd):
+        self.line.append(self.fake.query(cmd))
+        if self.cut:
+            self.cut = False
+            raise KeyboardInterrupt  # the signal lands while the answer is in transit
+        return self.line.pop(0)
+
+    def flush(self, mask):
+        self.flushes += 1
+        self.line.clear()
+
+    def close(self):
+        pass
+
+
+def test_answer_of_a_query_cut_short_is_not_read_as_the_next_answer(monkeypatch):
+    import softcrawl.hardware.supply as supply
+
+    monkeypatch.setattr(supply, "LATE_ANSWER_S", 0.0)
+    sim = SimRig()
+    res = _LateAnswers(sim.supply)
+    drv = BK9129B(res, max_v=(5.0, 5.0, 5.0))
+    drv.remote()
+    drv.set_volts([1.0, 2.0, 3.0])
+    drv.output(True)
+    res.cut = True
+    with pytest.raises(KeyboardInterrupt):
+        drv.measure_volts()
+    assert np.allclose(drv.set_volts([0.0, 0.0, 0.0]), 0.0)  # read back its own answer, not the stale one
+    drv.output(False)
+    assert np.allclose(drv.confirm_zero(), 0.0) and res.flushes == 1
+    assert sim.supply.sent().count("APP:VOLT 0.000,0.000,0.000") == 1  # no retry needed

@@ -66,3 +66,22 @@ def test_cli_calibrate_photo_folder_without_photos(tmp_path, capsys):
     (tmp_path / "photos").mkdir()
     assert main(["calibrate", str(tmp_path / "photos"), "--out", str(tmp_path / "cal")]) == 2
     assert "no photos named" in capsys.readouterr().err
+
+
+def test_photo_names_with_implausible_pressures_are_refused(tmp_path):
+    """``99999999999999999999kpa.png`` (1e20 kPa) and ``0kpa.png`` are refused, as in the CSV path,
+    naming the photo; nothing is fitted."""
+    img = _paste(_paste(np.full((480, 640), 255, np.uint8), 0, 80, (160, 240), 0.0), 1, 80, (480, 240), 20.0)
+    for name in ("99999999999999999999kpa.png", "0kpa.png"):
+        folder = tmp_path / name.split(".")[0]
+        folder.mkdir()
+        cv2.imwrite(str(folder / "20kpa.png"), img)
+        cv2.imwrite(str(folder / name), img)
+        with pytest.raises(ValueError, match=rf"{name}: real pressure .* kPa must be in \(0, 100\]"):
+            bends_from_photos(folder)
+
+
+def test_photo_that_is_a_device_link_is_refused(tmp_path):
+    (tmp_path / "40kpa.png").symlink_to("/dev/zero")
+    with pytest.raises(ValueError, match="not a regular file"):
+        bends_from_photos(tmp_path)

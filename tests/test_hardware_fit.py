@@ -125,3 +125,53 @@ def test_cli_rig_fit(tmp_path, capsys):
     d = json.loads((tmp_path / "fit.json").read_text())
     assert d["held_out"]["rmse"] < 13.0 and len(d["regulators"]) == 3
     assert main(["rig", "fit", str(tmp_path)]) == 2  # no logs there
+
+
+def _synthetic_log(path, rng):
+    """A recorded-format log (20 one-second holds) whose readings follow the fitted regulator model."""
+    cmd = rng.choice([0.0, 45.0, 90.0], size=(20, 3))
+    p, cells = np.zeros(3), []
+    for k in range(20):
+        r = [round(float(x), 3) for x in p]
+        cells.append('"' + str({"regulator": r[::-1], "honeywell": r, "commanded": cmd[k].tolist()}) + '"')
+        p = np.array([prm.advance(x, c, 1.0) for prm, x, c in zip(rm.FITTED, p, cmd[k])])
+    lines = [",".join(str(1000 * k) for k in range(20)), *(",".join(f"{x:g}" for x in cmd[:, j]) for j in range(3)),
+             ",".join(cells)]
+    path.write_text("\n".join(lines) + "\n")
+    return lines
+
+
+def test_value_that_does_not_fit_refuses_one_file_with_its_line(tmp_path):
+    """A 401-digit integer in a reading (OverflowError in float()) or in a time stamp (inf) refuses
+    that file, naming it and the line."""
+    lines = _synthetic_log(tmp_path / "logs-good.csv", np.random.default_rng(0))
+    huge = "1" * 401
+    cases = {"reading": (4, lines[4].replace("'honeywell': [", f"'honeywell': [{huge}, ", 1)),
+             "time": (0, lines[0].replace("1000", huge, 1))}
+    for name, (i, text) in cases.items():
+        p = tmp_path / f"logs-{name}.csv"
+        p.write_text("\n".join(lines[:i] + [text] + lines[i + 1:]) + "\n")
+        with pytest.raises(ValueError, match=rf"logs-{name}.csv, line {i + 1}: .*(finite|number)"):
+            read_auro_log(p)
+
+
+def test_cli_rig_fit_skips_and_reports_bad_files(tmp_path, capsys):
+    """`rig fit` refuses a file with a value that does not fit, a link to a device and a dangling
+    link, reports each with its name, and fits the others."""
+    from softcrawl.cli import main
+
+    rng = np.random.default_rng(1)
+    for i in range(5):
+        lines = _synthetic_log(tmp_path / f"logs-{i}.csv", rng)
+    (tmp_path / "logs-huge.csv").write_text("\n".join(lines[:4] + [lines[4].replace("[", "[" + "9" * 401 + ", ", 1)]))
+    (tmp_path / "logs-z.csv").symlink_to("/dev/zero")
+    (tmp_path / "logs-gone.csv").symlink_to(tmp_path / "nowhere.csv")
+    assert main(["rig", "fit", str(tmp_path), "--out", str(tmp_path / "fit.json")]) == 0
+    out = capsys.readouterr().out
+    assert "5 logs (3 refused" in out
+    for name, why in (("logs-huge.csv", "line 5"), ("logs-z.csv", "not a regular file"),
+                      ("logs-gone.csv", "No such file")):
+        assert any(name in line and why in line for line in out.splitlines() if "refused:" in line), name
+    import json
+
+    assert len(json.loads((tmp_path / "fit.json").read_text())["refused"]) == 3

@@ -1,6 +1,5 @@
-"""The BK 9129B driver through real pyvisa against a pyvisa-sim instrument (skipped without
-pyvisa / pyvisa-sim, which are not in the test extra: the fake resource of
-softcrawl.hardware.simrig covers the exchange in CI)."""
+"""The BK 9129B driver through real pyvisa against a pyvisa-sim instrument (pyvisa and
+pyvisa-sim are in the test extra; skipped only where they are not installed)."""
 
 import numpy as np
 import pytest
@@ -59,10 +58,11 @@ def test_driver_over_pyvisa_sim(tmp_path):
     drv.remote()
     assert np.allclose(drv.set_volts([1.0, 2.25, 4.5]), [1.0, 2.25, 4.5])
     assert drv.resource.query("APP:VOLT?") == "1.000,2.250,4.500"
-    drv.output(True)
-    assert drv.resource.query("OUTP?") == "1"
+    drv.output(True)  # verified with OUTP?
+    assert drv.output_on() and drv.resource.query("OUTP?") == "1"
     drv.output(False)
-    assert np.allclose(drv.measure_volts(), 0.0)
+    assert not drv.output_on()
+    assert np.allclose(drv.confirm_zero(), 0.0)
     drv.close()
 
 

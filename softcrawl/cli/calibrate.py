@@ -17,8 +17,8 @@ from pathlib import Path
 
 
 def _run(args: argparse.Namespace) -> int:
-    from softcrawl.hardware.calibration import (BendCurve, BendModel, calibrate, plot_calibration, read_bends_csv,
-                                                write_calibration)
+    from softcrawl.hardware.calibration import (BendCurve, BendModel, calibrate, check_measurements, plot_calibration,
+                                                read_bends_csv, write_calibration)
 
     if not (math.isfinite(args.mesh_size) and 3.0 <= args.mesh_size <= 20.0):
         raise ValueError(f"--mesh-size must be in [3, 20] mm, got {args.mesh_size}")
@@ -29,6 +29,7 @@ def _run(args: argparse.Namespace) -> int:
         measure = "tip_angle_deg"
     else:
         real, bend, measure = read_bends_csv(args.bends)
+    check_measurements(real, bend)  # implausible input is refused before --out is created
     out = Path(args.out)
     if out.exists() and (out / "calibration.json").exists() and not args.overwrite:
         raise ValueError(f"{out}/calibration.json exists (use --overwrite)")

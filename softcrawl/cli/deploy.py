@@ -8,8 +8,14 @@ Examples::
 
 Writes ``log.csv`` (>= 10 Hz samples: commanded kPa, set V, measured V, sensed kPa, overrun
 flags, events) and ``summary.json`` into ``--out``. The gait is range-checked (0-90 kPa and
-the rig's limit) before the rig is touched. Exit codes: 0 completed, 1 the fail-safe stopped
-the run (reason printed and logged), 2 bad input.
+the rig's limit) before the rig is touched. SIGINT, SIGTERM, SIGHUP and SIGQUIT stop the run
+through the fail-safe (:mod:`softcrawl.hardware.deploy`).
+
+Exit codes: 0 completed (vented, outputs confirmed off); 1 the run stopped early or its log or
+summary could not be written, and the rig is safe: the fail-safe vented it and read the outputs
+back off (reason printed and logged), or the instruments could not be opened (nothing sent);
+2 bad input (nothing sent); 3 the fail-safe could not confirm that the supply is off (it may
+still be pressurising the lines: switch it off by hand).
 """
 
 from __future__ import annotations
@@ -21,6 +27,24 @@ import sys
 import numpy as np
 
 GAITS = ("sine", "paper-best")
+EXIT_COMPLETED, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_UNCONFIRMED = 0, 1, 2, 3
+
+
+def exit_code(res) -> int:
+    """The exit code of a :class:`softcrawl.hardware.deploy.DeployResult` (module docstring)."""
+    if not res.fail_safe_confirmed:
+        return EXIT_UNCONFIRMED
+    if res.status != "completed" or res.write_errors:
+        return EXIT_STOPPED
+    return EXIT_COMPLETED
+
+
+def _say(text: str, err: bool = False) -> None:
+    """Print one line; a terminal that is gone (SIGHUP, a closed pipe) is not an error here."""
+    try:
+        print(text, file=sys.stderr if err else sys.stdout, flush=True)
+    except OSError:
+        pass
 
 
 def policy_actions(run: str, design: str, checkpoint: str | None = None):
@@ -88,7 +112,7 @@ def _run(args: argparse.Namespace) -> int:
             rig = open_rig(cfg)
         except RigError as exc:
             print(f"softcrawl deploy: error: {exc}", file=sys.stderr)
-            return 1
+            return EXIT_STOPPED
     meta["rig_config"] = cfg.path
     hold = meta.get("sim_hold_s")
     if hold is not None and abs(hold - cfg.rig.control_period_s) > 1e-9:
@@ -96,13 +120,17 @@ def _run(args: argparse.Namespace) -> int:
               f"{cfg.rig.control_period_s:g} s", file=sys.stderr)
     res = deploy(rig, actions, args.out, meta=meta, progress=not args.no_progress)
     sm = res.summary
-    print(f"{res.status}: {sm['n_actions']} actions on {rig.name}, {sm['samples']} samples "
-          f"({sm['sample_hz_achieved'] or 0:.1f} Hz), {sm['overruns']} overruns; wrote {res.out}")
+    _say(f"{res.status}: {sm['n_actions']} actions on {rig.name}, {sm['samples']} samples "
+         f"({sm['sample_hz_achieved'] or 0:.1f} Hz), {sm['overruns']} overruns; wrote {res.out}")
     if res.status != "completed":
-        print(f"softcrawl deploy: stopped by the fail-safe: {res.reason} ({'; '.join(res.fail_safe)})",
-              file=sys.stderr)
-        return 1
-    return 0
+        _say(f"softcrawl deploy: stopped by the fail-safe: {res.reason} ({'; '.join(res.fail_safe)})", err=True)
+    for e in res.write_errors:
+        _say(f"softcrawl deploy: error: {e}", err=True)
+    code = exit_code(res)
+    if code == EXIT_UNCONFIRMED:
+        _say("softcrawl deploy: DANGER: the fail-safe could not confirm that the supply is off and at 0 V; it may "
+             "still pressurise the lines: switch the supply off by hand", err=True)
+    return code
 
 
 def register(subparsers) -> None:

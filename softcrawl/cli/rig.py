@@ -5,10 +5,12 @@
   zero), and print what it sees. Nothing moves: the supply is set to 0 V with its outputs off.
   ``--sim`` runs the same check on the simulated rig (no hardware).
 - ``softcrawl rig fit LOG_DIR``: fit the regulator model (:mod:`softcrawl.hardware.regulator_model`)
-  to recorded logs and print its error on held-out logs.
+  to recorded logs and print its error on held-out logs; a file that cannot be read (malformed,
+  a value that does not fit, not a regular file) is refused and listed, the others are fitted.
 - ``softcrawl rig example``: print the example ``rig.toml`` shipped with softcrawl.
 
-Exit codes: 0 all good, 1 an instrument did not answer, 2 a bad rig file.
+Exit codes: 0 all good, 1 an instrument did not answer (the supply was then read back off at
+0 V, or never opened), 2 a bad rig file, 3 the supply could not be confirmed off.
 """
 
 from __future__ import annotations
@@ -60,7 +62,10 @@ def _check(args: argparse.Namespace) -> int:
         src.supply.local()
     except RigError as exc:
         print(f"softcrawl rig check: error: {exc}", file=sys.stderr)
-        rig.fail_safe()
+        if not rig.fail_safe().confirmed:
+            print("softcrawl rig check: DANGER: could not confirm that the supply is off and at 0 V: switch it off "
+                  "by hand", file=sys.stderr)
+            return 3
         return 1
     finally:
         rig.close()
@@ -73,6 +78,7 @@ def _fit(args: argparse.Namespace) -> int:
 
     from softcrawl.hardware import regulator_model as rm
     from softcrawl.hardware.logs import read_auro_logs
+    from softcrawl.safeio import atomic_write_text
 
     good, bad = read_auro_logs(args.logs)
     if len(good) < 4:
@@ -90,10 +96,12 @@ def _fit(args: argparse.Namespace) -> int:
     print(f"held-out one-step error over {err['n_holds']} holds: RMSE {err['rmse']:.2f} kPa, MAE {err['mae']:.2f}, "
           f"median {err['median_abs']:.2f}, 90th percentile {err['p90_abs']:.2f} (sensor = command: RMSE "
           f"{naive['rmse']:.2f}, median {naive['median_abs']:.2f})")
+    for _, why in bad:  # each reason names its file
+        print(f"  refused: {why}")
     if args.out:
-        with open(args.out, "w", encoding="utf-8") as f:
-            json.dump({"regulators": rm.params_to_dict(params), "held_out": err, "naive_held_out": naive,
-                       "n_fit": len(fit), "n_held_out": len(held), "refused": bad}, f, indent=2)
+        atomic_write_text(args.out, json.dumps({"regulators": rm.params_to_dict(params), "held_out": err,
+                                                "naive_held_out": naive, "n_fit": len(fit), "n_held_out": len(held),
+                                                "refused": bad}, indent=2))
         print(f"wrote {args.out}")
     return 0
 

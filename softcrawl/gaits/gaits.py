@@ -17,6 +17,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from softcrawl.gaits.pressure import P_MAX_KPA, P_MIN_KPA, PressureRangeError, check_pressures, pressure_problem
+from softcrawl.safeio import UnsafeFileError, read_text
 
 N_REGULATORS = 3
 CSV_HEADER = ("p1", "p2", "p3")
@@ -74,7 +75,8 @@ class ActionSequence:
 
 def read_actions_csv(path: str | Path, hold: float = 1.0) -> ActionSequence:
     """Read an action sequence: one row ``p1,p2,p3`` (real kPa) per action, optional header
-    line ``p1,p2,p3``; blank lines are skipped.
+    line ``p1,p2,p3``; blank lines are skipped; a UTF-8 byte-order mark (spreadsheet export) is
+    accepted.
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
@@ -86,11 +88,11 @@ def read_actions_csv(path: str | Path, hold: float = 1.0) -> ActionSequence:
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_text(path)  # a regular file of bounded size; a UTF-8 byte-order mark is dropped
     except FileNotFoundError:
         raise
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read action CSV: {exc}") from exc
+    except (OSError, UnsafeFileError) as exc:  # not UTF-8, not a regular file, too large, unreadable
+        raise ValueError(f"cannot read action CSV: {exc}") from exc
     rows: list[list[float]] = []
     for lineno, row in enumerate(csv.reader(text.splitlines()), start=1):
         cells = [c.strip() for c in row]

@@ -8,6 +8,8 @@ Modules (optional extra ``softcrawl[rig]`` for real instruments; the simulated r
 - :mod:`~softcrawl.hardware.config`: ``rig.toml`` loading and validation.
 - :mod:`~softcrawl.hardware.rig`: a rig's parts and :func:`open_rig`; the fail-safe.
 - :mod:`~softcrawl.hardware.simrig`: the simulated rig (fake SCPI instrument, fitted regulators).
+- :mod:`~softcrawl.hardware.ptysupply`: the fake supply served on a pseudo-terminal (end-to-end
+  runs of the real-rig path through pyvisa, without hardware).
 - :mod:`~softcrawl.hardware.regulator_model`: first-order regulator model and its fit to recorded logs.
 - :mod:`~softcrawl.hardware.deploy`: the deploy loop.
 - :mod:`~softcrawl.hardware.calibration`: the pressure warp from measured bends.

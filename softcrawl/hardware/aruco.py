@@ -16,10 +16,17 @@ Markers: dictionary ``DICT_4X4_50``.
 from __future__ import annotations
 
 import math
+import os
 import re
+import stat
 from pathlib import Path
 
 import numpy as np
+
+from softcrawl.safeio import UnsafeFileError, read_bytes
+
+#: Largest photo read, bytes.
+MAX_PHOTO_BYTES = 64 * 1024 * 1024
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
@@ -63,10 +70,11 @@ def bend_from_photo(path: str | Path, base_id: int = 0, tip_id: int = 1) -> floa
     """Tip angle (deg, >= 0) of the clamped PneuNet in one photo.
 
     Raises:
-        ValueError: unreadable image, or a marker not found.
+        ValueError: not a regular file of at most 64 MB, unreadable image, or a marker not found.
     """
     cv2 = _cv2()
-    img = cv2.imread(str(path))
+    data = np.frombuffer(read_bytes(path, MAX_PHOTO_BYTES), dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
         raise ValueError(f"{path}: not a readable image")
     found = detect(img)
@@ -81,9 +89,12 @@ def bends_from_photos(folder: str | Path, base_id: int = 0, tip_id: int = 1) -> 
     """``(real_kpa (k,), tip_angle_deg (k,))`` from the photos in ``folder`` (module docstring).
 
     Raises:
-        FileNotFoundError: no folder. ValueError: no photos named ``<kPa>kpa...``, or a photo without
-        both markers.
+        FileNotFoundError: no folder. ValueError: no photos named ``<kPa>kpa...``, a pressure in a
+        name outside ``(0, MAX_REAL_KPA]`` (:func:`softcrawl.hardware.calibration.check_real_kpa`),
+        or a photo without both markers.
     """
+    from softcrawl.hardware.calibration import check_real_kpa
+
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"{folder}: no such folder")
@@ -91,7 +102,7 @@ def bends_from_photos(folder: str | Path, base_id: int = 0, tip_id: int = 1) -> 
     for p in sorted(folder.iterdir()):
         m = _KPA.match(p.name)
         if p.suffix.lower() in IMAGE_SUFFIXES and m:
-            pairs.append((float(m.group(1)), bend_from_photo(p, base_id, tip_id)))
+            pairs.append((check_real_kpa(float(m.group(1)), str(p)), bend_from_photo(p, base_id, tip_id)))
     if not pairs:
         raise ValueError(f"{folder}: no photos named like '40kpa.jpg' ({', '.join(IMAGE_SUFFIXES)})")
     a = np.array(pairs)
@@ -102,11 +113,14 @@ def track_video(path: str | Path, marker_id: int = 0, marker_mm: float = 30.0) -
     """``(t_s (m,), x_mm (m,))`` of the disk marker's centre along the image +x, frames where it is seen.
 
     Raises:
-        ValueError: unreadable video, no frame rate, marker seen in < 2 frames, bad ``marker_mm``.
+        ValueError: not a regular file, unreadable video, no frame rate, marker seen in < 2
+        frames, bad ``marker_mm``.
     """
     cv2 = _cv2()
     if not (math.isfinite(marker_mm) and marker_mm > 0):
         raise ValueError(f"marker size must be > 0 mm, got {marker_mm}")
+    if not stat.S_ISREG(os.stat(path).st_mode):  # a device or FIFO would be read without end
+        raise UnsafeFileError(f"{path}: not a regular file")
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise ValueError(f"{path}: not a readable video")

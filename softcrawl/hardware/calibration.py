@@ -17,8 +17,13 @@ b = -20.36 for their table). :func:`calibrate` does the same from a CSV of measu
 3. least-squares line through ``(real, sim)`` with residuals; written as a JSON calibration
    file that :func:`load_calibration` turns into a :class:`PressureCalibration`.
 
+Plausibility (:func:`check_measurements`, before any simulation; :func:`check_slope` after the
+fit and when a calibration file is loaded): real pressures in ``(0, MAX_REAL_KPA]``, bends
+finite and > 0 and increasing with pressure (a PneuNet bends more at a higher pressure), and
+a fitted slope ``a`` in :data:`A_RANGE`.
+
 The bend input is a CSV with a header: ``real_kpa`` and one of ``tip_angle_deg`` /
-``tip_deflection_mm``. Photos with ArUco markers are not read (left for later).
+``tip_deflection_mm``, or photos with ArUco markers (:mod:`softcrawl.hardware.aruco`).
 """
 
 from __future__ import annotations
@@ -33,13 +38,22 @@ from pathlib import Path
 
 import numpy as np
 
+from softcrawl.hardware.errors import one_line
 from softcrawl.robot.actuation import PressureCalibration
+from softcrawl.safeio import atomic_write_text, load_json, read_text
 
 MEASURES = ("tip_angle_deg", "tip_deflection_mm")
 FORMAT = "softcrawl-calibration"
 FORMAT_VERSION = 1
 #: The reference calibration (physics.md): sim = 4.0785 real - 20.36.
 REFERENCE = (4.0785, -20.36)
+#: Highest real pressure of a bend measurement, kPa: the top of the reference bending table
+#: (physics.md, 10..100 kPa), 10 kPa above the regulators' 90 kPa command range.
+MAX_REAL_KPA = 100.0
+#: Plausible slopes ``a`` of the warp, sim kPa per real kPa: within a factor of about 20 of the
+#: reference 4.08. Pressures logged in psi instead of kPa give 6.9x the slope (28), in bar
+#: 100x (408); a slope outside this range means mismatched units, bends or model.
+A_RANGE = (0.2, 20.0)
 
 
 @dataclass(frozen=True)
@@ -114,20 +128,18 @@ class BendCurve:
         self.evaluations = 0
         if self.path is not None and self.path.exists():
             try:
-                data = json.loads(self.path.read_text())
+                data = load_json(self.path)
                 if data.get("model") == asdict(model):
                     self.points.update({float(p): (float(a), float(d)) for p, a, d in data["points"]})
-            except (OSError, ValueError, KeyError, TypeError):
+            except (OSError, ValueError, KeyError, TypeError, AttributeError, OverflowError):
                 pass  # a damaged cache is rebuilt
 
     def _save(self) -> None:
         if self.path is None:
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"model": asdict(self.model),
-                                   "points": [[p, a, d] for p, (a, d) in sorted(self.points.items())]}))
-        tmp.replace(self.path)
+        atomic_write_text(self.path, json.dumps({"model": asdict(self.model),
+                                                 "points": [[p, a, d] for p, (a, d) in sorted(self.points.items())]}))
 
     def bend(self, p_sim: float, measure: str = "tip_angle_deg") -> float:
         """Bend (``measure``) at sim pressure ``p_sim`` kPa (>= 0)."""
@@ -146,12 +158,19 @@ class BendCurve:
         points first), then Brent's method.
 
         Raises:
-            ValueError: ``target`` <= 0 or beyond the bend at ``p_max``.
+            ValueError: ``target`` <= 0, beyond the bend at ``p_max``, or needing a pressure at
+                which the model does not settle.
         """
-        from scipy.optimize import brentq
-
         if not (math.isfinite(target) and target > 0):
             raise ValueError(f"measured bend must be > 0, got {target}")
+        try:
+            return self._find(target, measure, p_max, grid_kpa, xtol)
+        except RuntimeError as exc:  # the model does not settle at the pressures this bend needs
+            raise ValueError(f"bend {target:g} cannot be reached by the model: {one_line(exc)}") from None
+
+    def _find(self, target: float, measure: str, p_max: float, grid_kpa: float, xtol: float) -> float:
+        from scipy.optimize import brentq
+
         f = lambda p: self.bend(p, measure) - target  # noqa: E731
         known = sorted(self.points)
         below = [p for p in known if f(p) <= 0]
@@ -162,7 +181,7 @@ class BendCurve:
             nxt = (math.floor(lo / grid_kpa) + 1) * grid_kpa
             if nxt > p_max:
                 raise ValueError(f"bend {target:g} is beyond the model's bend at {p_max:g} kPa "
-                                 f"({self.bend(p_max, measure):.3g})")
+                                 f"({self.bend(p_max, measure):.3g}): the model cannot reach it")
             if f(nxt) > 0:
                 hi = nxt
             else:
@@ -211,32 +230,80 @@ class CalibrationResult:
         }
 
 
-def read_bends_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, str]:
-    """``(real_kpa (k,), bend (k,), measure)`` from a CSV with header ``real_kpa,<measure>``.
+def check_real_kpa(kpa: float, where: str) -> float:
+    """A measurement's real pressure, kPa, checked to be finite and in ``(0, MAX_REAL_KPA]``.
 
     Raises:
-        FileNotFoundError; ValueError: bad header, non-numeric / non-positive values, < 2 points.
+        ValueError: naming ``where`` (a file and line, or a photo).
+    """
+    if not (math.isfinite(kpa) and 0 < kpa <= MAX_REAL_KPA):
+        raise ValueError(f"{where}: real pressure {kpa:g} kPa must be in (0, {MAX_REAL_KPA:g}] kPa")
+    return float(kpa)
+
+
+def check_measurements(real_kpa, bend) -> tuple[np.ndarray, np.ndarray]:
+    """``(real_kpa (k,), bend (k,))`` checked for plausibility: k >= 2 pairs, pressures in
+    ``(0, MAX_REAL_KPA]`` and not all equal, bends finite and > 0 and increasing with pressure
+    (every bend at a higher pressure is larger than every bend at a lower one).
+
+    Raises:
+        ValueError: naming the first implausible point.
+    """
+    real = np.asarray(real_kpa, dtype=float)
+    bend = np.asarray(bend, dtype=float)
+    if real.ndim != 1 or real.shape != bend.shape or real.size < 2:
+        raise ValueError(f"need >= 2 paired measurements, got shapes {real.shape} and {bend.shape}")
+    for i, (r, m) in enumerate(zip(real, bend)):
+        check_real_kpa(r, f"measurement {i + 1}")
+        if not (math.isfinite(m) and m > 0):
+            raise ValueError(f"measurement {i + 1}: bend {m:g} must be finite and > 0")
+    if np.ptp(real) == 0:
+        raise ValueError(f"all measurements are at {real[0]:g} kPa: need at least 2 pressures")
+    order = np.lexsort((bend, real))
+    r, m = real[order], bend[order]
+    for j in range(1, r.size):
+        lower = r < r[j]
+        if lower.any() and m[lower].max() >= m[j]:
+            i = int(np.flatnonzero(lower)[np.argmax(m[lower])])
+            raise ValueError(f"bends must increase with pressure: {m[i]:g} at {r[i]:g} kPa but {m[j]:g} at "
+                             f"{r[j]:g} kPa")
+    return real, bend
+
+
+def check_slope(a: float, where: str) -> None:
+    """Raise ValueError (naming ``where``) unless the warp's slope ``a`` is in :data:`A_RANGE`."""
+    lo, hi = A_RANGE
+    if not (math.isfinite(a) and lo <= a <= hi):
+        raise ValueError(f"{where}: slope a = {a:.4g} sim kPa per real kPa is outside the plausible [{lo:g}, "
+                         f"{hi:g}] (reference {REFERENCE[0]:g}): check the units of the pressures and bends")
+
+
+def read_bends_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, str]:
+    """``(real_kpa (k,), bend (k,), measure)`` from a CSV with header ``real_kpa,<measure>``
+    (a UTF-8 byte-order mark is accepted).
+
+    Raises:
+        FileNotFoundError; ValueError: not a regular text file, bad header, a value that is not a
+            finite number, a pressure outside ``(0, MAX_REAL_KPA]``, a bend <= 0, < 2 points
+            (each naming the file and line).
     """
     path = Path(path)
-    try:
-        rows = [r for r in csv.reader(path.read_text(encoding="utf-8").splitlines()) if any(c.strip() for c in r)]
-    except FileNotFoundError:
-        raise
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read: {exc}") from None
+    text = read_text(path, max_bytes=16 * 1024 * 1024)
+    rows = [(i, r) for i, r in enumerate(csv.reader(text.splitlines()), start=1) if any(c.strip() for c in r)]
     if not rows:
         raise ValueError(f"{path}: empty")
-    head = [c.strip() for c in rows[0]]
+    head = [c.strip() for c in rows[0][1]]
     if len(head) != 2 or head[0] != "real_kpa" or head[1] not in MEASURES:
         raise ValueError(f"{path}: header must be real_kpa,<{'|'.join(MEASURES)}>, got {','.join(head)}")
     vals = []
-    for i, r in enumerate(rows[1:], start=2):
+    for i, r in rows[1:]:
         try:
             x, y = (float(c) for c in r)
         except ValueError:
             raise ValueError(f"{path}, line {i}: expected 2 numbers, got {r!r}") from None
-        if not (math.isfinite(x) and math.isfinite(y) and x > 0 and y > 0):
-            raise ValueError(f"{path}, line {i}: pressure and bend must be finite and > 0, got {r!r}")
+        check_real_kpa(x, f"{path}, line {i}")
+        if not (math.isfinite(y) and y > 0):
+            raise ValueError(f"{path}, line {i}: bend must be finite and > 0, got {r!r}")
         vals.append((x, y))
     if len(vals) < 2:
         raise ValueError(f"{path}: need at least 2 measurements, got {len(vals)}")
@@ -253,14 +320,12 @@ def calibrate(real_kpa, bend, measure: str = "tip_angle_deg", curve: BendCurve |
         curve: the bend model (default :class:`BendCurve` with default settings).
 
     Raises:
-        ValueError: bad input, a bend the model cannot reach, or a degenerate fit.
+        ValueError: implausible input (:func:`check_measurements`, before any simulation), a
+            bend the model cannot reach, or a fitted slope outside :data:`A_RANGE`.
     """
     if measure not in MEASURES:
         raise ValueError(f"measure must be one of {MEASURES}, got {measure!r}")
-    real = np.asarray(real_kpa, dtype=float)
-    bend = np.asarray(bend, dtype=float)
-    if real.ndim != 1 or real.shape != bend.shape or real.size < 2:
-        raise ValueError(f"need >= 2 paired measurements, got shapes {real.shape} and {bend.shape}")
+    real, bend = check_measurements(real_kpa, bend)
     curve = curve or BendCurve()
     it = bend
     if progress:
@@ -269,13 +334,14 @@ def calibrate(real_kpa, bend, measure: str = "tip_angle_deg", curve: BendCurve |
         it = tqdm(bend, desc="matching bends", unit="point")
     sim = np.array([curve.find_pressure(float(b), measure) for b in it])
     cal = PressureCalibration.from_table(real, sim)
+    check_slope(cal.a, "the fitted warp")
     return CalibrationResult(real, bend, sim, cal.a, cal.b, cal.a * real + cal.b - sim, measure, curve.model)
 
 
 def write_calibration(result: CalibrationResult, path: str | Path, source: str = "") -> Path:
-    """Write the calibration file (JSON, :func:`load_calibration` reads it)."""
+    """Write the calibration file (JSON, :func:`load_calibration` reads it), atomically."""
     path = Path(path)
-    path.write_text(json.dumps(result.to_dict(source), indent=2) + "\n")
+    atomic_write_text(path, json.dumps(result.to_dict(source), indent=2) + "\n")
     return path
 
 
@@ -284,15 +350,17 @@ def load_calibration(path: str | Path) -> PressureCalibration:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: not JSON, not a softcrawl calibration, or a / b missing or not finite (one line).
+        ValueError: not a regular file of at most 1 MB, not JSON, nested too deeply, not a
+            softcrawl calibration, a / b missing or not finite, or a slope outside
+            :data:`A_RANGE` (one line naming the file).
     """
     path = Path(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = load_json(path, max_bytes=1 << 20)
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: calibration file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: not a JSON calibration file: {exc}") from None
+    except ValueError as exc:
+        raise ValueError(f"not a JSON calibration file: {one_line(exc)}") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise ValueError(f"{path}: not a softcrawl calibration file (format must be {FORMAT!r})")
     if data.get("version") != FORMAT_VERSION:
@@ -302,10 +370,11 @@ def load_calibration(path: str | Path) -> PressureCalibration:
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (a, b)):
             raise TypeError
         cal = PressureCalibration(float(a), float(b))
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise ValueError(f"{path}: calibration needs finite numbers a and b") from None
     if cal.a <= 0:
         raise ValueError(f"{path}: slope a must be > 0 (more real pressure bends more), got {cal.a}")
+    check_slope(cal.a, str(path))
     return cal
 
 

@@ -23,7 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from softcrawl.hardware.errors import one_line
 from softcrawl.hardware.logs import read_auro_log, read_deploy_log
+from softcrawl.safeio import atomic_write_text, read_text
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,14 +70,16 @@ def read_sim(folder: str | Path) -> dict:
     p = Path(folder) / "trajectory.csv"
     if not p.exists():
         raise FileNotFoundError(f"{p}: not found (SIM_RUN must be a `softcrawl simulate`/`evaluate` output folder)")
-    with p.open(newline="", encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
+    rows = list(csv.DictReader(read_text(p).splitlines()))
     try:
         col = lambda n: np.array([float(r[n]) for r in rows])  # noqa: E731
-        return {"t": col("t"), "x": col("x"), "cmd": np.stack([col(f"cmd_{k}") for k in (1, 2, 3)], 1),
-                "applied": np.stack([col(f"applied_{k}") for k in (1, 2, 3)], 1)}
-    except (KeyError, ValueError) as exc:
-        raise ValueError(f"{p}: not a softcrawl trajectory ({exc})") from None
+        sim = {"t": col("t"), "x": col("x"), "cmd": np.stack([col(f"cmd_{k}") for k in (1, 2, 3)], 1),
+               "applied": np.stack([col(f"applied_{k}") for k in (1, 2, 3)], 1)}
+    except (KeyError, ValueError, TypeError) as exc:
+        raise ValueError(f"{p}: not a softcrawl trajectory ({one_line(exc)[:200]})") from None
+    if not rows or not all(np.isfinite(v).all() for v in sim.values()):
+        raise ValueError(f"{p}: a trajectory needs at least one row of finite numbers")
+    return sim
 
 
 def read_tracked(path: str | Path, marker_id: int = 0, marker_mm: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
@@ -94,14 +98,13 @@ def read_tracked(path: str | Path, marker_id: int = 0, marker_mm: float = 30.0) 
         from softcrawl.hardware.aruco import track_video
 
         return track_video(path, marker_id, marker_mm)
-    with path.open(newline="", encoding="utf-8") as f:
-        r = csv.DictReader(f)
-        if not r.fieldnames or "t_s" not in r.fieldnames or "x_mm" not in r.fieldnames:
-            raise ValueError(f"{path}: header must contain t_s and x_mm, got {r.fieldnames}")
-        try:
-            a = np.array([[float(row["t_s"]), float(row["x_mm"])] for row in r])
-        except (ValueError, TypeError):
-            raise ValueError(f"{path}: non-numeric t_s / x_mm") from None
+    r = csv.DictReader(read_text(path).splitlines())
+    if not r.fieldnames or "t_s" not in r.fieldnames or "x_mm" not in r.fieldnames:
+        raise ValueError(f"{path}: header must contain t_s and x_mm, got {str(r.fieldnames)[:200]}")
+    try:
+        a = np.array([[float(row["t_s"]), float(row["x_mm"])] for row in r])
+    except (ValueError, TypeError):
+        raise ValueError(f"{path}, line {r.line_num}: non-numeric t_s / x_mm") from None
     if len(a) < 2 or not np.isfinite(a).all() or np.any(np.diff(a[:, 0]) <= 0):
         raise ValueError(f"{path}: need >= 2 finite samples with increasing t_s")
     return a[:, 0], a[:, 1]
@@ -210,8 +213,8 @@ def compare(sim_run: str | Path, real_logs, out: str | Path, tracked=None, time_
     result = {"sim_run": str(sim_run), "sim_final_distance_cm": sim_final_cm, "sim_time_scale": time_scale,
               "logs": rows,
               "real_final_distances_cm": finals, "spread": spread}
-    (out / "compare.json").write_text(json.dumps(result, indent=2, default=str) + "\n")
-    (out / "compare.md").write_text(markdown(result))
+    atomic_write_text(out / "compare.json", json.dumps(result, indent=2, default=str) + "\n")
+    atomic_write_text(out / "compare.md", markdown(result))
     return result
 
 

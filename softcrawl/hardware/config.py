@@ -2,12 +2,14 @@
 
 Layout (see ``softcrawl/hardware/data/example_rig.toml``)::
 
-    [rig]        name, max_kpa (<= 90), control_period_s, sample_hz (>= 10), watchdog_s,
-                 disagreement_kpa, disagreement_s, overrun_tolerance_s
-    [supply]     model = "BK9129B", address (VISA name), timeout_ms, retries, max_volts = [3 V]
-    [[regulator]] x 3, in regulator order: channel (1..3), volts_per_kpa, offset_v
+    [rig]        name (printable, <= 80 characters), max_kpa (<= 90), control_period_s,
+                 sample_hz (>= 10), watchdog_s, disagreement_kpa, disagreement_s, overrun_tolerance_s
+    [supply]     model = "BK9129B", address (VISA name, printable), timeout_ms, retries,
+                 max_volts = [3 V]
+    [[regulator]] x 3, in regulator order: channel (1..3), volts_per_kpa (>= 0.001), offset_v
     [sensors]    kind = "honeywell-ssc" | "none"; for SSC: buses = [3 ints] or bus + mux_address
-                 + mux_channels = [3 ints], address (0x28), p_max_psi (30)
+                 + mux_channels = [3 ints], address (0x28), p_max_psi (30); bus numbers
+                 0..255, I2C addresses 7-bit (0x08..0x77)
 
 Every key is checked: unknown keys (typos), wrong types, out-of-range values and unsafe
 combinations (a 90 kPa command that needs more than a channel's voltage limit) raise
@@ -17,16 +19,20 @@ combinations (a 90 kPa command that needs more than a channel's voltage limit) r
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from softcrawl.hardware.errors import RigConfigError
+from softcrawl.hardware.errors import RigConfigError, one_line
 from softcrawl.hardware.source import RegulatorMap
 from softcrawl.hardware.supply import BK9129B_MAX_V
 from softcrawl.robot.actuation import P_MAX_KPA
+from softcrawl.safeio import UnsafeFileError, load_toml
 
 SENSOR_KINDS = ("honeywell-ssc", "none")
+#: Largest rig file read, bytes (the example is 2 kB).
+MAX_RIG_BYTES = 1 << 20
+#: Usable 7-bit I2C addresses (0x00-0x07 and 0x78-0x7F are reserved by the I2C specification).
+I2C_ADDRESSES = (0x08, 0x77)
 
 
 @dataclass(frozen=True)
@@ -129,19 +135,22 @@ def load_rig_config(path: str | Path) -> RigConfig:
 
     Raises:
         FileNotFoundError: no such file.
-        RigConfigError: not TOML, unknown keys, bad types/values, unsafe limits (one line).
+        RigConfigError: not a regular file of at most 1 MB, not TOML, nested too deeply, unknown
+            keys, bad types/values, unsafe limits (one line).
     """
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = load_toml(path, max_bytes=MAX_RIG_BYTES)
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: rig config not found") from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise RigConfigError(f"{path}: not a readable TOML file: {exc}") from None
+    except (OSError, UnsafeFileError) as exc:
+        raise RigConfigError(f"not a readable TOML rig file: {one_line(exc)}") from None
     unknown = set(data) - set(_SPEC)
     _check(path, not unknown, f"unknown table(s) {sorted(unknown)} (known: rig, supply, regulator, sensors)")
 
     r = RigSettings(**_table(path, data, "rig"))
+    _check(path, 0 < len(r.name) <= 80 and r.name.isprintable(),
+           f"rig.name must be 1 to 80 printable characters, got {r.name!r}")
     _check(path, 0 < r.max_kpa <= P_MAX_KPA, f"rig.max_kpa must be in (0, {P_MAX_KPA:g}] kPa, got {r.max_kpa}")
     _check(path, 0.1 <= r.control_period_s <= 10, f"rig.control_period_s must be in [0.1, 10] s, got "
                                                   f"{r.control_period_s}")
@@ -167,6 +176,8 @@ def load_rig_config(path: str | Path) -> RigConfig:
     supply = SupplySettings(**s)
     _check(path, supply.model == "BK9129B", f"supply.model must be \"BK9129B\" (the only driver), got "
                                             f"{supply.model!r}")
+    _check(path, 0 < len(supply.address) <= 256 and supply.address.isprintable(),
+           f"supply.address must be 1 to 256 printable characters, got {supply.address!r}")
     _check(path, 100 <= supply.timeout_ms <= 10000, "supply.timeout_ms must be in [100, 10000]")
     _check(path, 1 <= supply.retries <= 10, "supply.retries must be in [1, 10]")
 
@@ -201,7 +212,11 @@ def load_rig_config(path: str | Path) -> RigConfig:
         if sensors.bus is not None:
             _check(path, sensors.mux_address is not None and len(sensors.mux_channels) == 3,
                    "three sensors share address 0x28: with one bus, give mux_address and mux_channels = [3]")
-        _check(path, 0x08 <= sensors.address <= 0x77, f"sensors.address 0x{sensors.address:x} is not a 7-bit address")
+            _check(path, 0 <= sensors.bus <= 255, f"sensors.bus must be in [0, 255], got {sensors.bus}")
+            _check(path, I2C_ADDRESSES[0] <= sensors.mux_address <= I2C_ADDRESSES[1],
+                   f"sensors.mux_address {sensors.mux_address} is not a 7-bit I2C address (0x08..0x77)")
+        _check(path, I2C_ADDRESSES[0] <= sensors.address <= I2C_ADDRESSES[1],
+               f"sensors.address {sensors.address} is not a 7-bit I2C address (0x08..0x77)")
         _check(path, 0 < sensors.p_max_psi <= 150, "sensors.p_max_psi must be in (0, 150] psi")
     return RigConfig(str(path), r, supply, tuple(maps), sensors)
 

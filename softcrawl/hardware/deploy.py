@@ -17,9 +17,23 @@ Safety:
   a **lost connection** or another instrument fault (:class:`SupplyError` / :class:`SensorError`:
   no answer, a setting not taken after the retries, a sensor status fault), a **sensor/command
   disagreement** (``|sensed - commanded| > disagreement_kpa`` continuously for
-  ``disagreement_s``), **any exception**, and **Ctrl-C**. The reason goes into the log's last
-  row, the summary (``status: "aborted"``, ``reason``, ``fail_safe``) and the return value.
-  A completed run vents and turns the outputs off too.
+  ``disagreement_s``), **any exception** (a failed write of the log included: a full disk, a
+  file-size limit), and the **stop signals** SIGINT (Ctrl-C), SIGTERM (``kill``, ``timeout``),
+  SIGHUP (a closed terminal or SSH session; a SIGHUP the caller ignores, as under ``nohup``,
+  stays ignored) and SIGQUIT. Their handlers are installed for the duration of the deploy only
+  (main thread) and the caller's are restored afterwards; a further signal during the shutdown
+  is recorded (``signals_during_shutdown``), not obeyed. The reason goes into the log's last
+  row, the summary (``status: "aborted"``, ``reason``, ``signal``, ``fail_safe``) and the
+  return value. A completed run vents and turns the outputs off too;
+- the fail-safe reads back what it did (:meth:`Rig.fail_safe`): the 0 V settings
+  (``APP:VOLT?``) and the outputs off (``OUTP?``, then ``MEAS:VOLT:ALL?`` at most
+  :data:`softcrawl.hardware.supply.OFF_TOL_V` per channel). When that cannot be read back,
+  ``fail_safe_confirmed`` is false in the summary and the result, and the log's last row says
+  so: the supply may still be on;
+- ``log.csv`` gets its header at once and every row is flushed as it is written, so a kill that
+  no handler can catch (SIGKILL, a power cut) loses at most the row being written; a log or
+  summary that cannot be written is reported (``log_error``, ``write_errors``), the rig is
+  vented all the same.
 """
 
 from __future__ import annotations
@@ -27,6 +41,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import signal
 import threading
 import time
@@ -38,18 +53,110 @@ import numpy as np
 from softcrawl.hardware.errors import SafetyTrip, SensorError, SupplyError, one_line
 from softcrawl.hardware.logs import DEPLOY_COLUMNS
 from softcrawl.robot.actuation import PressureRangeError, check_pressures
+from softcrawl.safeio import atomic_write_text
+
+#: Signals that stop a deploy through the fail-safe (those this platform has).
+STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
 
 
 @dataclass
 class DeployResult:
     """Outcome of :func:`deploy`: ``status`` ``"completed"`` or ``"aborted"``, ``reason`` (None
-    when completed), ``fail_safe`` (what the shutdown did), ``summary`` (the JSON written)."""
+    when completed), ``fail_safe`` (what the shutdown did, one line per step),
+    ``fail_safe_confirmed`` (the supply read back 0 V set and outputs off), ``summary`` (the
+    JSON written), ``write_errors`` (``log.csv`` or ``summary.json`` writes that failed; empty
+    when both were written)."""
 
     status: str
     reason: str | None
     fail_safe: list
     summary: dict = field(default_factory=dict)
     out: str = ""
+    fail_safe_confirmed: bool = False
+    write_errors: list = field(default_factory=list)
+
+
+class StopSignal(KeyboardInterrupt):
+    """A stop signal (:data:`STOP_SIGNALS`) arrived during a deploy. A ``KeyboardInterrupt``
+    (a ``BaseException``), so that no driver's ``except Exception`` can swallow it."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = int(signum)
+        super().__init__(signal.Signals(signum).name)
+
+
+class _SignalGuard:
+    """Handlers of :data:`STOP_SIGNALS` while a deploy runs (main thread only; elsewhere a no-op).
+
+    Until :meth:`shield`, a signal raises :class:`StopSignal` in the main thread; after it,
+    signals are only recorded in ``late`` (the shutdown must finish). :meth:`restore` puts the
+    caller's handlers back. SIGINT is always handled (the watchdog thread interrupts a hung
+    call with it, even where the caller ignores SIGINT); another signal the caller ignores
+    stays ignored."""
+
+    def __init__(self) -> None:
+        self.active = threading.current_thread() is threading.main_thread()
+        self.saved: dict = {}
+        self.shielded = False
+        self.late: list[str] = []
+
+    def install(self) -> None:
+        if not self.active:
+            return
+        for s in STOP_SIGNALS:
+            old = signal.getsignal(s)
+            if old is signal.SIG_IGN and s != signal.SIGINT:
+                continue
+            self.saved[s] = old
+            signal.signal(s, self._handle)
+
+    def _handle(self, signum, frame) -> None:
+        if self.shielded:
+            self.late.append(signal.Signals(signum).name)
+            return
+        self.shielded = True  # a second signal must not interrupt the handling of the first
+        raise StopSignal(signum)
+
+    def shield(self) -> None:
+        self.shielded = True
+
+    def restore(self) -> None:
+        for s, old in self.saved.items():
+            # None: a handler not set from Python; the default then
+            default = signal.default_int_handler if s == signal.SIGINT else signal.SIG_DFL
+            signal.signal(s, default if old is None else old)
+        self.saved = {}
+
+
+class _LogWriteError(Exception):
+    """Writing ``log.csv`` failed (full disk, file-size limit, a vanished folder)."""
+
+
+class _Log:
+    """``log.csv``: created exclusively (an existing file or a symlink at its place is refused),
+    header written at once, every row flushed as written. A failed write raises
+    :class:`_LogWriteError`; the first failure is kept in ``error``."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.error: str | None = None
+        self.f = path.open("x", newline="", encoding="utf-8")
+        self._w = csv.writer(self.f)
+        self.write(DEPLOY_COLUMNS)
+
+    def write(self, row) -> None:
+        try:
+            self._w.writerow(row)
+            self.f.flush()
+        except OSError as exc:
+            self.error = self.error or f"writing {self.path} failed: {one_line(exc)}"
+            raise _LogWriteError(self.error) from None
+
+    def close(self) -> None:
+        try:
+            self.f.close()
+        except OSError as exc:  # the unflushed rows could not be written: the file is closed anyway
+            self.error = self.error or f"writing {self.path} failed: {one_line(exc)}"
 
 
 class _Watchdog:
@@ -109,58 +216,69 @@ def validate_actions(actions, max_kpa: float) -> np.ndarray:
     return a
 
 
+def _reason(exc: BaseException, wd) -> str:
+    """The summary's ``reason`` for the exception that ended the loop."""
+    if isinstance(exc, KeyboardInterrupt) and wd is not None and wd.fired:
+        return "watchdog: the loop hung inside a call"
+    if isinstance(exc, StopSignal) and exc.signum != signal.SIGINT:
+        return f"stopped by signal {signal.Signals(exc.signum).name}"
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted (Ctrl-C, SIGINT)"
+    if isinstance(exc, (SafetyTrip, _LogWriteError)):
+        return one_line(exc)
+    if isinstance(exc, (SupplyError, SensorError)):  # the message says which: lost connection, sensor fault, ...
+        return f"rig fault: {one_line(exc)}"
+    return f"exception: {type(exc).__name__}: {one_line(exc)}"
+
+
 def deploy(rig, actions, out: str | Path, meta: dict | None = None, progress: bool = True) -> DeployResult:
     """Run ``actions`` ``(n, 3)`` real kPa on ``rig`` (module docstring); write ``out/log.csv`` and
     ``out/summary.json`` (``out`` is created; must not hold a previous log).
 
     Returns:
-        :class:`DeployResult`; an aborted run is a normal return (the reason is in it).
+        :class:`DeployResult`; an aborted run is a normal return (the reason is in it), and so
+        is a run whose log or summary could not be written (``write_errors``).
 
     Raises:
         PressureRangeError / ValueError: bad actions or output folder (nothing was sent).
+        OSError: ``log.csv`` cannot be created (nothing was sent).
     """
     s = rig.settings
     actions = validate_actions(actions, s.max_kpa)  # before anything moves
     out = Path(out)
-    if (out / "log.csv").exists() or (out / "summary.json").exists():
+    if any(os.path.lexists(out / f) for f in ("log.csv", "summary.json")):
         raise ValueError(f"{out} already holds a deploy log; choose a new --out")
     out.mkdir(parents=True, exist_ok=True)
     clock = rig.clock
     period, dt_sample = s.control_period_s, 1.0 / s.sample_hz
     n = len(actions)
-    status, reason, fail_safe_done = "completed", None, []
+    status, reason, fail_safe = "aborted", "stopped during the shutdown", None
     counts = {"samples": 0, "overruns": 0}
     max_late = 0.0
     idn = None
     t0 = None
     bar = None
-    f = (out / "log.csv").open("w", newline="", encoding="utf-8")
-    w = csv.writer(f)
-    w.writerow(DEPLOY_COLUMNS)
+    log = _Log(out / "log.csv")
     wd = None
-    main_thread = threading.current_thread() is threading.main_thread()  # signal handlers: main thread only
-    caller_sigint = signal.getsignal(signal.SIGINT) if main_thread else None
+    guard = _SignalGuard()
+    stop_signal = None
     last = {"cmd": np.zeros(3), "set_v": np.zeros(3), "step": -1}
 
     def row(meas_v, sensed, overrun=0, event="", t_abs=None):
         now = clock.now() if t_abs is None else t_abs
         t = now - (t0 if t0 is not None else now)
-        w.writerow([f"{t:.4f}", last["step"], *(f"{x:.3f}" for x in last["cmd"]),
-                    *(f"{x:.3f}" for x in last["set_v"]), *(f"{x:.4f}" for x in meas_v),
-                    *(f"{x:.3f}" for x in sensed), int(overrun), event])
+        log.write([f"{t:.4f}", last["step"], *(f"{x:.3f}" for x in last["cmd"]),
+                   *(f"{x:.3f}" for x in last["set_v"]), *(f"{x:.4f}" for x in meas_v),
+                   *(f"{x:.3f}" for x in sensed), int(overrun), event])
 
+    guard.install()
     try:
         if progress:
             from tqdm import tqdm
 
             bar = tqdm(total=n, desc=f"deploy on {rig.name}", unit="action")
         idn = rig.start()
-        watch_thread = not getattr(rig, "simulated", False) and main_thread
-        if watch_thread:
-            # the watchdog thread breaks a hung call with SIGINT: it must raise KeyboardInterrupt even
-            # where the caller ignores SIGINT (a background job of a non-interactive shell does)
-            signal.signal(signal.SIGINT, signal.default_int_handler)
-        wd = _Watchdog(clock, s.watchdog_s, thread=watch_thread)
+        wd = _Watchdog(clock, s.watchdog_s, thread=not getattr(rig, "simulated", False) and guard.active)
         t0 = clock.now()
         disagree_since = None
         for k in range(n):
@@ -206,44 +324,51 @@ def deploy(rig, actions, out: str | Path, meta: dict | None = None, progress: bo
                 wd.check("the sample loop")
             if bar is not None:
                 bar.update(1)
-    except KeyboardInterrupt:
-        status = "aborted"
-        reason = "watchdog: the loop hung inside a call" if wd is not None and wd.fired else "interrupted (Ctrl-C)"
-    except SafetyTrip as exc:
-        status, reason = "aborted", one_line(exc)
-    except (SupplyError, SensorError) as exc:  # the message says which: lost connection, sensor fault, ...
-        status, reason = "aborted", f"rig fault: {one_line(exc)}"
-    except Exception as exc:  # any fault: fail safe, record it
-        status, reason = "aborted", f"exception: {type(exc).__name__}: {one_line(exc)}"
+        status, reason = "completed", None
+    except BaseException as exc:  # every way out of the loop goes through the fail-safe below
+        guard.shield()
+        status, reason = "aborted", _reason(exc, wd)
+        stop_signal = signal.Signals(exc.signum).name if isinstance(exc, StopSignal) else None
     finally:
-        # a further Ctrl-C must not interrupt the shutdown: ignore SIGINT until the lines are vented
-        if main_thread:
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-        if wd is not None:
-            wd.stop()
-        if bar is not None:
-            bar.close()
         try:
-            fail_safe_done = rig.fail_safe()
+            guard.shield()  # a further signal must not interrupt the shutdown
+            if wd is not None:
+                wd.stop()
+            try:
+                if bar is not None:
+                    bar.close()
+            except Exception:  # a closed terminal: the shutdown goes on
+                pass
+            fail_safe = rig.fail_safe()
+            last["cmd"], last["set_v"], last["step"] = np.zeros(3), np.full(3, np.nan), -1  # step -1: not an action
+            event = ("fail-safe: " + reason if reason else "completed") + "; " + "; ".join(fail_safe.steps)
+            if not fail_safe.confirmed:
+                event += "; FAIL-SAFE NOT CONFIRMED: the supply may still be on"
+            try:
+                row(np.full(3, np.nan), np.full(3, np.nan), 0, event)
+            except _LogWriteError:
+                pass  # kept in log.error, reported in the summary
+            log.close()
+            rig.close()
+            elapsed = (clock.now() - t0) if t0 is not None else 0.0
+            summary = {
+                "status": status, "reason": reason, "fail_safe": fail_safe.steps,
+                "fail_safe_confirmed": fail_safe.confirmed, "signal": stop_signal,
+                "signals_during_shutdown": guard.late, "log_error": log.error, "rig": rig.name,
+                "simulated": rig.simulated, "supply_idn": idn, "n_actions": n, "actions_kpa": actions.tolist(),
+                "control_period_s": period, "sample_hz_target": s.sample_hz, "samples": counts["samples"],
+                "sample_hz_achieved": counts["samples"] / elapsed if elapsed > 0 else None,
+                "elapsed_s": elapsed, "overruns": counts["overruns"], "max_lateness_s": max_late,
+                "overrun_tolerance_s": s.overrun_tolerance_s, "settings": dict(s.__dict__), **(meta or {}),
+            }
+            errors = [log.error] if log.error else []
+            try:
+                atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=_json_default) + "\n")
+            except OSError as exc:
+                errors.append(f"writing {out / 'summary.json'} failed: {one_line(exc)}")
         finally:
-            if main_thread:  # the caller's handler (None: one not set from Python; the default then)
-                signal.signal(signal.SIGINT, signal.default_int_handler if caller_sigint is None else caller_sigint)
-        last["cmd"], last["set_v"], last["step"] = np.zeros(3), np.full(3, np.nan), -1  # step -1: not an action
-        event = ("fail-safe: " + reason if reason else "completed") + "; " + "; ".join(fail_safe_done)
-        row(np.full(3, np.nan), np.full(3, np.nan), 0, event)
-        f.close()
-        rig.close()
-    elapsed = (clock.now() - t0) if t0 is not None else 0.0
-    summary = {
-        "status": status, "reason": reason, "fail_safe": fail_safe_done, "rig": rig.name, "simulated": rig.simulated,
-        "supply_idn": idn, "n_actions": n, "actions_kpa": actions.tolist(), "control_period_s": period,
-        "sample_hz_target": s.sample_hz, "samples": counts["samples"],
-        "sample_hz_achieved": counts["samples"] / elapsed if elapsed > 0 else None,
-        "elapsed_s": elapsed, "overruns": counts["overruns"], "max_lateness_s": max_late,
-        "overrun_tolerance_s": s.overrun_tolerance_s, "settings": dict(s.__dict__), **(meta or {}),
-    }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
-    return DeployResult(status, reason, fail_safe_done, summary, str(out))
+            guard.restore()  # the caller's handlers, even if the shutdown failed
+    return DeployResult(status, reason, fail_safe.steps, summary, str(out), fail_safe.confirmed, errors)
 
 
 def _json_default(o):

@@ -23,11 +23,14 @@ from __future__ import annotations
 
 import ast
 import csv
-import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from softcrawl.hardware.errors import one_line
+from softcrawl.safeio import load_json, read_text
 
 N_REG = 3
 #: Index in the logged ``regulator`` list of regulators 1, 2, 3.
@@ -73,44 +76,47 @@ def read_auro_log(path: str | Path, n_steps: int = 20) -> RecordedTrial:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: malformed or short file (one line naming the file and the problem).
+        ValueError: not a regular text file of at most 16 MB, malformed or short, or a value that
+            is not a finite float (one line naming the file and the line).
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read: {exc}") from None
-    rows = [r for r in csv.reader(text.splitlines()) if any(c.strip() for c in r)]
+    text = read_text(path, max_bytes=16 * 1024 * 1024)
+    rows = [(i, r) for i, r in enumerate(csv.reader(text.splitlines()), start=1) if any(c.strip() for c in r)]
     if len(rows) != 5:
         raise ValueError(f"{path}: expected 5 lines (times, 3 command rows, readings), got {len(rows)}")
-    try:
-        t = np.array(rows[0], float)
-        cmd = np.array(rows[1:4], float)
-    except ValueError:
-        raise ValueError(f"{path}: lines 1-4 must be numbers") from None
-    if t.size != n_steps or cmd.shape != (N_REG, n_steps):
-        raise ValueError(f"{path}: expected {n_steps} steps, got {t.size} time stamps and commands {cmd.shape}")
-    if len(rows[4]) != n_steps:
-        raise ValueError(f"{path}: expected {n_steps} readings on line 5, got {len(rows[4])}")
+    nums = []
+    for line, r in rows[:4]:
+        try:
+            v = np.array(r, float)
+        except ValueError:
+            raise ValueError(f"{path}, line {line}: not a list of numbers") from None
+        if not np.isfinite(v).all():
+            raise ValueError(f"{path}, line {line}: a value is not a finite number")
+        nums.append(v)
+    t, cmd = nums[0], np.array(nums[1:4]) if len({v.size for v in nums[1:4]}) == 1 else None
+    if t.size != n_steps or cmd is None or cmd.shape != (N_REG, n_steps):
+        raise ValueError(f"{path}: expected {n_steps} steps, got {t.size} time stamps and command rows of "
+                         f"{[v.size for v in nums[1:4]]}")
+    line5, cells = rows[4]
+    if len(cells) != n_steps:
+        raise ValueError(f"{path}, line {line5}: expected {n_steps} readings, got {len(cells)}")
     reg, hw = [], []
-    for i, cell in enumerate(rows[4]):
+    for i, cell in enumerate(cells):
         try:
             d = ast.literal_eval(cell)
             r = [float(d["regulator"][j]) for j in AURO_REGULATOR_ORDER]
             h = [float(d["honeywell"][j]) for j in AURO_HONEYWELL_ORDER]
-        except (ValueError, SyntaxError, KeyError, IndexError, TypeError):
-            raise ValueError(f"{path}: reading {i} on line 5 is not a dict with 3 'regulator' and 3 'honeywell' "
-                             f"values") from None
+        except (ValueError, SyntaxError, KeyError, IndexError, TypeError, OverflowError, RecursionError,
+                MemoryError):
+            raise ValueError(f"{path}, line {line5}: reading {i} is not a dict with 3 'regulator' and 3 "
+                             "'honeywell' numbers") from None
+        if not np.isfinite(r + h).all():
+            raise ValueError(f"{path}, line {line5}: reading {i} holds a value that is not a finite number")
         reg.append(r)
         hw.append(h)
-    arrays = (t, cmd, np.array(reg), np.array(hw))
-    if not all(np.isfinite(a).all() for a in arrays):
-        raise ValueError(f"{path}: non-finite values")
     if np.any(np.diff(t) <= 0):
-        raise ValueError(f"{path}: time stamps are not increasing")
-    return RecordedTrial(str(path), (t - t[0]) / 1000.0, cmd.T.copy(), arrays[2], arrays[3])
+        raise ValueError(f"{path}, line {rows[0][0]}: time stamps are not increasing")
+    return RecordedTrial(str(path), (t - t[0]) / 1000.0, cmd.T.copy(), np.array(reg), np.array(hw))
 
 
 def find_auro_logs(root: str | Path) -> list[Path]:
@@ -119,13 +125,14 @@ def find_auro_logs(root: str | Path) -> list[Path]:
 
 
 def read_auro_logs(root: str | Path) -> tuple[list[RecordedTrial], list[tuple[str, str]]]:
-    """Every readable trial under ``root`` and ``(path, reason)`` for each rejected file."""
+    """Every readable trial under ``root`` and ``(path, reason)`` for each refused file (malformed,
+    not a regular file, a dangling link, unreadable): one bad file never stops the others."""
     good, bad = [], []
     for p in find_auro_logs(root):
         try:
             good.append(read_auro_log(p))
-        except ValueError as exc:
-            bad.append((str(p), str(exc)))
+        except (ValueError, OSError) as exc:
+            bad.append((str(p), one_line(exc)))
     return good, bad
 
 
@@ -157,35 +164,70 @@ class DeployLog:
     events: list
 
 
+#: Types of the ``summary.json`` fields that readers use (absent or null is allowed).
+SUMMARY_TYPES = {"status": str, "reason": str, "rig": str, "simulated": bool, "samples": int, "overruns": int,
+                 "n_actions": int, "sample_hz_achieved": float, "control_period_s": float, "sim_hold_s": float,
+                 "elapsed_s": float, "fail_safe_confirmed": bool}
+
+
+def check_summary(summary, where: str) -> dict:
+    """A deploy ``summary.json`` value checked against :data:`SUMMARY_TYPES` (a dict; numbers
+    finite, ints not bools; ``control_period_s`` and ``sim_hold_s`` > 0).
+
+    Raises:
+        ValueError: naming ``where`` and the first bad field.
+    """
+    if not isinstance(summary, dict):
+        raise ValueError(f"{where}: a deploy summary must be a JSON object, got {type(summary).__name__}")
+    for k, want in SUMMARY_TYPES.items():
+        v = summary.get(k)
+        if v is None:
+            continue
+        if want is float:
+            positive = k in ("control_period_s", "sim_hold_s")
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            ok = ok and (v > 0 or not positive)
+            what = "a positive number" if positive else "a finite number"
+        else:
+            ok = isinstance(v, want) and (want is bool or not isinstance(v, bool))
+            what = want.__name__
+        if not ok:
+            raise ValueError(f"{where}: field {k!r} must be {what}, got {type(v).__name__} {str(v)[:40]!r}")
+    return summary
+
+
 def read_deploy_log(folder: str | Path) -> DeployLog:
     """Read a deploy output folder (``log.csv`` and ``summary.json``).
 
     Raises:
-        FileNotFoundError: missing folder or files. ValueError: malformed content.
+        FileNotFoundError: missing folder or files.
+        ValueError: a file that is not regular or too large, a summary that is not a JSON object of
+            the right field types (:func:`check_summary`), a log with a wrong header, no rows, or a
+            value that is not a number (NaN allowed, infinities not; time and step finite),
+            naming the file and line.
     """
     folder = Path(folder)
     log, summ = folder / "log.csv", folder / "summary.json"
     for p in (log, summ):
         if not p.exists():
             raise FileNotFoundError(f"{p}: not found (not a deploy log folder?)")
-    try:
-        summary = json.loads(summ.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{summ}: not valid JSON: {exc}") from None
-    with log.open(newline="", encoding="utf-8") as f:
-        reader = csv.DictReader(f)
-        if reader.fieldnames is None or tuple(reader.fieldnames) != DEPLOY_COLUMNS:
-            raise ValueError(f"{log}: unexpected header {reader.fieldnames}")
-        rows = list(reader)
-    if not rows:
-        raise ValueError(f"{log}: no samples")
-
-    def col(*names):
+    summary = check_summary(load_json(summ, max_bytes=64 * 1024 * 1024), str(summ))
+    reader = csv.DictReader(read_text(log).splitlines())
+    if reader.fieldnames is None or tuple(reader.fieldnames) != DEPLOY_COLUMNS:
+        raise ValueError(f"{log}: unexpected header {str(reader.fieldnames)[:200]}")
+    num = DEPLOY_COLUMNS[:-1]  # every column but the event
+    values, events = [], []
+    for r in reader:
         try:
-            return np.array([[float(r[n]) for n in names] for r in rows])
-        except ValueError:
-            raise ValueError(f"{log}: non-numeric value in {names}") from None
-
-    c3 = lambda p: col(*(f"{p}_{i}" for i in (1, 2, 3)))  # noqa: E731
-    return DeployLog(str(folder), col("t_s")[:, 0], col("step")[:, 0].astype(int), c3("cmd_kpa"), c3("set_v"),
-                     c3("meas_v"), c3("sensed_kpa"), summary, [r["event"] for r in rows])
+            v = [float(r[n]) for n in num]
+        except (TypeError, ValueError):  # TypeError: a short row (missing cells are None)
+            raise ValueError(f"{log}, line {reader.line_num}: a value is not a number") from None
+        if any(math.isinf(x) for x in v) or not math.isfinite(v[0]) or not (-1 <= v[1] <= 1e9 and v[1] == int(v[1])):
+            raise ValueError(f"{log}, line {reader.line_num}: a value is infinite or out of range")
+        values.append(v)
+        events.append(r["event"])
+    if not values:
+        raise ValueError(f"{log}: no samples")
+    a = np.array(values)
+    return DeployLog(str(folder), a[:, 0], a[:, 1].astype(int), a[:, 2:5], a[:, 5:8], a[:, 8:11], a[:, 11:14],
+                     summary, events)

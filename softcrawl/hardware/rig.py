@@ -3,14 +3,16 @@ a ``rig.toml`` (:func:`open_rig`) or simulated (:class:`softcrawl.hardware.simri
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from softcrawl.hardware.clock import MonotonicClock
 from softcrawl.hardware.config import RigConfig, RigSettings
-from softcrawl.hardware.errors import RigError
+from softcrawl.hardware.errors import RigError, one_line
 from softcrawl.hardware.sensors import HoneywellSSC, SMBusDevice, SSCBank
 from softcrawl.hardware.source import PressureSource
-from softcrawl.hardware.supply import BK9129B
+from softcrawl.hardware.supply import BK9129B, format_volts
 
 
 class NoSensors:
@@ -24,6 +26,16 @@ class NoSensors:
 
     def close(self) -> None:
         pass
+
+
+@dataclass(frozen=True)
+class FailSafe:
+    """What :meth:`Rig.fail_safe` did: ``steps``, one line per step (``"vented to 0 kPa (...)"``,
+    ``"outputs off (...)"``, ``"front panel local"`` or ``"FAILED (<step>): <error>"``), and
+    ``confirmed``: the 0 V settings and the outputs off were both read back from the supply."""
+
+    steps: list
+    confirmed: bool
 
 
 class Rig:
@@ -40,20 +52,23 @@ class Rig:
         self.sensors.zero()
         return idn
 
-    def fail_safe(self) -> list[str]:
-        """Vent every line to 0 kPa, then outputs off; each step is tried even if another
-        failed. Returns what happened, one line per step (``"vented to 0 kPa"``, ``"outputs off"``
-        or the error)."""
-        done = []
-        for what, fn in (("vented to 0 kPa", self.source.vent), ("outputs off", self.source.off)):
+    def fail_safe(self) -> FailSafe:
+        """Vent every line to 0 kPa, then outputs off, then the front panel back to local; each
+        step is tried even if another failed, and the first two are confirmed by reading them back
+        (:meth:`PressureSource.vent`, :meth:`PressureSource.off`)."""
+        steps, ok = [], []
+        for name, fn, done in (("vent", self.source.vent, "vented to 0 kPa (set {} V read back)"),
+                               ("off", self.source.off, "outputs off (read back off; measured {} V)"),
+                               ("local", self.source.local, "front panel local")):
             try:
-                fn()
-                done.append(what)
-            except KeyboardInterrupt:  # a second Ctrl-C must not stop the shutdown
-                done.append(f"FAILED ({what.split()[0]}): interrupted")
+                v = fn()
+                steps.append(done.format(format_volts(v)) if v is not None else done)
+                ok.append(name)
+            except KeyboardInterrupt:  # a further signal must not stop the shutdown
+                steps.append(f"FAILED ({name}): interrupted")
             except Exception as exc:  # keep going: the next step may still work
-                done.append(f"FAILED ({what.split()[0]}): {exc}")
-        return done
+                steps.append(f"FAILED ({name}): {one_line(exc)}")
+        return FailSafe(steps, confirmed={"vent", "off"} <= set(ok))
 
     def close(self) -> None:
         for c in (self.source.close, self.sensors.close):

@@ -37,7 +37,7 @@ _WRITES = {
     "APP:VOLT": re.compile(rf"APP:VOLT {_V},{_V},{_V}"),
     "OUTP": re.compile(r"OUTP ([01])"),
 }
-_QUERIES = ("*IDN?", "APP:VOLT?", "MEAS:VOLT:ALL?")
+_QUERIES = ("*IDN?", "APP:VOLT?", "MEAS:VOLT:ALL?", "OUTP?")
 
 
 class SCPIProtocolError(AssertionError):
@@ -53,9 +53,14 @@ class FakeBK9129B:
         fail_from: exchange index from which every call raises ``ConnectionError`` (a pulled cable).
         slow: ``{exchange index: extra seconds}`` (a stalled port).
         ignore_sets: how many ``APP:VOLT`` settings to silently drop (a garbled line).
+        stuck_on: ``OUTP 0`` is acknowledged but the outputs stay on (a failed output relay).
+
+    Args:
+        clock: the :class:`SimClock` charged with the serial I/O time, or None (no time charged:
+            a fake served on a real port, :mod:`softcrawl.hardware.ptysupply`).
     """
 
-    def __init__(self, clock: SimClock, baud: int = 9600) -> None:
+    def __init__(self, clock: SimClock | None, baud: int = 9600) -> None:
         self.clock = clock
         self.baud = baud
         self.transcript: list[tuple[str, str]] = []
@@ -67,6 +72,7 @@ class FakeBK9129B:
         self.fail_when = None
         self.slow: dict[int, float] = {}
         self.ignore_sets = 0
+        self.stuck_on = False
         self.n = 0
         self._rng = np.random.default_rng(1)
 
@@ -78,7 +84,8 @@ class FakeBK9129B:
         if (self.fail_from is not None and i >= self.fail_from) or (self.fail_when and self.fail_when(text)):
             raise ConnectionError("simulated: device disconnected (USB-serial port vanished)")
         n_bytes = len(text) + 1 + (len(answer) + 1 if answer else 0)
-        self.clock.advance(n_bytes * 10 / self.baud + self.slow.get(i, 0.0))
+        if self.clock is not None:
+            self.clock.advance(n_bytes * 10 / self.baud + self.slow.get(i, 0.0))
 
     def write(self, cmd: str) -> None:
         for name, rx in _WRITES.items():
@@ -94,7 +101,7 @@ class FakeBK9129B:
         elif name == "SYST:LOC":
             self.remote = False
         elif name == "OUTP":
-            self.on = m.group(1) == "1"
+            self.on = m.group(1) == "1" or (self.on and self.stuck_on)
         elif name == "APP:VOLT":
             if not self.remote:
                 raise SCPIProtocolError("APP:VOLT before SYST:REM")
@@ -117,6 +124,8 @@ class FakeBK9129B:
             ans = IDN
         elif cmd == "APP:VOLT?":
             ans = ", ".join(f"{x:.3f}" for x in self.set_v)
+        elif cmd == "OUTP?":
+            ans = "1" if self.on else "0"
         else:
             ans = ", ".join(f"{x:.3f}" for x in self.output_v() + self._rng.normal(0, 0.0005, 3) * self.on)
         self._io(cmd, ans)

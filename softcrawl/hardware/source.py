@@ -21,14 +21,23 @@ import numpy as np
 from softcrawl.robot.actuation import P_MAX_KPA, PressureRangeError, check_pressures
 
 
+#: Smallest regulator gain, V/kPa: the 9129B sets voltages in 1 mV steps, so 1 kPa must be at
+#: least one step.
+MIN_VOLTS_PER_KPA = 1e-3
+
+
 @dataclass(frozen=True)
 class RegulatorMap:
     """``volts = offset_v + volts_per_kpa * kpa`` for one regulator.
 
     Attributes:
         channel: supply channel 1..3.
-        volts_per_kpa: V per kPa, > 0.
+        volts_per_kpa: V per kPa, at least :data:`MIN_VOLTS_PER_KPA`.
         offset_v: V at 0 kPa, >= 0.
+
+    Raises:
+        ValueError: a channel other than 1..3, a gain below :data:`MIN_VOLTS_PER_KPA` or not
+            finite, a negative or non-finite offset.
     """
 
     channel: int
@@ -38,8 +47,9 @@ class RegulatorMap:
     def __post_init__(self) -> None:
         if self.channel not in (1, 2, 3):
             raise ValueError(f"regulator channel must be 1, 2 or 3, got {self.channel}")
-        if not (math.isfinite(self.volts_per_kpa) and self.volts_per_kpa > 0):
-            raise ValueError(f"volts_per_kpa must be finite and > 0, got {self.volts_per_kpa}")
+        if not (math.isfinite(self.volts_per_kpa) and self.volts_per_kpa >= MIN_VOLTS_PER_KPA):
+            raise ValueError(f"volts_per_kpa must be finite and >= {MIN_VOLTS_PER_KPA:g} V/kPa (the supply sets "
+                             f"1 mV steps: a smaller gain cannot tell 1 kPa apart), got {self.volts_per_kpa}")
         if not (math.isfinite(self.offset_v) and self.offset_v >= 0):
             raise ValueError(f"offset_v must be finite and >= 0 V, got {self.offset_v}")
 
@@ -123,13 +133,26 @@ class PressureSource:
         self.supply.output(True)
         return idn
 
-    def vent(self) -> None:
-        """All regulators to 0 kPa."""
-        self.set_kpa(np.zeros(3))
+    def vent(self) -> np.ndarray:
+        """All regulators to 0 kPa; returns the set channel voltages ``(3,)`` V as read back.
 
-    def off(self) -> None:
-        """Outputs off and front panel back to local."""
+        Raises:
+            SupplyError: the setting could not be sent or did not read back.
+        """
+        return self.set_kpa(np.zeros(3))
+
+    def off(self) -> np.ndarray:
+        """Outputs off, confirmed by reading back the output state and measuring the outputs;
+        returns the measured channel voltages ``(3,)`` V.
+
+        Raises:
+            SupplyError: not sent, or not confirmed (outputs still on, or a channel measuring volts).
+        """
         self.supply.output(False)
+        return self.supply.confirm_zero()
+
+    def local(self) -> None:
+        """Front panel back to local control."""
         self.supply.local()
 
     def close(self) -> None:

@@ -11,6 +11,7 @@ APPLy / MEASure / OUTPut / SYSTem subsystems; the same set as the issue #19 rig 
     APP:VOLT?                -> "a, b, c" the set voltages, V
     MEAS:VOLT:ALL?           -> "a, b, c" the measured output voltages, V
     OUTP 1 / OUTP 0          all outputs on / off
+    OUTP?                    -> "1" / "0" (also "ON" / "OFF") whether the outputs are on
     SYST:LOC                 back to local (front panel) control
 
 The driver is written against any object with ``write(str)``, ``query(str) -> str`` and
@@ -22,12 +23,20 @@ example driver does); a voltage beyond a channel's limit is refused before anyth
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from softcrawl.hardware.errors import SupplyError, VoltageLimitError, one_line
 
 #: Hardware maximum output of each 9129B channel, V (channel 3 is the 5 V channel).
 BK9129B_MAX_V = (30.0, 30.0, 5.0)
+#: A channel measuring at most this much with its output off counts as off, V (the 9129B's
+#: voltage read-back resolution is 1 mV; 0.05 V is 1 kPa on the example rig's 0.05 V/kPa maps).
+OFF_TOL_V = 0.05
+#: How long a late answer to a query cut short may take to arrive, s: the longest answer
+#: (``*IDN?``, about 55 bytes) takes 57 ms at 9600 baud, plus the instrument's reply latency.
+LATE_ANSWER_S = 0.2
 #: Serial settings of the 9129B's USB-serial (VCP) interface.
 SERIAL = {"baud_rate": 9600, "data_bits": 8, "parity": "none", "stop_bits": "one", "termination": "\n"}
 
@@ -76,6 +85,7 @@ class BK9129B:
         self.max_v = max_v
         self.retries = int(retries)
         self.tol_v = float(tol_v)
+        self._unanswered = False
 
     @classmethod
     def open(cls, address: str, timeout_ms: int = 1000, backend: str = "@py", **kwargs) -> BK9129B:
@@ -111,10 +121,32 @@ class BK9129B:
             raise SupplyError(f"supply: lost connection sending {cmd!r}: {one_line(exc)}") from None
 
     def _query(self, cmd: str) -> str:
+        if self._unanswered:
+            self._discard_late_answer()
+        self._unanswered = True  # until the answer is read: a signal or a timeout can cut the query short
         try:
-            return str(self.resource.query(cmd))
+            ans = str(self.resource.query(cmd))
         except Exception as exc:
             raise SupplyError(f"supply: lost connection on {cmd!r}: {one_line(exc)}") from None
+        self._unanswered = False
+        return ans
+
+    def _discard_late_answer(self) -> None:
+        """Drop the answer of a query that was cut short (a signal, a timeout): it arrives late and
+        would otherwise be read as the next query's answer. Waits :data:`LATE_ANSWER_S` for it,
+        then discards the resource's input buffer (pyvisa ``flush``; a resource without one has
+        no buffer to discard)."""
+        self._unanswered = False
+        flush = getattr(self.resource, "flush", None)
+        if flush is None:
+            return
+        time.sleep(LATE_ANSWER_S)
+        try:
+            from pyvisa.constants import BufferOperation
+
+            flush(BufferOperation.discard_read_buffer)
+        except Exception:  # nothing to discard, or the port is gone: the query that follows says which
+            pass
 
     # -- commands --
     def identify(self) -> str:
@@ -167,9 +199,43 @@ class BK9129B:
         """``MEAS:VOLT:ALL?``: ``(3,)`` measured output voltages, V."""
         return parse_triple(self._query("MEAS:VOLT:ALL?"), "MEAS:VOLT:ALL?")
 
+    def output_on(self) -> bool:
+        """``OUTP?``: whether the outputs are on.
+
+        Raises:
+            SupplyError: lost connection or an answer other than 1 / 0 / ON / OFF.
+        """
+        ans = self._query("OUTP?").strip().upper()
+        if ans not in ("1", "0", "ON", "OFF"):
+            raise SupplyError(f"supply: unreadable answer to OUTP?: {ans!r}")
+        return ans in ("1", "ON")
+
     def output(self, on: bool) -> None:
-        """``OUTP 1`` / ``OUTP 0``: all outputs on or off."""
-        self._write("OUTP 1" if on else "OUTP 0")
+        """``OUTP 1`` / ``OUTP 0``: all outputs on or off, verified with ``OUTP?`` and re-sent up
+        to ``retries`` times.
+
+        Raises:
+            SupplyError: lost connection, or the outputs still read back wrong after the retries.
+        """
+        for _ in range(self.retries):
+            self._write("OUTP 1" if on else "OUTP 0")
+            if self.output_on() == bool(on):
+                return
+        raise SupplyError(f"supply: sent OUTP {int(bool(on))} but OUTP? still reads {'off' if on else 'on'} "
+                          f"after {self.retries} attempts")
+
+    def confirm_zero(self, tol_v: float = OFF_TOL_V) -> np.ndarray:
+        """Measure every channel (``MEAS:VOLT:ALL?``) and check it is at most ``tol_v`` (after
+        ``output(False)``, which read back ``OUTP?``). Returns the ``(3,)`` measured voltages, V.
+
+        Raises:
+            SupplyError: lost connection, or a channel measuring more than ``tol_v``.
+        """
+        v = self.measure_volts()
+        if (np.abs(v) > tol_v).any():
+            raise SupplyError(f"supply: outputs read back off but measure {format_volts(v)} V "
+                              f"(more than {tol_v:g} V)")
+        return v
 
     def close(self) -> None:
         try:
