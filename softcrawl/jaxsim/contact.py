@@ -151,7 +151,7 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int):
     ``L |y - x'|`` met (the paper keeps the one of smallest residual).
 
     Args and returns as :func:`pgs_coulomb` (``n_iter`` for ``n_sweeps``; one iteration is
-    one product with ``W``, about a third of a Gauss-Seidel sweep's work).
+    one product with ``W``, the arithmetic of one Gauss-Seidel sweep, but all contacts at once).
     """
     dtype, mu, lam, rows = _blocks(W, mu, lam0, active)
     K = active.shape[0]
@@ -186,6 +186,7 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int):
     return s * best
 
 
+@jax.jit
 def condense(W, q, bilateral):
     """Eliminate the bilateral rows ``0 .. nb - 1`` (``u = 0`` there) by a Schur complement.
 
@@ -251,6 +252,7 @@ def solve_constraints(W, q, bilateral, mu, lam0, active, n_sweeps: int, method: 
     return lam, res
 
 
+@jax.jit
 def residuals(W, q, mu, lam, active):
     """How far impulses are from solving the contact problem: the largest violation over the
     active contacts of each condition (all zero at a solution).
