@@ -22,12 +22,19 @@ Solvers:
   Sequential over contacts: ``K`` dependent steps per sweep.
 - :func:`apgd_coulomb`: Nesterov-accelerated projected gradient on the cone complementarity
   problem (Mazhar, Heyn, Negrut, Tasora 2015, "Using Nesterov's method to accelerate multibody
-  dynamics with friction and contact", ACM TOG 34(3), Alg. 2: APGD with gradient restart),
-  with De Saxce's change of variable ``u_n -> u_n + mu |u_t|`` (De Saxce and Feng 1998, "The
+  dynamics with friction and contact", ACM TOG 34(3): their APGD with its gradient restart,
+  here with a fixed step ``1 / L`` instead of their line search), with De Saxce's change of variable ``u_n -> u_n + mu |u_t|`` (De Saxce and Feng 1998, "The
   bipotential method", Math. Comput. Modelling 28) so that its fixed point is the Coulomb
   problem above rather than the convex relaxation (which would let a slipping contact lift off
   at ``u_n = mu |u_t|``), on the Delassus operator scaled per contact to unit normal diagonal.
   All contacts at once: one matrix-vector product per iteration.
+
+Which to use: Gauss-Seidel is the CPU engine's iteration (the same numbers in float64) and
+converges in fewer sweeps on well-conditioned operators (random ones of 40 contacts: a relative
+natural-map residual of 1e-7 in 50 sweeps, the accelerated gradient needs 200-400); on the
+recorded problems of reduced robots (condition numbers to 1e5, 7-12 contacts) the accelerated
+gradient reaches 1e-6 in 400-800 iterations where Gauss-Seidel needs 1,600 to over 3,200, and
+its iterations have no sequential dependence across contacts (an accelerator's advantage).
 
 Neither runs the CPU engine's exact active-set polish (a data-dependent sequence of dense
 solves); :func:`residuals` measures how far a solution is from satisfying every condition.
@@ -108,8 +115,9 @@ def pgs_coulomb(W, q, mu, lam0, active, n_sweeps: int):
 
 def project_cone(lam, mu):
     """Euclidean projection of impulses ``(K, 3)`` (normal first) onto the Coulomb cones
-    ``|lam_t| <= mu lam_n`` (closed form for a second-order cone: Boyd and Vandenberghe,
-    "Convex Optimization", 2004, exercise 8.3; for aperture ``mu``: Mazhar et al. 2015, eq. 17)."""
+    ``|lam_t| <= mu lam_n``: unchanged inside, 0 in the polar cone ``mu |lam_t| <= -lam_n``,
+    else ``lam_n' = (lam_n + mu |lam_t|) / (1 + mu^2)``, ``lam_t' = mu lam_n' lam_t / |lam_t|``
+    (the closed-form projection onto a second-order cone, as in Mazhar et al. 2015)."""
     n, t = lam[:, 0], lam[:, 1:]
     nt = jnp.sqrt(jnp.sum(t * t, axis=1))
     inside = nt <= mu * n
@@ -147,7 +155,7 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int):
     S q`` after De Saxce's change (module doc), ``P`` the projection onto the cones,
     ``L`` the largest eigenvalue of ``Ws`` (power iteration, :data:`LIPSCHITZ_SAFETY`), and
     Nesterov's extrapolation ``y = x' + beta (x' - x)``, restarted when ``g . (x' - x) > 0``
-    (Mazhar et al. 2015, Alg. 2). Returns the iterate with the smallest gradient mapping
+    (Mazhar et al. 2015). Returns the iterate with the smallest gradient mapping
     ``L |y - x'|`` met (the paper keeps the one of smallest residual).
 
     Args and returns as :func:`pgs_coulomb` (``n_iter`` for ``n_sweeps``; one iteration is
