@@ -198,15 +198,17 @@ def test_vmap_over_robots_equals_one_call_per_robot(C):
 def test_condense_matches_the_cpu_schur_complement(C, case):
     """The recorded attachment blocks (42 and 60 bilateral rows, condition numbers to 5.6e4):
     ``X``, ``Wc`` and ``qc`` equal :func:`softcrawl.reduction.constrain.condense`'s to
-    1e-11 relative (LAPACK's and XLA's Cholesky round differently; measured 1.4e-12)."""
+    1e-11 relative (LAPACK's and XLA's Cholesky round differently; measured 1.4e-12), with or
+    without the least-squares fallback (unused on these regular blocks)."""
     if case == "schur":
         z = np.load(DATA / "repeating_polish.npz")
         W, q, nb = z["schur_W"], z["schur_q"], int(z["schur_nb"])
     else:
         z = np.load(DATA / "ill_conditioned_contact.npz")
         W, q, nb = z["W"], z["q"], int(z["n_bilateral_rows"])
-    for a, b in zip(C.condense(W, q, np.ones(nb, bool)), cpu_condense(W, q, nb)):
-        assert _rel(a, b) <= 1e-11
+    for least_squares in (True, False):
+        for a, b in zip(C.condense(W, q, np.ones(nb, bool), least_squares=least_squares), cpu_condense(W, q, nb)):
+            assert _rel(a, b) <= 1e-11
 
 
 def test_condense_of_redundant_attachments_is_least_squares(C):

@@ -194,8 +194,8 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int):
     return s * best
 
 
-@jax.jit
-def condense(W, q, bilateral):
+@partial(jax.jit, static_argnames="least_squares")
+def condense(W, q, bilateral, *, least_squares: bool = True):
     """Eliminate the bilateral rows ``0 .. nb - 1`` (``u = 0`` there) by a Schur complement.
 
     The masked block ``W_bb`` (identity on rows where ``bilateral`` is False) is factorized by
@@ -205,6 +205,10 @@ def condense(W, q, bilateral):
     Args:
         W: ``(nb + 3K, nb + 3K)`` Delassus operator, q: ``(nb + 3K,)`` (as in the module doc).
         bilateral: ``(nb,)`` bool, False for padding rows (impulse 0).
+        least_squares: keep the least-squares fallback (static). Under ``jax.vmap`` both
+            branches run for every robot, and the pseudo-inverse costs about 6x the rest of
+            this function (18 bilateral rows, 40 contacts, measured on a CPU); without it a
+            singular block gives NaN or impulses dominated by round-off.
 
     Returns:
         ``(X, Wc, qc)``: ``X = W_bb^-1 [q_b, W_bc]`` ``(nb, 3K + 1)`` (zero on padding rows),
@@ -217,7 +221,8 @@ def condense(W, q, bilateral):
     Wbb = jnp.where(m[:, None] & m[None, :], W[:nb, :nb], jnp.eye(nb, dtype=W.dtype))
     rhs = jnp.where(m[:, None], jnp.concatenate([q[:nb, None], W[:nb, nb:]], axis=1), 0)
     X = cho_solve(cho_factor(Wbb, lower=True), rhs)
-    X = lax.cond(jnp.all(jnp.isfinite(X)), lambda: X, lambda: jnp.linalg.pinv(Wbb, hermitian=True) @ rhs)
+    if least_squares:
+        X = lax.cond(jnp.all(jnp.isfinite(X)), lambda: X, lambda: jnp.linalg.pinv(Wbb, hermitian=True) @ rhs)
     Wcb = W[nb:, :nb]
     return X, W[nb:, nb:] - Wcb @ X[:, 1:], q[nb:] - Wcb @ X[:, 0]
 
@@ -225,9 +230,9 @@ def condense(W, q, bilateral):
 _SOLVERS = {"pgs": pgs_coulomb, "apgd": apgd_coulomb}
 
 
-@partial(jax.jit, static_argnames=("n_sweeps", "method", "return_residuals"))
+@partial(jax.jit, static_argnames=("n_sweeps", "method", "return_residuals", "least_squares"))
 def solve_constraints(W, q, bilateral, mu, lam0, active, n_sweeps: int, method: str = "pgs",
-                      return_residuals: bool = False):
+                      return_residuals: bool = False, least_squares: bool = True):
     """Attachments and floor contacts of one robot: :func:`condense`, the contact solve,
     then the bilateral impulses by back-substitution.
 
@@ -239,6 +244,7 @@ def solve_constraints(W, q, bilateral, mu, lam0, active, n_sweeps: int, method: 
             iterations), static.
         return_residuals: also return :func:`residuals` of the contact problem plus
             ``"bilateral"``: the largest ``|u|`` on the active bilateral rows (mm/s).
+        least_squares: as :func:`condense`.
 
     Returns:
         ``lam`` ``(nb + 3K,)`` (mN s; zero on padding), or ``(lam, residuals dict)``.
@@ -249,7 +255,7 @@ def solve_constraints(W, q, bilateral, mu, lam0, active, n_sweeps: int, method: 
     if method not in _SOLVERS:
         raise ValueError(f"method must be one of {sorted(_SOLVERS)}, got {method!r}")
     nb = bilateral.shape[0]
-    X, Wc, qc = condense(W, q, bilateral)
+    X, Wc, qc = condense(W, q, bilateral, least_squares=least_squares)
     lam_c = _SOLVERS[method](Wc, qc, mu, lam0, active, n_sweeps)
     lam = jnp.concatenate([-(X[:, 0] + X[:, 1:] @ lam_c), lam_c])
     if not return_residuals:
