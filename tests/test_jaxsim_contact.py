@@ -15,7 +15,7 @@ jax = pytest.importorskip("jax")
 import jax.numpy as jnp  # noqa: E402
 
 from softcrawl.fem.contact import pgs_coulomb as cpu_pgs  # noqa: E402
-from softcrawl.reduction.constrain import POLISH_RTOL, condense as cpu_condense, solve_condensed  # noqa: E402
+from softcrawl.reduction.constrain import condense as cpu_condense, solve_condensed  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 #: Impulse agreement with the CPU Gauss-Seidel (and between padded, batched and single calls),
@@ -371,7 +371,8 @@ def test_residuals_measure_each_violated_condition(C):
     act = np.ones(2, bool)
 
     def res(lam, q):
-        return {key: float(v) for key, v in C.residuals(W, np.asarray(q, float), mu, np.asarray(lam, float), act).items()}
+        out = C.residuals(W, np.asarray(q, float), mu, np.asarray(lam, float), act)
+        return {key: float(v) for key, v in out.items()}
 
     exact = res([1.0, 0.5, 0.0, 0.0, 0.0, 0.0], [-1.0, -1.5, 0.0, 2.0, 0.0, 0.0])  # slipping; separating
     assert max(exact.values()) <= 1e-15

@@ -23,18 +23,21 @@ Solvers:
 - :func:`apgd_coulomb`: Nesterov-accelerated projected gradient on the cone complementarity
   problem (Mazhar, Heyn, Negrut, Tasora 2015, "Using Nesterov's method to accelerate multibody
   dynamics with friction and contact", ACM TOG 34(3): their APGD with its gradient restart,
-  here with a fixed step ``1 / L`` instead of their line search), with De Saxce's change of variable ``u_n -> u_n + mu |u_t|`` (De Saxce and Feng 1998, "The
-  bipotential method", Math. Comput. Modelling 28) so that its fixed point is the Coulomb
-  problem above rather than the convex relaxation (which would let a slipping contact lift off
-  at ``u_n = mu |u_t|``), on the Delassus operator scaled per contact to unit normal diagonal.
-  All contacts at once: one matrix-vector product per iteration.
+  here with a fixed step ``1 / L`` instead of their line search), with De Saxce's change of
+  variable ``u_n -> u_n + mu |u_t|`` (De Saxce and Feng 1998, "The bipotential method", Math.
+  Comput. Modelling 28) so that its fixed point is the Coulomb problem above rather than the
+  convex relaxation (which would let a slipping contact lift off at ``u_n = mu |u_t|``), on the
+  Delassus operator scaled per contact to unit normal diagonal. All contacts at once: one
+  matrix-vector product per iteration.
 
-Which to use: Gauss-Seidel is the CPU engine's iteration (the same numbers in float64) and
-converges in fewer sweeps on well-conditioned operators (random ones of 40 contacts: a relative
-natural-map residual of 1e-7 in 50 sweeps, the accelerated gradient needs 200-400); on the
-recorded problems of reduced robots (condition numbers to 1e5, 7-12 contacts) the accelerated
-gradient reaches 1e-6 in 400-800 iterations where Gauss-Seidel needs 1,600 to over 3,200, and
-its iterations have no sequential dependence across contacts (an accelerator's advantage).
+Which to use: Gauss-Seidel is the CPU engine's iteration (the same numbers in float64, for
+comparisons with it) and needs fewer sweeps on well-conditioned operators (random ones of 40
+contacts: a relative natural-map residual of 1e-7 in 50 sweeps, where the accelerated gradient
+needs 200-400 iterations). On the recorded problems of reduced robots (condition numbers to
+1e5, 7-12 contacts) the accelerated gradient reaches 1e-6 within 400 to 1,600 iterations,
+Gauss-Seidel within 1,600 to 3,200 sweeps (one of the four problems not in 3,200). Its
+iterations have no sequential dependence across contacts: on a CPU one took 2x to 25x less time
+than a sweep (40 contacts, 1 to 64 robots, ``benchmarks/gpu_contact.py``).
 
 Neither runs the CPU engine's exact active-set polish (a data-dependent sequence of dense
 solves); :func:`residuals` measures how far a solution is from satisfying every condition.
