@@ -39,6 +39,10 @@ Gauss-Seidel within 1,600 to 3,200 sweeps (one of the four problems not in 3,200
 iterations have no sequential dependence across contacts: on a CPU one took 2x to 25x less time
 than a sweep (40 contacts, 1 to 64 robots, ``benchmarks/gpu_contact.py``).
 
+Precision: in float32 the velocities ``W lam + q`` of the recorded ill-conditioned problem
+(condition number 1.3e5) come out within 1e-5 of their scale, its impulses within 1e-3 of the
+largest (tests/test_jaxsim_contact.py); in float64 both solvers reach round-off.
+
 Neither runs the CPU engine's exact active-set polish (a data-dependent sequence of dense
 solves); :func:`residuals` measures how far a solution is from satisfying every condition.
 """
