@@ -14,7 +14,7 @@ fixed sweep count leaves the batch), device, peak memory (device bytes where JAX
 them, else the process's peak resident set).
 
 Usage: python benchmarks/gpu_contact.py [--contacts 40] [--sweeps 100] [--bilateral 0]
-       [--batches 1 16 256 1024 4096 16384] [--max-batch N] [--dtypes float32 float64]
+       [--batches 1 16 64 256 1024 4096 16384] [--max-batch N] [--dtypes float32 float64]
        [--methods pgs apgd] [--padding 0.25] [--repeats 3]
 ``--max-batch`` caps the batch sizes (default: 256 on a CPU, none on an accelerator).
 """
@@ -85,7 +85,7 @@ def main() -> None:
     p.add_argument("--contacts", type=int, default=40)
     p.add_argument("--sweeps", type=int, default=100)
     p.add_argument("--bilateral", type=int, default=0, help="attachment rows per robot (3 per attachment)")
-    p.add_argument("--batches", type=int, nargs="+", default=[1, 16, 256, 1024, 4096, 16384])
+    p.add_argument("--batches", type=int, nargs="+", default=[1, 16, 64, 256, 1024, 4096, 16384])
     p.add_argument("--max-batch", type=int, default=None)
     p.add_argument("--dtypes", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
     p.add_argument("--methods", nargs="+", default=["pgs", "apgd"], choices=["pgs", "apgd"])

@@ -245,8 +245,8 @@ def solve_constraints(W, q, bilateral, mu, lam0, active, n_sweeps: int, method: 
 
     Args:
         W: ``(nb + 3K, nb + 3K)``, q: ``(nb + 3K,)`` (module doc); bilateral: ``(nb,)`` bool mask
-            of the bilateral rows; mu, lam0 ``(3K,)``, active ``(K,)``, n_sweeps: as
-            :func:`pgs_coulomb`.
+            of the bilateral rows; mu (scalar or ``(K,)``), lam0 (the contacts' warm start
+            ``(3K,)``), active ``(K,)``, n_sweeps: as :func:`pgs_coulomb`.
         method: ``"pgs"`` (:func:`pgs_coulomb`) or ``"apgd"`` (:func:`apgd_coulomb`, ``n_sweeps``
             iterations), static.
         return_residuals: also return :func:`residuals` of the contact problem plus
