@@ -38,8 +38,9 @@ needs 200-400 iterations). On the recorded problems of reduced robots (condition
 Gauss-Seidel within 1,600 to 3,200 sweeps (one of the four problems not in 3,200). Its
 iterations have no sequential dependence across contacts: on a CPU one took 2x to 25x less time
 than a sweep (40 contacts, 1 to 64 robots, ``benchmarks/gpu_contact.py``), so it wins on the
-ill-conditioned problems everywhere, and Gauss-Seidel wins on well-conditioned ones (to 1e-7
-at 16-64 robots on a CPU: 2x to 4x faster); an accelerator's sweep costs ``K`` dependent steps.
+ill-conditioned problems, while Gauss-Seidel wins on well-conditioned batches (to 1e-7 on a
+CPU: even at 16 robots, 2.3x to 2.9x faster at 64; one robot alone is solved 1.5x to 2x faster
+by the accelerated gradient). On an accelerator a sweep costs ``K`` dependent steps.
 
 Precision: in float32 the velocities ``W lam + q`` of the recorded ill-conditioned problem
 (condition number 1.3e5) come out within 1e-5 of their scale, its impulses within 1e-3 of the
