@@ -39,7 +39,7 @@ Gauss-Seidel within 1,600 to 3,200 sweeps (one of the four problems not in 3,200
 iterations have no sequential dependence across contacts: on a CPU one took 2x to 25x less time
 than a sweep (40 contacts, 1 to 64 robots, ``benchmarks/gpu_contact.py``), so it wins on the
 ill-conditioned problems, while Gauss-Seidel wins on well-conditioned batches (to 1e-7 on a
-CPU: even at 16 robots, 2.3x to 2.9x faster at 64; one robot alone is solved 1.5x to 2x faster
+CPU: level at 16 robots, 2.3x to 2.9x faster at 64; one robot alone is solved 1.5x to 2x faster
 by the accelerated gradient). On an accelerator a sweep costs ``K`` dependent steps.
 
 Precision: in float32 the velocities ``W lam + q`` of the recorded ill-conditioned problem
