@@ -1,0 +1,453 @@
+"""The JAX contact solve (:mod:`softcrawl.jaxsim.contact`) against the CPU engine's
+(:mod:`softcrawl.fem.contact`, :mod:`softcrawl.reduction.constrain`) and closed-form friction.
+
+Float64 throughout (``jax_enable_x64`` is switched on for this module only and restored after),
+except the float32 test."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+import jax.numpy as jnp  # noqa: E402
+
+from softcrawl.fem.contact import pgs_coulomb as cpu_pgs  # noqa: E402
+from softcrawl.reduction.constrain import condense as cpu_condense, solve_condensed  # noqa: E402
+
+DATA = Path(__file__).parent / "data"
+#: Impulse agreement with the CPU Gauss-Seidel (and between padded, batched and single calls),
+#: relative to the largest impulse: the two sum their dot products in different orders
+#: (measured at most 8e-15 over the cases below).
+ROUND_OFF = 1e-13
+
+
+@pytest.fixture(autouse=True, scope="module")
+def x64():
+    old = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    yield
+    jax.config.update("jax_enable_x64", old)
+
+
+@pytest.fixture(scope="module")
+def C():
+    from softcrawl.jaxsim import contact
+
+    return contact
+
+
+#: The fixed shapes every random problem is padded to (inactive blocks at the end), so each
+#: function compiles once: contact slots and bilateral rows.
+K, NB = 10, 6
+
+
+def _random_problem(rng, k: int, nb: int = 0, mu: float = 0.5):
+    """``(W, q, mu)``: an SPD Delassus operator of ``nb`` bilateral rows and ``k`` contacts
+    (the shape of tests/test_fem.py's random problems), random free velocities."""
+    n = nb + 3 * k
+    B = rng.standard_normal((n, n))
+    return B @ B.T / n + 0.05 * np.eye(n), rng.standard_normal(n), np.full(k, mu)
+
+
+def _padded(W, q, mu, lam, nb: int = 0, slots: int = K):
+    """The problem with inactive blocks appended up to ``slots`` contacts (zero rows):
+    ``(W, q, mu, lam, active)``."""
+    k = len(mu)
+    n = nb + 3 * slots
+    Wp, qp, lp = np.zeros((n, n)), np.zeros(n), np.zeros(3 * slots)
+    Wp[:len(q), :len(q)], qp[:len(q)], lp[:3 * k] = W, q, lam
+    return Wp, qp, np.concatenate([mu, np.full(slots - k, 0.5)]), lp, np.arange(slots) < k
+
+
+def _cpu(W, q, mu, lam0, sweeps):
+    lam = np.array(lam0, float)
+    cpu_pgs(W, q, mu, lam, 0.0, sweeps)  # tol 0: every sweep runs
+    return lam
+
+
+def _recorded():
+    """The saved real contact problems ``(name, W, q, mu, warm)``: condensed where they have
+    bilateral rows (by the CPU :func:`condense`)."""
+    z = np.load(DATA / "cycling_contact.npz")
+    yield "cycling", z["W"], z["q"], z["mu"], z["warm_start"].ravel()
+    z = np.load(DATA / "ill_conditioned_contact.npz")
+    _, Wc, qc = cpu_condense(z["W"], z["q"], int(z["n_bilateral_rows"]))
+    yield "ill_conditioned", Wc, qc, z["mu"], z["warm_start"].ravel()
+    z = np.load(DATA / "repeating_polish.npz")  # (its schur_* problem condenses to failing_*)
+    for case in ("failing", "found"):
+        yield case, z[f"{case}_W"], z[f"{case}_q"], z[f"{case}_mu"], z[f"{case}_warm_start"]
+
+
+def _rel(a, b):
+    return np.abs(np.asarray(a) - np.asarray(b)).max() / max(np.abs(np.asarray(b)).max(), 1e-300)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_pgs_matches_the_cpu_gauss_seidel_on_random_problems(C, seed):
+    """Same block update in the same order: after 1, 7 and 60 sweeps from a random warm start
+    the impulses equal the CPU function's to round-off (1-10 contacts, SPD, mu 0.5; padded
+    to 10 slots)."""
+    rng = np.random.default_rng(seed)
+    for k in (1, 4, 10):
+        W, q, mu = _random_problem(rng, k)
+        warm = np.abs(rng.standard_normal(3 * k))
+        for sweeps in (1, 7, 60):
+            out = C.pgs_coulomb(*_padded(W, q, mu, warm), sweeps)
+            assert _rel(out[:3 * k], _cpu(W, q, mu, warm, sweeps)) <= ROUND_OFF
+
+
+@pytest.mark.parametrize("case", ["cycling", "ill_conditioned", "failing", "found"])
+def test_pgs_matches_the_cpu_gauss_seidel_on_recorded_problems(C, case):
+    """The saved real problems of reduced robots (condition numbers to 1e5, 7-12 contacts,
+    padded to 12 slots), warm-started as recorded: 300 sweeps equal the CPU function's
+    impulses to round-off."""
+    name, W, q, mu, warm = next(p for p in _recorded() if p[0] == case)
+    out = C.pgs_coulomb(*_padded(W, q, mu, warm, slots=12), 300)
+    assert _rel(out[:len(q)], _cpu(W, q, mu, warm, 300)) <= ROUND_OFF
+
+
+def _pad(rng, W, q, lam, nb: int, where_b, where_c):
+    """Insert padding rows (random entries) into a problem: bilateral padding rows at positions
+    ``where_b`` among the ``nb`` bilateral rows, padding blocks at ``where_c`` among the contacts.
+    Returns ``(W, q, lam, bilateral mask, active mask, index of the original rows)``."""
+    k = (len(q) - nb) // 3
+    b_real = np.ones(nb + len(where_b), bool)
+    b_real[where_b] = False
+    c_real = np.ones(k + len(where_c), bool)
+    c_real[where_c] = False
+    rows = np.concatenate([b_real, np.repeat(c_real, 3)])
+    take = np.flatnonzero(rows)
+    n = len(rows)
+    G = rng.standard_normal((n, n))
+    Wp, qp, lp = G @ G.T + np.eye(n), rng.standard_normal(n), rng.standard_normal(n)
+    Wp[np.ix_(take, take)] = W
+    qp[take] = q
+    lp[take] = lam
+    return Wp, qp, lp[len(b_real):], b_real, c_real, take
+
+
+def test_padding_blocks_change_nothing(C):
+    """Inactive contact blocks and masked bilateral rows with random entries in W, q and the
+    warm start, interleaved with the real ones (4 bilateral rows, 7 contacts, padded to 6 and
+    10) or all at the end: the real impulses and the residuals agree to round-off, and the
+    padding's impulses are exactly 0 (Gauss-Seidel, accelerated projected gradient, the whole
+    constraint solve). The accelerated gradient to 1e-11: its step (a power iteration) and
+    restarts carry round-off through 60 iterations (measured 6e-13). With the padding at the
+    end Gauss-Seidel equals the CPU function on the unpadded problem (the random-problem tests)."""
+    rng = np.random.default_rng(7)
+    nb, k = 4, 7
+    W, q, mu = _random_problem(rng, k, nb)
+    lam = np.concatenate([np.zeros(nb), np.abs(rng.standard_normal(3 * k))])
+    layouts = [_pad(rng, W, q, lam, nb, where_b, where_c) for where_b, where_c in (([4, 5], [7, 8, 9]),
+                                                                                  ([0, 3], [0, 4, 9]))]
+    mup = np.full(K, 0.5)
+    results = []
+    for Wp, qp, wp, bmask, cmask, take in layouts:
+        Wc, qc, ctake = Wp[NB:, NB:], qp[NB:], take[nb:] - NB
+        out = {}
+        for solver in (C.pgs_coulomb, C.apgd_coulomb):
+            lam_c = np.asarray(solver(Wc, qc, mup, wp, cmask, 60))
+            assert np.all(lam_c[np.repeat(~cmask, 3)] == 0)
+            res = C.residuals(Wc, qc, mup, lam_c, cmask)
+            out[solver.__name__] = lam_c[ctake], {key: float(v) for key, v in res.items()}
+        full = np.asarray(C.solve_constraints(Wp, qp, bmask, mup, wp, cmask, 60))
+        assert np.all(full[np.setdiff1d(np.arange(len(full)), take)] == 0)
+        out["full"] = full[take], {}
+        results.append(out)
+    for key, (ref, ref_res) in results[0].items():
+        lam_c, res = results[1][key]
+        tol = 1e-11 if key == "apgd_coulomb" else ROUND_OFF
+        assert _rel(lam_c, ref) <= tol, key
+        assert all(abs(res[n] - ref_res[n]) <= tol * max(1.0, ref_res[n]) for n in ref_res), key
+
+
+def test_vmap_over_robots_equals_one_call_per_robot(C):
+    """A batch of 4 robots of different contact patterns (padding masks, mu, warm starts):
+    ``jax.vmap`` of each function gives each robot's own call to round-off."""
+    rng = np.random.default_rng(3)
+    R = 4
+    probs = [_random_problem(rng, K, NB, mu=0.3 + 0.3 * r) for r in range(R)]
+    W = np.stack([p[0] for p in probs])
+    q = np.stack([p[1] for p in probs])
+    mu = np.stack([p[2] for p in probs])
+    warm = np.abs(rng.standard_normal((R, 3 * K)))
+    act = rng.random((R, K)) < 0.7
+    bil = rng.random((R, NB)) < 0.8
+    for solver in (C.pgs_coulomb, C.apgd_coulomb):
+        batch = jax.vmap(lambda *a: solver(*a, 60))(W[:, NB:, NB:], q[:, NB:], mu, warm, act)
+        for r in range(R):
+            assert _rel(batch[r], solver(W[r, NB:, NB:], q[r, NB:], mu[r], warm[r], act[r], 60)) <= ROUND_OFF
+    batch, res = jax.vmap(lambda *a: C.solve_constraints(*a, 60, return_residuals=True))(W, q, bil, mu, warm, act)
+    for r in range(R):
+        one, one_res = C.solve_constraints(W[r], q[r], bil[r], mu[r], warm[r], act[r], 60, return_residuals=True)
+        assert _rel(batch[r], one) <= ROUND_OFF
+        assert all(abs(float(res[key][r]) - float(one_res[key])) <= ROUND_OFF * max(1.0, float(one_res[key]))
+                   for key in one_res)
+    pts = rng.uniform(-1, 1, (R, 20, 3))
+    vel = rng.uniform(-20, 20, (R, 20, 3))
+    batch = jax.vmap(lambda p, v: C.floor_contacts(p, v, 0.0, 0.5, 8, dt=0.02))(pts, vel)
+    for r in range(R):
+        for a, b in zip(batch, C.floor_contacts(pts[r], vel[r], 0.0, 0.5, 8, dt=0.02)):
+            np.testing.assert_array_equal(a[r], b)
+
+
+@pytest.mark.parametrize("case", ["ill_conditioned", "schur"])
+def test_condense_matches_the_cpu_schur_complement(C, case):
+    """The recorded attachment blocks (42 and 60 bilateral rows, condition numbers to 5.6e4):
+    ``X``, ``Wc`` and ``qc`` equal :func:`softcrawl.reduction.constrain.condense`'s to
+    1e-11 relative (LAPACK's and XLA's Cholesky round differently; measured 1.4e-12), with or
+    without the least-squares fallback (unused on these regular blocks)."""
+    if case == "schur":
+        z = np.load(DATA / "repeating_polish.npz")
+        W, q, nb = z["schur_W"], z["schur_q"], int(z["schur_nb"])
+    else:
+        z = np.load(DATA / "ill_conditioned_contact.npz")
+        W, q, nb = z["W"], z["q"], int(z["n_bilateral_rows"])
+    for least_squares in (True, False):
+        for a, b in zip(C.condense(W, q, np.ones(nb, bool), least_squares=least_squares), cpu_condense(W, q, nb)):
+            assert _rel(a, b) <= 1e-11
+
+
+def test_condense_of_redundant_attachments_is_least_squares(C):
+    """A bilateral block that is singular (an attachment row repeated): Cholesky fails, and
+    like the CPU engine the Schur complement falls back to the pseudo-inverse; the result is
+    finite and equals the CPU's to 1e-9 relative."""
+    rng = np.random.default_rng(5)
+    W, q, _ = _random_problem(rng, K, NB)
+    J = np.eye(len(q))
+    J[1] = J[0]  # rows 0 and 1 constrain the same thing
+    W, q = J @ W @ J.T, J @ q
+    out = C.condense(W, q, np.ones(NB, bool))
+    for a, b in zip(out, cpu_condense(W, q, NB)):
+        assert np.all(np.isfinite(np.asarray(a))) and _rel(a, b) <= 1e-9
+
+
+def _assert_solution(res, lam, tol_v, tol_f):
+    """Every residual of the dict ``res`` (:func:`residuals`) within ``tol_v`` (velocity-like,
+    mm/s; the products scaled by the largest impulse of ``lam``) or ``tol_f`` (impulse-like, mN s)."""
+    res = {key: float(v) for key, v in res.items()}
+    scale_f = max(np.abs(np.asarray(lam)).max(), 1e-300)
+    limits = {"penetration": tol_v, "pull": tol_f, "cone": tol_f, "natural_map": tol_f,
+              "complementarity": tol_v * scale_f, "dissipation": tol_v * scale_f}
+    bad = {key: (res[key], limits[key]) for key in limits if not res[key] <= limits[key]}
+    assert not bad, bad
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_solve_constraints_matches_the_cpu_solve_where_gauss_seidel_converges(C, seed):
+    """Random problems with 6 bilateral rows and 2-7 contacts (padded to 10 slots): where the
+    CPU's :func:`solve_condensed` finds the solution (its Gauss-Seidel converges to 1e-10
+    relative change, or else its exact polish succeeds), 400 sweeps of the JAX solve
+    (Gauss-Seidel, or the accelerated projected gradient) give the same impulses to 1e-9
+    relative (measured 9e-11) and satisfy every condition to 1e-11 of the velocity and
+    impulse scales (measured 1.2e-13), the bilateral rows included."""
+    rng = np.random.default_rng(20 + seed)
+    checked = 0
+    for _ in range(8):
+        k = int(rng.integers(2, 8))
+        W, q, mu = _random_problem(rng, k, NB)
+        ref, _, rel, polished = solve_condensed(W, q, NB, mu, np.zeros(3 * k), 1e-10, 2000, 0)
+        if not (polished or rel <= 1e-10):
+            continue
+        checked += 1
+        Wp, qp, mup, warm, act = _padded(W, q, mu, np.zeros(3 * k), NB)
+        for method in ("pgs", "apgd"):
+            lam, res = C.solve_constraints(Wp, qp, np.ones(NB, bool), mup, warm, act, 400, method=method,
+                                           return_residuals=True)
+            lam = np.asarray(lam)[:len(q)]
+            assert _rel(lam, ref) <= 1e-9, method
+            assert float(res.pop("bilateral")) <= 1e-11 * np.abs(q).max()
+            _assert_solution(res, lam[NB:], 1e-11 * np.abs(q).max(), 1e-11 * np.abs(ref).max())
+    assert checked >= 6
+
+
+def test_the_ill_conditioned_recorded_problem_is_solved_by_the_accelerated_gradient(C):
+    """The recorded ill-conditioned problem (4 attachments, 7 contacts of a reduced leg; the
+    CPU engine needs its exact polish after 500 sweeps): 1,000 accelerated projected gradient
+    iterations reach the polished solution's velocities to 1e-8 of the velocity scale
+    (measured 3.2e-9) and satisfy every condition to 1e-8 (natural-map residual: measured
+    8e-11 of the impulse scale), where 1,000 Gauss-Seidel sweeps are still 1e-6 away (measured 3e-6; Gauss-Seidel
+    converges slowly on the ill-conditioned W of several contacts on one reduced leg)."""
+    from softcrawl.fem.contact import solve_constraints as cpu_solve
+
+    z = np.load(DATA / "ill_conditioned_contact.npz")
+    W, q, nb, mu = z["W"], z["q"], int(z["n_bilateral_rows"]), z["mu"]
+    sol = cpu_solve(W, q, nb, mu, z["warm_start"], 1e-8, 250)
+    assert sol.polished
+    ref = np.concatenate([sol.bilateral, sol.contact.ravel()])
+    k = len(mu)
+    vscale, fscale = np.abs(q).max(), np.abs(ref).max()
+    args = (W, q, np.ones(nb, bool), mu, np.zeros(3 * k), np.ones(k, bool), 1000)
+    lam, res = C.solve_constraints(*args, method="apgd", return_residuals=True)
+    assert np.abs(W @ (np.asarray(lam) - ref)).max() <= 1e-8 * vscale
+    assert float(res.pop("bilateral")) <= 1e-8 * vscale
+    _assert_solution(res, lam[nb:], 1e-8 * vscale, 1e-8 * fscale)
+    _, res = C.solve_constraints(*args, method="pgs", return_residuals=True)
+    assert float(res["natural_map"]) > 1e-6 * fscale
+
+
+def _box_on_incline(theta_deg: float, phi_deg: float, mu: float):
+    """A rigid box (50 g, 40 x 30 x 10 mm, center of mass 5 mm above its four bottom corners)
+    resting on the floor, gravity (9810 mm/s^2) tilted by ``theta`` from the normal towards the
+    floor direction ``phi``, one 20 ms step from rest: ``(W, q, mu, m g dt, dt)`` of its four
+    corner contacts (rank-6 Delassus operator ``J M^-1 J^T``, rows normal z, tangents x, y)."""
+    m, a, b, h, g, dt = 0.05, 20.0, 15.0, 5.0, 9810.0, 0.02
+    inertia = m / 12 * np.array([(2 * b) ** 2 + (2 * h) ** 2, (2 * a) ** 2 + (2 * h) ** 2, (2 * a) ** 2 + (2 * b) ** 2])
+    Minv = np.diag(np.concatenate([np.full(3, 1 / m), 1 / inertia]))
+    rows = []
+    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        r = np.array([sx * a, sy * b, -h])
+        cross = np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])  # [r]x
+        Jp = np.hstack([np.eye(3), -cross])  # point velocity v + w x r
+        rows += [Jp[2], Jp[0], Jp[1]]
+    J = np.array(rows)
+    th, ph = np.radians(theta_deg), np.radians(phi_deg)
+    gvec = g * np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), -np.cos(th)])
+    q = J @ np.concatenate([dt * gvec, np.zeros(3)])
+    return J @ Minv @ J.T, q, np.full(4, mu), m * g * dt, dt
+
+
+@pytest.mark.parametrize("method", ["pgs", "apgd"])
+def test_a_box_below_the_friction_angle_sticks(C, method):
+    """verification.md: a block on an incline sticks iff tan(theta) <= mu (mu 1.2, threshold
+    50.19 deg). At 45 deg the box's four corners stay at rest to 1e-12 of the free velocity
+    dt g (no creep; measured 3e-16 with both solvers) and the normal impulses carry the normal
+    weight, sum lam_n = m g cos(theta) dt, to 1e-12 relative (measured 3e-16)."""
+    W, q, mu, mgdt, dt = _box_on_incline(45.0, 30.0, 1.2)
+    lam = np.asarray(C.solve_constraints(W, q, np.zeros(0, bool), mu, np.zeros(12), np.ones(4, bool), 600,
+                                         method=method))
+    u = (W @ lam + q).reshape(4, 3)
+    assert np.abs(u).max() <= 1e-12 * dt * 9810.0
+    assert abs(lam[::3].sum() - mgdt * np.cos(np.radians(45.0))) <= 1e-12 * mgdt
+
+
+@pytest.mark.parametrize("method", ["pgs", "apgd"])
+def test_a_box_above_the_friction_angle_slides_with_the_coulomb_acceleration(C, method):
+    """verification.md: above the friction angle the block slides with acceleration
+    g (sin(theta) - mu cos(theta)). At 60 deg (mu 1.2), gravity tilted towards 30 deg in the
+    floor plane: every corner's velocity after one step is dt g (sin - mu cos) along that
+    direction with no normal velocity, and the friction impulse is mu times the normal one,
+    opposite to the slip (maximal dissipation), all to 1e-12 relative (measured 3e-15)."""
+    theta, phi = 60.0, 30.0
+    W, q, mu, mgdt, dt = _box_on_incline(theta, phi, 1.2)
+    lam = np.asarray(C.solve_constraints(W, q, np.zeros(0, bool), mu, np.zeros(12), np.ones(4, bool), 600,
+                                         method=method))
+    u, L = (W @ lam + q).reshape(4, 3), lam.reshape(4, 3)
+    th, ph = np.radians(theta), np.radians(phi)
+    speed = dt * 9810.0 * (np.sin(th) - 1.2 * np.cos(th))
+    want = np.tile([0.0, speed * np.cos(ph), speed * np.sin(ph)], (4, 1))
+    assert np.abs(u - want).max() <= 1e-12 * speed
+    total = L.sum(axis=0)
+    assert abs(total[0] - mgdt * np.cos(th)) <= 1e-12 * mgdt
+    np.testing.assert_allclose(total[1:], -1.2 * total[0] * np.array([np.cos(ph), np.sin(ph)]), rtol=1e-12)
+
+
+def test_float32_solves_agree_with_float64_within_the_stated_tolerance(C):
+    """Float32 (inputs cast, the same functions) against float64 on random problems of 2-10
+    contacts solved to convergence (400 sweeps or iterations): impulses within 1e-5 of the
+    largest impulse (measured 2e-7 Gauss-Seidel, 7e-7 accelerated gradient: float32 round-off
+    6e-8 amplified by the operators' conditioning) and residuals within 1e-5 of the scales
+    (natural map measured 4e-7)."""
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        k = int(rng.integers(2, 11))
+        W, q, mu, warm, act = _padded(*_random_problem(rng, k), np.zeros(3 * k))
+        for solver in (C.pgs_coulomb, C.apgd_coulomb):
+            ref = solver(W, q, mu, warm, act, 400)
+            out = solver(*(a.astype(np.float32) for a in (W, q, mu, warm)), act, 400)
+            assert out.dtype == jnp.float32
+            assert _rel(out, ref) <= 1e-5
+            out = np.asarray(out, float)
+            _assert_solution(C.residuals(W, q, mu, out, act), out, 1e-5 * np.abs(q).max(), 1e-5 * np.abs(ref).max())
+
+
+def test_float32_solve_of_the_ill_conditioned_recorded_problem_gets_the_velocities_right(C):
+    """The recorded ill-conditioned problem (condensed condition number 1.3e5) solved whole in
+    float32, 1,600 sweeps or iterations: the constraint velocities ``W lam + q`` (what moves
+    the robot) are those of the CPU engine's exact solution to 1e-5 of the velocity scale
+    (measured 2.9e-6 Gauss-Seidel, 4.6e-6 accelerated gradient), and so are the attachments'
+    (measured 4.2e-6); the impulses themselves only to 1e-3 of the largest (measured 1.4e-4:
+    float32 round-off times the condition number)."""
+    from softcrawl.fem.contact import solve_constraints as cpu_solve
+
+    z = np.load(DATA / "ill_conditioned_contact.npz")
+    W, q, nb, mu = z["W"], z["q"], int(z["n_bilateral_rows"]), z["mu"]
+    sol = cpu_solve(W, q, nb, mu, z["warm_start"], 1e-8, 250)
+    ref = np.concatenate([sol.bilateral, sol.contact.ravel()])
+    k, f32, vscale = len(mu), np.float32, np.abs(q).max()
+    for method in ("pgs", "apgd"):
+        lam, res = C.solve_constraints(W.astype(f32), q.astype(f32), np.ones(nb, bool), mu.astype(f32),
+                                       np.zeros(3 * k, f32), np.ones(k, bool), 1600, method=method,
+                                       return_residuals=True)
+        lam = np.asarray(lam, float)
+        assert np.abs(W @ (lam - ref)).max() <= 1e-5 * vscale, method
+        assert float(res["bilateral"]) <= 1e-5 * vscale
+        assert _rel(lam, ref) <= 1e-3
+
+
+def test_residuals_measure_each_violated_condition(C):
+    """Hand-made impulses on W = I (u = lam + q), one contact per violation, mu 0.5: each
+    residual reports exactly the violation it is named for."""
+    W, mu = np.eye(6), np.full(2, 0.5)
+    act = np.ones(2, bool)
+
+    def res(lam, q):
+        out = C.residuals(W, np.asarray(q, float), mu, np.asarray(lam, float), act)
+        return {key: float(v) for key, v in out.items()}
+
+    exact = res([1.0, 0.5, 0.0, 0.0, 0.0, 0.0], [-1.0, -1.5, 0.0, 2.0, 0.0, 0.0])  # slipping; separating
+    assert max(exact.values()) <= 1e-15
+    r = res([-0.25, 0.0, 0.0, 0.0, 0.0, 0.0], [-0.75, 0.0, 0.0, 0.0, 0.0, 0.0])  # pulling, penetrating
+    assert r["pull"] == 0.25 and r["penetration"] == 1.0 and r["complementarity"] == 0.25
+    r = res([1.0, 0.8, 0.0, 0.0, 0.0, 0.0], [-1.0, -0.8, 0.0, 0.0, 0.0, 0.0])  # outside the cone
+    assert r["cone"] == pytest.approx(0.3)
+    r = res([1.0, 0.5, 0.0, 0.0, 0.0, 0.0], [-1.0, -0.5, 1.0, 0.0, 0.0, 0.0])  # slip at 90 deg to friction
+    assert r["dissipation"] == pytest.approx(0.5) and r["natural_map"] > 0.1
+    r = res([1.0, 0.2, 0.0, 0.0, 0.0, 0.0], [-1.0, -0.2, 0.3, 0.0, 0.0, 0.0])  # creeping inside the cone
+    assert r["dissipation"] == pytest.approx(0.15) and r["natural_map"] > 0.1
+
+
+def test_extra_candidates_above_the_floor_change_no_impulse(C):
+    """floor_contacts' rule (its docstring): every candidate within the contact distance enters
+    the solve, a superset of the CPU engine's grown set. Candidates that the smaller set's
+    solution leaves separating (here u_n = 1 mm/s) get no impulse in the larger solve and the
+    others' impulses stay the same, to 1e-9 relative after 400 sweeps (measured: equal; random
+    problems of 6 contacts plus 4 candidates, coupled through W)."""
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        W, q, mu = _random_problem(rng, K)
+        n = 18
+        small = np.asarray(C.pgs_coulomb(*_padded(W[:n, :n], q[:n], mu[:6], np.zeros(n)), 400))[:n]
+        q = q.copy()
+        q[n::3] = 1.0 - W[n::3, :n] @ small  # the extra candidates separate at the small set's solution
+        act = np.ones(K, bool)
+        big = np.asarray(C.pgs_coulomb(W, q, mu, np.zeros(3 * K), act, 400))
+        assert np.all(big[n:] == 0)
+        assert _rel(big[:n], small) <= 1e-9
+
+
+def test_floor_contacts_keeps_the_k_lowest_predicted_gaps_in_point_order(C):
+    """Six points, K = 3: the three of smallest predicted gap min(g, g + dt v_z) are chosen, in
+    point order, active where that gap is below the contact distance, with their current gaps;
+    more slots than points is refused."""
+    pts = np.array([[0, 0, 5.0], [0, 0, 0.2], [0, 0, 3.0], [0, 0, -0.1], [0, 0, 2.0], [0, 0, 0.4]])
+    vel = np.zeros((6, 3))
+    vel[2, 2] = -200.0  # falls 4 mm in 20 ms: predicted gap -1
+    idx, active, gap = C.floor_contacts(pts, vel, 0.0, 0.3, 3, dt=0.02)
+    np.testing.assert_array_equal(idx, [1, 2, 3])
+    np.testing.assert_array_equal(active, [True, True, True])
+    np.testing.assert_allclose(gap, [0.2, 3.0, -0.1])
+    idx, active, gap = C.floor_contacts(pts, vel, 0.0, 0.3, 5, dt=0.02)
+    np.testing.assert_array_equal(idx, [1, 2, 3, 4, 5])
+    np.testing.assert_array_equal(active, [True, True, True, False, False])
+    with pytest.raises(ValueError, match="exceed"):
+        C.floor_contacts(pts, vel, 0.0, 0.3, 7, dt=0.02)
+
+
+def test_an_unknown_method_is_refused(C):
+    W, q, mu = _random_problem(np.random.default_rng(0), 2)
+    with pytest.raises(ValueError, match="method"):
+        C.solve_constraints(W, q, np.zeros(0, bool), mu, np.zeros(6), np.ones(2, bool), 5, method="newton")
