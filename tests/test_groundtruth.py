@@ -168,7 +168,9 @@ def test_resume_never_recomputes_a_finished_design(tmp_path):
     kill["on"], calls[:] = False, []
     s = run_groundtruth(DESIGNS, tmp_path, cfg, executor="serial", task=task, progress=False, refs=False)
     assert calls == DESIGNS[2:]  # only the unfinished designs
-    assert s["designs"] == 5 and len((tmp_path / "results.jsonl").read_text().splitlines()) == 5
+    lines = (tmp_path / "results.jsonl").read_text().splitlines()
+    assert s["designs"] == 5 and len(lines) == 6  # the torn line is left in place, on a line of its own
+    assert lines[2] == '{"design": [1, 1, 1' and len(s["bad_rows"]) == 1 and "line 3" in s["bad_rows"][0]
     calls[:] = []
     run_groundtruth(DESIGNS, tmp_path, None, executor="serial", task=task, progress=False, refs=False)
     assert calls == []

@@ -128,13 +128,18 @@ class SweepResult:
         return max(ok, key=lambda r: r.reward_cm) if ok else None
 
 
+#: Most phases a sweep may have (every 0.5 deg of a full turn; each is a whole episode).
+MAX_PHASES = 721
+
+
 def parse_phases(spec: str) -> tuple[float, ...]:
     """Phases from ``"start:stop:step"`` (degrees, stop included if on the grid) or a comma list.
 
     ``"0:180:10"`` gives 0, 10, ..., 180 (19 phases).
 
     Raises:
-        ValueError: malformed spec, non-finite values, step <= 0, stop < start, or repeats.
+        ValueError: malformed spec, non-finite values, step <= 0, stop < start, repeats, or
+            more than :data:`MAX_PHASES` phases.
     """
     try:
         if ":" in spec:
@@ -142,12 +147,16 @@ def parse_phases(spec: str) -> tuple[float, ...]:
             if not all(map(math.isfinite, (start, stop, step))) or step <= 0 or stop < start:
                 raise ValueError
             n = int(math.floor((stop - start) / step + 1e-9))
+            if n >= MAX_PHASES:
+                raise ValueError(f"phases {spec!r} are {n + 1}, more than the {MAX_PHASES} allowed")
             phases = tuple(float(v) for v in np.round(start + step * np.arange(n + 1), 9))
         else:
             phases = tuple(float(v) for v in spec.split(","))
-    except ValueError:
-        raise ValueError(f"phases must be 'start:stop:step' (step > 0, stop >= start) or a comma list "
-                         f"of degrees, got {spec!r}") from None
+    except ValueError as exc:
+        raise ValueError(str(exc) if str(exc).startswith("phases") else "phases must be 'start:stop:step' (step > 0, "
+                         f"stop >= start) or a comma list of degrees, got {spec!r}") from None
+    if len(phases) > MAX_PHASES:
+        raise ValueError(f"phases {spec!r} are {len(phases)}, more than the {MAX_PHASES} allowed")
     if not phases or not all(map(math.isfinite, phases)) or len(set(phases)) != len(phases):
         raise ValueError(f"phases must be finite and distinct, got {spec!r}")
     return phases
