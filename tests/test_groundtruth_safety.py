@@ -128,6 +128,7 @@ def test_5_groundtruth_takes_a_new_an_empty_or_its_own_folder(tmp_path):
     '{"design": [0,0,0,0,0,1,1,1], "reward_cm": NaN}',
     row(DESIGNS[1], reward_cm=1e999),  # json reads it as inf
     row(DESIGNS[1], reward_cm=-1e999),
+    row(DESIGNS[1], reward_cm=10**401),  # no float holds it
     row(DESIGNS[1], design=[9, 9, 9, 9, 9, 9, 9, 9], reward_cm=1000.0),
     row(DESIGNS[1], design=[1, 2], reward_cm=1000.0),
     row(DESIGNS[1], design=[2, 0, 0, 1, 1, 0, 0, 0], reward_cm=1000.0),  # not canonical
@@ -224,6 +225,8 @@ def test_8_14_groundtruth_settings_are_refused_before_any_work(flags, words, tmp
     ("n_envs=100000000", ["n_envs"]),
     ("env.steps_per_action=10000", ["episode"]),
     ("env.leg_mesh_size=0.01", ["env.leg_mesh_size"]),
+    ("n_envs=" + "9" * 401, ["n_envs"]),
+    ("env.disk_mesh_size=" + "9" * 401, ["env.disk_mesh_size"]),
     ("env=null", ["env is a section"]),
 ])
 def test_8_14_15_train_settings_are_refused_before_training(setting, words, tmp_path, capsys):

@@ -39,7 +39,13 @@ def _phases(text: str) -> tuple[float, ...]:
 def _run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from softcrawl.codesign.groundtruth import EXECUTORS, GroundTruthConfig, check_folder, parse_designs, run_groundtruth
+    from softcrawl.codesign.groundtruth import (
+        EXECUTORS,
+        GroundTruthConfig,
+        check_folder,
+        parse_designs,
+        run_groundtruth,
+    )
 
     if args.executor not in EXECUTORS:
         raise ValueError(f"--executor must be one of {EXECUTORS}")

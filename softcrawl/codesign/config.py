@@ -338,13 +338,13 @@ class TrainConfig:
         return build(cls, d, "").validate()
 
 
-def check_bounds(name: str, value, low: float, high: float, unit: str = "") -> None:
-    """Raise ValueError (naming setting ``name``) unless ``value`` is a finite number in
-    ``[low, high]`` (``unit`` is printed after the bounds)."""
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) \
-        and low <= value <= high
-    if not ok:
-        raise ValueError(f"{name} must be a number in [{low:g}, {high:g}]{' ' + unit if unit else ''}, got {value!r}")
+def check_bounds(name: str, value, low: float, high: float, unit: str = "", open_low: bool = False) -> None:
+    """Raise ValueError (naming setting ``name``) unless ``value`` is a number in ``[low, high]``
+    (``(low, high]`` with ``open_low``; ``unit`` is printed after the bounds)."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and (low < value if open_low else low <= value) and value <= high):  # NaN fails too
+        raise ValueError(f"{name} must be a number in {'(' if open_low else '['}{low:g}, {high:g}]"
+                         f"{' ' + unit if unit else ''}, got {value!r}")
 
 
 def check_randomize(ranges: DomainRanges) -> None:

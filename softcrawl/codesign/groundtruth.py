@@ -242,31 +242,25 @@ class GroundTruthConfig:
 
     def validate(self) -> GroundTruthConfig:
         """Raise ValueError naming the first bad setting; returns self."""
-        for name in ("duration", "hold", "sigma0", "dt", "leg_mesh_size", "disk_mesh_size"):
-            v = getattr(self, name)
-            if name == "dt" and v is None:
-                continue
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number, got {v!r}")
+        for name, (low, high, unit) in SIM_BOUNDS.items():
+            if getattr(self, name) is not None:
+                check_bounds(name, getattr(self, name), low, high, unit)
+        for name, high, unit in (("duration", MAX_EPISODE_S, "s"), ("hold", MAX_HOLD_S, "s"),
+                                 ("sigma0", 1, "(of 90 kPa)")):
+            check_bounds(name, getattr(self, name), 0, high, unit, open_low=True)
         if self.screen_duration is not None and not (0 < self.screen_duration <= self.duration):
             raise ValueError(f"screen_duration must be in (0, duration], got {self.screen_duration!r}")
         if not self.cycles or any(int(c) != c or not 1 <= c <= MAX_KNOTS for c in self.cycles):
             raise ValueError(f"cycles must be pattern lengths in 1..{MAX_KNOTS}, got {self.cycles!r}")
-        for name in ("evals_per_cycle", "finalists"):
-            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
-                raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
+        for name, low, high in (("evals_per_cycle", 1, MAX_EVALS), ("finalists", 1, MAX_FINALISTS),
+                                ("popsize", 2, MAX_POPSIZE)):
+            v = getattr(self, name)
+            if v is not None:
+                check_bounds(name, v, low, high)
+                if int(v) != v:
+                    raise ValueError(f"{name} must be an integer, got {v!r}")
         if self.rid_dtype not in RID_DTYPES:
             raise ValueError(f"rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
-        if self.popsize is not None and self.popsize < 2:
-            raise ValueError(f"popsize must be >= 2, got {self.popsize}")
-        for name, (low, high, unit) in SIM_BOUNDS.items():
-            if getattr(self, name) is not None:
-                check_bounds(name, getattr(self, name), low, high, unit)
-        for name, low, high, unit in (("duration", 0, MAX_EPISODE_S, "s"), ("hold", 0, MAX_HOLD_S, "s"),
-                                      ("sigma0", 0, 1, "(of 90 kPa)"), ("evals_per_cycle", 1, MAX_EVALS, ""),
-                                      ("finalists", 1, MAX_FINALISTS, ""), ("popsize", 2, MAX_POPSIZE, "")):
-            if getattr(self, name) is not None:
-                check_bounds(name, getattr(self, name), low, high, unit)
         from softcrawl.robot.sweep import MAX_PHASES
 
         if len(self.baseline_phases) > MAX_PHASES:
@@ -526,8 +520,7 @@ class DesignResult:
             v = d.get(key, fields[key].default)
             if v is None and optional:
                 return float("nan")
-            ok = isinstance(v, int) if integer else isinstance(v, (int, float))
-            if isinstance(v, bool) or not ok or not math.isfinite(v) or v < low:
+            if not (_finite(v) and v >= low and (isinstance(v, int) or not integer)):
                 kind = "an integer" if integer else "a finite number"
                 raise ValueError(f"{at}: {key} must be {kind}{f' >= {low:g}' if low > -math.inf else ''}, got {v!r}")
             return v if integer else float(v)
@@ -540,8 +533,7 @@ class DesignResult:
             raise ValueError(f"{at}: waveform must be one of {WAVEFORMS}, got {d['waveform']!r}")
         per_cycle = d.get("per_cycle", {})
         if not isinstance(per_cycle, dict) or not all(
-                str(k).isdigit() and 1 <= int(k) <= MAX_KNOTS and not isinstance(v, bool)
-                and isinstance(v, (int, float)) and math.isfinite(v) for k, v in per_cycle.items()):
+                str(k).isdigit() and 1 <= int(k) <= MAX_KNOTS and _finite(v) for k, v in per_cycle.items()):
             raise ValueError(f"{at}: per_cycle must map cycle lengths 1..{MAX_KNOTS} to finite rewards, "
                              f"got {per_cycle!r}")
         cycle = number("cycle", 1, integer=True)
@@ -551,6 +543,16 @@ class DesignResult:
                    number("evaluations", 0, True), number("full_evaluations", 0, True), number("sim_seconds", 0),
                    number("wall_seconds", 0), number("screen_cm", optional=True),
                    {int(k): float(v) for k, v in per_cycle.items()}, number("diverged", 0, True))
+
+
+def _finite(v) -> bool:
+    """Whether ``v`` is a number (not a bool) that a float holds finitely."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an integer beyond any float
+        return False
 
 
 def design_seed(design: Design, seed: int) -> int:
@@ -766,11 +768,11 @@ def _append(path: Path, result: DesignResult) -> None:
     line = (json.dumps(result.to_dict(), allow_nan=False) + "\n").encode()
     try:
         fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
-    except OSError as exc:
+    except OSError:
         if path.is_symlink():
             raise UnsafeFileError(f"{path} is a symbolic link; a ground truth's results must be a file "
                                   "in its folder") from None
-        raise exc
+        raise
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
@@ -966,7 +968,8 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
             cfg = (cfg or GroundTruthConfig()).validate()
             from softcrawl import __version__
 
-            atomic_write_text(cfg_path, json.dumps({"config": cfg.to_dict(), "softcrawl": __version__}, indent=2) + "\n")
+            saved = {"config": cfg.to_dict(), "softcrawl": __version__}
+            atomic_write_text(cfg_path, json.dumps(saved, indent=2) + "\n")
         return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs)
 
 

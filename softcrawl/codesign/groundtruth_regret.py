@@ -135,8 +135,9 @@ def compute_regret(run: str | Path, gt_dir: str | Path, policy: bool = True) -> 
     pol = policy_reward(run, choice["design"]) if policy else None
     from softcrawl.robot.output import jsonable  # JSON has no NaN: a number that is not finite is None
 
-    return jsonable({"run": str(run), "groundtruth": str(gt_dir), "choice": {**choice, "design": list(choice["design"])},
-                     "placement": placement, "policy": pol, "settings_differ": differ})
+    choice = {**choice, "design": list(choice["design"])}
+    return jsonable({"run": str(run), "groundtruth": str(gt_dir), "choice": choice, "placement": placement,
+                     "policy": pol, "settings_differ": differ})
 
 
 def regret_markdown(r: dict) -> list[str]:
