@@ -228,6 +228,8 @@ def test_8_14_groundtruth_settings_are_refused_before_any_work(flags, words, tmp
     ("n_envs=" + "9" * 401, ["n_envs"]),
     ("env.disk_mesh_size=" + "9" * 401, ["env.disk_mesh_size"]),
     ("env=null", ["env is a section"]),
+    ("seed=-1", ["seed"]),
+    ("design.t1_fraction=1e300", ["design.t1_fraction"]),
 ])
 def test_8_14_15_train_settings_are_refused_before_training(setting, words, tmp_path, capsys):
     out = tmp_path / "run"
@@ -244,6 +246,17 @@ def test_14_randomize_null_is_off_and_evaluation_ranges_are_bounded():
     assert override(rig, ["env.randomize=null"]).env.randomize == DomainRanges()
     with pytest.raises(ValueError, match="env.randomize.mass_scale"):
         evaluate_randomized("no-run", (1, 0, 0, 2, 2, 0, 0, 0), 2, DomainRanges(mass_scale=(1e-300, 1e-300)))
+
+
+@pytest.mark.parametrize("flags, words", [(["--episodes", "100000"], ["--episodes"]),
+                                          (["--randomize", "100000"], ["--randomize"]),
+                                          (["--randomize", "2", "--seed", "-1"], ["--seed"])])
+def test_15_evaluate_episodes_and_seed_are_bounded(flags, words, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert cli_main(["evaluate", str(tmp_path / "run"), "--design", "1,0,0,2,2,0,0,0", "--out", str(out),
+                     *flags]) == 2
+    _one_line_error(capsys, *words)
+    assert not out.exists()
 
 
 def test_14_report_phases_are_bounded(tmp_path, capsys):

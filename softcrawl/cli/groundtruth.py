@@ -18,8 +18,8 @@ def _floats(text: str, what: str) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
     except ValueError:
-        values = (math.nan,)
-    if not all(map(math.isfinite, values)):
+        values = None
+    if values is None or not all(map(math.isfinite, values)):
         raise ValueError(f"{what} must be comma-separated numbers, got {text!r}")
     return values
 

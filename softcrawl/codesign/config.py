@@ -64,9 +64,10 @@ SIM_BOUNDS: dict[str, tuple[float, float, str]] = {
 MAX_HOLD_S, MAX_EPISODE_S = 60.0, 3600.0
 #: Bounds of the other numeric settings of a :class:`TrainConfig` (dotted names as ``--set``
 #: takes them; ``(low, high, unit)``, both included): far beyond every preset, short of a run
-#: that cannot fit in memory or never ends (a 100,000,000-wide layer, a ten-billion-step run).
+#: that cannot fit in memory or never ends (a 100,000,000-wide layer, a ten-billion-step run);
+#: the seed as numpy's legacy seeding (which SB3 uses) takes it.
 TRAIN_BOUNDS: dict[str, tuple[float, float, str]] = {
-    "n_envs": (1, 4096, ""), "total_steps": (1, 10**10, ""), "n_workers": (0, 1024, ""),
+    "n_envs": (1, 4096, ""), "total_steps": (1, 10**10, ""), "n_workers": (0, 1024, ""), "seed": (0, 2**32 - 1, ""),
     "checkpoint_every": (1, 10**10, ""), "snapshot_every": (1, 10**10, ""), "keep_checkpoints": (2, 1000, ""),
     "env.steps_per_action": (1, 10_000, ""), "env.n_actions": (1, 10_000, ""),
     "env.contact_max_iterations": (1, 100_000, ""), "env.leg_collision_spacing": (0.0, 100.0, "mm"),
@@ -75,6 +76,7 @@ TRAIN_BOUNDS: dict[str, tuple[float, float, str]] = {
     "sac.learning_starts": (0, 10**10, ""), "sac.policy_lr": (0.0, 1.0, ""), "sac.q_lr": (0.0, 1.0, ""),
     "sac.utd_ratio": (0.0, 64.0, ""), "sac.target_entropy": (-100.0, 100.0, ""),
     "design.beta_max": (0.0, 1e12, "1/cm"), "design.h_end": (-1e6, 1e6, ""),
+    "design.t0_fraction": (0.0, 10.0, ""), "design.t1_fraction": (0.0, 10.0, ""),
 }
 #: Layers and widths of ``sac.net_arch``.
 MAX_LAYERS, MAX_WIDTH = 16, 4096
@@ -132,7 +134,8 @@ class EnvConfig:
         randomize: domain randomization ranges drawn per episode
             (:class:`softcrawl.robot.domain.DomainRanges`; default: off, every range null).
             ``--set env.randomize.friction=[0.8,1.6]`` sets one range,
-            ``--set env.randomize=rig`` the rig's measured ranges, ``env.randomize=off`` none.
+            ``--set env.randomize=rig`` the rig's measured ranges, ``env.randomize=off`` (or
+            ``null``) none. Every range lies within :data:`RANDOMIZE_BOUNDS`.
     """
 
     model: str = "reduced"
@@ -225,7 +228,9 @@ class TrainConfig:
     design: DesignConfig = field(default_factory=DesignConfig)
 
     def validate(self) -> TrainConfig:
-        """Raise ValueError naming the first bad setting; returns self."""
+        """Raise ValueError naming the first bad setting (types, consistency, and the bounds of
+        :data:`SIM_BOUNDS`, :data:`TRAIN_BOUNDS`, :data:`RANDOMIZE_BOUNDS`, ``sac.net_arch``
+        and the hold and episode lengths); returns self."""
         def pos_int(name, v):
             if int(v) != v or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
@@ -455,7 +460,7 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
     possible, else taken as a string). Returns a validated copy.
 
     A sub-config with presets may be set by name (``env.randomize=rig``,
-    :meth:`TrainConfig.from_dict`).
+    :meth:`TrainConfig.from_dict`); ``null`` names its ``"off"`` preset.
 
     Raises:
         ValueError: a malformed string, an unknown field, a value of the wrong type for its

@@ -33,7 +33,14 @@ scores :data:`DIVERGED_CM`.
 and fsynced as each finishes: a killed run continues where it stopped and never recomputes a
 finished design), ``references.json`` (expert baseline phase sweep, paper gait on the paper's
 design), and at the end ``groundtruth.csv`` (ranked table), ``ranked.png`` and
-``summary.json``. Designs run in a process pool (workers pinned to one BLAS thread) or as Ray
+``summary.json``. ``results.jsonl`` is only ever appended to, never rewritten, and never
+through a symbolic link; the other files are replaced atomically
+(:func:`softcrawl.safeio.atomic_write_text`). Its readers (:func:`read_results`: the run
+itself, ``regret``, ``report --groundtruth``) validate every row and use only the valid ones;
+a bad row (a line cut short by a killed run, a non-finite reward, a design outside the space,
+a knot outside [0, 90] kPa) is named by file and line and left in place, and a resumed run
+computes its design again. The folder must be new, empty or a ground truth
+(:func:`check_folder`), and is locked while a run writes it (:func:`folder_lock`). Designs run in a process pool (workers pinned to one BLAS thread) or as Ray
 tasks (``executor="ray"``; a task whose worker died is retried by Ray, only that design).
 """
 
@@ -1056,9 +1063,7 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
     (only those in ``designs`` if given); returns the summary."""
     out = Path(out_dir)
     cfg = read_config(out)
-    done, bad = read_results(out)
-    for problem in bad:
-        note(f"{problem}; row left in place and not used")
+    done, bad = read_results(out)  # the bad rows are listed in the summary
     if designs is not None:
         keep = {canonicalize(d) for d in designs}
         done = {d: r for d, r in done.items() if d in keep}
