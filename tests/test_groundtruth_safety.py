@@ -32,6 +32,16 @@ BEST = max(DESIGNS, key=reward)
 GT_CLI = ["--designs", "1,0,0,2,2,0,0,0", "--no-progress", "--executor", "serial"]
 
 
+@pytest.fixture(autouse=True)
+def no_simulation(monkeypatch):
+    """``softcrawl groundtruth`` in this process computes fake designs and no references: a test
+    whose refusal fails ends at once instead of simulating."""
+    import softcrawl.codesign.groundtruth as gtmod
+
+    monkeypatch.setattr(gtmod, "optimize_design", lambda d, cfg: gtmod.DesignResult.from_dict(fake_task(d, None)))
+    monkeypatch.setattr(gtmod, "references", lambda cfg: {})
+
+
 def _one_line_error(capsys, *words) -> str:
     err = capsys.readouterr().err
     assert err.count("error:") == 1 and "Traceback" not in err, err
@@ -311,3 +321,27 @@ def test_18_a_second_run_on_a_folder_being_written_stops_at_once(tmp_path, capsy
         make_folder(gt, DESIGNS[:3])
     make_folder(gt, DESIGNS[:3])  # released: the next run goes on
     assert (gt / LOCK).exists() and len(load_groundtruth(gt)[1]) == 3
+
+
+def test_18_a_run_in_another_process_holds_the_folder(tmp_path, capsys):
+    import subprocess
+    import sys
+
+    gt = make_folder(tmp_path / "gt", DESIGNS[:1])
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import fcntl, os, sys, time\n"
+        "fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)\n"
+        "fcntl.flock(fd, fcntl.LOCK_EX)\n"
+        "os.write(fd, f'{os.getpid()}\\n'.encode())\n"
+        "print('locked', flush=True)\n"
+        "time.sleep(120)\n"), str(gt / LOCK)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        assert cli_main(["groundtruth", "--out", str(gt), "--resume", *GT_CLI]) == 2
+        _one_line_error(capsys, f"process {holder.pid}", "another softcrawl groundtruth")
+    finally:
+        holder.kill()
+        holder.wait()
+    assert len((gt / "results.jsonl").read_text().splitlines()) == 1
+    with folder_lock(gt):  # the holder is gone: the lock is free again
+        pass
