@@ -294,6 +294,13 @@ def test_16_a_silent_ray_address_fails_with_one_line(tmp_path, monkeypatch, caps
                          "--ray-address", f"ray://{silent}"]) == 2
         _one_line_error(capsys, "no Ray cluster answers")
         assert not out.exists()
+        ray = pytest.importorskip("ray")
+        if not ray.is_initialized():  # where the backends connect
+            from softcrawl.envs.ray_backend import ensure_ray
+
+            with pytest.raises(ConnectionError, match="no Ray cluster answers"):
+                ensure_ray(silent)
+            assert not ray.is_initialized()
     with socket.socket() as s:  # a head that answers passes
         s.bind(("127.0.0.1", 0))
         s.listen()
