@@ -141,22 +141,23 @@ def parse_phases(spec: str) -> tuple[float, ...]:
         ValueError: malformed spec, non-finite values, step <= 0, stop < start, repeats, or
             more than :data:`MAX_PHASES` phases.
     """
+    malformed = ValueError(f"phases must be 'start:stop:step' (step > 0, stop >= start) or a comma list of degrees, "
+                           f"got {spec!r}")
     try:
-        if ":" in spec:
-            start, stop, step = (float(v) for v in spec.split(":"))
-            if not all(map(math.isfinite, (start, stop, step))) or step <= 0 or stop < start:
-                raise ValueError
-            n = int(math.floor((stop - start) / step + 1e-9))
-            if n >= MAX_PHASES:
-                raise ValueError(f"phases {spec!r} are {n + 1}, more than the {MAX_PHASES} allowed")
-            phases = tuple(float(v) for v in np.round(start + step * np.arange(n + 1), 9))
-        else:
-            phases = tuple(float(v) for v in spec.split(","))
-    except ValueError as exc:
-        raise ValueError(str(exc) if str(exc).startswith("phases") else "phases must be 'start:stop:step' (step > 0, "
-                         f"stop >= start) or a comma list of degrees, got {spec!r}") from None
+        grid = tuple(float(v) for v in spec.split(":")) if ":" in spec else None
+        phases = tuple(float(v) for v in spec.split(",")) if grid is None else ()
+    except ValueError:
+        raise malformed from None
+    if grid is not None:
+        if len(grid) != 3 or not all(map(math.isfinite, grid)) or grid[2] <= 0 or grid[1] < grid[0]:
+            raise malformed
+        start, stop, step = grid
+        steps = (stop - start) / step  # inf for a step tiny enough
+        if steps + 1e-9 >= MAX_PHASES:
+            raise ValueError(f"phases {spec!r} are more than the {MAX_PHASES} allowed")
+        phases = tuple(float(v) for v in np.round(start + step * np.arange(math.floor(steps + 1e-9) + 1), 9))
     if len(phases) > MAX_PHASES:
-        raise ValueError(f"phases {spec!r} are {len(phases)}, more than the {MAX_PHASES} allowed")
+        raise ValueError(f"phases {spec!r} are more than the {MAX_PHASES} allowed")
     if not phases or not all(map(math.isfinite, phases)) or len(set(phases)) != len(phases):
         raise ValueError(f"phases must be finite and distinct, got {spec!r}")
     return phases
