@@ -40,8 +40,9 @@ itself, ``regret``, ``report --groundtruth``) validate every row and use only th
 a bad row (a line cut short by a killed run, a non-finite reward, a design outside the space,
 a knot outside [0, 90] kPa) is named by file and line and left in place, and a resumed run
 computes its design again. The folder must be new, empty or a ground truth
-(:func:`check_folder`), and is locked while a run writes it (:func:`folder_lock`). Designs run in a process pool (workers pinned to one BLAS thread) or as Ray
-tasks (``executor="ray"``; a task whose worker died is retried by Ray, only that design).
+(:func:`check_folder`), and is locked while a run writes it (:func:`folder_lock`). Designs
+run in a process pool (workers pinned to one BLAS thread) or as Ray tasks
+(``executor="ray"``; a task whose worker died is retried by Ray, only that design).
 """
 
 from __future__ import annotations
@@ -1059,8 +1060,13 @@ def _design_str(d) -> str:
 
 
 def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_seconds: float | None = None) -> dict:
-    """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` from the finished results
-    (only those in ``designs`` if given); returns the summary."""
+    """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` (each replaced
+    atomically) from the valid rows of ``results.jsonl`` (only those in ``designs`` if given;
+    the bad rows, by file and line, in the summary's ``bad_rows``); returns the summary.
+
+    Raises:
+        ValueError: the folder's ``config.json`` is missing or not a ground truth's.
+    """
     out = Path(out_dir)
     cfg = read_config(out)
     done, bad = read_results(out)  # the bad rows are listed in the summary
