@@ -179,6 +179,18 @@ def test_7_a_malformed_row_names_file_line_and_design_and_resume_goes_on(change,
     assert calls == [DESIGNS[2]] and set(read_results(gt)[0]) == set(DESIGNS[:3])
 
 
+def test_7_the_cli_resume_names_bad_rows_and_recomputes_their_designs(tmp_path, capsys):
+    gt = make_folder(tmp_path / "gt", DESIGNS[:2])
+    with open(gt / "results.jsonl", "a") as f:
+        f.write(row(DESIGNS[2], reward_cm="12") + "\n")
+    designs = ";".join(",".join(map(str, d)) for d in DESIGNS[:3])
+    assert cli_main(["groundtruth", "--out", str(gt), "--resume", "--designs", designs, "--no-progress",
+                     "--executor", "serial"]) == 0
+    out, err = capsys.readouterr()
+    assert f"{gt / 'results.jsonl'}, line 3" in err and "1 bad rows" in out and "3 of 3 designs done" in out
+    assert len((gt / "results.jsonl").read_text().splitlines()) == 4
+
+
 @pytest.mark.parametrize("config", ["{}", "[]", '{"config": []}', '{"config": {"duration": "20"}}',
                                     '{"config": {"baseline_phases": [1e400]}}', "[" * 5000 + "]" * 5000])
 def test_7_13_malformed_config_is_one_line_in_regret_and_resume(config, tmp_path, monkeypatch, capsys):

@@ -85,6 +85,9 @@ def _run(args: argparse.Namespace) -> int:
         b = s["references"]["expert_baseline"]
         print(f"expert baseline (sine, {b['best_phase_deg']:.0f} deg): {b['reward_cm']:+.2f} cm; "
               f"{s.get('designs_beating_expert_baseline', 0)} designs beat it")
+    if s["bad_rows"]:
+        print(f"{len(s['bad_rows'])} bad rows of {args.out}/results.jsonl left in place and not used "
+              f"(summary.json lists them); first: {s['bad_rows'][0]}")
     print(f"wrote {args.out}/groundtruth.csv, ranked.png, summary.json")
     return 0
 
