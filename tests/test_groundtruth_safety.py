@@ -222,7 +222,7 @@ def test_7_a_bad_references_file_is_a_note_and_recomputed(tmp_path, monkeypatch,
 @pytest.mark.parametrize("flags, words", [
     (["--baseline-phases", "nan,10"], ["--baseline-phases", "finite"]),
     (["--baseline-phases", "0:1e7:0.001"], ["--baseline-phases", "more than"]),
-    (["--baseline-phases", "-300:300:1e-320"], ["--baseline-phases", "more than"]),
+    (["--baseline-phases=-300:300:1e-320"], ["--baseline-phases", "more than"]),
     (["--baseline-phases", "0,400"], ["baseline_phases"]),
     (["--dt", "1e308"], ["dt"]),
     (["--duration", "1e9"], ["duration"]),
