@@ -37,7 +37,7 @@ FIELDS = list(json.loads(row(POOL[0])))
 
 
 def _json(floats):
-    return st.recursive(st.none() | st.booleans() | st.integers() | floats | st.text(max_size=8),
+    return st.recursive(st.none() | st.booleans() | st.integers() | st.just(10**400) | floats | st.text(max_size=8),
                         lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=6), c, max_size=4),
                         max_leaves=8)
 

@@ -163,6 +163,7 @@ def test_6_regret_ranks_only_valid_rows_and_writes_no_nan(bad, tmp_path, monkeyp
     ({"reward_cm": "12"}, ["reward_cm", "'12'"]),
     ({"gait": {"patterns": [[1000.0], [0.0], [0.0]]}}, ["gait", "kPa", "1000"]),
     ({"evaluations": -3}, ["evaluations"]),
+    ({"gait": {"patterns": [[10**400], [0.0], [0.0]], "hold": 10**400}}, ["gait"]),
     ({"per_cycle": {"x": 1.0}}, ["per_cycle"]),
 ])
 def test_7_a_malformed_row_names_file_line_and_design_and_resume_goes_on(change, words, tmp_path, capsys):
@@ -192,7 +193,8 @@ def test_7_the_cli_resume_names_bad_rows_and_recomputes_their_designs(tmp_path, 
 
 
 @pytest.mark.parametrize("config", ["{}", "[]", '{"config": []}', '{"config": {"duration": "20"}}',
-                                    '{"config": {"baseline_phases": [1e400]}}', "[" * 5000 + "]" * 5000])
+                                    '{"config": {"baseline_phases": [1e400]}}',
+                                    '{"config": {"duration": 1' + "0" * 400 + "}}", "[" * 5000 + "]" * 5000])
 def test_7_13_malformed_config_is_one_line_in_regret_and_resume(config, tmp_path, monkeypatch, capsys):
     gt = make_folder(tmp_path / "gt")
     (gt / "config.json").write_text(config)
@@ -213,9 +215,11 @@ def test_13_a_deeply_nested_row_is_a_bad_row(tmp_path, monkeypatch, capsys):
 
 def test_7_a_bad_references_file_is_a_note_and_recomputed(tmp_path, monkeypatch, capsys):
     gt = make_folder(tmp_path / "gt")
-    (gt / "references.json").write_text('{"paper_l1_gait": {"reward_cm": "x"}}')
-    s = write_outputs(gt)
-    assert s["references"] == {} and "references.json" in capsys.readouterr().err
+    for bad in ('{"paper_l1_gait": {"reward_cm": "x"}}', '{"paper_l1_gait": {"reward_cm": 1' + "0" * 400 + "}}",
+                '{"expert_baseline": {"reward_cm": 1.0}}', "[]"):
+        (gt / "references.json").write_text(bad)
+        s = write_outputs(gt)
+        assert s["references"] == {} and "references.json" in capsys.readouterr().err
 
 
 # -- 8, 14, 15: every setting is bounded and checked before any work --------------------------------
@@ -318,6 +322,8 @@ def test_16_a_silent_ray_address_fails_with_one_line(tmp_path, monkeypatch, caps
         s.bind(("127.0.0.1", 0))
         s.listen()
         check_address(f"127.0.0.1:{s.getsockname()[1]}", 1.0)
+    with pytest.raises(ValueError, match="port"):
+        check_address("127.0.0.1:99999", 1.0)
     monkeypatch.setenv("SOFTCRAWL_RAY_TIMEOUT", "-5")
     with pytest.raises(ValueError, match="SOFTCRAWL_RAY_TIMEOUT"):
         connect_timeout()

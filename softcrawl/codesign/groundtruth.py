@@ -535,7 +535,7 @@ class DesignResult:
 
         try:
             gait = PeriodicGait.from_dict(d["gait"])
-        except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as exc:
             raise ValueError(f"{at}: gait: {exc}") from None
         if d["waveform"] not in WAVEFORMS:
             raise ValueError(f"{at}: waveform must be one of {WAVEFORMS}, got {d['waveform']!r}")
@@ -1042,12 +1042,10 @@ def read_references(out_dir: str | Path) -> dict | None:
         return None
     try:
         refs = load_json(path)
-        if not isinstance(refs, dict) or not all(
-                isinstance(v, dict) and isinstance(v.get("reward_cm"), (int, float))
-                and not isinstance(v["reward_cm"], bool) and math.isfinite(v["reward_cm"]) for v in refs.values()):
+        if not isinstance(refs, dict) or not all(isinstance(v, dict) and _finite(v.get("reward_cm"))
+                                                 for v in refs.values()):
             raise ValueError("not an object of references with finite rewards")
-        b = refs.get("expert_baseline", {"best_phase_deg": 0.0})
-        if not isinstance(b.get("best_phase_deg"), (int, float)) or not math.isfinite(b["best_phase_deg"]):
+        if not _finite(refs.get("expert_baseline", {"best_phase_deg": 0.0}).get("best_phase_deg")):
             raise ValueError("the expert baseline has no finite best_phase_deg")
     except (ValueError, OSError) as exc:
         note(f"{exc if str(path) in str(exc) else f'{path}: {exc}'}; references left out")

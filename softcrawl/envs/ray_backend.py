@@ -70,13 +70,19 @@ def check_address(address: str, timeout: float) -> None:
     """Raise ConnectionError unless the head of the Ray cluster at ``address`` (``host:port``
     or ``ray://host:port``) accepts a TCP connection within ``timeout`` s (retried until then:
     a head that is starting up gets the whole time). ``"auto"`` and addresses without a port
-    are left to Ray. Ray itself would retry a silent address for minutes."""
+    are left to Ray. Ray itself would retry a silent address for minutes.
+
+    Raises:
+        ConnectionError: nothing answers in time. ValueError: a port outside 1..65535.
+    """
     import socket
 
     host, sep, port = address.removeprefix("ray://").rpartition(":")
     if not sep or not port.isdigit() or not host:
         return
     host = host.strip("[]")
+    if not 0 < int(port) < 65536:
+        raise ValueError(f"Ray address {address}: the port must be 1..65535")
     deadline = time.monotonic() + timeout
     while True:
         left = deadline - time.monotonic()
