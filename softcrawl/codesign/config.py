@@ -296,6 +296,8 @@ class TrainConfig:
             return obj
         for name, (low, high, unit) in (TRAIN_BOUNDS | {f"env.{k}": b for k, b in SIM_BOUNDS.items()}).items():
             check_bounds(name, get(name), low, high, unit)
+        if self.env.refactor_every is not None:
+            check_bounds("env.refactor_every", self.env.refactor_every, 1, 10**6)
         if len(self.sac.net_arch) > MAX_LAYERS or max(self.sac.net_arch) > MAX_WIDTH:
             raise ValueError(f"sac.net_arch must have at most {MAX_LAYERS} layers of at most {MAX_WIDTH} units, "
                              f"got {list(self.sac.net_arch)}")
@@ -410,6 +412,10 @@ def check_field(name: str, value, tp):
             fail()
     elif tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
+            fail()
+        try:
+            float(value)
+        except OverflowError:  # an integer beyond any float
             fail()
     elif tp is str:
         if not isinstance(value, str):
