@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
+from groundtruth_helpers import DESIGNS, fake_task, make_folder
 from softcrawl.cli import main as cli_main
 from softcrawl.codesign import groundtruth_regret as rg
 from softcrawl.codesign.groundtruth import (
-    DesignResult,
     GroundTruthConfig,
     PeriodicGait,
     cma_maximize,
@@ -141,14 +141,6 @@ def test_spearman():
 
 
 # -- resumable runs --------------------------------------------------------------------------------
-DESIGNS = parse_designs("3")[:5]
-
-
-def _fake_result(design, cfg_dict) -> dict:
-    r = float(sum(i * v for i, v in enumerate(design)))
-    return DesignResult(tuple(design), r, PeriodicGait.paper_cycle().to_dict(), 3, "step", 10, 2, 80.0, 0.1).to_dict()
-
-
 def test_resume_never_recomputes_a_finished_design(tmp_path):
     calls = []
 
@@ -156,7 +148,7 @@ def test_resume_never_recomputes_a_finished_design(tmp_path):
         calls.append(d)
         if len(calls) == 3 and kill["on"]:
             raise KeyboardInterrupt  # the run is killed while the 3rd design runs
-        return _fake_result(d, c)
+        return fake_task(d, c)
 
     kill = {"on": True}
     cfg = GroundTruthConfig(baseline_phases=())
@@ -168,7 +160,9 @@ def test_resume_never_recomputes_a_finished_design(tmp_path):
     kill["on"], calls[:] = False, []
     s = run_groundtruth(DESIGNS, tmp_path, cfg, executor="serial", task=task, progress=False, refs=False)
     assert calls == DESIGNS[2:]  # only the unfinished designs
-    assert s["designs"] == 5 and len((tmp_path / "results.jsonl").read_text().splitlines()) == 5
+    lines = (tmp_path / "results.jsonl").read_text().splitlines()
+    assert s["designs"] == 5 and len(lines) == 6  # the torn line is left in place, on a line of its own
+    assert lines[2] == '{"design": [1, 1, 1' and len(s["bad_rows"]) == 1 and "line 3" in s["bad_rows"][0]
     calls[:] = []
     run_groundtruth(DESIGNS, tmp_path, None, executor="serial", task=task, progress=False, refs=False)
     assert calls == []
@@ -179,15 +173,15 @@ def test_resume_never_recomputes_a_finished_design(tmp_path):
     assert rewards == sorted(rewards, reverse=True)
     assert (tmp_path / "ranked.png").stat().st_size > 1000
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["best"][0]["reward_cm"] == max(_fake_result(d, None)["reward_cm"] for d in DESIGNS)
+    assert summary["best"][0]["reward_cm"] == max(fake_task(d, None)["reward_cm"] for d in DESIGNS)
 
 
 def test_other_settings_in_same_folder_is_an_error(tmp_path):
     run_groundtruth(DESIGNS[:1], tmp_path, GroundTruthConfig(baseline_phases=()), executor="serial",
-                    task=_fake_result, progress=False, refs=False)
+                    task=fake_task, progress=False, refs=False)
     with pytest.raises(ValueError, match="other settings"):
         run_groundtruth(DESIGNS[:1], tmp_path, GroundTruthConfig(evals_per_cycle=3, baseline_phases=()),
-                        executor="serial", task=_fake_result, progress=False, refs=False)
+                        executor="serial", task=fake_task, progress=False, refs=False)
 
 
 def test_cli_errors(tmp_path, capsys):
@@ -222,15 +216,9 @@ def test_cli_real_run_in_two_processes_and_resume(tmp_path, monkeypatch, capsys)
 
 
 # -- regret ----------------------------------------------------------------------------------------
-def _gt_folder(tmp_path):
-    run_groundtruth(DESIGNS, tmp_path, GroundTruthConfig(baseline_phases=()), executor="serial",
-                    task=_fake_result, progress=False, refs=False)
-    return tmp_path
-
-
 def test_regret_of_a_run(tmp_path, monkeypatch):
-    gt = _gt_folder(tmp_path / "gt")
-    rewards = {d: _fake_result(d, None)["reward_cm"] for d in DESIGNS}
+    gt = make_folder(tmp_path / "gt")
+    rewards = {d: fake_task(d, None)["reward_cm"] for d in DESIGNS}
     order = sorted(DESIGNS, key=lambda d: -rewards[d])
     chosen = order[2]
     monkeypatch.setattr(rg, "run_choice", lambda run: {"design": chosen, "prob": 0.9, "latest_cm": 1.0, "episodes": 7})
@@ -252,6 +240,6 @@ def test_regret_of_a_run(tmp_path, monkeypatch):
 
 
 def test_place_design_unknown(tmp_path):
-    gt = _gt_folder(tmp_path)
+    gt = make_folder(tmp_path)
     with pytest.raises(ValueError, match="not in the ground truth"):
         rg.place_design((1, 0, 0, 2, 2, 0, 0, 1), gt)

@@ -23,6 +23,9 @@ import json
 
 import numpy as np
 
+#: Most episodes one ``evaluate`` runs (``--episodes``, ``--randomize``).
+MAX_EPISODES = 10_000
+
 
 def _randomize_ranges(run, sets):
     """The run's ``env.randomize`` after ``--set`` overrides (only ``env.randomize...`` keys).
@@ -49,8 +52,10 @@ def _run_randomized(args: argparse.Namespace) -> int:
         raise ValueError("give --episodes or --randomize N, not both")
     if args.animation is not None:
         raise ValueError("--randomize N writes no trajectory to animate; drop --animation / --no-animation")
-    if args.randomize < 1:
-        raise ValueError(f"--randomize must be >= 1 episodes, got {args.randomize}")
+    if not 1 <= args.randomize <= MAX_EPISODES:
+        raise ValueError(f"--randomize must be 1 to {MAX_EPISODES} episodes, got {args.randomize}")
+    if not 0 <= args.seed < 2**32:
+        raise ValueError(f"--seed must be in 0..2**32-1, got {args.seed}")
     ranges = _randomize_ranges(args.run, args.set or [])
     res = evaluate_randomized(args.run, args.design, args.randomize, ranges, seed=args.seed)
     out = write_randomized(args.out, res, overwrite=args.overwrite)
@@ -71,6 +76,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.set:
         raise ValueError("--set env.randomize... needs --randomize N")
     args.episodes = 1 if args.episodes is None else args.episodes
+    if not 1 <= args.episodes <= MAX_EPISODES:
+        raise ValueError(f"--episodes must be 1 to {MAX_EPISODES}, got {args.episodes}")
     check_output_path(args.out, args.overwrite)
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")

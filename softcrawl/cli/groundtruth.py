@@ -2,54 +2,68 @@
 (:mod:`softcrawl.codesign.groundtruth`), in parallel and resumable: re-running the same command
 (or ``--resume``) continues a killed run and never recomputes a finished design. Writes
 ``results.jsonl`` (per design, as they finish), ``groundtruth.csv``, ``ranked.png``,
-``references.json`` and ``summary.json``."""
+``references.json`` and ``summary.json``. Every setting is checked before any design is computed;
+``--out`` must be new, empty or a ground truth, and is locked while the run writes it."""
 
 from __future__ import annotations
 
 import argparse
+import math
 
-import numpy as np
-
+from softcrawl.cli.train import check_ray_address
 from softcrawl.fem.solver import RID_DTYPES
 
 
 def _floats(text: str, what: str) -> tuple[float, ...]:
     try:
-        return tuple(float(v) for v in text.replace(" ", "").split(",") if v)
+        values = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
     except ValueError:
-        raise ValueError(f"{what} must be comma-separated numbers, got {text!r}") from None
+        values = None
+    if values is None or not all(map(math.isfinite, values)):
+        raise ValueError(f"{what} must be comma-separated numbers, got {text!r}")
+    return values
 
 
 def _phases(text: str) -> tuple[float, ...]:
+    """``--baseline-phases``: none, or :func:`softcrawl.robot.sweep.parse_phases`'s forms."""
     if text.strip().lower() in ("none", ""):
         return ()
-    if ":" in text:
-        try:
-            a, b, s = (float(v) for v in text.split(":"))
-        except ValueError:
-            raise ValueError(f"--baseline-phases START:STOP:STEP needs 3 numbers, got {text!r}") from None
-        if s <= 0 or b < a:
-            raise ValueError(f"--baseline-phases needs STEP > 0 and STOP >= START, got {text!r}")
-        return tuple(float(v) for v in np.arange(a, b + 1e-9, s))
-    return _floats(text, "--baseline-phases")
+    from softcrawl.robot.sweep import parse_phases
+
+    try:
+        return parse_phases(text)
+    except ValueError as exc:
+        raise ValueError(f"--baseline-phases: {exc}") from None
 
 
 def _run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from softcrawl.codesign.groundtruth import EXECUTORS, GroundTruthConfig, parse_designs, run_groundtruth
+    from softcrawl.codesign.groundtruth import (
+        EXECUTORS,
+        GroundTruthConfig,
+        check_folder,
+        parse_designs,
+        run_groundtruth,
+    )
 
     if args.executor not in EXECUTORS:
         raise ValueError(f"--executor must be one of {EXECUTORS}")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     designs = parse_designs(args.designs)
+    check_folder(args.out)
     if args.resume:
         if not (Path(args.out) / "config.json").exists():
             raise ValueError(f"--resume: {args.out} is not a ground-truth folder (no config.json)")
         cfg = None
     else:
-        screen = None if args.screen_duration.strip().lower() == "none" else float(args.screen_duration)
+        screen = None
+        if args.screen_duration.strip().lower() != "none":
+            screen = _floats(args.screen_duration, "--screen-duration")
+            if len(screen) != 1:
+                raise ValueError(f"--screen-duration must be a number of seconds or none, got {args.screen_duration!r}")
+            screen = screen[0]
         cycles = _floats(args.cycles, "--cycles")
         if any(c != int(c) for c in cycles):
             raise ValueError(f"--cycles must be integers, got {args.cycles!r}")
@@ -58,6 +72,7 @@ def _run(args: argparse.Namespace) -> int:
                                 finalists=args.finalists, seed=args.seed, leg_mesh_size=args.leg_mesh_size,
                                 disk_mesh_size=args.disk_mesh_size, dt=args.dt, reduction=args.reduction,
                                 baseline_phases=_phases(args.baseline_phases), rid_dtype=args.rid_dtype).validate()
+    check_ray_address(args.executor, args.ray_address)
     s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
                         progress=not args.no_progress, ray_address=args.ray_address)
     best = s["best"][0] if s["best"] else None
@@ -70,6 +85,9 @@ def _run(args: argparse.Namespace) -> int:
         b = s["references"]["expert_baseline"]
         print(f"expert baseline (sine, {b['best_phase_deg']:.0f} deg): {b['reward_cm']:+.2f} cm; "
               f"{s.get('designs_beating_expert_baseline', 0)} designs beat it")
+    if s["bad_rows"]:
+        print(f"{len(s['bad_rows'])} bad rows of {args.out}/results.jsonl left in place and not used "
+              f"(summary.json lists them); first: {s['bad_rows'][0]}")
     print(f"wrote {args.out}/groundtruth.csv, ranked.png, summary.json")
     return 0
 

@@ -10,13 +10,12 @@ import json
 
 def _run(args: argparse.Namespace) -> int:
     from softcrawl.codesign.groundtruth_regret import compute_regret, regret_markdown
+    from softcrawl.safeio import atomic_write_text
 
     r = compute_regret(args.run, args.groundtruth, policy=not args.no_policy)
     print("\n".join(regret_markdown(r)))
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(r, f, indent=2)
-            f.write("\n")
+        atomic_write_text(args.json, json.dumps(r, indent=2, allow_nan=False) + "\n")
     return 0
 
 

@@ -78,11 +78,21 @@ def _check_out(out: str) -> None:
     check_output_path(p)
 
 
+def check_ray_address(backend: str, address: str | None) -> None:
+    """A Ray cluster named by ``--ray-address`` must answer before any work starts
+    (:func:`softcrawl.envs.ray_backend.check_address`; ConnectionError if not)."""
+    if backend == "ray" and address:
+        from softcrawl.envs.ray_backend import check_address, connect_timeout
+
+        check_address(address, connect_timeout())
+
+
 def _run(args: argparse.Namespace) -> int:
     if args.resume:
         if args.set or any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.workers,
                                                    args.seed, args.preset)):
             raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings")
+        check_ray_address("ray", args.ray_address)
         res = train_and_report(args.out, resume=True, progress=not args.no_progress, ray_address=args.ray_address)
     else:
         sets = list(args.set or [])
@@ -92,6 +102,7 @@ def _run(args: argparse.Namespace) -> int:
                 sets.append(f"{key}={flag}" if key != "backend" else f'backend="{flag}"')
         cfg = override(preset(args.preset or "demo"), sets)
         _check_out(args.out)
+        check_ray_address(cfg.backend, args.ray_address)
         res = train_and_report(args.out, cfg, progress=not args.no_progress, ray_address=args.ray_address)
     print(f"trained {res.steps} steps ({res.updates} SAC updates) in {res.wall_seconds:.1f} s; run in {res.run_dir}")
     from softcrawl.codesign.run import Run

@@ -51,6 +51,45 @@ from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import Settling
 
 BACKENDS = ("serial", "subprocess", "ray")
+#: Bounds of the simulation settings shared with :class:`softcrawl.codesign.groundtruth.GroundTruthConfig`:
+#: ``name: (low, high, unit)``, both included. The time step: the presets use 0.02 s and 0.01 s
+#: (0.04 s already fails ``softcrawl reduce validate``, module docstring); mesh sizes in mm (the
+#: leg's reference is 4 mm, the presets' 6 mm; the disk's 10 mm and 25 mm).
+SIM_BOUNDS: dict[str, tuple[float, float, str]] = {
+    "dt": (1e-4, 0.1, "s"),
+    "leg_mesh_size": (2.0, 20.0, "mm"),
+    "disk_mesh_size": (2.0, 50.0, "mm"),
+}
+#: Longest action hold and episode, simulated seconds (the paper: 1 s and 20 s).
+MAX_HOLD_S, MAX_EPISODE_S = 60.0, 3600.0
+#: Bounds of the other numeric settings of a :class:`TrainConfig` (dotted names as ``--set``
+#: takes them; ``(low, high, unit)``, both included): far beyond every preset, short of a run
+#: that cannot fit in memory or never ends (a 100,000,000-wide layer, a ten-billion-step run);
+#: the seed as numpy's legacy seeding (which SB3 uses) takes it.
+TRAIN_BOUNDS: dict[str, tuple[float, float, str]] = {
+    "n_envs": (1, 4096, ""), "total_steps": (1, 10**10, ""), "n_workers": (0, 1024, ""), "seed": (0, 2**32 - 1, ""),
+    "checkpoint_every": (1, 10**10, ""), "snapshot_every": (1, 10**10, ""), "keep_checkpoints": (2, 1000, ""),
+    "env.steps_per_action": (1, 10_000, ""), "env.n_actions": (1, 10_000, ""),
+    "env.contact_max_iterations": (1, 100_000, ""), "env.leg_collision_spacing": (0.0, 100.0, "mm"),
+    "env.max_cached_robots": (1, 10_000, ""), "env.settle_max_seconds": (0.0, 60.0, "s"),
+    "sac.buffer_size": (1, 10**7, ""), "sac.batch_size": (1, 65_536, ""), "sac.threads": (1, 256, ""),
+    "sac.learning_starts": (0, 10**10, ""), "sac.policy_lr": (0.0, 1.0, ""), "sac.q_lr": (0.0, 1.0, ""),
+    "sac.utd_ratio": (0.0, 64.0, ""), "sac.target_entropy": (-100.0, 100.0, ""),
+    "design.beta_max": (0.0, 1e12, "1/cm"), "design.h_end": (-1e6, 1e6, ""),
+    "design.t0_fraction": (0.0, 10.0, ""), "design.t1_fraction": (0.0, 10.0, ""),
+}
+#: Layers and widths of ``sac.net_arch``.
+MAX_LAYERS, MAX_WIDTH = 16, 4096
+#: Upper bounds of ``env.randomize`` ranges (the lower ones are
+#: :data:`softcrawl.robot.domain.KEYS`'s): ``key: (low, high)``, both included. Scales of
+#: stiffness and mass within a decade of the nominal robot (the reduction holds for 0.95-1.5
+#: and 0.8-1.2), regulator gains and offsets within the regulator's 0-90 kPa, lags and the
+#: control period within what makes the 1 s action a different gait (the rig: 1.062-1.070).
+RANDOMIZE_BOUNDS: dict[str, tuple[float, float]] = {
+    "friction": (0.0, 10.0), "youngs_scale": (0.1, 10.0), "mass_scale": (0.1, 10.0),
+    "pressure_gain": (0.0, 5.0), "pressure_offset": (-90.0, 90.0), "tau_inflate": (0.0, 10.0),
+    "tau_vent": (0.0, 10.0), "control_period": (0.5, 2.0),
+}
 #: ``env`` settings added after runs were saved, and the value that reproduces those runs.
 _BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250, "leg_collision_spacing": 0.0}
 TIMEOUTS = ("bootstrap", "terminal")
@@ -95,7 +134,8 @@ class EnvConfig:
         randomize: domain randomization ranges drawn per episode
             (:class:`softcrawl.robot.domain.DomainRanges`; default: off, every range null).
             ``--set env.randomize.friction=[0.8,1.6]`` sets one range,
-            ``--set env.randomize=rig`` the rig's measured ranges, ``env.randomize=off`` none.
+            ``--set env.randomize=rig`` the rig's measured ranges, ``env.randomize=off`` (or
+            ``null``) none. Every range lies within :data:`RANDOMIZE_BOUNDS`.
     """
 
     model: str = "reduced"
@@ -188,7 +228,9 @@ class TrainConfig:
     design: DesignConfig = field(default_factory=DesignConfig)
 
     def validate(self) -> TrainConfig:
-        """Raise ValueError naming the first bad setting; returns self."""
+        """Raise ValueError naming the first bad setting (types, consistency, and the bounds of
+        :data:`SIM_BOUNDS`, :data:`TRAIN_BOUNDS`, :data:`RANDOMIZE_BOUNDS`, ``sac.net_arch``
+        and the hold and episode lengths); returns self."""
         def pos_int(name, v):
             if int(v) != v or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
@@ -241,7 +283,31 @@ class TrainConfig:
             raise ValueError("n_workers and sac.learning_starts must be >= 0")
         if not all(math.isfinite(v) and v > 0 for v in (self.env.dt, self.sac.policy_lr, self.sac.q_lr)):
             raise ValueError("env.dt, sac.policy_lr and sac.q_lr must be positive")
+        self._check_bounds()
         return self
+
+    def _check_bounds(self) -> None:
+        """The bounds of :data:`SIM_BOUNDS`, :data:`TRAIN_BOUNDS`, :data:`RANDOMIZE_BOUNDS`, the
+        network's size and the hold and episode lengths (ValueError naming the setting)."""
+        def get(name):
+            obj = self
+            for part in name.split("."):
+                obj = getattr(obj, part)
+            return obj
+        for name, (low, high, unit) in (TRAIN_BOUNDS | {f"env.{k}": b for k, b in SIM_BOUNDS.items()}).items():
+            check_bounds(name, get(name), low, high, unit)
+        if self.env.refactor_every is not None:
+            check_bounds("env.refactor_every", self.env.refactor_every, 1, 10**6)
+        if len(self.sac.net_arch) > MAX_LAYERS or max(self.sac.net_arch) > MAX_WIDTH:
+            raise ValueError(f"sac.net_arch must have at most {MAX_LAYERS} layers of at most {MAX_WIDTH} units, "
+                             f"got {list(self.sac.net_arch)}")
+        check_randomize(self.env.randomize)
+        e, stretch = self.env, (self.env.randomize.control_period or (1.0, 1.0))[1]
+        hold = e.dt * e.steps_per_action * stretch
+        if hold > MAX_HOLD_S or hold * e.n_actions > MAX_EPISODE_S:
+            raise ValueError(f"env.dt x env.steps_per_action (x env.randomize.control_period) is a {hold:g} s action "
+                             f"and a {hold * e.n_actions:g} s episode; at most {MAX_HOLD_S:g} s and "
+                             f"{MAX_EPISODE_S:g} s")
 
     def to_dict(self) -> dict:
         """A JSON-ready nested dict (tuples stay tuples; ``json`` writes them as lists)."""
@@ -277,6 +343,24 @@ class TrainConfig:
         if isinstance(d, dict) and isinstance(d.get("env"), dict):  # saved before a setting: its reference value
             d = {**d, "env": {**_BEFORE_SETTING, **d["env"]}}
         return build(cls, d, "").validate()
+
+
+def check_bounds(name: str, value, low: float, high: float, unit: str = "", open_low: bool = False) -> None:
+    """Raise ValueError (naming setting ``name``) unless ``value`` is a number in ``[low, high]``
+    (``(low, high]`` with ``open_low``; ``unit`` is printed after the bounds)."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and (low < value if open_low else low <= value) and value <= high):  # NaN fails too
+        raise ValueError(f"{name} must be a number in {'(' if open_low else '['}{low:g}, {high:g}]"
+                         f"{' ' + unit if unit else ''}, got {value!r}")
+
+
+def check_randomize(ranges: DomainRanges) -> None:
+    """Raise ValueError unless every range of ``ranges`` lies within :data:`RANDOMIZE_BOUNDS`
+    (the message names ``env.randomize.KEY``)."""
+    for key, (low, high) in RANDOMIZE_BOUNDS.items():
+        r = getattr(ranges, key)
+        if r is not None and not (low <= r[0] and r[1] <= high):
+            raise ValueError(f"env.randomize.{key} must lie within [{low:g}, {high:g}], got {list(r)}")
 
 
 def _type_name(tp) -> str:
@@ -329,6 +413,10 @@ def check_field(name: str, value, tp):
     elif tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             fail()
+        try:
+            float(value)
+        except OverflowError:  # an integer beyond any float
+            fail()
     elif tp is str:
         if not isinstance(value, str):
             fail()
@@ -378,7 +466,7 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
     possible, else taken as a string). Returns a validated copy.
 
     A sub-config with presets may be set by name (``env.randomize=rig``,
-    :meth:`TrainConfig.from_dict`).
+    :meth:`TrainConfig.from_dict`); ``null`` names its ``"off"`` preset.
 
     Raises:
         ValueError: a malformed string, an unknown field, a value of the wrong type for its
@@ -401,10 +489,14 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
             target, kind = target[p], typing.get_type_hints(kind)[p]
         if parts[-1] not in target:
             raise ValueError(f"unknown setting {key!r}")
-        if isinstance(target[parts[-1]], dict):  # a sub-config: only by preset name
+        if isinstance(target[parts[-1]], dict):  # a sub-config: only by preset name (null: "off")
             sub = typing.get_type_hints(kind)[parts[-1]]
-            if not (isinstance(value, str) and callable(getattr(sub, "preset", None))):
-                raise ValueError(f"unknown setting {key!r}")
+            if not callable(getattr(sub, "preset", None)):
+                raise ValueError(f"{key.strip()} is a section; set its fields ({key.strip()}.FIELD=VALUE)")
+            if value is None:
+                value = "off"
+            if not isinstance(value, str):
+                raise ValueError(f"{key.strip()} must be a preset name or null (off), got {raw!r}")
             value = asdict(sub.preset(value))
         target[parts[-1]] = value
     return TrainConfig.from_dict(d)

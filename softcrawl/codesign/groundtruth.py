@@ -33,19 +33,31 @@ scores :data:`DIVERGED_CM`.
 and fsynced as each finishes: a killed run continues where it stopped and never recomputes a
 finished design), ``references.json`` (expert baseline phase sweep, paper gait on the paper's
 design), and at the end ``groundtruth.csv`` (ranked table), ``ranked.png`` and
-``summary.json``. Designs run in a process pool (workers pinned to one BLAS thread) or as Ray
-tasks (``executor="ray"``; a task whose worker died is retried by Ray, only that design).
+``summary.json``. ``results.jsonl`` is only ever appended to, never rewritten, and never
+through a symbolic link; the other files are replaced atomically
+(:func:`softcrawl.safeio.atomic_write_text`). Its readers (:func:`read_results`: the run
+itself, ``regret``, ``report --groundtruth``) validate every row and use only the valid ones;
+a bad row (a line cut short by a killed run, a non-finite reward, a design outside the space,
+a knot outside [0, 90] kPa) is named by file and line and left in place, and a resumed run
+computes its design again. The folder must be new, empty or a ground truth
+(:func:`check_folder`), and is locked while a run writes it (:func:`folder_lock`). Designs
+run in a process pool (workers pinned to one BLAS thread) or as Ray tasks
+(``executor="ray"``; a task whose worker died is retried by Ray, only that design).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
+import io
 import itertools
 import json
 import math
 import os
+import stat
 import time
+import typing
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,8 +72,11 @@ from softcrawl.design.space import (
     canonical_designs,
     canonicalize,
 )
+from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS, check_bounds, check_field
+from softcrawl.codesign.run import note
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.robot.actuation import P_MAX_KPA, P_MIN_KPA
+from softcrawl.safeio import UnsafeFileError, atomic_write_text, load_json, loads_json, read_text
 
 #: Objective value (cm) given to an episode whose simulation diverged.
 DIVERGED_CM = -100.0
@@ -71,6 +86,8 @@ WAVEFORMS = ("step", "smooth")
 EXECUTORS = ("process", "serial", "ray")
 #: Paper's reward of its best design L1 with its learned gait (codesign.md), cm per 20 s.
 PAPER_L1_CM = 10.0
+#: Upper bounds of the search settings (far beyond the defaults 36, 2 and cma's 4 + 3 ln n).
+MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
 
 
 # -- gait family --------------------------------------------------------------------------------
@@ -233,23 +250,31 @@ class GroundTruthConfig:
 
     def validate(self) -> GroundTruthConfig:
         """Raise ValueError naming the first bad setting; returns self."""
-        for name in ("duration", "hold", "sigma0", "dt", "leg_mesh_size", "disk_mesh_size"):
-            v = getattr(self, name)
-            if name == "dt" and v is None:
-                continue
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number, got {v!r}")
+        for name, (low, high, unit) in SIM_BOUNDS.items():
+            if getattr(self, name) is not None:
+                check_bounds(name, getattr(self, name), low, high, unit)
+        for name, high, unit in (("duration", MAX_EPISODE_S, "s"), ("hold", MAX_HOLD_S, "s"),
+                                 ("sigma0", 1, "(of 90 kPa)")):
+            check_bounds(name, getattr(self, name), 0, high, unit, open_low=True)
         if self.screen_duration is not None and not (0 < self.screen_duration <= self.duration):
             raise ValueError(f"screen_duration must be in (0, duration], got {self.screen_duration!r}")
         if not self.cycles or any(int(c) != c or not 1 <= c <= MAX_KNOTS for c in self.cycles):
             raise ValueError(f"cycles must be pattern lengths in 1..{MAX_KNOTS}, got {self.cycles!r}")
-        for name in ("evals_per_cycle", "finalists"):
-            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 1:
-                raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)!r}")
+        for name, low, high in (("evals_per_cycle", 1, MAX_EVALS), ("finalists", 1, MAX_FINALISTS),
+                                ("popsize", 2, MAX_POPSIZE)):
+            v = getattr(self, name)
+            if v is not None:
+                check_bounds(name, v, low, high)
+                if int(v) != v:
+                    raise ValueError(f"{name} must be an integer, got {v!r}")
         if self.rid_dtype not in RID_DTYPES:
             raise ValueError(f"rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
-        if self.popsize is not None and self.popsize < 2:
-            raise ValueError(f"popsize must be >= 2, got {self.popsize}")
+        from softcrawl.robot.sweep import MAX_PHASES
+
+        if len(self.baseline_phases) > MAX_PHASES:
+            raise ValueError(f"baseline_phases: {len(self.baseline_phases)} lags, more than the {MAX_PHASES} allowed")
+        for ph in self.baseline_phases:
+            check_bounds("baseline_phases", ph, -360, 360, "deg")
         return self
 
     def to_dict(self) -> dict:
@@ -259,11 +284,20 @@ class GroundTruthConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> GroundTruthConfig:
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
+        """Inverse of :meth:`to_dict`; each value checked against its field's type
+        (:func:`softcrawl.codesign.config.check_field`) and :meth:`validate`.
+
+        Raises:
+            ValueError: not an object, an unknown key, a value of the wrong type (named), or a
+                setting out of bounds.
+        """
+        if not isinstance(d, dict):
+            raise ValueError(f"ground-truth settings must be an object, got {type(d).__name__}")
+        hints = typing.get_type_hints(cls)
+        unknown = set(d) - set(hints)
         if unknown:
             raise ValueError(f"unknown ground-truth settings: {sorted(unknown)}")
-        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        kw = {k: check_field(k, v, hints[k]) for k, v in d.items()}
         kw.setdefault("rid_dtype", "float64")  # written before the setting: computed in double precision
         return cls(**kw).validate()
 
@@ -463,12 +497,70 @@ class DesignResult:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> DesignResult:
-        d = dict(d)
-        d["design"] = tuple(int(v) for v in d["design"])
-        d["per_cycle"] = {int(k): v for k, v in d.get("per_cycle", {}).items()}
-        d["screen_cm"] = float("nan") if d.get("screen_cm") is None else d["screen_cm"]
-        return cls(**d)
+    def from_dict(cls, d: dict, where: str = "result") -> DesignResult:
+        """Inverse of :meth:`to_dict`, validated: a canonical design of the space, finite
+        rewards and times, counts >= 0, a gait of the family (knots in [0, 90] kPa). Keys
+        that are not fields are ignored (a newer version's additions).
+
+        Raises:
+            ValueError: the first fault, prefixed by ``where`` (file and line) and the design.
+        """
+        if not isinstance(d, dict):
+            raise ValueError(f"{where}: a result must be a JSON object, got {type(d).__name__}")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        missing = [k for k, f in fields.items() if k not in d and f.default is dataclasses.MISSING
+                   and f.default_factory is dataclasses.MISSING]
+        if missing:
+            raise ValueError(f"{where}: missing {', '.join(missing)}")
+        design = d["design"]
+        if not isinstance(design, list) or any(isinstance(v, bool) or not isinstance(v, int) for v in design):
+            raise ValueError(f"{where}: design must be a list of 8 integers, got {design!r}")
+        design = tuple(design)
+        try:
+            canonical = canonicalize(design)
+        except ValueError as exc:  # InvalidDesignError names the fault
+            raise ValueError(f"{where}: {exc}") from None
+        if canonical != design:
+            raise ValueError(f"{where}: design {design} is not canonical ({canonical})")
+        at = f"{where} (design {','.join(map(str, design))})"
+
+        def number(key, low=-math.inf, integer=False, optional=False):
+            v = d.get(key, fields[key].default)
+            if v is None and optional:
+                return float("nan")
+            if not (_finite(v) and v >= low and (isinstance(v, int) or not integer)):
+                kind = "an integer" if integer else "a finite number"
+                raise ValueError(f"{at}: {key} must be {kind}{f' >= {low:g}' if low > -math.inf else ''}, got {v!r}")
+            return v if integer else float(v)
+
+        try:
+            gait = PeriodicGait.from_dict(d["gait"])
+        except (ValueError, TypeError, KeyError, AttributeError, OverflowError) as exc:
+            raise ValueError(f"{at}: gait: {exc}") from None
+        if d["waveform"] not in WAVEFORMS:
+            raise ValueError(f"{at}: waveform must be one of {WAVEFORMS}, got {d['waveform']!r}")
+        per_cycle = d.get("per_cycle", {})
+        if not isinstance(per_cycle, dict) or not all(
+                str(k).isdigit() and 1 <= int(k) <= MAX_KNOTS and _finite(v) for k, v in per_cycle.items()):
+            raise ValueError(f"{at}: per_cycle must map cycle lengths 1..{MAX_KNOTS} to finite rewards, "
+                             f"got {per_cycle!r}")
+        cycle = number("cycle", 1, integer=True)
+        if cycle > MAX_KNOTS:
+            raise ValueError(f"{at}: cycle must be in 1..{MAX_KNOTS}, got {cycle}")
+        return cls(design, number("reward_cm"), gait.to_dict(), cycle, d["waveform"],
+                   number("evaluations", 0, True), number("full_evaluations", 0, True), number("sim_seconds", 0),
+                   number("wall_seconds", 0), number("screen_cm", optional=True),
+                   {int(k): float(v) for k, v in per_cycle.items()}, number("diverged", 0, True))
+
+
+def _finite(v) -> bool:
+    """Whether ``v`` is a number (not a bool) that a float holds finitely."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an integer beyond any float
+        return False
 
 
 def design_seed(design: Design, seed: int) -> int:
@@ -636,33 +728,149 @@ def parse_designs(spec: str) -> list[Design]:
     return out
 
 
-def load_results(out_dir: str | Path) -> dict[Design, DesignResult]:
-    """Finished designs of a run (``results.jsonl``); a torn last line (killed run) is dropped
-    and the file rewritten without it."""
+def read_results(out_dir: str | Path) -> tuple[dict[Design, DesignResult], list[str]]:
+    """The rows of a ground truth's ``results.jsonl``, read and never written:
+    ``(results by design, problems)``. Each row is validated (:meth:`DesignResult.from_dict`);
+    a bad row (not JSON, as a line cut short by a killed run, or not a valid result) is left
+    out of the results and in the file, and described in ``problems`` by file and line. Of
+    two rows of one design the later counts (a design recomputed after a bad row).
+
+    Raises:
+        UnsafeFileError: ``results.jsonl`` is a symbolic link, not a regular file, or too large.
+    """
     path = Path(out_dir) / RESULTS
+    if path.is_symlink():
+        raise UnsafeFileError(f"{path} is a symbolic link; a ground truth's results must be a file in its folder")
     if not path.exists():
-        return {}
-    good, lines, torn = {}, [], False
-    for line in path.read_text().splitlines():
+        return {}, []
+    good, bad = {}, []
+    for n, line in enumerate(read_text(path).split("\n"), start=1):
         if not line.strip():
             continue
+        where = f"{path}, line {n}"
         try:
-            r = DesignResult.from_dict(json.loads(line))
-        except (ValueError, KeyError, TypeError):
-            torn = True
+            r = DesignResult.from_dict(loads_json(line, where), where)
+        except ValueError as exc:
+            bad.append(str(exc))
             continue
         good[r.design] = r
-        lines.append(line)
-    if torn:
-        path.write_text("".join(ln + "\n" for ln in lines))
+    return good, bad
+
+
+def load_results(out_dir: str | Path) -> dict[Design, DesignResult]:
+    """The valid rows of :func:`read_results`; each bad row is a note on stderr naming its file
+    and line (the row stays in the file)."""
+    good, bad = read_results(out_dir)
+    for problem in bad:
+        note(f"{problem}; row left in place and not used")
     return good
 
 
 def _append(path: Path, result: DesignResult) -> None:
-    with open(path, "a") as f:
-        f.write(json.dumps(result.to_dict()) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
+    """Append one row to ``results.jsonl`` and fsync it. A last line left unfinished by a
+    killed run is first ended, so that it stays a (bad) line of its own.
+
+    Raises:
+        UnsafeFileError: the file is a symbolic link or not a regular file.
+    """
+    line = (json.dumps(result.to_dict(), allow_nan=False) + "\n").encode()
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    except OSError:
+        if path.is_symlink():
+            raise UnsafeFileError(f"{path} is a symbolic link; a ground truth's results must be a file "
+                                  "in its folder") from None
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise UnsafeFileError(f"{path}: not a regular file")
+        if st.st_size and os.pread(fd, 1, st.st_size - 1) != b"\n":
+            line = b"\n" + line
+        os.write(fd, line)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+#: Lock file of a ground-truth folder: held (``fcntl.flock``) by the run writing it.
+LOCK = ".groundtruth.lock"
+
+
+class FolderLockedError(ValueError):
+    """Another process is writing this ground-truth folder."""
+
+
+def read_config(out_dir: str | Path) -> GroundTruthConfig:
+    """The settings saved in a ground-truth folder's ``config.json``.
+
+    Raises:
+        FileNotFoundError: no ``config.json``.
+        ValueError: not a ground truth's ``config.json`` (the message names the file).
+    """
+    path = Path(out_dir) / "config.json"
+    doc = load_json(path)
+    try:
+        if not isinstance(doc, dict) or "config" not in doc:
+            raise ValueError('no "config" object')
+        return GroundTruthConfig.from_dict(doc["config"])
+    except ValueError as exc:
+        raise ValueError(f"{path}: not a ground truth's settings ({exc})") from None
+
+
+def check_folder(out_dir: str | Path) -> Path:
+    """``--out`` of ``softcrawl groundtruth``, checked before any work: a folder that can be
+    created, an empty one, or a ground-truth folder (its ``config.json`` readable); never a
+    folder another command wrote (a simulation, a deployment, a training run).
+
+    Raises:
+        OutputExistsError: not a directory, or not writable.
+        ValueError: a folder of other files, or a ``config.json`` that is not a ground truth's.
+    """
+    from softcrawl.robot.output import OutputExistsError, check_output_path
+
+    out = Path(out_dir)
+    if not out.exists() and not out.is_symlink():
+        return check_output_path(out)
+    if out.is_symlink() or not out.is_dir():
+        raise OutputExistsError(f"{out} exists and is not a directory")
+    if (out / "config.json").exists() or (out / "config.json").is_symlink():
+        try:
+            read_config(out)
+        except ValueError as exc:
+            raise ValueError(f"{out} is not a ground-truth folder: {exc}; use another --out") from None
+    else:
+        others = sorted(p.name for p in out.iterdir() if p.name != LOCK)
+        if others:
+            raise ValueError(f"{out} holds other files ({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}) "
+                             "and no ground truth; use another --out")
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise OutputExistsError(f"{out} is not writable")
+    return out
+
+
+@contextlib.contextmanager
+def folder_lock(out: Path):
+    """Hold the advisory lock :data:`LOCK` of the folder ``out`` (it holds the holder's pid).
+
+    Raises:
+        FolderLockedError: another process holds it.
+    """
+    import fcntl
+
+    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+            raise FolderLockedError(f"{out} is being written by another softcrawl groundtruth (process {pid}); "
+                                    "wait for it to finish or use another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def _task(design: Design, cfg_dict: dict) -> dict:
@@ -722,6 +930,10 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
                     refs: bool = True) -> dict:
     """Ground truth of ``designs`` into ``out_dir`` (see the module docstring); resumable.
 
+    Everything is checked before any design is computed: the folder (:func:`check_folder`),
+    the settings, the designs. The folder is locked while the run writes it
+    (:func:`folder_lock`): a second run on it stops at once.
+
     Args:
         designs: designs (canonicalised; duplicates dropped).
         out_dir: run folder (created; an existing one must hold the same config).
@@ -736,30 +948,42 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
         The summary dict (also ``summary.json``).
 
     Raises:
-        ValueError: config mismatch with an existing folder, unknown executor, empty design set.
+        ValueError: config mismatch with an existing folder, unknown executor, empty design set,
+            settings out of bounds, a folder another command wrote (:func:`check_folder`).
+        FolderLockedError: another run is writing the folder.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    cfg_path = out / "config.json"
-    if cfg is not None and cfg.dt is None:  # record the concrete time step
-        cfg = dataclasses.replace(cfg, dt=cfg.robot_config().dt)
-    if cfg_path.exists():
-        saved = GroundTruthConfig.from_dict(json.loads(cfg_path.read_text())["config"])
-        if cfg is not None and cfg.validate().to_dict() != saved.to_dict():
-            diff = {k: (v, cfg.to_dict()[k]) for k, v in saved.to_dict().items() if cfg.to_dict()[k] != v}
-            raise ValueError(f"{out} holds a ground truth with other settings (saved vs given: {diff}); "
-                             "use another folder")
-        cfg = saved
-    else:
-        cfg = (cfg or GroundTruthConfig()).validate()
-        from softcrawl import __version__
-
-        cfg_path.write_text(json.dumps({"config": cfg.to_dict(), "softcrawl": __version__}, indent=2) + "\n")
     if executor not in EXECUTORS:
         raise ValueError(f"executor must be one of {EXECUTORS}, got {executor!r}")
     designs = list(dict.fromkeys(canonicalize(d) for d in designs))
     if not designs:
         raise ValueError("empty design set")
+    out = check_folder(out_dir)
+    if cfg is not None and cfg.dt is None:  # record the concrete time step
+        cfg = dataclasses.replace(cfg, dt=cfg.robot_config().dt)
+    if cfg is not None:
+        cfg.validate()
+    out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out):
+        cfg_path = out / "config.json"
+        if cfg_path.exists():
+            saved = read_config(out)
+            if cfg is not None and cfg.to_dict() != saved.to_dict():
+                diff = {k: (v, cfg.to_dict()[k]) for k, v in saved.to_dict().items() if cfg.to_dict()[k] != v}
+                raise ValueError(f"{out} holds a ground truth with other settings (saved vs given: {diff}); "
+                                 "use another folder")
+            cfg = saved
+        else:
+            cfg = (cfg or GroundTruthConfig()).validate()
+            from softcrawl import __version__
+
+            saved = {"config": cfg.to_dict(), "softcrawl": __version__}
+            atomic_write_text(cfg_path, json.dumps(saved, indent=2) + "\n")
+        return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs)
+
+
+def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor, progress, task, ray_address,
+             refs) -> dict:
+    """The body of :func:`run_groundtruth` once the folder is locked and its settings known."""
     done = load_results(out)
     todo = [d for d in designs if d not in done]
     res_path = out / RESULTS
@@ -805,9 +1029,28 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
                 finish(res)
     bar.close()
     ref_path = out / "references.json"
-    if refs and not ref_path.exists():
-        ref_path.write_text(json.dumps(references(cfg), indent=2) + "\n")
+    if refs and read_references(out) is None:
+        atomic_write_text(ref_path, json.dumps(references(cfg), indent=2, allow_nan=False) + "\n")
     return write_outputs(out, designs, time.perf_counter() - wall)
+
+
+def read_references(out_dir: str | Path) -> dict | None:
+    """``references.json`` of a ground-truth folder, or None if it is missing or not valid
+    (a note says so): an object of references, each with a finite ``reward_cm``."""
+    path = Path(out_dir) / "references.json"
+    if not path.exists() and not path.is_symlink():
+        return None
+    try:
+        refs = load_json(path)
+        if not isinstance(refs, dict) or not all(isinstance(v, dict) and _finite(v.get("reward_cm"))
+                                                 for v in refs.values()):
+            raise ValueError("not an object of references with finite rewards")
+        if not _finite(refs.get("expert_baseline", {"best_phase_deg": 0.0}).get("best_phase_deg")):
+            raise ValueError("the expert baseline has no finite best_phase_deg")
+    except (ValueError, OSError) as exc:
+        note(f"{exc if str(path) in str(exc) else f'{path}: {exc}'}; references left out")
+        return None
+    return refs
 
 
 def _design_str(d) -> str:
@@ -815,25 +1058,31 @@ def _design_str(d) -> str:
 
 
 def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_seconds: float | None = None) -> dict:
-    """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` from the finished results
-    (only those in ``designs`` if given); returns the summary."""
+    """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` (each replaced
+    atomically) from the valid rows of ``results.jsonl`` (only those in ``designs`` if given;
+    the bad rows, by file and line, in the summary's ``bad_rows``); returns the summary.
+
+    Raises:
+        ValueError: the folder's ``config.json`` is missing or not a ground truth's.
+    """
     out = Path(out_dir)
-    cfg = GroundTruthConfig.from_dict(json.loads((out / "config.json").read_text())["config"])
-    done = load_results(out)
+    cfg = read_config(out)
+    done, bad = read_results(out)  # the bad rows are listed in the summary
     if designs is not None:
         keep = {canonicalize(d) for d in designs}
         done = {d: r for d, r in done.items() if d in keep}
     rows = sorted(done.values(), key=lambda r: (-r.reward_cm, r.design))
-    with open(out / "groundtruth.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["rank", "design", "reward_cm", "cycle", "waveform", "gait_kpa", "evaluations",
-                    "full_evaluations", "sim_seconds", "wall_seconds", "diverged"])
-        for i, r in enumerate(rows, start=1):
-            g = PeriodicGait.from_dict(r.gait)
-            w.writerow([i, ",".join(map(str, r.design)), f"{r.reward_cm:.4f}", r.cycle, r.waveform,
-                        json.dumps([[round(v, 2) for v in p] for p in g.patterns]), r.evaluations,
-                        r.full_evaluations, f"{r.sim_seconds:.1f}", f"{r.wall_seconds:.1f}", r.diverged])
-    refs = json.loads((out / "references.json").read_text()) if (out / "references.json").exists() else {}
+    table = io.StringIO()
+    w = csv.writer(table)
+    w.writerow(["rank", "design", "reward_cm", "cycle", "waveform", "gait_kpa", "evaluations",
+                "full_evaluations", "sim_seconds", "wall_seconds", "diverged"])
+    for i, r in enumerate(rows, start=1):
+        g = PeriodicGait.from_dict(r.gait)
+        w.writerow([i, ",".join(map(str, r.design)), f"{r.reward_cm:.4f}", r.cycle, r.waveform,
+                    json.dumps([[round(v, 2) for v in p] for p in g.patterns]), r.evaluations,
+                    r.full_evaluations, f"{r.sim_seconds:.1f}", f"{r.wall_seconds:.1f}", r.diverged])
+    atomic_write_text(out / "groundtruth.csv", table.getvalue())
+    refs = read_references(out) or {}
     rewards = np.array([r.reward_cm for r in rows])
 
     def place(d):
@@ -859,11 +1108,12 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
                  "cpu_seconds": float(sum(r.wall_seconds for r in rows)),
                  "cpu_seconds_per_design": float(np.mean([r.wall_seconds for r in rows])) if rows else None,
                  "this_call_wall_seconds": wall_seconds},
+        "bad_rows": bad,
     }
     if "expert_baseline" in refs and len(rows):
         b = refs["expert_baseline"]["reward_cm"]
         summary["designs_beating_expert_baseline"] = int(np.sum(rewards > b))
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
     if rows:
         _ranked_plot(rows, refs, out / "ranked.png", cfg)
     return summary
@@ -909,9 +1159,8 @@ def load_groundtruth(gt_dir: str | Path) -> tuple[GroundTruthConfig, dict[Design
     gt = Path(gt_dir)
     if not (gt / "config.json").exists():
         raise ValueError(f"{gt} is not a ground-truth folder (no config.json)")
-    cfg = GroundTruthConfig.from_dict(json.loads((gt / "config.json").read_text())["config"])
+    cfg = read_config(gt)
     res = load_results(gt)
     if not res:
         raise ValueError(f"{gt} has no finished design yet")
-    refs = json.loads((gt / "references.json").read_text()) if (gt / "references.json").exists() else {}
-    return cfg, res, refs
+    return cfg, res, read_references(gt) or {}

@@ -86,15 +86,20 @@ def gt_settings(cfg: GroundTruthConfig) -> dict:
             "reduction": cfg.reduction}
 
 
-def place_design(design, gt_dir: str | Path) -> dict:
+def place_design(design, gt_dir: str | Path, results: dict | None = None) -> dict:
     """Rank of ``design`` in a ground truth: ``{"design", "reward_cm", "rank", "of",
     "percentile", "best_design", "best_cm", "regret_cm", "gait"}`` (rank 1 = best; percentile =
-    share of designs it beats or ties, %).
+    share of designs it beats or ties, %). Only the ground truth's valid rows count
+    (:func:`softcrawl.codesign.groundtruth.read_results`; a bad row is a note naming its file
+    and line).
+
+    Args:
+        results: the ground truth's results by design, if already read (else read from ``gt_dir``).
 
     Raises:
         ValueError: ``design`` is not in the ground truth, or the folder is not one.
     """
-    _, res, _ = load_groundtruth(gt_dir)
+    res = load_groundtruth(gt_dir)[1] if results is None else results
     d = canonicalize(design)
     if d not in res:
         raise ValueError(f"design {','.join(map(str, d))} is not in the ground truth {gt_dir} ({len(res)} designs)")
@@ -116,19 +121,23 @@ def compute_regret(run: str | Path, gt_dir: str | Path, policy: bool = True) -> 
     Returns:
         dict: ``run``, ``groundtruth``, ``choice`` (:func:`run_choice`), ``placement``
         (:func:`place_design`), ``policy`` (:func:`policy_reward` or None),
-        ``settings_differ`` (``{key: [run, ground truth]}``).
+        ``settings_differ`` (``{key: [run, ground truth]}``); a number that is not finite (a
+        diverged policy episode's reward) is None.
 
     Raises:
         ValueError: not a run / ground truth, or the chosen design is not in the ground truth.
     """
-    cfg, _, _ = load_groundtruth(gt_dir)
+    cfg, res, _ = load_groundtruth(gt_dir)
     choice = run_choice(run)
-    placement = place_design(choice["design"], gt_dir)
+    placement = place_design(choice["design"], gt_dir, res)
     rs, gs = run_settings(run), gt_settings(cfg)
     differ = {k: [rs[k], gs[k]] for k in rs if rs[k] != gs[k]}
     pol = policy_reward(run, choice["design"]) if policy else None
-    return {"run": str(run), "groundtruth": str(gt_dir), "choice": {**choice, "design": list(choice["design"])},
-            "placement": placement, "policy": pol, "settings_differ": differ}
+    from softcrawl.robot.output import jsonable  # JSON has no NaN: a number that is not finite is None
+
+    choice = {**choice, "design": list(choice["design"])}
+    return jsonable({"run": str(run), "groundtruth": str(gt_dir), "choice": choice, "placement": placement,
+                     "policy": pol, "settings_differ": differ})
 
 
 def regret_markdown(r: dict) -> list[str]:
@@ -146,7 +155,8 @@ def regret_markdown(r: dict) -> list[str]:
              f"| regret | {p['regret_cm']:.2f} cm |"]
     if r.get("policy"):
         pol = r["policy"]
-        lines.append(f"| learned policy on the chosen design | {pol['reward_cm']:+.2f} cm"
+        reward = "no reward" if pol["reward_cm"] is None else f"{pol['reward_cm']:+.2f} cm"
+        lines.append(f"| learned policy on the chosen design | {reward}"
                      f"{' (diverged)' if pol['diverged'] else ''} per {pol['episode_seconds']:g} s |")
         lines.append(f"| ground-truth gait on it | {p['reward_cm']:+.2f} cm |")
     lines.append("")

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from softcrawl.codesign.config import check_randomize
 from softcrawl.robot.domain import DomainRanges, DomainSample
 
 #: Columns of ``domain.csv`` before the drawn values.
@@ -178,7 +179,8 @@ def evaluate_randomized(run: str | os.PathLike, design, episodes: int, ranges: D
 
     Raises:
         ValueError: ``episodes < 1``, no ranges (the run did not randomize and none were
-            given), and the errors of :func:`softcrawl.codesign.evaluation.evaluate_policy`.
+            given), ranges outside :data:`softcrawl.codesign.config.RANDOMIZE_BOUNDS`, and the
+            errors of :func:`softcrawl.codesign.evaluation.evaluate_policy`.
     """
     from softcrawl.codesign.evaluation import evaluate_policy, load_run_config
 
@@ -186,6 +188,7 @@ def evaluate_randomized(run: str | os.PathLike, design, episodes: int, ranges: D
         raise ValueError(f"--randomize needs a positive number of episodes, got {episodes!r}")
     if ranges is None:
         ranges = load_run_config(run).env.randomize
+    check_randomize(ranges)
     if not ranges.enabled:
         raise ValueError("no randomization ranges: the run did not randomize its domain; give some with "
                          "--set env.randomize=rig or --set env.randomize.KEY=[low,high]")

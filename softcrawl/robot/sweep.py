@@ -128,26 +128,36 @@ class SweepResult:
         return max(ok, key=lambda r: r.reward_cm) if ok else None
 
 
+#: Most phases a sweep may have (every 0.5 deg of a full turn; each is a whole episode).
+MAX_PHASES = 721
+
+
 def parse_phases(spec: str) -> tuple[float, ...]:
     """Phases from ``"start:stop:step"`` (degrees, stop included if on the grid) or a comma list.
 
     ``"0:180:10"`` gives 0, 10, ..., 180 (19 phases).
 
     Raises:
-        ValueError: malformed spec, non-finite values, step <= 0, stop < start, or repeats.
+        ValueError: malformed spec, non-finite values, step <= 0, stop < start, repeats, or
+            more than :data:`MAX_PHASES` phases.
     """
+    malformed = ValueError(f"phases must be 'start:stop:step' (step > 0, stop >= start) or a comma list of degrees, "
+                           f"got {spec!r}")
     try:
-        if ":" in spec:
-            start, stop, step = (float(v) for v in spec.split(":"))
-            if not all(map(math.isfinite, (start, stop, step))) or step <= 0 or stop < start:
-                raise ValueError
-            n = int(math.floor((stop - start) / step + 1e-9))
-            phases = tuple(float(v) for v in np.round(start + step * np.arange(n + 1), 9))
-        else:
-            phases = tuple(float(v) for v in spec.split(","))
+        grid = tuple(float(v) for v in spec.split(":")) if ":" in spec else None
+        phases = tuple(float(v) for v in spec.split(",")) if grid is None else ()
     except ValueError:
-        raise ValueError(f"phases must be 'start:stop:step' (step > 0, stop >= start) or a comma list "
-                         f"of degrees, got {spec!r}") from None
+        raise malformed from None
+    if grid is not None:
+        if len(grid) != 3 or not all(map(math.isfinite, grid)) or grid[2] <= 0 or grid[1] < grid[0]:
+            raise malformed
+        start, stop, step = grid
+        steps = (stop - start) / step  # inf for a step tiny enough
+        if steps + 1e-9 >= MAX_PHASES:
+            raise ValueError(f"phases {spec!r} are more than the {MAX_PHASES} allowed")
+        phases = tuple(float(v) for v in np.round(start + step * np.arange(math.floor(steps + 1e-9) + 1), 9))
+    if len(phases) > MAX_PHASES:
+        raise ValueError(f"phases {spec!r} are more than the {MAX_PHASES} allowed")
     if not phases or not all(map(math.isfinite, phases)) or len(set(phases)) != len(phases):
         raise ValueError(f"phases must be finite and distinct, got {spec!r}")
     return phases
