@@ -799,7 +799,7 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
                 raise
             pool.shutdown()
         else:
-            from softcrawl.envs.ray_backend import ray_map
+            from softcrawl.parallel import ray_map
 
             for res in ray_map(task, [(d, cd) for d in todo], address=ray_address, num_cpus=workers):
                 finish(res)

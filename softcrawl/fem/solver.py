@@ -109,14 +109,15 @@ class StepStats:
 #: when a reduced leg's paper face lands, ~300 nodes penetrate at once but ~10 carry load.
 MIN_CONTACT_GROWTH = 16
 
-_FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # normal, t1, t2
-_FLOOR_FRAMES = np.tile(_FLOOR_FRAME, (64, 1, 1))
+#: ``(3, 3)`` rows: the floor contact frame's normal and two tangents (world z, x, y).
+FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+_FLOOR_FRAMES = np.tile(FLOOR_FRAME, (64, 1, 1))
 
 
 def _floor_frames(k: int) -> np.ndarray:
     """``(k, 3, 3)`` copies of the floor contact frame (a view of a kept array for k <= 64:
     ``np.broadcast_to`` costs more than the Delassus terms it feeds)."""
-    return _FLOOR_FRAMES[:k] if k <= len(_FLOOR_FRAMES) else np.tile(_FLOOR_FRAME, (k, 1, 1))
+    return _FLOOR_FRAMES[:k] if k <= len(_FLOOR_FRAMES) else np.tile(FLOOR_FRAME, (k, 1, 1))
 
 
 class ImplicitEulerSolver:

@@ -37,16 +37,14 @@ import scipy.sparse as sp
 from numba import njit
 
 from softcrawl.fem.constraints import add_block_delassus, block_impulses
-from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, _polish, pgs_coulomb
+from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, polish_kernel, pgs_coulomb
 from softcrawl.fem.linalg import Factorization, ldl_solve_many
-from softcrawl.fem.solver import MIN_CONTACT_GROWTH
+from softcrawl.fem.solver import FLOOR_FRAME, MIN_CONTACT_GROWTH
 from softcrawl.reduction.kernels import (add_delassus, back_substitute_transposed, body_floor_candidates, corrections,
                                         forward_substitute, point_velocity)
 
 #: Active-set rounds and relative tolerance of the polish (as :func:`softcrawl.fem.contact.polish_active_set`).
 POLISH_ROUNDS, POLISH_RTOL = 30, 1e-9
-
-_FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # normal, t1, t2
 
 
 class DiskColumns:
@@ -360,13 +358,13 @@ def solve_condensed(W, q, nb, mu, warm, tol, max_iter, extra_chunks):
     if nc:
         ok = False
         if np.any(lam_c != 0.0):
-            ok, new = _polish(Wc, qc, mu, lam_c, POLISH_ROUNDS, POLISH_RTOL)
+            ok, new = polish_kernel(Wc, qc, mu, lam_c, POLISH_ROUNDS, POLISH_RTOL)
         if not ok:
             sweeps, rel = pgs_coulomb(Wc, qc, mu, lam_c, tol, max_iter)
             for chunk in range(extra_chunks + 1):
                 if rel <= tol:
                     break
-                ok, new = _polish(Wc, qc, mu, lam_c, POLISH_ROUNDS, POLISH_RTOL)
+                ok, new = polish_kernel(Wc, qc, mu, lam_c, POLISH_ROUNDS, POLISH_RTOL)
                 if ok or chunk == extra_chunks:
                     break
                 more, rel = pgs_coulomb(Wc, qc, mu, lam_c, tol, max_iter)
@@ -492,7 +490,7 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
         for i in range(n_disk):
             for a in range(3):
                 vb[3 * i + a] = v_free[d0 + i, 0] * R[0, a] + v_free[d0 + i, 1] * R[1, a] + v_free[d0 + i, 2] * R[2, a]
-        frame_R = _FLOOR_FRAME @ R
+        frame_R = FLOOR_FRAME @ R
         gmax = 0.0
         for i in range(k):
             gmax = max(gmax, abs(gaps[i]))

@@ -27,7 +27,7 @@ import numpy as np
 from softcrawl.fem.body import Body
 from softcrawl.fem.constraints import NodalCompliance
 from softcrawl.fem.model import Model
-from softcrawl.fem.solver import _FLOOR_FRAME, ImplicitEulerSolver, SimulationDiverged, SolverSettings
+from softcrawl.fem.solver import FLOOR_FRAME, ImplicitEulerSolver, SimulationDiverged, SolverSettings
 from softcrawl.fem.state import Control, State
 from softcrawl.reduction.constrain import ConstraintBatch
 from softcrawl.reduction.floating import FloatingFrameBody
@@ -80,7 +80,7 @@ class ReducedSolver(ImplicitEulerSolver):
         by_part: dict[int, dict[int, ReducedBody]] = {}
         for i, rb in sorted(self.reduced.items()):
             by_part.setdefault(id(rb.part), {})[i] = rb
-        self.groups = [ModalGroup.build(model, bodies, self._attach_rows, _FLOOR_FRAME) for bodies in by_part.values()]
+        self.groups = [ModalGroup.build(model, bodies, self._attach_rows, FLOOR_FRAME) for bodies in by_part.values()]
         self._nodal = {i for i in range(len(model.bodies)) if i not in self.reduced}
         # Global node -> (group, body in group), -1 for nodes of nodal bodies.
         self._node_group = np.full(model.n_nodes, -1, np.int64)

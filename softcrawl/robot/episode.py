@@ -206,7 +206,7 @@ class Episode:
 
     def next_control(self, command: np.ndarray) -> Control:
         """:meth:`step` without its solver step, for drivers that step many episodes' robots
-        together (:mod:`softcrawl.envs.batch`, which then sets :attr:`state`): the regulators
+        together (:mod:`softcrawl.envs.backends.batched`, which then sets :attr:`state`): the regulators
         advance one ``dt`` with commands ``(3,)`` real kPa; returns that step's solver input.
 
         Raises:

@@ -1,72 +1,39 @@
-"""Ray backend of the vectorised crawler env, and Ray tasks for the ground truth (issue 21).
+"""The Ray backend: envs held by Ray actors (optional extra ``softcrawl[ray]``, ``ray>=2``).
 
-Optional: ``pip install softcrawl[ray]`` (``ray>=2``). Runs on a local Ray started here
-(:func:`ensure_ray`) unless an address of an existing cluster is given (``"auto"`` or
-``"ray://host:10001"``).
+Runs on a local Ray started here (:func:`softcrawl.parallel.ensure_ray`) unless an address of an
+existing cluster is given (``"auto"`` or ``"ray://host:10001"``).
 
-:class:`RayBackend` implements :class:`softcrawl.envs.backends.EnvBackend` (``reset``, ``step``,
-``get_attr``, ``set_attr``, ``call``, ``close``) with Ray actors each holding a contiguous chunk
-of the envs (like the subprocess backend's workers). **Fault tolerance**: actors are created with
-``max_restarts``; the driver keeps, per env, the design and actions of its current
-episode and its RNG state after the reset. When an actor dies (``RayActorError``, or
-``ActorUnavailableError`` mid-call), Ray restarts it (fresh envs); the backend then resets its
-envs with the same designs, restores their RNG states, replays the actions of the current
+:class:`RayBackend` implements :class:`~softcrawl.envs.backends.base.EnvBackend` (``reset``,
+``step``, ``get_attr``, ``set_attr``, ``call``, ``close``) with Ray actors each holding a
+contiguous chunk of the envs (like the subprocess backend's workers). **Fault tolerance**:
+actors are created with ``max_restarts``; the driver keeps, per env, the design and actions of
+its current episode and its RNG state after the reset. When an actor dies (``RayActorError``,
+or ``ActorUnavailableError`` mid-call), Ray restarts it (fresh envs); the backend then resets
+its envs with the same designs, restores their RNG states, replays the actions of the current
 episodes, and re-issues the failed call. Simulation is deterministic, so the run goes on with
 the same results as if nothing had happened; only that actor's episodes are re-simulated.
 State changed through ``set_attr``/``call`` on a dead actor's envs is not replayed.
-
-:func:`ray_map` runs ``fn(*args)`` for each argument tuple as Ray tasks and yields the results
-as they finish (``max_retries``: a task whose worker died is retried, only that task), used by
-:func:`softcrawl.codesign.groundtruth.run_groundtruth` with ``executor="ray"``.
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 
 import cloudpickle
 import numpy as np
 
-from softcrawl.envs.backends import ChunkedBackend, SerialBackend
-
-#: Environment of Ray workers: one BLAS/OpenMP thread (parallelism comes from processes).
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-def _ray():
-    try:
-        import ray
-    except ImportError:
-        raise ImportError("the Ray backend needs Ray: pip install 'softcrawl[ray]' (ray>=2)") from None
-    return ray
-
-
-def ensure_ray(address: str | None = None, num_cpus: int | None = None):
-    """Connect to Ray: the running one if this process already did, else a cluster at
-    ``address``, else a new local Ray with ``num_cpus`` CPUs (default: all). Workers get
-    :data:`WORKER_ENV`. Returns the ``ray`` module.
-
-    Raises:
-        ImportError: Ray is not installed. ConnectionError: no cluster at ``address``.
-    """
-    ray = _ray()
-    if not ray.is_initialized():
-        kw = {"runtime_env": {"env_vars": dict(WORKER_ENV)}, "log_to_driver": False}
-        if address:
-            ray.init(address=address, **kw)
-        else:
-            ray.init(num_cpus=num_cpus, include_dashboard=False, **kw)
-    return ray
+from softcrawl.envs.backends.chunked import ChunkedBackend
+from softcrawl.envs.backends.serial import SerialBackend
+from softcrawl.parallel import default_worker_env, ensure_ray
 
 
 class _EnvChunk:
     """Actor body: a :class:`SerialBackend` of some envs (constructors pickled with cloudpickle)."""
 
     def __init__(self, payload: bytes):
-        for k, v in WORKER_ENV.items():
-            os.environ.setdefault(k, v)
+        default_worker_env()
         self.backend = SerialBackend(cloudpickle.loads(payload))
 
     def spaces(self):
@@ -192,8 +159,7 @@ class RayBackend(ChunkedBackend):
 
     # EnvBackend -------------------------------------------------------------------------------
     def reset(self, indices, designs, seeds):
-        both = self._scatter(indices, "reset", lambda g: ([j for _, j in g], [designs[p] for p, _ in g],
-                                                           [seeds[p] for p, _ in g]))
+        both = super().reset(indices, designs, seeds)
         for i, ((_, info), rng) in zip(indices, both):
             self._design[int(i)] = info.get("design")
             self._rng[int(i)] = rng
@@ -221,26 +187,3 @@ class RayBackend(ChunkedBackend):
             pass
         for a in self.actors:
             self._ray.kill(a, no_restart=True)
-
-
-def _apply(fn: Callable, *args):
-    """Ray task body: ``fn(*args)`` (``fn`` may be any picklable callable, e.g. a partial)."""
-    return fn(*args)
-
-
-def ray_map(fn: Callable, args: Iterable[tuple], address: str | None = None, num_cpus: int | None = None,
-            max_retries: int = 3) -> Iterator:
-    """``fn(*a)`` for each ``a`` in ``args`` as Ray tasks (1 CPU each), yielding results as they
-    finish (not in order). A task whose worker process died is retried up to ``max_retries``
-    times (only that task); an exception raised by ``fn`` is re-raised here.
-
-    Raises:
-        ImportError: Ray missing.
-    """
-    ray = ensure_ray(address, num_cpus)
-    task = ray.remote(num_cpus=1, max_retries=max_retries)(_apply)
-    fn_ref = ray.put(fn)
-    pending = [task.remote(fn_ref, *a) for a in args]
-    while pending:
-        done, pending = ray.wait(pending, num_returns=1)
-        yield ray.get(done[0])
