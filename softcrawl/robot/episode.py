@@ -175,7 +175,9 @@ class Episode:
 
     def reset(self) -> State:
         """Regulators at 0 kPa, the robot at rest (:func:`settle`, once per :class:`Episode`
-        unless a settled state was given), a fresh solver; t := 0.
+        unless a settled state was given), a fresh solver; t := 0. The episode starts from the
+        settled positions and velocities: its reduced bodies' modal velocities are projected
+        from them (:attr:`State.modal_velocities` dropped), whichever solver settled the robot.
 
         Raises:
             SimulationDiverged: if settling diverges.
@@ -184,7 +186,7 @@ class Episode:
         if self.settled is None:
             self.settled = settle(self.robot, self.settling)
         self.solver = self.robot.make_solver()
-        self.state = self.settled.state
+        self.state = dataclasses.replace(self.settled.state, modal_velocities=None)
         self.start = self.robot.reward_position(self.state.x)
         return self.state
 

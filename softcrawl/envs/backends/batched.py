@@ -95,9 +95,10 @@ class BatchedBackend(SerialBackend):
         outcomes = run_in_lockstep([robot.make_solver() for _, (robot, _) in jobs], loops)
         for (_, (_, users)), out in zip(jobs, outcomes):
             if isinstance(out, SettledState):
-                # own arrays: the batch's states are views of arrays of all robots
+                # own arrays (the batch's states are views of arrays of all robots); no modal
+                # velocities: an episode starts from the positions and velocities (Episode.reset)
                 out = dataclasses.replace(out, state=dataclasses.replace(out.state, x=out.state.x.copy(),
-                                                                         v=out.state.v.copy()))
+                                                                         v=out.state.v.copy(), modal_velocities=None))
                 for env, design in users:
                     env.store_settled(design, out)
 
