@@ -36,7 +36,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import softcrawl.fem.solver as fem_solver  # noqa: E402
-from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, polish_kernel, pgs_coulomb  # noqa: E402
+from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, pgs_coulomb, polish_kernel  # noqa: E402
 from softcrawl.reduction.batch import BatchedReducedSolver  # noqa: E402
 from softcrawl.reduction.constrain import POLISH_ROUNDS, POLISH_RTOL, condense, solve_condensed  # noqa: E402
 from softcrawl.robot import RobotConfig, build_robot  # noqa: E402

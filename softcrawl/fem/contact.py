@@ -398,8 +398,8 @@ def polish_active_set(W, q, mu, lam, max_rounds=30, rtol=1e-9):
         ``(3k,)`` exact impulses, or None if no consistent active set was found.
     """
     ok, new = polish_kernel(np.ascontiguousarray(W, dtype=np.float64), np.ascontiguousarray(q, dtype=np.float64),
-                      np.ascontiguousarray(mu, dtype=np.float64), np.ascontiguousarray(lam, dtype=np.float64),
-                      int(max_rounds), float(rtol))
+                            np.ascontiguousarray(mu, dtype=np.float64), np.ascontiguousarray(lam, dtype=np.float64),
+                            int(max_rounds), float(rtol))
     return new if ok else None
 
 

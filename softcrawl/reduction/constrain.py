@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from softcrawl.fem.constraints import add_block_delassus, block_impulses
-from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, polish_kernel, pgs_coulomb
+from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, pgs_coulomb, polish_kernel
 from softcrawl.fem.linalg import Factorization, ldl_solve_many
 from softcrawl.fem.solver import FLOOR_FRAME, MIN_CONTACT_GROWTH
 from softcrawl.reduction.kernels import (add_delassus, back_substitute_transposed, body_floor_candidates, corrections,

@@ -83,7 +83,7 @@ class ReducedSolver(ImplicitEulerSolver):
         self.floating = {i: fb for i, fb in reduced.items() if isinstance(fb, FloatingFrameBody)}
         for i, fb in self.floating.items():
             self.compliance[i] = NodalCompliance(fb.step_factorization(h, rM, rK), fb.body.free_dofs,
-                                                  self._attach_rows.get(i))
+                                                 self._attach_rows.get(i))
         self.reduced = {i: rb for i, rb in reduced.items() if i not in self.floating}
         by_part: dict[int, dict[int, ReducedBody]] = {}
         for i, rb in sorted(self.reduced.items()):
@@ -256,8 +256,8 @@ class ReducedSolver(ImplicitEulerSolver):
     def _corrections(self, lam, jacobians) -> Corrections:
         blocks, contacts = jacobians
         return Corrections(super()._corrections(lam, blocks),
-                            [group.corrections(lam, chol, c) for group, (_, chol), c in
-                             zip(self.groups, self._free, contacts)])
+                           [group.corrections(lam, chol, c) for group, (_, chol), c in
+                            zip(self.groups, self._free, contacts)])
 
     def _normal_velocity_change(self, corrections: Corrections, near, near_body):
         dv = super()._normal_velocity_change(corrections.nodal, near, near_body)
