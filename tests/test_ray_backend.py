@@ -23,8 +23,8 @@ from softcrawl.codesign.groundtruth import (  # noqa: E402
 )
 from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN  # noqa: E402
 from softcrawl.envs import BuildRobot, CrawlerEnv  # noqa: E402
-from softcrawl.envs.backends.ray import RayBackend  # noqa: E402
 from softcrawl.envs.backends import SerialBackend, SubprocessBackend, make_backend  # noqa: E402
+from softcrawl.envs.backends.ray import RayBackend  # noqa: E402
 from softcrawl.envs.vec import DesignVecEnv  # noqa: E402
 from softcrawl.parallel import ray_map  # noqa: E402
 from softcrawl.robot import RobotConfig  # noqa: E402
