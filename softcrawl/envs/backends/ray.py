@@ -85,7 +85,7 @@ class RayBackend(ChunkedBackend):
     Args:
         env_fns: one zero-argument env constructor per env (cloudpickled).
         n_actors: actors (default: ``min(len(env_fns), Ray's CPUs)``).
-        address: Ray cluster address (None: local Ray, :func:`ensure_ray`).
+        address: Ray cluster address (None: local Ray, :func:`softcrawl.parallel.ensure_ray`).
         num_cpus: CPUs of a local Ray started here (None: all).
         max_restarts: restarts per actor before a death is raised (:class:`ray.exceptions.RayActorError`).
 
