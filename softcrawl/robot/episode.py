@@ -109,9 +109,11 @@ def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: St
     Args:
         robot: the robot.
         settling: the rest rule.
-        solver: the solver to step with (default: a new one, so that an episode started from
-            the result with a fresh solver is the same whether the result was computed now or
-            cached).
+        solver: the solver to step with; the result then carries its reduced bodies' modal
+            velocities (:attr:`State.modal_velocities`), to go on stepping with it. Default: a new
+            one, and the result holds positions and velocities only (the modal velocities are
+            projected from them by the next solver), so that an episode started from it is the
+            same whether it was computed now or cached.
         state: the start (default: the assembled rest state, mid-air).
         zero: the zero-pressure control (default ``robot.control(0, 0, 0)``).
 
@@ -123,7 +125,8 @@ def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: St
     """
     dt = robot.config.dt
     hold, cap = settling.steps(dt)
-    solver = robot.make_solver() if solver is None else solver
+    own = solver is None
+    solver = robot.make_solver() if own else solver
     state = robot.model.rest_state() if state is None else state
     zero = robot.control(np.zeros(N_REGULATORS)) if zero is None else zero
     speed, calm, steps = float(np.sqrt(np.einsum("ij,ij->i", state.v, state.v).max())), 0, 0
@@ -132,7 +135,8 @@ def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: St
         steps += 1
         speed = float(np.sqrt(np.einsum("ij,ij->i", state.v, state.v).max()))
         calm = calm + 1 if speed < settling.rest_speed else 0
-    return SettledState(dataclasses.replace(state, t=0.0), steps, steps * dt, speed,
+    rest = dataclasses.replace(state, t=0.0, modal_velocities=None if own else state.modal_velocities)
+    return SettledState(rest, steps, steps * dt, speed,
                         calm >= hold or (cap == 0 and speed < settling.rest_speed))
 
 
