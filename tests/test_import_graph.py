@@ -221,6 +221,17 @@ def test_private_import_check_sees_the_import_forms(tmp_path, monkeypatch):
         "softcrawl.b.z: softcrawl.a._impl", "softcrawl.b.z: softcrawl.a.x._hidden", "softcrawl.b.z: softcrawl.a.x._hidden"]
 
 
+def test_batched_stepping_uses_only_public_solver_members():
+    """The batched stepper and the compiled constraint stage drive each robot's
+    :class:`~softcrawl.reduction.solver.ReducedSolver` through its public phases: they read no
+    ``_private`` attribute of any object but their own (``self``)."""
+    for module in ("softcrawl.reduction.batch", "softcrawl.reduction.constrain", "softcrawl.envs.backends.batched"):
+        tree = ast.parse(_modules()[module].read_text(encoding="utf-8"))
+        private = sorted({f"{ast.unparse(n.value)}.{n.attr}" for n in ast.walk(tree)
+                          if isinstance(n, ast.Attribute) and _private(n.attr) and ast.unparse(n.value) != "self"})
+        assert not private, f"{module} reads {private}"
+
+
 def _reach(g, start):
     seen, todo = set(), [start]
     while todo:
