@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from softcrawl.envs import BuildRobot, CrawlerEnv
-from softcrawl.envs.backends.batched import BatchedBackend
 from softcrawl.envs.backends import SerialBackend
+from softcrawl.envs.backends.batched import BatchedBackend
 from softcrawl.envs.vec import DesignVecEnv
 from softcrawl.fem.state import State
 from softcrawl.robot import RobotConfig
