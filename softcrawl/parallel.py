@@ -11,6 +11,7 @@ import multiprocessing
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterable, Iterator
 
 import psutil
@@ -133,13 +134,68 @@ class PeakMemory:
         self.sample()
 
 
+#: Seconds a Ray cluster at a given address has to answer before :func:`ensure_ray` gives up
+#: (the environment variable ``SOFTCRAWL_RAY_TIMEOUT`` overrides it).
+CONNECT_TIMEOUT_S = 30.0
+
+
+def connect_timeout() -> float:
+    """:data:`CONNECT_TIMEOUT_S`, or ``SOFTCRAWL_RAY_TIMEOUT`` (seconds, > 0) if set.
+
+    Raises:
+        ValueError: ``SOFTCRAWL_RAY_TIMEOUT`` is not a positive number.
+    """
+    text = os.environ.get("SOFTCRAWL_RAY_TIMEOUT")
+    if text is None:
+        return CONNECT_TIMEOUT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < float("inf"):
+        raise ValueError(f"SOFTCRAWL_RAY_TIMEOUT must be a positive number of seconds, got {text!r}")
+    return value
+
+
+def check_address(address: str, timeout: float) -> None:
+    """Raise ConnectionError unless the head of the Ray cluster at ``address`` (``host:port``
+    or ``ray://host:port``) accepts a TCP connection within ``timeout`` s (retried until then:
+    a head that is starting up gets the whole time). ``"auto"`` and addresses without a port
+    are left to Ray. Ray itself would retry a silent address for minutes.
+
+    Raises:
+        ConnectionError: nothing answers in time. ValueError: a port outside 1..65535.
+    """
+    import socket
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return
+    host = host.strip("[]")
+    if not 0 < int(port) < 65536:
+        raise ValueError(f"Ray address {address}: the port must be 1..65535")
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            socket.create_connection((host, int(port)), timeout=max(left, 0.1)).close()
+            return
+        except OSError as exc:
+            if left <= 0.5:
+                raise ConnectionError(f"no Ray cluster answers at {address} within {timeout:g} s "
+                                      f"({exc.strerror or exc}); start one (ray start --head) or check "
+                                      "--ray-address") from None
+            time.sleep(min(0.5, left))
+
+
 def ensure_ray(address: str | None = None, num_cpus: int | None = None):
     """Connect to Ray: the running one if this process already did, else a cluster at
-    ``address``, else a new local Ray with ``num_cpus`` CPUs (default: all). Workers get
+    ``address`` (which must answer within :func:`connect_timeout` s, :func:`check_address`),
+    else a new local Ray with ``num_cpus`` CPUs (default: all). Workers get
     :data:`WORKER_ENV`. Returns the ``ray`` module.
 
     Raises:
-        ImportError: Ray is not installed. ConnectionError: no cluster at ``address``.
+        ImportError: Ray is not installed. ConnectionError: no cluster answers at ``address``.
     """
     try:
         import ray
@@ -148,6 +204,7 @@ def ensure_ray(address: str | None = None, num_cpus: int | None = None):
     if not ray.is_initialized():
         kw = {"runtime_env": {"env_vars": dict(WORKER_ENV)}, "log_to_driver": False}
         if address:
+            check_address(address, connect_timeout())
             ray.init(address=address, **kw)
         else:
             ray.init(num_cpus=num_cpus, include_dashboard=False, **kw)
