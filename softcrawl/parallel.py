@@ -1,7 +1,7 @@
 """Process-parallel task runs (one BLAS thread per worker), shared by the phase sweep and
-the reduction build; the same as Ray tasks (:func:`ray_map`, the ground truth's ``executor="ray"``)
-and the connection to Ray that the Ray env backend shares (:func:`ensure_ray`); the peak-memory
-monitor of such runs."""
+the reduction build; task runs on Ray (:func:`ray_map`, the ground truth's ``executor="ray"``)
+and the connection to Ray (:func:`ensure_ray`, shared with the Ray env backend); the
+peak-memory monitor of such runs."""
 
 from __future__ import annotations
 
