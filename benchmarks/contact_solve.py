@@ -36,7 +36,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import softcrawl.fem.solver as fem_solver  # noqa: E402
-from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, _polish, pgs_coulomb  # noqa: E402
+from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, pgs_coulomb, polish_kernel  # noqa: E402
 from softcrawl.reduction.batch import BatchedReducedSolver  # noqa: E402
 from softcrawl.reduction.constrain import POLISH_ROUNDS, POLISH_RTOL, condense, solve_condensed  # noqa: E402
 from softcrawl.robot import RobotConfig, build_robot  # noqa: E402
@@ -83,7 +83,7 @@ def time_parts(problems: list) -> dict:
         lam, ok = warm.copy(), False
         if np.any(lam != 0.0):
             t = time.perf_counter()
-            ok, _ = _polish(Wc, qc, mu, lam, POLISH_ROUNDS, POLISH_RTOL)
+            ok, _ = polish_kernel(Wc, qc, mu, lam, POLISH_ROUNDS, POLISH_RTOL)
             warm_s += time.perf_counter() - t
         if ok:
             continue
@@ -95,7 +95,7 @@ def time_parts(problems: list) -> dict:
             if rel <= tol:
                 break
             t = time.perf_counter()
-            ok, _ = _polish(Wc, qc, mu, lam, POLISH_ROUNDS, POLISH_RTOL)
+            ok, _ = polish_kernel(Wc, qc, mu, lam, POLISH_ROUNDS, POLISH_RTOL)
             after_s += time.perf_counter() - t
             n_after += 1
             n_after_ok += ok

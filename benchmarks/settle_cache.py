@@ -7,7 +7,7 @@ with the default memory bound, and counts the episodes that had to settle. Each 
 the size of the run's robots' positions and velocities (one robot built per leg count).
 
 With ``--measure K`` it also settles K of the run's designs in lockstep, as a training worker
-does (:meth:`softcrawl.envs.batch.BatchedBackend.settle_together`), and prints their mean CPU
+does (:meth:`softcrawl.envs.backends.batched.BatchedBackend.settle_together`), and prints their mean CPU
 seconds, so the saved settlings can be put in seconds.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/settle_cache.py RUN [--settled-mb MB] [--measure K]

@@ -2,7 +2,7 @@
 random canonical designs of each leg count in ``--legs`` (the ``paper`` preset's robots: shipped
 reduction, 10 mm disk, dt 0.02 s, float32 RID products) are settled to rest together from their
 assembled state (the landing before every episode, ``softcrawl.robot.settle`` in lockstep as
-:meth:`softcrawl.envs.batch.BatchedBackend.settle_together` runs it), then stepped ``--steps``
+:meth:`softcrawl.envs.backends.batched.BatchedBackend.settle_together` runs it), then stepped ``--steps``
 steps as one batch under training-like pressures (every regulator holds a random 0..90 sim kPa
 for 1 s). Prints JSON: CPU seconds and ms per robot step of each part, settling steps.
 

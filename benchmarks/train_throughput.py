@@ -19,7 +19,7 @@ rounds):
        [--stepping batched|serial|both] [--preset paper|reference|crawl|demo] [--set KEY=VALUE]
        [--no-overlap] [--learner-cost]
 ``--stepping``: workers step their envs' robots as one batch (``batched``, the default of
-:class:`softcrawl.envs.backends.SubprocessBackend`) or one env after another (``serial``); ``both``
+:class:`softcrawl.envs.backends.subprocess.SubprocessBackend`) or one env after another (``serial``); ``both``
 runs the two one after the other in this process (same seed, same designs) and reports each and
 their ratio. Each run reports the wall seconds of its gradient updates (overlapped with the
 simulation unless ``--no-overlap``), the largest worker RSS and the workers' CPU seconds
@@ -152,7 +152,7 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
     (overlapped with the simulation unless ``--no-overlap``) and the peak worker RSS."""
     import tempfile
 
-    import softcrawl.envs.backends as backends
+    import softcrawl.envs.backends.subprocess as subprocess_backend
     from softcrawl.codesign.config import override
     from softcrawl.codesign.training import train
 
@@ -161,7 +161,7 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
     sets = [f"n_envs={n}", f"total_steps={total}", f"sac.learning_starts={n if updates else total}",
             f"checkpoint_every={10 * total}", f"snapshot_every={n}", f"sac.overlap={str(not args.no_overlap).lower()}"]
     cfg = override(preset(args.preset), sets + list(args.set or []))
-    backends.BATCHED_WORKERS = batched
+    subprocess_backend.BATCHED_WORKERS = batched
     cpu0 = time.process_time()
     with tempfile.TemporaryDirectory() as tmp, WorkerMemory() as memory:
         res = train(f"{tmp}/run", cfg, progress=True)

@@ -1,5 +1,7 @@
 """Process-parallel task runs (one BLAS thread per worker), shared by the phase sweep and
-the reduction build, and the peak-memory monitor of such runs."""
+the reduction build; task runs on Ray (:func:`ray_map`, the ground truth's ``executor="ray"``)
+and the connection to Ray (:func:`ensure_ray`, shared with the Ray env backend); the
+peak-memory monitor of such runs."""
 
 from __future__ import annotations
 
@@ -9,18 +11,28 @@ import multiprocessing
 import os
 import signal
 import threading
-from collections.abc import Callable, Iterator
+import time
+from collections.abc import Callable, Iterable, Iterator
 
 import psutil
 
-_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+#: Environment of worker processes and Ray workers: one BLAS/OpenMP thread each (parallelism
+#: comes from processes).
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def default_worker_env() -> None:
+    """Set :data:`WORKER_ENV` in this process's environment where a variable is unset (the
+    processes it starts inherit it)."""
+    for k, v in WORKER_ENV.items():
+        os.environ.setdefault(k, v)
 
 
 @contextlib.contextmanager
 def _one_blas_thread() -> Iterator[None]:
-    """Environment of the processes started inside: one BLAS/OpenMP thread (restored after)."""
-    old = {v: os.environ.get(v) for v in _BLAS_VARS}
-    os.environ.update({v: "1" for v in _BLAS_VARS})
+    """Environment of the processes started inside: :data:`WORKER_ENV` (restored after)."""
+    old = {v: os.environ.get(v) for v in WORKER_ENV}
+    os.environ.update(WORKER_ENV)
     try:
         yield
     finally:
@@ -120,3 +132,103 @@ class PeakMemory:
         self._stop.set()
         self._thread.join()
         self.sample()
+
+
+#: Seconds a Ray cluster at a given address has to answer before :func:`ensure_ray` gives up
+#: (the environment variable ``SOFTCRAWL_RAY_TIMEOUT`` overrides it).
+CONNECT_TIMEOUT_S = 30.0
+
+
+def connect_timeout() -> float:
+    """:data:`CONNECT_TIMEOUT_S`, or ``SOFTCRAWL_RAY_TIMEOUT`` (seconds, > 0) if set.
+
+    Raises:
+        ValueError: ``SOFTCRAWL_RAY_TIMEOUT`` is not a positive number.
+    """
+    text = os.environ.get("SOFTCRAWL_RAY_TIMEOUT")
+    if text is None:
+        return CONNECT_TIMEOUT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < float("inf"):
+        raise ValueError(f"SOFTCRAWL_RAY_TIMEOUT must be a positive number of seconds, got {text!r}")
+    return value
+
+
+def check_address(address: str, timeout: float) -> None:
+    """Raise ConnectionError unless the head of the Ray cluster at ``address`` (``host:port``
+    or ``ray://host:port``) accepts a TCP connection within ``timeout`` s (retried until then:
+    a head that is starting up gets the whole time). ``"auto"`` and addresses without a port
+    are left to Ray. Ray itself would retry a silent address for minutes.
+
+    Raises:
+        ConnectionError: nothing answers in time. ValueError: a port outside 1..65535.
+    """
+    import socket
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return
+    host = host.strip("[]")
+    if not 0 < int(port) < 65536:
+        raise ValueError(f"Ray address {address}: the port must be 1..65535")
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            socket.create_connection((host, int(port)), timeout=max(left, 0.1)).close()
+            return
+        except OSError as exc:
+            if left <= 0.5:
+                raise ConnectionError(f"no Ray cluster answers at {address} within {timeout:g} s "
+                                      f"({exc.strerror or exc}); start one (ray start --head) or check "
+                                      "--ray-address") from None
+            time.sleep(min(0.5, left))
+
+
+def ensure_ray(address: str | None = None, num_cpus: int | None = None):
+    """Connect to Ray: the running one if this process already did, else a cluster at
+    ``address`` (which must answer within :func:`connect_timeout` s, :func:`check_address`),
+    else a new local Ray with ``num_cpus`` CPUs (default: all). Workers get
+    :data:`WORKER_ENV`. Returns the ``ray`` module.
+
+    Raises:
+        ImportError: Ray is not installed. ConnectionError: no cluster answers at ``address``.
+    """
+    try:
+        import ray
+    except ImportError:
+        raise ImportError("Ray backends and tasks need Ray: pip install 'softcrawl[ray]' (ray>=2)") from None
+    if not ray.is_initialized():
+        kw = {"runtime_env": {"env_vars": dict(WORKER_ENV)}, "log_to_driver": False}
+        if address:
+            check_address(address, connect_timeout())
+            ray.init(address=address, **kw)
+        else:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, **kw)
+    return ray
+
+
+def _apply(fn: Callable, *args):
+    """Ray task body: ``fn(*args)`` (``fn`` may be any picklable callable, e.g. a partial)."""
+    return fn(*args)
+
+
+def ray_map(fn: Callable, args: Iterable[tuple], address: str | None = None, num_cpus: int | None = None,
+            max_retries: int = 3) -> Iterator:
+    """``fn(*a)`` for each ``a`` in ``args`` as Ray tasks (1 CPU each), yielding results as they
+    finish (not in order). A task whose worker process died is retried up to ``max_retries``
+    times (only that task); an exception raised by ``fn`` is re-raised here.
+
+    Raises:
+        ImportError: Ray missing.
+    """
+    ray = ensure_ray(address, num_cpus)
+    task = ray.remote(num_cpus=1, max_retries=max_retries)(_apply)
+    fn_ref = ray.put(fn)
+    pending = [task.remote(fn_ref, *a) for a in args]
+    while pending:
+        done, pending = ray.wait(pending, num_returns=1)
+        yield ray.get(done[0])

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from softcrawl.envs import BuildRobot, CrawlerEnv
-from softcrawl.envs.batch import BatchedBackend
 from softcrawl.envs.backends import SerialBackend
+from softcrawl.envs.backends.batched import BatchedBackend
 from softcrawl.envs.vec import DesignVecEnv
 from softcrawl.fem.state import State
 from softcrawl.robot import RobotConfig
@@ -79,7 +79,7 @@ def assert_same(a, b):
 
 @pytest.mark.parametrize("poison, sampled", [(None, False), ((2, 1), True)])
 def test_batched_backend_gives_the_serial_transitions(poison, sampled, monkeypatch):
-    import softcrawl.envs.batch as batch
+    import softcrawl.envs.backends.batched as batch
 
     settled = []
     run = batch.run_in_lockstep

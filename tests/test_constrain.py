@@ -73,7 +73,7 @@ def test_disk_columns_do_not_depend_on_the_order_designs_arrive(crawling):
     same attachment block ``T`` to the bit (each entry comes from its own pair of blocks), so a
     design's trajectory does not depend on which designs a worker met before."""
     robot, _ = crawling
-    c = robot.make_solver()._compliance[robot.disk_body]
+    c = robot.make_solver().compliance[robot.disk_body]
     H = c.fixed.H
     blocks = [H[3 * b:3 * b + 3] for b in range(H.shape[0] // 3)]
     one = DiskColumns(c.factor, robot.model.bodies[robot.disk_body].collision_nodes)

@@ -248,6 +248,22 @@ def test_settled_states_outlive_their_robots_within_a_memory_bound():
             RobotCache(1, settled_mb=bad)
 
 
+def test_a_settled_states_modal_velocities_count_toward_the_memory_bound():
+    """The memory bound counts every array of a settled state, its reduced bodies' modal
+    velocities too: 80 kB of them do not fit a 50 kB bound, the same state without them does."""
+    from softcrawl.envs.robot_cache import RobotCache
+    from softcrawl.fem.state import State
+    from softcrawl.robot.episode import SettledState
+
+    for modal, kept in (((np.zeros((1, 10_000)),), False), (None, True)):
+        cache = RobotCache(spare=1, settled_mb=0.05).attach()
+        state = State(np.zeros((10, 3)), np.zeros((10, 3)), modal_velocities=modal)
+        cache.keep_settled("a", cache.fetch("a", lambda d: object())[0], SettledState(state, 1, 0.02, 0.0, True))
+        for d in "bc":
+            cache.fetch(d, lambda d: object())
+        assert ("a" in cache.settled) == kept
+
+
 def test_an_env_does_not_settle_a_design_again_after_its_robot_was_dropped(monkeypatch):
     """Regression (issue 18): with 16 spare robots per worker a `crawl` run over the 280
     three-legged designs settled 1,200 of its 3,200 episodes (502 with the kept states,

@@ -400,11 +400,11 @@ def test_polish_stops_at_a_repeated_state_with_the_result_of_running_out_of_roun
     W, q, mu, warm = (z[f"{case}_{key}"] for key in ("W", "q", "mu", "warm_start"))
     real, checks = contact._seen_before, []
     monkeypatch.setattr(contact, "_seen_before", lambda *a: checks.append(real(*a)) or checks[-1])
-    stopped = contact._polish.py_func(W, q, mu, warm.copy(), 30, 1e-9)
+    stopped = contact.polish_kernel.py_func(W, q, mu, warm.copy(), 30, 1e-9)
     assert checks[-1] and len(checks) < 29  # stopped at a repeat
     monkeypatch.setattr(contact, "_seen_before", lambda *a: False)
-    full = contact._polish.py_func(W, q, mu, warm.copy(), 30, 1e-9)
-    compiled = contact._polish(W, q, mu, warm.copy(), 30, 1e-9)
+    full = contact.polish_kernel.py_func(W, q, mu, warm.copy(), 30, 1e-9)
+    compiled = contact.polish_kernel(W, q, mu, warm.copy(), 30, 1e-9)
     assert stopped[0] == full[0] == compiled[0] == (case == "found")
     if case == "found":
         np.testing.assert_array_equal(stopped[1], full[1])

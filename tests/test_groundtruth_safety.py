@@ -296,7 +296,7 @@ def test_14_report_phases_are_bounded(tmp_path, capsys):
 
 # -- 16: a Ray address that does not answer ------------------------------------------------------------
 def test_16_a_silent_ray_address_fails_with_one_line(tmp_path, monkeypatch, capsys):
-    from softcrawl.envs.ray_backend import check_address, connect_timeout
+    from softcrawl.parallel import check_address, connect_timeout
 
     monkeypatch.setenv("SOFTCRAWL_RAY_TIMEOUT", "1")
     assert connect_timeout() == 1.0
@@ -316,7 +316,7 @@ def test_16_a_silent_ray_address_fails_with_one_line(tmp_path, monkeypatch, caps
         assert not out.exists()
         ray = pytest.importorskip("ray")
         if not ray.is_initialized():  # where the backends connect
-            from softcrawl.envs.ray_backend import ensure_ray
+            from softcrawl.parallel import ensure_ray
 
             with pytest.raises(ConnectionError, match="no Ray cluster answers"):
                 ensure_ray(silent)

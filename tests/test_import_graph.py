@@ -1,4 +1,4 @@
-"""The package's import graph is acyclic and layered (issue 22).
+"""The package's import graph is acyclic and layered.
 
 Every ``import`` between softcrawl modules is read with ``ast``. Importing ``a.b.c`` also runs
 ``a/__init__.py`` and ``a/b/__init__.py``; those implicit edges to the target's parent
@@ -6,9 +6,8 @@ packages are counted too (edges to a module's *own* parent packages are not: Pyt
 them before the module). ``if TYPE_CHECKING:`` blocks are not imports.
 
 * Import-time graph (module and class bodies, if/try/with blocks): acyclic, no exception.
-* With the imports inside functions (deferred) counted as well: acyclic except for the edges
-  in :data:`DEFERRED_BACK_EDGES`, each a documented plugin lookup inside one package; any other
-  deferred cycle fails.
+* With the imports inside functions (deferred) counted as well: acyclic, no exception.
+* No module imports another package's private (``_name``) symbol.
 * Layers the package docstrings promise: :mod:`softcrawl.gaits` imports nothing of the
   simulator; the reduction core imports no robot code and the robot imports only the reduction
   core (the build pipeline sits above the robot: :mod:`softcrawl.reduction`); evaluation and
@@ -18,6 +17,7 @@ them before the module). ``if TYPE_CHECKING:`` blocks are not imports.
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
 import softcrawl
@@ -138,28 +138,98 @@ def test_graph_counts_the_parent_packages_a_target_runs():
     assert find_cycle({"a.x": {"b.y"}, "b": {"a.z"}, "b.y": set(), "a": set(), "a.z": set()}) is None
 
 
-#: Deferred imports (inside functions) that close a cycle, with why each is right. Both are the
-#: vector env's backend lookup: :func:`softcrawl.envs.backends.make_backend` /
-#: :class:`~softcrawl.envs.backends.SubprocessBackend` return subclasses of
-#: ``backends.EnvBackend`` that live in their own modules (the batched stepper; the optional Ray
-#: backend, whose import needs ``ray``), so those modules import ``backends`` and ``backends``
-#: imports them only when asked for one.
-#: One package, no import-time effect; any other deferred cycle fails the test below.
-DEFERRED_BACK_EDGES = {
-    ("softcrawl.envs.backends", "softcrawl.envs.batch"),
-    ("softcrawl.envs.backends", "softcrawl.envs.ray_backend"),
-}
-
-
-def test_deferred_imports_close_no_other_cycle():
-    """Counting imports inside functions too, the graph is acyclic once the documented plugin
-    lookups (:data:`DEFERRED_BACK_EDGES`) are left out, and those are never import-time."""
-    top = import_graph()
-    for a, b in DEFERRED_BACK_EDGES:
-        assert b not in top.get(a, ()), f"{a} -> {b} is an import-time import now, a real cycle"
-    g = {m: {d for d in deps if (m, d) not in DEFERRED_BACK_EDGES} for m, deps in import_graph(deferred=True).items()}
-    cycle = find_cycle(g)
+def test_deferred_imports_close_no_cycle():
+    """Counting imports inside functions too, the graph is acyclic (no exception list): a lazy
+    lookup (the env backends' factory) names its modules by string instead of importing them."""
+    cycle = find_cycle(import_graph(deferred=True))
     assert cycle is None, "import cycle through deferred imports: " + " -> ".join(cycle)
+
+
+def test_backend_factory_imports_no_backend():
+    """The env backends' factory imports only the interface; its registry's modules exist and
+    name their backend classes."""
+    import importlib
+
+    from softcrawl.envs.backends.factory import BACKENDS
+
+    g = import_graph(deferred=True)
+    assert g["softcrawl.envs.backends.factory"] == {"softcrawl.envs.backends.base"}
+    for target, _ in BACKENDS.values():
+        module, _, name = target.partition(":")
+        assert isinstance(getattr(importlib.import_module(module), name), type)
+
+
+def _package(module: str, mods: dict[str, Path]) -> str:
+    """The package a module belongs to (a package's ``__init__``: the package itself)."""
+    return module if mods[module].name == "__init__.py" else module.rpartition(".")[0]
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def private_imports_across_packages() -> list[str]:
+    """``"importer: target.name"`` for every ``from target import _name`` (or import of a
+    private module) of a softcrawl module whose package is not the importer's (``ast``, imports
+    inside functions included; dunders such as ``__version__`` are public)."""
+    mods = _modules()
+    found = []
+    for name, path in mods.items():
+        own = _package(name, mods)
+        for stmt in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(stmt, ast.ImportFrom):
+                base = stmt.module or ""
+                if stmt.level:
+                    pkg = own.split(".")
+                    base = ".".join(pkg[:len(pkg) - (stmt.level - 1)] + ([base] if base else []))
+                pairs = [(base, a.name) for a in stmt.names]
+            elif isinstance(stmt, ast.Import):
+                pairs = [tuple(a.name.rsplit(".", 1)) for a in stmt.names if "." in a.name]
+            else:
+                continue
+            for target, sym in pairs:
+                if not target.startswith("softcrawl") or not (_private(sym) or any(map(_private, target.split(".")))):
+                    continue
+                module = f"{target}.{sym}" if f"{target}.{sym}" in mods else target
+                while module not in mods:
+                    module = module.rpartition(".")[0]
+                if _package(module, mods) != own:
+                    found.append(f"{name}: {target}.{sym}")
+    return found
+
+
+def test_no_module_imports_another_packages_private_name():
+    found = private_imports_across_packages()
+    assert not found, "private names imported across packages: " + ", ".join(found)
+
+
+def test_private_import_check_sees_the_import_forms(tmp_path, monkeypatch):
+    """The checker catches a private name imported from another package (plain, relative and
+    inside a function, and a private module), and lets a package's own modules share theirs."""
+    pkg = tmp_path / "softcrawl"
+    for sub in ("a", "b"):
+        (pkg / sub).mkdir(parents=True)
+        (pkg / sub / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("__version__ = '0'\n")
+    (pkg / "a" / "x.py").write_text("_hidden = 1\n")
+    (pkg / "a" / "_impl.py").write_text("")
+    (pkg / "a" / "y.py").write_text("from softcrawl.a.x import _hidden\nfrom softcrawl import __version__\n")
+    (pkg / "b" / "z.py").write_text("from ..a.x import _hidden\ndef f():\n    from softcrawl.a.x import _hidden\n"
+                                    "import softcrawl.a._impl\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", pkg)
+    assert sorted(private_imports_across_packages()) == [
+        "softcrawl.b.z: softcrawl.a._impl", "softcrawl.b.z: softcrawl.a.x._hidden", "softcrawl.b.z: softcrawl.a.x._hidden"]
+
+
+def test_batched_stepping_uses_only_public_solver_members():
+    """The batched stepper and the compiled constraint stage drive each robot's
+    :class:`~softcrawl.reduction.solver.ReducedSolver` through its public phases: they read no
+    ``_private`` attribute of any object but their own (``self``)."""
+    for module in ("softcrawl.reduction.batch", "softcrawl.reduction.constrain", "softcrawl.envs.backends.batched"):
+        tree = ast.parse(_modules()[module].read_text(encoding="utf-8"))
+        private = sorted({f"{ast.unparse(n.value)}.{n.attr}" for n in ast.walk(tree)
+                          if isinstance(n, ast.Attribute) and _private(n.attr) and ast.unparse(n.value) != "self"})
+        assert not private, f"{module} reads {private}"
 
 
 def _reach(g, start):
@@ -172,19 +242,10 @@ def _reach(g, start):
     return seen
 
 
-def test_codesign_has_no_cycle_even_through_deferred_imports():
-    """Issue 22's cycle (training -> report -> evaluation -> training) ran through imports
-    inside functions; counting those too, no codesign module reaches itself."""
-    g = import_graph(deferred=True)
-    for name in g:
-        if name.startswith("softcrawl.codesign"):
-            assert name not in _reach(g, name), f"{name} imports itself through {sorted(_reach(g, name) & set(g))}"
-
-
 def test_run_folder_consumers_do_not_import_training():
-    """Evaluation and the report read runs through codesign.run / codesign.factory (issue 22):
-    neither imports the training driver, and training does not import the report, at any
-    depth and counting imports inside functions."""
+    """Evaluation and the report read runs through codesign.run / codesign.factory: neither
+    imports the training driver, and training does not import the report, at any depth and
+    counting imports inside functions."""
     g = import_graph(deferred=True)
     assert "softcrawl.codesign.training" not in _reach(g, "softcrawl.codesign.evaluation")
     assert "softcrawl.codesign.training" not in _reach(g, "softcrawl.codesign.report")
@@ -201,8 +262,8 @@ def _in(mod: str, packages) -> bool:
 
 
 def test_gaits_import_nothing_of_the_simulator():
-    """Issue 22's arrow from gaits up to the robot (``softcrawl.robot.actuation``, which ran the
-    whole ``softcrawl.robot`` package) is gone: the command range is ``softcrawl.gaits.pressure``."""
+    """The gaits sit below the simulator: their command range is ``softcrawl.gaits.pressure``,
+    not the robot package."""
     g = import_graph(deferred=True)
     for m in g:
         if _in(m, ["softcrawl.gaits"]):

@@ -23,9 +23,10 @@ from softcrawl.codesign.groundtruth import (  # noqa: E402
 )
 from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN  # noqa: E402
 from softcrawl.envs import BuildRobot, CrawlerEnv  # noqa: E402
-from softcrawl.envs.ray_backend import RayBackend, ray_map  # noqa: E402
 from softcrawl.envs.backends import SerialBackend, SubprocessBackend, make_backend  # noqa: E402
+from softcrawl.envs.backends.ray import RayBackend  # noqa: E402
 from softcrawl.envs.vec import DesignVecEnv  # noqa: E402
+from softcrawl.parallel import ray_map  # noqa: E402
 from softcrawl.robot import RobotConfig  # noqa: E402
 
 COARSE = RobotConfig(model="reduced", disk_mesh_size=25)  # about 0.2 s per robot, 400 steps/s

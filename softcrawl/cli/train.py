@@ -80,9 +80,9 @@ def _check_out(out: str) -> None:
 
 def check_ray_address(backend: str, address: str | None) -> None:
     """A Ray cluster named by ``--ray-address`` must answer before any work starts
-    (:func:`softcrawl.envs.ray_backend.check_address`; ConnectionError if not)."""
+    (:func:`softcrawl.parallel.check_address`; ConnectionError if not)."""
     if backend == "ray" and address:
-        from softcrawl.envs.ray_backend import check_address, connect_timeout
+        from softcrawl.parallel import check_address, connect_timeout
 
         check_address(address, connect_timeout())
 

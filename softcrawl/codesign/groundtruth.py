@@ -1023,7 +1023,7 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
                 raise
             pool.shutdown()
         else:
-            from softcrawl.envs.ray_backend import ray_map
+            from softcrawl.parallel import ray_map
 
             for res in ray_map(task, [(d, cd) for d in todo], address=ray_address, num_cpus=workers):
                 finish(res)

@@ -43,7 +43,7 @@ A sample that changes the robot (friction, Young's moduli, masses) gets a robot 
 cached nominal one (:meth:`~softcrawl.robot.domain.DomainSample.apply`) and is settled for that
 episode alone (its rest pose is its own; at the ``demo`` preset the new robot and its settling
 cost 0.18-0.19 s, 8-10% of a 20-action episode); the cached nominal robot and its settled state are
-left as they are (the batched backend, :mod:`softcrawl.envs.batch`, still settles a new
+left as they are (the batched backend, :mod:`softcrawl.envs.backends.batched`, still settles a new
 design's nominal robot once, before the reset that draws the sample: wasted, once per design
 and worker).
 """
@@ -292,10 +292,10 @@ class CrawlerEnv(gym.Env):
                 error = exc
         return self.end_action(error)
 
-    # -- stepping driven from outside (softcrawl.envs.batch: many envs' robots in one batch) ------
+    # -- stepping driven from outside (softcrawl.envs.backends.batched: many envs' robots in one batch) ------
     def begin_action(self, action) -> np.ndarray | None:
         """The first part of :meth:`step`, for a driver that steps many envs' robots together
-        (:class:`softcrawl.envs.batch.BatchedBackend`): checks ``action`` and records it in the
+        (:class:`softcrawl.envs.backends.batched.BatchedBackend`): checks ``action`` and records it in the
         history. Returns the commanded real kPa ``(3,)`` to hold for :attr:`steps_per_action`
         simulator steps (:meth:`Episode.next_control` for each, the driver setting
         ``episode.state``), or None if this episode's simulation has diverged (nothing to step).
@@ -339,7 +339,7 @@ class CrawlerEnv(gym.Env):
     def cached_robot(self, design) -> tuple[Robot, SettledState | None]:
         """The robot of ``design`` from this env's cache (built and cached if missing) and its
         settled state (None: not settled yet), for drivers that settle many robots together
-        before :meth:`reset` (:meth:`softcrawl.envs.batch.BatchedBackend.settle_together`)."""
+        before :meth:`reset` (:meth:`softcrawl.envs.backends.batched.BatchedBackend.settle_together`)."""
         episode = self._episode_for(validate_design(design))
         return episode.robot, episode.settled
 

@@ -117,7 +117,8 @@ def _nbytes(settled) -> int:
     state = getattr(settled, "state", None)
     if state is None:
         return 1
-    return max(1, sum(a.nbytes for a in (state.x, state.v, state.contact_nodes, state.contact_impulses)))
+    arrays = (state.x, state.v, state.contact_nodes, state.contact_impulses, *(state.modal_velocities or ()))
+    return max(1, sum(a.nbytes for a in arrays))
 
 
 def process_cache(factory: Callable, settling: Hashable, spare: int) -> RobotCache:

@@ -253,7 +253,7 @@ def _seen_before(mode, d, alignments, seen_mode, seen_d, seen_align, rnd):
 
 
 @njit(cache=True)
-def _polish(W, q, mu, lam, max_rounds, rtol):
+def polish_kernel(W, q, mu, lam, max_rounds, rtol):
     """Compiled body of :func:`polish_active_set`: ``(consistent, impulses)``."""
     k = mu.shape[0]
     mode = np.empty(k, np.int64)
@@ -382,7 +382,7 @@ def polish_active_set(W, q, mu, lam, max_rounds=30, rtol=1e-9):
     consistent solution with the directions from ``lam`` is returned. Starting from the pattern of ``lam``,
     the equalities are solved directly and the pattern is updated from the violated
     conditions (penetration -> stick, pulling -> separate, outside the cone -> slip, slip
-    along the force -> stick) until it is consistent (compiled: :func:`_polish`): all of
+    along the force -> stick) until it is consistent (compiled: :func:`polish_kernel`): all of
     them in the first round, then the most violated one per round (up to
     :data:`SINGLE_SWITCH_MAX_CONTACTS` contacts), which avoids cycling. An iteration that returns
     to an earlier state (pattern, directions, alignments) stops there with what running out of
@@ -397,9 +397,9 @@ def polish_active_set(W, q, mu, lam, max_rounds=30, rtol=1e-9):
     Returns:
         ``(3k,)`` exact impulses, or None if no consistent active set was found.
     """
-    ok, new = _polish(np.ascontiguousarray(W, dtype=np.float64), np.ascontiguousarray(q, dtype=np.float64),
-                      np.ascontiguousarray(mu, dtype=np.float64), np.ascontiguousarray(lam, dtype=np.float64),
-                      int(max_rounds), float(rtol))
+    ok, new = polish_kernel(np.ascontiguousarray(W, dtype=np.float64), np.ascontiguousarray(q, dtype=np.float64),
+                            np.ascontiguousarray(mu, dtype=np.float64), np.ascontiguousarray(lam, dtype=np.float64),
+                            int(max_rounds), float(rtol))
     return new if ok else None
 
 

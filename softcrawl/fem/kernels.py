@@ -28,7 +28,10 @@ ROTATION_METHODS = {"large": 0, "polar": 1}
 
 
 @njit(cache=True, inline="always")
-def _triangle_frame(x0, x1, x2, out):
+def triangle_frame(x0, x1, x2, out):
+    """Orthonormal frame of the triangle ``(x0, x1, x2)`` (``(3,)`` positions each) into
+    ``out`` ``(3, 3)``: rows ``e1`` (unit ``x1 - x0``), ``e2 = n x e1`` and ``n`` (unit
+    ``(x1 - x0) x (x2 - x0)``). Returns False (``out`` untouched) for a degenerate triangle."""
     a0 = x1[0] - x0[0]
     a1 = x1[1] - x0[1]
     a2 = x1[2] - x0[2]
@@ -66,7 +69,7 @@ def rest_frames(points, conn):
     m = conn.shape[0]
     out = np.zeros((m, 3, 3))
     for e in range(m):
-        _triangle_frame(points[conn[e, 0]], points[conn[e, 1]], points[conn[e, 2]], out[e])
+        triangle_frame(points[conn[e, 0]], points[conn[e, 1]], points[conn[e, 2]], out[e])
     return out
 
 
@@ -114,7 +117,7 @@ def corotational_assemble(x, conn, X, K, frames, method, coef, f_out, data_out, 
             if not det > 0.0:
                 n_bad += 1
         if method == 0 or k == 3:
-            if not _triangle_frame(x[conn[e, 0]], x[conn[e, 1]], x[conn[e, 2]], Fc):
+            if not triangle_frame(x[conn[e, 0]], x[conn[e, 1]], x[conn[e, 2]], Fc):
                 n_bad += 1
                 continue
             # R = Fc^T F0

@@ -109,14 +109,15 @@ class StepStats:
 #: when a reduced leg's paper face lands, ~300 nodes penetrate at once but ~10 carry load.
 MIN_CONTACT_GROWTH = 16
 
-_FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # normal, t1, t2
-_FLOOR_FRAMES = np.tile(_FLOOR_FRAME, (64, 1, 1))
+#: ``(3, 3)`` rows: the floor contact frame's normal and two tangents (world z, x, y).
+FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+_FLOOR_FRAMES = np.tile(FLOOR_FRAME, (64, 1, 1))
 
 
 def _floor_frames(k: int) -> np.ndarray:
     """``(k, 3, 3)`` copies of the floor contact frame (a view of a kept array for k <= 64:
     ``np.broadcast_to`` costs more than the Delassus terms it feeds)."""
-    return _FLOOR_FRAMES[:k] if k <= len(_FLOOR_FRAMES) else np.tile(_FLOOR_FRAME, (k, 1, 1))
+    return _FLOOR_FRAMES[:k] if k <= len(_FLOOR_FRAMES) else np.tile(FLOOR_FRAME, (k, 1, 1))
 
 
 class ImplicitEulerSolver:
@@ -126,27 +127,35 @@ class ImplicitEulerSolver:
         model: the static model.
         settings: integration and contact settings.
 
-    The statistics of the last step are in :attr:`stats`.
+    Attributes:
+        stats: the :class:`StepStats` of the last step.
+        compliance: per body its :class:`~softcrawl.fem.constraints.NodalCompliance` (contact
+            compliance columns ``A^-1 H^T`` of its current factorization; None before the
+            body's first step).
+        attachment_drift: ``(3A, 3N)`` sparse rows ``x_a - x_b`` of the ``A`` attachments on the
+            stacked positions (weights signed), mm per mm.
+        nodal_bodies: the bodies whose velocities are node velocities (all of them here; a
+            reduced solver leaves out its modal bodies).
     """
 
     def __init__(self, model: Model, settings: SolverSettings = SolverSettings()):
         self.model, self.settings = model, settings
         self._linear = [ReusedFactorization(settings.refactor_every, settings.cg_rtol) for _ in model.bodies]
         # Contact compliance columns, valid as long as the body's factorization is kept.
-        self._compliance: list[NodalCompliance | None] = [None] * len(model.bodies)
+        self.compliance: list[NodalCompliance | None] = [None] * len(model.bodies)
         self._mass3 = [np.repeat(b.nodal_mass, 3) for b in model.bodies]
         self._collision = np.concatenate(
             [self.model.node_offsets[i] + b.collision_nodes[b.fixed[b.collision_nodes].sum(1) == 0]
              for i, b in enumerate(model.bodies)]
         )
         # Attachment j is block j: rows x_a - x_b (weights signed); each body's part of them.
-        self._attach_drift = attachment_matrix(model)
+        self.attachment_drift = attachment_matrix(model)
         self._attach_rows = {}
         for i, b in enumerate(model.bodies):
-            rows = FixedRows.of_body(self._attach_drift, int(model.node_offsets[i]), b.n_nodes)
+            rows = FixedRows.of_body(self.attachment_drift, int(model.node_offsets[i]), b.n_nodes)
             if rows is not None:
                 self._attach_rows[i] = rows
-        self._nodal = set(range(len(model.bodies)))  # bodies whose compliance is a NodalCompliance
+        self.nodal_bodies = set(range(len(model.bodies)))
         self.stats = StepStats()
 
     # -- free motion ---------------------------------------------------------------------
@@ -198,8 +207,8 @@ class ImplicitEulerSolver:
             vk = vk + lin.solve(A, rhs).reshape(-1, 3)
             self.stats.factorizations += lin.factorizations - n_fact
             self.stats.cg_iterations += lin.cg_iterations - n_cg
-            if lin.factorizations > n_fact or self._compliance[i] is None:
-                self._compliance[i] = NodalCompliance(lin.factor, body.free_dofs, self._attach_rows.get(i))
+            if lin.factorizations > n_fact or self.compliance[i] is None:
+                self.compliance[i] = NodalCompliance(lin.factor, body.free_dofs, self._attach_rows.get(i))
         return vk
 
     # -- constraints ---------------------------------------------------------------------
@@ -243,7 +252,7 @@ class ImplicitEulerSolver:
             active[first[np.argsort(pred[first])[:MIN_CONTACT_GROWTH]]] = True
         n_att = len(m.attachments)
         nb = 3 * n_att
-        drift = self._attach_drift @ state.x.ravel()  # attachment violation x_a - x_b
+        drift = self.attachment_drift @ state.x.ravel()  # attachment violation x_a - x_b
         mu = m.floor.friction if m.floor else 0.0
         while True:
             idx = np.flatnonzero(active)
@@ -287,17 +296,17 @@ class ImplicitEulerSolver:
         n_att = len(m.attachments)
         B = n_att + len(nodes)
         W, u, blocks = np.zeros((3 * B, 3 * B)), np.zeros(3 * B), {}
-        for b in self._nodal:
+        for b in self.nodal_bodies:
             on = np.flatnonzero(bodies == b)
             if b not in self._attach_rows and not len(on):
                 continue
-            blocks[b] = add_body(W, u, self._compliance[b], v_free[m.body_slice(b)], nodes[on] - m.node_offsets[b],
+            blocks[b] = add_body(W, u, self.compliance[b], v_free[m.body_slice(b)], nodes[on] - m.node_offsets[b],
                                  _floor_frames(len(on)), n_att + on)
         return W, u, blocks
 
     def _corrections(self, lam: np.ndarray, blocks: dict) -> dict[int, np.ndarray]:
         """body -> its velocity change ``(n, 3)`` (mm/s) for the impulses ``lam``."""
-        return {b: body_correction(self._compliance[b], lam, bb) for b, bb in blocks.items()}
+        return {b: body_correction(self.compliance[b], lam, bb) for b, bb in blocks.items()}
 
     def _normal_velocity_change(self, corrections: dict[int, np.ndarray], near: np.ndarray,
                                 near_body: np.ndarray) -> np.ndarray:

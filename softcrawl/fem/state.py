@@ -17,6 +17,13 @@ class State:
         t: time, s.
         contact_nodes: ``(k,)`` sorted global node indices of last step's contacts (solver warm start).
         contact_impulses: ``(k, 3)`` their impulses (normal, tangent1, tangent2), mN s.
+        modal_velocities: the modal velocities ``qdot`` of the reduced bodies (their node
+            velocities are ``Phi qdot``), one ``(L, m)`` array per modal group of the
+            :class:`~softcrawl.reduction.solver.ReducedSolver` that produced the state (``L``
+            bodies, ``m`` modes, mm/s: the basis is orthonormal), or None: a reduced solver then
+            projects them from ``v`` (``qdot = Phi^T v``), which equals them to round-off.
+            Full-order states have none. A state whose ``v`` is replaced must drop them
+            (``dataclasses.replace(state, v=..., modal_velocities=None)``).
     """
 
     x: np.ndarray
@@ -24,6 +31,7 @@ class State:
     t: float = 0.0
     contact_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     contact_impulses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    modal_velocities: tuple[np.ndarray, ...] | None = None
 
     def is_finite(self) -> bool:
         return bool(np.all(np.isfinite(self.x)) and np.all(np.isfinite(self.v)))

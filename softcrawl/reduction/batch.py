@@ -1,4 +1,4 @@
-"""Many reduced robots stepped as one batch (issue 18: a worker steps all of its robots at once).
+"""Many reduced robots stepped as one batch (a training worker steps all of its robots at once).
 
 A :class:`BatchedReducedSolver` advances the states of many models (robots that differ in
 design, leg count and pose), each with its own :class:`~softcrawl.reduction.solver.ReducedSolver`,
@@ -8,11 +8,12 @@ by the same linearly implicit step, with the work arranged by kind instead of by
   :class:`~softcrawl.reduction.group.ModalGroup` (:meth:`ModalGroup.stack`) with one copy of the
   part's RID data: their free motion is one compiled pass over the RID (in blocks of
   :data:`~softcrawl.reduction.group.BODY_BLOCK` legs), their velocities one pass over the basis;
-- the nodal bodies (the floating-frame disk) take their robot's own free step
-  (:meth:`ReducedSolver._free_velocity`: a constant factorization per disk);
+- the nodal bodies take their robot's own free step (:meth:`ReducedSolver.nodal_free_motion`;
+  the floating-frame disks' constant factorizations solve all robots' right-hand sides at once);
 - constraints (attachments, floor contacts) couple the bodies of one robot only, so each robot's
   contact problem is solved alone, by its solver's own constraint code
-  (:meth:`ImplicitEulerSolver._constrain`), from the batch's free velocities;
+  (:meth:`ReducedSolver.constrain`), from the batch's free velocities, or for robots of the
+  default kind all in one compiled pass (:class:`~softcrawl.reduction.constrain.ConstraintBatch`);
 - the end-of-step position update and the divergence checks are one compiled pass over all
   robots' nodes (:func:`softcrawl.fem.kernels.advance_positions_ranges`).
 
@@ -22,8 +23,9 @@ robot that diverges is reported without touching the others.
 
 The positions and velocities of all robots live in two stacked arrays (the batched state);
 the :class:`~softcrawl.fem.state.State` of robot ``i`` returned by :meth:`step` holds views of
-its rows. Passing those states back (as an episode does) lets the next step use the stacked
-arrays and the kept modal velocities without copying or projecting.
+its rows and the modal velocities of its reduced bodies. Passing those states back (as an
+episode does) lets the next step use the stacked arrays and those modal velocities without
+copying or projecting.
 """
 
 from __future__ import annotations
@@ -59,8 +61,8 @@ class BatchedReducedSolver:
         solvers: one :class:`ReducedSolver` per robot (its static data, factorizations and
             constraint code); all with the same time step, contact settings and Rayleigh
             coefficients. After a batched step every solver is left as if it had made that
-            step itself (its ``stats``, the modal velocities kept for the state it produced), so
-            a robot can leave a batch and go on alone or in another batch.
+            step itself (its ``stats``), and the states carry their modal velocities, so a
+            robot can leave a batch and go on alone or in another batch.
 
     Attributes:
         solvers: the robots' solvers (each one's ``stats`` describe its last batched step).
@@ -131,15 +133,16 @@ class BatchedReducedSolver:
             return self._x, self._v
         return np.concatenate([st.x for st in states]), np.concatenate([st.v for st in states])
 
-    def _modal_velocities(self, k: int, v: np.ndarray, own: np.ndarray) -> np.ndarray:
-        """``(L, m)`` start-of-step modal velocities of stacked group ``k``: those each solver
-        kept for the state it produced last (``own``), the others projected from ``v``."""
+    def _modal_velocities(self, k: int, v: np.ndarray, carried: list) -> np.ndarray:
+        """``(L, m)`` start-of-step modal velocities of stacked group ``k``: those the robots'
+        states carry (``carried[r]``, :meth:`ReducedSolver.carried_modal_velocities`), the
+        others projected from ``v``."""
         group = self.groups[k]
         qd = np.empty((group.n_bodies, group.n_modes))
         for r, g in self._members[k]:
             sl = self._where[r][g][1]
-            if own[r]:
-                qd[sl] = self.solvers[r]._qdot[g]
+            if carried[r] is not None:
+                qd[sl] = carried[r][g]
             else:
                 qd[sl] = group.project(v, np.arange(sl.start, sl.stop))
         return qd
@@ -170,7 +173,7 @@ class BatchedReducedSolver:
             if c.forces is not None and c.forces.shape != st.x.shape:
                 raise ValueError(f"control forces have shape {c.forces.shape}, expected {st.x.shape}")
         x, v = self._stacked(states)
-        own = np.array([st.v is s._last_v for s, st in zip(self.solvers, states)])
+        carried = [s.carried_modal_velocities(st) for s, st in zip(self.solvers, states)]
         failed: list[SimulationDiverged | None] = [None] * M
         for r, (st, w) in enumerate(zip(states, self._views)):
             if not (w is not None and st.x is w[0] and st.v is w[1]) and not st.is_finite():
@@ -185,7 +188,7 @@ class BatchedReducedSolver:
         free = []
         for k, group in enumerate(self.groups):
             robots = self._body_robot[k]
-            qd = self._modal_velocities(k, v, own)
+            qd = self._modal_velocities(k, v, carried)
             qd_free, chol, n_bad, positive = group.free_motion(x, qd, pressures, h, m.rayleigh_mass,
                                                                m.rayleigh_stiffness, forces, self.settings.rid_dtype)
             for j in np.flatnonzero((n_bad > 0) | ~positive):
@@ -202,14 +205,9 @@ class BatchedReducedSolver:
             if failed[r] is not None:
                 continue
             rows = slice(self.starts[r], self.starts[r + 1])
-            xr, vr, vf = x[rows], v[rows], v_free[rows]
             s.stats = StepStats()
-            try:
-                for i in sorted(s._nodal):
-                    sl = s.model.body_slice(i)
-                    if i in s.floating:  # solved below with the other robots' floating bodies
-                        continue
-                    vf[sl] = s._free_velocity(i, s.model.bodies[i], xr[sl], vr[sl], c, st.t)
+            try:  # the floating bodies are solved below, with the other robots'
+                s.nodal_free_motion(x[rows], v[rows], c, st.t, v_free[rows], floating=False)
             except SimulationDiverged as exc:
                 failed[r] = exc
         self._floating_free_motion(x, v, v_free, controls, failed)
@@ -230,13 +228,11 @@ class BatchedReducedSolver:
                 rows = slice(self.starts[r], self.starts[r + 1])
                 vf = v_free[rows]
                 try:
-                    s._free = [(free[k][0][sl], free[k][1][sl]) for k, sl in self._where[r]]
-                    corr, nodes, impulses = s._constrain(st, vf)
+                    corr, nodes, impulses = s.constrain(st, vf, [(free[k][0][sl], free[k][1][sl])
+                                                                 for k, sl in self._where[r]])
                 except SimulationDiverged as exc:
                     failed[r] = exc
                     continue
-                finally:
-                    s._free = []
                 corrections[r], contacts[r] = corr, (nodes, impulses)
                 v_new[rows] = vf
                 for i, d in (corr.nodal if corr else {}).items():
@@ -266,11 +262,9 @@ class BatchedReducedSolver:
             rows = slice(self.starts[r], self.starts[r + 1])
             nodes, impulses = contacts[r]
             order = np.argsort(nodes)
-            new = State(x=x_new[rows], v=v_new[rows], t=t, contact_nodes=nodes[order], contact_impulses=impulses[order])
+            new = State(x=x_new[rows], v=v_new[rows], t=t, contact_nodes=nodes[order], contact_impulses=impulses[order],
+                        modal_velocities=tuple(qdot[k][sl] for k, sl in self._where[r]))
             self._views[r] = (new.x, new.v)
-            s = self.solvers[r]  # the solver keeps the modal velocities of the state it produced
-            s._qdot = [qdot[k][sl] for k, sl in self._where[r]]
-            s._last_v = new.v
             out.append(new)
         self._x, self._v = x_new, v_new
         return out
@@ -289,10 +283,10 @@ class BatchedReducedSolver:
             for i, fb in s.floating.items():
                 sl = s.model.body_slice(i)
                 rows = slice(self.starts[r] + sl.start, self.starts[r] + sl.stop)
-                vb, rhs, R = fb.free_rhs(x[rows], v[rows], s._external_forces(i, x[rows], c), h, m.rayleigh_mass,
+                vb, rhs, R = fb.free_rhs(x[rows], v[rows], s.external_forces(i, x[rows], c), h, m.rayleigh_mass,
                                          m.rayleigh_stiffness)
-                s._compliance[i].rotation = R
-                factor = s._compliance[i].factor
+                s.compliance[i].rotation = R
+                factor = s.compliance[i].factor
                 systems.setdefault(id(factor), [factor, []])[1].append((rows, vb, rhs, R))
         for factor, items in systems.values():
             dv = factor.solve(np.column_stack([rhs for _, _, rhs, _ in items]))

@@ -1,12 +1,13 @@
-"""The constraint stage of many reduced robots in one compiled pass (issue 18: no Python work per
-robot per step).
+"""The constraint stage of many reduced robots in one compiled pass (no Python work per robot per
+step).
 
 A reduced robot of the default kind (:class:`~softcrawl.reduction.solver.ReducedSolver` with a
 :class:`~softcrawl.reduction.floating.FloatingFrameBody` disk and every other body in one
 :class:`~softcrawl.reduction.group.ModalGroup`) is constrained by its attachments (legs to disk)
 and its floor contacts. After the free motion, :func:`constrain_robots` does for every robot of a
-batch what :meth:`ImplicitEulerSolver._constrain <softcrawl.fem.solver.ImplicitEulerSolver._constrain>`
-and the reduced solver's overrides do for one, in the same order and by the same rules:
+batch what :meth:`ReducedSolver.constrain <softcrawl.reduction.solver.ReducedSolver.constrain>`
+(the full solver's constraint stage with the reduced rows) does for one, in the same order and
+by the same rules:
 
 1. floor contact candidates: the disk's collision nodes and the legs' (bounded by their modal
    speed, as :func:`~softcrawl.reduction.kernels.floor_candidates`), sorted by node;
@@ -37,16 +38,14 @@ import scipy.sparse as sp
 from numba import njit
 
 from softcrawl.fem.constraints import add_block_delassus, block_impulses
-from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, _polish, pgs_coulomb
+from softcrawl.fem.contact import EXTRA_SWEEP_CHUNKS, pgs_coulomb, polish_kernel
 from softcrawl.fem.linalg import Factorization, ldl_solve_many
-from softcrawl.fem.solver import MIN_CONTACT_GROWTH
+from softcrawl.fem.solver import FLOOR_FRAME, MIN_CONTACT_GROWTH
 from softcrawl.reduction.kernels import (add_delassus, back_substitute_transposed, body_floor_candidates, corrections,
                                         forward_substitute, point_velocity)
 
 #: Active-set rounds and relative tolerance of the polish (as :func:`softcrawl.fem.contact.polish_active_set`).
 POLISH_ROUNDS, POLISH_RTOL = 30, 1e-9
-
-_FLOOR_FRAME = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # normal, t1, t2
 
 
 class DiskColumns:
@@ -182,10 +181,10 @@ def _disk_gram(kinds, idxs, nodes, n_fixed, Tff, node_Gt, fixed_Gt):
 def _disk_of(solver) -> int | None:
     """The floating-frame disk of a reduced solver whose constraint stage can be compiled (one
     modal group, that disk its only other body, a floor, attachments); None otherwise."""
-    if solver.model.floor is None or len(solver.groups) != 1 or len(solver._nodal) != 1:
+    if solver.model.floor is None or len(solver.groups) != 1 or len(solver.nodal_bodies) != 1:
         return None
-    (i,) = solver._nodal
-    c = solver._compliance[i]
+    (i,) = solver.nodal_bodies
+    c = solver.compliance[i]
     if i not in solver.floating or c is None or c.fixed is None or not c.free.all():
         return None
     return i
@@ -205,14 +204,14 @@ class ConstraintBatch:
         self.solvers, self.disks, self.group, self.columns = list(solvers), list(disks), group, columns
         self.leg_start, self.starts = np.asarray(leg_start, np.int64), np.asarray(starts, np.int64)
         M = len(self.solvers)
-        fixed = [columns.block_columns(s._compliance[d].fixed.H) for s, d in zip(self.solvers, self.disks)]
+        fixed = [columns.block_columns(s.compliance[d].fixed.H) for s, d in zip(self.solvers, self.disks)]
         F = max(len(f) for f in fixed)
         self.fixed_index = np.zeros((M, F), np.int64)
         self.fixed_blocks = np.zeros((M, F), np.int64)
         self.n_fixed = np.array([len(f) for f in fixed], np.int64)
         for r, (f, s, d) in enumerate(zip(fixed, self.solvers, self.disks)):
             self.fixed_index[r, :len(f)] = f
-            self.fixed_blocks[r, :len(f)] = s._compliance[d].fixed.blocks
+            self.fixed_blocks[r, :len(f)] = s.compliance[d].fixed.blocks
         # the attachment columns as they are now (they hold every block of these robots)
         H = columns.H
         self.fixed = (columns.fixed_Gt, H.indptr.astype(np.int64), H.indices.astype(np.int64), H.data)
@@ -221,7 +220,7 @@ class ConstraintBatch:
             self.Tff[r, :3 * len(f), :3 * len(f)] = columns.attachment_gram(f)
         self.disk_start = np.array([st + s.model.node_offsets[d] for st, s, d in
                                     zip(self.starts, self.solvers, self.disks)], np.int64)
-        rows = [sp.csr_matrix(s._attach_drift) for s in self.solvers]
+        rows = [sp.csr_matrix(s.attachment_drift) for s in self.solvers]
         self.n_attachments = np.array([r.shape[0] // 3 for r in rows], np.int64)
         self.att_start = np.concatenate([[0], np.cumsum([r.shape[0] for r in rows])]).astype(np.int64)
         self.att_indptr = np.concatenate([[0]] + [r.indptr[1:] + off for r, off in zip(
@@ -241,10 +240,10 @@ class ConstraintBatch:
         if any(d is None for d in disks):
             return None
         first, d0 = solvers[0], disks[0]
-        factor = first._compliance[d0].factor
+        factor = first.compliance[d0].factor
         coll = first.model.bodies[d0].collision_nodes
         for s, d in zip(solvers, disks):
-            if (s._compliance[d].factor is not factor or s.model.floor != first.model.floor
+            if (s.compliance[d].factor is not factor or s.model.floor != first.model.floor
                     or s.settings != first.settings or not np.array_equal(s.model.bodies[d].collision_nodes, coll)):
                 return None
         return cls(solvers, disks, disk_columns(factor, np.asarray(coll, np.int64)), group, leg_start, starts)
@@ -262,7 +261,7 @@ class ConstraintBatch:
         """
         M = len(self.solvers)
         st, fl, g, cols = self.settings, self.floor, self.group, self.columns
-        R = np.stack([s._compliance[d].rotation for s, d in zip(self.solvers, self.disks)])
+        R = np.stack([s.compliance[d].rotation for s, d in zip(self.solvers, self.disks)])
         prev_start = np.concatenate([[0], np.cumsum([len(s.contact_nodes) for s in states])]).astype(np.int64)
         prev_nodes = np.concatenate([s.contact_nodes for s in states]).astype(np.int64)
         prev_imp = np.ascontiguousarray(np.concatenate([s.contact_impulses for s in states]), dtype=np.float64)
@@ -360,13 +359,13 @@ def solve_condensed(W, q, nb, mu, warm, tol, max_iter, extra_chunks):
     if nc:
         ok = False
         if np.any(lam_c != 0.0):
-            ok, new = _polish(Wc, qc, mu, lam_c, POLISH_ROUNDS, POLISH_RTOL)
+            ok, new = polish_kernel(Wc, qc, mu, lam_c, POLISH_ROUNDS, POLISH_RTOL)
         if not ok:
             sweeps, rel = pgs_coulomb(Wc, qc, mu, lam_c, tol, max_iter)
             for chunk in range(extra_chunks + 1):
                 if rel <= tol:
                     break
-                ok, new = _polish(Wc, qc, mu, lam_c, POLISH_ROUNDS, POLISH_RTOL)
+                ok, new = polish_kernel(Wc, qc, mu, lam_c, POLISH_ROUNDS, POLISH_RTOL)
                 if ok or chunk == extra_chunks:
                     break
                 more, rel = pgs_coulomb(Wc, qc, mu, lam_c, tol, max_iter)
@@ -492,7 +491,7 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
         for i in range(n_disk):
             for a in range(3):
                 vb[3 * i + a] = v_free[d0 + i, 0] * R[0, a] + v_free[d0 + i, 1] * R[1, a] + v_free[d0 + i, 2] * R[2, a]
-        frame_R = _FLOOR_FRAME @ R
+        frame_R = FLOOR_FRAME @ R
         gmax = 0.0
         for i in range(k):
             gmax = max(gmax, abs(gaps[i]))

@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from softcrawl.fem.kernels import _triangle_frame
+from softcrawl.fem.kernels import triangle_frame
 from softcrawl.reduction.blas import syrk_upper, syrk_upper32
 
 
@@ -111,7 +111,7 @@ def element_terms(x, offsets, rotations, conn, C, s0, rows, Z, s, e0, e1, n_bad)
                                - d[0, 1] * (d[1, 0] * d[2, 2] - d[1, 2] * d[2, 0])
                                + d[0, 2] * (d[1, 0] * d[2, 1] - d[1, 1] * d[2, 0])) > 0.0:
                 n_bad[b] += 1  # inverted tetrahedron
-            if not _triangle_frame(x[n0], x[offsets[b] + conn[e, 1]], x[offsets[b] + conn[e, 2]], F):
+            if not triangle_frame(x[n0], x[offsets[b] + conn[e, 1]], x[offsets[b] + conn[e, 2]], F):
                 n_bad[b] += 1
                 for i in range(r):
                     s[b, row + i] = 0.0

@@ -109,9 +109,11 @@ def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: St
     Args:
         robot: the robot.
         settling: the rest rule.
-        solver: the solver to step with (default: a new one, so that an episode started from
-            the result with a fresh solver is the same whether the result was computed now or
-            cached).
+        solver: the solver to step with; the result then carries its reduced bodies' modal
+            velocities (:attr:`State.modal_velocities`), to go on stepping with it. Default: a new
+            one, and the result holds positions and velocities only (the modal velocities are
+            projected from them by the next solver), so that an episode started from it is the
+            same whether it was computed now or cached.
         state: the start (default: the assembled rest state, mid-air).
         zero: the zero-pressure control (default ``robot.control(0, 0, 0)``).
 
@@ -123,7 +125,8 @@ def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: St
     """
     dt = robot.config.dt
     hold, cap = settling.steps(dt)
-    solver = robot.make_solver() if solver is None else solver
+    own = solver is None
+    solver = robot.make_solver() if own else solver
     state = robot.model.rest_state() if state is None else state
     zero = robot.control(np.zeros(N_REGULATORS)) if zero is None else zero
     speed, calm, steps = float(np.sqrt(np.einsum("ij,ij->i", state.v, state.v).max())), 0, 0
@@ -132,7 +135,8 @@ def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: St
         steps += 1
         speed = float(np.sqrt(np.einsum("ij,ij->i", state.v, state.v).max()))
         calm = calm + 1 if speed < settling.rest_speed else 0
-    return SettledState(dataclasses.replace(state, t=0.0), steps, steps * dt, speed,
+    rest = dataclasses.replace(state, t=0.0, modal_velocities=None if own else state.modal_velocities)
+    return SettledState(rest, steps, steps * dt, speed,
                         calm >= hold or (cap == 0 and speed < settling.rest_speed))
 
 
@@ -175,7 +179,9 @@ class Episode:
 
     def reset(self) -> State:
         """Regulators at 0 kPa, the robot at rest (:func:`settle`, once per :class:`Episode`
-        unless a settled state was given), a fresh solver; t := 0.
+        unless a settled state was given), a fresh solver; t := 0. The episode starts from the
+        settled positions and velocities: its reduced bodies' modal velocities are projected
+        from them (:attr:`State.modal_velocities` dropped), whichever solver settled the robot.
 
         Raises:
             SimulationDiverged: if settling diverges.
@@ -184,7 +190,7 @@ class Episode:
         if self.settled is None:
             self.settled = settle(self.robot, self.settling)
         self.solver = self.robot.make_solver()
-        self.state = self.settled.state
+        self.state = dataclasses.replace(self.settled.state, modal_velocities=None)
         self.start = self.robot.reward_position(self.state.x)
         return self.state
 
@@ -206,7 +212,7 @@ class Episode:
 
     def next_control(self, command: np.ndarray) -> Control:
         """:meth:`step` without its solver step, for drivers that step many episodes' robots
-        together (:mod:`softcrawl.envs.batch`, which then sets :attr:`state`): the regulators
+        together (:mod:`softcrawl.envs.backends.batched`, which then sets :attr:`state`): the regulators
         advance one ``dt`` with commands ``(3,)`` real kPa; returns that step's solver input.
 
         Raises:

@@ -1,6 +1,6 @@
-"""Crawler envs whose robots are stepped together (issue 18): the batched backend of a worker.
+"""Crawler envs whose robots are stepped together: the batched backend of a worker.
 
-:class:`BatchedBackend` holds envs like :class:`~softcrawl.envs.backends.SerialBackend`, but its
+:class:`BatchedBackend` holds envs like :class:`~softcrawl.envs.backends.serial.SerialBackend`, but its
 :meth:`~BatchedBackend.step` advances all of them through their actions in lockstep: every
 env starts its action (:meth:`CrawlerEnv.begin_action`), then for each of the
 ``steps_per_action`` simulator steps every live episode steps its regulators
@@ -13,7 +13,7 @@ report it. Before a reset, the robots of new designs are settled to rest togethe
 the transitions equal those of :class:`SerialBackend` to the last bit (tests/test_batch_env.py).
 
 Envs whose solver is not a :class:`~softcrawl.reduction.solver.ReducedSolver` (the full-order
-model) are stepped one by one with :meth:`CrawlerEnv.step`, as before.
+model) are stepped one by one with :meth:`CrawlerEnv.step`.
 """
 
 from __future__ import annotations
@@ -22,8 +22,9 @@ import dataclasses
 from collections.abc import Sequence
 
 from softcrawl.design.space import validate_design
+from softcrawl.envs.backends.base import StepResult
+from softcrawl.envs.backends.serial import SerialBackend
 from softcrawl.envs.crawler import CrawlerEnv
-from softcrawl.envs.backends import SerialBackend, StepResult
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.reduction.batch import BatchedReducedSolver, run_in_lockstep
 from softcrawl.reduction.solver import ReducedSolver
@@ -94,9 +95,10 @@ class BatchedBackend(SerialBackend):
         outcomes = run_in_lockstep([robot.make_solver() for _, (robot, _) in jobs], loops)
         for (_, (_, users)), out in zip(jobs, outcomes):
             if isinstance(out, SettledState):
-                # own arrays: the batch's states are views of arrays of all robots
+                # own arrays (the batch's states are views of arrays of all robots); no modal
+                # velocities: an episode starts from the positions and velocities (Episode.reset)
                 out = dataclasses.replace(out, state=dataclasses.replace(out.state, x=out.state.x.copy(),
-                                                                         v=out.state.v.copy()))
+                                                                         v=out.state.v.copy(), modal_velocities=None))
                 for env, design in users:
                     env.store_settled(design, out)
 

@@ -1,128 +1,39 @@
-"""Ray backend of the vectorised crawler env, and Ray tasks for the ground truth (issue 21).
+"""The Ray backend: envs held by Ray actors (optional extra ``softcrawl[ray]``, ``ray>=2``).
 
-Optional: ``pip install softcrawl[ray]`` (``ray>=2``). Runs on a local Ray started here
-(:func:`ensure_ray`) unless an address of an existing cluster is given (``"auto"`` or
-``"ray://host:10001"``).
+Runs on a local Ray started here (:func:`softcrawl.parallel.ensure_ray`) unless an address of an
+existing cluster is given (``"auto"`` or ``"ray://host:10001"``).
 
-:class:`RayBackend` implements :class:`softcrawl.envs.backends.EnvBackend` (``reset``, ``step``,
-``get_attr``, ``set_attr``, ``call``, ``close``) with Ray actors each holding a contiguous chunk
-of the envs (like the subprocess backend's workers). **Fault tolerance**: actors are created with
-``max_restarts``; the driver keeps, per env, the design and actions of its current
-episode and its RNG state after the reset. When an actor dies (``RayActorError``, or
-``ActorUnavailableError`` mid-call), Ray restarts it (fresh envs); the backend then resets its
-envs with the same designs, restores their RNG states, replays the actions of the current
+:class:`RayBackend` implements :class:`~softcrawl.envs.backends.base.EnvBackend` (``reset``,
+``step``, ``get_attr``, ``set_attr``, ``call``, ``close``) with Ray actors each holding a
+contiguous chunk of the envs (like the subprocess backend's workers). **Fault tolerance**:
+actors are created with ``max_restarts``; the driver keeps, per env, the design and actions of
+its current episode and its RNG state after the reset. When an actor dies (``RayActorError``,
+or ``ActorUnavailableError`` mid-call), Ray restarts it (fresh envs); the backend then resets
+its envs with the same designs, restores their RNG states, replays the actions of the current
 episodes, and re-issues the failed call. Simulation is deterministic, so the run goes on with
 the same results as if nothing had happened; only that actor's episodes are re-simulated.
 State changed through ``set_attr``/``call`` on a dead actor's envs is not replayed.
-
-:func:`ray_map` runs ``fn(*args)`` for each argument tuple as Ray tasks and yields the results
-as they finish (``max_retries``: a task whose worker died is retried, only that task), used by
-:func:`softcrawl.codesign.groundtruth.run_groundtruth` with ``executor="ray"``.
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 
 import cloudpickle
 import numpy as np
 
-from softcrawl.envs.backends import ChunkedBackend, SerialBackend
-
-#: Environment of Ray workers: one BLAS/OpenMP thread (parallelism comes from processes).
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-def _ray():
-    try:
-        import ray
-    except ImportError:
-        raise ImportError("the Ray backend needs Ray: pip install 'softcrawl[ray]' (ray>=2)") from None
-    return ray
-
-
-#: Seconds a Ray cluster at a given address has to answer before :func:`ensure_ray` gives up
-#: (the environment variable ``SOFTCRAWL_RAY_TIMEOUT`` overrides it).
-CONNECT_TIMEOUT_S = 30.0
-
-
-def connect_timeout() -> float:
-    """:data:`CONNECT_TIMEOUT_S`, or ``SOFTCRAWL_RAY_TIMEOUT`` (seconds, > 0) if set.
-
-    Raises:
-        ValueError: ``SOFTCRAWL_RAY_TIMEOUT`` is not a positive number.
-    """
-    text = os.environ.get("SOFTCRAWL_RAY_TIMEOUT")
-    if text is None:
-        return CONNECT_TIMEOUT_S
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0 < value < float("inf"):
-        raise ValueError(f"SOFTCRAWL_RAY_TIMEOUT must be a positive number of seconds, got {text!r}")
-    return value
-
-
-def check_address(address: str, timeout: float) -> None:
-    """Raise ConnectionError unless the head of the Ray cluster at ``address`` (``host:port``
-    or ``ray://host:port``) accepts a TCP connection within ``timeout`` s (retried until then:
-    a head that is starting up gets the whole time). ``"auto"`` and addresses without a port
-    are left to Ray. Ray itself would retry a silent address for minutes.
-
-    Raises:
-        ConnectionError: nothing answers in time. ValueError: a port outside 1..65535.
-    """
-    import socket
-
-    host, sep, port = address.removeprefix("ray://").rpartition(":")
-    if not sep or not port.isdigit() or not host:
-        return
-    host = host.strip("[]")
-    if not 0 < int(port) < 65536:
-        raise ValueError(f"Ray address {address}: the port must be 1..65535")
-    deadline = time.monotonic() + timeout
-    while True:
-        left = deadline - time.monotonic()
-        try:
-            socket.create_connection((host, int(port)), timeout=max(left, 0.1)).close()
-            return
-        except OSError as exc:
-            if left <= 0.5:
-                raise ConnectionError(f"no Ray cluster answers at {address} within {timeout:g} s "
-                                      f"({exc.strerror or exc}); start one (ray start --head) or check "
-                                      "--ray-address") from None
-            time.sleep(min(0.5, left))
-
-
-def ensure_ray(address: str | None = None, num_cpus: int | None = None):
-    """Connect to Ray: the running one if this process already did, else a cluster at
-    ``address`` (which must answer within :func:`connect_timeout` s, :func:`check_address`),
-    else a new local Ray with ``num_cpus`` CPUs (default: all). Workers get
-    :data:`WORKER_ENV`. Returns the ``ray`` module.
-
-    Raises:
-        ImportError: Ray is not installed. ConnectionError: no cluster answers at ``address``.
-    """
-    ray = _ray()
-    if not ray.is_initialized():
-        kw = {"runtime_env": {"env_vars": dict(WORKER_ENV)}, "log_to_driver": False}
-        if address:
-            check_address(address, connect_timeout())
-            ray.init(address=address, **kw)
-        else:
-            ray.init(num_cpus=num_cpus, include_dashboard=False, **kw)
-    return ray
+from softcrawl.envs.backends.chunked import ChunkedBackend
+from softcrawl.envs.backends.serial import SerialBackend
+from softcrawl.parallel import default_worker_env, ensure_ray
 
 
 class _EnvChunk:
     """Actor body: a :class:`SerialBackend` of some envs (constructors pickled with cloudpickle)."""
 
     def __init__(self, payload: bytes):
-        for k, v in WORKER_ENV.items():
-            os.environ.setdefault(k, v)
+        default_worker_env()
         self.backend = SerialBackend(cloudpickle.loads(payload))
 
     def spaces(self):
@@ -174,7 +85,7 @@ class RayBackend(ChunkedBackend):
     Args:
         env_fns: one zero-argument env constructor per env (cloudpickled).
         n_actors: actors (default: ``min(len(env_fns), Ray's CPUs)``).
-        address: Ray cluster address (None: local Ray, :func:`ensure_ray`).
+        address: Ray cluster address (None: local Ray, :func:`softcrawl.parallel.ensure_ray`).
         num_cpus: CPUs of a local Ray started here (None: all).
         max_restarts: restarts per actor before a death is raised (:class:`ray.exceptions.RayActorError`).
 
@@ -248,8 +159,7 @@ class RayBackend(ChunkedBackend):
 
     # EnvBackend -------------------------------------------------------------------------------
     def reset(self, indices, designs, seeds):
-        both = self._scatter(indices, "reset", lambda g: ([j for _, j in g], [designs[p] for p, _ in g],
-                                                           [seeds[p] for p, _ in g]))
+        both = super().reset(indices, designs, seeds)
         for i, ((_, info), rng) in zip(indices, both):
             self._design[int(i)] = info.get("design")
             self._rng[int(i)] = rng
@@ -277,26 +187,3 @@ class RayBackend(ChunkedBackend):
             pass
         for a in self.actors:
             self._ray.kill(a, no_restart=True)
-
-
-def _apply(fn: Callable, *args):
-    """Ray task body: ``fn(*args)`` (``fn`` may be any picklable callable, e.g. a partial)."""
-    return fn(*args)
-
-
-def ray_map(fn: Callable, args: Iterable[tuple], address: str | None = None, num_cpus: int | None = None,
-            max_retries: int = 3) -> Iterator:
-    """``fn(*a)`` for each ``a`` in ``args`` as Ray tasks (1 CPU each), yielding results as they
-    finish (not in order). A task whose worker process died is retried up to ``max_retries``
-    times (only that task); an exception raised by ``fn`` is re-raised here.
-
-    Raises:
-        ImportError: Ray missing.
-    """
-    ray = ensure_ray(address, num_cpus)
-    task = ray.remote(num_cpus=1, max_retries=max_retries)(_apply)
-    fn_ref = ray.put(fn)
-    pending = [task.remote(fn_ref, *a) for a in args]
-    while pending:
-        done, pending = ray.wait(pending, num_returns=1)
-        yield ray.get(done[0])
