@@ -28,9 +28,10 @@ it; nothing else builds a run's paths by hand. Layout::
 
 Nothing read from a run folder is executed: msgpack of arrays, JSON and ``allow_pickle=False``
 npz only; no file of a checkpoint is ever unpickled. Checkpoints of the torch learner (format 1,
-``model.pt``) and of the pickle format before it (``state.pkl``, ``replay_buffer.pkl``) are
-refused with a line naming the softcrawl version that wrote them. Nothing is read or written through links out of the run: a run whose entries above
-are symbolic links is refused (:meth:`Run.check_links`), and ``latest`` is only a name.
+``model.pt``: refused with a line naming the softcrawl version that wrote them) and of the pickle
+format before it (``state.pkl``, ``replay_buffer.pkl``) are not read. Nothing is read or written
+through links out of the run: a run whose entries above are symbolic links is refused
+(:meth:`Run.check_links`), and ``latest`` is only a name.
 
 Checkpoints are written into ``step-*.tmp`` and renamed into place, ``latest`` is replaced
 atomically; a missing, dangling or damaged ``latest`` falls back to the newest complete
@@ -343,9 +344,9 @@ class Run:
             raise ValueError(f"{steps[-1]}: {why}")
 
     def save_checkpoint(self, model, sampler, keep: int = 2) -> Path:
-        """Write a complete checkpoint of ``model`` (a :class:`SplitLRSAC`) and ``sampler`` (a
-        :class:`GibbsDesignSampler`) atomically, point ``latest`` at it and prune complete
-        checkpoints beyond the newest ``max(keep, 2)``. Returns its folder.
+        """Write a complete checkpoint of ``model`` (a :class:`~softcrawl.codesign.sac.CodesignSAC`)
+        and ``sampler`` (a :class:`GibbsDesignSampler`) atomically, point ``latest`` at it and
+        prune complete checkpoints beyond the newest ``max(keep, 2)``. Returns its folder.
 
         Raises:
             NoSpaceError: disk full / read-only: the partial ``.tmp`` is removed, ``latest`` is
