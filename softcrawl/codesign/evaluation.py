@@ -133,7 +133,7 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     env = env_fn(cfg)()
     cfg.sac.buffer_size = 1
     cfg.sac.device = "cpu"  # whatever the run trained on: 20 actions need no GPU
-    model = make_sac(DummyVecEnv([lambda: env]), cfg.sac)
+    model = make_sac(DummyVecEnv([lambda: env]), cfg.sac, seed=cfg.seed)
     r.load_learner(ck, model, learner)
     returns, diverged, first, domains = [], [], None, []
     for k in range(episodes):

@@ -41,12 +41,15 @@ _DEVICE = re.compile(r"(cpu|gpu|cuda)(?::(\d+))?")
 
 def configure_threads(threads: int) -> None:
     """Threads of the learner's CPU work: XLA's intra-op thread pool (``XLA_FLAGS``, read once,
-    when JAX starts its CPU backend in this process: call this before the first learner is
-    built) and torch's (SB3's replay buffer copies its samples through torch tensors). A
-    ``XLA_FLAGS`` that already sets ``intra_op_parallelism_threads`` is left as it is."""
+    when JAX starts its backends in this process: call this before the first learner is built)
+    and torch's (SB3's replay buffer copies its samples through torch tensors). A ``XLA_FLAGS``
+    that already sets ``intra_op_parallelism_threads`` is left as it is. A GPU's memory is
+    allocated as the learner needs it, not 75% of it at the start (JAX's default), unless
+    ``XLA_PYTHON_CLIENT_PREALLOCATE`` says otherwise."""
     import torch
 
     torch.set_num_threads(threads)
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     flags = os.environ.get("XLA_FLAGS", "")
     if "intra_op_parallelism_threads" not in flags:
         extra = f"intra_op_parallelism_threads={threads}"
@@ -58,7 +61,7 @@ def configure_threads(threads: int) -> None:
 def use_compilation_cache() -> None:
     """Keep the learner's compiled XLA programs on disk (JAX's persistent compilation cache),
     so a process that builds the same learner again (``resume``, ``evaluate``, ``report``, the
-    next run) loads them instead of compiling (about 6 CPU seconds for the paper's networks).
+    next run) loads them instead of compiling (5-10 CPU seconds for the paper's networks).
     The cache is ``$SOFTCRAWL_CACHE_DIR/jax`` or ``~/.cache/softcrawl/jax``, the user's own, as
     numba's caches are; a cache directory set through JAX's own settings is left as it is.
     Takes effect if called before the process's first compilation."""
