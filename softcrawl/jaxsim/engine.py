@@ -1,0 +1,221 @@
+"""One step of a reduced robot in JAX (:func:`step`) and the batched, jitted rollout of an action
+(:func:`make_rollout`).
+
+A step (physics.md, "Time stepping"; :class:`softcrawl.reduction.solver.ReducedSolver`):
+
+1. the regulators slew toward their commands (150 kPa/s) and the pressures are warped to sim kPa;
+2. free motion: every leg's linearly implicit step (:mod:`softcrawl.jaxsim.legs`), the disk's
+   in its floating frame (:mod:`softcrawl.jaxsim.disk`);
+3. constraints: the ``F`` attachments of each leg (equality, blocks first) and the ``K`` collision
+   points of lowest predicted gap (floor contacts, normal/t1/t2). The Delassus operator
+   ``W = sum_legs J_l A_l^-1 J_l^T + J_d A_d^-1 J_d^T`` (Duriez et al. 2006, sec. 4; reduction.md)
+   is formed from each leg's Cholesky factor and the disk's constant ``A_0^-1`` rotated by its
+   frame, the free constraint velocities get the attachments' drift ``(x_a - x_b) / h`` and the
+   contacts' gap ``g / h`` (Signorini, ``g + h u_n >= 0``), and :mod:`softcrawl.jaxsim.contact`
+   solves it (bilateral rows exactly, the Coulomb contacts by projected Gauss-Seidel);
+4. velocity corrections ``A^-1 J^T lam``, then ``q += h qdot``, ``x += h v``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+
+from softcrawl.jaxsim import disk as disk_motion
+from softcrawl.jaxsim import legs as leg_motion
+from softcrawl.jaxsim.model import _pytree
+
+try:
+    from softcrawl.jaxsim.contact import floor_contacts, solve_constraints
+except ImportError:  # until the batched contact solver is merged
+    from softcrawl.jaxsim._contact_stub import floor_contacts, solve_constraints
+
+#: Floor contact frame, rows normal, tangent 1, tangent 2 (:mod:`softcrawl.fem.solver`).
+FLOOR_FRAME = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+#: z given to the collision points of absent legs (mm): never a contact.
+FAR = 1e6
+
+
+@dataclass(frozen=True)
+class State:
+    """One robot's state (a leading batch axis on every field when batched).
+
+    Attributes:
+        q, qdot: ``(L, m)`` legs' modal displacements (mm) and velocities (mm/s), part frame.
+        x, v: ``(n, 3)`` disk node positions (mm) and velocities (mm/s).
+        contact_points: ``(K,)`` last step's contact points (index into the disk's collision
+            nodes, then each leg slot's); impulses: ``(K, 3)`` their impulses, mN s.
+        pressure: ``(3,)`` regulator outputs, real kPa; t: time, s.
+        bad: inverted or degenerate RID elements met so far (0 for a valid rollout).
+    """
+
+    q: jax.Array
+    qdot: jax.Array
+    x: jax.Array
+    v: jax.Array
+    contact_points: jax.Array
+    impulses: jax.Array
+    pressure: jax.Array
+    t: jax.Array
+    bad: jax.Array
+
+
+@dataclass(frozen=True)
+class Control:
+    """Regulator commands, real kPa: ``command`` ``(3,)`` (a leading batch axis when batched)."""
+
+    command: jax.Array
+
+
+for _cls in (State, Control):
+    _pytree(_cls)
+
+
+def rest_state(model) -> State:
+    """The assembled robot at rest (mid-air) for a model with stacked robots (batch axis first)."""
+    B, L = model.robot.leg_mask.shape
+    m = model.leg.mass.shape[0]
+    K = model.settings.contacts
+    dt = model.disk.rest.dtype
+    return State(jnp.zeros((B, L, m), dt), jnp.zeros((B, L, m), dt), jnp.broadcast_to(model.disk.rest, (B,) + model.disk.rest.shape),
+                 jnp.zeros((B,) + model.disk.rest.shape, dt), jnp.full((B, K), -1, jnp.int32),
+                 jnp.zeros((B, K, 3), dt), jnp.zeros((B, 3), dt), jnp.zeros((B,), dt), jnp.zeros((B,), jnp.int32))
+
+
+def sim_pressures(model, pressure):
+    """``(3,)`` sim kPa of regulator outputs ``pressure`` (real kPa): ``max(a p + b, 0)`` (physics.md)."""
+    a, b = model.settings.calibration
+    return jnp.maximum(a * pressure + b, 0.0)
+
+
+def _leg_points(leg, rd, q, qdot):
+    """World positions and velocities ``(L nc, 3)`` of the legs' collision nodes (absent legs far up)."""
+    x = jnp.einsum("lnc,lac->lna", leg.coll_rest[None] + jnp.einsum("nam,lm->lna", leg.coll_basis, q), rd.rotation)
+    x = x + rd.translation[:, None]
+    v = jnp.einsum("lnc,lac->lna", jnp.einsum("nam,lm->lna", leg.coll_basis, qdot), rd.rotation)
+    x = jnp.where(rd.leg_mask[:, None, None], x, jnp.asarray([0.0, 0.0, FAR], x.dtype))
+    return x.reshape(-1, 3), v.reshape(-1, 3)
+
+
+def _disk_gather(inverse, rows_nodes, cols_nodes):
+    """Blocks ``A_0^-1[n_p, n_q]`` ``(..., 3, ..., 3)`` of node index arrays."""
+    r = 3 * rows_nodes[..., None] + jnp.arange(3)
+    c = 3 * cols_nodes[..., None] + jnp.arange(3)
+    return inverse[r.reshape(r.shape + (1,) * c.ndim), c.reshape((1,) * r.ndim + c.shape)]
+
+
+def physics_step(model, state: State, sim_kpa) -> State:
+    """One ``dt`` of one robot at cavity pressures ``sim_kpa`` ``(3,)`` (sim kPa per regulator);
+    the regulators are not stepped (module doc, steps 2-4)."""
+    st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
+    h = st.dt
+    dt = state.x.dtype
+    L, m = state.q.shape
+    F = leg.att_rest.shape[0]
+    A = L * F
+    # 2. free motion
+    p = sim_kpa[rd.channel] * rd.leg_mask
+    qd_free, chol, n_bad = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
+        leg, st, state.q, state.qdot, rd.rotation, p, rd.leg_mask)
+    v_free, R = disk_motion.free_motion(dk, st, state.x, state.v)
+    # 3. constraint rows: attachments (leg point minus disk point), then contacts
+    Ja = jnp.einsum("lac,fcm->lfam", rd.rotation, leg.att_basis) * rd.leg_mask[:, None, None, None]
+    eye = jnp.eye(L, dtype=dt)
+    J_att = (eye[:, :, None, None, None] * Ja[None]).reshape(L, 3 * A, m)  # leg l's share of every block
+    x_leg_att = jnp.einsum("lfc,lac->lfa", leg.att_rest[None] + jnp.einsum("fam,lm->lfa", leg.att_basis, state.q),
+                           rd.rotation) + rd.translation[:, None]
+    dnodes = rd.disk_nodes.reshape(A, -1)
+    dw = rd.disk_weights.reshape(A, -1)
+    x_disk_att = jnp.einsum("ai,aic->ac", dw, state.x[dnodes])
+    drift = ((x_leg_att.reshape(A, 3) - x_disk_att) * jnp.repeat(rd.leg_mask, F)[:, None]).reshape(-1)
+    u_att = -jnp.einsum("ai,aic->ac", dw, v_free[dnodes]).reshape(-1) + drift / h
+    W = jnp.zeros((3 * A, 3 * A), dt)
+    G_aa = jnp.einsum("ab,pqbc,dc->pqad", R, rd.att_gram, R)
+    W = W + G_aa.transpose(0, 2, 1, 3).reshape(3 * A, 3 * A)
+    u = u_att
+    J = J_att
+    K = st.contacts
+    if K:
+        nd = dk.collision.shape[0]
+        nc = leg.coll_rest.shape[0]
+        xl, vl = _leg_points(leg, rd, state.q, qd_free)
+        points = jnp.concatenate([state.x[dk.collision], xl])
+        vel = jnp.concatenate([v_free[dk.collision], vl])
+        idx, active, gap = floor_contacts(points, h * vel, st.floor_z, st.contact_distance, K)
+        on_disk = idx < nd
+        dnode = dk.collision[jnp.where(on_disk, idx, 0)]
+        wc = on_disk.astype(dt)
+        lidx = jnp.where(on_disk, 0, (idx - nd) // nc)
+        lnode = jnp.where(on_disk, 0, (idx - nd) % nc)
+        D = jnp.asarray(FLOOR_FRAME, dt)
+        DR = D @ R
+        Jc = jnp.einsum("ab,kbc,kcm->kam", D, rd.rotation[lidx], leg.coll_basis[lnode]) * (1 - wc)[:, None, None]
+        J_con = (lidx[None, :] == jnp.arange(L)[:, None]).astype(dt)[:, :, None, None] * Jc[None]
+        J = jnp.concatenate([J_att, J_con.reshape(L, 3 * K, m)], axis=1)
+        G_cc = _disk_gather(dk.inverse, dnode, dnode)  # (K, 3, K, 3)
+        W_cc = jnp.einsum("ab,pbqc,dc->paqd", DR, G_cc, DR) * (wc[:, None, None, None] * wc[None, None, :, None])
+        G_ac = _disk_gather(dk.inverse, dnodes, dnode)  # (A, 4, 3, K, 3)
+        W_ac = -jnp.einsum("ai,xb,aibkc,dc->axkd", dw, R, G_ac, DR) * wc[None, None, :, None]
+        W_ac = W_ac.reshape(3 * A, 3 * K)
+        W = jnp.block([[W, W_ac], [W_ac.T, W_cc.reshape(3 * K, 3 * K)]])
+        u_con = (jnp.einsum("ab,kb->ka", D, v_free[dnode]) * wc[:, None]).at[:, 0].add(gap / h)
+        u = jnp.concatenate([u, u_con.reshape(-1)])
+        warm = (idx[:, None] == state.contact_points[None, :]).astype(dt) @ state.impulses
+    Y = jax.vmap(lambda c, j: jax.scipy.linalg.solve_triangular(c, j.T, lower=True))(chol, J)
+    W = W + jnp.einsum("lmi,lmj->ij", Y, Y)
+    u = u + jnp.einsum("lim,lm->i", J, qd_free)
+    mask_b = jnp.repeat(rd.leg_mask, 3 * F)
+    mu = jnp.full((K,), st.friction, dt)
+    lam = solve_constraints(W, u, mask_b, mu, warm.reshape(-1) if K else jnp.zeros(0, dt),
+                            active if K else jnp.zeros(0, bool), st.sweeps)
+    # 4. corrections
+    dq = jax.vmap(lambda c, j: jax.scipy.linalg.cho_solve((c, True), j.T @ lam))(chol, J)
+    lam_a = lam[:3 * A].reshape(A, 3)
+    f_body = jnp.zeros_like(state.x).at[dnodes.reshape(-1)].add(
+        (-dw[:, :, None] * (lam_a @ R)[:, None, :]).reshape(-1, 3))
+    if K:
+        lam_c = lam[3 * A:].reshape(K, 3)
+        f_body = f_body.at[dnode].add(wc[:, None] * (lam_c @ DR))
+    dv = (dk.inverse @ f_body.reshape(-1)).reshape(-1, 3) @ R.T
+    qdot = qd_free + dq
+    v = v_free + dv
+    new = dataclasses.replace(
+        state, q=state.q + h * qdot, qdot=qdot, x=state.x + h * v, v=v, t=state.t + h,
+        bad=(state.bad + jnp.sum(n_bad * rd.leg_mask) + (~jnp.all(jnp.isfinite(v)))).astype(state.bad.dtype))
+    if K:
+        new = dataclasses.replace(new, contact_points=idx.astype(jnp.int32), impulses=lam_c)
+    return new
+
+
+def step(model, state: State, control: Control) -> State:
+    """One ``dt`` of one robot: regulators (slew ``rate dt`` toward the commands), warp, physics."""
+    st = model.settings
+    dp = st.rate * st.dt
+    pressure = state.pressure + jnp.clip(control.command - state.pressure, -dp, dp)
+    new = physics_step(model, state, sim_pressures(model, pressure))
+    return dataclasses.replace(new, pressure=pressure)
+
+
+def make_rollout(n_steps: int, physics_only: bool = False):
+    """A jitted ``rollout(model, state, control) -> state`` that holds each robot's control for
+    ``n_steps`` steps (``jax.lax.scan``), ``jax.vmap`` ped over the batch (the model's per-robot
+    data, the states and the controls carry a leading batch axis; the parts are shared).
+    ``physics_only``: ``control`` is ``(B, 3)`` sim kPa for :func:`physics_step` (no regulators)."""
+
+    def one(model, rd, state, control):
+        mdl = dataclasses.replace(model, robot=rd)
+
+        def body(s, _):
+            return (physics_step(mdl, s, control) if physics_only else step(mdl, s, control)), None
+
+        return jax.lax.scan(body, state, None, length=n_steps)[0]
+
+    @jax.jit
+    def rollout(model, state, control):
+        return jax.vmap(one, in_axes=(None, 0, 0, 0))(dataclasses.replace(model, robot=None), model.robot, state,
+                                                      control)
+
+    return rollout
