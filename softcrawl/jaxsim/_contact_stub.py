@@ -33,8 +33,10 @@ def condense(W, q, bilateral_mask):
 
 
 def pgs_coulomb(W, q, mu, lam0, active, n_sweeps):
-    """Block projected Gauss-Seidel on ``u = W lam + q``, contact blocks (normal, t1, t2),
-    ``lam_n >= 0``, ``|lam_t| <= mu lam_n``; inactive contacts keep zero impulse.
+    """Projected Gauss-Seidel on ``u = W lam + q``, contact blocks (normal, t1, t2): per block
+    the normal impulse (``lam_n >= 0``), then the tangents with the mean tangent diagonal,
+    projected on the cone ``|lam_t| <= mu lam_n`` (:func:`softcrawl.fem.contact.pgs_coulomb`);
+    inactive contacts keep zero impulse.
 
     Args:
         W: ``(3K, 3K)``; q: ``(3K,)``; mu: ``(K,)`` or scalar; lam0: ``(3K,)`` start;
@@ -45,20 +47,20 @@ def pgs_coulomb(W, q, mu, lam0, active, n_sweeps):
     """
     K = active.shape[0]
     mu = jnp.broadcast_to(mu, (K,))
-    Wb = W.reshape(K, 3, K, 3).transpose(0, 2, 1, 3)
-    diag = Wb[jnp.arange(K), jnp.arange(K)] + 1e-12 * jnp.eye(3, dtype=W.dtype)
-    Dinv = jnp.linalg.inv(diag)
+    Wr = W.reshape(K, 3, 3 * K)
+
+    Wd = W.reshape(K, 3, K, 3)[jnp.arange(K), :, jnp.arange(K), :]  # (K, 3, 3) diagonal blocks
     qb = q.reshape(K, 3)
 
     def contact(i, lam):
-        r = qb[i] + jnp.einsum("jab,jb->a", Wb[i], lam) - Wb[i, i] @ lam[i]
-        li = -Dinv[i] @ r
-        ln = jnp.maximum(li[0], 0.0)
-        t = li[1:]
+        Wi, d, li = Wr[i], Wd[i], lam[i]
+        ln = jnp.maximum(li[0] - (qb[i, 0] + Wi[0] @ lam.reshape(-1)) / d[0, 0], 0.0) * active[i]
+        lam = lam.at[i, 0].set(ln)
+        t = li[1:] - (qb[i, 1:] + Wi[1:] @ lam.reshape(-1)) / (0.5 * (d[1, 1] + d[2, 2]))
         nt = jnp.sqrt(t @ t)
-        t = jnp.where(nt > mu[i] * ln, t * (mu[i] * ln / jnp.maximum(nt, 1e-30)), t)
-        new = jnp.where(active[i], jnp.concatenate([ln[None], t]), 0.0)
-        return lam.at[i].set(new)
+        lim = mu[i] * ln
+        t = jnp.where(nt > lim, t * (lim / jnp.maximum(nt, 1e-300)), t)
+        return lam.at[i, 1:].set(t)
 
     lam = jax.lax.fori_loop(0, n_sweeps, lambda _, l: jax.lax.fori_loop(0, K, contact, l),
                             lam0.reshape(K, 3) * active[:, None])

@@ -74,11 +74,16 @@ for _cls in (State, Control):
     _pytree(_cls)
 
 
+def n_contacts(settings, n_slots: int) -> int:
+    """K, the contact rows of a robot with ``n_slots`` leg slots (0 without a floor)."""
+    return settings.disk_contacts + n_slots * settings.leg_contacts if settings.floor else 0
+
+
 def rest_state(model) -> State:
     """The assembled robot at rest (mid-air) for a model with stacked robots (batch axis first)."""
     B, L = model.robot.leg_mask.shape
     m = model.leg.mass.shape[0]
-    K = model.settings.contacts
+    K = n_contacts(model.settings, L)
     dt = model.disk.rest.dtype
     return State(jnp.zeros((B, L, m), dt), jnp.zeros((B, L, m), dt), jnp.broadcast_to(model.disk.rest, (B,) + model.disk.rest.shape),
                  jnp.zeros((B,) + model.disk.rest.shape, dt), jnp.full((B, K), -1, jnp.int32),
@@ -137,14 +142,27 @@ def physics_step(model, state: State, sim_kpa) -> State:
     W = W + G_aa.transpose(0, 2, 1, 3).reshape(3 * A, 3 * A)
     u = u_att
     J = J_att
-    K = st.contacts
+    K = n_contacts(st, L)
     if K:
         nd = dk.collision.shape[0]
         nc = leg.coll_rest.shape[0]
         xl, vl = _leg_points(leg, rd, state.q, qd_free)
         points = jnp.concatenate([state.x[dk.collision], xl])
         vel = jnp.concatenate([v_free[dk.collision], vl])
-        idx, active, gap = floor_contacts(points, h * vel, st.floor_z, st.contact_distance, K)
+        # Each body gets its own K points, so that one body's landing cannot take the others'
+        # rows; last step's loaded points first (as the CPU engine's contact set: a leg lying on
+        # its paper face has more points at the floor than rows, and a set redrawn every step
+        # chatters), then the lowest predicted gaps.
+        pts = jnp.where(state.contact_points >= 0, state.contact_points, points.shape[0])
+        loaded = jnp.zeros(points.shape[0], bool).at[pts].max(state.impulses[:, 0] > 0, mode="drop")
+        ranked = points.at[:, 2].add(jnp.where(loaded, -FAR, 0.0))
+        i_d, a_d, _ = floor_contacts(ranked[:nd], h * vel[:nd], st.floor_z, st.contact_distance, st.disk_contacts)
+        i_l, a_l, _ = jax.vmap(floor_contacts, in_axes=(0, 0, None, None, None))(
+            ranked[nd:].reshape(L, nc, 3), h * vl.reshape(L, nc, 3), st.floor_z, st.contact_distance,
+            st.leg_contacts)
+        idx = jnp.concatenate([i_d, (i_l + nd + nc * jnp.arange(L)[:, None]).reshape(-1)])
+        active = jnp.concatenate([a_d, a_l.reshape(-1)])
+        gap = points[idx, 2] - st.floor_z
         on_disk = idx < nd
         dnode = dk.collision[jnp.where(on_disk, idx, 0)]
         wc = on_disk.astype(dt)

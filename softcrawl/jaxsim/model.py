@@ -133,7 +133,8 @@ class Settings:
     Attributes:
         dt: s; rayleigh_mass (1/s), rayleigh_stiffness (s); gravity: ``(3,)`` mm/s^2;
         floor: whether there is a floor; floor_z, contact_distance: mm; friction: Coulomb mu;
-        contacts: K, contact points per robot per step; sweeps: Gauss-Seidel sweeps;
+        disk_contacts, leg_contacts: contact points of the disk and of each leg slot per step
+            (each body's lowest predicted gaps); sweeps: Gauss-Seidel sweeps;
         calibration: ``(a, b)`` of ``sim = max(a real + b, 0)``; rate: regulator slew, kPa/s.
     """
 
@@ -145,7 +146,8 @@ class Settings:
     floor_z: float
     contact_distance: float
     friction: float
-    contacts: int
+    disk_contacts: int
+    leg_contacts: int
     sweeps: int
     calibration: tuple
     rate: float
@@ -230,14 +232,15 @@ def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
     return RobotData(mask, rot, trans, channel, dn, dw, gram)
 
 
-def build_model(robots, contacts: int = 64, sweeps: int = 50, dtype=None, n_slots: int | None = None,
-                floor: bool = True) -> Model:
+def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: int = 100, dtype=None,
+                n_slots: int | None = None, floor: bool = True) -> Model:
     """The static model of a batch of reduced robots (stacked per-robot data, leading axis = robot).
 
     Args:
         robots: reduced :class:`~softcrawl.robot.Robot` s (``RobotConfig(model="reduced")``, floating
             disk) sharing one leg reduction, disk mesh and config.
-        contacts: K, floor contact points kept per robot and step (the K lowest predicted gaps).
+        leg_contacts, disk_contacts: floor contact points kept per leg and for the disk each step
+            (each body's lowest predicted gaps).
         sweeps: Gauss-Seidel sweeps of each contact solve.
         dtype: array precision (default float64 if ``jax_enable_x64`` is on, else float32).
         n_slots: leg slots per robot (default: the most legs of any robot; fewer are masked).
@@ -275,7 +278,7 @@ def build_model(robots, contacts: int = 64, sweeps: int = 50, dtype=None, n_slot
     settings = Settings(float(cfg.dt), float(mdl.rayleigh_mass), float(mdl.rayleigh_stiffness),
                         tuple(float(g) for g in mdl.gravity), bool(floor and mdl.floor is not None),
                         float(mdl.floor.height), float(mdl.floor.contact_distance), float(mdl.floor.friction),
-                        int(contacts) if floor else 0, int(sweeps), (float(cal.a), float(cal.b)), 150.0)
+                        int(disk_contacts), int(leg_contacts), int(sweeps), (float(cal.a), float(cal.b)), 150.0)
     if dtype is None:
         dtype = jnp.asarray(0.0).dtype  # float64 under jax_enable_x64, else float32
 
