@@ -291,3 +291,13 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
     import jax
     return Model(jax.tree_util.tree_map(cast, leg), jax.tree_util.tree_map(cast, disk),
                  jax.tree_util.tree_map(cast, stacked), settings)
+
+
+def select_robots(model: Model, robots) -> Model:
+    """The model of a batch made of ``model``'s robots at indices ``robots`` ``(B,)`` (repeats allowed:
+    e.g. many copies of a few designs)."""
+    import jax
+    import jax.numpy as jnp
+
+    pick = jnp.asarray(robots)
+    return dataclasses.replace(model, robot=jax.tree_util.tree_map(lambda a: a[pick], model.robot))
