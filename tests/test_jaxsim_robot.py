@@ -8,7 +8,7 @@ import pytest
 
 jax = pytest.importorskip("jax")
 
-DESIGN = "1,0,0,2,2,0,0,0"  # the paper's best design: 4 legs on two regulators
+DESIGN = "1,0,0,2,2,0,0,0"  # the paper's best design: 3 legs on two regulators
 SIM_KPA = np.array([150.0, 60.0, 0.0])
 
 
@@ -67,7 +67,7 @@ def jax_run(robot, model, n, sim_kpa, state=None):
 
 
 def test_hanging_robot_matches_the_cpu_engine(x64, robot):
-    """No floor, legs pressurised on two regulators, 30 steps (0.3 s, the robot falls 0.48 m and
+    """No floor, three legs pressurised on two regulators, 30 steps (0.3 s, the robot falls 0.48 m and
     the legs bend): every node within 1e-6 mm of the CPU reduced engine (measured 8e-9 mm: the
     same equations, the attachments solved exactly by both, round-off only)."""
     from softcrawl.jaxsim.model import build_model
@@ -78,6 +78,15 @@ def test_hanging_robot_matches_the_cpu_engine(x64, robot):
     assert int(st.bad[0]) == 0
     assert np.abs(ref[-1] - ref[0]).max() > 100.0  # it moved
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
+
+
+@pytest.fixture(params=["float32", "float64"])
+def precision(request):
+    """Both precisions, switched for the test and restored after it."""
+    old = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", request.param == "float64")
+    yield request.param
+    jax.config.update("jax_enable_x64", old)
 
 
 def scene(robot, model, commands, per):
@@ -102,11 +111,11 @@ def scene(robot, model, commands, per):
     return np.stack(ref), np.stack(got), st
 
 
-def test_landing_and_actuation_match_the_cpu_engine(x64, robot):
+def test_landing_and_actuation_match_the_cpu_engine(precision, robot):
     """Landing from the assembled pose (0.5 s at zero pressure), then 1 s with regulators 1 and 2
     commanded to 90 and 40 kPa: the mean node distance to the CPU reduced engine over the scene
-    stays below 0.3 mm and the reward point ends within 0.3 mm of it (measured 0.091 and 0.089 mm
-    in float64; a 3-s scene of four commands gave 0.105 mm). The engines differ in the contact
+    stays below 0.3 mm and the reward point ends within 0.3 mm of it, in float64 and in float32
+    (measured 0.091 and 0.089 mm in float64; a 3-s scene of four commands gave 0.105 mm in both). The engines differ in the contact
     solve only (100 Gauss-Seidel sweeps on 8 disk and 12 leg points against the CPU engine's
     exact active-set polish on its growing set; frictional contact problems of the reduced legs
     can have several solutions), and the budget is the reduced model's own error against the
@@ -120,3 +129,35 @@ def test_landing_and_actuation_match_the_cpu_engine(x64, robot):
     dist = np.linalg.norm(ref - got, axis=2).mean()
     assert dist < 0.3, dist
     assert np.linalg.norm(ref[-1, node] - got[-1, node]) < 0.3
+
+
+def test_a_mixed_batch_steps_each_robot_as_alone(precision, robot):
+    """A batch of the 3-legged robot and a 4-legged one (padded to 4 leg slots, the 3-legged
+    robot's fourth masked) gives each robot the trajectory it has alone in a model of its own leg
+    count. Hanging free for 40 steps (float64) the masks add exact zeros: 1e-8 mm after a 1.5 m
+    fall (measured 5e-9 mm). On the floor (20 steps of landing, 20 of actuation) both robots, padded or not, end up
+    to 0.03 mm from their own runs (measured in float64): round-off decides ties among the
+    assembled legs' tip points, which lie at one height, for the 12 contact rows of each leg,
+    and contact mode switches amplify it; so 0.1 mm."""
+    import jax.numpy as jnp
+
+    from softcrawl.jaxsim.engine import Control, make_rollout, rest_state
+    from softcrawl.jaxsim.model import build_model
+    from softcrawl.robot import RobotConfig, build_robot
+
+    four = build_robot("1,0,2,0,1,0,3,0", RobotConfig(model="reduced"))
+    roll = make_rollout(20)
+    for floor, tol in ([(False, 1e-8)] if precision == "float64" else []) + [(True, 0.1)]:
+        both = build_model([robot, four], floor=floor)
+        assert both.robot.leg_mask.shape == (2, 4) and not bool(both.robot.leg_mask[0, 3])
+        dt = rest_state(both).x.dtype
+        runs = []
+        for model, n in [(both, 2)] + [(build_model([r], floor=floor), 1) for r in (robot, four)]:
+            st = rest_state(model)
+            for c in ([0, 0, 0], [90, 40, 60]):
+                st = roll(model, st, Control(jnp.tile(jnp.asarray(c, dt), (n, 1))))
+            runs.append((model, st))
+        for b, r in enumerate((robot, four)):
+            nb, na = node_positions(r, both, runs[0][1], b), node_positions(r, *runs[1 + b])
+            assert np.abs(nb - na).max() < tol, (floor, b, np.abs(nb - na).max())
+            assert np.abs(nb - r.model.rest_state().x).max() > 5.0  # it moved

@@ -167,6 +167,12 @@ for _cls in (Family, LegPart, DiskPart, RobotData, Model):
     _pytree(_cls)
 
 
+def _same_part(a, b) -> bool:
+    """Whether two leg reductions hold the same basis, RID elements and weights."""
+    return a is b or all(np.array_equal(getattr(a, k), getattr(b, k))
+                         for k in ("basis", "tet_rid", "tet_weights", "tri_rid", "tri_weights"))
+
+
 def _leg_part(robot) -> tuple[LegPart, list]:
     """The shared leg data of a reduced robot and its attachment patches (per point: part nodes, weights)."""
     rb = robot.reduced[robot.legs[0].body]
@@ -264,7 +270,7 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
     disk = _disk_part(first)
     L = n_slots or max(len(r.legs) for r in robots)
     for r in robots[1:]:
-        if (r.reduced[r.legs[0].body].part is not first.reduced[first.legs[0].body].part
+        if (not _same_part(r.reduced[r.legs[0].body].part, first.reduced[first.legs[0].body].part)
                 or r.config != first.config or _leg_part(r)[1] != patch_key
                 or not np.array_equal(r.model.bodies[r.disk_body].mesh.points, disk.rest)):
             raise ValueError("robots of one JAX model must share the leg reduction, disk, attachments and config")
