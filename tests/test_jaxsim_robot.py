@@ -1,5 +1,5 @@
-"""The JAX engine's whole robot against the CPU reduced engine (float64): hanging free (no floor),
-and on the floor."""
+"""The JAX engine (:mod:`softcrawl.jaxsim`) against the CPU reduced engine: the legs' free motion,
+a robot hanging free (no floor), landing and actuation on the floor, batches of mixed designs."""
 
 import dataclasses
 
@@ -25,6 +25,51 @@ def robot():
     from softcrawl.robot import RobotConfig, build_robot
 
     return build_robot(DESIGN, RobotConfig(model="reduced"))
+
+
+def deformed_legs(robot, seed=0, scale=1.0):
+    """Random modal states of the robot's legs and the stacked world positions they give."""
+    rng = np.random.default_rng(seed)
+    L = len(robot.legs)
+    rb = robot.reduced[robot.legs[0].body]
+    m = rb.n_modes
+    q = scale * rng.normal(size=(L, m))
+    qdot = 20.0 * scale * rng.normal(size=(L, m))
+    x = robot.model.rest_state().x.copy()
+    for j, leg in enumerate(robot.legs):
+        sl = robot.model.body_slice(leg.body)
+        R = robot.reduced[leg.body].rotation
+        x[sl] += (rb.part.basis @ q[j]).reshape(-1, 3) @ R.T
+    return q, qdot, x
+
+
+def test_leg_free_motion_matches_the_cpu_kernels(x64, robot):
+    """One step of the free motion of 4 deformed, moving, pressurised legs (two regulators):
+    the free modal velocities and the step matrices' Cholesky factors agree with
+    :meth:`ModalGroup.free_motion` to round-off (1e-9 relative; the sums run in another order)."""
+    import jax.numpy as jnp
+
+    from softcrawl.jaxsim.legs import free_motion
+    from softcrawl.jaxsim.model import build_model
+
+    q, qdot, x = deformed_legs(robot, scale=5.0)
+    sim_kpa = np.array([150.0, 60.0, 0.0])
+    solver = robot.make_solver()
+    group = solver.groups[0]
+    m = robot.model
+    ref_qd, ref_chol, n_bad, ok = group.free_motion(x, qdot, sim_kpa, robot.config.dt, m.rayleigh_mass,
+                                                    m.rayleigh_stiffness)
+    assert ok.all() and not n_bad.any()
+    model = build_model([robot])
+    rd = model.robot
+    p = jnp.asarray(sim_kpa)[rd.channel[0]]
+    step = jax.jit(jax.vmap(free_motion, in_axes=(None, None, 0, 0, 0, 0, 0)), static_argnums=1)
+    qd, chol, bad = step(model.leg, model.settings, jnp.asarray(q), jnp.asarray(qdot), rd.rotation[0], p,
+                         rd.leg_mask[0])
+    assert not np.asarray(bad).any()
+    dq = np.asarray(qd) - qdot
+    np.testing.assert_allclose(dq, ref_qd - qdot, rtol=0, atol=1e-9 * np.abs(ref_qd - qdot).max())
+    np.testing.assert_allclose(np.asarray(chol), ref_chol, rtol=0, atol=1e-9 * np.abs(ref_chol).max())
 
 
 def node_positions(robot, model, state, b=0):
