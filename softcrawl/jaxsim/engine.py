@@ -217,6 +217,42 @@ def step(model, state: State, control: Control) -> State:
     return dataclasses.replace(new, pressure=pressure)
 
 
+def max_speed(model, state: State):
+    """Fastest node speed of one robot, mm/s: the disk's nodes and the legs' collision nodes
+    (the outer surface, where a leg moves fastest)."""
+    _, vl = _leg_points(model.leg, model.robot, state.q, state.qdot)
+    return jnp.sqrt(jnp.maximum(jnp.max(jnp.sum(state.v ** 2, axis=1)), jnp.max(jnp.sum(vl ** 2, axis=1))))
+
+
+def make_settle(rest_speed: float = 0.5, hold_steps: int = 5, max_steps: int = 300):
+    """A jitted ``settle(model, state) -> (state, steps)``: every robot of the batch stepped at zero
+    pressure until its :func:`max_speed` stayed below ``rest_speed`` (mm/s) for ``hold_steps``
+    steps or ``max_steps`` passed (the rule of :class:`softcrawl.robot.Settling`; its defaults:
+    0.5 mm/s held 0.05 s, at most 3 s, at dt 0.01 s); ``t`` is set to 0. Robots at rest wait
+    for the others (``jax.lax.while_loop`` under ``jax.vmap``)."""
+
+    def one(model, rd, state):
+        mdl = dataclasses.replace(model, robot=rd)
+        zero = jnp.zeros(3, state.x.dtype)
+
+        def cond(c):
+            return (c[2] < max_steps) & (c[1] < hold_steps)
+
+        def body(c):
+            s, calm, n = c
+            s = physics_step(mdl, s, zero)
+            return s, jnp.where(max_speed(mdl, s) < rest_speed, calm + 1, 0), n + 1
+
+        s, _, n = jax.lax.while_loop(cond, body, (state, jnp.int32(0), jnp.int32(0)))
+        return dataclasses.replace(s, t=jnp.zeros_like(s.t)), n
+
+    @jax.jit
+    def settle(model, state):
+        return jax.vmap(one, in_axes=(None, 0, 0))(dataclasses.replace(model, robot=None), model.robot, state)
+
+    return settle
+
+
 def make_rollout(n_steps: int, physics_only: bool = False):
     """A jitted ``rollout(model, state, control) -> state`` that holds each robot's control for
     ``n_steps`` steps (``jax.lax.scan``), ``jax.vmap`` ped over the batch (the model's per-robot
