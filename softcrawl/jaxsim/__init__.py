@@ -24,6 +24,11 @@ Data layout (Model / State / Control, as NVIDIA Warp and Newton split them):
 
 :func:`~softcrawl.jaxsim.engine.step` advances one robot one ``dt``;
 :func:`~softcrawl.jaxsim.engine.make_rollout` gives the jitted, vmapped rollout of a batch for one
-action. float32 or float64 follow ``jax_enable_x64``, which the caller sets (never at import).
+action and :func:`~softcrawl.jaxsim.engine.make_settle` settles a batch to rest.
+:func:`~softcrawl.jaxsim.model.build_model` makes the model of a list of reduced robots
+(``RobotConfig(model="reduced")``, the default floating disk), padding every robot to the most
+legs among them (absent legs masked: one compiled program per leg-slot count, and a batch of
+mixed designs pays for its largest; grouping designs by leg count is the caller's choice);
+:func:`~softcrawl.jaxsim.model.select_robots` repeats its robots into a batch. float32 or float64 follow ``jax_enable_x64``, which the caller sets (never at import).
 The contact solver (:mod:`softcrawl.jaxsim.contact`) is a separate module with a fixed API.
 """

@@ -85,9 +85,9 @@ def rest_state(model) -> State:
     m = model.leg.mass.shape[0]
     K = n_contacts(model.settings, L)
     dt = model.disk.rest.dtype
-    return State(jnp.zeros((B, L, m), dt), jnp.zeros((B, L, m), dt), jnp.broadcast_to(model.disk.rest, (B,) + model.disk.rest.shape),
-                 jnp.zeros((B,) + model.disk.rest.shape, dt), jnp.full((B, K), -1, jnp.int32),
-                 jnp.zeros((B, K, 3), dt), jnp.zeros((B, 3), dt), jnp.zeros((B,), dt), jnp.zeros((B,), jnp.int32))
+    x = jnp.broadcast_to(model.disk.rest, (B,) + model.disk.rest.shape)
+    return State(jnp.zeros((B, L, m), dt), jnp.zeros((B, L, m), dt), x, jnp.zeros_like(x),
+                 jnp.full((B, K), -1, jnp.int32), jnp.zeros((B, K, 3), dt), jnp.zeros((B, 3), dt), jnp.zeros((B,), dt), jnp.zeros((B,), jnp.int32))
 
 
 def sim_pressures(model, pressure):
@@ -112,94 +112,127 @@ def _disk_gather(inverse, rows_nodes, cols_nodes):
     return inverse[r.reshape(r.shape + (1,) * c.ndim), c.reshape((1,) * r.ndim + c.shape)]
 
 
+def _attachments(leg, rd, state, v_free, R, h):
+    """Rows of the attachment blocks (leg point minus disk point, block ``l F + a``).
+
+    Returns:
+        ``(J, W, u, nodes, weights)``: ``(L, 3A, m)`` each leg's share of the rows (modal), the
+        disk's share ``(3A, 3A)`` of the Delassus operator, ``(3A,)`` the disk's free velocities
+        plus the drift ``(x_a - x_b) / h`` (mm/s), and the disk points' nodes and weights ``(A, 4)``.
+    """
+    L, m = state.q.shape
+    F = leg.att_rest.shape[0]
+    A = L * F
+    Ja = jnp.einsum("lac,fcm->lfam", rd.rotation, leg.att_basis) * rd.leg_mask[:, None, None, None]
+    J = (jnp.eye(L, dtype=Ja.dtype)[:, :, None, None, None] * Ja[None]).reshape(L, 3 * A, m)
+    x_leg = jnp.einsum("lfc,lac->lfa", leg.att_rest[None] + jnp.einsum("fam,lm->lfa", leg.att_basis, state.q),
+                       rd.rotation) + rd.translation[:, None]
+    nodes, w = rd.disk_nodes.reshape(A, -1), rd.disk_weights.reshape(A, -1)
+    drift = (x_leg.reshape(A, 3) - jnp.einsum("ai,aic->ac", w, state.x[nodes])) * jnp.repeat(rd.leg_mask, F)[:, None]
+    u = (drift / h - jnp.einsum("ai,aic->ac", w, v_free[nodes])).reshape(-1)
+    W = jnp.einsum("ab,pqbc,dc->paqd", R, rd.att_gram, R).reshape(3 * A, 3 * A)
+    return J, W, u, nodes, w
+
+
+def _select_contacts(model, state, v_free, qd_free):
+    """The ``K`` contact points of this step: the disk's and each leg's own lowest predicted
+    gaps, last step's loaded points first (:func:`softcrawl.jaxsim.contact.floor_contacts` on
+    the points with those lowered by :data:`FAR`).
+
+    Each body gets its own rows, so that one body's landing cannot take the others'; loaded
+    points stay, as in the CPU engine's contact set: a leg lying on its paper face has more
+    points at the floor than rows, and a set redrawn every step chatters.
+
+    Returns:
+        ``(idx, active, gap)``: ``(K,)`` point indices (disk collision nodes, then each leg
+        slot's), whether each is a candidate, its current gap (mm).
+    """
+    st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
+    L = state.q.shape[0]
+    nd, nc = dk.collision.shape[0], leg.coll_rest.shape[0]
+    xl, vl = _leg_points(leg, rd, state.q, qd_free)
+    points = jnp.concatenate([state.x[dk.collision], xl])
+    step = st.dt * jnp.concatenate([v_free[dk.collision], vl])
+    pts = jnp.where(state.contact_points >= 0, state.contact_points, points.shape[0])
+    loaded = jnp.zeros(points.shape[0], bool).at[pts].max(state.impulses[:, 0] > 0, mode="drop")
+    ranked = points.at[:, 2].add(jnp.where(loaded, -FAR, 0.0))
+    i_d, a_d, _ = floor_contacts(ranked[:nd], step[:nd], st.floor_z, st.contact_distance, st.disk_contacts)
+    i_l, a_l, _ = jax.vmap(floor_contacts, in_axes=(0, 0, None, None, None))(
+        ranked[nd:].reshape(L, nc, 3), step[nd:].reshape(L, nc, 3), st.floor_z, st.contact_distance,
+        st.leg_contacts)
+    idx = jnp.concatenate([i_d, (i_l + nd + nc * jnp.arange(L)[:, None]).reshape(-1)])
+    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), points[idx, 2] - st.floor_z
+
+
+def _contact_rows(model, idx, gap, v_free, R, att_nodes, att_weights):
+    """Rows of the contact blocks (frame :data:`FLOOR_FRAME`) at points ``idx``.
+
+    Returns:
+        ``(J, W_ac, W_cc, u, disk_node, on_disk)``: ``(L, 3K, m)`` each leg's share (modal),
+        the disk's share of the Delassus operator against the attachments ``(3A, 3K)`` and
+        among the contacts ``(3K, 3K)``, ``(3K,)`` the disk's free velocities plus the gap term
+        ``g / h`` (normal rows), and each contact's disk node and whether it is on the disk.
+    """
+    st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
+    L, m = rd.rotation.shape[0], leg.coll_basis.shape[2]
+    K, A = idx.shape[0], att_nodes.shape[0]
+    nd, nc = dk.collision.shape[0], leg.coll_rest.shape[0]
+    dt = v_free.dtype
+    on_disk = idx < nd
+    wc = on_disk.astype(dt)
+    node = dk.collision[jnp.where(on_disk, idx, 0)]
+    lidx = jnp.where(on_disk, 0, (idx - nd) // nc)
+    lnode = jnp.where(on_disk, 0, (idx - nd) % nc)
+    D = jnp.asarray(FLOOR_FRAME, dt)
+    DR = D @ R
+    Jc = jnp.einsum("ab,kbc,kcm->kam", D, rd.rotation[lidx], leg.coll_basis[lnode]) * (1 - wc)[:, None, None]
+    J = ((lidx[None, :] == jnp.arange(L)[:, None]).astype(dt)[:, :, None, None] * Jc[None]).reshape(L, 3 * K, m)
+    W_cc = jnp.einsum("ab,pbqc,dc->paqd", DR, _disk_gather(dk.inverse, node, node), DR)
+    W_cc = (W_cc * (wc[:, None, None, None] * wc[None, None, :, None])).reshape(3 * K, 3 * K)
+    W_ac = -jnp.einsum("ai,xb,aibkc,dc->axkd", att_weights, R, _disk_gather(dk.inverse, att_nodes, node), DR)
+    W_ac = (W_ac * wc[None, None, :, None]).reshape(3 * A, 3 * K)
+    u = (jnp.einsum("ab,kb->ka", D, v_free[node]) * wc[:, None]).at[:, 0].add(gap / st.dt)
+    return J, W_ac, W_cc, u.reshape(-1), node, wc
+
+
 def physics_step(model, state: State, sim_kpa) -> State:
     """One ``dt`` of one robot at cavity pressures ``sim_kpa`` ``(3,)`` (sim kPa per regulator);
     the regulators are not stepped (module doc, steps 2-4)."""
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
     h = st.dt
     dt = state.x.dtype
-    L, m = state.q.shape
-    F = leg.att_rest.shape[0]
-    A = L * F
-    # 2. free motion
-    p = sim_kpa[rd.channel] * rd.leg_mask
-    qd_free, chol, n_bad = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
-        leg, st, state.q, state.qdot, rd.rotation, p, rd.leg_mask)
-    v_free, R = disk_motion.free_motion(dk, st, state.x, state.v)
-    # 3. constraint rows: attachments (leg point minus disk point), then contacts
-    Ja = jnp.einsum("lac,fcm->lfam", rd.rotation, leg.att_basis) * rd.leg_mask[:, None, None, None]
-    eye = jnp.eye(L, dtype=dt)
-    J_att = (eye[:, :, None, None, None] * Ja[None]).reshape(L, 3 * A, m)  # leg l's share of every block
-    x_leg_att = jnp.einsum("lfc,lac->lfa", leg.att_rest[None] + jnp.einsum("fam,lm->lfa", leg.att_basis, state.q),
-                           rd.rotation) + rd.translation[:, None]
-    dnodes = rd.disk_nodes.reshape(A, -1)
-    dw = rd.disk_weights.reshape(A, -1)
-    x_disk_att = jnp.einsum("ai,aic->ac", dw, state.x[dnodes])
-    drift = ((x_leg_att.reshape(A, 3) - x_disk_att) * jnp.repeat(rd.leg_mask, F)[:, None]).reshape(-1)
-    u_att = -jnp.einsum("ai,aic->ac", dw, v_free[dnodes]).reshape(-1) + drift / h
-    W = jnp.zeros((3 * A, 3 * A), dt)
-    G_aa = jnp.einsum("ab,pqbc,dc->pqad", R, rd.att_gram, R)
-    W = W + G_aa.transpose(0, 2, 1, 3).reshape(3 * A, 3 * A)
-    u = u_att
-    J = J_att
+    L = state.q.shape[0]
     K = n_contacts(st, L)
+    # 2. free motion
+    qd_free, chol, n_bad = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
+        leg, st, state.q, state.qdot, rd.rotation, sim_kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
+    v_free, R = disk_motion.free_motion(dk, st, state.x, state.v)
+    # 3. constraints: attachments, then contacts; the legs' share of W through their factors
+    J, W, u, att_nodes, att_w = _attachments(leg, rd, state, v_free, R, h)
+    nb = u.shape[0]
+    warm, active = jnp.zeros(0, dt), jnp.zeros(0, bool)
     if K:
-        nd = dk.collision.shape[0]
-        nc = leg.coll_rest.shape[0]
-        xl, vl = _leg_points(leg, rd, state.q, qd_free)
-        points = jnp.concatenate([state.x[dk.collision], xl])
-        vel = jnp.concatenate([v_free[dk.collision], vl])
-        # Each body gets its own K points, so that one body's landing cannot take the others'
-        # rows; last step's loaded points first (as the CPU engine's contact set: a leg lying on
-        # its paper face has more points at the floor than rows, and a set redrawn every step
-        # chatters), then the lowest predicted gaps.
-        pts = jnp.where(state.contact_points >= 0, state.contact_points, points.shape[0])
-        loaded = jnp.zeros(points.shape[0], bool).at[pts].max(state.impulses[:, 0] > 0, mode="drop")
-        ranked = points.at[:, 2].add(jnp.where(loaded, -FAR, 0.0))
-        i_d, a_d, _ = floor_contacts(ranked[:nd], h * vel[:nd], st.floor_z, st.contact_distance, st.disk_contacts)
-        i_l, a_l, _ = jax.vmap(floor_contacts, in_axes=(0, 0, None, None, None))(
-            ranked[nd:].reshape(L, nc, 3), h * vl.reshape(L, nc, 3), st.floor_z, st.contact_distance,
-            st.leg_contacts)
-        idx = jnp.concatenate([i_d, (i_l + nd + nc * jnp.arange(L)[:, None]).reshape(-1)])
-        active = jnp.concatenate([a_d, a_l.reshape(-1)])
-        gap = points[idx, 2] - st.floor_z
-        on_disk = idx < nd
-        dnode = dk.collision[jnp.where(on_disk, idx, 0)]
-        wc = on_disk.astype(dt)
-        lidx = jnp.where(on_disk, 0, (idx - nd) // nc)
-        lnode = jnp.where(on_disk, 0, (idx - nd) % nc)
-        D = jnp.asarray(FLOOR_FRAME, dt)
-        DR = D @ R
-        Jc = jnp.einsum("ab,kbc,kcm->kam", D, rd.rotation[lidx], leg.coll_basis[lnode]) * (1 - wc)[:, None, None]
-        J_con = (lidx[None, :] == jnp.arange(L)[:, None]).astype(dt)[:, :, None, None] * Jc[None]
-        J = jnp.concatenate([J_att, J_con.reshape(L, 3 * K, m)], axis=1)
-        G_cc = _disk_gather(dk.inverse, dnode, dnode)  # (K, 3, K, 3)
-        W_cc = jnp.einsum("ab,pbqc,dc->paqd", DR, G_cc, DR) * (wc[:, None, None, None] * wc[None, None, :, None])
-        G_ac = _disk_gather(dk.inverse, dnodes, dnode)  # (A, 4, 3, K, 3)
-        W_ac = -jnp.einsum("ai,xb,aibkc,dc->axkd", dw, R, G_ac, DR) * wc[None, None, :, None]
-        W_ac = W_ac.reshape(3 * A, 3 * K)
-        W = jnp.block([[W, W_ac], [W_ac.T, W_cc.reshape(3 * K, 3 * K)]])
-        u_con = (jnp.einsum("ab,kb->ka", D, v_free[dnode]) * wc[:, None]).at[:, 0].add(gap / h)
-        u = jnp.concatenate([u, u_con.reshape(-1)])
-        warm = (idx[:, None] == state.contact_points[None, :]).astype(dt) @ state.impulses
+        idx, active, gap = _select_contacts(model, state, v_free, qd_free)
+        Jc, W_ac, W_cc, u_c, c_node, on_disk = _contact_rows(model, idx, gap, v_free, R, att_nodes, att_w)
+        J = jnp.concatenate([J, Jc], axis=1)
+        W = jnp.block([[W, W_ac], [W_ac.T, W_cc]])
+        u = jnp.concatenate([u, u_c])
+        warm = ((idx[:, None] == state.contact_points[None, :]).astype(dt) @ state.impulses).reshape(-1)
     Y = jax.vmap(lambda c, j: jax.scipy.linalg.solve_triangular(c, j.T, lower=True))(chol, J)
     W = W + jnp.einsum("lmi,lmj->ij", Y, Y)
     u = u + jnp.einsum("lim,lm->i", J, qd_free)
-    mask_b = jnp.repeat(rd.leg_mask, 3 * F)
-    mu = jnp.full((K,), st.friction, dt)
-    lam = solve_constraints(W, u, mask_b, mu, warm.reshape(-1) if K else jnp.zeros(0, dt),
-                            active if K else jnp.zeros(0, bool), st.sweeps)
-    # 4. corrections
+    lam = solve_constraints(W, u, jnp.repeat(rd.leg_mask, nb // L), jnp.full((K,), st.friction, dt), warm,
+                            active, st.sweeps)
+    # 4. corrections: legs A_l^-1 J_l^T lam, the disk A_0^-1 of its body-frame impulses
     dq = jax.vmap(lambda c, j: jax.scipy.linalg.cho_solve((c, True), j.T @ lam))(chol, J)
-    lam_a = lam[:3 * A].reshape(A, 3)
-    f_body = jnp.zeros_like(state.x).at[dnodes.reshape(-1)].add(
-        (-dw[:, :, None] * (lam_a @ R)[:, None, :]).reshape(-1, 3))
+    lam_a = lam[:nb].reshape(-1, 3)
+    f_body = jnp.zeros_like(state.x).at[att_nodes.reshape(-1)].add(
+        (-att_w[:, :, None] * (lam_a @ R)[:, None, :]).reshape(-1, 3))
     if K:
-        lam_c = lam[3 * A:].reshape(K, 3)
-        f_body = f_body.at[dnode].add(wc[:, None] * (lam_c @ DR))
-    dv = (dk.inverse @ f_body.reshape(-1)).reshape(-1, 3) @ R.T
+        lam_c = lam[nb:].reshape(K, 3)
+        f_body = f_body.at[c_node].add(on_disk[:, None] * (lam_c @ (jnp.asarray(FLOOR_FRAME, dt) @ R)))
+    v = v_free + (dk.inverse @ f_body.reshape(-1)).reshape(-1, 3) @ R.T
     qdot = qd_free + dq
-    v = v_free + dv
     new = dataclasses.replace(
         state, q=state.q + h * qdot, qdot=qdot, x=state.x + h * v, v=v, t=state.t + h,
         bad=(state.bad + jnp.sum(n_bad * rd.leg_mask) + (~jnp.all(jnp.isfinite(v)))).astype(state.bad.dtype))
