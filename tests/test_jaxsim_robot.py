@@ -162,10 +162,10 @@ def test_landing_and_actuation_match_the_cpu_engine(precision, robot):
     commanded to 90 and 40 kPa: the mean node distance to the CPU reduced engine over the scene
     stays below 0.3 mm and the reward point ends within 0.3 mm of it, in float64 and in float32
     (measured 0.091 and 0.089 mm in float64; a 3-s scene of four commands gave 0.105 mm in
-    both). The engines differ in the contact solve only (100 Gauss-Seidel sweeps on 8 disk and 12 leg points against the CPU engine's
-    exact active-set polish on its growing set; frictional contact problems of the reduced legs
-    can have several solutions), and the budget is the reduced model's own error against the
-    full-order one, about 1 mm on held-out scenes."""
+    both). The engines differ in the contact solve only (100 Gauss-Seidel sweeps on 8 disk and 12
+    leg points against the CPU engine's exact active-set polish on its growing set; frictional
+    contact problems of the reduced legs can have several solutions), and the budget is the reduced
+    model's own error against the full-order one, about 1 mm on held-out scenes."""
     from softcrawl.jaxsim.model import build_model
 
     ref, got, st = scene(robot, build_model([robot]), [(0, 0, 0), (90, 40, 0), (90, 40, 0)], 50)

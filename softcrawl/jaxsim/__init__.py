@@ -29,6 +29,7 @@ action and :func:`~softcrawl.jaxsim.engine.make_settle` settles a batch to rest.
 (``RobotConfig(model="reduced")``, the default floating disk), padding every robot to the most
 legs among them (absent legs masked: one compiled program per leg-slot count, and a batch of
 mixed designs pays for its largest; grouping designs by leg count is the caller's choice);
-:func:`~softcrawl.jaxsim.model.select_robots` repeats its robots into a batch. float32 or float64 follow ``jax_enable_x64``, which the caller sets (never at import).
+:func:`~softcrawl.jaxsim.model.select_robots` repeats its robots into a batch. float32 or float64
+follow ``jax_enable_x64``, which the caller sets (never at import).
 The contact solver (:mod:`softcrawl.jaxsim.contact`) is a separate module with a fixed API.
 """

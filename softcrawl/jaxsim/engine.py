@@ -87,7 +87,8 @@ def rest_state(model) -> State:
     dt = model.disk.rest.dtype
     x = jnp.broadcast_to(model.disk.rest, (B,) + model.disk.rest.shape)
     return State(jnp.zeros((B, L, m), dt), jnp.zeros((B, L, m), dt), x, jnp.zeros_like(x),
-                 jnp.full((B, K), -1, jnp.int32), jnp.zeros((B, K, 3), dt), jnp.zeros((B, 3), dt), jnp.zeros((B,), dt), jnp.zeros((B,), jnp.int32))
+                 jnp.full((B, K), -1, jnp.int32), jnp.zeros((B, K, 3), dt), jnp.zeros((B, 3), dt),
+                 jnp.zeros((B,), dt), jnp.zeros((B,), jnp.int32))
 
 
 def sim_pressures(model, pressure):
