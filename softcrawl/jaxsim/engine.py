@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 from softcrawl.jaxsim import disk as disk_motion
 from softcrawl.jaxsim import legs as leg_motion
-from softcrawl.jaxsim.model import _pytree
+from softcrawl.jaxsim.model import register_pytree
 
 try:
     from softcrawl.jaxsim.contact import floor_contacts, solve_constraints
@@ -71,7 +71,7 @@ class Control:
 
 
 for _cls in (State, Control):
-    _pytree(_cls)
+    register_pytree(_cls)
 
 
 def n_contacts(settings, n_slots: int) -> int:

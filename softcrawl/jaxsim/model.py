@@ -22,7 +22,7 @@ import numpy as np
 DISK_POINT_NODES = 4
 
 
-def _pytree(cls):
+def register_pytree(cls):
     """Register a dataclass of arrays (fields with ``metadata={"static": True}`` are static)."""
     import jax
 
@@ -164,7 +164,7 @@ class Model:
 
 
 for _cls in (Family, LegPart, DiskPart, RobotData, Model):
-    _pytree(_cls)
+    register_pytree(_cls)
 
 
 def _same_part(a, b) -> bool:
