@@ -263,3 +263,16 @@ def test_paper_best_crawl_distance_is_the_cpu_engines():
         jax.config.update("jax_enable_x64", old)
     assert ref > 10.0 and int(st.bad[0]) == 0
     assert abs(got - ref) < 0.08 * ref, (got, ref)
+
+
+def test_build_model_refuses_what_the_engine_cannot_step(robot):
+    """No robots, a robot that is not reduced, and too few leg slots are refused with one clear
+    error each."""
+    from softcrawl.jaxsim.model import build_model
+
+    with pytest.raises(ValueError, match="at least one robot"):
+        build_model([])
+    with pytest.raises(ValueError, match="floating-frame disk"):
+        build_model([dataclasses.replace(robot, reduced={})])
+    with pytest.raises(ValueError, match="n_slots"):
+        build_model([robot], n_slots=2)

@@ -16,7 +16,12 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+
+from softcrawl.reduction.floating import FloatingFrameBody
+from softcrawl.robot.actuation import PressureCalibration
 
 #: Disk nodes of one attachment point (a barycentric tetrahedron; a node hit exactly pads with 0 weights).
 DISK_POINT_NODES = 4
@@ -24,8 +29,6 @@ DISK_POINT_NODES = 4
 
 def register_pytree(cls):
     """Register a dataclass of arrays (fields with ``metadata={"static": True}`` are static)."""
-    import jax
-
     fields = dataclasses.fields(cls)
     data = [f.name for f in fields if not f.metadata.get("static")]
     meta = [f.name for f in fields if f.metadata.get("static")]
@@ -173,8 +176,14 @@ def _same_part(a, b) -> bool:
                          for k in ("basis", "tet_rid", "tet_weights", "tri_rid", "tri_weights"))
 
 
-def _leg_part(robot) -> tuple[LegPart, list]:
-    """The shared leg data of a reduced robot and its attachment patches (per point: part nodes, weights)."""
+def _patches(robot) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The attachment patches of a robot's first leg: per point its part nodes and weights."""
+    return [(np.asarray(a.a.nodes), np.asarray(a.a.weights, float))
+            for a in robot.model.attachments if a.a.body == robot.legs[0].body]
+
+
+def _leg_part(robot) -> LegPart:
+    """The shared leg data of a reduced robot."""
     rb = robot.reduced[robot.legs[0].body]
     body = rb.body
     Phi = rb.part.basis
@@ -189,14 +198,13 @@ def _leg_part(robot) -> tuple[LegPart, list]:
     tris = np.concatenate([np.asarray(c.triangles, np.int64) for c in body.cavities])
     cav, local = np.unique(tris, return_inverse=True)
     coll = np.asarray(body.collision_nodes, np.int64)
-    patches = [(np.asarray(a.a.nodes), np.asarray(a.a.weights, float))
-               for a in robot.model.attachments if a.a.body == robot.legs[0].body]
+    patches = _patches(robot)
     att_rest = np.stack([w @ X[nd] for nd, w in patches])
     att_basis = np.stack([np.einsum("n,nam->am", w, rows[nd]) for nd, w in patches])
     mass_rows = np.einsum("n,nam->am", body.nodal_mass, rows)
     part = LegPart(np.asarray(rb.strain_modes), rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
                    X[cav], rows[cav], local.reshape(tris.shape), X[coll], rows[coll], att_rest, att_basis)
-    return part, [nd.tobytes() + w.tobytes() for nd, w in patches]
+    return part
 
 
 def _disk_part(robot) -> DiskPart:
@@ -239,7 +247,8 @@ def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
 
 
 def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: int = 100, dtype=None,
-                n_slots: int | None = None, floor: bool = True) -> Model:
+                n_slots: int | None = None, floor: bool = True,
+                calibration: PressureCalibration = PressureCalibration(), rate_kpa_s: float = 150.0) -> Model:
     """The static model of a batch of reduced robots (stacked per-robot data, leading axis = robot).
 
     Args:
@@ -251,27 +260,26 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
         dtype: array precision (default float64 if ``jax_enable_x64`` is on, else float32).
         n_slots: leg slots per robot (default: the most legs of any robot; fewer are masked).
         floor: False leaves the floor out (a robot hanging free).
+        calibration: the real-to-sim pressure warp; rate_kpa_s: the regulators' slew limit, kPa/s
+            (:class:`softcrawl.robot.RegulatorBank`).
 
     Raises:
         ValueError: an empty batch, a robot that is not reduced with a floating disk, robots
             that differ in their leg reduction, disk, attachments or settings, or too few slots.
     """
-    import jax.numpy as jnp
-
     robots = list(robots)
     if not robots:
         raise ValueError("build_model needs at least one robot")
-    from softcrawl.reduction.floating import FloatingFrameBody
     for r in robots:
-        if not r.reduced or not isinstance(r.reduced.get(r.disk_body), FloatingFrameBody):
-            raise ValueError("the JAX engine needs reduced robots with a floating-frame disk")
+        if not r.reduced or not isinstance(r.reduced.get(r.disk_body), FloatingFrameBody) or r.model.floor is None:
+            raise ValueError("the JAX engine needs reduced robots with a floating-frame disk and a floor")
     first = robots[0]
-    leg, patch_key = _leg_part(first)
-    disk = _disk_part(first)
+    leg, disk = _leg_part(first), _disk_part(first)
+    key = [nd.tobytes() + w.tobytes() for nd, w in _patches(first)]
     L = n_slots or max(len(r.legs) for r in robots)
     for r in robots[1:]:
         if (not _same_part(r.reduced[r.legs[0].body].part, first.reduced[first.legs[0].body].part)
-                or r.config != first.config or _leg_part(r)[1] != patch_key
+                or r.config != first.config or [nd.tobytes() + w.tobytes() for nd, w in _patches(r)] != key
                 or not np.array_equal(r.model.bodies[r.disk_body].mesh.points, disk.rest)):
             raise ValueError("robots of one JAX model must share the leg reduction, disk, attachments and config")
     if L < max(len(r.legs) for r in robots):
@@ -279,12 +287,12 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
     data = [_robot_data(r, L, disk.inverse) for r in robots]
     stacked = RobotData(*(np.stack([getattr(d, f.name) for d in data]) for f in dataclasses.fields(RobotData)))
     cfg, mdl = first.config, first.model
-    from softcrawl.robot.actuation import PressureCalibration
-    cal = PressureCalibration()
+    cal = calibration
     settings = Settings(float(cfg.dt), float(mdl.rayleigh_mass), float(mdl.rayleigh_stiffness),
                         tuple(float(g) for g in mdl.gravity), bool(floor and mdl.floor is not None),
                         float(mdl.floor.height), float(mdl.floor.contact_distance), float(mdl.floor.friction),
-                        int(disk_contacts), int(leg_contacts), int(sweeps), (float(cal.a), float(cal.b)), 150.0)
+                        int(disk_contacts), int(leg_contacts), int(sweeps), (float(cal.a), float(cal.b)),
+                        float(rate_kpa_s))
     if dtype is None:
         dtype = jnp.asarray(0.0).dtype  # float64 under jax_enable_x64, else float32
 
@@ -294,7 +302,6 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
             return jnp.asarray(a, dtype)
         return jnp.asarray(a)
 
-    import jax
     return Model(jax.tree_util.tree_map(cast, leg), jax.tree_util.tree_map(cast, disk),
                  jax.tree_util.tree_map(cast, stacked), settings)
 
@@ -302,8 +309,5 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
 def select_robots(model: Model, robots) -> Model:
     """The model of a batch made of ``model``'s robots at indices ``robots`` ``(B,)`` (repeats allowed:
     e.g. many copies of a few designs)."""
-    import jax
-    import jax.numpy as jnp
-
     pick = jnp.asarray(robots)
     return dataclasses.replace(model, robot=jax.tree_util.tree_map(lambda a: a[pick], model.robot))
