@@ -84,12 +84,12 @@ def node_positions(robot, model, state, b=0):
     return np.concatenate(parts)
 
 
-def cpu_run(robot, n, sim_kpa, state=None):
+def cpu_run(robot, n, sim_kpa):
     """The CPU reduced engine's positions ``(n, N, 3)`` over ``n`` steps at ``sim_kpa``."""
     from softcrawl.fem.state import Control
 
     solver = robot.make_solver()
-    s = robot.model.rest_state() if state is None else state
+    s = robot.model.rest_state()
     out = []
     for _ in range(n):
         s = solver.step(s, Control(np.asarray(sim_kpa, float)))
@@ -97,14 +97,14 @@ def cpu_run(robot, n, sim_kpa, state=None):
     return np.stack(out), s
 
 
-def jax_run(robot, model, n, sim_kpa, state=None):
+def jax_run(robot, model, n, sim_kpa):
     """The JAX engine's positions ``(n, N, 3)`` over ``n`` steps at ``sim_kpa`` and its last state."""
     import jax.numpy as jnp
 
     from softcrawl.jaxsim.engine import make_rollout, rest_state
 
     roll = make_rollout(1, physics_only=True)
-    st = rest_state(model) if state is None else state
+    st = rest_state(model)
     out = []
     for _ in range(n):
         st = roll(model, st, jnp.asarray(sim_kpa)[None])
