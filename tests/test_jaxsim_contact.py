@@ -194,6 +194,17 @@ def test_vmap_over_robots_equals_one_call_per_robot(C):
             np.testing.assert_array_equal(a[r], b)
 
 
+def test_attachments_alone_without_contact_slots_are_solved_exactly(C):
+    """A robot with no contact slots (K = 0, in the air): the bilateral rows alone, ``u_b = 0``
+    to round-off (regression: the Gauss-Seidel loop failed to trace on an empty block)."""
+    rng = np.random.default_rng(5)
+    W, q, *_ = _random_problem(rng, 0, NB)
+    bil = np.ones(NB, bool)
+    lam = C.solve_constraints(W, q, bil, 0.5, np.zeros(0), np.zeros(0, bool), 10, least_squares=False)
+    assert lam.shape == (NB,)
+    assert np.max(np.abs(W @ np.asarray(lam) + q)) <= ROUND_OFF * np.max(np.abs(q))
+
+
 @pytest.mark.parametrize("case", ["ill_conditioned", "schur"])
 def test_condense_matches_the_cpu_schur_complement(C, case):
     """The recorded attachment blocks (42 and 60 bilateral rows, condition numbers to 5.6e4):

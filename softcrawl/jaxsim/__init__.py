@@ -1,5 +1,36 @@
-"""The reduced robot's step in JAX, batched over robots on a CPU or an accelerator.
+"""softcrawl's reduced robot in JAX: one jitted step for a batch of robots on a CPU or a GPU.
 
+The same physics as the CPU reduced engine (:class:`softcrawl.reduction.solver.ReducedSolver`
+with a floating-frame disk, the default reduced robot): POD + ECSW legs placed from the shipped
+leg reduction, the disk linear elastic in one floating frame, point attachments, a flat floor
+with Coulomb friction, regulators with the real-to-sim pressure warp. What differs is how the
+work is laid out: fixed shapes so that ``jax.vmap`` runs many robots (of mixed designs) at
+once and ``jax.lax.scan`` runs many steps in one compiled call, and the contact problem is
+solved with a fixed number of projected Gauss-Seidel sweeps over the ``K`` lowest contact
+points instead of the CPU engine's growing contact set and exact active-set polish.
+
+Data layout (Model / State / Control, as NVIDIA Warp and Newton split them):
+
+* :class:`~softcrawl.jaxsim.model.Model` (:mod:`softcrawl.jaxsim.model`): static arrays. The leg
+  part (RID elements with the basis rows of their nodes only, cavity, collision and attachment
+  nodes; part frame) and the disk (rest positions, masses, dense ``K_0`` and ``A_0^-1``) are
+  shared by all robots; per robot (leading batch axis) each of ``L`` leg slots' rotation,
+  translation, regulator channel and mask, and the disk side of its attachments. Scalar
+  settings (dt, damping, floor, ``K``, sweeps) are static.
+* :class:`~softcrawl.jaxsim.engine.State`: per robot, the legs' modal displacements and velocities
+  ``q, qdot`` ``(L, m)`` (part frame), the disk's node positions and velocities ``(n, 3)``, the
+  contact points and impulses of the last step (warm start), the regulators' pressures, time.
+* :class:`~softcrawl.jaxsim.engine.Control`: the regulator commands, real kPa ``(3,)``.
+
+:func:`~softcrawl.jaxsim.engine.step` advances one robot one ``dt``;
+:func:`~softcrawl.jaxsim.engine.make_rollout` gives the jitted, vmapped rollout of a batch for one
+action and :func:`~softcrawl.jaxsim.engine.make_settle` settles a batch to rest.
+:func:`~softcrawl.jaxsim.model.build_model` makes the model of a list of reduced robots
+(``RobotConfig(model="reduced")``, the default floating disk), padding every robot to the most
+legs among them (absent legs masked: one compiled program per leg-slot count, and a batch of
+mixed designs pays for its largest; grouping designs by leg count is the caller's choice);
+:func:`~softcrawl.jaxsim.model.select_robots` repeats its robots into a batch. float32 or float64
+follow ``jax_enable_x64``, which the caller sets (never at import).
 :mod:`~softcrawl.jaxsim.contact` holds the constraint solve (attachments and frictional floor
-contact) of one robot with fixed, padded shapes, to be ``jax.vmap``-ped over a batch.
+contact) of one robot with fixed, padded shapes, ``jax.vmap``-ped over the batch by the engine.
 """

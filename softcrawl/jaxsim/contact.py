@@ -266,7 +266,8 @@ def solve_constraints(W, q, bilateral, mu, lam0, active, n_sweeps: int, method: 
         raise ValueError(f"method must be one of {sorted(_SOLVERS)}, got {method!r}")
     nb = bilateral.shape[0]
     X, Wc, qc = condense(W, q, bilateral, least_squares=least_squares)
-    lam_c = _SOLVERS[method](Wc, qc, mu, lam0, active, n_sweeps)
+    # no contact slots (a robot in the air): only the attachments
+    lam_c = _SOLVERS[method](Wc, qc, mu, lam0, active, n_sweeps) if active.shape[0] else qc
     lam = jnp.concatenate([-(X[:, 0] + X[:, 1:] @ lam_c), lam_c])
     if not return_residuals:
         return lam

@@ -1,0 +1,108 @@
+"""The reduced legs' free motion in JAX: RID internal forces and tangent, cavity follower
+pressure, gravity, Rayleigh damping and the linearly implicit Euler step, for one leg in its
+part frame (``jax.vmap`` over legs and robots).
+
+The formulas are those of :mod:`softcrawl.reduction.kernels` (its module doc): with ``x = X +
+Phi q`` the RID nodes' part-frame positions, ``F`` each element's frame (rows e1, e2, n) and
+``d`` its edge vectors,
+
+    Z_e = C~_e blockdiag(F) H_e,   s_e = C~_e blockdiag(F) d - s0_e,   K_r = Z^T Z,   f_r = -Z^T s
+
+(Farhat, Chapman & Avery 2015, eq. 20). The CPU kernels evaluate ``F`` and ``d`` from world
+positions and ``Z`` with ``F R_b``; both are the part-frame quantities (``F_world R_b =
+F_part``), so the leg's placement enters only its gravity load. The step is
+
+    [(1 + h r_M) M_r + h (h + r_K) K_r] dqdot = h (f_r - (h + r_K) K_r qdot - r_M M_r qdot)
+
+(reduction.md, "Reduced kinematics"; physics.md, "Time stepping").
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def _unit(v):
+    return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def element_frames(d):
+    """``(E, 3, 3)`` element frames (rows e1 = unit(d_1), e2 = n x e1, n = unit(d_1 x d_2)) of
+    edge vectors ``d`` ``(E, k - 1, 3)`` (:func:`softcrawl.fem.kernels._triangle_frame`)."""
+    e1 = _unit(d[:, 0])
+    n = _unit(jnp.cross(d[:, 0], d[:, 1]))
+    return jnp.stack((e1, jnp.cross(n, e1), n), axis=-2)
+
+
+def rid_terms(part, q, qdot, c):
+    """The RID terms of one leg.
+
+    Args:
+        part: :class:`~softcrawl.jaxsim.model.LegPart`.
+        q, qdot: ``(m,)`` modal displacement (mm) and velocity (mm/s).
+        c: ``h + r_K``, s.
+
+    Returns:
+        ``(K, f, n_bad)``: ``(m', m')`` ``K_r`` of the strain modes (mN/mm), ``(m',)``
+        ``-Z^T (s + c Z qdot')`` (mN) and the number of inverted or degenerate RID elements.
+    """
+    x = part.rid_rest + part.rid_basis @ q
+    qs = qdot[part.strain_modes]
+    ms = part.strain_modes.shape[0]
+    K = jnp.zeros((ms, ms), x.dtype)
+    f = jnp.zeros((ms,), x.dtype)
+    n_bad = jnp.zeros((), jnp.int32)
+    for fam in part.families:
+        xe = x[fam.conn]
+        d = xe[:, 1:] - xe[:, :1]
+        E, k1 = d.shape[:2]
+        F = element_frames(d)
+        if k1 == 3:
+            n_bad = n_bad + jnp.sum(~(jnp.linalg.det(d) > 0)).astype(jnp.int32)
+        n_bad = n_bad + jnp.sum(~jnp.all(jnp.isfinite(F), axis=(1, 2))).astype(jnp.int32)
+        g = jnp.einsum("epc,eac->eap", F, d).reshape(E, -1)
+        s = jnp.einsum("eiq,eq->ei", fam.factors, g) - fam.rest_terms
+        r = fam.factors.shape[1]
+        CR = jnp.einsum("eiap,epc->eiac", fam.factors.reshape(E, r, k1, 3), F).reshape(E, r, -1)
+        Z = jnp.einsum("eiq,eqj->eij", CR, fam.rows).reshape(E * r, ms)
+        K = K + Z.T @ Z
+        f = f - Z.T @ (s.reshape(-1) + c * (Z @ qs))
+    return K, f, n_bad
+
+
+def cavity_load(part, q, pressure):
+    """``(m,)`` reduced follower load of the cavity at ``pressure`` (kPa): every triangle gives
+    ``p/3 * (x1 - x0) x (x2 - x0) / 2`` to each vertex (physics.md, "Pneumatic actuation";
+    :func:`softcrawl.reduction.kernels.cavity_forces`), projected on the basis rows, mN."""
+    x = part.cavity_rest + part.cavity_basis @ q
+    t = x[part.cavity_tris]
+    w = 0.5 * jnp.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]) * (pressure / 3.0)
+    F = jnp.zeros_like(x).at[part.cavity_tris.reshape(-1)].add(jnp.repeat(w, 3, axis=0))
+    return jnp.einsum("nam,na->m", part.cavity_basis, F)
+
+
+def free_motion(part, settings, q, qdot, rotation, pressure, mask):
+    """The linearly implicit step of one leg without constraints (module doc).
+
+    Args:
+        part: :class:`~softcrawl.jaxsim.model.LegPart`; settings: :class:`~softcrawl.jaxsim.model.Settings`.
+        q, qdot: ``(m,)`` modal displacement (mm) and velocity (mm/s) at the start of the step.
+        rotation: ``(3, 3)`` the leg's placement (gravity); pressure: its cavity pressure, sim kPa.
+        mask: whether the leg exists (an absent leg gets no load and stays at rest).
+
+    Returns:
+        ``(qdot_free (m,), chol (m, m) lower Cholesky factor of the step matrix, n_bad)``.
+    """
+    h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
+    Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK)
+    m = q.shape[0]
+    sm = part.strain_modes
+    K = jnp.zeros((m, m), q.dtype).at[sm[:, None], sm[None, :]].set(Ks)
+    g = jnp.asarray(settings.gravity, q.dtype)
+    load = part.mass_rows.T @ (rotation.T @ g) + cavity_load(part, q, pressure)
+    f = (load * mask).at[sm].add(fs)
+    A = (1.0 + h * rM) * part.mass + (h * (h + rK)) * K
+    chol = jnp.linalg.cholesky(A)
+    dq = jax.scipy.linalg.cho_solve((chol, True), h * (f - rM * (part.mass @ qdot)))
+    return qdot + dq, chol, n_bad

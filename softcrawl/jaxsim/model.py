@@ -1,0 +1,313 @@
+"""The static model of the JAX engine: array pytrees built from reduced :class:`~softcrawl.robot.Robot` s.
+
+Three parts (module doc of :mod:`softcrawl.jaxsim`):
+
+* :class:`LegPart` — the shipped leg reduction in its part frame, shared by every leg of every
+  robot: the RID elements (restricted to their nodes), the cavity triangles, the collision and
+  attachment nodes, each with its basis rows.
+* :class:`DiskPart` — the floating-frame disk (:class:`~softcrawl.reduction.floating.FloatingFrameBody`),
+  shared: rest positions, masses, ``K_0`` and ``A_0^-1`` dense.
+* :class:`RobotData` — per robot (a leading batch axis when stacked): each leg slot's rotation,
+  translation, regulator channel and mask, and the disk side of its attachments.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softcrawl.reduction.floating import FloatingFrameBody
+from softcrawl.robot.actuation import PressureCalibration
+
+#: Disk nodes of one attachment point (a barycentric tetrahedron; a node hit exactly pads with 0 weights).
+DISK_POINT_NODES = 4
+
+
+def register_pytree(cls):
+    """Register a dataclass of arrays (fields with ``metadata={"static": True}`` are static)."""
+    fields = dataclasses.fields(cls)
+    data = [f.name for f in fields if not f.metadata.get("static")]
+    meta = [f.name for f in fields if f.metadata.get("static")]
+    return jax.tree_util.register_dataclass(cls, data_fields=data, meta_fields=meta)
+
+
+def static(default=dataclasses.MISSING):
+    """A static (hashable, not traced) field of a pytree dataclass."""
+    return dataclasses.field(default=default, metadata={"static": True})
+
+
+@dataclass(frozen=True)
+class Family:
+    """One RID element family (tetrahedra k = 4, r = 6; paper triangles k = 3, r = 3), part frame.
+
+    Attributes:
+        conn: ``(E, k)`` indices into :attr:`LegPart.rid_rest`.
+        factors: ``(E, r, 3(k - 1))`` ``C~_e`` (sqrt(mN/mm), ECSW weight included).
+        rest_terms: ``(E, r)`` ``s0_e``.
+        rows: ``(E, 3(k - 1), m')`` edge basis rows of the strain modes.
+    """
+
+    conn: object
+    factors: object
+    rest_terms: object
+    rows: object
+
+
+@dataclass(frozen=True)
+class LegPart:
+    """The leg reduction, part frame (mm, kg), shared by all legs.
+
+    Attributes:
+        strain_modes: ``(m',)`` modes with internal forces.
+        mass: ``(m, m)`` reduced mass, kg; mass_rows: ``(3, m)`` ``sum_n m_n Phi_n`` (gravity
+            load ``mass_rows^T R_b^T g``).
+        rid_rest, rid_basis: ``(nr, 3)``, ``(nr, 3, m)`` rest positions and basis rows of the RID nodes.
+        families: the RID families (:class:`Family`).
+        cavity_rest, cavity_basis: ``(c, 3)``, ``(c, 3, m)`` of the cavity nodes; cavity_tris:
+            ``(T, 3)`` indices into them.
+        coll_rest, coll_basis: ``(nc, 3)``, ``(nc, 3, m)`` of the collision nodes.
+        att_rest, att_basis: ``(F, 3)``, ``(F, 3, m)`` weighted attachment patches.
+    """
+
+    strain_modes: object
+    mass: object
+    mass_rows: object
+    rid_rest: object
+    rid_basis: object
+    families: tuple
+    cavity_rest: object
+    cavity_basis: object
+    cavity_tris: object
+    coll_rest: object
+    coll_basis: object
+    att_rest: object
+    att_basis: object
+
+
+@dataclass(frozen=True)
+class DiskPart:
+    """The floating-frame disk, shared (placed rest configuration).
+
+    Attributes:
+        rest: ``(n, 3)`` rest positions, mm; weighted_rest: ``(n, 3)`` rest minus the centre of
+            mass, times the mass fractions (Kabsch input).
+        mass: ``(n,)`` nodal masses, kg.
+        stiffness: ``(3n, 3n)`` ``K_0``, mN/mm; inverse: ``(3n, 3n)`` ``A_0^-1`` of the step matrix.
+        collision: ``(nc,)`` collision nodes; reward_node: the top-centre node (int).
+    """
+
+    rest: object
+    weighted_rest: object
+    mass: object
+    stiffness: object
+    inverse: object
+    collision: object
+    reward_node: int = static()
+
+
+@dataclass(frozen=True)
+class RobotData:
+    """Per robot (``L`` leg slots, padded with masked legs).
+
+    Attributes:
+        leg_mask: ``(L,)`` bool; rotation: ``(L, 3, 3)`` part -> world; translation: ``(L, 3)``, mm;
+        channel: ``(L,)`` regulator channel 0..2 of each leg.
+        disk_nodes, disk_weights: ``(L, F, 4)`` the disk side of each attachment point.
+        att_gram: ``(L F, L F, 3, 3)`` ``E^T A_0^-1 E`` of the attachment points (body frame).
+    """
+
+    leg_mask: object
+    rotation: object
+    translation: object
+    channel: object
+    disk_nodes: object
+    disk_weights: object
+    att_gram: object
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Scalar settings (static: a change recompiles).
+
+    Attributes:
+        dt: s; rayleigh_mass (1/s), rayleigh_stiffness (s); gravity: ``(3,)`` mm/s^2;
+        floor: whether there is a floor; floor_z, contact_distance: mm; friction: Coulomb mu;
+        disk_contacts, leg_contacts: contact points of the disk and of each leg slot per step
+            (each body's lowest predicted gaps); sweeps: Gauss-Seidel sweeps;
+        calibration: ``(a, b)`` of ``sim = max(a real + b, 0)``; rate: regulator slew, kPa/s.
+    """
+
+    dt: float
+    rayleigh_mass: float
+    rayleigh_stiffness: float
+    gravity: tuple
+    floor: bool
+    floor_z: float
+    contact_distance: float
+    friction: float
+    disk_contacts: int
+    leg_contacts: int
+    sweeps: int
+    calibration: tuple
+    rate: float
+
+
+@dataclass(frozen=True)
+class Model:
+    """The static model: shared parts, per-robot data (leading batch axis if stacked), settings."""
+
+    leg: LegPart
+    disk: DiskPart
+    robot: RobotData
+    settings: Settings = static()
+
+
+for _cls in (Family, LegPart, DiskPart, RobotData, Model):
+    register_pytree(_cls)
+
+
+def _same_part(a, b) -> bool:
+    """Whether two leg reductions hold the same basis, RID elements and weights."""
+    return a is b or all(np.array_equal(getattr(a, k), getattr(b, k))
+                         for k in ("basis", "tet_rid", "tet_weights", "tri_rid", "tri_weights"))
+
+
+def _patches(robot) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The attachment patches of a robot's first leg: per point its part nodes and weights."""
+    return [(np.asarray(a.a.nodes), np.asarray(a.a.weights, float))
+            for a in robot.model.attachments if a.a.body == robot.legs[0].body]
+
+
+def _leg_part(robot) -> LegPart:
+    """The shared leg data of a reduced robot."""
+    rb = robot.reduced[robot.legs[0].body]
+    body = rb.body
+    Phi = rb.part.basis
+    X = rb.part.mesh.points
+    n, m = X.shape[0], Phi.shape[1]
+    rows = Phi.reshape(n, 3, m)
+    facs = rb.element_factors
+    rid = np.unique(np.concatenate([f.conn.ravel() for f in facs]))
+    remap = np.full(n, -1, np.int64)
+    remap[rid] = np.arange(len(rid))
+    families = tuple(Family(remap[f.conn], f.factors, f.rest_terms, f.rows) for f in facs)
+    tris = np.concatenate([np.asarray(c.triangles, np.int64) for c in body.cavities])
+    cav, local = np.unique(tris, return_inverse=True)
+    coll = np.asarray(body.collision_nodes, np.int64)
+    patches = _patches(robot)
+    att_rest = np.stack([w @ X[nd] for nd, w in patches])
+    att_basis = np.stack([np.einsum("n,nam->am", w, rows[nd]) for nd, w in patches])
+    mass_rows = np.einsum("n,nam->am", body.nodal_mass, rows)
+    part = LegPart(np.asarray(rb.strain_modes), rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
+                   X[cav], rows[cav], local.reshape(tris.shape), X[coll], rows[coll], att_rest, att_basis)
+    return part
+
+
+def _disk_part(robot) -> DiskPart:
+    """The shared floating-frame disk data of a reduced robot."""
+    fb = robot.reduced[robot.disk_body]
+    h, rM, rK = robot.config.dt, robot.model.rayleigh_mass, robot.model.rayleigh_stiffness
+    K0 = fb.rest_stiffness.toarray()
+    mass = fb.body.nodal_mass
+    A0 = h * (h + rK) * K0 + np.diag((1 + h * rM) * np.repeat(mass, 3))
+    node = robot.reward_node - int(robot.model.node_offsets[robot.disk_body])
+    return DiskPart(fb.body.mesh.points, fb.weighted_rest, mass, K0, np.linalg.inv(A0),
+                    np.asarray(fb.body.collision_nodes, np.int64), node)
+
+
+def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
+    """One robot's :class:`RobotData` with ``n_slots`` leg slots (the first ``len(robot.legs)`` used)."""
+    F = sum(1 for a in robot.model.attachments if a.a.body == robot.legs[0].body)
+    L = n_slots
+    mask = np.zeros(L, bool)
+    rot = np.tile(np.eye(3), (L, 1, 1))
+    trans = np.zeros((L, 3))
+    channel = np.zeros(L, np.int64)
+    dn = np.zeros((L, F, DISK_POINT_NODES), np.int64)
+    dw = np.zeros((L, F, DISK_POINT_NODES))
+    for j, leg in enumerate(robot.legs):
+        rb = robot.reduced[leg.body]
+        mask[j], rot[j], channel[j] = True, rb.rotation, leg.channel
+        trans[j] = (rb.body.mesh.points - rb.part.mesh.points @ rb.rotation.T).mean(axis=0)
+        refs = [a.b for a in robot.model.attachments if a.a.body == leg.body]
+        for a, ref in enumerate(refs):
+            if ref.body != robot.disk_body:
+                raise ValueError("the JAX engine needs every attachment to tie a leg to the disk")
+            dn[j, a, :len(ref.nodes)] = ref.nodes
+            dw[j, a, :len(ref.nodes)] = ref.weights
+    n = inverse.shape[0] // 3
+    G = inverse.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+    nodes, w = dn.reshape(-1, DISK_POINT_NODES), dw.reshape(-1, DISK_POINT_NODES)
+    gram = np.einsum("pi,qj,piqjab->pqab", w, w, G[nodes[:, :, None, None], nodes[None, None, :, :]])
+    return RobotData(mask, rot, trans, channel, dn, dw, gram)
+
+
+def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: int = 100, dtype=None,
+                n_slots: int | None = None, floor: bool = True,
+                calibration: PressureCalibration = PressureCalibration(), rate_kpa_s: float = 150.0) -> Model:
+    """The static model of a batch of reduced robots (stacked per-robot data, leading axis = robot).
+
+    Args:
+        robots: reduced :class:`~softcrawl.robot.Robot` s (``RobotConfig(model="reduced")``, floating
+            disk) sharing one leg reduction, disk mesh and config.
+        leg_contacts, disk_contacts: floor contact points kept per leg and for the disk each step
+            (each body's lowest predicted gaps).
+        sweeps: Gauss-Seidel sweeps of each contact solve.
+        dtype: array precision (default float64 if ``jax_enable_x64`` is on, else float32).
+        n_slots: leg slots per robot (default: the most legs of any robot; fewer are masked).
+        floor: False leaves the floor out (a robot hanging free).
+        calibration: the real-to-sim pressure warp; rate_kpa_s: the regulators' slew limit, kPa/s
+            (:class:`softcrawl.robot.RegulatorBank`).
+
+    Raises:
+        ValueError: an empty batch, a robot that is not reduced with a floating disk, robots
+            that differ in their leg reduction, disk, attachments or settings, or too few slots.
+    """
+    robots = list(robots)
+    if not robots:
+        raise ValueError("build_model needs at least one robot")
+    for r in robots:
+        if not r.reduced or not isinstance(r.reduced.get(r.disk_body), FloatingFrameBody) or r.model.floor is None:
+            raise ValueError("the JAX engine needs reduced robots with a floating-frame disk and a floor")
+    first = robots[0]
+    leg, disk = _leg_part(first), _disk_part(first)
+    key = [nd.tobytes() + w.tobytes() for nd, w in _patches(first)]
+    L = n_slots or max(len(r.legs) for r in robots)
+    for r in robots[1:]:
+        if (not _same_part(r.reduced[r.legs[0].body].part, first.reduced[first.legs[0].body].part)
+                or r.config != first.config or [nd.tobytes() + w.tobytes() for nd, w in _patches(r)] != key
+                or not np.array_equal(r.model.bodies[r.disk_body].mesh.points, disk.rest)):
+            raise ValueError("robots of one JAX model must share the leg reduction, disk, attachments and config")
+    if L < max(len(r.legs) for r in robots):
+        raise ValueError(f"n_slots={L} is fewer than a robot's legs")
+    data = [_robot_data(r, L, disk.inverse) for r in robots]
+    stacked = RobotData(*(np.stack([getattr(d, f.name) for d in data]) for f in dataclasses.fields(RobotData)))
+    cfg, mdl = first.config, first.model
+    cal = calibration
+    settings = Settings(float(cfg.dt), float(mdl.rayleigh_mass), float(mdl.rayleigh_stiffness),
+                        tuple(float(g) for g in mdl.gravity), bool(floor and mdl.floor is not None),
+                        float(mdl.floor.height), float(mdl.floor.contact_distance), float(mdl.floor.friction),
+                        int(disk_contacts), int(leg_contacts), int(sweeps), (float(cal.a), float(cal.b)),
+                        float(rate_kpa_s))
+    if dtype is None:
+        dtype = jnp.asarray(0.0).dtype  # float64 under jax_enable_x64, else float32
+
+    def cast(a):
+        a = np.asarray(a)
+        if a.dtype.kind == "f":
+            return jnp.asarray(a, dtype)
+        return jnp.asarray(a)
+
+    return Model(jax.tree_util.tree_map(cast, leg), jax.tree_util.tree_map(cast, disk),
+                 jax.tree_util.tree_map(cast, stacked), settings)
+
+
+def select_robots(model: Model, robots) -> Model:
+    """The model of a batch made of ``model``'s robots at indices ``robots`` ``(B,)`` (repeats allowed:
+    e.g. many copies of a few designs)."""
+    pick = jnp.asarray(robots)
+    return dataclasses.replace(model, robot=jax.tree_util.tree_map(lambda a: a[pick], model.robot))
