@@ -14,6 +14,8 @@ import os
 import shutil
 import tempfile
 
+import pytest
+
 _SESSION = tempfile.mkdtemp(prefix="softcrawl-tests-")
 os.environ.setdefault("SOFTCRAWL_CACHE_DIR", os.path.join(_SESSION, "cache"))
 os.environ["HOME"] = os.path.join(_SESSION, "home")
@@ -29,3 +31,15 @@ else:
 
 def pytest_unconfigure(config):
     shutil.rmtree(_SESSION, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def x64():
+    """JAX in float64 for the module, the caller's setting restored after (softcrawl never
+    switches it at import): the JAX engine's tests request it, or autouse it per module."""
+    import jax
+
+    old = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    yield
+    jax.config.update("jax_enable_x64", old)

@@ -25,11 +25,8 @@ ROUND_OFF = 1e-13
 
 
 @pytest.fixture(autouse=True, scope="module")
-def x64():
-    old = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)
-    yield
-    jax.config.update("jax_enable_x64", old)
+def _float64(x64):
+    """Every test of this module in float64 (``x64``: tests/conftest.py)."""
 
 
 @pytest.fixture(scope="module")

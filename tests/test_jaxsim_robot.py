@@ -14,14 +14,6 @@ SIM_KPA = np.array([150.0, 60.0, 0.0])
 
 
 @pytest.fixture(scope="module")
-def x64():
-    old = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)
-    yield
-    jax.config.update("jax_enable_x64", old)
-
-
-@pytest.fixture(scope="module")
 def robot():
     from softcrawl.robot import RobotConfig, build_robot
 

@@ -45,12 +45,12 @@ import typing
 from dataclasses import asdict, dataclass, field
 
 from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
+from softcrawl.envs.backends.factory import BACKENDS
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.robot.assembly import MODELS
 from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import Settling
 
-BACKENDS = ("serial", "subprocess", "ray")
 #: Bounds of the simulation settings shared with :class:`softcrawl.codesign.groundtruth.GroundTruthConfig`:
 #: ``name: (low, high, unit)``, both included. The time step: the presets use 0.02 s and 0.01 s
 #: (0.04 s already fails ``softcrawl reduce validate``, module docstring); mesh sizes in mm (the
@@ -268,7 +268,7 @@ class TrainConfig:
         if self.env.model not in MODELS:
             raise ValueError(f"env.model must be one of {MODELS}, got {self.env.model!r}")
         if self.backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+            raise ValueError(f"backend must be one of {tuple(BACKENDS)}, got {self.backend!r}")
         if not re.fullmatch(r"cpu|(gpu|cuda)(:\d+)?", self.sac.device):
             raise ValueError(f"sac.device must be 'cpu', 'gpu' or 'gpu:N' ('cuda' is read as 'gpu'), got "
                              f"{self.sac.device!r}")
