@@ -132,6 +132,27 @@ def test_deploy_summary_with_a_wrong_type_is_a_clear_error(tmp_path, edit, match
         read_real(out)
 
 
+def test_compare_out_is_guarded(tmp_path, capsys):
+    """``compare --out`` writes only into a new folder, or with ``--overwrite`` into one softcrawl
+    wrote (regression: it wrote into any folder, a deploy's or a stranger's), and checks that
+    before reading a log."""
+    from softcrawl.cli import main
+
+    sim = _fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
+    real = _deploy_folder(tmp_path)
+    stranger = tmp_path / "thesis"
+    stranger.mkdir()
+    (stranger / "draft.tex").write_text("precious")
+    args = ["compare", str(sim), str(real), "--out"]
+    assert main([*args, str(stranger)]) == 2 and "already exists" in capsys.readouterr().err
+    assert main([*args, str(stranger), "--overwrite"]) == 2 and "not a softcrawl output" in capsys.readouterr().err
+    assert sorted(p.name for p in stranger.iterdir()) == ["draft.tex"]
+    assert main([*args, str(tmp_path / "cmp")]) == 0
+    assert main([*args, str(tmp_path / "cmp")]) == 2  # exists: refused without --overwrite
+    assert main([*args, str(tmp_path / "cmp"), "--overwrite"]) == 0
+    assert (tmp_path / "cmp" / "compare.md").is_file()
+
+
 def test_log_values_that_do_not_fit_and_device_links_are_refused(tmp_path, capsys):
     """A 401-digit number in log.csv (inf), a recorded log with a 401-digit integer reading
     (OverflowError), log.csv -> /dev/zero: one-line errors naming the file, never a traceback or

@@ -14,9 +14,12 @@ import argparse
 
 def _run(args: argparse.Namespace) -> int:
     from softcrawl.hardware.compare import compare
+    from softcrawl.robot.output import check_output_path, mark_output
 
-    res = compare(args.sim_run, args.real_logs, args.out, args.tracked, args.time_scale, args.marker_id,
+    out = check_output_path(args.out, args.overwrite)  # before any work: never into a stranger's folder
+    res = compare(args.sim_run, args.real_logs, out, args.tracked, args.time_scale, args.marker_id,
                   args.marker_mm)
+    mark_output(out)
     sp = res["spread"]
     extra = (f"; real final distances mean {sp['mean_cm']:+.2f} cm (std {sp['std_cm']:.2f}, n={sp['n']})"
              if sp else "")
@@ -41,5 +44,7 @@ def register(subparsers) -> None:
     p.add_argument("--time-scale", type=float, default=None,
                    help="stretch simulated time by this factor (default: 1, or the rig period / the policy's "
                         "action hold when a deploy log ran a policy trained with another hold)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, help="output folder (new, or with --overwrite one softcrawl wrote)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into an existing output folder if it is empty or softcrawl wrote it")
     p.set_defaults(func=_run)

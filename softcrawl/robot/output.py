@@ -68,6 +68,12 @@ class OutputWriteError(ValueError):
     names the folder where what was written is kept."""
 
 
+def mark_output(folder: Path) -> None:
+    """Mark ``folder`` as written by softcrawl (:data:`OUTPUT_MARKER`), so that a later command's
+    ``--overwrite`` may replace it and nothing else."""
+    (folder / OUTPUT_MARKER).write_text("written by softcrawl; --overwrite may replace this folder\n")
+
+
 def check_output_path(out: str | os.PathLike, overwrite: bool = False) -> Path:
     """Validate a destination directory before any work is done (creates nothing).
 
@@ -139,7 +145,7 @@ def staged_directory(out: str | os.PathLike, overwrite: bool = False,
         umask = os.umask(0)
         os.umask(umask)
         tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; the result should not be
-        (tmp / OUTPUT_MARKER).write_text("written by softcrawl; --overwrite may replace this folder\n")
+        mark_output(tmp)
         yield tmp
         check_output_path(out, overwrite)
         old = None
