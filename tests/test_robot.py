@@ -147,7 +147,7 @@ def test_cli_simulate_writes_outputs(tmp_path, monkeypatch, capsys):
                    "--frames-every", 50, "--out", out)
     assert rc == 0, capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == [
-        ".softcrawl-output", "crawl.pvd", "frames", "summary.json", "trajectory.csv", "trajectory.npz",
+        ".softcrawl-output", "crawl.gif", "crawl.pvd", "frames", "summary.json", "trajectory.csv", "trajectory.npz",
         "trajectory.png"]
     assert [p.name for p in out.parent.iterdir()] == ["best"]  # no temporary leftovers
     s = json.loads((out / "summary.json").read_text())
