@@ -1,4 +1,4 @@
-"""Co-design algorithms behind one interface, scored on a ground truth (issue 21)."""
+"""Co-design algorithms behind one interface, scored on a ground truth."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Batched stepping of many reduced robots (issue 18): every robot's trajectory in a batch equals
+"""Batched stepping of many reduced robots: every robot's trajectory in a batch equals
 its trajectory with its own single-robot :class:`ReducedSolver`, whatever the batch's other robots
 do (designs with 3 to 6 legs, different regulators, floor contact, varying pressures, robots
 joining and leaving)."""

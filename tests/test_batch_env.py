@@ -1,4 +1,4 @@
-"""Batched env stepping (issue 18): a worker that steps its envs' robots together gives the same
+"""Batched env stepping: a worker that steps its envs' robots together gives the same
 transitions as one that steps its envs one after another (same seeds, mixed designs and episode
 lengths, so robots join and leave the batch at different times; designs drawn by the envs or
 given by a sampler, when the batched backend settles new designs together), divergences

@@ -1,4 +1,4 @@
-"""The compiled constraint stage of reduced robots (softcrawl.reduction.constrain, issue 18) and the
+"""The compiled constraint stage of reduced robots (softcrawl.reduction.constrain) and the
 single-precision RID terms: each against the double-precision / Python reference it replaces."""
 
 import dataclasses
@@ -154,7 +154,7 @@ def test_robot_config_rejects_an_unknown_precision():
 
 def test_schur_solves_equal_column_by_column_substitution_to_the_bit():
     """The Schur complement's triangular solves (:func:`_cholesky_solve_many`) run row by row
-    over all right-hand sides (vectorised, issue 18); each entry must still be reduced in the
+    over all right-hand sides (vectorised); each entry must still be reduced in the
     order of column-by-column forward and back substitution, so the constraint stage's
     impulses stay the same to the bit. Checked against that substitution in plain Python
     (IEEE double, no fused multiply-add) on a recorded attachment block (60 rows, of a 5-legged robot
@@ -188,7 +188,7 @@ def test_schur_solves_equal_column_by_column_substitution_to_the_bit():
 
 def test_leg_delassus_blocks_are_the_projected_compliance():
     """:func:`add_delassus` (the legs' share of the Delassus operator, its forward substitution
-    vectorised over the constraint columns in issue 18) adds ``J_b A_b^-1 J_b^T`` of every body
+    vectorised over the constraint columns) adds ``J_b A_b^-1 J_b^T`` of every body
     and ``J_b qdot_b`` at the bodies' global blocks, ``J_b`` its attachment rows and its
     contacts' rows ``F R_b Phi[n]``: checked against the dense formula (two bodies of 7 modes,
     one attachment block each, three contacts) to 1e-12 relative."""

@@ -265,7 +265,7 @@ def test_a_settled_states_modal_velocities_count_toward_the_memory_bound():
 
 
 def test_an_env_does_not_settle_a_design_again_after_its_robot_was_dropped(monkeypatch):
-    """Regression (issue 18): with 16 spare robots per worker a `crawl` run over the 280
+    """Regression: with 16 spare robots per worker a `crawl` run over the 280
     three-legged designs settled 1,200 of its 3,200 episodes (502 with the kept states,
     benchmarks/settle_cache.py); a dropped robot's design now starts from its kept settled
     state, and the episode is the one a fresh env gives."""

@@ -384,7 +384,7 @@ def test_polish_does_not_cycle_on_a_reduced_leg_contact_problem():
 
 @pytest.mark.parametrize("case", ["failing", "found"])
 def test_polish_stops_at_a_repeated_state_with_the_result_of_running_out_of_rounds(monkeypatch, case):
-    """Regression (issue 18, contact time): a failing active-set polish used to run all 30 of
+    """Regression (contact time): a failing active-set polish used to run all 30 of
     its rounds, one dense solve each, though from round 1 on a round depends only on the
     stick/slip pattern, the slip directions and the alignment count, so a repeated state
     repeats until the limit. Two condensed problems of a 24-robot training batch (12 contacts

@@ -131,5 +131,5 @@ def test_csv_unreadable(tmp_path):
 def test_csv_out_of_range(tmp_path):
     path = tmp_path / "hi.csv"
     path.write_text("0,0,0\n0,0,120\n")
-    with pytest.raises(PressureRangeError, match=r"hi\.csv, line 2, p3: 120 kPa is outside"):  # issue 20, item 9
+    with pytest.raises(PressureRangeError, match=r"hi\.csv, line 2, p3: 120 kPa is outside"):
         read_actions_csv(path)

@@ -1,4 +1,4 @@
-"""Ground truth of the design space (issue 21): gait family, CMA-ES, per-design optimizer,
+"""Ground truth of the design space: gait family, CMA-ES, per-design optimizer,
 resumable runs, regret."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The learner (issue 18, item 3): updates overlapped with the simulation (same number as SB3's
+"""The learner: updates overlapped with the simulation (same number as SB3's
 schedule, run while the envs step, none left behind at the end), and the actor's step without
 the critics' weight gradients (the same updates to the bit)."""
 

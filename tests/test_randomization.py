@@ -1,4 +1,4 @@
-"""Domain randomization (issue 19, item 6): ranges and draws, each randomized quantity reaching
+"""Domain randomization: ranges and draws, each randomized quantity reaching
 the simulation, identity when off, the batched backend, the training log and
 ``softcrawl evaluate --randomize N``.
 

@@ -1,4 +1,4 @@
-"""Ray backend of the vector env and Ray tasks of the ground truth (issue 21). A local 2-CPU Ray
+"""Ray backend of the vector env and Ray tasks of the ground truth. A local 2-CPU Ray
 is started once for the module (about 10 s); skipped when Ray is not installed."""
 
 from __future__ import annotations

@@ -662,7 +662,7 @@ def test_saved_runs_with_tuple_parameters_are_reused(tmp_path, monkeypatch):
 def test_validation_compares_a_larger_reduced_step_at_the_reference_frames():
     """``reduce validate --dt``: a reduced step that divides the references' 0.02 s frame
     spacing is recorded every few steps against every reference frame; one that is a multiple
-    of it (0.04 s, issue 18's time-step study) is recorded every step against every other
+    of it (0.04 s, the time-step study) is recorded every step against every other
     reference frame, so the frames compared fall on the same times; any other step is
     refused."""
     from softcrawl.reduction.validate import _reduced_recording

@@ -1,4 +1,4 @@
-"""Run folders and outputs that cannot hurt or mislead (issue 20): one regression test per item,
+"""Run folders and outputs that cannot hurt or mislead: one regression test per item,
 each failing on the code before the fix, and a fuzz test (hypothesis) of the CLI's user inputs:
 designs, action CSVs, ``--set`` strings and run folders with missing, corrupt or crafted files."""
 
@@ -177,7 +177,7 @@ def test_2_dangling_latest_resumes_from_newest_complete_checkpoint(run):
 
 
 def test_2_a_run_resumed_at_an_episode_boundary_is_the_uninterrupted_run(trained, run):
-    """Regression (issue 18): the checkpoint at 80 steps (every env between episodes) keeps the
+    """Regression: the checkpoint at 80 steps (every env between episodes) keeps the
     designs the run had just drawn for the next episodes; resumed from it, the run logs the same
     episodes and design distribution as the uninterrupted one (it drew new designs instead and
     went its own way from the first episode after the checkpoint)."""

@@ -1,4 +1,4 @@
-"""The report's reading of a learned gait (issue 18: "crawls with a periodic gait", "crawls
+"""The report's reading of a learned gait ("crawls with a periodic gait", "crawls
 forward over the whole episode (not one push)")."""
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Episodes start from the robot at rest (issue 23): settling runs until every node is slower
+"""Episodes start from the robot at rest: settling runs until every node is slower
 than the rest speed, the start is cached per design, and a robot that does not come to rest
 in time is reported.
 

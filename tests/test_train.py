@@ -123,7 +123,7 @@ def test_kill_and_resume(tmp_path):
     # SAC kept its counters: 1 update per transition after learning_starts (40) over the whole run
     assert res.updates == 160 - 40
     # ... and so does the final checkpoint (the one `report` loads): checkpoints are written after
-    # the step's gradient updates (issue 20, item 4; `res.updates` alone passed when the kill came
+    # the step's gradient updates (`res.updates` alone passed when the kill came
     # at step 40, before any update)
     from softcrawl.codesign.run import Run
 

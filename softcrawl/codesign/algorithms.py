@@ -1,4 +1,4 @@
-"""Co-design algorithms behind one small interface, compared against the ground truth (issue 21).
+"""Co-design algorithms behind one small interface, compared against the ground truth.
 
 An algorithm *proposes* (design, gait) pairs and *receives* their episode returns (cm):
 

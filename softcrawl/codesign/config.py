@@ -9,7 +9,7 @@ Presets (all but ``smoke`` step the reduced model at dt = 0.02 s, 50 steps per 1
 mean node error of 0.96 mm (0.79 mm at 0.01 s) and a baseline reward error of 1.3% (1.1%), and
 the paper-best 20 s crawl +11.36 cm (0.01 s: +11.69 cm; full-order exact +10.66 cm), for half
 the steps; with float32 RID products, ``env.rid_dtype``, 0.95 mm and 3.0%; 0.04 s fails both
-targets, 1.72 mm and 17%, at about twice the cost per step, ``benchmarks/RESULTS.md``; and with
+targets, 1.72 mm and 17%, at about twice the cost per step, ``docs/results.md``; and with
 at most 100 Gauss-Seidel sweeps per chunk (``env.contact_max_iterations``), 0.95 mm and 0.6%;
 ``--set env.dt=0.01 env.steps_per_action=100 env.rid_dtype=float64
 env.contact_max_iterations=250`` restores the reference step):
@@ -117,7 +117,7 @@ class EnvConfig:
             validate --dt 0.02 --rid-dtype float32 --contact-max-iterations 100`` gave a mean
             node error of 0.946 mm (0.952 with 250) and a baseline reward error of 0.6% (3.0%);
             the settling before an episode costs about 1.2x less, a step after it about 3% less
-            (``benchmarks/RESULTS.md``, wave 2 session 8). A run saved before this setting
+            (``CHANGELOG.md``). A run saved before this setting
             existed is read back with 250.
         leg_collision_spacing: the legs' floor contact points, mm apart (0: every surface node,
             the reference and every preset's; 4 passes ``reduce validate`` for 1.04x end to end,

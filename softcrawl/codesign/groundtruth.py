@@ -1,4 +1,4 @@
-"""Ground truth of the design space: every design with its best open-loop gait (issue 21).
+"""Ground truth of the design space: every design with its best open-loop gait.
 
 The paper reports the design its co-design converged to; this module measures how good that
 choice is against the whole space. Each design gets the best gait CMA-ES (the ``cma`` package)
@@ -228,7 +228,7 @@ class GroundTruthConfig:
         baseline_phases: expert-baseline phase lags swept for ``references.json`` (degrees;
             empty: no sweep).
         rid_dtype: precision of the reduced legs' RID products (``"float32"``: validated like
-            the training presets' model, ``benchmarks/RESULTS.md``; folders written before this
+            the training presets' model, ``docs/results.md``; folders written before this
             setting existed were computed in ``"float64"`` and read back as such).
     """
 

@@ -1,4 +1,4 @@
-"""Regret of a co-design run against the ground truth (issue 21, ``softcrawl regret``).
+"""Regret of a co-design run against the ground truth (``softcrawl regret``).
 
 The run's *chosen design* is the most probable design of its final design distribution (ties:
 the higher latest return); it is placed in a ground truth

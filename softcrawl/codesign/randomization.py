@@ -1,4 +1,4 @@
-"""Domain randomization in co-design runs (issue 19, item 6): the per-episode log of a training
+"""Domain randomization in co-design runs: the per-episode log of a training
 run's draws and the robust evaluation of a design (``softcrawl evaluate --randomize N``).
 
 The ranges are ``env.randomize`` of the run's :class:`~softcrawl.codesign.config.TrainConfig`

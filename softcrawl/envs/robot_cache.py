@@ -14,7 +14,7 @@ robots each (~3.8 MB per robot with the 10 mm disk) a long run would hold up to 
 Settled states outlive their robots: a settled state (0.3-0.6 MB: a robot's node positions and
 velocities) takes 7-14x less memory than its robot, but settling again costs several times more
 CPU than rebuilding the robot (three-legged, 25 mm disk: 0.22 s against ~35 ms;
-``benchmarks/RESULTS.md``, wave 2 session 9). So the cache also
+``CHANGELOG.md``). So the cache also
 keeps, LRU, up to ``settled_mb`` MB of settled states of designs whose robots it dropped
 (default 128 MB: all 280 three-legged designs with the 25 mm disk, ~220 six-legged ones with
 the 10 mm disk). Such a design's robot is rebuilt (deterministically: the same model) and starts

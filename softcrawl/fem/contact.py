@@ -104,7 +104,7 @@ _SEP, _STICK, _SLIP = 0, 1, 2
 #: (tests/data/ill_conditioned_contact.npz) needs it; more almost never help (over 516 problems
 #: recorded in co-design training, 8 chunks polished 490 and 1 chunk 467, for 3.2x the contact
 #: time, the rest being rank-deficient Delassus operators of reduced legs whose Gauss-Seidel
-#: impulses stay unconverged however long it runs: benchmarks/RESULTS.md, wave 2).
+#: impulses stay unconverged however long it runs: CHANGELOG.md).
 EXTRA_SWEEP_CHUNKS = 1
 #: Above this many contacts every violated contact switches in every round of the polish
 #: (each round is a dense solve: one switch per round would cost too much).

@@ -90,7 +90,7 @@ def _metadata_checksum(meta: dict) -> str:
 #: ``_metadata_checksum`` of reduction files written before ``metadata_checksum`` existed that
 #: are trusted as they are: the shipped ``softcrawl/reduction/data/pneunet_6mm.npz``.
 _TRUSTED_LEGACY_METADATA = frozenset({
-    "dcbc9d43f1802c38709b645923eb48ef051b7eca66c62432a40d23020f6b45b5",  # pneunet_6mm.npz, built 2026-11 (RESULTS.md)
+    "dcbc9d43f1802c38709b645923eb48ef051b7eca66c62432a40d23020f6b45b5",  # pneunet_6mm.npz, the shipped reduction
 })
 
 

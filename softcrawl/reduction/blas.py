@@ -2,7 +2,7 @@
 
 numba's ``np.dot(Z.T, Z)`` is a general ``dgemm`` into a fresh array; the symmetric rank-k
 update ``dsyrk`` does half the work in place (about 1.4x faster on the reduced legs'
-``K_r = Z^T Z``, ``benchmarks/RESULTS.md``). The routine is SciPy's own BLAS
+``K_r = Z^T Z``, ``benchmarks/RESULTS.md``, ``CHANGELOG.md``). The routine is SciPy's own BLAS
 (``scipy.linalg.cython_blas``, the library numba's ``np.dot`` calls too), bound as an external
 symbol that is registered with LLVM at import: compiled callers stay cacheable, which a
 ctypes function pointer would prevent.

@@ -229,7 +229,7 @@ def forward_substitute(L, Y):
 
     Row by row, each row's update over all ``k`` columns at once (a loop the compiler
     vectorises): every entry is reduced in the order of column-by-column substitution, so the
-    result is that substitution's to the bit (issue 18; ``benchmarks/RESULTS.md``, session 7)."""
+    result is that substitution's to the bit (``CHANGELOG.md``)."""
     n, k = Y.shape
     for i in range(n):
         for j in range(i):
@@ -309,7 +309,7 @@ def accumulate_terms32(x, offsets, rotations, conn, C, s0, rows32, qdot, c, Zc, 
     triangle) and ``-Z^T (s + c Z qdot)`` by float32 products added to ``f`` (float64); the
     element rotations and ``s`` stay in double precision. 1.5x faster than double precision on
     the shipped leg; ``K_r`` and ``f_r`` agree with it to about 3e-7 of their largest entries
-    (``RobotConfig.rid_dtype``, validated in ``benchmarks/RESULTS.md``). ``Zc`` is float32."""
+    (``RobotConfig.rid_dtype``, validated in ``docs/results.md``). ``Zc`` is float32."""
     E = conn.shape[0]
     r = C.shape[1]
     chunk = Zc.shape[1] // r

@@ -197,7 +197,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     Args:
         reduced_dt: the reduced model's time step, s (None: ``config.dt``); the references stay
             exact full-order runs at ``config.dt`` (the reference 0.01 s), so this measures what a
-            larger step costs in accuracy (issue 18's settings study).
+            larger step costs in accuracy (the settings study).
         rid_dtype: the precision of the reduced model's RID products (``"float32"``: what single
             precision costs in accuracy).
         contact_max_iterations: the reduced model's Gauss-Seidel sweep limit per chunk (None:

@@ -125,7 +125,7 @@ class RobotConfig:
             node error of 0.978 mm and a baseline reward error of 4.8% (every node: 0.955 mm,
             0.3%), for a 1.23x cheaper landing and 1.10x cheaper episode steps; 5, 6, 8, 10 and
             12 mm fail the 1 mm target (1.27 to 2.02 mm). Not used by any preset
-            (``benchmarks/RESULTS.md``, wave 2 session 10).
+            (``CHANGELOG.md``).
         attachment_patch: ``"ring"``: each of a leg's 4 attachment points ties the disk to
             the average of the corner node and its one-ring (the nodes sharing a tetrahedron
             with it); a single-node tie concentrates the leg's reaction in one element, which

@@ -1,4 +1,4 @@
-"""Domain randomization (issue 19, item 6): per-episode draws of the physics and of the rig.
+"""Domain randomization: per-episode draws of the physics and of the rig.
 
 :class:`DomainRanges` holds ``(low, high)`` ranges (``None``: that quantity is not randomized;
 the default is all ``None``, which changes nothing and draws nothing); :meth:`DomainRanges.draw`
@@ -29,7 +29,7 @@ each body is copied with scaled materials and mass (its element stiffnesses, whi
 E, and its lumped masses are re-formed from them); a reduced leg is placed again from the same
 :class:`~softcrawl.reduction.model.PartReduction` on its scaled body (its RID element factors,
 reduced mass and gravity load are re-formed; its *basis and ECSW weights stay those the reduction
-was built with at the nominal stiffness and mass*: see ``benchmarks/RESULTS.md`` for how far that
+was built with at the nominal stiffness and mass*: see ``docs/results.md`` for how far that
 holds); a floating-frame disk is rebuilt on its scaled body (``K_0`` and its factorization are
 re-formed, once per process per sample). A randomized robot has its own rest pose, so
 :class:`~softcrawl.envs.CrawlerEnv` settles every episode whose sample is physical. Cost at the

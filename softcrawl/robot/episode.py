@@ -40,7 +40,7 @@ MM_PER_CM = 10.0
 
 @dataclass(frozen=True)
 class Settling:
-    """When zero-pressure settling before an episode ends (issue 23: the paper's fixed 15 steps
+    """When zero-pressure settling before an episode ends (the paper's fixed 15 steps
     left designs that tip over mid-fall at t = 0, and the fall was scored as crawling).
 
     Attributes:
