@@ -1,0 +1,586 @@
+"""Design spaces as data: a TOML file describing the robot's body, leg slots, regulators and
+actuator, read into a frozen :class:`DesignSpace` that carries the design algebra.
+
+A *design* of a space with ``S`` slots and ``R`` regulators is a tuple of ``S`` integers:
+``0`` = empty slot, ``k in 1..R`` = a leg driven by regulator ``k``, with between
+``min_legs`` and ``max_legs`` legs (paper Sec. "Design space"; ``codesign.md``). Designs that
+differ by a relabelling of the regulators (and, if the space asks for it, by the mirror
+``theta -> -theta`` about the x axis) are the same robot; their *canonical* form is the
+lexicographically smallest member of that class, which for relabelling alone is the
+relabelling by order of first appearance (slot 0 first).
+
+File layout (every key checked; unknown keys are refused; lengths mm, masses kg, angles
+degrees about +z from +x, Young's moduli kPa)::
+
+    name = "paper"                     # optional: a label
+    description = "..."                # optional
+    [body]                             # the central disk, a cone frustum on the z axis
+    bottom_radius_mm = 50.0
+    top_radius_mm = 54.5
+    height_mm = 18.0
+    mesh_size_mm = 10.0                # default tet size of the disk (RobotConfig.disk_mesh_size)
+    mass_kg = 0.075
+    material = "printed_polymer"       # a known name, or { youngs_modulus_kpa = ..., poisson_ratio = ... }
+    [slots]
+    count = 8
+    first_angle_deg = 22.5             # equally spaced: first + 360 i / count; or angles_deg = [...]
+    [design]
+    regulators = 3
+    min_legs = 3
+    max_legs = 6
+    mirror_x = false                   # also identify designs mirrored about the x axis
+    [actuator]                         # the PneuNet leg (softcrawl.geometry.pneunet)
+    mesh_size_mm = 6.0
+    mass_kg = 0.105
+    material = "dragonskin30"
+    paper_material = "paper"
+    paper_thickness_mm = 1.0
+    reduction = "softcrawl:pneunet_6mm.npz"   # optional; a path relative to this file, or a shipped one
+    [actuator.pneunet]                 # every PneuNetParams dimension except mesh_size, with _mm
+    n_chambers = 9
+    base_length_mm = 115.0
+    ...
+
+The design algebra of the paper's space (the shipped ``paper.toml``) is what
+:mod:`softcrawl.design.space` exposes as module functions.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from softcrawl.safeio import load_toml, read_bytes
+
+#: Folder of the shipped space files (package data).
+SPACES_DIR = Path(__file__).with_name("spaces")
+#: Prefix of a ``reduction`` value naming a reduction shipped with softcrawl.
+SHIPPED_PREFIX = "softcrawl:"
+#: Materials known by name (their constants: :mod:`softcrawl.fem.materials`).
+KNOWN_MATERIALS = ("dragonskin30", "paper", "printed_polymer")
+#: Largest raw design count a space may have (its designs are enumerated in memory).
+MAX_RAW_DESIGNS = 2_000_000
+#: Angles closer than this (degrees) are the same slot.
+ANGLE_TOL_DEG = 1e-6
+
+#: PneuNet dimensions of ``[actuator.pneunet]`` (``softcrawl.geometry.pneunet.PneuNetParams``
+#: field names; all in mm except the chamber count).
+PNEUNET_KEYS = ("base_length", "base_width", "base_thickness", "block_width", "block_height", "tooth_width",
+                "end_tooth_width", "tooth_gap", "tooth_height", "wall_thickness", "channel_width",
+                "channel_height")
+#: Disk dimensions of ``[body]`` (``softcrawl.geometry.disk.DiskParams`` field names, mm).
+DISK_KEYS = ("bottom_radius", "top_radius", "height")
+
+Design = tuple[int, ...]
+
+
+class InvalidDesignError(ValueError):
+    """A design is malformed: wrong length, non-integer entry, value outside {0..regulators},
+    or a leg count outside [min_legs, max_legs]."""
+
+
+class SpaceFileError(ValueError):
+    """A design-space file is malformed or inconsistent; the message is one line naming the
+    file and the key."""
+
+
+@dataclass(frozen=True)
+class Material:
+    """A linear elastic material: a known name (:data:`KNOWN_MATERIALS`), or given values.
+
+    Attributes:
+        name: the known name, or ``""`` for a material given by its constants.
+        youngs_modulus_kpa: E, kPa (None for a known name).
+        poisson_ratio: nu (None for a known name).
+    """
+
+    name: str = ""
+    youngs_modulus_kpa: float | None = None
+    poisson_ratio: float | None = None
+
+
+@dataclass(frozen=True)
+class Part:
+    """One part of the robot: geometry, default mesh size, mass and material.
+
+    Attributes:
+        params: ``(name, value)`` pairs: the geometry's dimensions, mm (``DiskParams`` or
+            ``PneuNetParams`` field names without ``mesh_size``; ``n_chambers`` an int).
+        mesh_size: default maximum tet size, mm.
+        mass: total mass, kg.
+        material: the bulk material.
+    """
+
+    params: tuple[tuple[str, float | int], ...]
+    mesh_size: float
+    mass: float
+    material: Material
+
+
+@dataclass(frozen=True)
+class DesignSpace:
+    """A design space: which robots can be built and how they are modelled.
+
+    Attributes:
+        slot_angles_deg: ``(S,)`` slot angles, degrees about +z from +x, distinct, in [0, 360).
+        n_regulators: ``R >= 1`` pressure regulators (model channels).
+        min_legs, max_legs: legs per design, ``1 <= min_legs <= max_legs <= S``.
+        mirror_x: designs mirrored about the x axis (slot angle ``theta -> -theta``) are the
+            same design (requires a mirror-symmetric slot set).
+        disk: the body (``params``: bottom_radius, top_radius, height).
+        leg: the actuator (``params``: ``n_chambers`` and :data:`PNEUNET_KEYS`).
+        paper_material, paper_thickness: the leg's strain-limiting layer (mm).
+        reduction: the actuator's reduction file (resolved path) or None.
+        name: a label. source: the file read (not compared). sha256: its checksum (not compared).
+    """
+
+    slot_angles_deg: tuple[float, ...]
+    n_regulators: int
+    min_legs: int
+    max_legs: int
+    disk: Part
+    leg: Part
+    paper_material: Material
+    paper_thickness: float
+    mirror_x: bool = False
+    reduction: str | None = None
+    name: str = ""
+    source: str = field(default="", compare=False)
+    sha256: str = field(default="", compare=False)
+
+    def __post_init__(self) -> None:
+        s = self.n_slots
+        if not s or self.n_regulators < 1 or not 1 <= self.min_legs <= self.max_legs <= s:
+            raise ValueError(f"inconsistent design space: {s} slots, {self.n_regulators} regulators, "
+                             f"{self.min_legs}..{self.max_legs} legs")
+        if self.mirror_x:
+            self.mirror_permutation  # noqa: B018 -- raises ValueError for an asymmetric slot set
+
+    # ------------------------------------------------------------------ structure
+    @property
+    def n_slots(self) -> int:
+        """Number of leg slots ``S``."""
+        return len(self.slot_angles_deg)
+
+    @property
+    def one_hot_size(self) -> int:
+        """Length of a design's one-hot code: ``S * (R + 1)`` (32 for the paper's space)."""
+        return self.n_slots * (self.n_regulators + 1)
+
+    @cached_property
+    def mirror_permutation(self) -> np.ndarray:
+        """``(S,)`` int: slot ``i`` at angle ``theta`` goes to the slot at ``-theta`` (mod 360).
+
+        Raises:
+            ValueError: the slot set is not symmetric about the x axis.
+        """
+        angles = np.asarray(self.slot_angles_deg)
+        target = np.mod(-angles, 360.0)
+        diff = np.abs(target[:, None] - angles[None, :])
+        diff = np.minimum(diff, 360.0 - diff)
+        perm = diff.argmin(axis=1)
+        bad = diff[np.arange(len(angles)), perm] > ANGLE_TOL_DEG
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"mirror symmetry needs the slot at {-angles[i] % 360:g} deg, the mirror of slot {i} "
+                             f"at {angles[i]:g} deg")
+        return perm
+
+    # ------------------------------------------------------------------ single designs
+    def validate_design(self, d: Sequence[int] | str) -> Design:
+        """Check a design and return it as a tuple of ``S`` ints (not canonicalised).
+
+        Args:
+            d: a sequence of ``S`` integers in ``{0..R}``, or a string such as
+                ``"1,0,0,2,2,0,0,1"`` (comma- and/or whitespace-separated; brackets ignored).
+
+        Raises:
+            InvalidDesignError: naming the fault (length, non-integer entry, out-of-range value
+                with its slot, or the leg count).
+        """
+        s, r = self.n_slots, self.n_regulators
+        if isinstance(d, str):
+            items: list = d.strip().strip("[]()").replace(",", " ").split()
+        else:
+            try:
+                items = list(d)
+            except TypeError:
+                raise InvalidDesignError(f"design must be a sequence of {s} integers, got {d!r}") from None
+        if len(items) != s:
+            raise InvalidDesignError(f"design must have {s} slots, got {len(items)}: {d!r}")
+        out = []
+        for slot, v in enumerate(items):
+            iv = _as_int(v)
+            if iv is None:
+                raise InvalidDesignError(f"slot {slot}: {v!r} is not an integer")
+            if not 0 <= iv <= r:
+                raise InvalidDesignError(f"slot {slot}: value {iv} not in {{0..{r}}} (0 = empty, k = regulator k)")
+            out.append(iv)
+        legs = sum(v > 0 for v in out)
+        if not self.min_legs <= legs <= self.max_legs:
+            which = "too few" if legs < self.min_legs else "too many"
+            raise InvalidDesignError(f"{which} legs: {legs} (allowed {self.min_legs} to {self.max_legs})")
+        return tuple(out)
+
+    def canonicalize(self, d: Sequence[int] | str) -> Design:
+        """The canonical form of ``d``: regulators relabelled by first appearance (slot 0
+        first), and with :attr:`mirror_x` the smaller of that and the relabelled mirror image.
+        E.g. ``(2,0,0,1,1,0,0,2) -> (1,0,0,2,2,0,0,1)`` in the paper's space.
+
+        Raises:
+            InvalidDesignError: if ``d`` is not a valid design.
+        """
+        return tuple(self._canonical_rows(np.array([self.validate_design(d)], dtype=np.int64))[0].tolist())
+
+    def is_canonical(self, d: Sequence[int] | str) -> bool:
+        """Whether ``d`` equals its canonical form. Raises InvalidDesignError if invalid."""
+        d = self.validate_design(d)
+        return self.canonicalize(d) == d
+
+    def n_legs(self, d: Sequence[int] | str) -> int:
+        """Number of occupied slots. Raises InvalidDesignError if invalid."""
+        return sum(v > 0 for v in self.validate_design(d))
+
+    def regulator_groups(self, d: Sequence[int] | str) -> dict[int, list[int]]:
+        """Map each regulator used by ``d`` to its slot indices (ascending), e.g.
+        ``(1,0,0,2,2,0,0,1) -> {1: [0, 7], 2: [3, 4]}``. Raises InvalidDesignError if invalid."""
+        groups: dict[int, list[int]] = {}
+        for slot, v in enumerate(self.validate_design(d)):
+            if v:
+                groups.setdefault(v, []).append(slot)
+        return dict(sorted(groups.items()))
+
+    # ------------------------------------------------------------------ enumeration
+    @property
+    def n_raw_designs(self) -> int:
+        """``sum_{k=min..max} C(S, k) R^k`` (41,202 for the paper's space), without enumerating."""
+        return _raw_count(self.n_slots, self.n_regulators, self.min_legs, self.max_legs)
+
+    @cached_property
+    def raw_designs(self) -> tuple[Design, ...]:
+        """All valid designs, lexicographically sorted."""
+        s, r = self.n_slots, self.n_regulators
+        return tuple(d for d in itertools.product(range(r + 1), repeat=s)
+                     if self.min_legs <= s - d.count(0) <= self.max_legs)
+
+    @cached_property
+    def canonical_array(self) -> np.ndarray:
+        """The canonical designs as a read-only ``(n, S)`` int8 array, lexicographically sorted
+        (row i = index i)."""
+        raw = np.array(self.raw_designs, dtype=np.int64).reshape(-1, self.n_slots)
+        arr = raw[np.all(self._canonical_rows(raw) == raw, axis=1)].astype(np.int8)
+        arr.setflags(write=False)
+        return arr
+
+    @cached_property
+    def canonical_designs(self) -> tuple[Design, ...]:
+        """All canonical designs (6,972 for the paper's space), lexicographically sorted."""
+        return tuple(map(tuple, self.canonical_array.tolist()))
+
+    @cached_property
+    def _index_map(self) -> dict[Design, int]:
+        return {d: i for i, d in enumerate(self.canonical_designs)}
+
+    def design_index(self, d: Sequence[int] | str) -> int:
+        """Index of ``canonicalize(d)`` in :attr:`canonical_designs`.
+
+        Raises:
+            InvalidDesignError: if ``d`` is not a valid design.
+        """
+        return self._index_map[self.canonicalize(d)]
+
+    def design_from_index(self, i: int) -> Design:
+        """The canonical design with index ``i`` (``0 <= i < len(canonical_designs)``).
+
+        Raises:
+            IndexError: if ``i`` is out of range (negative indices are rejected too).
+        """
+        designs = self.canonical_designs
+        if not 0 <= int(i) < len(designs):
+            raise IndexError(f"design index {i} out of range [0, {len(designs)})")
+        return designs[int(i)]
+
+    def one_hot_batch(self, designs: Iterable[Sequence[int] | str] | np.ndarray) -> np.ndarray:
+        """One-hot codes, ``(n, S * (R + 1))`` float32: ``S`` slot-major blocks of length
+        ``R + 1`` (value 0..R). Designs are encoded as given (not canonicalised).
+
+        Raises:
+            InvalidDesignError: if any design is invalid.
+        """
+        s, r = self.n_slots, self.n_regulators
+        if isinstance(designs, np.ndarray) and designs.ndim == 2:
+            designs = designs.tolist()
+        rows = np.array([self.validate_design(d) for d in designs], dtype=np.int64).reshape(-1, s)
+        out = np.zeros((len(rows), s, r + 1), dtype=np.float32)
+        out[np.arange(len(rows))[:, None], np.arange(s)[None, :], rows] = 1.0
+        return out.reshape(len(rows), s * (r + 1))
+
+    def _canonical_rows(self, rows: np.ndarray) -> np.ndarray:
+        """Canonical forms of valid designs ``rows`` ``(n, S)`` int, ``(n, S)``."""
+        out = _relabel_rows(rows, self.n_regulators)
+        if self.mirror_x:
+            out = _lex_min(out, _relabel_rows(rows[:, self.mirror_permutation], self.n_regulators))
+        return out
+
+
+def _relabel_rows(rows: np.ndarray, n_regulators: int) -> np.ndarray:
+    """Regulators of each row ``(n, S)`` relabelled by order of first appearance, ``(n, S)``."""
+    n, s = rows.shape
+    labels = np.arange(1, n_regulators + 1)
+    present = rows[:, :, None] == labels  # (n, S, R)
+    first = np.where(present, np.arange(s)[None, :, None], s).min(axis=1)  # (n, R); S if absent
+    rank = np.argsort(np.argsort(first, axis=1, kind="stable"), axis=1, kind="stable")
+    mapping = np.zeros((n, n_regulators + 1), dtype=rows.dtype)
+    mapping[:, 1:] = rank + 1
+    return np.take_along_axis(mapping, rows, axis=1)
+
+
+def _lex_min(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise lexicographic minimum of ``a`` and ``b`` ``(n, S)``."""
+    differ = a != b
+    first = np.where(differ.any(axis=1), differ.argmax(axis=1), 0)
+    rows = np.arange(len(a))
+    take_b = differ.any(axis=1) & (b[rows, first] < a[rows, first])
+    return np.where(take_b[:, None], b, a)
+
+
+def _raw_count(s: int, r: int, lo: int, hi: int) -> int:
+    return sum(math.comb(s, k) * r**k for k in range(lo, hi + 1))
+
+
+def _as_int(v: object) -> int | None:
+    """``v`` as an int if it is an integer (int, numpy integer, integral float, digit string)."""
+    if isinstance(v, (bool, np.bool_)):
+        return None
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return int(v) if float(v).is_integer() else None
+    if isinstance(v, str):
+        try:
+            return int(v)
+        except ValueError:
+            return None
+    return None
+
+
+# ---------------------------------------------------------------------- reading a file
+_TOP_KEYS = ("name", "description", "body", "slots", "design", "actuator")
+_BODY_KEYS = tuple(f"{k}_mm" for k in DISK_KEYS) + ("mesh_size_mm", "mass_kg", "material")
+_SLOTS_KEYS = ("count", "first_angle_deg", "angles_deg")
+_DESIGN_KEYS = ("regulators", "min_legs", "max_legs", "mirror_x")
+_ACTUATOR_KEYS = ("mesh_size_mm", "mass_kg", "material", "paper_material", "paper_thickness_mm", "reduction",
+                  "pneunet")
+_PNEUNET_KEYS = ("n_chambers",) + tuple(f"{k}_mm" for k in PNEUNET_KEYS)
+_MATERIAL_KEYS = ("youngs_modulus_kpa", "poisson_ratio")
+
+
+class _Reader:
+    """Checked access to the parsed TOML document of ``path``: every error is one
+    :class:`SpaceFileError` line ``"<path>: <key>: <what is wrong>"``."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def fail(self, key: str, message: str) -> SpaceFileError:
+        return SpaceFileError(f"{self.path}: {key}: {message}")
+
+    def table(self, doc: dict, key: str, where: str, allowed: Sequence[str], required: bool = True) -> dict | None:
+        name = f"{where}.{key}" if where else key
+        if key not in doc:
+            if required:
+                raise self.fail(name, "missing table")
+            return None
+        tbl = doc[key]
+        if not isinstance(tbl, dict):
+            raise self.fail(name, f"must be a table, got {type(tbl).__name__}")
+        self.known(tbl, name, allowed)
+        return tbl
+
+    def known(self, tbl: dict, where: str, allowed: Sequence[str]) -> None:
+        for k in tbl:
+            if k not in allowed:
+                raise self.fail(f"{where}.{k}" if where else k, f"unknown key (allowed: {', '.join(allowed)})")
+
+    def number(self, tbl: dict, key: str, where: str, lo: float = 0.0, hi: float = math.inf,
+               lo_open: bool = True, hi_open: bool = False) -> float:
+        v = self.value(tbl, key, where)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.fail(f"{where}.{key}", f"must be a number, got {v!r}")
+        v = float(v)
+        ok = (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi) and math.isfinite(v)
+        if not ok:
+            interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open or hi == math.inf else ']'}"
+            raise self.fail(f"{where}.{key}", f"must lie in {interval}, got {v:g}")
+        return v
+
+    def integer(self, tbl: dict, key: str, where: str, lo: int) -> int:
+        v = self.value(tbl, key, where)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.fail(f"{where}.{key}", f"must be an integer, got {v!r}")
+        if v < lo:
+            raise self.fail(f"{where}.{key}", f"must be >= {lo}, got {v}")
+        return v
+
+    def text(self, tbl: dict, key: str, where: str, default: str | None = None) -> str | None:
+        if key not in tbl:
+            return default
+        v = tbl[key]
+        if not isinstance(v, str):
+            raise self.fail(f"{where}.{key}" if where else key, f"must be a string, got {v!r}")
+        return v
+
+    def value(self, tbl: dict, key: str, where: str):
+        if key not in tbl:
+            raise self.fail(f"{where}.{key}", "missing")
+        return tbl[key]
+
+    def material(self, tbl: dict, key: str, where: str) -> Material:
+        v = self.value(tbl, key, where)
+        name = f"{where}.{key}"
+        if isinstance(v, str):
+            if v not in KNOWN_MATERIALS:
+                raise self.fail(name, f"unknown material {v!r} (known: {', '.join(KNOWN_MATERIALS)}; or give "
+                                      f"{{ youngs_modulus_kpa = ..., poisson_ratio = ... }})")
+            return Material(v)
+        if not isinstance(v, dict):
+            raise self.fail(name, f"must be a material name or a table, got {v!r}")
+        self.known(v, name, _MATERIAL_KEYS)
+        return Material("", self.number(v, "youngs_modulus_kpa", name),
+                        self.number(v, "poisson_ratio", name, -1.0, 0.5, hi_open=True))
+
+    def dims(self, tbl: dict, where: str, dims: Sequence[str], ints: Sequence[str] = ()) -> tuple:
+        """``(name, value)`` pairs of a part's integer counts and its dimensions ``<name>_mm``."""
+        params = tuple((k, self.integer(tbl, k, where, 1)) for k in ints)
+        params += tuple((k, self.number(tbl, f"{k}_mm", where)) for k in dims)
+        return params
+
+    def slot_angles(self, tbl: dict) -> tuple[float, ...]:
+        count = self.integer(tbl, "count", "slots", 1)
+        if ("angles_deg" in tbl) == ("first_angle_deg" in tbl):
+            raise self.fail("slots", "give exactly one of first_angle_deg (equally spaced) and angles_deg")
+        if "first_angle_deg" in tbl:
+            first = self.number(tbl, "first_angle_deg", "slots", 0.0, 360.0, lo_open=False, hi_open=True)
+            return tuple(first + 360.0 / count * i for i in range(count))
+        angles = tbl["angles_deg"]
+        if not isinstance(angles, list) or len(angles) != count:
+            raise self.fail("slots.angles_deg", f"must be a list of count = {count} angles, got {angles!r}")
+        box = {f"[{i}]": a for i, a in enumerate(angles)}
+        out = tuple(self.number(box, f"[{i}]", "slots.angles_deg", 0.0, 360.0, lo_open=False, hi_open=True)
+                    for i in range(count))
+        gap = np.abs(np.subtract.outer(out, out))
+        gap = np.minimum(gap, 360.0 - gap) + np.eye(count) * 360.0
+        if gap.min() <= ANGLE_TOL_DEG:
+            i, j = np.unravel_index(gap.argmin(), gap.shape)
+            raise self.fail("slots.angles_deg", f"slots {i} and {j} have the same angle {out[i]:g}")
+        return out
+
+    def reduction(self, tbl: dict) -> str | None:
+        ref = self.text(tbl, "reduction", "actuator")
+        if ref is None:
+            return None
+        if ref.startswith(SHIPPED_PREFIX):
+            from softcrawl.reduction.data import default_reduction_path
+
+            path = default_reduction_path().parent / ref[len(SHIPPED_PREFIX):]
+        else:
+            path = self.path.parent / ref
+        if not path.is_file():
+            raise self.fail("actuator.reduction", f"no such file {path}")
+        return str(path)
+
+
+def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
+    """Read a design-space file (format: module docstring) with :func:`softcrawl.safeio.load_toml`.
+
+    Args:
+        path: the TOML file.
+        check_geometry: also check that the PneuNet dimensions fit together
+            (``softcrawl.geometry.pneunet.PneuNetParams``; imports gmsh).
+
+    Returns:
+        The :class:`DesignSpace` (``source`` = the path, ``sha256`` = the file's checksum).
+
+    Raises:
+        FileNotFoundError: no such file.
+        SpaceFileError: (a ValueError) one line naming the file and the key: not a regular
+            file or not TOML, an unknown or missing key, a wrong type, a value out of range, or
+            an inconsistent space (legs and slots, an asymmetric slot set with ``mirror_x``,
+            more than :data:`MAX_RAW_DESIGNS` designs, PneuNet dimensions that do not fit).
+    """
+    path = Path(path)
+    try:
+        data = read_bytes(path)
+        doc = load_toml(path)
+    except FileNotFoundError:
+        raise
+    except ValueError as exc:
+        raise SpaceFileError(" ".join(str(exc).split())) from None
+    r = _Reader(path)
+    r.known(doc, "", _TOP_KEYS)
+    name = r.text(doc, "name", "", default=path.stem)
+    r.text(doc, "description", "")
+    body = r.table(doc, "body", "", _BODY_KEYS)
+    slots = r.table(doc, "slots", "", _SLOTS_KEYS)
+    design = r.table(doc, "design", "", _DESIGN_KEYS)
+    act = r.table(doc, "actuator", "", _ACTUATOR_KEYS)
+    pneu = r.table(act, "pneunet", "actuator", _PNEUNET_KEYS)
+
+    angles = r.slot_angles(slots)
+    regulators = r.integer(design, "regulators", "design", 1)
+    min_legs = r.integer(design, "min_legs", "design", 1)
+    max_legs = r.integer(design, "max_legs", "design", 1)
+    if min_legs > max_legs:
+        raise r.fail("design.min_legs", f"{min_legs} is more than max_legs = {max_legs}")
+    if max_legs > len(angles):
+        raise r.fail("design.max_legs", f"{max_legs} is more than the {len(angles)} slots")
+    mirror = design.get("mirror_x", False)
+    if not isinstance(mirror, bool):
+        raise r.fail("design.mirror_x", f"must be true or false, got {mirror!r}")
+    n_raw = _raw_count(len(angles), regulators, min_legs, max_legs)
+    if n_raw > MAX_RAW_DESIGNS:
+        raise r.fail("design", f"{n_raw} raw designs, more than the {MAX_RAW_DESIGNS} that can be enumerated")
+
+    disk = Part(r.dims(body, "body", DISK_KEYS), r.number(body, "mesh_size_mm", "body"),
+                r.number(body, "mass_kg", "body"), r.material(body, "material", "body"))
+    leg = Part(r.dims(pneu, "actuator.pneunet", PNEUNET_KEYS, ints=("n_chambers",)),
+               r.number(act, "mesh_size_mm", "actuator"), r.number(act, "mass_kg", "actuator"),
+               r.material(act, "material", "actuator"))
+    try:
+        space = DesignSpace(angles, regulators, min_legs, max_legs, disk, leg,
+                            r.material(act, "paper_material", "actuator"),
+                            r.number(act, "paper_thickness_mm", "actuator"), mirror, r.reduction(act), name,
+                            str(path), hashlib.sha256(data).hexdigest())
+    except SpaceFileError:
+        raise
+    except ValueError as exc:  # the mirror permutation of an asymmetric slot set
+        raise r.fail("design.mirror_x", str(exc)) from None
+    if check_geometry:
+        from softcrawl.geometry.pneunet import PneuNetParams
+
+        try:
+            PneuNetParams(**dict(leg.params), mesh_size=leg.mesh_size)
+        except ValueError as exc:
+            msg = str(exc).split(": PneuNetParams(")[0]
+            raise r.fail("actuator.pneunet", msg) from None
+    return space
+
+
+def shipped_space_path(name: str) -> Path:
+    """Path of a shipped space file (``"paper"``, ``"hex6"``).
+
+    Raises:
+        FileNotFoundError: no shipped space of that name.
+    """
+    path = SPACES_DIR / f"{name}.toml"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in SPACES_DIR.glob("*.toml")))
+        raise FileNotFoundError(f"no shipped design space {name!r} (shipped: {known})")
+    return path
