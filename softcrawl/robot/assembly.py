@@ -10,10 +10,12 @@ then shifted vertically so that its lowest node sits ``FLOOR_CLEARANCE`` above t
 of the corner node and its one-ring: ``RobotConfig.attachment_patch``).
 
 Bodies: index 0 is the disk, then one leg per occupied slot in slot order. Channels:
-regulator ``k`` drives model channel ``k - 1``. The model always has
-``N_REGULATORS = 3`` channels (``Model(channels=3)``), even if a design leaves a
-regulator unused, so a ``Control`` always holds one pressure per regulator (see
-:meth:`Robot.control`).
+regulator ``k`` drives model channel ``k - 1``. The model always has one channel per
+regulator of the design space (3 in the paper's: ``Model(channels=3)``), even if a design
+leaves a regulator unused, so a ``Control`` always holds one pressure per regulator (see
+:meth:`Robot.control`). The slots, the parts' geometry and their materials come from the
+design space (:class:`softcrawl.design.spacefile.DesignSpace`; default the paper's, whose
+leg gives the 52 and 4 mm above).
 """
 
 from __future__ import annotations
@@ -25,15 +27,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from softcrawl.design.space import (
-    N_REGULATORS,
-    N_SLOTS,
-    SLOT_ANGLES_DEG,
-    Design,
-    validate_design,
-)
+from softcrawl.design.space import DEFAULT_SPACE, N_REGULATORS, Design
+from softcrawl.design.spacefile import DesignSpace, Material
 from softcrawl.fem.body import Body, Cavity, Membrane
-from softcrawl.fem.materials import DRAGONSKIN_30, PAPER, PRINTED_POLYMER
+from softcrawl.fem.materials import DRAGONSKIN_30, PAPER, PRINTED_POLYMER, LinearElastic
 from softcrawl.fem.model import Attachment, Floor, Model, PointRef, embed_point
 from softcrawl.fem.solver import CONTACT_MAX_ITERATIONS, RID_DTYPES, ImplicitEulerSolver, SolverSettings
 from softcrawl.fem.state import Control
@@ -54,6 +51,8 @@ LEG_RADIAL_OFFSET = 50.0
 LEG_BASE_THICKNESS = 4.0
 #: Gap between the robot's lowest node and the floor after placement, mm.
 FLOOR_CLEARANCE = 0.01
+#: The materials a space file may name (:data:`softcrawl.design.spacefile.KNOWN_MATERIALS`).
+NAMED_MATERIALS = {"dragonskin30": DRAGONSKIN_30, "paper": PAPER, "printed_polymer": PRINTED_POLYMER}
 
 
 MODELS = ("full", "reduced")
@@ -156,6 +155,19 @@ class RobotConfig:
     reduction: str | None = None
     reduced_disk: str = "floating"
 
+    @classmethod
+    def for_space(cls, space: DesignSpace, **settings) -> RobotConfig:
+        """The settings of a space's robots: its parts' default mesh sizes and masses
+        (``leg_mesh_size``, ``disk_mesh_size``, ``leg_mass``, ``disk_mass``), then ``settings``
+        (any field, those four included). ``for_space(DEFAULT_SPACE) == RobotConfig()``.
+
+        Raises:
+            ValueError: as the constructor; TypeError for an unknown setting.
+        """
+        own = {"leg_mesh_size": space.leg.mesh_size, "disk_mesh_size": space.disk.mesh_size,
+               "leg_mass": space.leg.mass, "disk_mass": space.disk.mass}
+        return cls(**{**own, **settings})
+
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"RobotConfig.model must be one of {MODELS}, got {self.model!r}")
@@ -186,7 +198,7 @@ class LegSlot:
 
     Attributes:
         body: index of the leg's body in the model.
-        slot: slot index 0..7.
+        slot: slot index (0..7 in the paper's space).
         angle_deg: slot angle about +z from +x, degrees.
         regulator: pressure regulator driving the leg (1..3 in a design; ``channel + 1``).
         channel: model pressure channel (``regulator - 1``).
@@ -207,14 +219,16 @@ class Robot:
     """An assembled crawler: the FEM model plus what the episode runner needs to know.
 
     Attributes:
-        model: the full-order model (disk = body 0, then legs; 3 pressure channels).
-        design: the 8-slot design tuple.
+        model: the full-order model (disk = body 0, then legs; one pressure channel per
+            regulator of the space).
+        design: the design tuple (one value per slot of the space).
         config: the settings it was built with.
         legs: one :class:`LegSlot` per leg, in slot order.
         reward_node: global node index (into ``State.x``) of the disk's top-centre node.
         disk_body: index of the disk body (0).
         reduced: body index -> :class:`ReducedBody` (POD + ECSW) or
             :class:`FloatingFrameBody` for reduced bodies (empty: full-order).
+        space: the design space it belongs to (slots, regulators, parts).
     """
 
     model: Model
@@ -224,6 +238,7 @@ class Robot:
     reward_node: int
     disk_body: int = 0
     reduced: Mapping[int, ReducedBody | FloatingFrameBody] = field(default_factory=dict)
+    space: DesignSpace = DEFAULT_SPACE
 
     @property
     def leg_bodies(self) -> tuple[int, ...]:
@@ -232,8 +247,8 @@ class Robot:
 
     @property
     def regulator_channels(self) -> dict[int, int]:
-        """Regulator (1..3) -> model pressure channel (``regulator - 1``), all 3 regulators."""
-        return {k: self.channel_of(k) for k in range(1, N_REGULATORS + 1)}
+        """Regulator (1..R) -> model pressure channel (``regulator - 1``), every regulator of the space."""
+        return {k: k - 1 for k in range(1, self.space.n_regulators + 1)}
 
     @staticmethod
     def channel_of(regulator: int) -> int:
@@ -287,48 +302,53 @@ def _rot_z(deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def leg_transform(angle_deg: float, tilt_deg: float = TILT_DEG) -> tuple[np.ndarray, np.ndarray]:
+def leg_transform(angle_deg: float, tilt_deg: float = TILT_DEG, half_block: float = LEG_HALF_BLOCK,
+                  base_thickness: float = LEG_BASE_THICKNESS) -> tuple[np.ndarray, np.ndarray]:
     """Rigid placement ``p -> R p + t`` of a leg-local point into a slot (before the floor shift).
 
     Args:
         angle_deg: slot angle about +z, degrees.
         tilt_deg: tilt about +y, degrees (+15: the outer tip dips down).
+        half_block: half the PneuNet's chambered-block length ``h``, mm (52 for the paper's leg).
+        base_thickness: the PneuNet's base slab thickness ``b``, mm (4 for the paper's leg).
 
     Returns:
         ``(R (3, 3), t (3,) mm)``: ``R = R_z(angle) R_y(tilt)``,
-        ``t = R_z(angle) (52 cos(tilt) + 50, 0, 52 sin(tilt) - 4)``.
+        ``t = R_z(angle) (h cos(tilt) + 50, 0, h sin(tilt) - b)`` (physics.md, "Geometry").
     """
     a = math.radians(tilt_deg)
-    offset = np.array(
-        [LEG_HALF_BLOCK * math.cos(a) + LEG_RADIAL_OFFSET, 0.0, LEG_HALF_BLOCK * math.sin(a) - LEG_BASE_THICKNESS]
-    )
+    offset = np.array([half_block * math.cos(a) + LEG_RADIAL_OFFSET, 0.0, half_block * math.sin(a) - base_thickness])
     rz = _rot_z(angle_deg)
     return rz @ _rot_y(tilt_deg), rz @ offset
 
 
 def build_robot(design, config: RobotConfig = RobotConfig(), leg_mesh: TetMesh | None = None,
-                disk_mesh_local: TetMesh | None = None) -> Robot:
+                disk_mesh_local: TetMesh | None = None, space: DesignSpace = DEFAULT_SPACE) -> Robot:
     """Assemble the model of a design (reduced if ``config.model == "reduced"``).
 
     Args:
-        design: 8 slot values in {0..3} (sequence or string such as ``"1,0,0,2,2,0,0,1"``).
-        config: model settings.
+        design: one value per slot of ``space``, 0 or a regulator (paper's space: 8 values in
+            {0..3}; a sequence or a string such as ``"1,0,0,2,2,0,0,1"``).
+        config: model settings (for a space other than the paper's, build it with
+            :meth:`RobotConfig.for_space` to get the space's masses and mesh sizes).
         leg_mesh: the PneuNet mesh in leg-local coordinates (default: meshed by gmsh at
             ``config.leg_mesh_size``; a reduced model always uses its reduction's mesh).
         disk_mesh_local: the unplaced disk mesh (default: gmsh at ``config.disk_mesh_size``,
             or the reduction's disk mesh).
+        space: the design space: slots, regulators, the disk's and the legs' geometry and materials.
 
     Returns:
         The :class:`Robot` (disk = body 0, legs in slot order, ``4 * n_legs`` attachments,
-        3 channels; lowest node at ``z = FLOOR_CLEARANCE`` above the floor at ``z = 0``).
+        one channel per regulator of the space; lowest node at ``z = FLOOR_CLEARANCE`` above
+        the floor at ``z = 0``).
 
     Raises:
         InvalidDesignError: if the design is invalid.
         ValueError: for invalid settings; MeshError if meshing fails.
     """
-    design = validate_design(design)
-    legs = [(slot, Robot.channel_of(reg)) for slot, reg in enumerate(design) if reg]
-    return assemble_robot(legs, config, N_REGULATORS, design, leg_mesh, disk_mesh_local)
+    design = space.validate_design(design)
+    legs = [(slot, reg - 1) for slot, reg in enumerate(design) if reg]
+    return assemble_robot(legs, config, space.n_regulators, design, leg_mesh, disk_mesh_local, space)
 
 
 def reduce_robot(robot: Robot, reduction: RobotReduction) -> Robot:
@@ -351,53 +371,58 @@ def reduce_robot(robot: Robot, reduction: RobotReduction) -> Robot:
 
 def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotConfig(), n_channels: int | None = None,
                    design: Design | None = None, leg_mesh: TetMesh | None = None,
-                   disk_mesh_local: TetMesh | None = None) -> Robot:
+                   disk_mesh_local: TetMesh | None = None, space: DesignSpace = DEFAULT_SPACE) -> Robot:
     """Assemble a disk with legs in any slots on any pressure channels (no design-space rules).
 
     Used by :func:`build_robot` and, for training and validating reductions, for robots
     outside the design space (one or two legs, one channel per leg).
 
     Args:
-        legs: ``(slot 0..7, channel)`` per leg, slots distinct.
+        legs: ``(slot, channel)`` per leg, slots distinct slots of ``space``.
         config: model settings.
         n_channels: pressure channels of the model (default: one more than the highest used).
         design: the design tuple recorded in the robot (default: slot -> channel + 1).
         leg_mesh: the leg-local PneuNet mesh (default: gmsh at ``config.leg_mesh_size``).
         disk_mesh_local: the unplaced disk mesh (default: gmsh at ``config.disk_mesh_size``).
             A reduced model always uses its reduction's meshes.
+        space: slot angles, the parts' geometry (mesh sizes from ``config``) and materials,
+            and the reduction a reduced model uses when ``config.reduction`` is None.
 
     Raises:
-        ValueError: a slot outside 0..7 or repeated, a negative channel, no legs.
+        ValueError: a slot outside the space's or repeated, a negative channel, no legs; a
+            reduced model of a space that names no reduction, or whose reduction's leg is
+            not the space's PneuNet.
     """
     reduction = None
     if config.model == "reduced":
-        from softcrawl.reduction.artifact import load_reduction
-        from softcrawl.reduction.data import default_reduction_path
-
-        reduction, _ = load_reduction(config.reduction or default_reduction_path(), expect=dataclasses.asdict(config))
+        reduction = _space_reduction(space, config)
         leg_mesh = reduction.leg.mesh
         if reduction.disk is not None:
             disk_mesh_local = reduction.disk.mesh
     legs = sorted((int(s), int(c)) for s, c in legs)
     slots_used = [s for s, _ in legs]
-    if not legs or len(set(slots_used)) != len(legs) or not all(0 <= s < N_SLOTS for s in slots_used):
-        raise ValueError(f"legs need distinct slots in 0..{N_SLOTS - 1}, got {slots_used}")
+    if not legs or len(set(slots_used)) != len(legs) or not all(0 <= s < space.n_slots for s in slots_used):
+        raise ValueError(f"legs need distinct slots in 0..{space.n_slots - 1}, got {slots_used}")
     if min(c for _, c in legs) < 0:
         raise ValueError(f"pressure channels must be >= 0, got {[c for _, c in legs]}")
     if design is None:
-        design = tuple(dict(legs).get(s, -1) + 1 for s in range(N_SLOTS))
-    leg_local = leg_mesh if leg_mesh is not None else pneunet_mesh(PneuNetParams(mesh_size=config.leg_mesh_size))
+        design = tuple(dict(legs).get(s, -1) + 1 for s in range(space.n_slots))
+    leg_params = pneunet_params(space, config.leg_mesh_size)
+    leg_local = leg_mesh if leg_mesh is not None else pneunet_mesh(leg_params)
     disk_local = disk_mesh_local if disk_mesh_local is not None else disk_mesh(
-        DiskParams(mesh_size=config.disk_mesh_size))
-    lift = 2 * LEG_HALF_BLOCK * math.sin(math.radians(config.tilt_deg))
+        DiskParams(**dict(space.disk.params), mesh_size=config.disk_mesh_size))
+    half_block = leg_params.block_length / 2
+    lift = 2 * half_block * math.sin(math.radians(config.tilt_deg))
+    angles = space.slot_angles_deg
 
     parts = [(disk_local, np.eye(3), np.array([0.0, 0.0, lift]))]
-    parts += [(leg_local, *leg_transform(SLOT_ANGLES_DEG[slot], config.tilt_deg)) for slot, _ in legs]
+    parts += [(leg_local, *leg_transform(angles[slot], config.tilt_deg, half_block, leg_params.base_thickness))
+              for slot, _ in legs]
     z_min = min(float((m.points @ R.T + t)[:, 2].min()) for m, R, t in parts)
     shift = np.array([0.0, 0.0, FLOOR_CLEARANCE - z_min])
     disk, *leg_meshes = [m.transformed(R, t + shift) for m, R, t in parts]
 
-    disk_body = Body(disk, PRINTED_POLYMER, config.disk_mass, mass_lumping=config.mass_lumping, name="disk")
+    disk_body = Body(disk, material(space.disk.material), config.disk_mass, mass_lumping=config.mass_lumping, name="disk")
     leg_collision = None  # the mesh's own collision nodes
     if config.leg_collision_spacing:  # the same local nodes in every leg (legs share one reduced part)
         leg_collision = spaced_nodes(leg_local.points, collision_nodes(leg_local), config.leg_collision_spacing)
@@ -405,12 +430,12 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
     for (slot, channel), mesh, (_, R, _) in zip(legs, leg_meshes, parts[1:]):
         index = len(bodies)
         bodies.append(Body(
-            mesh, DRAGONSKIN_30, config.leg_mass, mass_lumping=config.mass_lumping,
-            membrane=Membrane(mesh.surfaces["paper"], PAPER, 1.0),
+            mesh, material(space.leg.material), config.leg_mass, mass_lumping=config.mass_lumping,
+            membrane=Membrane(mesh.surfaces["paper"], material(space.paper_material), space.paper_thickness),
             cavities=(Cavity(mesh.surfaces["cavity"], channel=channel),),
             collision_nodes=leg_collision, name=f"leg{slot}",
         ))
-        leg_slots.append(LegSlot(index, slot, SLOT_ANGLES_DEG[slot], channel + 1, channel, R))
+        leg_slots.append(LegSlot(index, slot, angles[slot], channel + 1, channel, R))
         for node in mesh.node_sets["attachment"]:
             patch = (np.unique(mesh.tets[np.any(mesh.tets == node, axis=1)])
                      if config.attachment_patch == "ring" else np.array([node]))
@@ -426,5 +451,44 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
         channels=n_channels,
     )
     reward_node = int(model.node_offsets[0] + disk.node_sets["top_centre"][0])
-    robot = Robot(model, tuple(design), config, tuple(leg_slots), reward_node)
+    robot = Robot(model, tuple(design), config, tuple(leg_slots), reward_node, space=space)
     return reduce_robot(robot, reduction) if reduction is not None else robot
+
+
+def material(m: Material) -> LinearElastic:
+    """The FEM material of a space file's material: the named constant of
+    :mod:`softcrawl.fem.materials` (:data:`NAMED_MATERIALS`), or one built from its E (kPa) and nu."""
+    return NAMED_MATERIALS[m.name] if m.name else LinearElastic(m.youngs_modulus_kpa, m.poisson_ratio)
+
+
+def pneunet_params(space: DesignSpace, mesh_size: float) -> PneuNetParams:
+    """The space's PneuNet dimensions with tet size ``mesh_size`` (mm).
+
+    Raises:
+        ValueError: the dimensions do not fit together (:class:`PneuNetParams`).
+    """
+    return PneuNetParams(**dict(space.leg.params), mesh_size=mesh_size)
+
+
+def _space_reduction(space: DesignSpace, config: RobotConfig) -> RobotReduction:
+    """The reduction of a reduced model: ``config.reduction``, else the space's.
+
+    Raises:
+        ValueError: the space names none, the file does not match ``config``
+            (:func:`softcrawl.reduction.artifact.load_reduction`), or its leg was built for
+            other PneuNet dimensions than the space's.
+    """
+    from softcrawl.reduction.artifact import load_reduction
+
+    path = config.reduction or space.reduction
+    if path is None:
+        raise ValueError(f"the design space {space.name!r} names no reduction for a reduced model: build one with "
+                         f"softcrawl reduce build --space {space.source or 'FILE'} and name it in the space file")
+    reduction, _ = load_reduction(path, expect=dataclasses.asdict(config))
+    want = dataclasses.asdict(pneunet_params(space, config.leg_mesh_size))
+    have = reduction.leg.mesh.params
+    wrong = sorted(k for k in want if k != "mesh_size" and k in have and have[k] != want[k])
+    if wrong:
+        raise ValueError(f"reduction {path} was built for another PneuNet than the space {space.name!r}'s "
+                         f"({', '.join(f'{k}: {have[k]} != {want[k]}' for k in wrong)})")
+    return reduction
