@@ -1,0 +1,259 @@
+"""Design spaces read from TOML files: the shipped paper space equals the old constants, the
+algebra of other spaces (hand-counted, mirror symmetry), every malformed-file error, the
+6-slot example's robot, and ``softcrawl designs --space``."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softcrawl import cli
+from softcrawl.design import space as default
+from softcrawl.design.spacefile import (
+    InvalidDesignError,
+    SpaceFileError,
+    load_space,
+    shipped_space_path,
+)
+from softcrawl.fem.materials import DRAGONSKIN_30, PAPER, PRINTED_POLYMER
+from softcrawl.geometry.disk import DiskParams
+from softcrawl.geometry.pneunet import PneuNetParams
+from softcrawl.reduction.data import default_reduction_path
+from softcrawl.robot.assembly import RobotConfig, build_robot, material, pneunet_params
+
+PAPER_TOML = shipped_space_path("paper")
+HEX6_TOML = shipped_space_path("hex6")
+
+
+def _small(tmp_path: Path, mirror: bool, angles: str = "first_angle_deg = 45.0") -> Path:
+    """A 4-slot space (45, 135, 225, 315 deg), 2 regulators, 1..2 legs (the paper's parts)."""
+    text = PAPER_TOML.read_text()
+    text = text.replace("count = 8\nfirst_angle_deg = 22.5", f"count = 4\n{angles}")
+    text = text.replace("regulators = 3\nmin_legs = 3\nmax_legs = 6\nmirror_x = false",
+                        f"regulators = 2\nmin_legs = 1\nmax_legs = 2\nmirror_x = {str(mirror).lower()}")
+    path = tmp_path / "small.toml"
+    path.write_text(text)
+    return path
+
+
+# ---------------------------------------------------------------------- the paper's space
+def test_default_space_is_the_shipped_file_with_the_old_constants():
+    space = load_space(PAPER_TOML)  # with the PneuNet geometry check
+    assert space == default.DEFAULT_SPACE
+    assert space.slot_angles_deg == tuple(22.5 + 45.0 * i for i in range(8)) == default.SLOT_ANGLES_DEG
+    assert (space.n_slots, space.n_regulators, space.min_legs, space.max_legs) == (8, 3, 3, 6)
+    assert not space.mirror_x and space.one_hot_size == 32
+    assert space.n_raw_designs == len(space.raw_designs) == 41_202
+    assert len(space.canonical_designs) == 6_972
+    assert space.canonical_designs == default.canonical_designs() and default.canonical_designs() is default.canonical_designs()
+    assert re.fullmatch(r"[0-9a-f]{64}", space.sha256) and space.source == str(PAPER_TOML)
+
+
+def test_default_space_parts_are_the_robots_defaults():
+    space = default.DEFAULT_SPACE
+    assert RobotConfig.for_space(space) == RobotConfig()
+    assert pneunet_params(space, 6.0) == PneuNetParams(mesh_size=6.0)
+    assert DiskParams(**dict(space.disk.params), mesh_size=space.disk.mesh_size) == DiskParams()
+    assert material(space.leg.material) is DRAGONSKIN_30 and material(space.paper_material) is PAPER
+    assert material(space.disk.material) is PRINTED_POLYMER and space.paper_thickness == 1.0
+    assert Path(space.reduction) == default_reduction_path()
+
+
+def test_default_algebra_on_all_raw_designs():
+    """The vectorised canonical form equals the first-appearance relabelling of the old
+    module, on every raw design (an independent loop)."""
+    space = default.DEFAULT_SPACE
+    rows = np.array(space.raw_designs)
+    canon = space._canonical_rows(rows)
+    for d, c in zip(space.raw_designs, canon.tolist()):
+        relabel = {0: 0}
+        for v in d:
+            relabel.setdefault(v, len(relabel))
+        assert tuple(c) == tuple(relabel[v] for v in d)
+
+
+# ---------------------------------------------------------------------- other spaces
+def test_small_space_hand_counted(tmp_path):
+    """4 slots at 45, 135, 225, 315 deg, 2 regulators, 1..2 legs.
+
+    Raw: 1 leg: 4 slots x 2 regulators = 8; 2 legs: C(4,2) = 6 slot pairs x 2^2 = 24; 32 in all.
+    Canonical (relabelling only): 1 leg: 4 (the leg on regulator 1); 2 legs: 6 pairs x
+    {same regulator (1,1), different (1,2)} = 12; 16 in all.
+    With mirror symmetry (45 <-> 315: slots 0 <-> 3, 135 <-> 225: 1 <-> 2): 1 leg: slot orbits
+    {0,3}, {1,2}: 2; 2 legs: pair orbits {01,23}, {02,13}, {03}, {12} = 4, each with the legs
+    on the same or on different regulators (for {03} and {12} the mirror swaps the two legs,
+    which a relabelling undoes): 8; 10 in all.
+    """
+    plain = load_space(_small(tmp_path, mirror=False))
+    assert plain.n_raw_designs == len(plain.raw_designs) == 32
+    assert len(plain.canonical_designs) == 16
+    assert plain.one_hot_size == 12
+    mirrored = load_space(_small(tmp_path, mirror=True))
+    assert len(mirrored.raw_designs) == 32 and len(mirrored.canonical_designs) == 10
+    assert mirrored.mirror_permutation.tolist() == [3, 2, 1, 0]
+    assert mirrored.canonicalize((2, 0, 0, 0)) == (0, 0, 0, 1)  # slot 0 mirrored to slot 3, relabelled
+    assert mirrored.canonicalize((1, 0, 2, 0)) == (0, 1, 0, 2)  # {0,2} -> {3,1}, relabelled
+    assert plain.canonicalize((2, 0, 0, 0)) == (1, 0, 0, 0)
+
+
+def _orbit_representatives(space) -> set:
+    """Canonical forms by brute force: the smallest design over all regulator permutations
+    (and the mirror), independent of the vectorised code."""
+    perms = list(itertools.permutations(range(1, space.n_regulators + 1)))
+    flips = [np.arange(space.n_slots)] + ([space.mirror_permutation] if space.mirror_x else [])
+    out = set()
+    for d in space.raw_designs:
+        images = [tuple(([0, *p])[d[i]] for i in flip) for p in perms for flip in flips]
+        out.add(min(images))
+    return out
+
+
+def test_hex6_example_counts_match_brute_force():
+    space = load_space(HEX6_TOML)
+    assert (space.n_slots, space.n_regulators, space.min_legs, space.max_legs, space.mirror_x) == (6, 2, 2, 4, True)
+    assert space.slot_angles_deg == (30.0, 90.0, 150.0, 210.0, 270.0, 330.0)
+    assert len(space.raw_designs) == 460  # C(6,2) 4 + C(6,3) 8 + C(6,4) 16
+    assert set(space.canonical_designs) == _orbit_representatives(space)
+    assert len(space.canonical_designs) == 124
+    unmirrored = dataclasses.replace(space, mirror_x=False)
+    assert len(unmirrored.canonical_designs) == 230  # per k legs C(6,k) 2^(k-1): 30 + 80 + 120
+    assert set(unmirrored.canonical_designs) == _orbit_representatives(unmirrored)
+    assert space.one_hot_batch([(1, 0, 2, 0, 0, 0)]).shape == (1, 18)
+    assert space.design_index((0, 0, 0, 0, 2, 2)) == 0
+    with pytest.raises(InvalidDesignError, match="not in"):
+        space.validate_design((3, 0, 1, 0, 0, 0))
+
+
+def test_mirror_of_an_asymmetric_slot_set_is_refused(tmp_path):
+    path = _small(tmp_path, mirror=True, angles="angles_deg = [0.0, 100.0, 200.0, 300.0]")
+    with pytest.raises(SpaceFileError, match=r"design\.mirror_x: mirror symmetry needs the slot at 260 deg"):
+        load_space(path)
+
+
+# ---------------------------------------------------------------------- malformed files
+MALFORMED = [
+    ("count = 8\n", "count = 8\ncolour = 1\n", r"slots\.colour: unknown key"),
+    ('name = "paper"', 'name = "paper"\nextra = 1', r"extra: unknown key"),
+    ("regulators = 3", "regulators = 0", r"design\.regulators: must be >= 1"),
+    ("regulators = 3", "regulators = 2.5", r"design\.regulators: must be an integer"),
+    ("min_legs = 3", "min_legs = 7", r"design\.min_legs: 7 is more than max_legs = 6"),
+    ("max_legs = 6", "max_legs = 9", r"design\.max_legs: 9 is more than the 8 slots"),
+    ("mirror_x = false", 'mirror_x = "no"', r"design\.mirror_x: must be true or false"),
+    ("first_angle_deg = 22.5", "first_angle_deg = 360.0", r"slots\.first_angle_deg: must lie in \[0, 360\)"),
+    ("first_angle_deg = 22.5", "angles_deg = [0.0, 45.0]", r"slots\.angles_deg: must be a list of count = 8"),
+    ("first_angle_deg = 22.5", "angles_deg = [0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 360.0]",
+     r"slots\.angles_deg\.\[7\]: must lie in \[0, 360\)"),
+    ("first_angle_deg = 22.5", "angles_deg = [0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 45.0]",
+     r"slots\.angles_deg: slots 1 and 7 have the same angle 45"),
+    ("first_angle_deg = 22.5", "first_angle_deg = 22.5\nangles_deg = []", r"slots: give exactly one of"),
+    ("mass_kg = 0.075", "mass_kg = -1.0", r"body\.mass_kg: must lie in \(0, inf\)"),
+    ("height_mm = 18.0\n", "", r"body\.height_mm: missing"),
+    ('material = "printed_polymer"', 'material = "steel"', r"body\.material: unknown material 'steel'"),
+    ('material = "printed_polymer"', "material = { youngs_modulus_kpa = 5000.0, poisson_ratio = 0.5 }",
+     r"body\.material\.poisson_ratio: must lie in \(-1, 0\.5\)"),
+    ('material = "printed_polymer"', "material = { youngs_modulus_kpa = 5000.0, density = 1.0 }",
+     r"body\.material\.density: unknown key"),
+    ("n_chambers = 9", "n_chambers = 0", r"actuator\.pneunet\.n_chambers: must be >= 1"),
+    ("wall_thickness_mm = 3.0", "wall_thickness_mm = 4.0",
+     r"actuator\.pneunet: chambers must have positive size \(wall_thickness too large\)$"),
+    ("base_length_mm = 115.0", "base_length_mm = 100.0",
+     r"actuator\.pneunet: base must be at least as long and wide as the block$"),
+    ('reduction = "softcrawl:pneunet_6mm.npz"', 'reduction = "missing.npz"', r"actuator\.reduction: no such file"),
+    ("[actuator.pneunet]", "[actuator.pneunets]", r"actuator\.pneunets: unknown key"),
+    ("[slots]", "[slot]", r"slot: unknown key"),
+    ("count = 8", "count = 8 8", r"TOML"),
+    ("regulators = 3", "regulators = 7", r"design: 4422642 raw designs, more than the 2000000"),
+    ("mass_kg = 0.075", "mass_kg = nan", r"body\.mass_kg: must lie in \(0, inf\), got nan"),
+]
+
+
+@pytest.mark.parametrize("old, new, message", MALFORMED, ids=[m[2][:40] for m in MALFORMED])
+def test_malformed_file_one_line_naming_file_and_key(tmp_path, old, new, message):
+    text = PAPER_TOML.read_text()
+    assert old in text
+    path = tmp_path / "bad.toml"
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(SpaceFileError) as info:
+        load_space(path)
+    msg = str(info.value)
+    assert "\n" not in msg and msg.startswith(str(path)), msg
+    assert re.search(message, msg), msg
+
+
+def test_not_a_regular_file_and_missing_file(tmp_path):
+    with pytest.raises(SpaceFileError, match="regular file"):
+        load_space(tmp_path)
+    with pytest.raises(FileNotFoundError):
+        load_space(tmp_path / "none.toml")
+    with pytest.raises(FileNotFoundError, match="shipped: hex6, paper"):
+        shipped_space_path("octo")
+
+
+# ---------------------------------------------------------------------- robots of a space
+def test_hex6_full_order_robot_builds():
+    """The 6-slot example's robot: 6-chamber legs at the space's angles on 2 channels, and the
+    space's masses. Placement (physics.md, "Geometry", with the leg's half block h = 38.5 mm and
+    base b = 4 mm): the base-top corners (-h, +-10, b) of a leg's inner end, tilted by 15 deg
+    about y and moved by (h cos15 + 50, 0, h sin15 - b), lie at radius 50 + b sin15 and at
+    height 2 h sin15 - b (1 - cos15), i.e. b (1 - cos15) below the disk's bottom face, which
+    is lifted by 2 h sin15 (rounding only: 1e-9 mm)."""
+    space = load_space(HEX6_TOML)
+    config = RobotConfig.for_space(space, leg_mesh_size=12.0, disk_mesh_size=25.0)
+    assert (config.leg_mass, config.disk_mass) == (0.08, 0.075)
+    robot = build_robot("1,0,2,0,1,0", config, space=space)
+    assert robot.model.n_channels == 2 and robot.regulator_channels == {1: 0, 2: 1}
+    assert [(leg.slot, leg.angle_deg, leg.channel) for leg in robot.legs] == [(0, 30.0, 0), (2, 150.0, 1),
+                                                                            (4, 270.0, 0)]
+    leg_params = pneunet_params(space, 12.0)
+    assert robot.model.bodies[1].mesh.params == dataclasses.asdict(leg_params)
+    assert leg_params.n_chambers == 6 and leg_params.block_length == 77.0
+    tilt = np.radians(15.0)
+    disk_bottom = robot.model.bodies[0].mesh.points[:, 2].min()
+    for leg in robot.legs:
+        mesh = robot.model.bodies[leg.body].mesh
+        inner = mesh.points[mesh.node_sets["attachment"][:2]]  # base-top corners of the inner end
+        u = np.array([np.cos(np.radians(leg.angle_deg)), np.sin(np.radians(leg.angle_deg))])
+        assert np.allclose(inner[:, :2] @ u, 50.0 + 4.0 * np.sin(tilt), rtol=0, atol=1e-9)
+        assert np.allclose(inner[:, 2], disk_bottom - 4.0 * (1 - np.cos(tilt)), rtol=0, atol=1e-9)
+    assert min(b.mesh.points[:, 2].min() for b in robot.model.bodies) == pytest.approx(0.01, abs=1e-12)
+    with pytest.raises(InvalidDesignError):
+        build_robot("1,0,0,2,2,0,0,1", config, space=space)
+    with pytest.raises(ValueError, match="names no reduction"):
+        build_robot("1,0,2,0,1,0", dataclasses.replace(config, model="reduced"), space=space)
+
+
+# ---------------------------------------------------------------------- the CLI
+@pytest.fixture
+def designs_cli(monkeypatch):
+    monkeypatch.setattr(cli, "SUBCOMMANDS", ("softcrawl.cli.designs",))
+    return cli.main
+
+
+def test_cli_designs_space(designs_cli, capsys, tmp_path):
+    assert designs_cli(["designs", "count", "--space", str(HEX6_TOML)]) == 0
+    out = capsys.readouterr().out
+    assert "space hex6: 6 slots, 2 regulators, 2..4 legs, mirror about x" in out
+    assert "raw designs:       460" in out and "canonical designs: 124" in out
+    assert designs_cli(["designs", "list", "--space", str(HEX6_TOML), "--legs", "2"]) == 0
+    assert len(capsys.readouterr().out.splitlines()) == 18
+    png = tmp_path / "h.png"
+    assert designs_cli(["designs", "show", "--space", str(HEX6_TOML), "0,2,1,0,0,1", "--png", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "canonical:  0,1,2,0,0,2" in out and "slot 5 at 330 deg: 1" in out and png.exists()
+
+
+def test_cli_designs_bad_space_one_line_writes_nothing(designs_cli, capsys, tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(PAPER_TOML.read_text().replace("max_legs = 6", "max_legs = 9"))
+    before = sorted(tmp_path.iterdir())
+    png = tmp_path / "never.png"
+    assert designs_cli(["designs", "show", "--space", str(bad), "1,0,0,2,2,0,0,1", "--png", str(png)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and len(captured.err.strip().splitlines()) == 1
+    assert "design.max_legs" in captured.err and str(bad) in captured.err
+    assert sorted(tmp_path.iterdir()) == before
