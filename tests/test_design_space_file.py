@@ -68,13 +68,11 @@ def test_default_algebra_on_all_raw_designs():
     """The vectorised canonical form equals the first-appearance relabelling of the old
     module, on every raw design (an independent loop)."""
     space = default.DEFAULT_SPACE
-    rows = np.array(space.raw_designs)
-    canon = space._canonical_rows(rows)
-    for d, c in zip(space.raw_designs, canon.tolist()):
+    for d in space.raw_designs:
         relabel = {0: 0}
         for v in d:
             relabel.setdefault(v, len(relabel))
-        assert tuple(c) == tuple(relabel[v] for v in d)
+        assert space.canonicalize(d) == tuple(relabel[v] for v in d)
 
 
 # ---------------------------------------------------------------------- other spaces
@@ -225,6 +223,20 @@ def test_hex6_full_order_robot_builds():
         build_robot("1,0,0,2,2,0,0,1", config, space=space)
     with pytest.raises(ValueError, match="names no reduction"):
         build_robot("1,0,2,0,1,0", dataclasses.replace(config, model="reduced"), space=space)
+
+
+def test_reduction_of_another_pneunet_is_refused(tmp_path):
+    """The shipped reduction (9 chambers) named by a space of 6-chamber legs: refused when a
+    reduced robot is built, naming the dimensions that differ."""
+    text = HEX6_TOML.read_text().replace("mass_kg = 0.08", "mass_kg = 0.105")  # the reduction's leg mass
+    text = text.replace('paper_thickness_mm = 1.0', 'paper_thickness_mm = 1.0\nreduction = "softcrawl:pneunet_6mm.npz"')
+    path = tmp_path / "hex6_wrong_reduction.toml"
+    path.write_text(text)
+    space = load_space(path)
+    assert Path(space.reduction) == default_reduction_path()
+    config = RobotConfig.for_space(space, model="reduced")
+    with pytest.raises(ValueError, match=r"built for another PneuNet .*base_length: 115\.0 != 88\.0.*n_chambers: 9 != 6"):
+        build_robot("1,0,2,0,1,0", config, space=space)
 
 
 # ---------------------------------------------------------------------- the CLI

@@ -1,7 +1,10 @@
-"""Body design space: 8 leg slots, each empty or driven by one of 3 regulators."""
+"""Body design spaces: leg slots, each empty or driven by one of the regulators. A space is
+read from a TOML file (:mod:`softcrawl.design.spacefile`); the module functions and constants
+here are the paper's space (8 slots, 3 regulators, 3-6 legs: ``spaces/paper.toml``)."""
 
 from softcrawl.design.space import (
     BASELINE_DESIGN,
+    DEFAULT_SPACE,
     MAX_LEGS,
     MIN_LEGS,
     N_REGULATORS,
@@ -23,9 +26,11 @@ from softcrawl.design.space import (
     regulator_groups,
     validate_design,
 )
+from softcrawl.design.spacefile import DesignSpace, SpaceFileError, load_space, shipped_space_path
 
 __all__ = [
     "BASELINE_DESIGN",
+    "DEFAULT_SPACE",
     "MAX_LEGS",
     "MIN_LEGS",
     "N_REGULATORS",
@@ -33,6 +38,7 @@ __all__ = [
     "PAPER_BEST_DESIGN",
     "SLOT_ANGLES_DEG",
     "Design",
+    "DesignSpace",
     "InvalidDesignError",
     "canonical_array",
     "canonical_designs",
@@ -45,5 +51,8 @@ __all__ = [
     "one_hot_batch",
     "raw_designs",
     "regulator_groups",
+    "SpaceFileError",
+    "load_space",
+    "shipped_space_path",
     "validate_design",
 ]

@@ -35,7 +35,8 @@ degrees about +z from +x, Young's moduli kPa)::
     material = "dragonskin30"
     paper_material = "paper"
     paper_thickness_mm = 1.0
-    reduction = "softcrawl:pneunet_6mm.npz"   # optional; a path relative to this file, or a shipped one
+    reduction = "softcrawl:pneunet_6mm.npz"   # optional; a path relative to this file, or softcrawl:NAME
+                                              # for one shipped in softcrawl/reduction/data
     [actuator.pneunet]                 # every PneuNetParams dimension except mesh_size, with _mm
     n_chambers = 9
     base_length_mm = 115.0
@@ -161,7 +162,7 @@ class DesignSpace:
             raise ValueError(f"inconsistent design space: {s} slots, {self.n_regulators} regulators, "
                              f"{self.min_legs}..{self.max_legs} legs")
         if self.mirror_x:
-            self.mirror_permutation  # noqa: B018 -- raises ValueError for an asymmetric slot set
+            _mirror_permutation(self.slot_angles_deg)
 
     # ------------------------------------------------------------------ structure
     @property
@@ -181,17 +182,7 @@ class DesignSpace:
         Raises:
             ValueError: the slot set is not symmetric about the x axis.
         """
-        angles = np.asarray(self.slot_angles_deg)
-        target = np.mod(-angles, 360.0)
-        diff = np.abs(target[:, None] - angles[None, :])
-        diff = np.minimum(diff, 360.0 - diff)
-        perm = diff.argmin(axis=1)
-        bad = diff[np.arange(len(angles)), perm] > ANGLE_TOL_DEG
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"mirror symmetry needs the slot at {-angles[i] % 360:g} deg, the mirror of slot {i} "
-                             f"at {angles[i]:g} deg")
-        return perm
+        return _mirror_permutation(self.slot_angles_deg)
 
     # ------------------------------------------------------------------ single designs
     def validate_design(self, d: Sequence[int] | str) -> Design:
@@ -328,6 +319,24 @@ class DesignSpace:
         if self.mirror_x:
             out = _lex_min(out, _relabel_rows(rows[:, self.mirror_permutation], self.n_regulators))
         return out
+
+
+def _mirror_permutation(angles_deg: Sequence[float]) -> np.ndarray:
+    """``(S,)`` int: the slot at ``-theta`` (mod 360) for each slot at ``theta`` (degrees).
+
+    Raises:
+        ValueError: a slot has no mirror image within :data:`ANGLE_TOL_DEG`.
+    """
+    angles = np.asarray(angles_deg, dtype=float)
+    diff = np.abs(np.mod(-angles, 360.0)[:, None] - angles[None, :])
+    diff = np.minimum(diff, 360.0 - diff)
+    perm = diff.argmin(axis=1)
+    bad = diff[np.arange(len(angles)), perm] > ANGLE_TOL_DEG
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"mirror symmetry needs the slot at {-angles[i] % 360:g} deg, the mirror of slot {i} "
+                         f"at {angles[i]:g} deg")
+    return perm
 
 
 def _relabel_rows(rows: np.ndarray, n_regulators: int) -> np.ndarray:
@@ -486,12 +495,11 @@ class _Reader:
         ref = self.text(tbl, "reduction", "actuator")
         if ref is None:
             return None
-        if ref.startswith(SHIPPED_PREFIX):
+        if ref.startswith(SHIPPED_PREFIX):  # checked when loaded: a missing one must not stop the import
             from softcrawl.reduction.data import default_reduction_path
 
-            path = default_reduction_path().parent / ref[len(SHIPPED_PREFIX):]
-        else:
-            path = self.path.parent / ref
+            return str(default_reduction_path().parent / ref[len(SHIPPED_PREFIX):])
+        path = self.path.parent / ref
         if not path.is_file():
             raise self.fail("actuator.reduction", f"no such file {path}")
         return str(path)
