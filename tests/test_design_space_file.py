@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import pickle
 import re
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from softcrawl.fem.materials import DRAGONSKIN_30, PAPER, PRINTED_POLYMER
 from softcrawl.geometry.disk import DiskParams
 from softcrawl.geometry.pneunet import PneuNetParams
 from softcrawl.reduction.data import default_reduction_path
+from softcrawl.robot import NO_SETTLING, Episode
 from softcrawl.robot.assembly import RobotConfig, build_robot, material, pneunet_params
 
 PAPER_TOML = shipped_space_path("paper")
@@ -52,6 +54,10 @@ def test_default_space_is_the_shipped_file_with_the_old_constants():
     assert len(space.canonical_designs) == 6_972
     assert space.canonical_designs == default.canonical_designs() and default.canonical_designs() is default.canonical_designs()
     assert re.fullmatch(r"[0-9a-f]{64}", space.sha256) and space.source == str(PAPER_TOML)
+    # robots carry their space to worker processes: pickled without the enumerations (~1 kB)
+    copy = pickle.loads(pickle.dumps(space))
+    assert len(pickle.dumps(space)) < 4_000 and copy == space and copy.sha256 == space.sha256
+    assert copy.canonical_designs == space.canonical_designs
 
 
 def test_default_space_parts_are_the_robots_defaults():
@@ -223,6 +229,23 @@ def test_hex6_full_order_robot_builds():
         build_robot("1,0,0,2,2,0,0,1", config, space=space)
     with pytest.raises(ValueError, match="names no reduction"):
         build_robot("1,0,2,0,1,0", dataclasses.replace(config, model="reduced"), space=space)
+
+
+def test_hex6_robot_rests_on_the_floor():
+    """0.5 s at zero pressure on the space's 2 regulators (coarse meshes): no penetration
+    beyond the contact distance, and the floor carries the weight (within 5% as for the
+    paper's robot in test_robot.py; measured 0.14%)."""
+    space = load_space(HEX6_TOML)
+    robot = build_robot("1,0,2,0,1,0", RobotConfig.for_space(space, leg_mesh_size=12.0, disk_mesh_size=25.0),
+                        space=space)
+    ep = Episode(robot, settling=NO_SETTLING)
+    ep.reset()
+    with pytest.raises(ValueError):
+        ep.step(np.zeros(3))
+    for _ in range(50):
+        state = ep.step(np.zeros(2))
+        assert state.x[:, 2].min() > -0.5
+    assert ep.solver.stats.normal_force == pytest.approx(robot.model.total_mass * 9800.0, rel=0.05)
 
 
 def test_reduction_of_another_pneunet_is_refused(tmp_path):

@@ -52,7 +52,7 @@ import hashlib
 import itertools
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 from pathlib import Path
 
@@ -163,6 +163,10 @@ class DesignSpace:
                              f"{self.min_legs}..{self.max_legs} legs")
         if self.mirror_x:
             _mirror_permutation(self.slot_angles_deg)
+
+    def __getstate__(self) -> dict:
+        """Pickled without the cached enumerations (robots carry their space to workers)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
     # ------------------------------------------------------------------ structure
     @property

@@ -28,7 +28,6 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm.auto import tqdm
 
-from softcrawl.design.space import N_REGULATORS
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.fem.state import Control, State
 from softcrawl.robot.actuation import PressureCalibration, RegulatorBank
@@ -115,7 +114,7 @@ def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: St
             projected from them by the next solver), so that an episode started from it is the
             same whether it was computed now or cached.
         state: the start (default: the assembled rest state, mid-air).
-        zero: the zero-pressure control (default ``robot.control(0, 0, 0)``).
+        zero: the zero-pressure control (default: 0 kPa on every channel of ``robot.model``).
 
     Returns:
         The :class:`SettledState` (``at_rest`` False if the cap was reached first).
@@ -128,7 +127,7 @@ def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: St
     own = solver is None
     solver = robot.make_solver() if own else solver
     state = robot.model.rest_state() if state is None else state
-    zero = robot.control(np.zeros(N_REGULATORS)) if zero is None else zero
+    zero = robot.control(np.zeros(robot.model.n_channels)) if zero is None else zero
     speed, calm, steps = float(np.sqrt(np.einsum("ij,ij->i", state.v, state.v).max())), 0, 0
     while steps < cap and calm < hold:
         state = solver.step(state, zero)
@@ -154,7 +153,8 @@ class Episode:
     Attributes:
         state: the current :class:`State` (``t`` = episode time, 0 after :meth:`reset`).
         start: ``(3,)`` disk top-centre position after settling, mm.
-        applied: ``(3,)`` applied real kPa of the regulators after the last step.
+        applied: ``(R,)`` applied real kPa of the robot's ``R`` regulators (3 in the paper's
+            space) after the last step.
         solver: the solver (its ``stats`` describe the last step; None before :meth:`reset`).
         settled: the :class:`SettledState` episodes start from (None before the first reset).
     """
@@ -163,7 +163,7 @@ class Episode:
                  settling: Settling = Settling(), rate_kpa_s: float = 150.0,
                  settled: SettledState | None = None):
         self.robot, self.calibration, self.settling = robot, calibration, settling
-        self.regulators = RegulatorBank(N_REGULATORS, rate_kpa_s)
+        self.regulators = RegulatorBank(robot.model.n_channels, rate_kpa_s)
         self.solver = None  # made by reset()
         self.settled = settled
         self.state: State = robot.model.rest_state()
@@ -195,7 +195,7 @@ class Episode:
         return self.state
 
     def step(self, command: np.ndarray) -> State:
-        """Advance one ``dt`` with regulator commands ``(3,)`` real kPa.
+        """Advance one ``dt`` with regulator commands ``(R,)`` real kPa (one per regulator).
 
         Raises:
             PressureRangeError: a command is non-finite or outside [0, 90] kPa.
@@ -213,7 +213,7 @@ class Episode:
     def next_control(self, command: np.ndarray) -> Control:
         """:meth:`step` without its solver step, for drivers that step many episodes' robots
         together (:mod:`softcrawl.envs.backends.batched`, which then sets :attr:`state`): the regulators
-        advance one ``dt`` with commands ``(3,)`` real kPa; returns that step's solver input.
+        advance one ``dt`` with commands ``(R,)`` real kPa; returns that step's solver input.
 
         Raises:
             PressureRangeError: a command is non-finite or outside [0, 90] kPa.
