@@ -199,13 +199,24 @@ def test_not_a_regular_file_and_missing_file(tmp_path):
 
 
 # ---------------------------------------------------------------------- robots of a space
+def _check_placement(robot, disk_radius: float) -> None:
+    """The base-top corners ``(-h, +-10, b)`` of each leg's inner end (b = 4 mm), tilted by
+    15 deg about y and moved by ``(h cos15 + r, 0, h sin15 - b)`` (physics.md, "Geometry", r =
+    the disk's bottom radius), lie at radius ``r + b sin15`` and ``b (1 - cos15)`` below the
+    disk's bottom face (lifted by ``2 h sin15``); rounding only (1e-9 mm)."""
+    tilt = np.radians(15.0)
+    disk_bottom = robot.model.bodies[0].mesh.points[:, 2].min()
+    for leg in robot.legs:
+        mesh = robot.model.bodies[leg.body].mesh
+        inner = mesh.points[mesh.node_sets["attachment"][:2]]
+        u = np.array([np.cos(np.radians(leg.angle_deg)), np.sin(np.radians(leg.angle_deg))])
+        assert np.allclose(inner[:, :2] @ u, disk_radius + 4.0 * np.sin(tilt), rtol=0, atol=1e-9)
+        assert np.allclose(inner[:, 2], disk_bottom - 4.0 * (1 - np.cos(tilt)), rtol=0, atol=1e-9)
+
+
 def test_hex6_full_order_robot_builds():
-    """The 6-slot example's robot: 6-chamber legs at the space's angles on 2 channels, and the
-    space's masses. Placement (physics.md, "Geometry", with the leg's half block h = 38.5 mm and
-    base b = 4 mm): the base-top corners (-h, +-10, b) of a leg's inner end, tilted by 15 deg
-    about y and moved by (h cos15 + 50, 0, h sin15 - b), lie at radius 50 + b sin15 and at
-    height 2 h sin15 - b (1 - cos15), i.e. b (1 - cos15) below the disk's bottom face, which
-    is lifted by 2 h sin15 (rounding only: 1e-9 mm)."""
+    """The 6-slot example's robot: 6-chamber legs (half block h = 38.5 mm) at the space's
+    angles on 2 channels, placed on the disk's rim, and the space's masses."""
     space = load_space(HEX6_TOML)
     config = RobotConfig.for_space(space, leg_mesh_size=12.0, disk_mesh_size=25.0)
     assert (config.leg_mass, config.disk_mass) == (0.08, 0.075)
@@ -216,19 +227,23 @@ def test_hex6_full_order_robot_builds():
     leg_params = pneunet_params(space, 12.0)
     assert robot.model.bodies[1].mesh.params == dataclasses.asdict(leg_params)
     assert leg_params.n_chambers == 6 and leg_params.block_length == 77.0
-    tilt = np.radians(15.0)
-    disk_bottom = robot.model.bodies[0].mesh.points[:, 2].min()
-    for leg in robot.legs:
-        mesh = robot.model.bodies[leg.body].mesh
-        inner = mesh.points[mesh.node_sets["attachment"][:2]]  # base-top corners of the inner end
-        u = np.array([np.cos(np.radians(leg.angle_deg)), np.sin(np.radians(leg.angle_deg))])
-        assert np.allclose(inner[:, :2] @ u, 50.0 + 4.0 * np.sin(tilt), rtol=0, atol=1e-9)
-        assert np.allclose(inner[:, 2], disk_bottom - 4.0 * (1 - np.cos(tilt)), rtol=0, atol=1e-9)
+    _check_placement(robot, 50.0)
     assert min(b.mesh.points[:, 2].min() for b in robot.model.bodies) == pytest.approx(0.01, abs=1e-12)
     with pytest.raises(InvalidDesignError):
         build_robot("1,0,0,2,2,0,0,1", config, space=space)
     with pytest.raises(ValueError, match="names no reduction"):
         build_robot("1,0,2,0,1,0", dataclasses.replace(config, model="reduced"), space=space)
+
+
+def test_legs_follow_the_disk_radius(tmp_path):
+    path = tmp_path / "wide.toml"
+    path.write_text(PAPER_TOML.read_text().replace("bottom_radius_mm = 50.0\ntop_radius_mm = 54.5",
+                                                   "bottom_radius_mm = 60.0\ntop_radius_mm = 64.5"))
+    space = load_space(path)
+    robot = build_robot(default.BASELINE_DESIGN, RobotConfig.for_space(space, leg_mesh_size=12.0,
+                                                                       disk_mesh_size=25.0), space=space)
+    assert robot.model.bodies[0].mesh.params["bottom_radius"] == 60.0
+    _check_placement(robot, 60.0)
 
 
 def test_hex6_robot_rests_on_the_floor():

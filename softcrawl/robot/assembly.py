@@ -43,11 +43,12 @@ from softcrawl.reduction.solver import ReducedSolver
 
 #: Leg tilt about y, degrees (outer tip down).
 TILT_DEG = 15.0
-#: Half length of the chambered block, mm: the leg's inner end face is at leg-local x = -52.
+#: The paper's leg and disk (a design space's robots use their own parts' values):
+#: half length of the chambered block, mm: the leg's inner end face is at leg-local x = -52;
 LEG_HALF_BLOCK = 52.0
-#: Radial offset of the leg's block end from the robot axis, mm.
+#: radial offset of the leg's block end from the robot axis, mm (the disk's bottom radius);
 LEG_RADIAL_OFFSET = 50.0
-#: Height of the base slab (the attachment corners' lower z), mm.
+#: height of the base slab (the attachment corners' lower z), mm.
 LEG_BASE_THICKNESS = 4.0
 #: Gap between the robot's lowest node and the floor after placement, mm.
 FLOOR_CLEARANCE = 0.01
@@ -303,7 +304,8 @@ def _rot_z(deg: float) -> np.ndarray:
 
 
 def leg_transform(angle_deg: float, tilt_deg: float = TILT_DEG, half_block: float = LEG_HALF_BLOCK,
-                  base_thickness: float = LEG_BASE_THICKNESS) -> tuple[np.ndarray, np.ndarray]:
+                  base_thickness: float = LEG_BASE_THICKNESS,
+                  radial_offset: float = LEG_RADIAL_OFFSET) -> tuple[np.ndarray, np.ndarray]:
     """Rigid placement ``p -> R p + t`` of a leg-local point into a slot (before the floor shift).
 
     Args:
@@ -311,13 +313,14 @@ def leg_transform(angle_deg: float, tilt_deg: float = TILT_DEG, half_block: floa
         tilt_deg: tilt about +y, degrees (+15: the outer tip dips down).
         half_block: half the PneuNet's chambered-block length ``h``, mm (52 for the paper's leg).
         base_thickness: the PneuNet's base slab thickness ``b``, mm (4 for the paper's leg).
+        radial_offset: the disk's bottom radius ``r``, mm (50 for the paper's disk).
 
     Returns:
         ``(R (3, 3), t (3,) mm)``: ``R = R_z(angle) R_y(tilt)``,
-        ``t = R_z(angle) (h cos(tilt) + 50, 0, h sin(tilt) - b)`` (physics.md, "Geometry").
+        ``t = R_z(angle) (h cos(tilt) + r, 0, h sin(tilt) - b)`` (physics.md, "Geometry").
     """
     a = math.radians(tilt_deg)
-    offset = np.array([half_block * math.cos(a) + LEG_RADIAL_OFFSET, 0.0, half_block * math.sin(a) - base_thickness])
+    offset = np.array([half_block * math.cos(a) + radial_offset, 0.0, half_block * math.sin(a) - base_thickness])
     rz = _rot_z(angle_deg)
     return rz @ _rot_y(tilt_deg), rz @ offset
 
@@ -409,15 +412,15 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
         design = tuple(dict(legs).get(s, -1) + 1 for s in range(space.n_slots))
     leg_params = pneunet_params(space, config.leg_mesh_size)
     leg_local = leg_mesh if leg_mesh is not None else pneunet_mesh(leg_params)
-    disk_local = disk_mesh_local if disk_mesh_local is not None else disk_mesh(
-        DiskParams(**dict(space.disk.params), mesh_size=config.disk_mesh_size))
+    disk_params = DiskParams(**dict(space.disk.params), mesh_size=config.disk_mesh_size)
+    disk_local = disk_mesh_local if disk_mesh_local is not None else disk_mesh(disk_params)
     half_block = leg_params.block_length / 2
     lift = 2 * half_block * math.sin(math.radians(config.tilt_deg))
     angles = space.slot_angles_deg
 
     parts = [(disk_local, np.eye(3), np.array([0.0, 0.0, lift]))]
-    parts += [(leg_local, *leg_transform(angles[slot], config.tilt_deg, half_block, leg_params.base_thickness))
-              for slot, _ in legs]
+    parts += [(leg_local, *leg_transform(angles[slot], config.tilt_deg, half_block, leg_params.base_thickness,
+                                         disk_params.bottom_radius)) for slot, _ in legs]
     z_min = min(float((m.points @ R.T + t)[:, 2].min()) for m, R, t in parts)
     shift = np.array([0.0, 0.0, FLOOR_CLEARANCE - z_min])
     disk, *leg_meshes = [m.transformed(R, t + shift) for m, R, t in parts]
