@@ -140,6 +140,11 @@ class DesignSpace:
         paper_material, paper_thickness: the leg's strain-limiting layer (mm).
         reduction: the actuator's reduction file (resolved path) or None.
         name: a label. source: the file read (not compared). sha256: its checksum (not compared).
+
+    Raises:
+        ValueError: on construction, for counts that do not fit (no slot, no regulator, legs
+            outside ``1 <= min_legs <= max_legs <= S``) or ``mirror_x`` with an asymmetric
+            slot set (:func:`load_space` checks every key first and names it).
     """
 
     slot_angles_deg: tuple[float, ...]
@@ -180,8 +185,8 @@ class DesignSpace:
         return self.n_slots * (self.n_regulators + 1)
 
     @cached_property
-    def mirror_permutation(self) -> np.ndarray:
-        """``(S,)`` int: slot ``i`` at angle ``theta`` goes to the slot at ``-theta`` (mod 360).
+    def mirror_permutation(self) -> tuple[int, ...]:
+        """``S`` ints: slot ``i`` at angle ``theta`` goes to the slot at ``-theta`` (mod 360).
 
         Raises:
             ValueError: the slot set is not symmetric about the x axis.
@@ -232,12 +237,12 @@ class DesignSpace:
         Raises:
             InvalidDesignError: if ``d`` is not a valid design.
         """
-        return tuple(self._canonical_rows(np.array([self.validate_design(d)], dtype=np.int64))[0].tolist())
+        return self._canonical(self.validate_design(d))
 
     def is_canonical(self, d: Sequence[int] | str) -> bool:
         """Whether ``d`` equals its canonical form. Raises InvalidDesignError if invalid."""
         d = self.validate_design(d)
-        return self.canonicalize(d) == d
+        return self._canonical(d) == d
 
     def n_legs(self, d: Sequence[int] | str) -> int:
         """Number of occupied slots. Raises InvalidDesignError if invalid."""
@@ -266,18 +271,16 @@ class DesignSpace:
                      if self.min_legs <= s - d.count(0) <= self.max_legs)
 
     @cached_property
-    def canonical_array(self) -> np.ndarray:
-        """The canonical designs as a read-only ``(n, S)`` int8 array, lexicographically sorted
-        (row i = index i)."""
-        raw = np.array(self.raw_designs, dtype=np.int64).reshape(-1, self.n_slots)
-        arr = raw[np.all(self._canonical_rows(raw) == raw, axis=1)].astype(np.int8)
-        arr.setflags(write=False)
-        return arr
-
-    @cached_property
     def canonical_designs(self) -> tuple[Design, ...]:
         """All canonical designs (6,972 for the paper's space), lexicographically sorted."""
-        return tuple(map(tuple, self.canonical_array.tolist()))
+        return tuple(d for d in self.raw_designs if self._canonical(d) == d)
+
+    @cached_property
+    def canonical_array(self) -> np.ndarray:
+        """The canonical designs as a read-only ``(n, S)`` int8 array (row i = index i)."""
+        arr = np.array(self.canonical_designs, dtype=np.int8).reshape(-1, self.n_slots)
+        arr.setflags(write=False)
+        return arr
 
     @cached_property
     def _index_map(self) -> dict[Design, int]:
@@ -317,16 +320,16 @@ class DesignSpace:
         out[np.arange(len(rows))[:, None], np.arange(s)[None, :], rows] = 1.0
         return out.reshape(len(rows), s * (r + 1))
 
-    def _canonical_rows(self, rows: np.ndarray) -> np.ndarray:
-        """Canonical forms of valid designs ``rows`` ``(n, S)`` int, ``(n, S)``."""
-        out = _relabel_rows(rows, self.n_regulators)
+    def _canonical(self, d: Design) -> Design:
+        """Canonical form of a valid design (see :meth:`canonicalize`)."""
+        canonical = _relabel(d)
         if self.mirror_x:
-            out = _lex_min(out, _relabel_rows(rows[:, self.mirror_permutation], self.n_regulators))
-        return out
+            canonical = min(canonical, _relabel(tuple(d[i] for i in self.mirror_permutation)))
+        return canonical
 
 
-def _mirror_permutation(angles_deg: Sequence[float]) -> np.ndarray:
-    """``(S,)`` int: the slot at ``-theta`` (mod 360) for each slot at ``theta`` (degrees).
+def _mirror_permutation(angles_deg: Sequence[float]) -> tuple[int, ...]:
+    """``S`` ints: the slot at ``-theta`` (mod 360) for each slot at ``theta`` (degrees).
 
     Raises:
         ValueError: a slot has no mirror image within :data:`ANGLE_TOL_DEG`.
@@ -340,28 +343,17 @@ def _mirror_permutation(angles_deg: Sequence[float]) -> np.ndarray:
         i = int(np.flatnonzero(bad)[0])
         raise ValueError(f"mirror symmetry needs the slot at {-angles[i] % 360:g} deg, the mirror of slot {i} "
                          f"at {angles[i]:g} deg")
-    return perm
+    return tuple(perm.tolist())
 
 
-def _relabel_rows(rows: np.ndarray, n_regulators: int) -> np.ndarray:
-    """Regulators of each row ``(n, S)`` relabelled by order of first appearance, ``(n, S)``."""
-    n, s = rows.shape
-    labels = np.arange(1, n_regulators + 1)
-    present = rows[:, :, None] == labels  # (n, S, R)
-    first = np.where(present, np.arange(s)[None, :, None], s).min(axis=1)  # (n, R); S if absent
-    rank = np.argsort(np.argsort(first, axis=1, kind="stable"), axis=1, kind="stable")
-    mapping = np.zeros((n, n_regulators + 1), dtype=rows.dtype)
-    mapping[:, 1:] = rank + 1
-    return np.take_along_axis(mapping, rows, axis=1)
-
-
-def _lex_min(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise lexicographic minimum of ``a`` and ``b`` ``(n, S)``."""
-    differ = a != b
-    first = np.where(differ.any(axis=1), differ.argmax(axis=1), 0)
-    rows = np.arange(len(a))
-    take_b = differ.any(axis=1) & (b[rows, first] < a[rows, first])
-    return np.where(take_b[:, None], b, a)
+def _relabel(d: Design) -> Design:
+    """Regulators relabelled by order of first appearance (slot 0 first): the smallest design
+    among all relabellings of ``d``."""
+    relabel: dict[int, int] = {0: 0}
+    for v in d:
+        if v not in relabel:
+            relabel[v] = len(relabel)
+    return tuple(relabel[v] for v in d)
 
 
 def _raw_count(s: int, r: int, lo: int, hi: int) -> int:
