@@ -478,20 +478,21 @@ def _space_reduction(space: DesignSpace, config: RobotConfig) -> RobotReduction:
 
     Raises:
         ValueError: the space names none, the file does not match ``config``
-            (:func:`softcrawl.reduction.artifact.load_reduction`), or its leg was built for
-            other PneuNet dimensions than the space's.
+            (:func:`softcrawl.reduction.artifact.load_reduction`), or its leg (or disk) was
+            built for other dimensions than the space's.
     """
     from softcrawl.reduction.artifact import load_reduction
 
     path = config.reduction or space.reduction
     if path is None:
-        raise ValueError(f"the design space {space.name!r} names no reduction for a reduced model: build one with "
-                         f"softcrawl reduce build --space {space.source or 'FILE'} and name it in the space file")
+        raise ValueError(f"the design space {space.name!r} ({space.source or 'no file'}) names no reduction "
+                         f"([actuator] reduction) and the config none: use the full-order model")
     reduction, _ = load_reduction(path, expect=dataclasses.asdict(config))
-    want = dataclasses.asdict(pneunet_params(space, config.leg_mesh_size))
-    have = reduction.leg.mesh.params
-    wrong = sorted(k for k in want if k != "mesh_size" and k in have and have[k] != want[k])
-    if wrong:
-        raise ValueError(f"reduction {path} was built for another PneuNet than the space {space.name!r}'s "
-                         f"({', '.join(f'{k}: {have[k]} != {want[k]}' for k in wrong)})")
+    parts = [("PneuNet", reduction.leg, space.leg)] + ([("disk", reduction.disk, space.disk)] if reduction.disk else [])
+    for name, part, own in parts:
+        have = part.mesh.params
+        wrong = sorted(k for k, v in own.params if k in have and have[k] != v)
+        if wrong:
+            raise ValueError(f"reduction {path} was built for another {name} than the space {space.name!r}'s "
+                             f"({', '.join(f'{k}: {have[k]} != {dict(own.params)[k]}' for k in wrong)})")
     return reduction
