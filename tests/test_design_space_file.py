@@ -129,6 +129,12 @@ def test_hex6_example_counts_match_brute_force():
         space.validate_design((3, 0, 1, 0, 0, 0))
 
 
+def test_equally_spaced_angles_wrap_around(tmp_path):
+    space = load_space(_small(tmp_path, mirror=True, angles="first_angle_deg = 315.0"))
+    assert space.slot_angles_deg == (315.0, 45.0, 135.0, 225.0)
+    assert space.mirror_permutation == (1, 0, 3, 2)
+
+
 def test_mirror_of_an_asymmetric_slot_set_is_refused(tmp_path):
     path = _small(tmp_path, mirror=True, angles="angles_deg = [0.0, 100.0, 200.0, 300.0]")
     with pytest.raises(SpaceFileError, match=r"design\.mirror_x: mirror symmetry needs the slot at 260 deg"):

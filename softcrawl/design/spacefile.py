@@ -23,7 +23,7 @@ degrees about +z from +x, Young's moduli kPa)::
     material = "printed_polymer"       # a known name, or { youngs_modulus_kpa = ..., poisson_ratio = ... }
     [slots]
     count = 8
-    first_angle_deg = 22.5             # equally spaced: first + 360 i / count; or angles_deg = [...]
+    first_angle_deg = 22.5             # equally spaced: first + 360 i / count (mod 360); or angles_deg = [...]
     [design]
     regulators = 3
     min_legs = 3
@@ -473,7 +473,7 @@ class _Reader:
             raise self.fail("slots", "give exactly one of first_angle_deg (equally spaced) and angles_deg")
         if "first_angle_deg" in tbl:
             first = self.number(tbl, "first_angle_deg", "slots", 0.0, 360.0, lo_open=False, hi_open=True)
-            return tuple(first + 360.0 / count * i for i in range(count))
+            return tuple((first + 360.0 / count * i) % 360.0 for i in range(count))
         angles = tbl["angles_deg"]
         if not isinstance(angles, list) or len(angles) != count:
             raise self.fail("slots.angles_deg", f"must be a list of count = {count} angles, got {angles!r}")
@@ -523,8 +523,6 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
     try:
         data = read_bytes(path)
         doc = load_toml(path)
-    except FileNotFoundError:
-        raise
     except ValueError as exc:
         raise SpaceFileError(" ".join(str(exc).split())) from None
     r = _Reader(path)
@@ -557,14 +555,13 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
     leg = Part(r.dims(pneu, "actuator.pneunet", PNEUNET_KEYS, ints=("n_chambers",)),
                r.number(act, "mesh_size_mm", "actuator"), r.number(act, "mass_kg", "actuator"),
                r.material(act, "material", "actuator"))
+    paper = r.material(act, "paper_material", "actuator")
+    paper_thickness = r.number(act, "paper_thickness_mm", "actuator")
+    reduction = r.reduction(act)
     try:
-        space = DesignSpace(angles, regulators, min_legs, max_legs, disk, leg,
-                            r.material(act, "paper_material", "actuator"),
-                            r.number(act, "paper_thickness_mm", "actuator"), mirror, r.reduction(act), name,
-                            str(path), hashlib.sha256(data).hexdigest())
-    except SpaceFileError:
-        raise
-    except ValueError as exc:  # the mirror permutation of an asymmetric slot set
+        space = DesignSpace(angles, regulators, min_legs, max_legs, disk, leg, paper, paper_thickness, mirror,
+                            reduction, name, str(path), hashlib.sha256(data).hexdigest())
+    except ValueError as exc:  # the counts are checked above: the mirror image of an asymmetric slot set
         raise r.fail("design.mirror_x", str(exc)) from None
     if check_geometry:
         from softcrawl.geometry.pneunet import PneuNetParams
