@@ -26,7 +26,7 @@ from softcrawl.geometry.disk import DiskParams
 from softcrawl.geometry.pneunet import PneuNetParams
 from softcrawl.reduction.data import default_reduction_path
 from softcrawl.robot import NO_SETTLING, Episode
-from softcrawl.robot.assembly import RobotConfig, build_robot, material, pneunet_params
+from softcrawl.robot.assembly import RobotConfig, build_robot, disk_params, material, pneunet_params
 
 PAPER_TOML = shipped_space_path("paper")
 HEX6_TOML = shipped_space_path("hex6")
@@ -64,7 +64,7 @@ def test_default_space_parts_are_the_robots_defaults():
     space = default.DEFAULT_SPACE
     assert RobotConfig.for_space(space) == RobotConfig()
     assert pneunet_params(space, 6.0) == PneuNetParams(mesh_size=6.0)
-    assert DiskParams(**dict(space.disk.params), mesh_size=space.disk.mesh_size) == DiskParams()
+    assert disk_params(space, space.disk.mesh_size) == DiskParams()
     assert material(space.leg.material) is DRAGONSKIN_30 and material(space.paper_material) is PAPER
     assert material(space.disk.material) is PRINTED_POLYMER and space.paper_thickness == 1.0
     assert Path(space.reduction) == default_reduction_path()
@@ -164,6 +164,12 @@ MALFORMED = [
      r"body\.material\.poisson_ratio: must lie in \(-1, 0\.5\)"),
     ('material = "printed_polymer"', "material = { youngs_modulus_kpa = 5000.0, density = 1.0 }",
      r"body\.material\.density: unknown key"),
+    ('mass_kg = 0.105\nmaterial = "dragonskin30"', 'material = "dragonskin30"',
+     r"actuator\.mass_kg: missing: give it or the material's density_kg_per_m3"),
+    ('material = "dragonskin30"', "material = { youngs_modulus_kpa = 1160.0, poisson_ratio = 0.2, "
+     "density_kg_per_m3 = 1080.0 }", r"actuator\.mass_kg: twice: give either it or the material's density"),
+    ('material = "dragonskin30"', "material = { youngs_modulus_kpa = 1160.0, poisson_ratio = 0.2, "
+     "density_kg_per_m3 = 0.0 }", r"actuator\.material\.density_kg_per_m3: must lie in \(0, inf\)"),
     ("n_chambers = 9", "n_chambers = 0", r"actuator\.pneunet\.n_chambers: must be >= 1"),
     ("wall_thickness_mm = 3.0", "wall_thickness_mm = 4.0",
      r"actuator\.pneunet: chambers must have positive size \(wall_thickness too large\)$"),
@@ -246,6 +252,21 @@ def test_legs_follow_the_disk_radius(tmp_path):
                                                                        disk_mesh_size=25.0), space=space)
     assert robot.model.bodies[0].mesh.params["bottom_radius"] == 60.0
     _check_placement(robot, 60.0)
+
+
+def test_mass_from_density(tmp_path):
+    """A leg given by its material's density weighs rho V: the paper's PneuNet has a solid
+    volume of 43,072 mm^3 (physics.md; boxes, so its mesh volume is exact up to rounding)."""
+    path = tmp_path / "dense.toml"
+    path.write_text(PAPER_TOML.read_text().replace(
+        'mass_kg = 0.105\nmaterial = "dragonskin30"',
+        "material = { youngs_modulus_kpa = 1160.0, poisson_ratio = 0.2, density_kg_per_m3 = 1080.0 }"))
+    space = load_space(path)
+    assert space.leg.mass is None and space.leg.material.density_kg_per_m3 == 1080.0
+    config = RobotConfig.for_space(space, leg_mesh_size=12.0, disk_mesh_size=25.0)
+    assert config.leg_mass == pytest.approx(1080.0 * 43_072e-9, rel=1e-12)
+    assert config.disk_mass == 0.075 and RobotConfig.for_space(space, leg_mass=0.2).leg_mass == 0.2
+    assert material(space.leg.material) == DRAGONSKIN_30
 
 
 def test_hex6_robot_rests_on_the_floor():

@@ -19,8 +19,9 @@ degrees about +z from +x, Young's moduli kPa)::
     top_radius_mm = 54.5
     height_mm = 18.0
     mesh_size_mm = 10.0                # default tet size of the disk (RobotConfig.disk_mesh_size)
-    mass_kg = 0.075
-    material = "printed_polymer"       # a known name, or { youngs_modulus_kpa = ..., poisson_ratio = ... }
+    mass_kg = 0.075                    # or leave it out and give the material's density_kg_per_m3
+    material = "printed_polymer"       # a known name, or { youngs_modulus_kpa = ..., poisson_ratio = ...,
+                                       #                    density_kg_per_m3 = ... (optional) }
     [slots]
     count = 8
     first_angle_deg = 22.5             # equally spaced: first + 360 i / count (mod 360); or angles_deg = [...]
@@ -100,11 +101,13 @@ class Material:
         name: the known name, or ``""`` for a material given by its constants.
         youngs_modulus_kpa: E, kPa (None for a known name).
         poisson_ratio: nu (None for a known name).
+        density_kg_per_m3: rho, kg/m^3, or None (a part made of it then needs its mass).
     """
 
     name: str = ""
     youngs_modulus_kpa: float | None = None
     poisson_ratio: float | None = None
+    density_kg_per_m3: float | None = None
 
 
 @dataclass(frozen=True)
@@ -115,13 +118,13 @@ class Part:
         params: ``(name, value)`` pairs: the geometry's dimensions, mm (``DiskParams`` or
             ``PneuNetParams`` field names without ``mesh_size``; ``n_chambers`` an int).
         mesh_size: default maximum tet size, mm.
-        mass: total mass, kg.
+        mass: total mass, kg; None: the material's density times the part's volume.
         material: the bulk material.
     """
 
     params: tuple[tuple[str, float | int], ...]
     mesh_size: float
-    mass: float
+    mass: float | None
     material: Material
 
 
@@ -384,7 +387,7 @@ _DESIGN_KEYS = ("regulators", "min_legs", "max_legs", "mirror_x")
 _ACTUATOR_KEYS = ("mesh_size_mm", "mass_kg", "material", "paper_material", "paper_thickness_mm", "reduction",
                   "pneunet")
 _PNEUNET_KEYS = ("n_chambers",) + tuple(f"{k}_mm" for k in PNEUNET_KEYS)
-_MATERIAL_KEYS = ("youngs_modulus_kpa", "poisson_ratio")
+_MATERIAL_KEYS = ("youngs_modulus_kpa", "poisson_ratio", "density_kg_per_m3")
 
 
 class _Reader:
@@ -458,8 +461,19 @@ class _Reader:
         if not isinstance(v, dict):
             raise self.fail(name, f"must be a material name or a table, got {v!r}")
         self.known(v, name, _MATERIAL_KEYS)
+        density = self.number(v, "density_kg_per_m3", name) if "density_kg_per_m3" in v else None
         return Material("", self.number(v, "youngs_modulus_kpa", name),
-                        self.number(v, "poisson_ratio", name, -1.0, 0.5, hi_open=True))
+                        self.number(v, "poisson_ratio", name, -1.0, 0.5, hi_open=True), density)
+
+    def part(self, tbl: dict, where: str, params: tuple, mesh_size: float) -> Part:
+        """A part with its ``mass_kg`` or, failing that, its material's density (exactly one)."""
+        material = self.material(tbl, "material", where)
+        has_density = material.density_kg_per_m3 is not None
+        if ("mass_kg" in tbl) == has_density:
+            why = "give it or the material's density_kg_per_m3" if not has_density else \
+                "give either it or the material's density_kg_per_m3, not both"
+            raise self.fail(f"{where}.mass_kg", f"{'missing' if not has_density else 'twice'}: {why}")
+        return Part(params, mesh_size, None if has_density else self.number(tbl, "mass_kg", where), material)
 
     def dims(self, tbl: dict, where: str, dims: Sequence[str], ints: Sequence[str] = ()) -> tuple:
         """``(name, value)`` pairs of a part's integer counts and its dimensions ``<name>_mm``."""
@@ -550,11 +564,9 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
     if n_raw > MAX_RAW_DESIGNS:
         raise r.fail("design", f"{n_raw} raw designs, more than the {MAX_RAW_DESIGNS} that can be enumerated")
 
-    disk = Part(r.dims(body, "body", DISK_KEYS), r.number(body, "mesh_size_mm", "body"),
-                r.number(body, "mass_kg", "body"), r.material(body, "material", "body"))
-    leg = Part(r.dims(pneu, "actuator.pneunet", PNEUNET_KEYS, ints=("n_chambers",)),
-               r.number(act, "mesh_size_mm", "actuator"), r.number(act, "mass_kg", "actuator"),
-               r.material(act, "material", "actuator"))
+    disk = r.part(body, "body", r.dims(body, "body", DISK_KEYS), r.number(body, "mesh_size_mm", "body"))
+    leg = r.part(act, "actuator", r.dims(pneu, "actuator.pneunet", PNEUNET_KEYS, ints=("n_chambers",)),
+                 r.number(act, "mesh_size_mm", "actuator"))
     paper = r.material(act, "paper_material", "actuator")
     paper_thickness = r.number(act, "paper_thickness_mm", "actuator")
     reduction = r.reduction(act)

@@ -52,6 +52,8 @@ LEG_RADIAL_OFFSET = 50.0
 LEG_BASE_THICKNESS = 4.0
 #: Gap between the robot's lowest node and the floor after placement, mm.
 FLOOR_CLEARANCE = 0.01
+#: Cubic metres per cubic millimetre (density kg/m^3 times mesh volume mm^3 -> kg).
+M3_PER_MM3 = 1e-9
 #: The materials a space file may name (:data:`softcrawl.design.spacefile.KNOWN_MATERIALS`).
 NAMED_MATERIALS = {"dragonskin30": DRAGONSKIN_30, "paper": PAPER, "printed_polymer": PRINTED_POLYMER}
 
@@ -162,12 +164,20 @@ class RobotConfig:
         (``leg_mesh_size``, ``disk_mesh_size``, ``leg_mass``, ``disk_mass``), then ``settings``
         (any field, those four included). ``for_space(DEFAULT_SPACE) == RobotConfig()``.
 
+        A part given by its material's density weighs ``rho * V`` with ``V`` the volume of its
+        mesh at the config's mesh size (meshed here; exact for the box-built PneuNet, the
+        faceted frustum for the disk), so that the FEM body has the material's density.
+
         Raises:
-            ValueError: as the constructor; TypeError for an unknown setting.
+            ValueError: as the constructor; TypeError for an unknown setting; MeshError.
         """
-        own = {"leg_mesh_size": space.leg.mesh_size, "disk_mesh_size": space.disk.mesh_size,
-               "leg_mass": space.leg.mass, "disk_mass": space.disk.mass}
-        return cls(**{**own, **settings})
+        config = cls(**{"leg_mesh_size": space.leg.mesh_size, "disk_mesh_size": space.disk.mesh_size, **settings})
+        meshes = {"leg_mass": (space.leg, lambda: pneunet_mesh(pneunet_params(space, config.leg_mesh_size))),
+                  "disk_mass": (space.disk, lambda: disk_mesh(disk_params(space, config.disk_mesh_size)))}
+        masses = {key: part.mass if part.mass is not None else
+                  part.material.density_kg_per_m3 * mesh().volume() * M3_PER_MM3
+                  for key, (part, mesh) in meshes.items() if key not in settings}
+        return dataclasses.replace(config, **masses)
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -412,15 +422,15 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
         design = tuple(dict(legs).get(s, -1) + 1 for s in range(space.n_slots))
     leg_params = pneunet_params(space, config.leg_mesh_size)
     leg_local = leg_mesh if leg_mesh is not None else pneunet_mesh(leg_params)
-    disk_params = DiskParams(**dict(space.disk.params), mesh_size=config.disk_mesh_size)
-    disk_local = disk_mesh_local if disk_mesh_local is not None else disk_mesh(disk_params)
+    disk_shape = disk_params(space, config.disk_mesh_size)
+    disk_local = disk_mesh_local if disk_mesh_local is not None else disk_mesh(disk_shape)
     half_block = leg_params.block_length / 2
     lift = 2 * half_block * math.sin(math.radians(config.tilt_deg))
     angles = space.slot_angles_deg
 
     parts = [(disk_local, np.eye(3), np.array([0.0, 0.0, lift]))]
     parts += [(leg_local, *leg_transform(angles[slot], config.tilt_deg, half_block, leg_params.base_thickness,
-                                         disk_params.bottom_radius)) for slot, _ in legs]
+                                         disk_shape.bottom_radius)) for slot, _ in legs]
     z_min = min(float((m.points @ R.T + t)[:, 2].min()) for m, R, t in parts)
     shift = np.array([0.0, 0.0, FLOOR_CLEARANCE - z_min])
     disk, *leg_meshes = [m.transformed(R, t + shift) for m, R, t in parts]
@@ -471,6 +481,11 @@ def pneunet_params(space: DesignSpace, mesh_size: float) -> PneuNetParams:
         ValueError: the dimensions do not fit together (:class:`PneuNetParams`).
     """
     return PneuNetParams(**dict(space.leg.params), mesh_size=mesh_size)
+
+
+def disk_params(space: DesignSpace, mesh_size: float) -> DiskParams:
+    """The space's disk dimensions with tet size ``mesh_size`` (mm)."""
+    return DiskParams(**dict(space.disk.params), mesh_size=mesh_size)
 
 
 def _space_reduction(space: DesignSpace, config: RobotConfig) -> RobotReduction:
