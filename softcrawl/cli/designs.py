@@ -87,7 +87,8 @@ def register(subparsers) -> None:
     a.add_argument("--limit", type=int, default=None, help="print at most N designs")
     a.set_defaults(func=_list)
 
-    a = actions.add_parser("show", parents=[common], help="canonical form, index, regulators and a picture of one design")
+    a = actions.add_parser("show", parents=[common],
+                           help="canonical form, index, regulators and a picture of one design")
     a.add_argument("design", help='comma-separated slot values (0 or a regulator), e.g. "1,0,0,2,2,0,0,1"')
     a.add_argument("--png", metavar="FILE", default=None, help="also save a PNG drawing of the design")
     a.set_defaults(func=_show)

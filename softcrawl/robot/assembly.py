@@ -435,7 +435,8 @@ def assemble_robot(legs: Sequence[tuple[int, int]], config: RobotConfig = RobotC
     shift = np.array([0.0, 0.0, FLOOR_CLEARANCE - z_min])
     disk, *leg_meshes = [m.transformed(R, t + shift) for m, R, t in parts]
 
-    disk_body = Body(disk, material(space.disk.material), config.disk_mass, mass_lumping=config.mass_lumping, name="disk")
+    disk_body = Body(disk, material(space.disk.material), config.disk_mass, mass_lumping=config.mass_lumping,
+                     name="disk")
     leg_collision = None  # the mesh's own collision nodes
     if config.leg_collision_spacing:  # the same local nodes in every leg (legs share one reduced part)
         leg_collision = spaced_nodes(leg_local.points, collision_nodes(leg_local), config.leg_collision_spacing)
