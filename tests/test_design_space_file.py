@@ -15,6 +15,7 @@ import pytest
 
 from softcrawl import cli
 from softcrawl.design import space as default
+from softcrawl.envs.crawler import BuildRobot, CrawlerEnv
 from softcrawl.design.spacefile import (
     InvalidDesignError,
     SpaceFileError,
@@ -26,6 +27,7 @@ from softcrawl.geometry.disk import DiskParams
 from softcrawl.geometry.pneunet import PneuNetParams
 from softcrawl.reduction.data import default_reduction_path
 from softcrawl.robot import NO_SETTLING, Episode
+from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.assembly import RobotConfig, build_robot, disk_params, material, pneunet_params
 
 PAPER_TOML = shipped_space_path("paper")
@@ -285,6 +287,27 @@ def test_hex6_robot_rests_on_the_floor():
         state = ep.step(np.zeros(2))
         assert state.x[:, 2].min() > -0.5
     assert ep.solver.stats.normal_force == pytest.approx(robot.model.total_mass * 9800.0, rel=0.05)
+
+
+def test_env_of_the_hex6_space():
+    """The env's designs, one-hot (6 x 3), actions (2 regulators) and robots come from its space."""
+    space = load_space(HEX6_TOML)
+    factory = BuildRobot(RobotConfig.for_space(space, leg_mesh_size=12.0, disk_mesh_size=25.0), space)
+    env = CrawlerEnv(factory, steps_per_action=2, n_actions=2, observe_state=True, settling=NO_SETTLING, space=space)
+    assert env.designs == space.canonical_designs and len(env.designs) == 124
+    assert env.action_space.shape == (2,) and env.observation_space.shape == (18 + 2 * 4 + 8,)
+    obs, info = env.reset(seed=0, options={"design": (0, 2, 1, 0, 0, 1)})
+    assert info["design"] == (0, 2, 1, 0, 0, 1) and obs.shape == (34,)
+    assert np.array_equal(obs[:18], space.one_hot_batch([(0, 2, 1, 0, 0, 1)])[0])
+    obs, reward, terminated, truncated, info = env.step(np.array([1.0, -1.0]))
+    assert obs.shape == (34,) and np.isfinite(reward) and not terminated
+    assert np.array_equal(obs[18:20], [1.0, -1.0]) and info["commanded_kpa"].tolist() == [90.0, 0.0]
+    with pytest.raises(ValueError, match="action must be 2 finite numbers"):
+        env.step(np.zeros(3))
+    with pytest.raises(InvalidDesignError):
+        env.reset(options={"design": default.BASELINE_DESIGN})
+    with pytest.raises(ValueError, match="domain randomization needs 3 regulators"):
+        CrawlerEnv(factory, space=space, randomize=DomainRanges(friction=(1.0, 1.2)))
 
 
 def test_reduction_of_another_pneunet_is_refused(tmp_path):

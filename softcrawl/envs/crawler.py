@@ -12,6 +12,9 @@ when none is given).
   recent first, zeros at the start of an episode (cleared on every reset). With
   ``observe_state=True`` 9 numbers follow: disk top-centre displacement since the end of
   settling (cm, x/y/z), its velocity (cm/s) and the applied pressures scaled to [-1, 1].
+* These sizes are the paper's design space's; an env of another ``space``
+  (:class:`softcrawl.design.spacefile.DesignSpace`, ``S`` slots, ``R`` regulators) has ``R``
+  actions, a one-hot of ``S (R + 1)``, ``R`` actions per history entry and ``6 + R`` state numbers.
 * Reward: cm crawled along +x by the disk top centre during the action (the episode return is
   the +x displacement, codesign.md / paper).
 * ``terminated``: only on a diverged simulation (``SimulationDiverged``): ``info["diverged"]``
@@ -59,7 +62,8 @@ from typing import ClassVar
 import gymnasium as gym
 import numpy as np
 
-from softcrawl.design.space import Design, canonical_designs, one_hot, validate_design
+from softcrawl.design.space import DEFAULT_SPACE, N_REGULATORS, Design
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.envs.robot_cache import RobotCache, process_cache
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.robot.actuation import P_MAX_KPA, PressureCalibration
@@ -69,18 +73,19 @@ from softcrawl.robot.episode import MM_PER_CM, Episode, SettledState, Settling
 
 N_ACTIONS = 20
 HISTORY = 4
-DESIGN_DIM = 32
+DESIGN_DIM = DEFAULT_SPACE.one_hot_size  # 32: the paper's space (other spaces: CrawlerEnv.space)
 STATE_DIM = 9
 
 
 @dataclass(frozen=True)
 class BuildRobot:
-    """Picklable default robot factory: ``build_robot(design, config)`` (full-order model)."""
+    """Picklable default robot factory: ``build_robot(design, config, space=space)``."""
 
     config: RobotConfig = field(default_factory=RobotConfig)
+    space: DesignSpace = DEFAULT_SPACE
 
     def __call__(self, design: Design) -> Robot:
-        return build_robot(design, self.config)
+        return build_robot(design, self.config, space=self.space)
 
 
 def action_to_kpa(action: np.ndarray) -> np.ndarray:
@@ -95,26 +100,27 @@ def kpa_to_action(kpa: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def _validated_tuple(designs: tuple) -> tuple[Design, ...]:
-    return tuple(validate_design(d) for d in designs)
+def _validated_tuple(designs: tuple, space: DesignSpace) -> tuple[Design, ...]:
+    return tuple(space.validate_design(d) for d in designs)
 
 
-def _validated(designs: Sequence) -> tuple[Design, ...]:
-    """``designs`` validated (:func:`validate_design`); hashable ones once per process (the 48
-    envs of a ``paper`` worker share one tuple of 6,972 designs: 65 ms each)."""
+def _validated(designs: Sequence, space: DesignSpace) -> tuple[Design, ...]:
+    """``designs`` validated (:meth:`DesignSpace.validate_design`); hashable ones once per process
+    (the 48 envs of a ``paper`` worker share one tuple of 6,972 designs: 65 ms each)."""
     designs = tuple(designs)
     try:
         hash(designs)
     except TypeError:  # unhashable entries (lists)
-        return tuple(validate_design(d) for d in designs)
-    return _validated_tuple(designs)
+        return tuple(space.validate_design(d) for d in designs)
+    return _validated_tuple(designs, space)
 
 
 class CrawlerEnv(gym.Env):
     """One crawler episode as a gymnasium 1.x environment (see the module docstring).
 
     Args:
-        robot_factory: ``design tuple -> Robot`` (default ``BuildRobot(RobotConfig())``).
+        robot_factory: ``design tuple -> Robot`` (default ``BuildRobot(RobotConfig.for_space(space),
+            space)``; ``RobotConfig()`` for the paper's space).
         steps_per_action: simulator steps per action (default 100 = 1 s at dt 0.01 s).
         n_actions: actions per episode (default 20).
         history: past actions in the observation (default 4).
@@ -129,6 +135,8 @@ class CrawlerEnv(gym.Env):
             rule, shared with every other env of the process that asks for it
             (:func:`softcrawl.envs.robot_cache.process_cache`; training's envs do), instead of
             a cache of this env's own.
+        space: the design space: designs, one-hot code, number of regulators (actions). Domain
+            randomization needs the paper's 3 regulators.
 
     Attributes:
         nominal_steps_per_action: simulator steps per action without control-period dilation.
@@ -147,19 +155,24 @@ class CrawlerEnv(gym.Env):
                  n_actions: int = N_ACTIONS, history: int = HISTORY, observe_state: bool = False,
                  designs: Sequence[Sequence[int]] | None = None, settling: Settling = Settling(),
                  calibration: PressureCalibration | None = None, max_cached: int = 16,
-                 randomize: DomainRanges | None = None, share_robots: bool = False):
+                 randomize: DomainRanges | None = None, share_robots: bool = False,
+                 space: DesignSpace = DEFAULT_SPACE):
         super().__init__()
         for name, v in (("steps_per_action", steps_per_action), ("n_actions", n_actions), ("max_cached", max_cached)):
             if int(v) != v or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         if int(history) != history or history < 0:
             raise ValueError(f"history must be a non-negative integer, got {history!r}")
-        self.robot_factory = robot_factory if robot_factory is not None else BuildRobot()
+        self.space = space
+        self.robot_factory = robot_factory if robot_factory is not None else BuildRobot(
+            RobotConfig.for_space(space), space)
         self.nominal_steps_per_action, self.n_actions = int(steps_per_action), int(n_actions)
         self.history = int(history)
         if randomize is not None and not isinstance(randomize, DomainRanges):
             raise ValueError(f"randomize must be DomainRanges or None, got {type(randomize).__name__}")
         self.randomize = randomize if randomize is not None and randomize.enabled else None
+        if self.randomize is not None and space.n_regulators != N_REGULATORS:
+            raise ValueError(f"domain randomization needs {N_REGULATORS} regulators, the space has {space.n_regulators}")
         if self.randomize is not None:
             self.randomize.check_steps(self.nominal_steps_per_action)
         self.domain: DomainSample | None = None
@@ -167,26 +180,28 @@ class CrawlerEnv(gym.Env):
         self._t_steps = 0
         self.observe_state, self.settling = bool(observe_state), settling
         self.calibration = calibration if calibration is not None else PressureCalibration()
-        self.designs = canonical_designs() if designs is None else _validated(designs)
+        self.designs = space.canonical_designs if designs is None else _validated(designs, space)
         if not self.designs:
             raise ValueError("designs must not be empty")
         self.max_cached = int(max_cached)
         self._robots = (process_cache(self.robot_factory, settling, self.max_cached) if share_robots
                         else RobotCache(self.max_cached)).attach()
-        n_hist = 3 * self.history
-        low = np.concatenate([np.zeros(DESIGN_DIM), -np.ones(n_hist)]).astype(np.float32)
-        high = np.ones(DESIGN_DIM + n_hist, np.float32)
+        n_reg, n_code = space.n_regulators, space.one_hot_size
+        self._state_dim = STATE_DIM - N_REGULATORS + n_reg
+        n_hist = n_reg * self.history
+        low = np.concatenate([np.zeros(n_code), -np.ones(n_hist)]).astype(np.float32)
+        high = np.ones(n_code + n_hist, np.float32)
         if self.observe_state:
-            low = np.concatenate([low, np.full(STATE_DIM, -np.inf, np.float32)])
-            high = np.concatenate([high, np.full(STATE_DIM, np.inf, np.float32)])
+            low = np.concatenate([low, np.full(self._state_dim, -np.inf, np.float32)])
+            high = np.concatenate([high, np.full(self._state_dim, np.inf, np.float32)])
         self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (n_reg,), dtype=np.float32)
         self.design: Design | None = None
         self.episode: Episode | None = None
-        self._hist = np.zeros((self.history, 3), np.float32)
+        self._hist = np.zeros((self.history, n_reg), np.float32)
         self._k = 0
         self._dead, self._reason = False, ""
-        self._one_hot = np.zeros(DESIGN_DIM, np.float32)
+        self._one_hot = np.zeros(n_code, np.float32)
         self._settled_info: dict = {}
 
     @property
@@ -223,7 +238,7 @@ class CrawlerEnv(gym.Env):
     def _obs(self) -> np.ndarray:
         parts = [self._one_hot, self._hist.reshape(-1)]
         if self.observe_state:
-            parts.append(self._state_summary() if not self._dead else np.zeros(STATE_DIM, np.float32))
+            parts.append(self._state_summary() if not self._dead else np.zeros(self._state_dim, np.float32))
         return np.concatenate(parts).astype(np.float32)
 
     def _info(self, commanded: np.ndarray | None = None) -> dict:
@@ -232,7 +247,7 @@ class CrawlerEnv(gym.Env):
         return {
             "design": self.design, "t": self._t_steps * ep.dt,
             "disk_position_mm": np.array(pos, dtype=float), "displacement_cm": self._displacement(),
-            "applied_kpa": ep.applied, "commanded_kpa": np.zeros(3) if commanded is None else commanded,
+            "applied_kpa": ep.applied, "commanded_kpa": np.zeros(len(ep.applied)) if commanded is None else commanded,
             "diverged": self._dead, "reason": self._reason, **self._settled_info,
             **({"domain": self.domain.as_dict()} if self.domain is not None else {}),
         }
@@ -258,12 +273,12 @@ class CrawlerEnv(gym.Env):
         super().reset(seed=seed)
         options = options or {}
         if options.get("design") is not None:
-            design = validate_design(options["design"])
+            design = self.space.validate_design(options["design"])
         else:
             design = self.designs[int(self.np_random.integers(len(self.designs)))]
         self.design = design
         self.domain = self.randomize.draw(self.np_random) if self.randomize is not None else None
-        self._one_hot = one_hot(design)
+        self._one_hot = self.space.one_hot_batch([design])[0]
         self._hist[:] = 0.0
         self._k = self._t_steps = 0
         self._action_steps = self._steps_of(0)
@@ -307,8 +322,8 @@ class CrawlerEnv(gym.Env):
         if self.episode is None:
             raise RuntimeError("call reset() before step()")
         a = np.asarray(action, dtype=np.float32).reshape(-1)
-        if a.shape != (3,) or not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be 3 finite numbers in [-1, 1], got {action!r}")
+        if a.shape != self.action_space.shape or not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be {self.action_space.shape[0]} finite numbers in [-1, 1], got {action!r}")
         a = np.clip(a, -1.0, 1.0)
         self._action_kpa, self._action_before = action_to_kpa(a), self._displacement()
         if self.history:
@@ -340,12 +355,12 @@ class CrawlerEnv(gym.Env):
         """The robot of ``design`` from this env's cache (built and cached if missing) and its
         settled state (None: not settled yet), for drivers that settle many robots together
         before :meth:`reset` (:meth:`softcrawl.envs.backends.batched.BatchedBackend.settle_together`)."""
-        episode = self._episode_for(validate_design(design))
+        episode = self._episode_for(self.space.validate_design(design))
         return episode.robot, episode.settled
 
     def store_settled(self, design, settled: SettledState) -> None:
         """Cache ``settled`` (from :func:`~softcrawl.robot.episode.settle` of ``design``'s robot with
         this env's :attr:`settling`) for ``design``'s cached robot: :meth:`reset` starts from it."""
-        design = validate_design(design)
+        design = self.space.validate_design(design)
         if design in self._robots:
             self._robots.keep_settled(design, self._robots[design][0], settled)
