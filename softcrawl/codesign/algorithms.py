@@ -31,10 +31,10 @@ import numpy as np
 from softcrawl.codesign.groundtruth import (
     GroundTruthConfig,
     PeriodicGait,
-    _knots_to_gait,
-    _seed_knots,
     cma_search,
     design_seed,
+    knots_to_gait,
+    seed_knots,
     used_regulators,
 )
 from softcrawl.design.space import Design, canonicalize
@@ -109,14 +109,14 @@ class RandomSearch(CodesignAlgorithm):
             self._order = [self.designs[i] for i in self.rng.permutation(len(self.designs))]
         self._design = self._order.pop()
         self._m, self._L = used_regulators(self._design), int(self.rng.choice(self.cycles))
-        self._gen = cma_search(self._m * self._L, self.evals, [s.ravel() for s in _seed_knots(self._m, self._L)],
+        self._gen = cma_search(self._m * self._L, self.evals, [s.ravel() for s in seed_knots(self._m, self._L)],
                                seed=design_seed(self._design, self.seed))
         self._x = next(self._gen)
 
     def propose(self) -> list[Proposal]:
         if self._gen is None:
             self._next_design()
-        return [Proposal(self._design, _knots_to_gait(self._x, self._m, self._L, self.hold), self.duration)]
+        return [Proposal(self._design, knots_to_gait(self._x, self._m, self._L, self.hold), self.duration)]
 
     def tell(self, proposals, returns) -> None:
         super().tell(proposals, returns)

@@ -1,0 +1,118 @@
+"""Settings of a ground-truth run (:class:`GroundTruthConfig`, saved as its ``config.json``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass
+
+from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS, check_bounds, check_field
+from softcrawl.fem.solver import RID_DTYPES
+from softcrawl.gaits.periodic import MAX_KNOTS
+
+#: Upper bounds of the search settings (far beyond the defaults 36, 2 and cma's 4 + 3 ln n).
+MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
+
+
+@dataclass
+class GroundTruthConfig:
+    """Settings of a ground-truth run (saved as ``config.json``; a resumed run must match).
+
+    Attributes:
+        duration: full episode, s (20: the paper's 20 actions of 1 s).
+        screen_duration: episode length of the CMA-ES search, s (None: ``duration``); allowed
+            where :func:`screening_agreement` shows short episodes rank like full ones.
+        hold: seconds per knot (= per action).
+        cycles: pattern lengths ``L`` searched (one CMA-ES run each, 1..8).
+        evals_per_cycle: episodes per CMA-ES run.
+        popsize: CMA-ES population (None: cma's default ``4 + 3 ln n``).
+        sigma0: initial CMA-ES step, as a fraction of 90 kPa.
+        finalists: best distinct candidates re-run with ``duration`` (step and smooth each).
+        seed: CMA-ES seed (design-specific seeds are derived from it).
+        leg_mesh_size, disk_mesh_size (mm), dt (s; None: :class:`softcrawl.robot.RobotConfig`'s
+            default), reduction (None: shipped): the reduced model, as in
+            :func:`softcrawl.codesign.training.robot_factory`.
+        baseline_phases: expert-baseline phase lags swept for ``references.json`` (degrees;
+            empty: no sweep).
+        rid_dtype: precision of the reduced legs' RID products (``"float32"``: validated like
+            the training presets' model, ``docs/results.md``; folders written before this
+            setting existed were computed in ``"float64"`` and read back as such).
+    """
+
+    duration: float = 20.0
+    screen_duration: float | None = 6.0
+    hold: float = 1.0
+    cycles: tuple[int, ...] = (2, 3, 4, 5)
+    evals_per_cycle: int = 36
+    popsize: int | None = None
+    sigma0: float = 0.3
+    finalists: int = 2
+    seed: int = 0
+    leg_mesh_size: float = 6.0
+    disk_mesh_size: float = 10.0
+    dt: float | None = None
+    reduction: str | None = None
+    baseline_phases: tuple[float, ...] = tuple(range(0, 181, 10))
+    rid_dtype: str = "float32"
+
+    def validate(self) -> GroundTruthConfig:
+        """Raise ValueError naming the first bad setting; returns self."""
+        for name, (low, high, unit) in SIM_BOUNDS.items():
+            if getattr(self, name) is not None:
+                check_bounds(name, getattr(self, name), low, high, unit)
+        for name, high, unit in (("duration", MAX_EPISODE_S, "s"), ("hold", MAX_HOLD_S, "s"),
+                                 ("sigma0", 1, "(of 90 kPa)")):
+            check_bounds(name, getattr(self, name), 0, high, unit, open_low=True)
+        if self.screen_duration is not None and not (0 < self.screen_duration <= self.duration):
+            raise ValueError(f"screen_duration must be in (0, duration], got {self.screen_duration!r}")
+        if not self.cycles or any(int(c) != c or not 1 <= c <= MAX_KNOTS for c in self.cycles):
+            raise ValueError(f"cycles must be pattern lengths in 1..{MAX_KNOTS}, got {self.cycles!r}")
+        for name, low, high in (("evals_per_cycle", 1, MAX_EVALS), ("finalists", 1, MAX_FINALISTS),
+                                ("popsize", 2, MAX_POPSIZE)):
+            v = getattr(self, name)
+            if v is not None:
+                check_bounds(name, v, low, high)
+                if int(v) != v:
+                    raise ValueError(f"{name} must be an integer, got {v!r}")
+        if self.rid_dtype not in RID_DTYPES:
+            raise ValueError(f"rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
+        from softcrawl.robot.sweep import MAX_PHASES
+
+        if len(self.baseline_phases) > MAX_PHASES:
+            raise ValueError(f"baseline_phases: {len(self.baseline_phases)} lags, more than the {MAX_PHASES} allowed")
+        for ph in self.baseline_phases:
+            check_bounds("baseline_phases", ph, -360, 360, "deg")
+        return self
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["cycles"], d["baseline_phases"] = list(self.cycles), list(self.baseline_phases)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GroundTruthConfig:
+        """Inverse of :meth:`to_dict`; each value checked against its field's type
+        (:func:`softcrawl.codesign.config.check_field`) and :meth:`validate`.
+
+        Raises:
+            ValueError: not an object, an unknown key, a value of the wrong type (named), or a
+                setting out of bounds.
+        """
+        if not isinstance(d, dict):
+            raise ValueError(f"ground-truth settings must be an object, got {type(d).__name__}")
+        hints = typing.get_type_hints(cls)
+        unknown = set(d) - set(hints)
+        if unknown:
+            raise ValueError(f"unknown ground-truth settings: {sorted(unknown)}")
+        kw = {k: check_field(k, v, hints[k]) for k, v in d.items()}
+        kw.setdefault("rid_dtype", "float64")  # written before the setting: computed in double precision
+        return cls(**kw).validate()
+
+    def robot_config(self):
+        """The :class:`softcrawl.robot.RobotConfig` of the episodes (reduced model)."""
+        from softcrawl.robot.assembly import RobotConfig
+
+        kw = {} if self.dt is None else {"dt": self.dt}
+        return RobotConfig(model="reduced", leg_mesh_size=self.leg_mesh_size, disk_mesh_size=self.disk_mesh_size,
+                           reduction=self.reduction, rid_dtype=self.rid_dtype, **kw)
+
