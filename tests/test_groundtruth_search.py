@@ -22,6 +22,7 @@ from softcrawl.codesign.groundtruth import (
     run_groundtruth,
     search_many,
 )
+from softcrawl.codesign.migrate import read_settings
 from softcrawl.design.space import PAPER_BEST_DESIGN
 
 pytest.importorskip("cma")
@@ -154,11 +155,11 @@ def test_small_real_budget_reproduces_the_rows_of_the_direct_search():
     """The reduced model, a small budget, with and without screening: every field but the wall
     time equals what the search wrote before it became a coroutine
     (``tests/data/groundtruth_small_budget.json``, written by that code on this design and
-    settings), driven one design at a time and in lockstep. Exact equality: the same episodes
+    settings, in that code's settings format), driven one design at a time and in lockstep. Exact equality: the same episodes
     in the same order are the same floating-point operations."""
     cases = json.loads((DATA / "groundtruth_small_budget.json").read_text())
     for case in cases:
-        cfg = GroundTruthConfig.from_dict(case["config"])
+        cfg = GroundTruthConfig.from_dict(read_settings("groundtruth", {"config": case["config"]}))
         expect = case["result"]
         direct = optimize_design(PAPER_BEST_DESIGN, cfg).to_dict()
         (lockstep,) = search_many([PAPER_BEST_DESIGN], cfg, SerialEvaluateMany(cfg))

@@ -190,17 +190,20 @@ class GibbsSACReplay(CodesignAlgorithm):
 
     def __init__(self, run: str | Path, designs: Sequence | None = None, batch: int | None = None):
         super().__init__()
+        from softcrawl.codesign.migrate import read_settings
         from softcrawl.codesign.run import Run
 
         r = Run(run)
         if not r.episodes_csv.exists() or not r.exists():
             raise ValueError(f"{run} is not a training run with episodes (episodes.csv, config.json)")
-        cfg = r.read_meta()["config"]  # the raw settings: runs of older versions replay too
-        try:
+        meta = r.read_meta()
+        try:  # the raw settings, migrated (not validated): runs of older versions replay too
+            cfg = read_settings("train", meta)
             e = cfg["env"]
-            self.episode_seconds = float(e["n_actions"]) * float(e["steps_per_action"]) * float(e["dt"])
+            self.episode_seconds = float(e["n_actions"]) * float(e["steps_per_action"]) * float(e["robot"]["dt"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{r.config_path}: no env settings n_actions, steps_per_action, dt ({exc!r})") from None
+            raise ValueError(f"{r.config_path}: no env settings n_actions, steps_per_action, robot.dt ({exc!r})") \
+                from None
         keep = None if designs is None else {canonicalize(d) for d in designs}
         self.keep = keep
         ep = r.read_episodes()  # ValueError naming the file and line of a bad row

@@ -138,4 +138,3 @@ def _trig_interp(knots: Sequence[float], u: float) -> float:
         else:
             val += 2.0 * (c[k].real * math.cos(w * k) - c[k].imag * math.sin(w * k))
     return float(val)
-

@@ -34,7 +34,7 @@ Modules, each importing only those before it: ``config`` → ``result`` → ``se
 ``optimize`` → ``store`` → ``outputs`` → ``runner``.
 """
 
-from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE, GroundTruthConfig
+from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE, GroundTruthConfig, gt_robot
 from softcrawl.codesign.groundtruth.optimize import (
     DesignEvaluator,
     SerialEvaluateMany,
@@ -102,6 +102,7 @@ __all__ = [
     "design_seed",
     "drive",
     "folder_lock",
+    "gt_robot",
     "knots_to_gait",
     "load_groundtruth",
     "load_results",

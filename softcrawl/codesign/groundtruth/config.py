@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import dataclasses
-import typing
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS, check_bounds, check_field
-from softcrawl.fem.solver import RID_DTYPES
+from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS, build_config, check_bounds
 from softcrawl.gaits.periodic import MAX_KNOTS
+from softcrawl.robot.assembly import RobotConfig
 
 #: Upper bounds of the search settings (far beyond the defaults 36, 2 and cma's 4 + 3 ln n).
 MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
+
+
+def gt_robot(**changes) -> RobotConfig:
+    """The ground truth's robot (:attr:`GroundTruthConfig.robot`'s default: the reduced model,
+    RID products in float32) with ``changes`` (a None change keeps the default)."""
+    return RobotConfig(**({"model": "reduced", "rid_dtype": "float32"} | {k: v for k, v in changes.items()
+                                                                         if v is not None}))
 
 
 @dataclass
@@ -21,7 +27,8 @@ class GroundTruthConfig:
     Attributes:
         duration: full episode, s (20: the paper's 20 actions of 1 s).
         screen_duration: episode length of the CMA-ES search, s (None: ``duration``); allowed
-            where :func:`screening_agreement` shows short episodes rank like full ones.
+            where :func:`~softcrawl.codesign.groundtruth.optimize.screening_agreement` shows short
+            episodes rank like full ones.
         hold: seconds per knot (= per action).
         cycles: pattern lengths ``L`` searched (one CMA-ES run each, 1..8).
         evals_per_cycle: episodes per CMA-ES run.
@@ -29,14 +36,12 @@ class GroundTruthConfig:
         sigma0: initial CMA-ES step, as a fraction of 90 kPa.
         finalists: best distinct candidates re-run with ``duration`` (step and smooth each).
         seed: CMA-ES seed (design-specific seeds are derived from it).
-        leg_mesh_size, disk_mesh_size (mm), dt (s; None: :class:`softcrawl.robot.RobotConfig`'s
-            default), reduction (None: shipped): the reduced model, as in
-            :func:`softcrawl.codesign.training.robot_factory`.
+        robot: the simulated robot (:class:`softcrawl.robot.RobotConfig`; default
+            :func:`gt_robot`: the reduced model with the shipped reduction, RID products in
+            float32, validated like the training presets' model, ``docs/results.md``; every
+            other field the robot's default: dt 0.01 s, 6 mm legs, 10 mm disk).
         baseline_phases: expert-baseline phase lags swept for ``references.json`` (degrees;
             empty: no sweep).
-        rid_dtype: precision of the reduced legs' RID products (``"float32"``: validated like
-            the training presets' model, ``docs/results.md``; folders written before this
-            setting existed were computed in ``"float64"`` and read back as such).
     """
 
     duration: float = 20.0
@@ -48,18 +53,15 @@ class GroundTruthConfig:
     sigma0: float = 0.3
     finalists: int = 2
     seed: int = 0
-    leg_mesh_size: float = 6.0
-    disk_mesh_size: float = 10.0
-    dt: float | None = None
-    reduction: str | None = None
+    robot: RobotConfig = field(default_factory=gt_robot)
     baseline_phases: tuple[float, ...] = tuple(range(0, 181, 10))
-    rid_dtype: str = "float32"
 
     def validate(self) -> GroundTruthConfig:
         """Raise ValueError naming the first bad setting; returns self."""
+        if not isinstance(self.robot, RobotConfig):
+            raise ValueError(f"robot must be RobotConfig, got {type(self.robot).__name__}")
         for name, (low, high, unit) in SIM_BOUNDS.items():
-            if getattr(self, name) is not None:
-                check_bounds(name, getattr(self, name), low, high, unit)
+            check_bounds(f"robot.{name}", getattr(self.robot, name), low, high, unit)
         for name, high, unit in (("duration", MAX_EPISODE_S, "s"), ("hold", MAX_HOLD_S, "s"),
                                  ("sigma0", 1, "(of 90 kPa)")):
             check_bounds(name, getattr(self, name), 0, high, unit, open_low=True)
@@ -74,8 +76,6 @@ class GroundTruthConfig:
                 check_bounds(name, v, low, high)
                 if int(v) != v:
                     raise ValueError(f"{name} must be an integer, got {v!r}")
-        if self.rid_dtype not in RID_DTYPES:
-            raise ValueError(f"rid_dtype must be one of {RID_DTYPES}, got {self.rid_dtype!r}")
         from softcrawl.robot.sweep import MAX_PHASES
 
         if len(self.baseline_phases) > MAX_PHASES:
@@ -91,28 +91,13 @@ class GroundTruthConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> GroundTruthConfig:
-        """Inverse of :meth:`to_dict`; each value checked against its field's type
-        (:func:`softcrawl.codesign.config.check_field`) and :meth:`validate`.
+        """Inverse of :meth:`to_dict` (:func:`softcrawl.codesign.config.build_config`: each value
+        checked against its field's type, a robot object's missing keys from :func:`gt_robot`),
+        validated. Only the current format: a folder's ``config.json`` is read through
+        :func:`softcrawl.codesign.groundtruth.store.read_config`.
 
         Raises:
             ValueError: not an object, an unknown key, a value of the wrong type (named), or a
                 setting out of bounds.
         """
-        if not isinstance(d, dict):
-            raise ValueError(f"ground-truth settings must be an object, got {type(d).__name__}")
-        hints = typing.get_type_hints(cls)
-        unknown = set(d) - set(hints)
-        if unknown:
-            raise ValueError(f"unknown ground-truth settings: {sorted(unknown)}")
-        kw = {k: check_field(k, v, hints[k]) for k, v in d.items()}
-        kw.setdefault("rid_dtype", "float64")  # written before the setting: computed in double precision
-        return cls(**kw).validate()
-
-    def robot_config(self):
-        """The :class:`softcrawl.robot.RobotConfig` of the episodes (reduced model)."""
-        from softcrawl.robot.assembly import RobotConfig
-
-        kw = {} if self.dt is None else {"dt": self.dt}
-        return RobotConfig(model="reduced", leg_mesh_size=self.leg_mesh_size, disk_mesh_size=self.disk_mesh_size,
-                           reduction=self.reduction, rid_dtype=self.rid_dtype, **kw)
-
+        return build_config(cls, d).validate()

@@ -33,7 +33,7 @@ class DesignEvaluator:
         from softcrawl.robot.assembly import build_robot
 
         self.design, self.cfg = canonicalize(design), cfg
-        self.robot = build_robot(self.design, cfg.robot_config())
+        self.robot = build_robot(self.design, cfg.robot)
         self._settled = None
         self.episodes, self.sim_seconds = 0, 0.0
 

@@ -5,7 +5,6 @@ appended to ``results.jsonl`` as its design finishes; then the references and th
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
@@ -26,6 +25,7 @@ from softcrawl.codesign.groundtruth.store import (
     read_config,
     read_references,
 )
+from softcrawl.codesign.migrate import CONFIG_VERSION
 from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN, Design, canonical_designs, canonicalize
 from softcrawl.gaits.periodic import PeriodicGait
 from softcrawl.safeio import atomic_write_text
@@ -61,7 +61,6 @@ def parse_designs(spec: str) -> list[Design]:
     if not out:
         raise ValueError("empty design set")
     return out
-
 
 
 def _task(design: Design, cfg_dict: dict) -> dict:
@@ -154,8 +153,6 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
     if not designs:
         raise ValueError("empty design set")
     out = check_folder(out_dir)
-    if cfg is not None and cfg.dt is None:  # record the concrete time step
-        cfg = dataclasses.replace(cfg, dt=cfg.robot_config().dt)
     if cfg is not None:
         cfg.validate()
     out.mkdir(parents=True, exist_ok=True)
@@ -172,7 +169,7 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
             cfg = (cfg or GroundTruthConfig()).validate()
             from softcrawl import __version__
 
-            saved = {"config": cfg.to_dict(), "softcrawl": __version__}
+            saved = {"config": cfg.to_dict(), "config_version": CONFIG_VERSION, "softcrawl": __version__}
             atomic_write_text(cfg_path, json.dumps(saved, indent=2) + "\n")
         return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs, evaluate_many)
 

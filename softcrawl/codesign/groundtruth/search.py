@@ -168,7 +168,8 @@ def design_search(design, cfg: GroundTruthConfig) -> typing.Generator[Request, R
     docstring): it yields the episodes it needs, ``(gait, duration)``, one at a time, and is
     sent each one's ``(reward cm, diverged)``; a diverged episode (or a non-finite reward)
     scores :data:`DIVERGED_CM`. Exactly ``len(cfg.cycles) * cfg.evals_per_cycle`` search
-    episodes of ``cfg.screen_duration`` s, then the finals of ``cfg.duration`` s.
+    episodes of ``cfg.screen_duration`` s (``cfg.duration`` without screening), then at most
+    ``2 * cfg.finalists`` finals of ``cfg.duration`` s.
 
     The design and the settings are checked when this is called, before the first request.
 

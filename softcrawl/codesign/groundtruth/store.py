@@ -19,6 +19,7 @@ from pathlib import Path
 
 from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DesignResult, _finite
+from softcrawl.codesign.migrate import read_settings
 from softcrawl.codesign.run import note
 from softcrawl.design.space import Design
 from softcrawl.safeio import UnsafeFileError, load_json, loads_json, read_text
@@ -100,7 +101,8 @@ class FolderLockedError(ValueError):
 
 
 def read_config(out_dir: str | Path) -> GroundTruthConfig:
-    """The settings saved in a ground-truth folder's ``config.json``.
+    """The settings saved in a ground-truth folder's ``config.json`` (an older format read
+    through :func:`softcrawl.codesign.migrate.read_settings`).
 
     Raises:
         FileNotFoundError: no ``config.json``.
@@ -109,9 +111,7 @@ def read_config(out_dir: str | Path) -> GroundTruthConfig:
     path = Path(out_dir) / "config.json"
     doc = load_json(path)
     try:
-        if not isinstance(doc, dict) or "config" not in doc:
-            raise ValueError('no "config" object')
-        return GroundTruthConfig.from_dict(doc["config"])
+        return GroundTruthConfig.from_dict(read_settings("groundtruth", doc))
     except ValueError as exc:
         raise ValueError(f"{path}: not a ground truth's settings ({exc})") from None
 
