@@ -157,7 +157,6 @@ def design_seed(design: Design, seed: int) -> int:
     return (seed * 1_000_003 + int("".join(map(str, design)), 4)) % (2**31 - 2)
 
 
-
 #: An episode a search asks for: ``(gait, duration s)``; its answer: ``(reward cm, diverged)``.
 Request = tuple[PeriodicGait, float]
 Reply = tuple[float, bool]
