@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 
 from softcrawl.codesign.groundtruth import (  # noqa: E402
     GroundTruthConfig,
+    gt_robot,
     optimize_design,
     parse_designs,
     screening_agreement,
@@ -55,14 +56,14 @@ def main(argv=None) -> int:
         rng = np.random.default_rng(a.seed)
         three = parse_designs("3")
         pick = [PAPER_BEST_DESIGN] + [three[i] for i in rng.choice(len(three), a.designs - 1, replace=False)]
-        cfg = GroundTruthConfig(disk_mesh_size=a.disk_mesh_size, dt=a.dt)
+        cfg = GroundTruthConfig(robot=gt_robot(disk_mesh_size=a.disk_mesh_size, dt=a.dt))
         res = screening_agreement(pick, cfg, a.gaits, [float(x) for x in a.short.split(",")], seed=a.seed)
         if a.out:
             with open(a.out, "w") as f:
                 json.dump(res, f, indent=2)
         print(json.dumps({k: v for k, v in res.items() if k != "pairs"} | {"n_pairs": len(res["pairs"])}, indent=2))
     else:
-        cfg = GroundTruthConfig(disk_mesh_size=a.disk_mesh_size, dt=a.dt)
+        cfg = GroundTruthConfig(robot=gt_robot(disk_mesh_size=a.disk_mesh_size, dt=a.dt))
         if a.cycles:
             cfg.cycles = tuple(int(c) for c in a.cycles.split(","))
         if a.evals_per_cycle:

@@ -18,6 +18,7 @@ Usage: OMP_NUM_THREADS=1 python benchmarks/settle_cost.py [--robots 12] [--legs 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import time
@@ -26,7 +27,7 @@ import numpy as np
 
 from softcrawl.codesign.config import EnvConfig
 from softcrawl.reduction.batch import BatchedReducedSolver, run_in_lockstep
-from softcrawl.robot import RobotConfig, Settling, build_robot, settle
+from softcrawl.robot import Settling, build_robot, settle
 from batch_step import designs_with  # this folder's script
 
 
@@ -41,12 +42,11 @@ def main() -> None:
                    help="Gauss-Seidel sweeps per chunk (default: the paper preset's)")
     args = p.parse_args()
     env = EnvConfig()
-    iterations = args.contact_max_iterations or env.contact_max_iterations
-    spacing = env.leg_collision_spacing if args.leg_collision_spacing is None else args.leg_collision_spacing
+    iterations = args.contact_max_iterations or env.robot.contact_max_iterations
+    spacing = env.robot.leg_collision_spacing if args.leg_collision_spacing is None else args.leg_collision_spacing
     rng = np.random.default_rng(args.seed)
     designs = [d for n in args.legs for d in designs_with(n, args.robots, rng)]
-    cfg = RobotConfig(model="reduced", dt=env.dt, rid_dtype=env.rid_dtype, contact_max_iterations=iterations,
-                      leg_collision_spacing=spacing)
+    cfg = dataclasses.replace(env.robot, contact_max_iterations=iterations, leg_collision_spacing=spacing)
     robots = [build_robot(d, cfg) for d in designs]
     solvers = [r.make_solver() for r in robots]
     c0 = time.process_time()

@@ -110,27 +110,29 @@ def _parse(parse, text: str, where: str, max_depth: int, kind: str):
     return value
 
 
-def loads_json(text: str, where: str = "JSON", max_depth: int = MAX_DEPTH):
-    """Parse JSON text, refusing deep nesting and non-standard constants (``NaN``,
-    ``Infinity``) with :class:`UnsafeFileError` naming ``where`` (a file, or file:line)."""
+def loads_json(text: str, where: str = "JSON", max_depth: int = MAX_DEPTH, allow_nan: bool = False):
+    """Parse JSON text, refusing deep nesting and (unless ``allow_nan``, for a file softcrawl
+    wrote with NaN in it) non-standard constants (``NaN``, ``Infinity``) with
+    :class:`UnsafeFileError` naming ``where`` (a file, or file:line)."""
 
     def parse(s):
         def constant(name):
             raise ValueError(f"{name} is not a JSON number")
 
-        return json.loads(s, parse_constant=constant)
+        return json.loads(s) if allow_nan else json.loads(s, parse_constant=constant)
 
     return _parse(parse, text, where, max_depth, "JSON")
 
 
-def load_json(path: str | os.PathLike, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH):
-    """The JSON value in the regular file ``path``.
+def load_json(path: str | os.PathLike, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH,
+              allow_nan: bool = False):
+    """The JSON value in the regular file ``path`` (``allow_nan``: as :func:`loads_json`).
 
     Raises:
         FileNotFoundError: no such file.
         UnsafeFileError: not a regular file, too large, not UTF-8, not JSON, or nested too deeply.
     """
-    return loads_json(read_text(path, max_bytes), str(path), max_depth)
+    return loads_json(read_text(path, max_bytes), str(path), max_depth, allow_nan)
 
 
 def load_toml(path: str | os.PathLike, max_bytes: int = 16 * 1024 * 1024, max_depth: int = MAX_DEPTH) -> dict:

@@ -24,6 +24,7 @@ from softcrawl.codesign.groundtruth import (
     DesignResult,
     GroundTruthConfig,
     PeriodicGait,
+    gt_robot,
     read_config,
     read_results,
     run_groundtruth,
@@ -83,7 +84,7 @@ def _line(draw):
 def _folder(root: Path, lines: list[str]) -> Path:
     gt = root / "gt"
     gt.mkdir()
-    cfg = GroundTruthConfig(baseline_phases=(), dt=0.02)
+    cfg = GroundTruthConfig(baseline_phases=(), robot=gt_robot(dt=0.02))
     (gt / "config.json").write_text(json.dumps({"config": cfg.to_dict()}))
     (gt / "results.jsonl").write_text("".join(ln + "\n" for ln in lines))
     return gt

@@ -36,7 +36,7 @@ GT_CLI = ["--designs", "1,0,0,2,2,0,0,0", "--no-progress", "--executor", "serial
 def no_simulation(monkeypatch):
     """``softcrawl groundtruth`` in this process computes fake designs and no references: a test
     whose refusal fails ends at once instead of simulating."""
-    import softcrawl.codesign.groundtruth as gtmod
+    import softcrawl.codesign.groundtruth.runner as gtmod
 
     monkeypatch.setattr(gtmod, "optimize_design", lambda d, cfg: gtmod.DesignResult.from_dict(fake_task(d, None)))
     monkeypatch.setattr(gtmod, "references", lambda cfg: {})

@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -43,20 +44,22 @@ def test_run_config_saved_before_a_setting_reads_back_with_its_reference_value()
     ``env.leg_collision_spacing`` existed resumes with the values it was trained with (the
     reference), not the presets' newer defaults; the factory hands them to the robots."""
     from softcrawl.codesign.factory import robot_factory
+    from softcrawl.codesign.migrate import read_settings
 
-    d = preset("demo").to_dict()
+    saved = (Path(__file__).parent / "data" / "run_config_v1.json").read_text()  # format 1, the smoke preset
+    d = json.loads(saved)
     for key in ("rid_dtype", "contact_max_iterations"):
-        del d["env"][key]
-    old = TrainConfig.from_dict(json.loads(json.dumps(d)))
-    assert (old.env.rid_dtype, old.env.contact_max_iterations) == ("float64", 250)
+        del d["config"]["env"][key]
+    old = TrainConfig.from_dict(read_settings("train", d))
+    assert (old.env.robot.rid_dtype, old.env.robot.contact_max_iterations) == ("float64", 250)
     new = preset("demo")
-    assert new.env.contact_max_iterations == 100 and robot_factory(new).config.contact_max_iterations == 100
+    assert new.env.robot.contact_max_iterations == 100 and robot_factory(new).config.contact_max_iterations == 100
     assert robot_factory(old).config.contact_max_iterations == 250
-    d = preset("demo").to_dict()
-    del d["env"]["leg_collision_spacing"]
-    old = TrainConfig.from_dict(json.loads(json.dumps(d)))
-    assert old.env.leg_collision_spacing == 0.0 and robot_factory(old).config.leg_collision_spacing == 0.0
-    assert robot_factory(new).config.leg_collision_spacing == new.env.leg_collision_spacing
+    d = json.loads(saved)
+    del d["config"]["env"]["leg_collision_spacing"]
+    old = TrainConfig.from_dict(read_settings("train", d))
+    assert old.env.robot.leg_collision_spacing == 0.0 and robot_factory(old).config.leg_collision_spacing == 0.0
+    assert robot_factory(new).config.leg_collision_spacing == new.env.robot.leg_collision_spacing
     for bad in (["env.leg_collision_spacing=-1"], ['env.leg_collision_spacing="8"']):
         with pytest.raises(ValueError, match="env.leg_collision_spacing"):
             override(new, bad)

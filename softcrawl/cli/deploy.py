@@ -53,7 +53,7 @@ def policy_actions(run: str, design: str, checkpoint: str | None = None):
     from softcrawl.codesign.evaluation import evaluate_policy
 
     ev = evaluate_policy(run, design, episodes=1, checkpoint=checkpoint)
-    hold = ev.config.env.steps_per_action * ev.config.env.dt
+    hold = ev.config.env.steps_per_action * ev.config.env.robot.dt
     return np.asarray(ev.actions_kpa, dtype=float), {
         "source": "policy", "run": str(run), "checkpoint": ev.checkpoint, "design": list(ev.design),
         "sim_return_cm": float(ev.returns_cm[0]), "sim_hold_s": hold}

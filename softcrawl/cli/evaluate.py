@@ -91,7 +91,7 @@ def _run(args: argparse.Namespace) -> int:
             "run": str(args.run), "checkpoint": ev.checkpoint, "design": list(ev.design),
             "episodes": args.episodes, "returns_cm": ev.returns_cm, "mean_return_cm": float(np.mean(ev.returns_cm)),
             "diverged": ev.diverged, "rerun_reward_cm": result.reward_cm,
-            "hold_s": ev.config.env.steps_per_action * ev.config.env.dt,
+            "hold_s": ev.config.env.steps_per_action * ev.config.env.robot.dt,
             "actions_kpa": np.asarray(ev.actions_kpa).tolist(),
         }, indent=2) + "\n")
 

@@ -43,6 +43,7 @@ def _run(args: argparse.Namespace) -> int:
         EXECUTORS,
         GroundTruthConfig,
         check_folder,
+        gt_robot,
         parse_designs,
         run_groundtruth,
     )
@@ -69,9 +70,10 @@ def _run(args: argparse.Namespace) -> int:
             raise ValueError(f"--cycles must be integers, got {args.cycles!r}")
         cfg = GroundTruthConfig(duration=args.duration, screen_duration=screen, hold=args.hold,
                                 cycles=tuple(int(c) for c in cycles), evals_per_cycle=args.evals_per_cycle,
-                                finalists=args.finalists, seed=args.seed, leg_mesh_size=args.leg_mesh_size,
-                                disk_mesh_size=args.disk_mesh_size, dt=args.dt, reduction=args.reduction,
-                                baseline_phases=_phases(args.baseline_phases), rid_dtype=args.rid_dtype).validate()
+                                finalists=args.finalists, seed=args.seed,
+                                robot=gt_robot(leg_mesh_size=args.leg_mesh_size, disk_mesh_size=args.disk_mesh_size,
+                                               reduction=args.reduction, rid_dtype=args.rid_dtype, dt=args.dt),
+                                baseline_phases=_phases(args.baseline_phases)).validate()
     check_ray_address(args.executor, args.ray_address)
     s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
                         progress=not args.no_progress, ray_address=args.ray_address)

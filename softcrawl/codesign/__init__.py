@@ -4,11 +4,14 @@ SAC learner and the training driver.
 Layers (each module imports only those above it; ``tests/test_import_graph.py`` checks the
 graph is acyclic): :mod:`~softcrawl.codesign.config` → :mod:`~softcrawl.codesign.distribution`,
 :mod:`~softcrawl.codesign.sampler`, :mod:`~softcrawl.codesign.sac` →
-:mod:`~softcrawl.codesign.run` (the run folder: layout, checkpoints, logs; the only module that
-builds a run's paths) and :mod:`~softcrawl.codesign.factory` (envs, robots, sampler of a config)
+:mod:`~softcrawl.codesign.checkpoints` (writing, checking, reading and rescuing a run's
+checkpoints) → :mod:`~softcrawl.codesign.run` (the run folder: layout, settings, logs; the only
+module that builds a run's paths) and :mod:`~softcrawl.codesign.factory` (envs, robots, sampler of a config)
 → :mod:`~softcrawl.codesign.training` (writes runs) and :mod:`~softcrawl.codesign.evaluation` →
 :mod:`~softcrawl.codesign.report` (reads runs). Training does not import the report: ``softcrawl
-train`` writes it afterwards (:func:`softcrawl.cli.train.train_and_report`).
+train`` writes it afterwards (:func:`softcrawl.cli.train.train_and_report`). A saved
+``config.json`` of an older format is read through :mod:`~softcrawl.codesign.migrate`; the ground
+truth of the design space is the package :mod:`~softcrawl.codesign.groundtruth`.
 
 Heavy modules (torch / stable-baselines3: :mod:`softcrawl.codesign.sac`,
 :mod:`softcrawl.codesign.training`, :mod:`softcrawl.codesign.report`) are not imported here.

@@ -31,10 +31,10 @@ import numpy as np
 from softcrawl.codesign.groundtruth import (
     GroundTruthConfig,
     PeriodicGait,
-    _knots_to_gait,
-    _seed_knots,
     cma_search,
     design_seed,
+    knots_to_gait,
+    seed_knots,
     used_regulators,
 )
 from softcrawl.design.space import Design, canonicalize
@@ -109,14 +109,14 @@ class RandomSearch(CodesignAlgorithm):
             self._order = [self.designs[i] for i in self.rng.permutation(len(self.designs))]
         self._design = self._order.pop()
         self._m, self._L = used_regulators(self._design), int(self.rng.choice(self.cycles))
-        self._gen = cma_search(self._m * self._L, self.evals, [s.ravel() for s in _seed_knots(self._m, self._L)],
+        self._gen = cma_search(self._m * self._L, self.evals, [s.ravel() for s in seed_knots(self._m, self._L)],
                                seed=design_seed(self._design, self.seed))
         self._x = next(self._gen)
 
     def propose(self) -> list[Proposal]:
         if self._gen is None:
             self._next_design()
-        return [Proposal(self._design, _knots_to_gait(self._x, self._m, self._L, self.hold), self.duration)]
+        return [Proposal(self._design, knots_to_gait(self._x, self._m, self._L, self.hold), self.duration)]
 
     def tell(self, proposals, returns) -> None:
         super().tell(proposals, returns)
@@ -190,17 +190,20 @@ class GibbsSACReplay(CodesignAlgorithm):
 
     def __init__(self, run: str | Path, designs: Sequence | None = None, batch: int | None = None):
         super().__init__()
+        from softcrawl.codesign.migrate import read_settings
         from softcrawl.codesign.run import Run
 
         r = Run(run)
         if not r.episodes_csv.exists() or not r.exists():
             raise ValueError(f"{run} is not a training run with episodes (episodes.csv, config.json)")
-        cfg = r.read_meta()["config"]  # the raw settings: runs of older versions replay too
-        try:
+        meta = r.read_meta()
+        try:  # the raw settings, migrated (not validated): runs of older versions replay too
+            cfg = read_settings("train", meta)
             e = cfg["env"]
-            self.episode_seconds = float(e["n_actions"]) * float(e["steps_per_action"]) * float(e["dt"])
+            self.episode_seconds = float(e["n_actions"]) * float(e["steps_per_action"]) * float(e["robot"]["dt"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{r.config_path}: no env settings n_actions, steps_per_action, dt ({exc!r})") from None
+            raise ValueError(f"{r.config_path}: no env settings n_actions, steps_per_action, robot.dt ({exc!r})") \
+                from None
         keep = None if designs is None else {canonicalize(d) for d in designs}
         self.keep = keep
         ep = r.read_episodes()  # ValueError naming the file and line of a bad row

@@ -8,11 +8,11 @@ Presets (all but ``smoke`` step the reduced model at dt = 0.02 s, 50 steps per 1
 ``softcrawl reduce validate --dt 0.02`` against the exact 0.01 s full-order references gave a
 mean node error of 0.96 mm (0.79 mm at 0.01 s) and a baseline reward error of 1.3% (1.1%), and
 the paper-best 20 s crawl +11.36 cm (0.01 s: +11.69 cm; full-order exact +10.66 cm), for half
-the steps; with float32 RID products, ``env.rid_dtype``, 0.95 mm and 3.0%; 0.04 s fails both
+the steps; with float32 RID products, ``env.robot.rid_dtype``, 0.95 mm and 3.0%; 0.04 s fails both
 targets, 1.72 mm and 17%, at about twice the cost per step, ``docs/results.md``; and with
-at most 100 Gauss-Seidel sweeps per chunk (``env.contact_max_iterations``), 0.95 mm and 0.6%;
-``--set env.dt=0.01 env.steps_per_action=100 env.rid_dtype=float64
-env.contact_max_iterations=250`` restores the reference step):
+at most 100 Gauss-Seidel sweeps per chunk (``env.robot.contact_max_iterations``), 0.95 mm and
+0.6%; ``--set env.robot.dt=0.01 env.steps_per_action=100 env.robot.rid_dtype=float64
+env.robot.contact_max_iterations=250`` restores the reference step):
 
 * ``paper``: the paper's table: 96 envs, 1M transitions, buffer 100K, batch 512, γ 0.95,
   policy lr 6e-4, Q lr 2e-3, τ 0.01, learning starts 10K, 1 update per transition,
@@ -32,6 +32,11 @@ env.contact_max_iterations=250`` restores the reference step):
   (batch 128).
 * ``smoke``: CI, < 1 min: the reduced model at 0.01 s, 2 envs in-process, 2 steps per action,
   160 transitions.
+
+The robot's settings are one :class:`softcrawl.robot.RobotConfig`, ``env.robot``; ``--set
+env.FIELD=VALUE`` of a robot field (``env.dt``, ``env.leg_mesh_size``, ...) sets
+``env.robot.FIELD``. A saved run's ``config.json`` of an older format is read through
+:mod:`softcrawl.codesign.migrate`.
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ from dataclasses import asdict, dataclass, field
 from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
 from softcrawl.envs.backends.factory import BACKENDS
 from softcrawl.fem.solver import RID_DTYPES
-from softcrawl.robot.assembly import MODELS
+from softcrawl.robot.assembly import MODELS, RobotConfig
 from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import Settling
 
@@ -70,7 +75,7 @@ TRAIN_BOUNDS: dict[str, tuple[float, float, str]] = {
     "n_envs": (1, 4096, ""), "total_steps": (1, 10**10, ""), "n_workers": (0, 1024, ""), "seed": (0, 2**32 - 1, ""),
     "checkpoint_every": (1, 10**10, ""), "snapshot_every": (1, 10**10, ""), "keep_checkpoints": (2, 1000, ""),
     "env.steps_per_action": (1, 10_000, ""), "env.n_actions": (1, 10_000, ""),
-    "env.contact_max_iterations": (1, 100_000, ""), "env.leg_collision_spacing": (0.0, 100.0, "mm"),
+    "env.robot.contact_max_iterations": (1, 100_000, ""), "env.robot.leg_collision_spacing": (0.0, 100.0, "mm"),
     "env.max_cached_robots": (1, 10_000, ""), "env.settle_max_seconds": (0.0, 60.0, "s"),
     "sac.buffer_size": (1, 10**7, ""), "sac.batch_size": (1, 65_536, ""), "sac.threads": (1, 256, ""),
     "sac.learning_starts": (0, 10**10, ""), "sac.policy_lr": (0.0, 1.0, ""), "sac.q_lr": (0.0, 1.0, ""),
@@ -90,9 +95,14 @@ RANDOMIZE_BOUNDS: dict[str, tuple[float, float]] = {
     "pressure_gain": (0.0, 5.0), "pressure_offset": (-90.0, 90.0), "tau_inflate": (0.0, 10.0),
     "tau_vent": (0.0, 10.0), "control_period": (0.5, 2.0),
 }
-#: ``env`` settings added after runs were saved, and the value that reproduces those runs.
-_BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250, "leg_collision_spacing": 0.0}
 TIMEOUTS = ("bootstrap", "terminal")
+
+
+def env_robot(**changes) -> RobotConfig:
+    """The training robot (:attr:`EnvConfig.robot`'s default) with ``changes``: the reduced
+    model at dt = 0.02 s, float32 RID products, 100 contact sweeps per chunk."""
+    kw = {"model": "reduced", "rid_dtype": "float32", "dt": 0.02, "contact_max_iterations": 100}
+    return RobotConfig(**(kw | changes))
 
 
 @dataclass
@@ -100,29 +110,19 @@ class EnvConfig:
     """Simulation of one episode.
 
     Attributes:
-        model: ``"full"`` (full-order FEM) or ``"reduced"`` (POD + ECSW legs, and disk if the
-            reduction has one, :class:`softcrawl.robot.RobotConfig`); reduction: its file (None:
-            the shipped one).
-        leg_mesh_size, disk_mesh_size: mm. refactor_every: factorization reuse
-            of the full-order bodies (None: the robot's default, :class:`softcrawl.robot.RobotConfig`).
-            rid_dtype: precision of the reduced legs' RID element products (``"float32"``:
-            ``softcrawl reduce validate --dt 0.02 --rid-dtype float32`` gave the same node error
-            as float64, 0.95 mm, and a baseline reward error of 3.0%, for a 1.14x faster robot
-            step; ``"float64"``: the reference; :class:`softcrawl.robot.RobotConfig`). A run
-            saved before this setting existed is read back as ``"float64"``.
-        dt: simulator step, s (0.02: validated against the exact 0.01 s model, see the module
-            docstring). steps_per_action: steps per action (hold = dt * steps_per_action s).
-        contact_max_iterations: the contact solve's Gauss-Seidel sweep limit per chunk
-            (:class:`softcrawl.robot.RobotConfig`; reference 250). 100: ``softcrawl reduce
-            validate --dt 0.02 --rid-dtype float32 --contact-max-iterations 100`` gave a mean
-            node error of 0.946 mm (0.952 with 250) and a baseline reward error of 0.6% (3.0%);
-            the settling before an episode costs about 1.2x less, a step after it about 3% less
-            (``CHANGELOG.md``). A run saved before this setting
-            existed is read back with 250.
-        leg_collision_spacing: the legs' floor contact points, mm apart (0: every surface node,
-            the reference and every preset's; 4 passes ``reduce validate`` for 1.04x end to end,
-            :attr:`softcrawl.robot.RobotConfig.leg_collision_spacing`). A run saved before this
-            setting existed is read back with 0.
+        robot: the simulated robot (:class:`softcrawl.robot.RobotConfig`; the default,
+            :func:`env_robot`: the reduced model, shipped reduction, 6 mm legs, 10 mm disk, at
+            dt = 0.02 s (validated against the exact 0.01 s model, module docstring), RID
+            products in float32 (``softcrawl reduce validate --dt 0.02 --rid-dtype float32``
+            gave the same node error as float64, 0.95 mm, and a baseline reward error of 3.0%,
+            for a 1.14x faster robot step) and at most 100 Gauss-Seidel contact sweeps per chunk
+            (``softcrawl reduce validate --dt 0.02 --rid-dtype float32
+            --contact-max-iterations 100`` gave a mean node error of 0.946 mm, 0.952 with 250,
+            and a baseline reward error of 0.6%, 3.0%; the settling before an episode costs
+            about 1.2x less, a step after it about 3% less); every other field the robot's
+            default (friction 1.2, leg contact points at every surface node: 4 mm apart passes
+            ``reduce validate`` for 1.04x end to end, no preset uses it).
+        steps_per_action: steps per action (hold = robot.dt * steps_per_action s).
         n_actions: actions per episode (20). observe_state: robot-state summary in the observation.
         settle_speed, settle_hold, settle_max_seconds: the rest rule of the zero-pressure
             settling before each episode (mm/s, s, s; :class:`softcrawl.robot.Settling`);
@@ -138,16 +138,8 @@ class EnvConfig:
             ``null``) none. Every range lies within :data:`RANDOMIZE_BOUNDS`.
     """
 
-    model: str = "reduced"
-    reduction: str | None = None
-    leg_mesh_size: float = 6.0
-    disk_mesh_size: float = 10.0
-    refactor_every: int | None = None
-    rid_dtype: str = "float32"
-    dt: float = 0.02
+    robot: RobotConfig = field(default_factory=env_robot)
     steps_per_action: int = 50
-    contact_max_iterations: int = 100
-    leg_collision_spacing: float = 0.0
     n_actions: int = 20
     observe_state: bool = False
     settle_speed: float = 0.5
@@ -236,14 +228,18 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         for name in ("n_envs", "total_steps", "checkpoint_every", "snapshot_every", "keep_checkpoints"):
             pos_int(name, getattr(self, name))
-        for name in ("steps_per_action", "n_actions", "max_cached_robots", "contact_max_iterations"):
+        if not isinstance(self.env.robot, RobotConfig):
+            raise ValueError(f"env.robot must be RobotConfig, got {type(self.env.robot).__name__}")
+        robot = self.env.robot
+        for name in ("steps_per_action", "n_actions", "max_cached_robots"):
             pos_int(f"env.{name}", getattr(self.env, name))
-        if self.env.refactor_every is not None:
-            pos_int("env.refactor_every", self.env.refactor_every)
-        spacing = self.env.leg_collision_spacing
+        pos_int("env.robot.contact_max_iterations", robot.contact_max_iterations)
+        if robot.refactor_every is not None:
+            pos_int("env.robot.refactor_every", robot.refactor_every)
+        spacing = robot.leg_collision_spacing
         if isinstance(spacing, bool) or not isinstance(spacing, (int, float)) or not (math.isfinite(spacing)
                                                                                       and spacing >= 0):
-            raise ValueError(f"env.leg_collision_spacing must be >= 0 mm, got {spacing!r}")
+            raise ValueError(f"env.robot.leg_collision_spacing must be >= 0 mm, got {spacing!r}")
         for name in ("buffer_size", "batch_size", "threads"):
             pos_int(f"sac.{name}", getattr(self.sac, name))
         if self.keep_checkpoints < 2:
@@ -254,19 +250,19 @@ class TrainConfig:
                              f"({self.sac.buffer_size})")
         if not self.sac.net_arch or any(isinstance(n, bool) or int(n) != n or n < 1 for n in self.sac.net_arch):
             raise ValueError(f"sac.net_arch must be a non-empty list of positive layer widths, got {self.sac.net_arch}")
-        if self.env.reduction is not None and self.env.model != "reduced":
-            raise ValueError(f"env.reduction is set but env.model is {self.env.model!r}: a reduction file is used "
-                             "only by the reduced model")
+        if robot.reduction is not None and robot.model != "reduced":
+            raise ValueError(f"env.robot.reduction is set but env.robot.model is {robot.model!r}: a reduction file "
+                             "is used only by the reduced model")
         settling = self.env.settling()
         if not isinstance(self.env.randomize, DomainRanges):
             raise ValueError(f"env.randomize must be DomainRanges, got {type(self.env.randomize).__name__}")
         self.env.randomize.check_steps(self.env.steps_per_action)
         if settling.max_seconds <= 0:
             raise ValueError("env.settle_max_seconds must be positive: episodes start from the robot at rest")
-        if self.env.rid_dtype not in RID_DTYPES:
-            raise ValueError(f"env.rid_dtype must be one of {RID_DTYPES}, got {self.env.rid_dtype!r}")
-        if self.env.model not in MODELS:
-            raise ValueError(f"env.model must be one of {MODELS}, got {self.env.model!r}")
+        if robot.rid_dtype not in RID_DTYPES:
+            raise ValueError(f"env.robot.rid_dtype must be one of {RID_DTYPES}, got {robot.rid_dtype!r}")
+        if robot.model not in MODELS:
+            raise ValueError(f"env.robot.model must be one of {MODELS}, got {robot.model!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {tuple(BACKENDS)}, got {self.backend!r}")
         if not re.fullmatch(r"cpu|cuda(:\d+)?", self.sac.device):
@@ -281,8 +277,8 @@ class TrainConfig:
             raise ValueError("sac.gamma and sac.tau must be in (0, 1], sac.utd_ratio > 0")
         if self.n_workers < 0 or self.sac.learning_starts < 0:
             raise ValueError("n_workers and sac.learning_starts must be >= 0")
-        if not all(math.isfinite(v) and v > 0 for v in (self.env.dt, self.sac.policy_lr, self.sac.q_lr)):
-            raise ValueError("env.dt, sac.policy_lr and sac.q_lr must be positive")
+        if not all(math.isfinite(v) and v > 0 for v in (robot.dt, self.sac.policy_lr, self.sac.q_lr)):
+            raise ValueError("env.robot.dt, sac.policy_lr and sac.q_lr must be positive")
         self._check_bounds()
         return self
 
@@ -294,18 +290,18 @@ class TrainConfig:
             for part in name.split("."):
                 obj = getattr(obj, part)
             return obj
-        for name, (low, high, unit) in (TRAIN_BOUNDS | {f"env.{k}": b for k, b in SIM_BOUNDS.items()}).items():
+        for name, (low, high, unit) in (TRAIN_BOUNDS | {f"env.robot.{k}": b for k, b in SIM_BOUNDS.items()}).items():
             check_bounds(name, get(name), low, high, unit)
-        if self.env.refactor_every is not None:
-            check_bounds("env.refactor_every", self.env.refactor_every, 1, 10**6)
+        if self.env.robot.refactor_every is not None:
+            check_bounds("env.robot.refactor_every", self.env.robot.refactor_every, 1, 10**6)
         if len(self.sac.net_arch) > MAX_LAYERS or max(self.sac.net_arch) > MAX_WIDTH:
             raise ValueError(f"sac.net_arch must have at most {MAX_LAYERS} layers of at most {MAX_WIDTH} units, "
                              f"got {list(self.sac.net_arch)}")
         check_randomize(self.env.randomize)
         e, stretch = self.env, (self.env.randomize.control_period or (1.0, 1.0))[1]
-        hold = e.dt * e.steps_per_action * stretch
+        hold = e.robot.dt * e.steps_per_action * stretch
         if hold > MAX_HOLD_S or hold * e.n_actions > MAX_EPISODE_S:
-            raise ValueError(f"env.dt x env.steps_per_action (x env.randomize.control_period) is a {hold:g} s action "
+            raise ValueError(f"env.robot.dt x env.steps_per_action (x env.randomize.control_period) is a {hold:g} s action "
                              f"and a {hold * e.n_actions:g} s episode; at most {MAX_HOLD_S:g} s and "
                              f"{MAX_EPISODE_S:g} s")
 
@@ -315,34 +311,51 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
-        """Inverse of :meth:`to_dict`. Every value is checked against its field's type
-        (:func:`check_field`); lists become tuples.
-
-        A sub-config given as a string names one of its presets (a class with a ``preset``
-        classmethod: ``"env": {"randomize": "rig"}``, :meth:`DomainRanges.preset`).
+        """Inverse of :meth:`to_dict` (:func:`build_config`: types checked, presets by name,
+        missing keys of a sub-config from its default, so ``"env": {"robot": {"dt": 0.01}}`` is
+        :func:`env_robot` at 0.01 s), validated. Only the current format: a saved
+        ``config.json`` is read through :func:`softcrawl.codesign.migrate.read_settings`.
 
         Raises:
             ValueError: an unknown key, a value of the wrong type (the message names the key),
                 or a setting :meth:`validate` refuses.
         """
-        def build(kind, data, prefix):
-            if isinstance(data, str) and callable(getattr(kind, "preset", None)):
-                data = asdict(kind.preset(data))
-            if not isinstance(data, dict):
-                raise ValueError(f"{prefix.rstrip('.') or 'config'} must be an object, got {data!r}")
-            names = {f.name: f for f in dataclasses.fields(kind)}
-            unknown = set(data) - set(names)
-            if unknown:
-                raise ValueError(f"unknown {kind.__name__} settings: {sorted(unknown)}")
-            hints = typing.get_type_hints(kind)
-            kw = {}
-            for k, v in data.items():
-                sub = hints[k] if dataclasses.is_dataclass(hints[k]) else None
-                kw[k] = build(sub, v, f"{prefix}{k}.") if sub else check_field(f"{prefix}{k}", v, hints[k])
-            return kind(**kw)
-        if isinstance(d, dict) and isinstance(d.get("env"), dict):  # saved before a setting: its reference value
-            d = {**d, "env": {**_BEFORE_SETTING, **d["env"]}}
-        return build(cls, d, "").validate()
+        return build_config(cls, d).validate()
+
+
+def build_config(kind, data, prefix: str = "", base=None):
+    """The dataclass ``kind`` from a JSON object ``data``, each value checked against its
+    field's type (:func:`check_field`; lists become tuples), sub-configs built alike: a string
+    names a preset of a class that has them (``"randomize": "rig"``,
+    :meth:`DomainRanges.preset`), an object without some keys takes them from the field's
+    default (or ``base``). Not validated beyond the types and the class's own checks.
+
+    Raises:
+        ValueError: not an object, an unknown key, a value of the wrong type, a value the class
+            refuses (each named as ``prefix`` + the field).
+    """
+    if isinstance(data, str) and callable(getattr(kind, "preset", None)):
+        data = asdict(kind.preset(data))
+    if not isinstance(data, dict):
+        raise ValueError(f"{prefix.rstrip('.') or 'config'} must be an object, got {data!r}")
+    names = {f.name: f for f in dataclasses.fields(kind)}
+    unknown = set(data) - set(names)
+    if unknown:
+        raise ValueError(f"unknown {kind.__name__} settings: {sorted(unknown)}")
+    if base is not None:
+        data = asdict(base) | data
+    hints = typing.get_type_hints(kind)
+    kw = {}
+    for k, v in data.items():
+        if dataclasses.is_dataclass(hints[k]):
+            default = names[k].default_factory
+            kw[k] = build_config(hints[k], v, f"{prefix}{k}.", None if default is dataclasses.MISSING else default())
+        else:
+            kw[k] = check_field(f"{prefix}{k}", v, hints[k])
+    try:
+        return kind(**kw)
+    except ValueError as exc:  # the class names its field: name the setting instead
+        raise ValueError(str(exc).replace(f"{kind.__name__}.", prefix)) from None
 
 
 def check_bounds(name: str, value, low: float, high: float, unit: str = "", open_low: bool = False) -> None:
@@ -426,10 +439,10 @@ def check_field(name: str, value, tp):
 PRESETS = ("paper", "reference", "crawl", "demo", "smoke")
 
 
-def _coarse_env(**kw) -> EnvConfig:
+def _coarse_env(dt: float = 0.02, **kw) -> EnvConfig:
     """The crawl, demo and smoke simulation: reduced 6 mm legs, 25 mm floating-frame disk (20 s
     paper-best crawl within 1% of the 10 mm disk at 0.02 s, 1.3x faster), the three-legged designs."""
-    return EnvConfig(disk_mesh_size=25, legs=(3,), **kw)
+    return EnvConfig(robot=env_robot(disk_mesh_size=25, dt=dt), legs=(3,), **kw)
 
 
 def preset(name: str) -> TrainConfig:
@@ -466,13 +479,15 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
     possible, else taken as a string). Returns a validated copy.
 
     A sub-config with presets may be set by name (``env.randomize=rig``,
-    :meth:`TrainConfig.from_dict`); ``null`` names its ``"off"`` preset.
+    :meth:`TrainConfig.from_dict`); ``null`` names its ``"off"`` preset. ``env.FIELD`` of a
+    field of :class:`softcrawl.robot.RobotConfig` (``env.dt``, ``env.leg_mesh_size``, ...) sets
+    ``env.robot.FIELD`` (an error names both).
 
     Raises:
         ValueError: a malformed string, an unknown field, a value of the wrong type for its
             field (named), or a setting :meth:`TrainConfig.validate` refuses.
     """
-    d = cfg.to_dict()
+    d, aliases = cfg.to_dict(), {}
     for a in assignments:
         if "=" not in a:
             raise ValueError(f"override must look like section.field=value, got {a!r}")
@@ -482,6 +497,9 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
         except json.JSONDecodeError:
             value = raw
         parts = key.strip().split(".")
+        if len(parts) == 2 and parts[0] == "env" and parts[1] in _ROBOT_FIELDS and parts[1] not in d["env"]:
+            parts = ["env", "robot", parts[1]]
+            aliases[".".join(parts)] = key.strip()
         target, kind = d, TrainConfig
         for p in parts[:-1]:
             if p not in target or not isinstance(target[p], dict):
@@ -499,4 +517,13 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
                 raise ValueError(f"{key.strip()} must be a preset name or null (off), got {raw!r}")
             value = asdict(sub.preset(value))
         target[parts[-1]] = value
-    return TrainConfig.from_dict(d)
+    try:
+        return TrainConfig.from_dict(d)
+    except ValueError as exc:
+        msg = str(exc)
+        for name, typed in aliases.items():
+            msg = msg.replace(name, f"{typed} ({name})")
+        raise ValueError(msg) from None
+
+
+_ROBOT_FIELDS = frozenset(f.name for f in dataclasses.fields(RobotConfig))

@@ -32,7 +32,7 @@ def load_run_config(run: str | Path) -> TrainConfig:
 
 def episode_seconds(cfg: TrainConfig) -> float:
     """Length of one episode of the run's environment, s."""
-    return cfg.env.n_actions * cfg.env.steps_per_action * cfg.env.dt
+    return cfg.env.n_actions * cfg.env.steps_per_action * cfg.env.robot.dt
 
 
 def action_hold(dt: float, steps: int, n_actions: int) -> float:
@@ -71,7 +71,7 @@ class PolicyEvaluation:
     def gait(self) -> ActionSequence:
         """The first episode's actions as a gait with the run's hold time."""
         e = self.config.env
-        return ActionSequence(self.actions_kpa, hold=action_hold(e.dt, e.steps_per_action, len(self.actions_kpa)))
+        return ActionSequence(self.actions_kpa, hold=action_hold(e.robot.dt, e.steps_per_action, len(self.actions_kpa)))
 
     def resimulate(self, record_every: int | None = 10, progress: bool = False) -> EpisodeResult:
         """Re-run the first episode's actions through :func:`softcrawl.robot.run_episode` (same

@@ -16,16 +16,11 @@ from softcrawl.codesign.sampler import GibbsDesignSampler
 from softcrawl.envs.crawler import BuildRobot, CrawlerEnv
 from softcrawl.envs.backends import make_backend
 from softcrawl.envs.vec import DesignVecEnv
-from softcrawl.robot.assembly import RobotConfig
 
 
 def robot_factory(cfg: TrainConfig) -> BuildRobot:
-    """Picklable ``design -> Robot`` for ``cfg.env`` (full-order or reduced model)."""
-    e = cfg.env
-    return BuildRobot(RobotConfig(leg_mesh_size=e.leg_mesh_size, disk_mesh_size=e.disk_mesh_size,
-                                  refactor_every=e.refactor_every, rid_dtype=e.rid_dtype, dt=e.dt, model=e.model,
-                                  reduction=e.reduction, contact_max_iterations=e.contact_max_iterations,
-                                  leg_collision_spacing=e.leg_collision_spacing))
+    """Picklable ``design -> Robot`` for ``cfg.env.robot`` (full-order or reduced model)."""
+    return BuildRobot(cfg.env.robot)
 
 
 def env_fn(cfg: TrainConfig):
@@ -54,14 +49,14 @@ def check_reduction(cfg: TrainConfig) -> None:
         ReductionFileError, ReductionMismatchError (ValueErrors): see
             :func:`softcrawl.reduction.artifact.load_reduction`.
     """
-    if cfg.env.model != "reduced":
+    if cfg.env.robot.model != "reduced":
         return
     import dataclasses
 
     from softcrawl.reduction.artifact import load_reduction
     from softcrawl.reduction.data import default_reduction_path
 
-    config = robot_factory(cfg).config
+    config = cfg.env.robot
     load_reduction(config.reduction or default_reduction_path(), expect=dataclasses.asdict(config))
 
 

@@ -52,38 +52,43 @@ def policy_reward(run: str | Path, design) -> dict:
     e = ev.config.env
     return {"reward_cm": float(ev.returns_cm[0]), "diverged": bool(ev.diverged[0]),
             "actions_kpa": np.asarray(ev.actions_kpa).round(2).tolist(),
-            "episode_seconds": episode_seconds(ev.config), "hold_s": e.dt * e.steps_per_action}
+            "episode_seconds": episode_seconds(ev.config), "hold_s": e.robot.dt * e.steps_per_action}
 
 
 def run_settings(run: str | Path) -> dict:
     """Simulation settings of a run comparable with a ground truth's (:func:`gt_settings`), read
-    from the raw ``config.json`` (:meth:`softcrawl.codesign.run.Run.read_meta`; so runs saved by
-    older versions still compare).
+    from the raw ``config.json`` (:meth:`softcrawl.codesign.run.Run.read_meta`, in the current
+    format: :func:`softcrawl.codesign.migrate.read_settings`; so runs saved by older versions
+    still compare).
 
     Raises:
         ValueError: not a training run, or a ``config.json`` without the settings.
     """
+    from softcrawl.codesign.migrate import read_settings
     from softcrawl.codesign.run import Run
 
     r = Run(run)
     meta = r.read_meta()  # ValueError: not a run, or no config object
     try:
-        e = meta["config"]["env"]
-        hold = float(e["dt"]) * float(e["steps_per_action"])
+        e = read_settings("train", meta)["env"]
+        robot = e["robot"]
+        hold = float(robot["dt"]) * float(e["steps_per_action"])
         float(e["n_actions"])
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{r.config_path}: no env settings dt, steps_per_action, n_actions ({exc!r})") from None
-    return {"model": e.get("model", "reduced"), "leg_mesh_size": float(e.get("leg_mesh_size", 6.0)),
-            "disk_mesh_size": float(e.get("disk_mesh_size", 10.0)), "dt": float(e["dt"]), "hold_s": round(hold, 9),
-            "episode_seconds": round(hold * float(e["n_actions"]), 9), "reduction": e.get("reduction")}
+        raise ValueError(f"{r.config_path}: no env settings robot.dt, steps_per_action, n_actions ({exc!r})") from None
+    return {"model": robot.get("model", "reduced"), "leg_mesh_size": float(robot.get("leg_mesh_size", 6.0)),
+            "disk_mesh_size": float(robot.get("disk_mesh_size", 10.0)), "dt": float(robot["dt"]),
+            "hold_s": round(hold, 9), "episode_seconds": round(hold * float(e["n_actions"]), 9),
+            "reduction": robot.get("reduction")}
 # -------------------------------------------------------------------------------------------------
 
 
 def gt_settings(cfg: GroundTruthConfig) -> dict:
     """The ground truth's settings in the keys of :func:`run_settings`."""
-    return {"model": "reduced", "leg_mesh_size": float(cfg.leg_mesh_size), "disk_mesh_size": float(cfg.disk_mesh_size),
-            "dt": float(cfg.robot_config().dt), "hold_s": round(cfg.hold, 9), "episode_seconds": round(cfg.duration, 9),
-            "reduction": cfg.reduction}
+    r = cfg.robot
+    return {"model": r.model, "leg_mesh_size": float(r.leg_mesh_size), "disk_mesh_size": float(r.disk_mesh_size),
+            "dt": float(r.dt), "hold_s": round(cfg.hold, 9), "episode_seconds": round(cfg.duration, 9),
+            "reduction": r.reduction}
 
 
 def place_design(design, gt_dir: str | Path, results: dict | None = None) -> dict:

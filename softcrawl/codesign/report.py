@@ -171,7 +171,7 @@ def _baseline_section(path: Path, data: dict, out: Path, cfg: TrainConfig, best_
     lines = ["", "## Expert baseline", "",
              (f"Sine gait on `{','.join(map(str, settings['design']))}`, {settings['duration_s']:g} s episodes, "
               f"{sweep_model} model, {settings['config'].get('leg_mesh_size')} mm legs (this run: {episode_seconds(cfg):g} s "
-              f"episodes, {cfg.env.model} model, {cfg.env.leg_mesh_size} mm legs)."), ""]
+              f"episodes, {cfg.env.robot.model} model, {cfg.env.robot.leg_mesh_size} mm legs)."), ""]
     if best is None:
         lines.append("Every phase of the sweep diverged.")
     else:

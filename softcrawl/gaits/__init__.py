@@ -14,6 +14,7 @@ from softcrawl.gaits.gaits import (
     read_actions_csv,
     write_actions_csv,
 )
+from softcrawl.gaits.periodic import PeriodicGait
 from softcrawl.gaits.pressure import P_MAX_KPA, P_MIN_KPA, PressureRangeError, check_pressures
 
 __all__ = [
@@ -22,6 +23,7 @@ __all__ = [
     "Gait",
     "P_MAX_KPA",
     "P_MIN_KPA",
+    "PeriodicGait",
     "PressureRangeError",
     "SineGait",
     "check_pressures",

@@ -1,0 +1,103 @@
+"""Settings of a ground-truth run (:class:`GroundTruthConfig`, saved as its ``config.json``)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS, build_config, check_bounds
+from softcrawl.gaits.periodic import MAX_KNOTS
+from softcrawl.robot.assembly import RobotConfig
+
+#: Upper bounds of the search settings (far beyond the defaults 36, 2 and cma's 4 + 3 ln n).
+MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
+
+
+def gt_robot(**changes) -> RobotConfig:
+    """The ground truth's robot (:attr:`GroundTruthConfig.robot`'s default: the reduced model,
+    RID products in float32) with ``changes`` (a None change keeps the default)."""
+    return RobotConfig(**({"model": "reduced", "rid_dtype": "float32"} | {k: v for k, v in changes.items()
+                                                                         if v is not None}))
+
+
+@dataclass
+class GroundTruthConfig:
+    """Settings of a ground-truth run (saved as ``config.json``; a resumed run must match).
+
+    Attributes:
+        duration: full episode, s (20: the paper's 20 actions of 1 s).
+        screen_duration: episode length of the CMA-ES search, s (None: ``duration``); allowed
+            where :func:`~softcrawl.codesign.groundtruth.optimize.screening_agreement` shows short
+            episodes rank like full ones.
+        hold: seconds per knot (= per action).
+        cycles: pattern lengths ``L`` searched (one CMA-ES run each, 1..8).
+        evals_per_cycle: episodes per CMA-ES run.
+        popsize: CMA-ES population (None: cma's default ``4 + 3 ln n``).
+        sigma0: initial CMA-ES step, as a fraction of 90 kPa.
+        finalists: best distinct candidates re-run with ``duration`` (step and smooth each).
+        seed: CMA-ES seed (design-specific seeds are derived from it).
+        robot: the simulated robot (:class:`softcrawl.robot.RobotConfig`; default
+            :func:`gt_robot`: the reduced model with the shipped reduction, RID products in
+            float32, validated like the training presets' model, ``docs/results.md``; every
+            other field the robot's default: dt 0.01 s, 6 mm legs, 10 mm disk).
+        baseline_phases: expert-baseline phase lags swept for ``references.json`` (degrees;
+            empty: no sweep).
+    """
+
+    duration: float = 20.0
+    screen_duration: float | None = 6.0
+    hold: float = 1.0
+    cycles: tuple[int, ...] = (2, 3, 4, 5)
+    evals_per_cycle: int = 36
+    popsize: int | None = None
+    sigma0: float = 0.3
+    finalists: int = 2
+    seed: int = 0
+    robot: RobotConfig = field(default_factory=gt_robot)
+    baseline_phases: tuple[float, ...] = tuple(range(0, 181, 10))
+
+    def validate(self) -> GroundTruthConfig:
+        """Raise ValueError naming the first bad setting; returns self."""
+        if not isinstance(self.robot, RobotConfig):
+            raise ValueError(f"robot must be RobotConfig, got {type(self.robot).__name__}")
+        for name, (low, high, unit) in SIM_BOUNDS.items():
+            check_bounds(f"robot.{name}", getattr(self.robot, name), low, high, unit)
+        for name, high, unit in (("duration", MAX_EPISODE_S, "s"), ("hold", MAX_HOLD_S, "s"),
+                                 ("sigma0", 1, "(of 90 kPa)")):
+            check_bounds(name, getattr(self, name), 0, high, unit, open_low=True)
+        if self.screen_duration is not None and not (0 < self.screen_duration <= self.duration):
+            raise ValueError(f"screen_duration must be in (0, duration], got {self.screen_duration!r}")
+        if not self.cycles or any(int(c) != c or not 1 <= c <= MAX_KNOTS for c in self.cycles):
+            raise ValueError(f"cycles must be pattern lengths in 1..{MAX_KNOTS}, got {self.cycles!r}")
+        for name, low, high in (("evals_per_cycle", 1, MAX_EVALS), ("finalists", 1, MAX_FINALISTS),
+                                ("popsize", 2, MAX_POPSIZE)):
+            v = getattr(self, name)
+            if v is not None:
+                check_bounds(name, v, low, high)
+                if int(v) != v:
+                    raise ValueError(f"{name} must be an integer, got {v!r}")
+        from softcrawl.robot.sweep import MAX_PHASES
+
+        if len(self.baseline_phases) > MAX_PHASES:
+            raise ValueError(f"baseline_phases: {len(self.baseline_phases)} lags, more than the {MAX_PHASES} allowed")
+        for ph in self.baseline_phases:
+            check_bounds("baseline_phases", ph, -360, 360, "deg")
+        return self
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["cycles"], d["baseline_phases"] = list(self.cycles), list(self.baseline_phases)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GroundTruthConfig:
+        """Inverse of :meth:`to_dict` (:func:`softcrawl.codesign.config.build_config`: each value
+        checked against its field's type, a robot object's missing keys from :func:`gt_robot`),
+        validated. Only the current format: a folder's ``config.json`` is read through
+        :func:`softcrawl.codesign.groundtruth.store.read_config`.
+
+        Raises:
+            ValueError: not an object, an unknown key, a value of the wrong type (named), or a
+                setting out of bounds.
+        """
+        return build_config(cls, d).validate()

@@ -1,0 +1,112 @@
+"""The tables and figure of a ground-truth folder: ``groundtruth.csv`` (ranked designs),
+``summary.json`` and ``ranked.png``, from the valid rows of its ``results.jsonl``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from softcrawl.codesign.groundtruth.config import GroundTruthConfig
+from softcrawl.codesign.groundtruth.result import DesignResult
+from softcrawl.codesign.groundtruth.store import read_config, read_references, read_results
+from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN, canonicalize
+from softcrawl.gaits.periodic import PeriodicGait
+from softcrawl.safeio import atomic_write_text
+
+
+def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_seconds: float | None = None) -> dict:
+    """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` (each replaced
+    atomically) from the valid rows of ``results.jsonl`` (only those in ``designs`` if given;
+    the bad rows, by file and line, in the summary's ``bad_rows``); returns the summary.
+
+    Raises:
+        ValueError: the folder's ``config.json`` is missing or not a ground truth's.
+    """
+    out = Path(out_dir)
+    cfg = read_config(out)
+    done, bad = read_results(out)  # the bad rows are listed in the summary
+    if designs is not None:
+        keep = {canonicalize(d) for d in designs}
+        done = {d: r for d, r in done.items() if d in keep}
+    rows = sorted(done.values(), key=lambda r: (-r.reward_cm, r.design))
+    table = io.StringIO()
+    w = csv.writer(table)
+    w.writerow(["rank", "design", "reward_cm", "cycle", "waveform", "gait_kpa", "evaluations",
+                "full_evaluations", "sim_seconds", "wall_seconds", "diverged"])
+    for i, r in enumerate(rows, start=1):
+        g = PeriodicGait.from_dict(r.gait)
+        w.writerow([i, ",".join(map(str, r.design)), f"{r.reward_cm:.4f}", r.cycle, r.waveform,
+                    json.dumps([[round(v, 2) for v in p] for p in g.patterns]), r.evaluations,
+                    r.full_evaluations, f"{r.sim_seconds:.1f}", f"{r.wall_seconds:.1f}", r.diverged])
+    atomic_write_text(out / "groundtruth.csv", table.getvalue())
+    refs = read_references(out) or {}
+    rewards = np.array([r.reward_cm for r in rows])
+
+    def place(d):
+        d = tuple(d)
+        if d not in done:
+            return None
+        rank = 1 + int(np.sum(rewards > done[d].reward_cm))
+        return {"design": list(d), "reward_cm": done[d].reward_cm, "rank": rank,
+                "percentile": 100.0 * (1 - (rank - 1) / len(rows))}
+
+    summary = {
+        "designs": len(rows), "requested": len(designs) if designs is not None else len(rows),
+        "config": cfg.to_dict(),
+        "best": [{"design": list(r.design), "reward_cm": r.reward_cm, "gait": PeriodicGait.from_dict(r.gait).describe()}
+                 for r in rows[:10]],
+        "reward_cm": {"max": float(rewards.max()) if len(rows) else None,
+                      "median": float(np.median(rewards)) if len(rows) else None,
+                      "min": float(rewards.min()) if len(rows) else None},
+        "paper_l1": place(PAPER_BEST_DESIGN), "expert_design": place(BASELINE_DESIGN),
+        "references": {k: {kk: vv for kk, vv in v.items() if kk != "sweep_cm"} for k, v in refs.items()},
+        "cost": {"evaluations": int(sum(r.evaluations for r in rows)),
+                 "sim_seconds": float(sum(r.sim_seconds for r in rows)),
+                 "cpu_seconds": float(sum(r.wall_seconds for r in rows)),
+                 "cpu_seconds_per_design": float(np.mean([r.wall_seconds for r in rows])) if rows else None,
+                 "this_call_wall_seconds": wall_seconds},
+        "bad_rows": bad,
+    }
+    if "expert_baseline" in refs and len(rows):
+        b = refs["expert_baseline"]["reward_cm"]
+        summary["designs_beating_expert_baseline"] = int(np.sum(rewards > b))
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    if rows:
+        _ranked_plot(rows, refs, out / "ranked.png", cfg)
+    return summary
+
+
+def _ranked_plot(rows: list[DesignResult], refs: dict, path: Path, cfg: GroundTruthConfig) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    r = np.array([x.reward_cm for x in rows])
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(np.arange(1, len(r) + 1), r, ".-", color="0.4", ms=4, lw=0.8, label="designs (best gait)")
+    for i, x in enumerate(rows):
+        if x.design == PAPER_BEST_DESIGN:
+            ax.plot(i + 1, x.reward_cm, "o", color="C3", ms=9, label=f"paper L1 1,0,0,2,2,0,0,0 (rank {i + 1})")
+        if x.design == BASELINE_DESIGN:
+            ax.plot(i + 1, x.reward_cm, "s", color="C0", ms=8, label=f"expert design (rank {i + 1})")
+    if "expert_baseline" in refs:
+        b = refs["expert_baseline"]
+        ax.axhline(b["reward_cm"], color="C0", ls="--", lw=1,
+                   label=f"expert baseline (sine, {b['best_phase_deg']:.0f} deg): {b['reward_cm']:+.2f} cm")
+    if "paper_l1_gait" in refs:
+        ax.axhline(refs["paper_l1_gait"]["reward_cm"], color="C3", ls=":", lw=1,
+                   label=f"paper L1 with paper's 3-s gait: {refs['paper_l1_gait']['reward_cm']:+.2f} cm")
+    ax.set_xlabel("rank")
+    ax.set_ylabel(f"reward (cm per {cfg.duration:g} s)")
+    ax.set_title(f"Ground truth: {len(r)} designs, best gait each (reduced model)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)

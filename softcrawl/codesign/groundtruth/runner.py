@@ -1,0 +1,230 @@
+"""A ground-truth run (:func:`run_groundtruth`, ``softcrawl groundtruth``): the designs of a set
+computed in a process pool (workers pinned to one BLAS thread), in-process, or as Ray tasks
+(``executor="ray"``; a task whose worker died is retried by Ray, only that design), each row
+appended to ``results.jsonl`` as its design finishes; then the references and the outputs."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from softcrawl.codesign.groundtruth.config import GroundTruthConfig
+from softcrawl.codesign.groundtruth.optimize import DesignEvaluator, optimize_design
+from softcrawl.codesign.groundtruth.outputs import write_outputs
+from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
+from softcrawl.codesign.groundtruth.search import EvaluateMany, search_many
+from softcrawl.codesign.groundtruth.store import (
+    RESULTS,
+    _append,
+    check_folder,
+    folder_lock,
+    load_results,
+    read_config,
+    read_references,
+)
+from softcrawl.codesign.migrate import CONFIG_VERSION
+from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN, Design, canonical_designs, canonicalize
+from softcrawl.gaits.periodic import PeriodicGait
+from softcrawl.safeio import atomic_write_text
+
+EXECUTORS = ("process", "serial", "ray")
+#: Paper's reward of its best design L1 with its learned gait (codesign.md), cm per 20 s.
+PAPER_L1_CM = 10.0
+
+
+def parse_designs(spec: str) -> list[Design]:
+    """Design set from text: ``"3"`` (all canonical designs with 3 legs; ``"3,4"`` ...), ``"all"``
+    (6,972), or designs separated by ``;`` (``"1,0,0,2,2,0,0,0; 1,0,0,2,2,0,0,1"``), canonicalised.
+
+    Raises:
+        ValueError / InvalidDesignError: an unreadable set.
+    """
+    spec = spec.strip()
+    if spec == "all":
+        return list(canonical_designs())
+    if ";" not in spec and all(p.strip().isdigit() and len(p.strip()) == 1 for p in spec.split(",")) \
+            and len(spec.split(",")) < 8:
+        legs = {int(p) for p in spec.split(",")}
+        if not legs <= {3, 4, 5, 6}:
+            raise ValueError(f"leg counts must be in 3..6, got {sorted(legs)}")
+        return [d for d in canonical_designs() if sum(v > 0 for v in d) in legs]
+    out, seen = [], set()
+    for part in spec.split(";"):
+        if part.strip():
+            d = canonicalize(part)
+            if d not in seen:
+                seen.add(d)
+                out.append(d)
+    if not out:
+        raise ValueError("empty design set")
+    return out
+
+
+def _task(design: Design, cfg_dict: dict) -> dict:
+    """Worker entry: one design's ground truth as a dict (picklable, module level)."""
+    return optimize_design(design, GroundTruthConfig.from_dict(cfg_dict)).to_dict()
+
+
+def _pin_threads(parent_pid: int | None = None) -> None:
+    """Worker initializer: one BLAS thread; with ``parent_pid``, a watchdog thread that ends the
+    worker when that process is gone (a killed run must not leave workers computing)."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    if parent_pid is not None:
+        import threading
+
+        import psutil
+
+        def watch():
+            while psutil.pid_exists(parent_pid):
+                time.sleep(2.0)
+            os._exit(1)
+
+        threading.Thread(target=watch, daemon=True).start()
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def references(cfg: GroundTruthConfig, progress: bool = False) -> dict:
+    """Reference gaits with the run's settings: the expert baseline (design
+    :data:`BASELINE_DESIGN`, smooth sine at every lag of ``cfg.baseline_phases``, best kept) and
+    the paper's 3-s cycle on :data:`PAPER_BEST_DESIGN`; cm per ``cfg.duration`` s."""
+    out: dict = {}
+    if cfg.baseline_phases:
+        ev = DesignEvaluator(BASELINE_DESIGN, cfg)
+        sweep = {}
+        for ph in cfg.baseline_phases:
+            r, div = ev(PeriodicGait.expert_sine(ph, hold=cfg.hold), cfg.duration)
+            sweep[str(ph)] = DIVERGED_CM if div else r
+        best = max(sweep, key=sweep.get)
+        out["expert_baseline"] = {"design": list(BASELINE_DESIGN), "best_phase_deg": float(best),
+                                  "reward_cm": sweep[best], "sweep_cm": sweep}
+    ev = DesignEvaluator(PAPER_BEST_DESIGN, cfg)
+    paper = PeriodicGait.paper_cycle(hold=cfg.hold)
+    r, div = ev(paper, cfg.duration)
+    out["paper_l1_gait"] = {"design": list(PAPER_BEST_DESIGN), "gait": paper.to_dict(),
+                            "reward_cm": DIVERGED_CM if div else r, "paper_reported_cm": PAPER_L1_CM}
+    return out
+
+
+def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConfig | None = None,
+                    workers: int | None = None, executor: str = "process", progress: bool = True,
+                    task: Callable[[Design, dict], dict] = _task, ray_address: str | None = None,
+                    refs: bool = True, evaluate_many: EvaluateMany | None = None) -> dict:
+    """Ground truth of ``designs`` into ``out_dir`` (see the module docstring); resumable.
+
+    Everything is checked before any design is computed: the folder (:func:`check_folder`),
+    the settings, the designs. The folder is locked while the run writes it
+    (:func:`folder_lock`): a second run on it stops at once.
+
+    Args:
+        designs: designs (canonicalised; duplicates dropped).
+        out_dir: run folder (created; an existing one must hold the same config).
+        cfg: settings (default :class:`GroundTruthConfig`; None on an existing folder: its own).
+        workers: processes (``executor="process"``; default: CPU count) or Ray CPUs.
+        executor: ``"process"`` (pool), ``"serial"`` (in-process) or ``"ray"`` (Ray tasks, local
+            Ray unless ``ray_address``).
+        task: ``(design, cfg dict) -> DesignResult dict`` (tests inject counting fakes).
+        refs: compute ``references.json`` (expert baseline sweep, paper gait) if missing.
+        evaluate_many: a batched engine (:data:`~softcrawl.codesign.groundtruth.search.EvaluateMany`):
+            the unfinished designs are searched in lockstep in this process
+            (:func:`~softcrawl.codesign.groundtruth.search.search_many`), each row appended as its
+            design finishes; ``executor``, ``workers`` and ``task`` are then not used (the
+            references are still computed on the CPU).
+
+    Returns:
+        The summary dict (also ``summary.json``).
+
+    Raises:
+        ValueError: config mismatch with an existing folder, unknown executor, empty design set,
+            settings out of bounds, a folder another command wrote (:func:`check_folder`).
+        FolderLockedError: another run is writing the folder.
+    """
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor must be one of {EXECUTORS}, got {executor!r}")
+    designs = list(dict.fromkeys(canonicalize(d) for d in designs))
+    if not designs:
+        raise ValueError("empty design set")
+    out = check_folder(out_dir)
+    if cfg is not None:
+        cfg.validate()
+    out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out):
+        cfg_path = out / "config.json"
+        if cfg_path.exists():
+            saved = read_config(out)
+            if cfg is not None and cfg.to_dict() != saved.to_dict():
+                diff = {k: (v, cfg.to_dict()[k]) for k, v in saved.to_dict().items() if cfg.to_dict()[k] != v}
+                raise ValueError(f"{out} holds a ground truth with other settings (saved vs given: {diff}); "
+                                 "use another folder")
+            cfg = saved
+        else:
+            cfg = (cfg or GroundTruthConfig()).validate()
+            from softcrawl import __version__
+
+            saved = {"config": cfg.to_dict(), "config_version": CONFIG_VERSION, "softcrawl": __version__}
+            atomic_write_text(cfg_path, json.dumps(saved, indent=2) + "\n")
+        return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs, evaluate_many)
+
+
+def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor, progress, task, ray_address,
+             refs, evaluate_many) -> dict:
+    """The body of :func:`run_groundtruth` once the folder is locked and its settings known."""
+    done = load_results(out)
+    todo = [d for d in designs if d not in done]
+    res_path = out / RESULTS
+    cd = cfg.to_dict()
+    wall = time.perf_counter()
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=len(designs), initial=len(designs) - len(todo), desc="ground truth", unit="design",
+               disable=not progress, dynamic_ncols=True)
+
+    def finish(d_result: dict) -> None:
+        r = DesignResult.from_dict(d_result)
+        _append(res_path, r)
+        done[r.design] = r
+        bar.update()
+        bar.set_postfix(last=f"{r.reward_cm:+.2f}cm", refresh=False)
+
+    if todo:
+        if evaluate_many is not None:
+            for r in search_many(todo, cfg, evaluate_many):
+                finish(r.to_dict())
+        elif executor == "serial":
+            for d in todo:
+                finish(task(d, cd))
+        elif executor == "process":
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            _pin_threads()  # inherited by the workers before they import numpy
+            n = max(1, min(len(todo), workers or os.cpu_count() or 1))
+            method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+            pool = ProcessPoolExecutor(n, mp_context=mp.get_context(method), initializer=_pin_threads,
+                                       initargs=(os.getpid(),))
+            try:
+                futs = [pool.submit(task, d, cd) for d in todo]
+                for fut in as_completed(futs):
+                    finish(fut.result())
+            except BaseException:  # Ctrl-C or a failed design: do not wait for the running ones
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            pool.shutdown()
+        else:
+            from softcrawl.parallel import ray_map
+
+            for res in ray_map(task, [(d, cd) for d in todo], address=ray_address, num_cpus=workers):
+                finish(res)
+    bar.close()
+    ref_path = out / "references.json"
+    if refs and read_references(out) is None:
+        atomic_write_text(ref_path, json.dumps(references(cfg), indent=2, allow_nan=False) + "\n")
+    return write_outputs(out, designs, time.perf_counter() - wall)

@@ -1,0 +1,104 @@
+"""Composed configs and the versioned migration of saved settings: a run folder and a ground
+truth written by the code before the robot's settings became one ``RobotConfig`` (format 1,
+``tests/data/*_v1.json``, copied from such folders) read back as the same simulation; the
+``--set env.FIELD`` keys users type keep working."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from softcrawl.cli import main as cli_main
+from softcrawl.codesign.config import EnvConfig, TrainConfig, env_robot, override, preset
+from softcrawl.codesign.factory import robot_factory
+from softcrawl.codesign.groundtruth import GroundTruthConfig, gt_robot, read_config
+from softcrawl.codesign.migrate import CONFIG_VERSION, config_version, migrate, read_settings
+from softcrawl.codesign.run import Run
+from softcrawl.robot.assembly import RobotConfig
+
+DATA = Path(__file__).parent / "data"
+
+
+def test_a_format_1_run_reads_back_as_the_preset_it_was_trained_with(tmp_path):
+    """``run_config_v1.json``: the config.json of ``softcrawl train --preset smoke --seed 0``
+    written by the format-1 code; its robot is the one that code's factory built."""
+    shutil.copy(DATA / "run_config_v1.json", tmp_path / "config.json")
+    cfg = Run(tmp_path).read_config()
+    assert cfg == preset("smoke")
+    assert robot_factory(cfg).config == RobotConfig(
+        leg_mesh_size=6.0, disk_mesh_size=25, refactor_every=None, rid_dtype="float32", dt=0.01, model="reduced",
+        reduction=None, contact_max_iterations=100, leg_collision_spacing=0.0)
+
+
+def test_a_run_is_written_in_the_current_format_and_read_back(tmp_path):
+    cfg = override(preset("smoke"), ["env.robot.friction=0.9"])
+    Run(tmp_path).write_config(cfg)
+    doc = json.loads((tmp_path / "config.json").read_text())
+    assert doc["config_version"] == CONFIG_VERSION and doc["config"]["env"]["robot"]["friction"] == 0.9
+    assert "dt" not in doc["config"]["env"]  # held once, in env.robot
+    assert Run(tmp_path).read_config() == cfg
+
+
+def test_a_format_1_ground_truth_reads_back_with_its_robot(tmp_path):
+    """``groundtruth_config_v1.json``: the shipped three-legged ground truth's config.json."""
+    shutil.copy(DATA / "groundtruth_config_v1.json", tmp_path / "config.json")
+    cfg = read_config(tmp_path)
+    assert cfg.robot == RobotConfig(model="reduced", leg_mesh_size=6.0, disk_mesh_size=25.0, dt=0.02,
+                                    reduction=None, rid_dtype="float32")
+    assert (cfg.cycles, cfg.evals_per_cycle, cfg.screen_duration) == ((2, 3, 4), 30, 6.0)
+    old = json.loads((DATA / "groundtruth_config_v1.json").read_text())["config"]
+    del old["rid_dtype"]  # written before the setting: computed in float64
+    old["dt"] = None  # the robot's default step
+    robot = GroundTruthConfig.from_dict(migrate("groundtruth", old, 1)).robot
+    assert (robot.rid_dtype, robot.dt) == ("float64", RobotConfig().dt)
+
+
+def test_an_unknown_format_is_one_clear_error(tmp_path):
+    for v in (CONFIG_VERSION + 1, 0, "2", True):
+        with pytest.raises(ValueError, match="config_version"):
+            config_version({"config_version": v})
+        (tmp_path / "config.json").write_text(json.dumps({"config_version": v, "config": preset("smoke").to_dict()}))
+        with pytest.raises(ValueError) as err:
+            Run(tmp_path).read_config()
+        assert str(tmp_path / "config.json") in str(err.value) and "\n" not in str(err.value)
+        with pytest.raises(ValueError, match="config_version"):
+            read_config(tmp_path)
+    with pytest.raises(ValueError, match='no "config" object'):
+        read_settings("train", {"config": 1})
+
+
+def test_env_and_ground_truth_hold_a_robot_config():
+    assert {f.name for f in dataclasses.fields(EnvConfig)}.isdisjoint(f.name for f in dataclasses.fields(RobotConfig))
+    assert EnvConfig().robot == env_robot() == RobotConfig(model="reduced", rid_dtype="float32", dt=0.02,
+                                                           contact_max_iterations=100)
+    assert GroundTruthConfig().robot == gt_robot() == RobotConfig(model="reduced", rid_dtype="float32")
+    assert gt_robot(dt=None, disk_mesh_size=25).dt == RobotConfig().dt
+    d = preset("demo").to_dict()
+    d["env"]["robot"] = {"dt": 0.01}  # missing keys: the env's default robot, not RobotConfig's
+    assert TrainConfig.from_dict(d).env.robot == env_robot(dt=0.01)
+
+
+def test_set_keys_of_robot_fields_keep_working():
+    smoke = preset("smoke")
+    for typed in ("env.dt=0.02", "env.robot.dt=0.02"):
+        assert override(smoke, [typed]).env.robot.dt == 0.02
+    cfg = override(smoke, ["env.leg_mesh_size=8", 'env.rid_dtype="float64"', "env.contact_max_iterations=250"])
+    assert (cfg.env.robot.leg_mesh_size, cfg.env.robot.rid_dtype, cfg.env.robot.contact_max_iterations) == \
+        (8, "float64", 250)
+    for bad, names in ((["env.dt=0"], ("env.dt", "env.robot.dt")),
+                       (["env.contact_max_iterations=0"], ("env.contact_max_iterations",)),
+                       (["env.robot.model=\"tiny\""], ("env.robot.model",)),
+                       (["env.nope=1"], ("env.nope",))):
+        with pytest.raises(ValueError) as err:
+            override(smoke, bad)
+        assert all(n in str(err.value) for n in names), str(err.value)
+
+
+def test_train_cli_takes_the_old_key(tmp_path, capsys):
+    assert cli_main(["train", "--preset", "smoke", "--out", str(tmp_path / "r"), "--set", "env.dt=1e308"]) == 2
+    err = capsys.readouterr().err
+    assert "env.dt (env.robot.dt)" in err and err.count("error:") == 1

@@ -1,0 +1,168 @@
+"""The per-design search as a coroutine: driven one episode at a time (``optimize_design``) or
+many designs in lockstep (``search_many``), the same results; a small real-model budget
+reproduces the rows the code wrote before the search became a coroutine."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from groundtruth_helpers import DESIGNS
+from softcrawl.codesign.groundtruth import (
+    DIVERGED_CM,
+    GroundTruthConfig,
+    PeriodicGait,
+    SerialEvaluateMany,
+    design_search,
+    load_results,
+    optimize_design,
+    run_groundtruth,
+    search_many,
+)
+from softcrawl.codesign.migrate import read_settings
+from softcrawl.design.space import PAPER_BEST_DESIGN
+
+pytest.importorskip("cma")
+
+DATA = Path(__file__).parent / "data"
+CFG = GroundTruthConfig(cycles=(2, 3), evals_per_cycle=7, finalists=2, duration=20.0, screen_duration=5.0,
+                        baseline_phases=())
+
+
+class FakeEvaluator:
+    """A design's episodes without simulating: a smooth, design-dependent reward of the gait
+    (cm, proportional to the duration); one knot pattern diverges. Counts calls."""
+
+    def __init__(self, design):
+        self.w = np.asarray(design, float) + 1.0
+        self.calls = 0
+
+    def __call__(self, gait, duration):
+        self.calls += 1
+        p = np.array([gait.pressure_at(t) for t in np.arange(0.0, 6.0, 0.5)]) / 90.0
+        if p[0, 0] > 0.99 and p[1, 0] > 0.99:
+            return float("nan"), True
+        return float(np.sin(p @ self.w[:3]).mean() * duration / 4 + p.std()), False
+
+
+def _same(a, b) -> None:
+    """Two results equal in every field but the wall time."""
+    da, db = a.to_dict(), b.to_dict()
+    da.pop("wall_seconds"), db.pop("wall_seconds")
+    assert json.dumps(da) == json.dumps(db)
+
+
+def test_design_search_asks_for_the_episodes_optimize_design_runs():
+    ev, asked = FakeEvaluator(DESIGNS[0]), []
+    search = design_search(DESIGNS[0], CFG)
+    request = next(search)
+    try:
+        while True:
+            asked.append(request)
+            request = search.send(ev(*request))
+    except StopIteration as stop:
+        result = stop.value
+    assert all(isinstance(g, PeriodicGait) for g, _ in asked)
+    assert [t for _, t in asked] == [5.0] * 14 + [20.0] * 4  # 2 x 7 screening, 2 finalists x 2 waveforms
+    assert result.evaluations == 18 and result.full_evaluations == 4 and result.wall_seconds == 0.0
+    _same(result, optimize_design(DESIGNS[0], CFG, evaluator=FakeEvaluator(DESIGNS[0])))
+
+
+def test_design_search_checks_before_the_first_request():
+    with pytest.raises(ValueError, match="cycles"):
+        design_search(DESIGNS[0], GroundTruthConfig(cycles=(12,)))
+    with pytest.raises(ValueError):
+        design_search((1, 0, 0, 9, 2, 0, 0, 0), CFG)
+
+
+def test_a_diverged_or_non_finite_episode_scores_the_divergence_value():
+    search = design_search(DESIGNS[0], GroundTruthConfig(cycles=(2,), evals_per_cycle=2, finalists=1,
+                                                         screen_duration=None))
+    next(search)
+    search.send((float("nan"), False))  # non-finite: counted as diverged
+    with pytest.raises(StopIteration) as stop:
+        search.send((1.0, True))  # diverged, whatever its reward
+        search.send((DIVERGED_CM, True))  # the smooth finalist
+    r = stop.value.value
+    assert r.diverged == 3 and r.reward_cm == DIVERGED_CM and r.per_cycle == {2: DIVERGED_CM}
+
+
+def test_search_many_in_lockstep_equals_one_design_at_a_time():
+    rounds = []
+    serial = SerialEvaluateMany(CFG, make=FakeEvaluator)
+
+    def evaluate_many(requests):
+        rounds.append([d for d, _, _ in requests])
+        return serial(requests)
+
+    designs = [*DESIGNS[:4], DESIGNS[0]]  # a duplicate is searched once
+    got = list(search_many(designs, CFG, evaluate_many))
+    assert sorted(r.design for r in got) == sorted(DESIGNS[:4])
+    assert len(rounds) == 18 and all(sorted(r) == sorted(DESIGNS[:4]) for r in rounds)  # one episode per design
+    for r in got:
+        _same(r, optimize_design(r.design, CFG, evaluator=FakeEvaluator(r.design)))
+        assert r.wall_seconds >= 0.0
+    assert {d: e.calls for d, e in serial.evaluators.items()} == {d: 18 for d in DESIGNS[:4]}
+
+
+#: Settings under which the fake episodes give designs different numbers of episodes (fewer
+#: distinct finalists for a one-regulator design): ONE finishes after 4 episodes, L1 after 6.
+UNEVEN = GroundTruthConfig(cycles=(1,), evals_per_cycle=3, finalists=4, screen_duration=None, baseline_phases=())
+ONE, L1 = (1, 1, 1, 0, 0, 0, 0, 0), PAPER_BEST_DESIGN
+
+
+def test_search_many_yields_each_design_as_it_finishes():
+    serial, rounds = SerialEvaluateMany(UNEVEN, make=FakeEvaluator), []
+
+    def evaluate_many(requests):
+        rounds.append(len(requests))
+        return serial(requests)
+
+    order = []
+    for r in search_many([L1, ONE], UNEVEN, evaluate_many):
+        assert len(rounds) == r.evaluations  # yielded in the round of its last episode
+        order.append((r.design, r.evaluations))
+        _same(r, optimize_design(r.design, UNEVEN, evaluator=FakeEvaluator(r.design)))
+    assert order == [(ONE, 4), (L1, 6)] and rounds == [2, 2, 2, 2, 1, 1]
+    with pytest.raises(ValueError, match="answered 1 of 2"):
+        list(search_many([L1, ONE], UNEVEN, lambda requests: serial(requests)[:1]))
+
+
+def test_run_groundtruth_with_a_batched_engine_appends_and_resumes(tmp_path):
+    serial, calls = SerialEvaluateMany(UNEVEN, make=FakeEvaluator), []
+
+    def evaluate_many(requests):
+        calls.append(len(requests))
+        if len(calls) == 5 and kill["on"]:
+            raise KeyboardInterrupt  # killed after ONE finished, before L1 did
+        return serial(requests)
+
+    kill = {"on": True}
+    with pytest.raises(KeyboardInterrupt):
+        run_groundtruth([L1, ONE], tmp_path, UNEVEN, progress=False, refs=False, evaluate_many=evaluate_many)
+    assert set(load_results(tmp_path)) == {ONE}  # appended as it finished
+    kill["on"], calls[:] = False, []
+    s = run_groundtruth([L1, ONE], tmp_path, None, progress=False, refs=False, evaluate_many=evaluate_many)
+    assert calls == [1] * 6 and s["designs"] == 2  # only the unfinished design, searched again
+    for d, r in load_results(tmp_path).items():
+        _same(r, optimize_design(d, UNEVEN, evaluator=FakeEvaluator(d)))
+
+
+def test_small_real_budget_reproduces_the_rows_of_the_direct_search():
+    """The reduced model, a small budget, with and without screening: every field but the wall
+    time equals what the search wrote before it became a coroutine
+    (``tests/data/groundtruth_small_budget.json``, written by that code on this design and
+    settings, in that code's settings format), driven one design at a time and in lockstep. Exact equality: the same episodes
+    in the same order are the same floating-point operations."""
+    cases = json.loads((DATA / "groundtruth_small_budget.json").read_text())
+    for case in cases:
+        cfg = GroundTruthConfig.from_dict(read_settings("groundtruth", {"config": case["config"]}))
+        expect = case["result"]
+        direct = optimize_design(PAPER_BEST_DESIGN, cfg).to_dict()
+        (lockstep,) = search_many([PAPER_BEST_DESIGN], cfg, SerialEvaluateMany(cfg))
+        for got in (direct, lockstep.to_dict()):
+            got.pop("wall_seconds")
+            assert json.dumps(got) == json.dumps(expect)
