@@ -6,8 +6,8 @@ into a batch by index, and robots settled to rest in batches of a few padded siz
 dense ``A_0^-1`` among them) every time it is called; a vector env that swaps one robot's
 design at a reset needs only that robot's :class:`~softcrawl.jaxsim.model.RobotData` row
 (:func:`robot_rows`). Writing rows into the batch (:func:`put_rows`) and settling new designs
-(:func:`settle_batch`) take arrays whose leading size is padded to a power of two
-(:func:`padded_size`), so that a run compiles each at most ``log2(B) + 1`` times.
+(:func:`make_batch_settle`) take arrays whose leading size is padded to a power of four or
+``B`` (:func:`padded_size`), so that a run compiles each at most ``log4(B) + 1`` times.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import dataclasses
 from functools import partial
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from softcrawl.jaxsim.engine import max_speed, rest_state
@@ -46,8 +45,11 @@ def robot_rows(model, robot) -> RobotData:
 
 
 def padded_size(n: int, batch: int) -> int:
-    """The smallest power of two ``>= n``, at most ``batch`` (``n <= batch``)."""
-    return min(batch, 1 << max(0, int(n) - 1).bit_length())
+    """The smallest power of four ``>= max(n, 4)``, at most ``batch`` (``n <= batch``)."""
+    size = 4
+    while size < n:
+        size *= 4
+    return min(batch, size)
 
 
 def stack_padded(rows, size: int):
@@ -88,8 +90,3 @@ def take(tree, i: int):
     """Row ``i`` of every array of a batched pytree (numpy on the host)."""
     return jax.tree_util.tree_map(lambda a: np.asarray(a[i]), tree)
 
-
-def as_arrays(tree, dtype):
-    """A pytree's float leaves as ``dtype`` JAX arrays, the others as JAX arrays."""
-    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype) if np.asarray(a).dtype.kind == "f"
-                                  else jnp.asarray(a), tree)

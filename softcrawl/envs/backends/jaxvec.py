@@ -154,8 +154,8 @@ class JaxBackend(SerialBackend):
         jax.config.update("jax_enable_x64", precision == "float64")
         self.precision = precision
         n = self.num_envs
-        designs = {d for env in envs for d in env.designs}
-        slots = max(sum(v > 0 for v in d) for d in designs)
+        lists = {id(env.designs): env.designs for env in envs}.values()  # envs share their lists
+        slots = max(sum(v > 0 for v in d) for designs in lists for d in designs)
         shared = build_model([first.robot_factory(first.designs[0])], n_slots=slots, calibration=first.calibration)
         self._model = select_robots(shared, np.zeros(n, np.int64))
         self._dtype = np.dtype(self._model.disk.rest.dtype)
