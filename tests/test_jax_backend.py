@@ -170,17 +170,36 @@ def test_rig_matches_the_cpu_regulators_and_warp():
 
 @pytest.mark.slow
 def test_smoke_training_runs_with_the_jax_backend(tmp_path):
-    """``softcrawl train --preset smoke --set backend="jax"`` end to end: every transition
-    collected, the run folder written (config, checkpoint, episodes)."""
+    """``softcrawl train --preset smoke --set backend="jax"`` end to end, with the rig's
+    randomization (per-env gains, offsets, lags and control periods): every transition
+    collected, the run folder written (config, checkpoint, the episodes' domain draws)."""
     from softcrawl.codesign.config import override, preset
     from softcrawl.codesign.run import Run
     from softcrawl.codesign.training import train
 
-    cfg = override(preset("smoke"), ['backend="jax"'])
+    cfg = override(preset("smoke"), ['backend="jax"', "env.randomize=rig"])
     res = train(tmp_path / "run", cfg, progress=False)
     assert res.steps == cfg.total_steps
     run = Run(tmp_path / "run")
     assert run.read_config().backend == "jax" and run.latest_checkpoint(quiet=True) is not None
+    rows = run.domain_csv.read_text().splitlines()
+    assert len(rows) > 1 and "control_period" in rows[0]
+
+
+def test_the_compiled_rollout_is_long_enough_for_every_dilated_action():
+    """The rollout's step count bounds every action of the control-period dilation (the rig's
+    range, and a wide one) over a 20-action episode."""
+    from softcrawl.envs.backends.jaxvec import JaxBackend
+    from softcrawl.envs.crawler import CrawlerEnv
+    from softcrawl.robot.domain import DomainRanges
+
+    rng = np.random.default_rng(0)
+    for n, period in ((50, (1.062, 1.070)), (7, (0.5, 1.9)), (2, (0.5, 2.0))):
+        env = CrawlerEnv(steps_per_action=n, designs=[BEST], randomize=DomainRanges(control_period=period))
+        longest = JaxBackend._longest_action(env)
+        for _ in range(50):
+            sample = env.randomize.draw(rng)
+            assert max(sample.action_steps(n, k) for k in range(20)) <= longest
 
 
 def test_config_refuses_what_the_jax_backend_cannot_run():

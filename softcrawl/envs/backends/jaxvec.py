@@ -19,7 +19,8 @@ keeps its last valid state, terminates with ``info["diverged"]`` and its ``reaso
 the other envs untouched. What differs is the physics: the JAX engine's contact solve (a fixed
 number of Gauss-Seidel sweeps over fixed contact sets) against the CPU engine's exact polish
 (tests/test_jax_backend.py bounds the difference), its settling rule
-(:func:`~softcrawl.jaxsim.engine.make_settle`), and no runaway-speed check.
+(:func:`~softcrawl.jaxsim.engine.make_settle`; ``info["at_rest"]``: the rule was met before the
+step cap), and no runaway-speed check.
 
 Domain randomization: the rig quantities only (:data:`softcrawl.envs.backends.jaxcheck.RANDOMIZED`);
 a range of friction, Young's modulus or mass is refused (:func:`~softcrawl.envs.backends.jaxcheck.check_jax_env`).
@@ -34,6 +35,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from softcrawl.design.space import N_REGULATORS
@@ -161,7 +163,7 @@ class JaxBackend(SerialBackend):
         self._dtype = np.dtype(self._model.disk.rest.dtype)
         self._state = rest_state(self._model)
         ones, zeros = np.ones((n, N_REGULATORS), self._dtype), np.zeros((n, N_REGULATORS), self._dtype)
-        self._rig = jax.tree_util.tree_map(jax.numpy.asarray, Rig(ones, zeros, zeros, zeros))
+        self._rig = jax.tree_util.tree_map(jnp.asarray, Rig(ones, zeros, zeros, zeros))
         self._dt = float(self._model.settings.dt)
         self._steps_max = max(self._longest_action(env) for env in envs)
         rollout = make_action_rollout(self._steps_max)
@@ -170,7 +172,7 @@ class JaxBackend(SerialBackend):
         @jax.jit
         def advance(model, rig, state, command, steps):
             state, diverged = rollout(model, rig, state, command, steps)
-            point = jax.numpy.stack([state.x[:, node], state.v[:, node]], axis=1)
+            point = jnp.stack([state.x[:, node], state.v[:, node]], axis=1)
             return state, diverged, point, state.pressure, state.t
 
         self._advance = advance
@@ -178,7 +180,8 @@ class JaxBackend(SerialBackend):
         self._cap = cap
         self._settle_rows = make_batch_settle(make_settle(first.settling.rest_speed, hold, cap))
         self._cache: OrderedDict = OrderedDict()  # design -> _Design, LRU
-        self._cache_bytes, self._cache_mb = 0, float(cache_mb)
+        self._cache_mb = float(cache_mb)
+        self._pending = None
         self._episodes: list[JaxEpisode | None] = [None] * n
         device = jax.devices()[0]
         print(f'softcrawl: backend "jax": {n} envs in one batch ({slots} leg slots) on {device.platform}:{device.id} '
@@ -215,16 +218,14 @@ class JaxBackend(SerialBackend):
         """The cache entries of ``designs`` (the missing ones settled together, first)."""
         new = list(dict.fromkeys(d for d in designs if d not in self._cache))
         if new:
-            for d, entry in zip(new, self._settle_designs(new)):
-                self._cache[d] = entry
-                self._cache_bytes += entry.bytes
+            self._cache.update(zip(new, self._settle_designs(new)))
         out = []
         for d in designs:
             self._cache.move_to_end(d)
             out.append(self._cache[d])
         keep = max(self.num_envs, int(self._cache_mb * 1e6 / max(1, out[0].bytes)))
         while len(self._cache) > keep:
-            self._cache_bytes -= self._cache.popitem(last=False)[1].bytes
+            self._cache.popitem(last=False)
         return out
 
     # -- EnvBackend -----------------------------------------------------------------------
@@ -264,21 +265,40 @@ class JaxBackend(SerialBackend):
     def step(self, actions):
         """Step every env with its action ``actions[i]`` ``(3,)``: one compiled call for all live
         envs, then each env's transition (no auto-reset)."""
-        envs = self.envs
+        return self._finish(*self._launch(actions))
+
+    def step_send(self, actions) -> None:
+        """Start :meth:`step`: the envs' actions are taken and the batch's rollout is dispatched
+        (JAX runs it asynchronously: the learner's updates overlap it); :meth:`step_recv` waits."""
+        self._pending = self._launch(actions)
+
+    def step_recv(self):
+        pending, self._pending = self._pending, None
+        return self._finish(*pending)
+
+    def _launch(self, actions):
+        """Begin every env's action and dispatch the rollout of the live ones; returns
+        ``(steps, outputs)`` (outputs None: no env is live)."""
         command = np.zeros((self.num_envs, N_REGULATORS), self._dtype)
         steps = np.zeros(self.num_envs, np.int32)
-        for i, (env, a) in enumerate(zip(envs, actions)):
+        for i, (env, a) in enumerate(zip(self.envs, actions)):
             kpa = env.begin_action(a)
             if kpa is not None:
                 command[i], steps[i] = kpa, env.steps_per_action
         if steps.max() > self._steps_max:  # pragma: no cover - _longest_action bounds it
             raise RuntimeError(f"an action of {steps.max()} steps exceeds the compiled {self._steps_max}")
         if not steps.any():
-            return [env.end_action() for env in envs]
-        self._state, *out = self._advance(self._model, self._rig, self._state, command, steps)
-        diverged, point, applied, t = jax.device_get(out)
+            return steps, None
+        self._state, *outputs = self._advance(self._model, self._rig, self._state, command, steps)
+        return steps, outputs
+
+    def _finish(self, steps, outputs):
+        """Each env's transition once the rollout :meth:`_launch` dispatched is done."""
+        if outputs is None:
+            return [env.end_action() for env in self.envs]
+        diverged, point, applied, t = jax.device_get(outputs)
         results = []
-        for i, env in enumerate(envs):
+        for i, env in enumerate(self.envs):
             error = None
             if steps[i]:
                 self._episodes[i].update(point[i], applied[i])
