@@ -35,10 +35,10 @@ def robot_rows(model, robot) -> RobotData:
     n_slots = model.robot.leg_mask.shape[-1]
     if len(robot.legs) > n_slots:
         raise ValueError(f"a design with {len(robot.legs)} legs does not fit the JAX batch's {n_slots} leg slots")
-    disk = np.asarray(robot.model.bodies[robot.disk_body].mesh.points)
-    if disk.shape != model.disk.rest.shape or not np.allclose(disk, np.asarray(model.disk.rest), rtol=0, atol=1e-9):
-        raise ValueError("a robot of another disk mesh than the JAX batch's")
     dtype = np.dtype(model.disk.rest.dtype)
+    disk = np.asarray(robot.model.bodies[robot.disk_body].mesh.points).astype(dtype)
+    if not np.array_equal(disk, np.asarray(model.disk.rest)):
+        raise ValueError("a robot of another disk mesh than the JAX batch's")
     rows = _robot_data(robot, n_slots, np.asarray(model.disk.inverse, np.float64))
     return RobotData(*(a.astype(dtype) if a.dtype.kind == "f" else a
                        for a in (getattr(rows, f.name) for f in dataclasses.fields(RobotData))))
