@@ -199,15 +199,16 @@ def test_rig_matches_the_cpu_regulators_and_warp():
 
 
 @pytest.mark.slow
-def test_smoke_training_runs_with_the_jax_backend(tmp_path):
-    """``softcrawl train --preset smoke --set backend="jax"`` end to end, with the rig's
-    randomization (per-env gains, offsets, lags and control periods): every transition
-    collected, the run folder written (config, checkpoint, the episodes' domain draws)."""
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_smoke_training_runs_with_the_jax_backend(tmp_path, precision):
+    """``softcrawl train --preset smoke --set backend="jax"`` end to end in either precision,
+    with the rig's randomization (per-env gains, offsets, lags and control periods): every
+    transition collected, the run folder written (config, checkpoint, the episodes' domain draws)."""
     from softcrawl.codesign.config import override, preset
     from softcrawl.codesign.run import Run
     from softcrawl.codesign.training import train
 
-    cfg = override(preset("smoke"), ['backend="jax"', "env.randomize=rig"])
+    cfg = override(preset("smoke"), ['backend="jax"', "env.randomize=rig", f'jax_precision="{precision}"'])
     res = train(tmp_path / "run", cfg, progress=False)
     assert res.steps == cfg.total_steps
     run = Run(tmp_path / "run")
