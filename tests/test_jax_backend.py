@@ -209,7 +209,11 @@ def test_smoke_training_runs_with_the_jax_backend(tmp_path, precision):
     from softcrawl.codesign.training import train
 
     cfg = override(preset("smoke"), ['backend="jax"', "env.randomize=rig", f'jax_precision="{precision}"'])
-    res = train(tmp_path / "run", cfg, progress=False)
+    x64 = jax.config.jax_enable_x64
+    try:
+        res = train(tmp_path / "run", cfg, progress=False)
+    finally:
+        jax.config.update("jax_enable_x64", x64)  # the backend set it for the process
     assert res.steps == cfg.total_steps
     run = Run(tmp_path / "run")
     assert run.read_config().backend == "jax" and run.latest_checkpoint(quiet=True) is not None

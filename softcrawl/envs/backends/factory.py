@@ -18,7 +18,8 @@ BACKENDS: dict[str, tuple[str, Callable[[int | None, str | None, str], dict]]] =
                    lambda n_workers, address, precision: {"n_workers": n_workers}),
     "ray": ("softcrawl.envs.backends.ray:RayBackend",
             lambda n_workers, address, precision: {"n_actors": n_workers, "address": address}),
-    "jax": ("softcrawl.envs.backends.jaxvec:JaxBackend", lambda n_workers, address, precision: {"precision": precision}),
+    "jax": ("softcrawl.envs.backends.jaxvec:JaxBackend",
+            lambda n_workers, address, precision: {"precision": precision}),
 }
 
 

@@ -159,7 +159,7 @@ class JaxBackend(SerialBackend):
         lists = {id(env.designs): env.designs for env in envs}.values()  # envs share their lists
         slots = max(sum(v > 0 for v in d) for designs in lists for d in designs)
         shared = build_model([first.robot_factory(first.designs[0])], n_slots=slots, calibration=first.calibration)
-        self._model = select_robots(shared, np.zeros(n, np.int64))
+        self._model = select_robots(shared, np.zeros(n, np.int32))
         self._dtype = np.dtype(self._model.disk.rest.dtype)
         self._state = rest_state(self._model)
         ones, zeros = np.ones((n, N_REGULATORS), self._dtype), np.zeros((n, N_REGULATORS), self._dtype)
@@ -241,7 +241,7 @@ class JaxBackend(SerialBackend):
         entries = self._designs(drawn)
         rigs = [self._rig_of(self.envs[i]) for i in indices]
         size = padded_size(len(indices), self.num_envs)
-        index = np.full(size, self.num_envs, np.int64)
+        index = np.full(size, self.num_envs, np.int32)
         index[:len(indices)] = indices
         rows = (stack_padded([e.rows for e in entries], size), stack_padded([e.state for e in entries], size),
                 stack_padded(rigs, size))
