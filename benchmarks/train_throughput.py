@@ -18,6 +18,8 @@ rounds):
   OMP_NUM_THREADS=1 python benchmarks/train_throughput.py --end-to-end --n-envs 96 --rounds 6
        [--stepping batched|serial|both] [--preset paper|reference|crawl|demo] [--set KEY=VALUE]
        [--no-overlap] [--learner-cost]
+``--set backend='"jax"'``: all envs one batch of the JAX engine in the learner's process on JAX's
+default device (``--stepping`` does not apply; ``jax_precision`` as set, float64 by default).
 ``--stepping``: workers step their envs' robots as one batch (``batched``, the default of
 :class:`softcrawl.envs.backends.subprocess.SubprocessBackend`) or one env after another (``serial``); ``both``
 runs the two one after the other in this process (same seed, same designs) and reports each and
@@ -167,7 +169,7 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
         res = train(f"{tmp}/run", cfg, progress=True)
     sim_s_per_transition = res.wall_seconds / res.steps
     cores = os.cpu_count()
-    return {"preset": args.preset, "stepping": "batched" if batched else "serial", "n_envs": n,
+    return {"preset": args.preset, "backend": cfg.backend, "stepping": "batched" if batched else "serial", "n_envs": n,
             "transitions": res.steps, "updates": res.updates, "overlap": cfg.sac.overlap, "wall_s": res.wall_seconds,
             "transitions_per_s": res.steps / res.wall_seconds, "learner_s": res.learner_seconds,
             "learner_share_of_wall_upper_bound": res.learner_seconds / res.wall_seconds,

@@ -51,6 +51,7 @@ from dataclasses import asdict, dataclass, field
 
 from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
 from softcrawl.envs.backends.factory import BACKENDS
+from softcrawl.envs.backends.jaxcheck import check_jax_env, check_precision
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.robot.assembly import MODELS, RobotConfig
 from softcrawl.robot.domain import DomainRanges
@@ -204,7 +205,12 @@ class DesignConfig:
 
 @dataclass
 class TrainConfig:
-    """A whole run. Steps count environment transitions (one action of one env)."""
+    """A whole run. Steps count environment transitions (one action of one env).
+
+    ``backend``: where the envs run (:data:`BACKENDS`; ``"jax"``: all of them one batch of the
+    JAX engine on JAX's default device, the reduced robot only and the rig quantities of
+    ``env.randomize`` only, :mod:`softcrawl.envs.backends.jaxvec`). ``jax_precision``: that
+    backend's floats, ``"float64"`` (the validated engine) or ``"float32"``."""
 
     preset: str = "paper"
     n_envs: int = 96
@@ -212,6 +218,7 @@ class TrainConfig:
     seed: int = 0
     backend: str = "subprocess"
     n_workers: int = 0  # 0: one per CPU core
+    jax_precision: str = "float64"
     checkpoint_every: int = 50_000
     snapshot_every: int = 20_000
     keep_checkpoints: int = 2
@@ -265,6 +272,9 @@ class TrainConfig:
             raise ValueError(f"env.robot.model must be one of {MODELS}, got {robot.model!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {tuple(BACKENDS)}, got {self.backend!r}")
+        check_precision(self.jax_precision)
+        if self.backend == "jax":
+            check_jax_env(self.env.model, self.env.randomize)
         if not re.fullmatch(r"cpu|cuda(:\d+)?", self.sac.device):
             raise ValueError(f"sac.device must be 'cpu', 'cuda' or 'cuda:N', got {self.sac.device!r}")
         if self.sac.timeout not in TIMEOUTS:

@@ -32,11 +32,11 @@ def env_fn(cfg: TrainConfig):
 
 
 def make_vec_env(cfg: TrainConfig, sampler, ray_address: str | None = None) -> DesignVecEnv:
-    """The vectorised env of ``cfg`` (``cfg.backend``: serial, subprocess or ray on the cluster
-    at ``ray_address`` or a local one, :func:`softcrawl.envs.backends.make_backend`) with
-    ``sampler``, seeded with ``cfg.seed``."""
+    """The vectorised env of ``cfg`` (``cfg.backend``: serial, subprocess, ray on the cluster
+    at ``ray_address`` or a local one, or jax in ``cfg.jax_precision``,
+    :func:`softcrawl.envs.backends.make_backend`) with ``sampler``, seeded with ``cfg.seed``."""
     venv = DesignVecEnv(make_backend(cfg.backend, [env_fn(cfg)] * cfg.n_envs, n_workers=cfg.n_workers or None,
-                                     ray_address=ray_address), sampler)
+                                     ray_address=ray_address, precision=cfg.jax_precision), sampler)
     venv.seed(cfg.seed)
     return venv
 

@@ -270,6 +270,15 @@ class CrawlerEnv(gym.Env):
         """Start an episode: ``options={"design": ...}`` (8 slot values or a string) or a random
         design of ``designs``. Returns ``(obs, info)``. A diverged settling is reported with
         ``info["diverged"]`` and the first step then terminates with reward 0."""
+        design = self.begin_reset(seed=seed, options=options)
+        return self.end_reset(self._episode_for(design, self.domain))
+
+    # -- resets driven from outside (softcrawl.envs.backends.jaxvec: robots in a JAX batch) ----------
+    def begin_reset(self, *, seed: int | None = None, options: dict | None = None) -> Design:
+        """The first part of :meth:`reset`, for a driver that simulates the episode itself
+        (:class:`softcrawl.envs.backends.jaxvec.JaxBackend`): seeds the RNG, draws the design
+        (unless ``options`` gives one) and the domain sample (:attr:`domain`), clears the
+        history. Returns the design; finish with :meth:`end_reset`."""
         super().reset(seed=seed)
         options = options or {}
         if options.get("design") is not None:
@@ -283,14 +292,20 @@ class CrawlerEnv(gym.Env):
         self._k = self._t_steps = 0
         self._action_steps = self._steps_of(0)
         self._dead, self._reason = False, ""
-        self.episode = self._episode_for(design, self.domain)
+        return design
+
+    def end_reset(self, episode) -> tuple[np.ndarray, dict]:
+        """The last part of :meth:`reset`: start ``episode`` (an :class:`Episode` of the design
+        :meth:`begin_reset` drew, or an object with the attributes of one this env reads) and
+        return ``(obs, info)``."""
+        self.episode = episode
         try:
             self.episode.reset()
         except SimulationDiverged as exc:
             self._dead, self._reason = True, f"settling diverged: {exc}"
         settled = self.episode.settled
         if settled is not None:
-            self._robots.keep_settled(design, self.episode.robot, settled)
+            self._robots.keep_settled(self.design, self.episode.robot, settled)
         self._settled_info = settled.as_dict() if settled is not None else {}
         return self._obs(), self._info()
 

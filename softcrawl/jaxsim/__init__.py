@@ -33,4 +33,8 @@ mixed designs pays for its largest; grouping designs by leg count is the caller'
 follow ``jax_enable_x64``, which the caller sets (never at import).
 :mod:`~softcrawl.jaxsim.contact` holds the constraint solve (attachments and frictional floor
 contact) of one robot with fixed, padded shapes, ``jax.vmap``-ped over the batch by the engine.
+For a vector env (:mod:`softcrawl.envs.backends.jaxvec`): :mod:`~softcrawl.jaxsim.rig` gives each
+robot its own regulators and pressure warp and stops a robot where it diverged
+(:func:`~softcrawl.jaxsim.rig.make_action_rollout`); :mod:`~softcrawl.jaxsim.batch` builds one
+robot's rows, writes rows into a batch by index and settles new robots together.
 """

@@ -10,7 +10,9 @@ Backends:
 - :class:`SubprocessBackend` (:mod:`~softcrawl.envs.backends.subprocess`): ``multiprocessing``
   workers connected by pipes, each holding a contiguous chunk of the envs
   (:class:`ChunkedBackend`, :func:`env_chunks`);
-- :class:`~softcrawl.envs.backends.ray.RayBackend`: Ray actors (optional extra ``softcrawl[ray]``).
+- :class:`~softcrawl.envs.backends.ray.RayBackend`: Ray actors (optional extra ``softcrawl[ray]``);
+- :class:`~softcrawl.envs.backends.jaxvec.JaxBackend`: in-process, the robots one batch of the JAX
+  engine (:mod:`softcrawl.jaxsim`, optional extra ``softcrawl[jax]``) on JAX's default device.
 
 :func:`make_backend` (:mod:`~softcrawl.envs.backends.factory`) picks one by name and imports
 it then. The package imports neither stable-baselines3 nor torch (:mod:`softcrawl.envs.vec`

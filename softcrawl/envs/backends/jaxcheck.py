@@ -1,0 +1,41 @@
+"""What the JAX vector-env backend (:mod:`softcrawl.envs.backends.jaxvec`) can run, checked
+without importing JAX (a run's config is validated before any backend is built).
+
+The JAX engine (:mod:`softcrawl.jaxsim`) steps the reduced robot with the floating-frame disk
+only, and takes friction, stiffness and mass as part of its compiled model: those cannot be
+drawn per episode. The rig quantities of domain randomization (pressure gains and offsets,
+regulator lags, the control period) are per-env inputs of the compiled rollout.
+"""
+
+from __future__ import annotations
+
+from softcrawl.robot.domain import DomainRanges
+
+#: Float precisions of the JAX backend (``jax_enable_x64`` on for float64).
+PRECISIONS = ("float64", "float32")
+#: Domain-randomization keys the JAX backend draws per env (:mod:`softcrawl.robot.domain`).
+RANDOMIZED = ("pressure_gain", "pressure_offset", "tau_inflate", "tau_vent", "control_period")
+
+
+def check_precision(precision: str) -> None:
+    """Raise ValueError unless ``precision`` is one of :data:`PRECISIONS`."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"jax_precision must be one of {PRECISIONS}, got {precision!r}")
+
+
+def check_randomized(randomize: DomainRanges | None) -> None:
+    """Raise ValueError (one line naming the settings) if ``randomize`` has a range of a
+    quantity the JAX backend cannot draw per env (not in :data:`RANDOMIZED`)."""
+    refused = [k for k in randomize.keys() if k not in RANDOMIZED] if randomize is not None else []
+    if refused:
+        raise ValueError(f'backend "jax" does not randomize {", ".join("env.randomize." + k for k in refused)} '
+                         f"(part of its compiled model); it randomizes {', '.join(RANDOMIZED)}")
+
+
+def check_jax_env(model: str, randomize: DomainRanges | None) -> None:
+    """Raise ValueError (one line naming the setting) unless the JAX backend can run envs of
+    robot model ``model`` (:data:`softcrawl.robot.assembly.MODELS`) with the randomization
+    ``randomize``."""
+    if model != "reduced":
+        raise ValueError(f'backend "jax" steps the reduced robot only (env.model="reduced"), got env.model={model!r}')
+    check_randomized(randomize)

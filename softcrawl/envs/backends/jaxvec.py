@@ -1,0 +1,309 @@
+"""All envs of a run in one process, their robots stepped by the JAX engine as one batch on
+JAX's default device (``backend="jax"``).
+
+:class:`JaxBackend` holds the :class:`~softcrawl.envs.crawler.CrawlerEnv` objects for what they
+do besides physics (drawing designs and domain samples from their RNGs at reset, actions,
+history, observations, rewards, ``info``; :meth:`CrawlerEnv.begin_reset`/``end_reset`` and
+``begin_action``/``end_action``) and keeps the robots in a fixed batch of ``N`` rows of the
+JAX engine (:mod:`softcrawl.jaxsim`) with as many leg slots as the largest design of the envs'
+design lists. A vectorised step is one compiled call for all envs
+(:func:`softcrawl.jaxsim.rig.make_action_rollout`: every live env holds its action for its
+steps, through its own regulators and pressure warp). A reset writes the reset envs' rows
+(robot data, settled state, rig) into the batch by index; the robot rows and settled states
+are cached per design (LRU), and the designs not cached yet are built and settled together in
+one call. No CPU solver is built or stepped.
+
+The transitions have the format and meaning of the CPU backends' (:mod:`softcrawl.envs.crawler`):
+an env whose state becomes invalid (inverted elements, ``state.bad > 0``, or non-finite values)
+keeps its last valid state, terminates with ``info["diverged"]`` and its ``reason``, and leaves
+the other envs untouched. What differs is the physics: the JAX engine's contact solve (a fixed
+number of Gauss-Seidel sweeps over fixed contact sets) against the CPU engine's exact polish
+(tests/test_jax_backend.py bounds the difference), its settling rule
+(:func:`~softcrawl.jaxsim.engine.make_settle`; ``info["at_rest"]``: the rule was met before the
+step cap), and no runaway-speed check.
+
+Domain randomization: the rig quantities only (:data:`softcrawl.envs.backends.jaxcheck.RANDOMIZED`);
+a range of friction, Young's modulus or mass is refused (:func:`~softcrawl.envs.backends.jaxcheck.check_jax_env`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softcrawl.design.space import N_REGULATORS
+from softcrawl.envs.backends.jaxcheck import check_precision, check_randomized
+from softcrawl.envs.backends.serial import SerialBackend
+from softcrawl.envs.crawler import CrawlerEnv
+from softcrawl.fem.solver import SimulationDiverged
+from softcrawl.jaxsim.batch import make_batch_settle, padded_size, put_rows, robot_rows, stack_padded, take
+from softcrawl.jaxsim.engine import make_settle, rest_state
+from softcrawl.jaxsim.model import build_model, select_robots
+from softcrawl.jaxsim.rig import Rig, make_action_rollout
+from softcrawl.robot.episode import MM_PER_CM, SettledState
+
+#: Memory for the per-design cache of robot rows and settled states, MB (default).
+CACHE_MB = 256.0
+
+
+class _RewardPoint:
+    """The robot as :class:`CrawlerEnv` reads it from an episode: one node, the reward point."""
+
+    reward_node = 0
+
+    @staticmethod
+    def reward_position(x) -> np.ndarray:
+        return np.asarray(x[0], dtype=float).copy()
+
+
+@dataclass(frozen=True)
+class PointState:
+    """The reward point's position (mm) and velocity (mm/s), each ``(1, 3)``."""
+
+    x: np.ndarray
+    v: np.ndarray
+
+
+class JaxEpisode:
+    """What :class:`CrawlerEnv` reads of its :class:`~softcrawl.robot.episode.Episode` (the
+    reward point's state, the regulators' outputs, ``start``, ``dt``, ``settled``) for a robot
+    that lives in a :class:`JaxBackend`'s batch.
+
+    Args:
+        dt: simulator step, s. point: ``(2, 3)`` the settled reward point's position (mm) and
+            velocity (mm/s). settled: the settling statistics (None: settling diverged).
+    """
+
+    robot = _RewardPoint()
+
+    def __init__(self, dt: float, point: np.ndarray, settled: SettledState | None):
+        self.dt, self.settled = dt, settled
+        self.update(point, np.zeros(N_REGULATORS))
+        self.start = self.state.x[0].copy()
+
+    def reset(self) -> None:
+        """Raises SimulationDiverged if the robot's settling diverged."""
+        if self.settled is None:
+            raise SimulationDiverged("invalid state (JAX engine: inverted elements or non-finite values)", 0.0)
+
+    def update(self, point: np.ndarray, applied: np.ndarray) -> None:
+        """The state after an action: ``point`` ``(2, 3)`` as in the constructor, ``applied``
+        ``(3,)`` regulator outputs, real kPa."""
+        point = np.asarray(point, dtype=float)
+        self.state = PointState(point[:1].copy(), point[1:].copy())
+        self.applied = np.asarray(applied, dtype=float).copy()
+
+    @property
+    def displacement_cm(self) -> float:
+        """+x displacement of the reward point since the reset, cm."""
+        return float(self.state.x[0, 0] - self.start[0]) / MM_PER_CM
+
+
+@dataclass(frozen=True, eq=False)
+class _Design:
+    """A design's cached rows: robot data (numpy), settled state (numpy), settling statistics
+    (None: diverged) and the settled reward point ``(2, 3)``; bytes: their memory."""
+
+    rows: object
+    state: object
+    settled: SettledState | None
+    point: np.ndarray
+    bytes: int
+
+
+def _nbytes(tree) -> int:
+    return sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(tree))
+
+
+class JaxBackend(SerialBackend):
+    """All envs in this process, their robots one JAX batch (module doc).
+
+    Args:
+        env_fns: one zero-argument constructor per env, each giving a :class:`CrawlerEnv` of a
+            reduced robot with the floating-frame disk; all with the same robot factory,
+            settling rule and pressure calibration.
+        precision: ``"float64"`` (the validated one; sets ``jax_enable_x64``) or ``"float32"``
+            (clears it). JAX's setting is process-wide: set here, once, never at import.
+        cache_mb: memory of the per-design cache of robot rows and settled states, MB (at
+            least one design per env is kept).
+
+    Raises:
+        ValueError: no env, an env that is not a :class:`CrawlerEnv`, envs that differ in robot
+            factory, settling or calibration, randomization the JAX engine cannot draw, an
+            unknown precision, a robot model the JAX engine cannot step (not reduced, no
+            floating-frame disk).
+    """
+
+    def __init__(self, env_fns, precision: str = "float64", cache_mb: float = CACHE_MB):
+        check_precision(precision)
+        super().__init__(env_fns)
+        envs = self.envs
+        first = envs[0]
+        if not all(isinstance(env, CrawlerEnv) for env in envs):
+            raise ValueError('backend "jax" runs CrawlerEnv environments only')
+        for env in envs:
+            check_randomized(env.randomize)
+            if (env.robot_factory, env.settling, env.calibration) != (first.robot_factory, first.settling,
+                                                                      first.calibration):
+                raise ValueError('backend "jax" needs envs of one robot factory, settling rule and calibration')
+        jax.config.update("jax_enable_x64", precision == "float64")
+        self.precision = precision
+        n = self.num_envs
+        lists = {id(env.designs): env.designs for env in envs}.values()  # envs share their lists
+        slots = max(sum(v > 0 for v in d) for designs in lists for d in designs)
+        shared = build_model([first.robot_factory(first.designs[0])], n_slots=slots, calibration=first.calibration)
+        self._model = select_robots(shared, np.zeros(n, np.int32))
+        self._dtype = np.dtype(self._model.disk.rest.dtype)
+        self._state = rest_state(self._model)
+        ones, zeros = np.ones((n, N_REGULATORS), self._dtype), np.zeros((n, N_REGULATORS), self._dtype)
+        self._rig = jax.tree_util.tree_map(jnp.asarray, Rig(ones, zeros, zeros, zeros))
+        self._dt = float(self._model.settings.dt)
+        self._steps_max = max(self._longest_action(env) for env in envs)
+        rollout = make_action_rollout(self._steps_max)
+        node = self._model.disk.reward_node
+
+        @jax.jit
+        def advance(model, rig, state, command, steps):
+            state, diverged = rollout(model, rig, state, command, steps)
+            point = jnp.stack([state.x[:, node], state.v[:, node]], axis=1)
+            return state, diverged, point, state.pressure, state.t
+
+        self._advance = advance
+        hold, cap = first.settling.steps(self._dt)
+        self._cap = cap
+        self._settle_rows = make_batch_settle(make_settle(first.settling.rest_speed, hold, cap))
+        self._cache: OrderedDict = OrderedDict()  # design -> _Design, LRU
+        self._cache_mb = float(cache_mb)
+        self._pending = None
+        self._episodes: list[JaxEpisode | None] = [None] * n
+        device = jax.devices()[0]
+        print(f'softcrawl: backend "jax": {n} envs in one batch ({slots} leg slots) on {device.platform}:{device.id} '
+              f"({device.device_kind}), {precision}", file=sys.stderr)
+
+    @staticmethod
+    def _longest_action(env: CrawlerEnv) -> int:
+        """Most simulator steps of one action of ``env`` (the control-period dilation rounds
+        ``d n`` steps to whole ones: at most ``floor(d_max n) + 1``)."""
+        n = env.nominal_steps_per_action
+        period = env.randomize.control_period if env.randomize is not None else None
+        return n if period is None else math.floor(period[1] * n) + 1
+
+    # -- designs ------------------------------------------------------------------------
+    def _settle_designs(self, designs: list) -> list[_Design]:
+        """Build and settle the robots of ``designs`` (distinct) in one call; their cache entries."""
+        factory = self.envs[0].robot_factory
+        rows = [robot_rows(self._model, factory(d)) for d in designs]
+        size = padded_size(len(rows), self.num_envs)
+        model = dataclasses.replace(self._model, robot=stack_padded(rows, size))
+        state, steps, speed, ok = jax.device_get(self._settle_rows(model))
+        node = self._model.disk.reward_node
+        out = []
+        for j, r in enumerate(rows):
+            s = take(state, j)
+            settled = None
+            if ok[j]:
+                k = int(steps[j])
+                settled = SettledState(None, k, k * self._dt, float(speed[j]), k < self._cap)
+            out.append(_Design(r, s, settled, np.stack([s.x[node], s.v[node]]), _nbytes(r) + _nbytes(s)))
+        return out
+
+    def _designs(self, designs: list) -> list[_Design]:
+        """The cache entries of ``designs`` (the missing ones settled together, first)."""
+        new = list(dict.fromkeys(d for d in designs if d not in self._cache))
+        if new:
+            self._cache.update(zip(new, self._settle_designs(new)))
+        out = []
+        for d in designs:
+            self._cache.move_to_end(d)
+            out.append(self._cache[d])
+        keep = max(self.num_envs, int(self._cache_mb * 1e6 / max(1, out[0].bytes)))
+        while len(self._cache) > keep:
+            self._cache.popitem(last=False)
+        return out
+
+    # -- EnvBackend -----------------------------------------------------------------------
+    def reset(self, indices, designs, seeds):
+        """Reset envs ``indices``: each env draws its design (unless given) and domain sample
+        (:meth:`CrawlerEnv.begin_reset`); the designs' rows and settled states (cached, or
+        settled now, together) and the samples' rigs are written into the batch; returns each
+        env's ``(obs, info)`` (:meth:`CrawlerEnv.end_reset`)."""
+        indices = list(indices)
+        if not indices:
+            return []
+        drawn = [self.envs[i].begin_reset(seed=s, options={"design": d}) for i, d, s in zip(indices, designs, seeds)]
+        entries = self._designs(drawn)
+        rigs = [self._rig_of(self.envs[i]) for i in indices]
+        size = padded_size(len(indices), self.num_envs)
+        index = np.full(size, self.num_envs, np.int32)
+        index[:len(indices)] = indices
+        rows = (stack_padded([e.rows for e in entries], size), stack_padded([e.state for e in entries], size),
+                stack_padded(rigs, size))
+        robot, self._state, self._rig = put_rows((self._model.robot, self._state, self._rig), index, rows)
+        self._model = dataclasses.replace(self._model, robot=robot)
+        out = []
+        for i, e in zip(indices, entries):
+            self._episodes[i] = JaxEpisode(self._dt, e.point, e.settled)
+            out.append(self.envs[i].end_reset(self._episodes[i]))
+        return out
+
+    def _rig_of(self, env: CrawlerEnv):
+        """The :class:`~softcrawl.jaxsim.rig.Rig` row ``(3,)`` per field of ``env``'s domain sample."""
+        s, n = env.domain, N_REGULATORS
+        pick = (lambda v, nominal: np.asarray(v if v is not None else (nominal,) * n, self._dtype))
+        if s is None:
+            return Rig(pick(None, 1.0), pick(None, 0.0), pick(None, 0.0), pick(None, 0.0))
+        return Rig(pick(s.pressure_gain, 1.0), pick(s.pressure_offset, 0.0), pick(s.tau_inflate, 0.0),
+                   pick(s.tau_vent, 0.0))
+
+    def step(self, actions):
+        """Step every env with its action ``actions[i]`` ``(3,)``: one compiled call for all live
+        envs, then each env's transition (no auto-reset)."""
+        return self._finish(*self._launch(actions))
+
+    def step_send(self, actions) -> None:
+        """Start :meth:`step`: the envs' actions are taken and the batch's rollout is dispatched
+        (JAX runs it asynchronously: the learner's updates overlap it); :meth:`step_recv` waits."""
+        self._pending = self._launch(actions)
+
+    def step_recv(self):
+        pending, self._pending = self._pending, None
+        return self._finish(*pending)
+
+    def _launch(self, actions):
+        """Begin every env's action and dispatch the rollout of the live ones; returns
+        ``(steps, outputs)`` (outputs None: no env is live)."""
+        command = np.zeros((self.num_envs, N_REGULATORS), self._dtype)
+        steps = np.zeros(self.num_envs, np.int32)
+        for i, (env, a) in enumerate(zip(self.envs, actions)):
+            kpa = env.begin_action(a)
+            if kpa is not None:
+                command[i], steps[i] = kpa, env.steps_per_action
+        if steps.max() > self._steps_max:  # pragma: no cover - _longest_action bounds it
+            raise RuntimeError(f"an action of {steps.max()} steps exceeds the compiled {self._steps_max}")
+        if not steps.any():
+            return steps, None
+        self._state, *outputs = self._advance(self._model, self._rig, self._state, command, steps)
+        return steps, outputs
+
+    def _finish(self, steps, outputs):
+        """Each env's transition once the rollout :meth:`_launch` dispatched is done."""
+        if outputs is None:
+            return [env.end_action() for env in self.envs]
+        diverged, point, applied, t = jax.device_get(outputs)
+        results = []
+        for i, env in enumerate(self.envs):
+            error = None
+            if steps[i]:
+                self._episodes[i].update(point[i], applied[i])
+                if diverged[i]:
+                    error = SimulationDiverged("invalid state (JAX engine: inverted elements or non-finite values)",
+                                               float(t[i]) + self._dt)
+            results.append(env.end_action(error))
+        return results
