@@ -274,7 +274,7 @@ class TrainConfig:
             raise ValueError(f"backend must be one of {tuple(BACKENDS)}, got {self.backend!r}")
         check_precision(self.jax_precision)
         if self.backend == "jax":
-            check_jax_env(self.env.model, self.env.randomize)
+            check_jax_env(self.env.robot.model, self.env.randomize)
         if not re.fullmatch(r"cpu|cuda(:\d+)?", self.sac.device):
             raise ValueError(f"sac.device must be 'cpu', 'cuda' or 'cuda:N', got {self.sac.device!r}")
         if self.sac.timeout not in TIMEOUTS:
