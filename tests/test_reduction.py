@@ -382,6 +382,59 @@ def test_reduced_robot_follows_the_full_model_on_a_training_scene(tiny, disk):
     assert a[:, candidates, 2].min() > -1e-6
 
 
+#: Held-out bound of the tiny reduction (12 mm legs, 17 leg modes, trained on 0.05 s
+#: Hamiltonian walks of 3-leg designs) on the baseline gait and six-leg scenes (0.3 s, not in
+#: its snapshots): mean node error, mean deformation error (mm) and the baseline scene's reward
+#: error (cm; the disk moves 0.215 cm there). Measured 2.31 mm, 0.143 mm and 0.0086 cm; the
+#: margins (13%, 12%, 75% of a reward error that is 4% of the motion) absorb BLAS rounding,
+#: which moves a stick-slip run by ~0.01 mm here.
+HELD_OUT_BOUND = {"mean_node_error_mm": 2.6, "mean_deformation_error_mm": 0.16, "baseline_reward_error_cm": 0.015}
+
+
+@pytest.fixture(scope="module")
+def held_out(tiny, tmp_path_factory):
+    """``(errors of a reduction on the held-out scenes)``: a function of a reduction, with the
+    full-order references run once for the module."""
+    from softcrawl.reduction.scenes import validation_scenes
+    from softcrawl.reduction.validate import validate_reduction
+
+    work = tmp_path_factory.mktemp("held_out")
+    scenes = tuple(s for s in validation_scenes(0.3) if s.name in ("baseline", "six_leg"))
+
+    def errors(reduction):
+        rep = validate_reduction(reduction, TINY, work, scenes=scenes, workers=1, progress=False, ensemble=0)
+        baseline = next(r for r in rep["scenes"] if r["scene"] == "baseline")
+        return {"mean_node_error_mm": rep["mean_node_error_mm"],
+                "mean_deformation_error_mm": rep["mean_deformation_error_mm"],
+                "baseline_reward_error_cm": baseline["reward_error_cm"]}
+
+    return errors
+
+
+def _within_held_out_bound(errors: dict) -> bool:
+    return all(errors[k] <= bound for k, bound in HELD_OUT_BOUND.items())
+
+
+def test_tiny_reduction_is_within_its_held_out_bound(tiny, held_out):
+    errors = held_out(tiny[0])
+    assert _within_held_out_bound(errors), errors
+
+
+@pytest.mark.parametrize("mutation", ["one_mode_fewer", "ecsw_weights_x1.1"])
+def test_a_degraded_reduction_fails_the_held_out_bound(tiny, held_out, mutation):
+    """The bound is tight enough to see a small degradation: the last leg mode dropped
+    (measured 3.00 mm node, 0.196 mm deformation error) or the leg's tetrahedron ECSW weights
+    10% high (0.171 mm deformation, 0.025 cm baseline reward error)."""
+    reduction = tiny[0]
+    leg = reduction.leg
+    if mutation == "one_mode_fewer":
+        leg = dataclasses.replace(leg, basis=leg.basis[:, :-1])
+    else:
+        leg = dataclasses.replace(leg, tet_weights=1.1 * leg.tet_weights)
+    errors = held_out(dataclasses.replace(reduction, leg=leg))
+    assert not _within_held_out_bound(errors), errors
+
+
 def test_deformation_error_removes_rigid_motion_per_body():
     """Closed form: a rigidly moved copy has zero deformation error whatever each body's
     rotation and translation; stretching one body by 1% along a principal axis leaves the
