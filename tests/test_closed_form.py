@@ -10,7 +10,6 @@ tests do not use them.
 import numpy as np
 import pytest
 
-from softcrawl.fem.body import Body
 from softcrawl.fem.static import solve_static
 from softcrawl.fem.state import Control
 from softcrawl.verify import checks
@@ -194,14 +193,15 @@ def _pneunet_tip_dz(mesh_size: float, pressure: float, scales: ModelScales = NOM
 def test_pneunet_small_pressure_response_is_linear_in_p_over_e():
     """At 5 kPa (tip 1.3 mm on 115 mm) the leg is linear elastic: the tip deflection scales
     as p / E (dimensional analysis of linear elasticity). E and p both 3% up: the same
-    deflection to 1e-6 (exact for any load: forces scale alike; measured 1e-9); E 3% up
-    alone: deflection / 1.03 within 0.1% (measured 0.01%), so a 3% E error is seen."""
+    deflection to 1e-10 (exact at any load, elastic and pressure forces scale alike; measured
+    8e-14); E 3% up alone: deflection / 1.03 within 1e-4 (measured 1.2e-5, the geometric
+    nonlinearity of a 1.3 mm tip deflection), so the 2.9% change of a 3% E error is seen."""
     base = _pneunet_tip_dz(8.0, 5.0)
     both = _pneunet_tip_dz(8.0, 5.0, ModelScales(youngs_modulus=1.03, load=1.03))
     stiff = _pneunet_tip_dz(8.0, 5.0, ModelScales(youngs_modulus=1.03))
     assert base < -1.0
-    assert abs(both / base - 1) <= 1e-6
-    assert abs(stiff / base * 1.03 - 1) <= 1e-3
+    assert abs(both / base - 1) <= 1e-10
+    assert abs(stiff / base * 1.03 - 1) <= 1e-4
 
 
 def test_pneunet_static_bend_converges_under_refinement():
@@ -225,21 +225,21 @@ def test_pneunet_bends_toward_paper_side_monotonically():
 
 def test_pneunet_check_fails_when_the_leg_bends_the_wrong_way():
     """The qualitative check is not vacuous: a negative pressure (load scale -1) bends the
-    leg away from the paper side and fails both its direction results."""
+    leg away from the paper side (measured +4.0 mm and -4.0 deg at -20 kPa)."""
     body_scales = ModelScales(load=-1.0)
     table = checks.pneunet_bending(8.0, np.array([0.0, 20.0]), ramp=0.1, hold=0.1, scales=body_scales)
     assert table[-1, 1] > 0 and table[-1, 2] < 0
 
 
-def test_model_scales_leave_the_nominal_check_unchanged():
-    """NOMINAL builds the very model the CLI check builds (same E, nu, friction, gravity)."""
+def test_model_scales_perturb_the_simulated_model_only():
+    """NOMINAL builds the model the CLI check builds; other scales multiply its friction,
+    gravity and Young's modulus."""
     m = checks.block_model(np.array([0.0, 0.0, -checks.G]), scales=ModelScales(friction=1.1, gravity=0.5,
                                                                                youngs_modulus=2.0))
     n = checks.block_model(np.array([0.0, 0.0, -checks.G]))
     assert n.floor.friction == checks.MU and m.floor.friction == pytest.approx(1.1 * checks.MU)
     assert m.gravity[2] == pytest.approx(0.5 * n.gravity[2])
-    b: Body = m.bodies[0]
-    assert b.material.youngs_modulus == 2.0 * n.bodies[0].material.youngs_modulus
+    assert m.bodies[0].material.youngs_modulus == 2.0 * n.bodies[0].material.youngs_modulus
 
 
 # -- every check: nominal model within the tight tolerances, wrong models rejected ----------------

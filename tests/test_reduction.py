@@ -393,8 +393,8 @@ HELD_OUT_BOUND = {"mean_node_error_mm": 2.6, "mean_deformation_error_mm": 0.16, 
 
 @pytest.fixture(scope="module")
 def held_out(tiny, tmp_path_factory):
-    """``(errors of a reduction on the held-out scenes)``: a function of a reduction, with the
-    full-order references run once for the module."""
+    """A function from a reduction to its ``HELD_OUT_BOUND`` quantities on the held-out scenes;
+    the full-order references are run once for the module."""
     from softcrawl.reduction.scenes import validation_scenes
     from softcrawl.reduction.validate import validate_reduction
 

@@ -68,8 +68,8 @@ class CheckResult:
         name: what is checked.
         expected: closed-form value.
         got: simulated value.
-        tolerance: bound on ``|got - expected|``: relative to ``|expected|`` (mode "rel") or
-            absolute (mode "abs"); unused in mode "min".
+        tolerance: ``softcrawl verify``'s acceptance bound on ``|got - expected|``: relative to
+            ``|expected|`` (mode "rel") or absolute (mode "abs"); unused in mode "min".
         unit: unit of expected/got.
         mode: "rel", "abs", or "min" (``expected`` is a lower bound: pass iff got >= expected).
     """
