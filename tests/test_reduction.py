@@ -570,14 +570,17 @@ def test_shipped_reduction_meets_its_documented_held_out_errors(shipped_referenc
     against the exact full-order model at dt 0.01 s), as docs/results.md reports it:
 
     - reference settings (0.01 s, float64 RID products, 250 sweeps): documented mean node error
-      0.793 mm and baseline reward error 1.1%; bound 0.88 mm (10% margin);
+      0.793 mm and baseline reward error 1.1% (measured 0.792 mm, 1.04%); bound 0.88 mm (10%
+      margin);
     - training settings (``--dt 0.02 --rid-dtype float32 --contact-max-iterations 100``):
-      documented 0.955 mm and 0.3%; bound 1.0 mm (the target; 5% margin).
+      documented 0.955 mm and 0.3% (measured 0.943 mm, 1.08%); bound 1.0 mm (the target; 6%
+      margin).
 
     Reward error within 2% in both: over 15 round-off-perturbed reduced runs of the baseline
     scene the documented reward error ranges 1.3-1.7% (the reduced model's own sensitivity),
-    so a single run is bounded by that range with margin. Takes about 15-30 min on 2 cores
-    (the full-order runs); command and result in docs/results.md."""
+    so a single run is bounded by that range with margin. 680 s of CPU, nearly all in the
+    full-order runs (about 6 min on 2 idle cores): slow; command and result in
+    docs/results.md."""
     from softcrawl.reduction.data import default_reduction_path
     from softcrawl.reduction.validate import validate_reduction
 
