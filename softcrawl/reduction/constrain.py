@@ -225,9 +225,8 @@ class Disks(NamedTuple):
         start: ``(M,)`` first stacked row of each robot's disk.
         collision: ``(c,)`` the collision nodes (disk-local, sorted); node_index: ``(n,)``
             each node's position among them (-1: none).
-        rotations: ``(M, 3, 3)`` each disk's floating-frame rotation this step.
-        node_Gt: ``(3c, 3n)`` collision-node compliance columns, mm/(mN s) (transposed; solved
-            here when first needed), node_done: ``(c,)`` which are solved.
+        node_Gt: ``(3c, 3n)`` collision-node compliance columns, 1/kg (mm/s per mN s;
+            transposed; solved here when first needed), node_done: ``(c,)`` which are solved.
         fixed_Gt: ``(3B, 3n)`` attachment-block columns (transposed); H_indptr, H_indices,
             H_data: their rows ``H`` ``(3B, 3n)`` in CSR.
         ldl: ``(Lp, Li, Lx, d, perm)`` the disk step matrix's factors
@@ -240,7 +239,6 @@ class Disks(NamedTuple):
     start: np.ndarray
     collision: np.ndarray
     node_index: np.ndarray
-    rotations: np.ndarray
     node_Gt: np.ndarray
     node_done: np.ndarray
     fixed_Gt: np.ndarray
@@ -272,7 +270,7 @@ class Attachments(NamedTuple):
 class Legs(NamedTuple):
     """The robots' legs: bodies of one stacked :class:`~softcrawl.reduction.group.ModalGroup`
     (``L`` bodies, ``m`` modes, part of ``n`` nodes, ``c`` collision nodes, ``F`` attachment
-    blocks each) and their free step.
+    blocks each).
 
     Attributes:
         start: ``(M + 1,)`` first body of each robot.
@@ -282,8 +280,6 @@ class Legs(NamedTuple):
         z_axes: ``(L, 3)`` world z in each body's part frame; basis: ``(3n, m)``.
         fixed_rows: ``(L, 3F, m)``, fixed_blocks: ``(L, F)``, frame_rot: ``(L, 3, 3)``: as
             the group's.
-        qd_free: ``(L, m)`` free modal velocities; chol: ``(L, m, m)`` the step matrices'
-            Cholesky factors.
     """
 
     start: np.ndarray
@@ -295,7 +291,24 @@ class Legs(NamedTuple):
     fixed_rows: np.ndarray
     fixed_blocks: np.ndarray
     frame_rot: np.ndarray
-    qd_free: np.ndarray
+
+
+class FreeMotion(NamedTuple):
+    """A step's free (unconstrained) motion of the robots.
+
+    Attributes:
+        v: ``(N, 3)`` stacked free velocities, mm/s (the disks' rows are read; the legs' are
+            ``qd``'s).
+        rotations: ``(M, 3, 3)`` each disk's floating-frame rotation
+            (:meth:`FloatingFrameBody.free_rhs <softcrawl.reduction.floating.FloatingFrameBody.free_rhs>`).
+        qd: ``(L, m)`` the legs' free modal velocities; chol: ``(L, m, m)`` their step
+            matrices' Cholesky factors (:meth:`ModalGroup.free_motion
+            <softcrawl.reduction.group.ModalGroup.free_motion>`).
+    """
+
+    v: np.ndarray
+    rotations: np.ndarray
+    qd: np.ndarray
     chol: np.ndarray
 
 
@@ -341,9 +354,8 @@ class ConstraintBatch:
         solvers: the robots' :class:`~softcrawl.reduction.solver.ReducedSolver`.
         disks: each robot's disk body index.
         starts: ``(M + 1,)`` each robot's first stacked row.
-        contact_settings, disk_arrays, attachments, legs: the records of
-            :func:`constrain_robots` (the disks' ``rotations`` and the legs' ``qd_free`` and
-            ``chol`` empty: each step's are put in by :meth:`run`).
+        contact_settings, disk_arrays, attachments, legs: the static records of
+            :func:`constrain_robots`.
     """
 
     def __init__(self, solvers, disks, columns: DiskColumns, group, leg_start: np.ndarray, starts: np.ndarray):
@@ -362,13 +374,12 @@ class ConstraintBatch:
             Tff[r, :3 * len(f), :3 * len(f)] = columns.attachment_gram(f)
         disk_start = np.array([st + s.model.node_offsets[d] for st, s, d in zip(self.starts, self.solvers, self.disks)],
                               np.int64)
-        # the attachment columns as they are now (they hold every block of these robots); the
-        # rotations are each step's
+        # the attachment columns as they are now (they hold every block of these robots)
         H = columns.H
-        self.disk_arrays = Disks(disk_start, columns.collision, columns.node_index, np.zeros((M, 3, 3)),
-                                 columns.node_Gt, columns.node_done, columns.fixed_Gt, H.indptr.astype(np.int64),
-                                 H.indices.astype(np.int64), H.data, columns.ldl, fixed_index, fixed_blocks,
-                                 np.array([len(f) for f in fixed], np.int64), Tff)
+        self.disk_arrays = Disks(disk_start, columns.collision, columns.node_index, columns.node_Gt, columns.node_done,
+                                 columns.fixed_Gt, H.indptr.astype(np.int64), H.indices.astype(np.int64), H.data,
+                                 columns.ldl, fixed_index, fixed_blocks, np.array([len(f) for f in fixed], np.int64),
+                                 Tff)
         rows = [sp.csr_matrix(s.attachment_drift) for s in self.solvers]
         self.attachments = Attachments(
             np.concatenate([[0], np.cumsum([r.shape[0] for r in rows])]).astype(np.int64),
@@ -377,11 +388,9 @@ class ConstraintBatch:
                 rows, np.cumsum([0] + [r.nnz for r in rows[:-1]]))]).astype(np.int64),
             np.concatenate([r.indices + 3 * st for r, st in zip(rows, self.starts)]).astype(np.int64),
             np.concatenate([r.data for r in rows]).astype(np.float64))
-        # the free step's arrays are each step's
-        m = group.basis.shape[1]
         self.legs = Legs(np.asarray(leg_start, np.int64), group.offsets, group.collision, group.collision_bound,
                          np.ascontiguousarray(group.rotations[:, 2, :]), group.basis, group.fixed_rows,
-                         group.fixed_blocks, group.frame_rot, np.zeros((0, m)), np.zeros((0, m, m)))
+                         group.fixed_blocks, group.frame_rot)
         st, fl = self.solvers[0].settings, self.solvers[0].model.floor
         self.contact_settings = ContactSettings(float(st.dt), float(fl.height), float(fl.contact_distance),
                                                 float(fl.friction), float(st.contact_tolerance),
@@ -423,8 +432,8 @@ class ConstraintBatch:
             np.ascontiguousarray(np.concatenate([s.contact_impulses for s in states]), dtype=np.float64))
         out = Outputs(np.zeros_like(v_free), np.zeros_like(qd_free), np.zeros(len(x), np.int64), np.zeros((len(x), 3)),
                       np.zeros(M, np.int64), np.zeros((M, 5)))
-        constrain_robots(x, v_free, self.starts, skip, self.contact_settings, self.disk_arrays._replace(rotations=R),
-                         self.attachments, self.legs._replace(qd_free=qd_free, chol=chol), previous, out)
+        constrain_robots(x, self.starts, skip, self.contact_settings, self.disk_arrays, self.attachments, self.legs,
+                         FreeMotion(v_free, R, qd_free, chol), previous, out)
         contacts: list = []
         for r, s in enumerate(self.solvers):
             if skip[r]:
@@ -527,23 +536,21 @@ def solve_condensed(W, q, nb, mu, warm, tol, max_iter, extra_chunks):
 
 
 @njit(cache=True)
-def constrain_robots(x, v_free, starts, skip, settings, disks, attachments, legs, previous, out):
+def constrain_robots(x, starts, skip, settings, disks, attachments, legs, free, previous, out):
     """Constrain every robot of a batch (module doc); robot ``r`` with ``skip[r]`` is left out.
 
     Args:
-        x, v_free: ``(N, 3)`` stacked positions (mm) and free velocities (mm/s; the disks' rows
-            are read, the legs' come from ``legs.qd_free``).
+        x: ``(N, 3)`` stacked positions, mm.
         starts: ``(M + 1,)`` first stacked row of each robot; skip: ``(M,)`` bool.
         settings: :class:`ContactSettings` (``dt`` s, ``floor_height`` and ``distance`` mm,
             ``friction``, the Gauss-Seidel ``tol``, ``max_iter``, ``extra_chunks`` and
             ``min_growth``).
         disks: :class:`Disks`: ``start`` ``(M,)`` each disk's first stacked row,
             ``collision`` ``(c,)`` its collision nodes (disk-local, sorted), ``node_index``
-            ``(n,)``, ``rotations`` ``(M, 3, 3)`` this step's floating-frame rotations, the
-            shared :class:`DiskColumns` (``node_Gt`` ``(3c, 3n)`` and ``node_done`` ``(c,)``,
-            updated here when a node's columns are first needed, ``fixed_Gt`` ``(3B, 3n)``,
-            ``H_indptr``, ``H_indices``, ``H_data`` in CSR, ``ldl`` the factors of ``A_0``)
-            and each robot's attachment blocks (``fixed_index``, ``fixed_blocks`` ``(M, F)``,
+            ``(n,)``, the shared :class:`DiskColumns` (``node_Gt`` ``(3c, 3n)`` 1/kg and
+            ``node_done`` ``(c,)``, updated here when a node's columns are first needed,
+            ``fixed_Gt`` ``(3B, 3n)``, ``H_indptr``, ``H_indices``, ``H_data`` in CSR, ``ldl``
+            the factors of ``A_0``) and each robot's attachment blocks (``fixed_index``, ``fixed_blocks`` ``(M, F)``,
             ``n_fixed`` ``(M,)``, ``Tff`` ``(M, 3F, 3F)``).
         attachments: :class:`Attachments`: ``start`` ``(M + 1,)`` each robot's first row,
             ``count`` ``(M,)``, CSR rows ``indptr``, ``indices``, ``data`` of the violations
@@ -552,7 +559,10 @@ def constrain_robots(x, v_free, starts, skip, settings, disks, attachments, legs
             modal group (``L`` bodies, ``m`` modes), ``offsets`` ``(L,)``, ``collision``,
             ``bound`` ``(c_l,)``, ``z_axes`` ``(L, 3)``, ``basis`` ``(3n_l, m)``,
             ``fixed_rows`` ``(L, 3F, m)``, ``fixed_blocks`` ``(L, F)``, ``frame_rot``
-            ``(L, 3, 3)``, the free step's ``qd_free`` ``(L, m)`` and ``chol`` ``(L, m, m)``.
+            ``(L, 3, 3)``.
+        free: :class:`FreeMotion` of this step: ``v`` ``(N, 3)`` mm/s (the disks' rows are
+            read), the disks' ``rotations`` ``(M, 3, 3)``, the legs' ``qd`` ``(L, m)`` and
+            ``chol`` ``(L, m, m)``.
         previous: :class:`Contacts` of last step (warm start): ``start`` ``(M + 1,)``, robot-local
             sorted ``nodes`` ``(K,)``, ``impulses`` ``(K, 3)`` mN s.
         out: :class:`Outputs`, written: ``dv`` ``(N, 3)`` the disks' velocity corrections (their
@@ -561,7 +571,7 @@ def constrain_robots(x, v_free, starts, skip, settings, disks, attachments, legs
             (robot-local, sorted; mN s), ``stats`` ``(M, 5)`` loaded contacts, sticking ones,
             Gauss-Seidel sweeps, relative change, total normal force (mN).
     """
-    h, basis, node_Gt, fixed_Gt = settings.dt, legs.basis, disks.node_Gt, disks.fixed_Gt
+    h, v_free, basis, node_Gt, fixed_Gt = settings.dt, free.v, legs.basis, disks.node_Gt, disks.fixed_Gt
     M = starts.shape[0] - 1
     nd = disks.collision.shape[0]
     n_disk = node_Gt.shape[1] // 3
@@ -570,10 +580,10 @@ def constrain_robots(x, v_free, starts, skip, settings, disks, attachments, legs
     for r in range(M):
         if skip[r]:
             continue
-        s0, d0, R = starts[r], disks.start[r], disks.rotations[r]
+        s0, d0, R = starts[r], disks.start[r], free.rotations[r]
         b0, b1 = legs.start[r], legs.start[r + 1]
         L = b1 - b0
-        chol, fixed_rows, fixed_blocks, frame_rot = (legs.chol[b0:b1], legs.fixed_rows[b0:b1],
+        chol, fixed_rows, fixed_blocks, frame_rot = (free.chol[b0:b1], legs.fixed_rows[b0:b1],
                                                      legs.fixed_blocks[b0:b1], legs.frame_rot[b0:b1])
         # 1. candidates (robot-local node, gap, free z velocity, leg in robot or -1, part node)
         cap = nd + L * nc_leg
@@ -592,7 +602,7 @@ def constrain_robots(x, v_free, starts, skip, settings, disks, attachments, legs
                 k += 1
         for b in range(L):
             bb = b0 + b
-            k1 = body_floor_candidates(x, legs.offsets[bb], legs.collision, legs.bound, legs.qd_free[bb],
+            k1 = body_floor_candidates(x, legs.offsets[bb], legs.collision, legs.bound, free.qd[bb],
                                        legs.z_axes[bb], basis, h, settings.floor_height, settings.distance, c_node,
                                        c_gap, c_vz, c_local, k)
             for q in range(k, k1):  # robot-local node, leg in robot, part node
@@ -689,7 +699,7 @@ def constrain_robots(x, v_free, starts, skip, settings, disks, attachments, legs
             for i in range(kk):
                 cb[i], cn[i], ck[i] = near_leg[idx[i]], near_local[idx[i]], A + i
             if L:
-                add_delassus(W, u, chol, legs.qd_free[b0:b1], fixed_rows, fixed_blocks, frame_rot, basis, cb, cn, ck)
+                add_delassus(W, u, chol, free.qd[b0:b1], fixed_rows, fixed_blocks, frame_rot, basis, cb, cn, ck)
             for i in range(nb):
                 u[i] += drift[i] / h
             for i in range(kk):
