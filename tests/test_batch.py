@@ -3,6 +3,8 @@ its trajectory with its own single-robot :class:`ReducedSolver`, whatever the ba
 do (designs with 3 to 6 legs, different regulators, floor contact, varying pressures, robots
 joining and leaving)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -91,3 +93,65 @@ def test_a_diverging_robot_is_reported_and_the_others_go_on(robots):
     assert np.abs(out[0].x - ref.x).max() == 0.0
     with pytest.raises(ValueError):
         batch.step(states[:1], [Control(np.zeros(3))])
+
+
+#: The stored result of :func:`fixed_scene` (relative to ``tests/``).
+FIXED_SCENE_DATA = "data/batch_fixed_scene.npz"
+
+
+def host_fingerprint() -> str:
+    """The CPU model (numba's code and OpenBLAS's kernels depend on it) and the numeric
+    libraries' versions: equal fingerprints give equal bits for the same arithmetic."""
+    import llvmlite.binding
+    import numba
+    import scipy
+
+    versions = f"numpy {np.__version__} scipy {scipy.__version__} numba {numba.__version__}"
+    return f"{llvmlite.binding.get_host_cpu_name()} {versions}"
+
+
+def fixed_scene(steps: int = 30) -> dict[str, np.ndarray]:
+    """A 3-legged and a 4-legged robot (``DESIGNS[:2]``, ``dt`` 0.02 s, double-precision RID)
+    stepped ``steps`` times by one :class:`BatchedReducedSolver` from rest under
+    :func:`pressures` (they land within ~10 steps, then press on the floor): every robot's
+    contact stats after each step ``(2, steps, 5)`` (contacts, sticking, sweeps, relative
+    change, normal force mN) and its final contact nodes, impulses (mN s), modal velocities and
+    every 16th node's position (mm) and velocity (mm/s)."""
+    robots = [build_robot(d, RobotConfig(model="reduced", dt=0.02)) for d in DESIGNS[:2]]
+    batch = BatchedReducedSolver([r.make_solver() for r in robots])
+    states = [r.model.rest_state() for r in robots]
+    stats = np.zeros((len(robots), steps, 5))
+    for k in range(steps):
+        states = batch.step(states, [r.control(pressures(i, k)) for i, r in enumerate(robots)])
+        for i, s in enumerate(batch.solvers):
+            st = s.stats
+            stats[i, k] = st.n_contacts, st.n_sticking, st.contact_sweeps, st.contact_change, st.normal_force
+    out = {"stats": stats, "host": np.array(host_fingerprint())}
+    for i, st in enumerate(states):
+        out.update({f"x{i}": st.x[::16], f"v{i}": st.v[::16], f"nodes{i}": st.contact_nodes,
+                    f"impulses{i}": st.contact_impulses, f"modal{i}": np.concatenate(st.modal_velocities)})
+    return out
+
+
+def test_batched_step_of_a_fixed_scene_reproduces_the_stored_trajectory():
+    """:func:`fixed_scene` equals its stored result (``tests/data/batch_fixed_scene.npz``,
+    written by ``np.savez(path, **fixed_scene())``; to be rewritten only by a change meant to
+    alter the numbers): to the bit on a host with the stored :func:`host_fingerprint` (runs
+    there, with fresh and cached compiled code and reductions, give the same bits), else to
+    1e-9 of each array's largest entry with the same contact counts (other CPUs' BLAS kernels and
+    code round otherwise, and sweep counts follow the round-off; the batched and single paths
+    agree to that, test above)."""
+    ref = dict(np.load(Path(__file__).parent / FIXED_SCENE_DATA))
+    got = fixed_scene()
+    assert sorted(got) == sorted(ref)
+    assert ref["stats"][:, -1, 0].min() > 0  # both on the floor at the end
+    exact = str(ref["host"]) == host_fingerprint()
+    for key, want in ref.items():
+        if key == "host":
+            continue
+        if exact or want.dtype.kind == "i":
+            np.testing.assert_array_equal(got[key], want, err_msg=key)
+        elif key == "stats":
+            np.testing.assert_array_equal(got[key][..., 0], want[..., 0])
+        else:
+            assert np.abs(got[key] - want).max() <= 1e-9 * max(1.0, np.abs(want).max()), key

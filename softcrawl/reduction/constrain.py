@@ -32,6 +32,7 @@ numbers up to the order of round-off.
 from __future__ import annotations
 
 import weakref
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -132,10 +133,12 @@ def disk_columns(factor: Factorization, collision: np.ndarray) -> DiskColumns:
 
 
 @njit(cache=True)
-def _node_columns(j, node, Lp, Li, Lx, d, perm, node_Gt, node_done):
-    """Solve collision node ``j``'s (DOFs of ``node``) three columns into ``node_Gt`` once."""
+def _node_columns(j, node, ldl, node_Gt, node_done):
+    """Solve collision node ``j``'s (DOFs of ``node``) three columns into ``node_Gt`` once (``ldl``:
+    :meth:`Factorization.ldl_factors <softcrawl.fem.linalg.Factorization.ldl_factors>`)."""
     if node_done[j]:
         return
+    Lp, Li, Lx, d, perm = ldl
     B = np.zeros((node_Gt.shape[1], 3))
     for a in range(3):
         B[3 * node + a, a] = 1.0
@@ -190,6 +193,158 @@ def _disk_of(solver) -> int | None:
     return i
 
 
+class ContactSettings(NamedTuple):
+    """The scalars of a constraint stage (:class:`~softcrawl.fem.solver.SolverSettings` and
+    :class:`~softcrawl.fem.model.Floor`).
+
+    Attributes:
+        dt: time step, s. floor_height: the floor's z, mm. distance: contact distance, mm
+            (a node is a candidate if its gap, now or after a free step, is below it).
+        friction: Coulomb coefficient. tol, max_iter: Gauss-Seidel stopping rule (relative
+            change, sweeps per chunk); extra_chunks: more chunks if the polish fails
+            (:data:`softcrawl.fem.contact.EXTRA_SWEEP_CHUNKS`).
+        min_growth: least growth of the contact set per round
+            (:data:`softcrawl.fem.solver.MIN_CONTACT_GROWTH`).
+    """
+
+    dt: float
+    floor_height: float
+    distance: float
+    friction: float
+    tol: float
+    max_iter: int
+    extra_chunks: int
+    min_growth: int
+
+
+class Disks(NamedTuple):
+    """The robots' floating-frame disks: one shared :class:`DiskColumns` (``c`` collision
+    nodes of ``n``, ``B`` attachment blocks known) and each robot's placement and attachments.
+
+    Attributes:
+        start: ``(M,)`` first stacked row of each robot's disk.
+        collision: ``(c,)`` the collision nodes (disk-local, sorted); node_index: ``(n,)``
+            each node's position among them (-1: none).
+        node_Gt: ``(3c, 3n)`` collision-node compliance columns, 1/kg (mm/s per mN s;
+            transposed; solved here when first needed), node_done: ``(c,)`` which are solved.
+        fixed_Gt: ``(3B, 3n)`` attachment-block columns (transposed); H_indptr, H_indices,
+            H_data: their rows ``H`` ``(3B, 3n)`` in CSR.
+        ldl: ``(Lp, Li, Lx, d, perm)`` the disk step matrix's factors
+            (:meth:`Factorization.ldl_factors <softcrawl.fem.linalg.Factorization.ldl_factors>`).
+        fixed_index, fixed_blocks: ``(M, F)`` each robot's attachment blocks as block numbers
+            of the columns and of the robot; n_fixed: ``(M,)`` how many; Tff: ``(M, 3F, 3F)``
+            their ``E^T A_0^-1 E`` (:meth:`DiskColumns.attachment_gram`).
+    """
+
+    start: np.ndarray
+    collision: np.ndarray
+    node_index: np.ndarray
+    node_Gt: np.ndarray
+    node_done: np.ndarray
+    fixed_Gt: np.ndarray
+    H_indptr: np.ndarray
+    H_indices: np.ndarray
+    H_data: np.ndarray
+    ldl: tuple
+    fixed_index: np.ndarray
+    fixed_blocks: np.ndarray
+    n_fixed: np.ndarray
+    Tff: np.ndarray
+
+
+class Attachments(NamedTuple):
+    """The robots' attachment rows (violation ``x_a - x_b``, mm, over the stacked DOFs) in CSR.
+
+    Attributes:
+        start: ``(M + 1,)`` first row of each robot; count: ``(M,)`` its attachments (3 rows
+            each); indptr, indices, data: the CSR rows.
+    """
+
+    start: np.ndarray
+    count: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: np.ndarray
+
+
+class Legs(NamedTuple):
+    """The robots' legs: bodies of one stacked :class:`~softcrawl.reduction.group.ModalGroup`
+    (``L`` bodies, ``m`` modes, part of ``n`` nodes, ``c`` collision nodes, ``F`` attachment
+    blocks each).
+
+    Attributes:
+        start: ``(M + 1,)`` first body of each robot.
+        offsets: ``(L,)`` each body's first stacked row.
+        collision: ``(c,)`` the part's collision nodes; bound: ``(c,)`` their basis rows'
+            Frobenius norms.
+        z_axes: ``(L, 3)`` world z in each body's part frame; basis: ``(3n, m)``.
+        fixed_rows: ``(L, 3F, m)``, fixed_blocks: ``(L, F)``, frame_rot: ``(L, 3, 3)``: as
+            the group's.
+    """
+
+    start: np.ndarray
+    offsets: np.ndarray
+    collision: np.ndarray
+    bound: np.ndarray
+    z_axes: np.ndarray
+    basis: np.ndarray
+    fixed_rows: np.ndarray
+    fixed_blocks: np.ndarray
+    frame_rot: np.ndarray
+
+
+class FreeMotion(NamedTuple):
+    """A step's free (unconstrained) motion of the robots.
+
+    Attributes:
+        v: ``(N, 3)`` stacked free velocities, mm/s (the disks' rows are read; the legs' are
+            ``qd``'s).
+        rotations: ``(M, 3, 3)`` each disk's floating-frame rotation
+            (:meth:`FloatingFrameBody.free_rhs <softcrawl.reduction.floating.FloatingFrameBody.free_rhs>`).
+        qd: ``(L, m)`` the legs' free modal velocities; chol: ``(L, m, m)`` their step
+            matrices' Cholesky factors (:meth:`ModalGroup.free_motion
+            <softcrawl.reduction.group.ModalGroup.free_motion>`).
+    """
+
+    v: np.ndarray
+    rotations: np.ndarray
+    qd: np.ndarray
+    chol: np.ndarray
+
+
+class Contacts(NamedTuple):
+    """Contacts of each robot (robot-local sorted nodes), robot ``r``'s at ``start[r]:start[r + 1]``.
+
+    Attributes:
+        start: ``(M + 1,)``; nodes: ``(K,)``; impulses: ``(K, 3)`` in the floor frame
+            (normal, x, y), mN s.
+    """
+
+    start: np.ndarray
+    nodes: np.ndarray
+    impulses: np.ndarray
+
+
+class Outputs(NamedTuple):
+    """What :func:`constrain_robots` writes.
+
+    Attributes:
+        dv: ``(N, 3)`` each disk's velocity correction (its rows only), mm/s.
+        dq: ``(L, m)`` the legs' modal velocity corrections.
+        nodes, impulses: ``(N,)``, ``(N, 3)``: robot ``r``'s contacts (robot-local, sorted;
+            mN s in the floor frame) at ``starts[r]:starts[r] + count[r]``; count: ``(M,)``.
+        stats: ``(M, 5)`` loaded contacts, sticking ones, Gauss-Seidel sweeps, relative
+            change, total normal force (mN).
+    """
+
+    dv: np.ndarray
+    dq: np.ndarray
+    nodes: np.ndarray
+    impulses: np.ndarray
+    count: np.ndarray
+    stats: np.ndarray
+
+
 class ConstraintBatch:
     """The static arrays of :func:`constrain_robots` for some reduced solvers whose legs are
     bodies ``leg_start[r]:leg_start[r + 1]`` of one modal ``group`` and whose states are rows
@@ -198,38 +353,48 @@ class ConstraintBatch:
     Attributes:
         solvers: the robots' :class:`~softcrawl.reduction.solver.ReducedSolver`.
         disks: each robot's disk body index.
+        starts: ``(M + 1,)`` each robot's first stacked row.
+        contact_settings, disk_arrays, attachments, legs: the static records of
+            :func:`constrain_robots`.
     """
 
     def __init__(self, solvers, disks, columns: DiskColumns, group, leg_start: np.ndarray, starts: np.ndarray):
         self.solvers, self.disks, self.group, self.columns = list(solvers), list(disks), group, columns
-        self.leg_start, self.starts = np.asarray(leg_start, np.int64), np.asarray(starts, np.int64)
+        self.starts = np.asarray(starts, np.int64)
         M = len(self.solvers)
         fixed = [columns.block_columns(s.compliance[d].fixed.H) for s, d in zip(self.solvers, self.disks)]
         F = max(len(f) for f in fixed)
-        self.fixed_index = np.zeros((M, F), np.int64)
-        self.fixed_blocks = np.zeros((M, F), np.int64)
-        self.n_fixed = np.array([len(f) for f in fixed], np.int64)
+        fixed_index = np.zeros((M, F), np.int64)
+        fixed_blocks = np.zeros((M, F), np.int64)
         for r, (f, s, d) in enumerate(zip(fixed, self.solvers, self.disks)):
-            self.fixed_index[r, :len(f)] = f
-            self.fixed_blocks[r, :len(f)] = s.compliance[d].fixed.blocks
+            fixed_index[r, :len(f)] = f
+            fixed_blocks[r, :len(f)] = s.compliance[d].fixed.blocks
+        Tff = np.zeros((M, 3 * F, 3 * F))
+        for r, f in enumerate(fixed):
+            Tff[r, :3 * len(f), :3 * len(f)] = columns.attachment_gram(f)
+        disk_start = np.array([st + s.model.node_offsets[d] for st, s, d in zip(self.starts, self.solvers, self.disks)],
+                              np.int64)
         # the attachment columns as they are now (they hold every block of these robots)
         H = columns.H
-        self.fixed = (columns.fixed_Gt, H.indptr.astype(np.int64), H.indices.astype(np.int64), H.data)
-        self.Tff = np.zeros((M, 3 * F, 3 * F))
-        for r, f in enumerate(fixed):
-            self.Tff[r, :3 * len(f), :3 * len(f)] = columns.attachment_gram(f)
-        self.disk_start = np.array([st + s.model.node_offsets[d] for st, s, d in
-                                    zip(self.starts, self.solvers, self.disks)], np.int64)
+        self.disk_arrays = Disks(disk_start, columns.collision, columns.node_index, columns.node_Gt, columns.node_done,
+                                 columns.fixed_Gt, H.indptr.astype(np.int64), H.indices.astype(np.int64), H.data,
+                                 columns.ldl, fixed_index, fixed_blocks, np.array([len(f) for f in fixed], np.int64),
+                                 Tff)
         rows = [sp.csr_matrix(s.attachment_drift) for s in self.solvers]
-        self.n_attachments = np.array([r.shape[0] // 3 for r in rows], np.int64)
-        self.att_start = np.concatenate([[0], np.cumsum([r.shape[0] for r in rows])]).astype(np.int64)
-        self.att_indptr = np.concatenate([[0]] + [r.indptr[1:] + off for r, off in zip(
-            rows, np.cumsum([0] + [r.nnz for r in rows[:-1]]))]).astype(np.int64)
-        self.att_indices = np.concatenate([r.indices + 3 * st for r, st in zip(rows, self.starts)]).astype(np.int64)
-        self.att_data = np.concatenate([r.data for r in rows]).astype(np.float64)
-        self.z_axes = np.ascontiguousarray(group.rotations[:, 2, :])
-        first = self.solvers[0]
-        self.settings, self.floor = first.settings, first.model.floor
+        self.attachments = Attachments(
+            np.concatenate([[0], np.cumsum([r.shape[0] for r in rows])]).astype(np.int64),
+            np.array([r.shape[0] // 3 for r in rows], np.int64),
+            np.concatenate([[0]] + [r.indptr[1:] + off for r, off in zip(
+                rows, np.cumsum([0] + [r.nnz for r in rows[:-1]]))]).astype(np.int64),
+            np.concatenate([r.indices + 3 * st for r, st in zip(rows, self.starts)]).astype(np.int64),
+            np.concatenate([r.data for r in rows]).astype(np.float64))
+        self.legs = Legs(np.asarray(leg_start, np.int64), group.offsets, group.collision, group.collision_bound,
+                         np.ascontiguousarray(group.rotations[:, 2, :]), group.basis, group.fixed_rows,
+                         group.fixed_blocks, group.frame_rot)
+        st, fl = self.solvers[0].settings, self.solvers[0].model.floor
+        self.contact_settings = ContactSettings(float(st.dt), float(fl.height), float(fl.contact_distance),
+                                                float(fl.friction), float(st.contact_tolerance),
+                                                int(st.contact_max_iterations), EXTRA_SWEEP_CHUNKS, MIN_CONTACT_GROWTH)
 
     @classmethod
     def of(cls, solvers, group, leg_start, starts) -> ConstraintBatch | None:
@@ -260,35 +425,26 @@ class ConstraintBatch:
             (None for a skipped robot).
         """
         M = len(self.solvers)
-        st, fl, g, cols = self.settings, self.floor, self.group, self.columns
         R = np.stack([s.compliance[d].rotation for s, d in zip(self.solvers, self.disks)])
-        prev_start = np.concatenate([[0], np.cumsum([len(s.contact_nodes) for s in states])]).astype(np.int64)
-        prev_nodes = np.concatenate([s.contact_nodes for s in states]).astype(np.int64)
-        prev_imp = np.ascontiguousarray(np.concatenate([s.contact_impulses for s in states]), dtype=np.float64)
-        dq, dv = np.zeros_like(qd_free), np.zeros_like(v_free)
-        out_nodes = np.zeros(len(x), np.int64)
-        out_imp = np.zeros((len(x), 3))
-        count = np.zeros(M, np.int64)
-        stats = np.zeros((M, 5))
-        constrain_robots(x, v_free, st.dt, fl.height, fl.contact_distance, fl.friction, st.contact_tolerance,
-                         st.contact_max_iterations, EXTRA_SWEEP_CHUNKS, MIN_CONTACT_GROWTH, skip, self.starts,
-                         self.disk_start, self.columns.collision, R, cols.node_Gt, cols.node_done, *self.fixed,
-                         cols.node_index, *cols.ldl, self.fixed_index, self.fixed_blocks, self.Tff, self.n_fixed,
-                         self.att_start, self.att_indptr, self.att_indices, self.att_data, self.n_attachments,
-                         self.leg_start, g.offsets, g.collision, g.collision_bound, self.z_axes, g.basis, qd_free,
-                         chol, g.fixed_rows, g.fixed_blocks, g.frame_rot, prev_start, prev_nodes, prev_imp,
-                         dv, dq, out_nodes, out_imp, count, stats)
+        previous = Contacts(
+            np.concatenate([[0], np.cumsum([len(s.contact_nodes) for s in states])]).astype(np.int64),
+            np.concatenate([s.contact_nodes for s in states]).astype(np.int64),
+            np.ascontiguousarray(np.concatenate([s.contact_impulses for s in states]), dtype=np.float64))
+        out = Outputs(np.zeros_like(v_free), np.zeros_like(qd_free), np.zeros(len(x), np.int64), np.zeros((len(x), 3)),
+                      np.zeros(M, np.int64), np.zeros((M, 5)))
+        constrain_robots(x, self.starts, skip, self.contact_settings, self.disk_arrays, self.attachments, self.legs,
+                         FreeMotion(v_free, R, qd_free, chol), previous, out)
         contacts: list = []
         for r, s in enumerate(self.solvers):
             if skip[r]:
                 contacts.append(None)
                 continue
-            a, b = self.starts[r], self.starts[r] + count[r]
-            contacts.append((out_nodes[a:b].copy(), out_imp[a:b].copy()))
-            n, stick, sweeps, rel, force = stats[r]
+            a, b = self.starts[r], self.starts[r] + out.count[r]
+            contacts.append((out.nodes[a:b].copy(), out.impulses[a:b].copy()))
+            n, stick, sweeps, rel, force = out.stats[r]
             s.stats.n_contacts, s.stats.n_sticking, s.stats.contact_sweeps = int(n), int(stick), int(sweeps)
             s.stats.contact_change, s.stats.normal_force = float(rel), float(force)
-        return dv, dq, contacts
+        return out.dv, out.dq, contacts
 
 
 @njit(cache=True)
@@ -380,58 +536,55 @@ def solve_condensed(W, q, nb, mu, warm, tol, max_iter, extra_chunks):
 
 
 @njit(cache=True)
-def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, extra_chunks, min_growth, skip,
-                     starts, disk_start, disk_collision, rotations, node_Gt, node_done, fixed_Gt, H_indptr,
-                     H_indices, H_data, node_index, Lp, Li, Lx, d_ldl, perm, fixed_index, fixed_blocks, Tff, n_fixed,
-                     att_start, att_indptr, att_indices, att_data, n_attachments,
-                     leg_start, offsets, collision, bound, z_axes, basis, qd_free, chol, leg_fixed_rows,
-                     leg_fixed_blocks, frame_rot, prev_start, prev_nodes, prev_impulses,
-                     dv_nodal, dq, out_nodes, out_impulses, out_count, stats):
+def constrain_robots(x, starts, skip, settings, disks, attachments, legs, free, previous, out):
     """Constrain every robot of a batch (module doc); robot ``r`` with ``skip[r]`` is left out.
 
     Args:
-        x, v_free: ``(N, 3)`` stacked positions (mm) and free velocities (mm/s; the disks' rows
-            are read, the legs' come from ``qd_free``).
-        h, floor_height, distance, mu: time step (s), floor z and contact distance (mm),
-            Coulomb coefficient. tol, max_iter, extra_chunks: Gauss-Seidel stopping rule and
-            extra chunks. min_growth: :data:`softcrawl.fem.solver.MIN_CONTACT_GROWTH`.
-        starts: ``(M + 1,)`` first stacked row of each robot.
-        disk_start: ``(M,)`` first stacked row of each robot's disk; disk_collision: ``(c,)``
-            its collision nodes (disk-local, sorted); rotations: ``(M, 3, 3)`` each disk's
-            floating-frame rotation this step.
-        node_Gt, node_done, fixed_Gt, H_*, node_index: the disk's :class:`DiskColumns` (``H``
-            in CSR; collision-node columns solved here when first needed, with the factors
-            ``Lp, Li, Lx, d_ldl, perm`` of :meth:`Factorization.ldl_factors`); fixed_index,
-            fixed_blocks: ``(M, F)`` each robot's disk attachment blocks as block numbers of
-            the DiskColumns and of the robot, n_fixed: ``(M,)`` how many, Tff: ``(M, 3F, 3F)``
-            their ``E^T A_0^-1 E`` (:meth:`DiskColumns.attachment_gram`).
-        att_start: ``(M + 1,)`` first attachment row of each robot in the stacked CSR rows
-            ``att_indptr, att_indices, att_data`` (violation ``x_a - x_b`` over the stacked
-            DOFs); n_attachments: ``(M,)``.
-        leg_start: ``(M + 1,)`` first body of each robot in the stacked modal group, whose data
-            follow (:class:`~softcrawl.reduction.group.ModalGroup`: ``offsets``,
-            ``collision``, ``bound``, ``z_axes``, ``basis``, ``fixed_rows``, ``fixed_blocks``,
-            ``frame_rot``) with ``qd_free`` ``(L, m)`` and ``chol`` ``(L, m, m)`` of the free step.
-        prev_start, prev_nodes, prev_impulses: last step's contacts of each robot (robot-local
-            sorted nodes, ``(k, 3)`` impulses), robot ``r`` at ``prev_start[r]:prev_start[r+1]``.
-        dv_nodal: ``(N, 3)`` out: each disk's velocity correction (its rows only, mm/s).
-        dq: ``(L, m)`` out: the legs' modal velocity corrections.
-        out_nodes, out_impulses, out_count: out: robot ``r``'s contacts at
-            ``out_nodes[starts[r]:starts[r] + out_count[r]]`` (robot-local, sorted).
-        stats: ``(M, 5)`` out: loaded contacts, sticking ones, Gauss-Seidel sweeps, relative
-            change, total normal force (mN).
+        x: ``(N, 3)`` stacked positions, mm.
+        starts: ``(M + 1,)`` first stacked row of each robot; skip: ``(M,)`` bool.
+        settings: :class:`ContactSettings` (``dt`` s, ``floor_height`` and ``distance`` mm,
+            ``friction``, the Gauss-Seidel ``tol``, ``max_iter``, ``extra_chunks`` and
+            ``min_growth``).
+        disks: :class:`Disks`: ``start`` ``(M,)`` each disk's first stacked row,
+            ``collision`` ``(c,)`` its collision nodes (disk-local, sorted), ``node_index``
+            ``(n,)``, the shared :class:`DiskColumns` (``node_Gt`` ``(3c, 3n)`` 1/kg and
+            ``node_done`` ``(c,)``, updated here when a node's columns are first needed,
+            ``fixed_Gt`` ``(3B, 3n)``, ``H_indptr``, ``H_indices``, ``H_data`` in CSR, ``ldl``
+            the factors of ``A_0``) and each robot's attachment blocks (``fixed_index``, ``fixed_blocks`` ``(M, F)``,
+            ``n_fixed`` ``(M,)``, ``Tff`` ``(M, 3F, 3F)``).
+        attachments: :class:`Attachments`: ``start`` ``(M + 1,)`` each robot's first row,
+            ``count`` ``(M,)``, CSR rows ``indptr``, ``indices``, ``data`` of the violations
+            ``x_a - x_b`` (mm) over the stacked DOFs.
+        legs: :class:`Legs`: ``start`` ``(M + 1,)`` each robot's first body of the stacked
+            modal group (``L`` bodies, ``m`` modes), ``offsets`` ``(L,)``, ``collision``,
+            ``bound`` ``(c_l,)``, ``z_axes`` ``(L, 3)``, ``basis`` ``(3n_l, m)``,
+            ``fixed_rows`` ``(L, 3F, m)``, ``fixed_blocks`` ``(L, F)``, ``frame_rot``
+            ``(L, 3, 3)``.
+        free: :class:`FreeMotion` of this step: ``v`` ``(N, 3)`` mm/s (the disks' rows are
+            read), the disks' ``rotations`` ``(M, 3, 3)``, the legs' ``qd`` ``(L, m)`` and
+            ``chol`` ``(L, m, m)``.
+        previous: :class:`Contacts` of last step (warm start): ``start`` ``(M + 1,)``, robot-local
+            sorted ``nodes`` ``(K,)``, ``impulses`` ``(K, 3)`` mN s.
+        out: :class:`Outputs`, written: ``dv`` ``(N, 3)`` the disks' velocity corrections (their
+            rows only, mm/s), ``dq`` ``(L, m)`` the legs' modal ones, robot ``r``'s contacts at
+            ``nodes[starts[r]:starts[r] + count[r]]`` ``(N,)`` and ``impulses`` ``(N, 3)``
+            (robot-local, sorted; mN s), ``stats`` ``(M, 5)`` loaded contacts, sticking ones,
+            Gauss-Seidel sweeps, relative change, total normal force (mN).
     """
+    h, v_free, basis, node_Gt, fixed_Gt = settings.dt, free.v, legs.basis, disks.node_Gt, disks.fixed_Gt
     M = starts.shape[0] - 1
-    nd = disk_collision.shape[0]
+    nd = disks.collision.shape[0]
     n_disk = node_Gt.shape[1] // 3
-    nc_leg = collision.shape[0]
+    nc_leg = legs.collision.shape[0]
     m = basis.shape[1]
     for r in range(M):
         if skip[r]:
             continue
-        s0, d0, R = starts[r], disk_start[r], rotations[r]
-        b0, b1 = leg_start[r], leg_start[r + 1]
+        s0, d0, R = starts[r], disks.start[r], free.rotations[r]
+        b0, b1 = legs.start[r], legs.start[r + 1]
         L = b1 - b0
+        chol, fixed_rows, fixed_blocks, frame_rot = (free.chol[b0:b1], legs.fixed_rows[b0:b1],
+                                                     legs.fixed_blocks[b0:b1], legs.frame_rot[b0:b1])
         # 1. candidates (robot-local node, gap, free z velocity, leg in robot or -1, part node)
         cap = nd + L * nc_leg
         c_node = np.empty(cap, np.int64)
@@ -441,52 +594,53 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
         c_local = np.empty(cap, np.int64)
         k = 0
         for j in range(nd):
-            g_node = d0 + disk_collision[j]
-            gap = x[g_node, 2] - floor_height
-            if min(gap, gap + h * v_free[g_node, 2]) < distance:
+            g_node = d0 + disks.collision[j]
+            gap = x[g_node, 2] - settings.floor_height
+            if min(gap, gap + h * v_free[g_node, 2]) < settings.distance:
                 c_node[k], c_gap[k], c_vz[k] = g_node - s0, gap, v_free[g_node, 2]
-                c_leg[k], c_local[k] = -1, disk_collision[j]
+                c_leg[k], c_local[k] = -1, disks.collision[j]
                 k += 1
         for b in range(L):
             bb = b0 + b
-            k1 = body_floor_candidates(x, offsets[bb], collision, bound, qd_free[bb], z_axes[bb], basis, h,
-                                       floor_height, distance, c_node, c_gap, c_vz, c_local, k)
+            k1 = body_floor_candidates(x, legs.offsets[bb], legs.collision, legs.bound, free.qd[bb],
+                                       legs.z_axes[bb], basis, h, settings.floor_height, settings.distance, c_node,
+                                       c_gap, c_vz, c_local, k)
             for q in range(k, k1):  # robot-local node, leg in robot, part node
                 c_node[q] -= s0
                 c_leg[q] = b
-                c_local[q] = collision[c_local[q]]
+                c_local[q] = legs.collision[c_local[q]]
             k = k1
         order = np.argsort(c_node[:k], kind="mergesort")
         near, gaps, vzf = c_node[:k][order], c_gap[:k][order], c_vz[:k][order]
         near_leg, near_local = c_leg[:k][order], c_local[:k][order]
         # 2. start of the contact set: last step's loaded contacts, else the deepest penetrating
-        p0, p1 = prev_start[r], prev_start[r + 1]
+        p0, p1 = previous.start[r], previous.start[r + 1]
         active = np.zeros(k, np.bool_)
         any_active = False
         for i in range(k):
             for p in range(p0, p1):  # (few contacts: a scan)
-                if prev_nodes[p] == near[i]:
-                    if prev_impulses[p, 0] > 0.0:
+                if previous.nodes[p] == near[i]:
+                    if previous.impulses[p, 0] > 0.0:
                         active[i] = True
                         any_active = True
                     break
         if not any_active:
             pred = gaps + h * vzf
             cand = np.flatnonzero(pred < 0.0)
-            deepest = cand[np.argsort(pred[cand], kind="mergesort")[:min_growth]]
+            deepest = cand[np.argsort(pred[cand], kind="mergesort")[:settings.min_growth]]
             active[deepest] = True
         # attachment violations x_a - x_b
-        A = n_attachments[r]
+        A = attachments.count[r]
         nb = 3 * A
         drift = np.zeros(nb)
-        a0 = att_start[r]
+        a0 = attachments.start[r]
         for i in range(nb):
             acc = 0.0
-            for p in range(att_indptr[a0 + i], att_indptr[a0 + i + 1]):
-                col = att_indices[p]
-                acc += att_data[p] * x[col // 3, col % 3]
+            for p in range(attachments.indptr[a0 + i], attachments.indptr[a0 + i + 1]):
+                col = attachments.indices[p]
+                acc += attachments.data[p] * x[col // 3, col % 3]
             drift[i] = acc
-        F = n_fixed[r]
+        F = disks.n_fixed[r]
         vb = np.empty(3 * n_disk)  # the disk's free velocities in its frame, v R (flat)
         for i in range(n_disk):
             for a in range(3):
@@ -514,18 +668,18 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
             P = np.empty((ncol, 3, 3))
             blocks = np.empty(ncol, np.int64)
             for a in range(F):
-                which[a], blocks[a] = fixed_index[r, a], fixed_blocks[r, a]
+                which[a], blocks[a] = disks.fixed_index[r, a], disks.fixed_blocks[r, a]
                 P[a] = R
             c = F
             for i in range(kk):
                 if near_leg[idx[i]] < 0:
                     node = near_local[idx[i]]
-                    kinds[c], which[c], dnode[c], blocks[c] = 1, node_index[node], node, A + i
-                    _node_columns(which[c], node, Lp, Li, Lx, d_ldl, perm, node_Gt, node_done)
+                    kinds[c], which[c], dnode[c], blocks[c] = 1, disks.node_index[node], node, A + i
+                    _node_columns(which[c], node, disks.ldl, node_Gt, disks.node_done)
                     P[c] = frame_R
                     c += 1
             columns = 3 * np.arange(ncol)
-            Tg = _disk_gram(kinds, which, dnode, F, Tff[r], node_Gt, fixed_Gt)
+            Tg = _disk_gram(kinds, which, dnode, F, disks.Tff[r], node_Gt, fixed_Gt)
             Etv = np.empty(3 * ncol)
             for c in range(ncol):
                 for e in range(3):
@@ -534,8 +688,8 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
                     else:
                         acc = 0.0
                         row = 3 * which[c] + e
-                        for p in range(H_indptr[row], H_indptr[row + 1]):
-                            acc += H_data[p] * vb[H_indices[p]]
+                        for p in range(disks.H_indptr[row], disks.H_indptr[row + 1]):
+                            acc += disks.H_data[p] * vb[disks.H_indices[p]]
                         Etv[3 * c + e] = acc
             add_block_delassus(W, u, Tg, Etv, columns, P, blocks)
             # 3b. the legs' blocks
@@ -545,8 +699,7 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
             for i in range(kk):
                 cb[i], cn[i], ck[i] = near_leg[idx[i]], near_local[idx[i]], A + i
             if L:
-                add_delassus(W, u, chol[b0:b1], qd_free[b0:b1], leg_fixed_rows[b0:b1], leg_fixed_blocks[b0:b1],
-                             frame_rot[b0:b1], basis, cb, cn, ck)
+                add_delassus(W, u, chol, free.qd[b0:b1], fixed_rows, fixed_blocks, frame_rot, basis, cb, cn, ck)
             for i in range(nb):
                 u[i] += drift[i] / h
             for i in range(kk):
@@ -554,16 +707,17 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
             warm = np.zeros(3 * kk)
             for i in range(kk):
                 for p in range(p0, p1):
-                    if prev_nodes[p] == near[idx[i]]:
+                    if previous.nodes[p] == near[idx[i]]:
                         for a in range(3):
-                            warm[3 * i + a] = prev_impulses[p, a]
+                            warm[3 * i + a] = previous.impulses[p, a]
                         break
-            mus = np.full(kk, mu)
-            lam, sweeps, rel, _ = solve_condensed(W, u, nb, mus, warm, tol, max_iter, extra_chunks)
+            mus = np.full(kk, settings.friction)
+            lam, sweeps, rel, _ = solve_condensed(W, u, nb, mus, warm, settings.tol, settings.max_iter,
+                                                  settings.extra_chunks)
             # 5. corrections: the disk's (body frame, then world) and the legs' modal ones
             g = block_impulses(lam, columns, P, blocks, 3 * ncol)
-            dql = corrections(lam, chol[b0:b1], leg_fixed_rows[b0:b1], leg_fixed_blocks[b0:b1], frame_rot[b0:b1],
-                              basis, cb, cn, ck) if L else np.zeros((0, m))
+            dql = (corrections(lam, chol, fixed_rows, fixed_blocks, frame_rot, basis, cb, cn, ck) if L
+                   else np.zeros((0, m)))
             # candidates the solve leaves below the floor join the set
             missed = np.zeros(k, np.bool_)
             n_missed = 0
@@ -573,7 +727,7 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
                 if near_leg[i] < 0:  # the disk node's z velocity change only (its columns' rows)
                     dvz[i] = _disk_dv(kinds, which, node_Gt, fixed_Gt, g, near_local[i], R)[2]
             if leg_idx.shape[0] and L:
-                dvz[leg_idx] = point_velocity(dql, z_axes[b0:b1], basis, near_leg[leg_idx], near_local[leg_idx])
+                dvz[leg_idx] = point_velocity(dql, legs.z_axes[b0:b1], basis, near_leg[leg_idx], near_local[leg_idx])
             lim = -1e-9 * max(1.0, gmax)
             for i in range(k):
                 if not active[i] and gaps[i] + h * (vzf[i] + dvz[i]) < lim:
@@ -581,7 +735,7 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
                     n_missed += 1
             if n_missed == 0:
                 break
-            grow = max(min_growth, kk)
+            grow = max(settings.min_growth, kk)
             miss = np.flatnonzero(missed)
             if n_missed > grow:
                 new_gap = gaps[miss] + h * (vzf[miss] + dvz[miss])
@@ -598,21 +752,22 @@ def constrain_robots(x, v_free, h, floor_height, distance, mu, tol, max_iter, ex
                         dvb[j] += col[j] * gc
         for i in range(n_disk):
             for a in range(3):
-                dv_nodal[d0 + i, a] = R[a, 0] * dvb[3 * i] + R[a, 1] * dvb[3 * i + 1] + R[a, 2] * dvb[3 * i + 2]
+                out.dv[d0 + i, a] = R[a, 0] * dvb[3 * i] + R[a, 1] * dvb[3 * i + 1] + R[a, 2] * dvb[3 * i + 2]
         for b in range(L):
-            dq[b0 + b] = dql[b]
+            out.dq[b0 + b] = dql[b]
         ul = W @ lam + u
         umax = np.abs(ul).max() if ul.shape[0] else 0.0
         n_loaded, n_stick, force = 0, 0, 0.0
         for i in range(kk):
-            out_nodes[s0 + i] = near[idx[i]]
+            out.nodes[s0 + i] = near[idx[i]]
             for a in range(3):
-                out_impulses[s0 + i, a] = lam[nb + 3 * i + a]
+                out.impulses[s0 + i, a] = lam[nb + 3 * i + a]
             ln = lam[nb + 3 * i]
             force += ln
             if ln > 0.0:
                 n_loaded += 1
                 if np.hypot(ul[nb + 3 * i + 1], ul[nb + 3 * i + 2]) <= 1e-9 * (1.0 + umax):
                     n_stick += 1
-        out_count[r] = kk
-        stats[r, 0], stats[r, 1], stats[r, 2], stats[r, 3], stats[r, 4] = n_loaded, n_stick, sweeps, rel, force / h
+        out.count[r] = kk
+        stats = out.stats[r]
+        stats[0], stats[1], stats[2], stats[3], stats[4] = n_loaded, n_stick, sweeps, rel, force / h
