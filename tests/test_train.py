@@ -102,9 +102,9 @@ def test_kill_and_resume(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "softcrawl.cli.train", "--preset", "smoke", "--out", str(run),
                              "--no-progress", "--set", "checkpoint_every=40"], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.time() + 150
+    deadline = time.monotonic() + 1800  # only a guard against a hung run: a loaded machine may take minutes
     try:
-        while time.time() < deadline and proc.poll() is None and latest_checkpoint(run) is None:
+        while time.monotonic() < deadline and proc.poll() is None and latest_checkpoint(run) is None:
             time.sleep(0.2)
     finally:
         if proc.poll() is None:
