@@ -78,3 +78,19 @@ def fake_sim_run(folder: Path, actions, hold=1.0, dt=0.01, speed_mm_s=2.0) -> Pa
     head = "t,x,y,z,cmd_1,cmd_2,cmd_3,applied_1,applied_2,applied_3,contacts"
     np.savetxt(folder / "trajectory.csv", np.array(rows), delimiter=",", header=head, comments="", fmt="%.6g")
     return folder
+
+
+def groundtruth_of_tried(run: Path, folder: Path) -> list[tuple]:
+    """A finished ground truth in ``folder`` of the designs training run ``run`` tried, with
+    made-up rewards: a design's reward (cm) is its index in the returned list (the run's
+    designs, most probable first)."""
+    from softcrawl.codesign.groundtruth import DesignResult, GroundTruthConfig, PeriodicGait, run_groundtruth
+    from softcrawl.codesign.report import top_designs
+
+    tried = [tuple(row["design"]) for row in top_designs(run, 10**6)]
+    score = {d: float(i) for i, d in enumerate(tried)}
+    fake = lambda d, _cfg: DesignResult(tuple(d), score[tuple(d)], PeriodicGait.paper_cycle().to_dict(), 3, "step",
+                                        10, 2, 80.0, 0.1).to_dict()
+    run_groundtruth(tried, folder, GroundTruthConfig(baseline_phases=()), executor="serial", task=fake,
+                    progress=False, refs=False)
+    return tried

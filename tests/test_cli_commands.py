@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from softcrawl.cli import build_parser, main
+from helpers import groundtruth_of_tried
 
 TESTS = Path(__file__).resolve().parent
 
@@ -113,16 +114,9 @@ def test_regret_rolls_out_the_learned_policy(trained, tmp_path, capsys):
     them); the policy's reward is that of the same deterministic episode ``softcrawl evaluate``
     runs, its actions one per action step of the run and within the regulators' 0-90 kPa."""
     from softcrawl.codesign.evaluation import evaluate_policy
-    from softcrawl.codesign.groundtruth import DesignResult, GroundTruthConfig, PeriodicGait, run_groundtruth
-    from softcrawl.codesign.report import top_designs
     from softcrawl.codesign.run import Run
 
-    tried = [tuple(row["design"]) for row in top_designs(trained, 10**6)]
-    score = {d: float(i) for i, d in enumerate(tried)}
-    fake = lambda d, _cfg: DesignResult(tuple(d), score[tuple(d)], PeriodicGait.paper_cycle().to_dict(), 3, "step",
-                                        10, 2, 80.0, 0.1).to_dict()
-    run_groundtruth(tried, tmp_path / "gt", GroundTruthConfig(baseline_phases=()), executor="serial", task=fake,
-                    progress=False, refs=False)
+    tried = groundtruth_of_tried(trained, tmp_path / "gt")
     assert main(["regret", str(trained), "--groundtruth", str(tmp_path / "gt"), "--json", str(tmp_path / "r.json")]) == 0
     r = json.loads((tmp_path / "r.json").read_text())
     chosen = tuple(r["choice"]["design"])
