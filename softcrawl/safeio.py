@@ -38,6 +38,27 @@ class UnsafeFileError(ValueError):
     valid text. A ``ValueError``, so the CLI reports it as bad input in one line."""
 
 
+def _check_regular(path: Path, st: os.stat_result, max_bytes: int) -> None:
+    if not stat.S_ISREG(st.st_mode):
+        raise UnsafeFileError(f"{path}: not a regular file")
+    if st.st_size > max_bytes:
+        raise UnsafeFileError(f"{path}: {st.st_size} bytes, more than the {max_bytes} allowed")
+
+
+def check_regular_file(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> Path:
+    """``path`` as a :class:`~pathlib.Path` once it is known to be a regular file (symlinks
+    followed) of at most ``max_bytes`` bytes: for files a library opens by name (videos read
+    by OpenCV), where :func:`read_bytes` cannot be used.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        UnsafeFileError: ``path`` is not a regular file, or holds more than ``max_bytes`` bytes.
+    """
+    path = Path(path)
+    _check_regular(path, os.stat(path), max_bytes)
+    return path
+
+
 def read_bytes(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> bytes:
     """The bytes of the regular file ``path`` (symlinks followed), at most ``max_bytes``.
 
@@ -49,11 +70,7 @@ def read_bytes(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> bytes:
     # O_NONBLOCK: opening a FIFO must not block before fstat can refuse it
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise UnsafeFileError(f"{path}: not a regular file")
-        if st.st_size > max_bytes:
-            raise UnsafeFileError(f"{path}: {st.st_size} bytes, more than the {max_bytes} allowed")
+        _check_regular(path, os.fstat(fd), max_bytes)
         chunks, total = [], 0
         while True:
             chunk = os.read(fd, min(1 << 20, max_bytes + 1 - total))

@@ -43,3 +43,23 @@ def x64():
     jax.config.update("jax_enable_x64", True)
     yield
     jax.config.update("jax_enable_x64", old)
+
+
+@pytest.fixture(scope="session")
+def trained(tmp_path_factory):
+    """A finished smoke training run (160 steps) with checkpoints at 40, 80, 120, 160 kept, no
+    report: shared by the session, so tests only read it (or copy it: the ``run`` fixture)."""
+    from softcrawl.codesign.config import override, preset
+    from softcrawl.codesign.training import train
+
+    run = tmp_path_factory.mktemp("trained") / "run"
+    train(run, override(preset("smoke"), ["checkpoint_every=40", "keep_checkpoints=4"]), progress=False)
+    return run
+
+
+@pytest.fixture
+def run(trained, tmp_path):
+    """A private copy of the ``trained`` run, free to damage."""
+    dst = tmp_path / "run"
+    shutil.copytree(trained, dst, symlinks=True)
+    return dst

@@ -3,6 +3,11 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
+import numpy as np
+
 
 def restored_learner(run):
     """``(model, sampler, Run)``: a freshly built learner and design sampler of the training run
@@ -21,3 +26,71 @@ def restored_learner(run):
     finally:
         venv.close()
     return model, sampler, r
+
+
+class Evil:
+    """Unpickling this creates ``self.marker``: proof that a file ran code when loaded."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def rehash(ck: Path) -> None:
+    """Recompute a checkpoint's manifest (a crafted folder can do that too)."""
+    from softcrawl.codesign.run import _sha256
+
+    m = json.loads((ck / "manifest.json").read_text())
+    m["files"] = {f: _sha256(ck / f) for f in m["files"]}
+    (ck / "manifest.json").write_text(json.dumps(m))
+
+
+def file_tree(root: Path) -> dict:
+    """``{relative path: size in bytes (-1 for a folder)}`` of everything below ``root``."""
+    return {str(p.relative_to(root)): (p.stat().st_size if p.is_file() else -1) for p in root.rglob("*")}
+
+
+def one_line_error(capsys, rc: int, *needles: str) -> str:
+    """Assert a CLI refusal: exit code 2, one stderr line without traceback, containing each
+    of ``needles``; returns the line."""
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert "\n" not in err and "Traceback" not in err, err
+    for n in needles:
+        assert n in err, err
+    return err
+
+
+def fake_sim_run(folder: Path, actions, hold=1.0, dt=0.01, speed_mm_s=2.0) -> Path:
+    """A minimal ``softcrawl simulate``-style output ``folder`` with a trajectory.csv of the gait
+    ``actions (n, 3)`` kPa held ``hold`` s each, sampled every ``dt`` s: commanded pressures, applied
+    ones rate-limited to 150 kPa/s, x moving at ``speed_mm_s``."""
+    folder.mkdir(parents=True)
+    n = int(round(len(actions) * hold / dt))
+    rows, p = [], np.zeros(3)
+    for k in range(n + 1):
+        t = k * dt
+        cmd = actions[min(int((t - 1e-9) / hold), len(actions) - 1)] if k else np.zeros(3)
+        p = p + np.clip(cmd - p, -150 * dt, 150 * dt)
+        rows.append([t, speed_mm_s * t, 0, 30, *cmd, *p, 10])
+    head = "t,x,y,z,cmd_1,cmd_2,cmd_3,applied_1,applied_2,applied_3,contacts"
+    np.savetxt(folder / "trajectory.csv", np.array(rows), delimiter=",", header=head, comments="", fmt="%.6g")
+    return folder
+
+
+def groundtruth_of_tried(run: Path, folder: Path) -> list[tuple]:
+    """A finished ground truth in ``folder`` of the designs training run ``run`` tried, with
+    made-up rewards: a design's reward (cm) is its index in the returned list (the run's
+    designs, most probable first)."""
+    from softcrawl.codesign.groundtruth import DesignResult, GroundTruthConfig, PeriodicGait, run_groundtruth
+    from softcrawl.codesign.report import top_designs
+
+    tried = [tuple(row["design"]) for row in top_designs(run, 10**6)]
+    score = {d: float(i) for i, d in enumerate(tried)}
+    fake = lambda d, _cfg: DesignResult(tuple(d), score[tuple(d)], PeriodicGait.paper_cycle().to_dict(), 3, "step",
+                                        10, 2, 80.0, 0.1).to_dict()
+    run_groundtruth(tried, folder, GroundTruthConfig(baseline_phases=()), executor="serial", task=fake,
+                    progress=False, refs=False)
+    return tried

@@ -10,28 +10,14 @@ from softcrawl.gaits import paper_best_gait
 from softcrawl.hardware.compare import compare, read_real, read_tracked
 from softcrawl.hardware.deploy import deploy
 from softcrawl.hardware.simrig import SimRig
+from helpers import fake_sim_run
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "auro2023"
 
 
-def _fake_sim_run(folder: Path, actions, hold=1.0, dt=0.01, speed_mm_s=2.0):
-    """A minimal `softcrawl simulate`-style trajectory.csv for the gait (rate-limited applied pressure)."""
-    folder.mkdir(parents=True)
-    n = int(round(len(actions) * hold / dt))
-    rows, p = [], np.zeros(3)
-    for k in range(n + 1):
-        t = k * dt
-        cmd = actions[min(int((t - 1e-9) / hold), len(actions) - 1)] if k else np.zeros(3)
-        p = p + np.clip(cmd - p, -150 * dt, 150 * dt)
-        rows.append([t, speed_mm_s * t, 0, 30, *cmd, *p, 10])
-    head = "t,x,y,z,cmd_1,cmd_2,cmd_3,applied_1,applied_2,applied_3,contacts"
-    np.savetxt(folder / "trajectory.csv", np.array(rows), delimiter=",", header=head, comments="", fmt="%.6g")
-    return folder
-
-
 def test_compare_deploy_logs_with_tracks(tmp_path):
     actions = paper_best_gait(n_actions=6).actions
-    sim = _fake_sim_run(tmp_path / "sim", actions)
+    sim = fake_sim_run(tmp_path / "sim", actions)
     logs, tracks = [], []
     for seed in range(3):
         r = deploy(SimRig(seed=seed).rig, actions, tmp_path / f"real{seed}", progress=False)
@@ -59,7 +45,7 @@ def test_compare_deploy_logs_with_tracks(tmp_path):
 
 
 def test_compare_flags_a_different_gait_and_bad_inputs(tmp_path):
-    sim = _fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=4).actions)
+    sim = fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=4).actions)
     deploy(SimRig().rig, np.full((4, 3), 30.0), tmp_path / "real", progress=False)
     res = compare(sim, [tmp_path / "real"], tmp_path / "cmp")
     assert res["logs"][0]["max_command_mismatch_kpa"] > 50 and res["spread"] is None
@@ -82,7 +68,7 @@ def test_compare_flags_a_different_gait_and_bad_inputs(tmp_path):
 def test_compare_time_scale_for_a_policy_with_short_holds(tmp_path):
     """A policy trained with 0.25-s holds, deployed at 1 s per action: simulated time is stretched."""
     actions = paper_best_gait(n_actions=4).actions
-    sim = _fake_sim_run(tmp_path / "sim", actions, hold=0.25)
+    sim = fake_sim_run(tmp_path / "sim", actions, hold=0.25)
     deploy(SimRig().rig, actions, tmp_path / "real", meta={"sim_hold_s": 0.25}, progress=False)
     res = compare(sim, [tmp_path / "real"], tmp_path / "cmp")
     assert res["sim_time_scale"] == pytest.approx(4.0) and res["logs"][0]["max_command_mismatch_kpa"] < 1e-6
@@ -98,7 +84,7 @@ def test_compare_recorded_auro_logs_cli(tmp_path, capsys):
     assert run.kind == "auro2023" and run.sensed_kpa.shape == (20, 3)
     # the simulated run: the L1 policy as recorded (rows: regulators), 1-s holds
     pol = np.loadtxt(DATA / "policies" / "L1_pressure.csv", delimiter=",").T
-    sim = _fake_sim_run(tmp_path / "sim", np.clip(pol, 0, 90))
+    sim = fake_sim_run(tmp_path / "sim", np.clip(pol, 0, 90))
     assert main(["compare", str(sim), *map(str, logs), "--out", str(tmp_path / "cmp")]) == 0
     res = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert len(res["logs"]) == len(logs)
@@ -120,7 +106,7 @@ def _deploy_folder(tmp_path: Path) -> Path:
     ({"control_period_s": 1e999}, "field 'control_period_s' must be a positive number"),
 ])
 def test_deploy_summary_with_a_wrong_type_is_a_clear_error(tmp_path, edit, match):
-    sim = _fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
+    sim = fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
     out = _deploy_folder(tmp_path)
     s = json.loads((out / "summary.json").read_text())
     s.update(edit)
@@ -138,7 +124,7 @@ def test_compare_out_is_guarded(tmp_path, capsys):
     before reading a log."""
     from softcrawl.cli import main
 
-    sim = _fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
+    sim = fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
     real = _deploy_folder(tmp_path)
     stranger = tmp_path / "thesis"
     stranger.mkdir()
@@ -159,7 +145,7 @@ def test_log_values_that_do_not_fit_and_device_links_are_refused(tmp_path, capsy
     an endless read."""
     from softcrawl.cli import main
 
-    sim = _fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
+    sim = fake_sim_run(tmp_path / "sim", paper_best_gait(n_actions=2).actions)
     out = _deploy_folder(tmp_path)
     rows = (out / "log.csv").read_text().splitlines()
     cells = rows[3].split(",")

@@ -41,11 +41,12 @@ WAIT_S = 120.0  # upper bound on any wait: a run that hangs fails the test inste
 
 
 def _rig_toml(tmp_path: Path, address: str) -> Path:
-    """The example rig on ``address``, without sensors, with a 2-s control period and watchdog
-    (long enough that a loaded machine does not trip the watchdog before the signal)."""
+    """The example rig on ``address``, without sensors, with a 10-s control period and watchdog:
+    the watchdog runs on the real clock, and must not trip before the test's signal, however
+    slowly a loaded machine answers (one pty exchange takes milliseconds; 10 s is the margin)."""
     text = example_rig_path().read_text().split("[sensors]")[0] + '[sensors]\nkind = "none"\n'
-    for a, b in (("ASRL/dev/ttyUSB0::INSTR", address), ("control_period_s = 1.0", "control_period_s = 2.0"),
-                 ("watchdog_s = 0.5", "watchdog_s = 2.0"), ("sample_hz = 20.0", "sample_hz = 10.0")):
+    for a, b in (("ASRL/dev/ttyUSB0::INSTR", address), ("control_period_s = 1.0", "control_period_s = 10.0"),
+                 ("watchdog_s = 0.5", "watchdog_s = 10.0"), ("sample_hz = 20.0", "sample_hz = 10.0")):
         assert a in text
         text = text.replace(a, b)
     p = tmp_path / "rig.toml"

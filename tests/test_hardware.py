@@ -418,12 +418,13 @@ def test_failsafe_hung_call_real_clock_watchdog_thread(tmp_path):
     # and the hang then falls into the fail-safe shutdown (SIGINT ignored there by design)
     sim.rig.settings = type(sim.rig.settings)(watchdog_s=0.5, sample_hz=20.0, control_period_s=0.2)
     orig = sim.rig.sensors.read_kpa
-    calls = {"n": 0}
+    calls = {"n": 0, "slept": False}
 
     def hang():
         calls["n"] += 1
         if calls["n"] == 4:
             time.sleep(10.0)  # hung I2C read; the watchdog thread's SIGINT lands here after 2 x 0.5 s
+            calls["slept"] = True  # not reached when the watchdog interrupts the hung call
         return orig()
 
     sim.rig.sensors.read_kpa = hang
@@ -433,9 +434,8 @@ def test_failsafe_hung_call_real_clock_watchdog_thread(tmp_path):
 
     caller = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        t = time.monotonic()
         res = deploy(sim.rig, GAIT[:3], tmp_path / "d", progress=False)
-        assert time.monotonic() - t < 5.0
+        assert calls["n"] >= 4 and not calls["slept"]  # the 10-s hang was cut short, on any machine load
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # the caller's handler is back
     finally:
         signal.signal(signal.SIGINT, caller)

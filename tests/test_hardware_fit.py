@@ -67,14 +67,17 @@ def test_regulator_fit_on_held_out_logs(trials):
     assert held_fit["rmse"] < 13.0
 
 
-@needs_data
-def test_fitted_end_of_hold_band_matches_the_issue(trials):
-    """Issue #19: at the end of a 1-s hold the sensor reads 0.79-0.99 x command + 3-7 kPa; the
-    fitted model's end-of-hold pressure for 45 and 90 kPa commands lies in a band around that."""
+def test_fitted_end_of_hold_pressure_lies_in_the_recorded_band_within_2_kpa():
+    """The recorded trials read 0.79-0.99 x command + 3-7 kPa at the end of a 1.067-s hold; the
+    fitted regulators' end-of-hold pressures for 45 and 90 kPa commands lie in that band widened
+    by 2 kPa each side. Measured: 37.7-43.9 kPa at 45 kPa (band 38.55-51.55) and 80.3-89.9 kPa at
+    90 kPa (band 74.1-96.1); regulator 2 at 45 kPa is the closest, 0.85 kPa below the band's edge
+    (the margin: well under the fit's 5.9 kPa median held-out error, docs/results.md)."""
+    margin = 2.0
     for p in rm.FITTED:
         for cmd in (45.0, 90.0):
             end = p.advance(0.0, cmd, 1.067)
-            assert 0.6 * cmd < end < 1.3 * cmd + 7
+            assert 0.79 * cmd + 3 - margin < end < 0.99 * cmd + 7 + margin, (p, cmd, end)
 
 
 def test_first_order_model_lags():

@@ -6,7 +6,8 @@ import os
 
 import pytest
 
-from softcrawl.safeio import UnsafeFileError, atomic_write_text, load_json, load_toml, read_text
+from softcrawl.safeio import (UnsafeFileError, atomic_write_text, check_regular_file, load_json, load_toml,
+                             read_text)
 
 
 def test_device_fifo_and_folder_are_refused(tmp_path):
@@ -17,6 +18,16 @@ def test_device_fifo_and_folder_are_refused(tmp_path):
     for p in (link, fifo, tmp_path):
         with pytest.raises(UnsafeFileError, match="not a regular file"):
             read_text(p)
+
+    for p in (link, fifo, tmp_path):  # the check for files a library opens by name
+        with pytest.raises(UnsafeFileError, match="not a regular file"):
+            check_regular_file(p)
+    (tmp_path / "video.avi").write_bytes(b"x" * 10)
+    assert check_regular_file(tmp_path / "video.avi", max_bytes=10) == tmp_path / "video.avi"
+    with pytest.raises(UnsafeFileError, match="10 bytes, more than the 9 allowed"):
+        check_regular_file(tmp_path / "video.avi", max_bytes=9)
+    with pytest.raises(FileNotFoundError):
+        check_regular_file(tmp_path / "missing.avi")
 
 
 def test_size_limit_refuses_not_truncates(tmp_path):

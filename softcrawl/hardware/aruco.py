@@ -16,17 +16,17 @@ Markers: dictionary ``DICT_4X4_50``.
 from __future__ import annotations
 
 import math
-import os
 import re
-import stat
 from pathlib import Path
 
 import numpy as np
 
-from softcrawl.safeio import UnsafeFileError, read_bytes
+from softcrawl.safeio import check_regular_file, read_bytes
 
 #: Largest photo read, bytes.
 MAX_PHOTO_BYTES = 64 * 1024 * 1024
+#: Largest video read, bytes (an hour of 1080p at 5 Mbit/s is about 2.3 GB).
+MAX_VIDEO_BYTES = 4 * 1024 ** 3
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
@@ -113,14 +113,14 @@ def track_video(path: str | Path, marker_id: int = 0, marker_mm: float = 30.0) -
     """``(t_s (m,), x_mm (m,))`` of the disk marker's centre along the image +x, frames where it is seen.
 
     Raises:
-        ValueError: not a regular file, unreadable video, no frame rate, marker seen in < 2
-        frames, bad ``marker_mm``.
+        FileNotFoundError: no file ``path``. ValueError (:class:`~softcrawl.safeio.UnsafeFileError`
+        for the first two): not a regular file, larger than ``MAX_VIDEO_BYTES``, unreadable video,
+        no frame rate, marker seen in < 2 frames, bad ``marker_mm``.
     """
     cv2 = _cv2()
     if not (math.isfinite(marker_mm) and marker_mm > 0):
         raise ValueError(f"marker size must be > 0 mm, got {marker_mm}")
-    if not stat.S_ISREG(os.stat(path).st_mode):  # a device or FIFO would be read without end
-        raise UnsafeFileError(f"{path}: not a regular file")
+    check_regular_file(path, MAX_VIDEO_BYTES)  # a device or FIFO would be read without end
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise ValueError(f"{path}: not a readable video")

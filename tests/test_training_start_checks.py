@@ -1,0 +1,91 @@
+"""A training run's start: a failed start does not block its retry, ``--set`` values are
+checked against the config fields, a bad reduction or unusable GPU fails before the run starts,
+and options that would be ignored are errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from softcrawl.cli import main
+from softcrawl.codesign.config import override, preset
+from helpers import file_tree, one_line_error
+
+
+def test_failed_start_writes_no_config(tmp_path, monkeypatch):
+    import softcrawl.codesign.training as training
+
+    def broken(*a, **k):
+        raise RuntimeError("envs could not be built")
+
+    monkeypatch.setattr(training, "make_vec_env", broken)
+    with pytest.raises(RuntimeError):
+        training.train(tmp_path / "run", preset("smoke"), progress=False)
+    assert not (tmp_path / "run" / "config.json").exists()
+    from softcrawl.cli.train import _check_out
+
+    _check_out(str(tmp_path / "run"))  # the same --out is accepted again
+
+
+def test_bad_reduction_fails_before_the_run_starts(tmp_path):
+    from softcrawl.codesign.training import train
+
+    (tmp_path / "bad.npz").write_bytes(b"not a reduction")
+    with pytest.raises(ValueError, match="bad.npz"):
+        train(tmp_path / "run", override(preset("smoke"), [f'env.reduction="{tmp_path / "bad.npz"}"']), progress=False)
+    assert not (tmp_path / "run" / "config.json").exists()
+
+
+def test_a_gpu_torch_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatch):
+    import torch
+
+    from softcrawl.codesign.training import train
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="sac.device='cuda:1'.*no CUDA GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+    assert not (tmp_path / "run").exists()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match="sees 1 CUDA GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_trained_on_a_gpu_is_evaluated_on_the_cpu(run, monkeypatch):
+    import torch
+
+    from softcrawl.codesign.evaluation import evaluate_policy
+
+    on_cpu = evaluate_policy(run, "1,0,0,2,2,0,0,0").returns_cm
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["config"]["sac"]["device"] = "cuda"
+    (run / "config.json").write_text(json.dumps(cfg))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert evaluate_policy(run, "1,0,0,2,2,0,0,0").returns_cm == on_cpu
+
+
+@pytest.mark.parametrize("setting, key", [('sac.batch_size="64"', "sac.batch_size"), ("n_envs=2.5", "n_envs"),
+                                          ("env.observe_state=1", "env.observe_state"), ("env.legs=3", "env.legs"),
+                                          ("sac.net_arch=[0]", "sac.net_arch"), ("sac.batch_size=5000", "batch_size"),
+                                          ("sac.net_arch=[64, true]", "sac.net_arch"),
+                                          ("keep_checkpoints=1", "keep_checkpoints")])
+def test_set_values_are_checked_against_the_fields(setting, key, tmp_path, capsys):
+    rc = main(["train", "--preset", "smoke", "--out", str(tmp_path / "r"), "--set", setting])
+    one_line_error(capsys, rc, key)
+    assert not (tmp_path / "r").exists()
+
+
+# -- 7: options that would be ignored are errors ----------------------------------------------------
+def test_ignored_options_are_errors(trained, tmp_path, monkeypatch, capsys):
+    import softcrawl.cli.simulate as sim
+
+    monkeypatch.setattr(sim, "build_robot", lambda *a, **k: pytest.fail("model built"))
+    before = file_tree(trained)
+    one_line_error(capsys, main(["train", "--resume", "--preset", "smoke", "--out", str(trained)]), "--preset")
+    assert file_tree(trained) == before
+    rc = main(["simulate", "--model", "full", "--reduction", "x.npz", "--out", str(tmp_path / "o"), "--no-progress"])
+    one_line_error(capsys, rc, "--reduction")
+    with pytest.raises(ValueError, match="env.reduction"):
+        override(preset("smoke"), ['env.model="full"', 'env.reduction="x.npz"'])
