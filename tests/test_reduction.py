@@ -609,12 +609,13 @@ def test_validation_ensemble_needs_a_perturbation(tiny):
 def test_validation_on_the_jax_engine(tiny, tmp_path, capsys):
     """``reduce validate --engine jax``: the same held-out scene (0.1 s of the baseline gait after
     settling) against the same exact full-order reference, the reduced side stepped by the JAX
-    engine (floating disk, float64): the report names the engine, and its mean node error is the
+    engine (floating disk, float64): the report and its table name the engine, and its mean node error is the
     CPU engine's within 0.3 mm (the JAX engine's budget against the CPU engine, its landing test;
     measured MEASURED). An ensemble (no JAX perturbed runs) is refused, through the CLI with one
     line and exit code 2."""
     jax = pytest.importorskip("jax")
     from softcrawl import cli
+    from softcrawl.cli.reduce import _markdown
     from softcrawl.reduction.scenes import validation_scenes
     from softcrawl.reduction.validate import validate_reduction
 
@@ -630,6 +631,7 @@ def test_validation_on_the_jax_engine(tiny, tmp_path, capsys):
     row = rep["jax"]["scenes"][0]
     assert rep["jax"]["engine"] == row["engine"] == "jax" and rep["cpu"]["engine"] == "cpu" and not row["diverged"]
     assert row["frames"] == rep["cpu"]["scenes"][0]["frames"] > 5
+    assert _markdown(rep["jax"]).startswith("Reduced runs on the jax engine.")
     err = {k: r["mean_node_error_mm"] for k, r in rep.items()}
     print(err, {k: r["scenes"][0]["reward_reduced_cm"] for k, r in rep.items()})
     assert 0 < err["jax"] < err["cpu"] + 0.3, err

@@ -69,7 +69,8 @@ def _markdown(report: dict) -> str:
     head += ["reward full (cm)"] + (["full ensemble (cm)"] if floor else []) + ["reward reduced (cm)"]
     head += ["reduced ensemble (cm)", "reduced spread (mm)"] if floor else []
     head += ["s/step full", "s/step reduced"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = [f"Reduced runs on the {report['engine']} engine.", ""] if "engine" in report else []
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in report["scenes"]:
         cells = [r["scene"], f"{r['mean_node_error_mm']:.3f}", f"{r['max_node_error_mm']:.2f}",
                  f"{r['mean_deformation_error_mm']:.3f}", f"{r['mean_trajectory_error_mm']:.3f}"]
