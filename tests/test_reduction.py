@@ -609,10 +609,10 @@ def test_validation_ensemble_needs_a_perturbation(tiny):
 def test_validation_on_the_jax_engine(tiny, tmp_path, capsys):
     """``reduce validate --engine jax``: the same held-out scene (0.1 s of the baseline gait after
     settling) against the same exact full-order reference, the reduced side stepped by the JAX
-    engine (floating disk, float64): the report and its table name the engine, and its mean node error is the
-    CPU engine's within 0.3 mm (the JAX engine's budget against the CPU engine, its landing test;
-    measured 0.221 mm against the CPU engine's 0.235 mm). An ensemble (no JAX perturbed runs) is refused, through the CLI with one
-    line and exit code 2."""
+    engine (floating disk, float64): the report and its table name the engine, and its mean node
+    error is the CPU engine's within 0.1 mm (measured 0.221 against 0.235 mm; the engines' rested
+    states differ by about 0.1 mm, test_jaxsim_robot's settling test). An ensemble (no JAX
+    perturbed runs) is refused, through the CLI with one line and exit code 2."""
     jax = pytest.importorskip("jax")
     from softcrawl import cli
     from softcrawl.cli.reduce import _markdown
@@ -633,7 +633,7 @@ def test_validation_on_the_jax_engine(tiny, tmp_path, capsys):
     assert row["frames"] == rep["cpu"]["scenes"][0]["frames"] > 5
     assert _markdown(rep["jax"]).startswith("Reduced runs on the jax engine.")
     err = {k: r["mean_node_error_mm"] for k, r in rep.items()}
-    assert 0 < err["jax"] < err["cpu"] + 0.3, err
+    assert err["jax"] > 0 and abs(err["jax"] - err["cpu"]) < 0.1, err
     with pytest.raises(ValueError, match="ensemble"):
         validate_reduction(reduction, TINY, tmp_path, scenes=scenes, ensemble=1, engine="jax", progress=False)
     rc = cli.main(["reduce", "validate", "--engine", "jax", "--ensemble", "2", "--workdir", str(tmp_path / "w"),
