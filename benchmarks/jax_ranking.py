@@ -12,7 +12,8 @@ and robot-steps per second of the episodes (padding included), and the same per 
 this process (the measure on a shared machine).
 
 ``--designs N`` takes a stratified subset: N designs at evenly spaced ranks of the ground truth
-(its top design always included), for a shared machine that cannot afford all 280.
+(its top design included; ``--offset 0.5``: the ranks between those), for a shared machine that
+cannot afford all 280.
 
 Usage: OMP_NUM_THREADS=1 python benchmarks/jax_ranking.py OUT.json [--designs N] [--precision float32]
        [--max-batch 64] [--cpu-check K] [--groundtruth benchmarks/groundtruth/three-legged]
@@ -37,11 +38,14 @@ from softcrawl.safeio import atomic_write_text
 GROUNDTRUTH = Path(__file__).parent / "groundtruth" / "three-legged"
 
 
-def stratified(designs: list, n: int) -> list:
-    """``n`` of ``designs`` (sorted best first) at evenly spaced ranks, the first included."""
+def stratified(designs: list, n: int, offset: float = 0.0) -> list:
+    """``n`` of ``designs`` (sorted best first) at evenly spaced ranks, the first included, or
+    shifted by ``offset`` (a fraction of the spacing: 0.5 takes the ranks between those of 0)."""
     if n >= len(designs):
         return designs
-    return [designs[i] for i in np.unique(np.linspace(0, len(designs) - 1, n).round().astype(int))]
+    ranks = np.linspace(0, len(designs) - 1, n)
+    ranks = np.minimum(ranks + offset * (ranks[1] - ranks[0] if n > 1 else 0), len(designs) - 1)
+    return [designs[i] for i in np.unique(ranks.round().astype(int))]
 
 
 def main() -> None:
@@ -49,6 +53,8 @@ def main() -> None:
     p.add_argument("out", help="JSON file to write")
     p.add_argument("--groundtruth", default=str(GROUNDTRUTH), help="ground-truth folder")
     p.add_argument("--designs", type=int, default=None, help="stratified subset of N designs (default: all)")
+    p.add_argument("--offset", type=float, default=0.0,
+                   help="shift of the subset's ranks, a fraction of their spacing (0.5: the ranks between)")
     p.add_argument("--precision", choices=("float32", "float64"), default="float32")
     p.add_argument("--max-batch", type=int, default=64)
     p.add_argument("--cpu-check", type=int, default=0, help="designs re-simulated on the CPU engine")
@@ -60,7 +66,7 @@ def main() -> None:
     cfg, results, _ = load_groundtruth(args.groundtruth)
     duration = args.duration or cfg.duration
     ranked = sorted(results.values(), key=lambda r: -r.reward_cm)
-    rows = stratified(ranked, args.designs or len(ranked))
+    rows = stratified(ranked, args.designs or len(ranked), args.offset)
     requests = [(r.design, PeriodicGait.from_dict(r.gait), duration) for r in rows]
     ev = JaxEvaluator(cfg.robot_config(), args.precision, max_batch=args.max_batch, diverged_cm=DIVERGED_CM)
     wall, cpu_time = time.perf_counter(), time.process_time()
