@@ -161,6 +161,7 @@ class JaxEvaluator:
         Raises:
             InvalidDesignError: an invalid design.
         """
+        _, cap = self.settling.steps(self.config.dt)
         new: dict[int, list] = {}
         for d in dict.fromkeys(canonicalize(d) for d in designs):
             if d in self._designs:
@@ -175,7 +176,6 @@ class JaxEvaluator:
                 pad = padded_size(len(chunk), self.max_batch) - len(chunk)
                 model = self._model(stack_rows([r for _, r in chunk] + [chunk[-1][1]] * pad))
                 state, steps = self._settle(model, rest_state(model))
-                _, cap = self.settling.steps(self.config.dt)
                 node = model.disk.reward_node
                 for b, (d, rows) in enumerate(chunk):
                     st = row(state, b)
