@@ -163,8 +163,9 @@ def _validate(args: argparse.Namespace) -> int:
     (out / "validation.json").write_text(json.dumps(jsonable(rep), indent=1) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(_markdown(rep), encoding="utf-8")
     print(_markdown(rep))
-    print(f"engine {rep['engine']}: reduced dt {rep['reduced_dt']:g} s, RID products in {rep['rid_dtype']}, "
-          f"{rep['contact_max_iterations']} Gauss-Seidel sweeps per chunk, leg contact points "
+    solve = (f"RID products in {rep['rid_dtype']}, {rep['contact_max_iterations']} Gauss-Seidel sweeps per chunk"
+             if rep["engine"] == "cpu" else f"all in {rep['rid_dtype']}, the JAX engine's contact solve")
+    print(f"engine {rep['engine']}: reduced dt {rep['reduced_dt']:g} s, {solve}, leg contact points "
           f"{rep['leg_collision_spacing']:g} mm apart (0: every surface node): "
           f"mean node error {rep['mean_node_error_mm']:.3f} mm "
           f"(deformation {rep['mean_deformation_error_mm']:.3f} mm); "
