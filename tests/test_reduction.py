@@ -702,6 +702,41 @@ def test_validation_ensemble_needs_a_perturbation(tiny):
         validate_reduction(reduction, TINY, work, ensemble=2, perturbation=0.0, progress=False)
 
 
+def test_validation_on_the_jax_engine(tiny, tmp_path, capsys):
+    """``reduce validate --engine jax``: the same held-out scene (0.1 s of the baseline gait after
+    settling) against the same exact full-order reference, the reduced side stepped by the JAX
+    engine (floating disk, float64): the report and its table name the engine, and its mean node
+    error is the CPU engine's within 0.1 mm (measured 0.221 against 0.235 mm; the engines' rested
+    states differ by about 0.1 mm, test_jaxsim_robot's settling test). An ensemble (no JAX
+    perturbed runs) is refused, through the CLI with one line and exit code 2."""
+    jax = pytest.importorskip("jax")
+    from softcrawl import cli
+    from softcrawl.cli.reduce import _markdown
+    from softcrawl.reduction.scenes import validation_scenes
+    from softcrawl.reduction.validate import validate_reduction
+
+    reduction = dataclasses.replace(tiny[0], disk=None)  # the floating disk the JAX engine steps
+    scenes = validation_scenes(0.1)[1:2]
+    old = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    try:
+        rep = {engine: validate_reduction(reduction, TINY, tmp_path, scenes=scenes, workers=1, progress=False,
+                                          ensemble=0, engine=engine) for engine in ("cpu", "jax")}
+    finally:
+        jax.config.update("jax_enable_x64", old)
+    row = rep["jax"]["scenes"][0]
+    assert rep["jax"]["engine"] == row["engine"] == "jax" and rep["cpu"]["engine"] == "cpu" and not row["diverged"]
+    assert row["frames"] == rep["cpu"]["scenes"][0]["frames"] > 5
+    assert _markdown(rep["jax"]).startswith("Reduced runs on the jax engine.")
+    err = {k: r["mean_node_error_mm"] for k, r in rep.items()}
+    assert err["jax"] > 0 and abs(err["jax"] - err["cpu"]) < 0.1, err
+    with pytest.raises(ValueError, match="ensemble"):
+        validate_reduction(reduction, TINY, tmp_path, scenes=scenes, ensemble=1, engine="jax", progress=False)
+    rc = cli.main(["reduce", "validate", "--engine", "jax", "--ensemble", "2", "--workdir", str(tmp_path / "w"),
+                   "--out", str(tmp_path / "out"), "--no-progress"])
+    assert rc == 2 and "ensemble" in capsys.readouterr().err
+
+
 def test_perturbed_reduced_run_stays_in_its_basis_range(tiny):
     """A perturbed reduced robot gets the noise's projection on each POD-reduced body's basis,
     so its nodes stay in ``X + range(Phi)`` (5e-5 mm: the float32 precision of recorded positions

@@ -23,7 +23,7 @@ from softcrawl.reduction.artifact import load_reduction, save_reduction
 from softcrawl.reduction.build import BuildSettings, build_reduction, build_reductions
 from softcrawl.reduction.data import default_reduction_path
 from softcrawl.reduction.model import PartReduction
-from softcrawl.reduction.validate import validate_reduction
+from softcrawl.reduction.validate import ENGINES, validate_reduction
 from softcrawl.robot.assembly import REDUCED_DISKS, RobotConfig
 from softcrawl.robot.output import jsonable
 
@@ -69,7 +69,8 @@ def _markdown(report: dict) -> str:
     head += ["reward full (cm)"] + (["full ensemble (cm)"] if floor else []) + ["reward reduced (cm)"]
     head += ["reduced ensemble (cm)", "reduced spread (mm)"] if floor else []
     head += ["s/step full", "s/step reduced"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = [f"Reduced runs on the {report['engine']} engine.", ""] if "engine" in report else []
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in report["scenes"]:
         cells = [r["scene"], f"{r['mean_node_error_mm']:.3f}", f"{r['max_node_error_mm']:.2f}",
                  f"{r['mean_deformation_error_mm']:.3f}", f"{r['mean_trajectory_error_mm']:.3f}"]
@@ -126,6 +127,8 @@ def _validate(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     config = _config(args)
     progress = not args.no_progress
+    if args.grid and args.engine != "cpu":
+        raise ValueError("--grid runs the CPU engine only")
     if args.grid:
         rows = []
         for tm in GRID_TOL_MODES:
@@ -145,16 +148,24 @@ def _validate(args: argparse.Namespace) -> int:
         return 0
     path = args.reduction or default_reduction_path()
     reduction, _ = load_reduction(path, expect=dataclasses.asdict(config))
+    ensemble = args.ensemble if args.ensemble is not None else (3 if args.engine == "cpu" else 0)
+    if args.engine == "jax":
+        try:
+            import jax
+        except ImportError:
+            raise ValueError("--engine jax needs JAX (pip install 'softcrawl[jax]')") from None
+        jax.config.update("jax_enable_x64", args.rid_dtype == "float64")
     rep = validate_reduction(reduction, config, args.workdir, workers=args.workers, progress=progress,
-                             ensemble=args.ensemble, perturbation=args.perturbation, reduced_dt=args.dt,
+                             ensemble=ensemble, perturbation=args.perturbation, reduced_dt=args.dt,
                              rid_dtype=args.rid_dtype, contact_max_iterations=args.contact_max_iterations,
-                             leg_collision_spacing=args.leg_collision_spacing)
+                             leg_collision_spacing=args.leg_collision_spacing, engine=args.engine)
     rep["reduction"] = str(path)
     (out / "validation.json").write_text(json.dumps(jsonable(rep), indent=1) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(_markdown(rep), encoding="utf-8")
     print(_markdown(rep))
-    print(f"reduced dt {rep['reduced_dt']:g} s, RID products in {rep['rid_dtype']}, "
-          f"{rep['contact_max_iterations']} Gauss-Seidel sweeps per chunk, leg contact points "
+    solve = (f"RID products in {rep['rid_dtype']}, {rep['contact_max_iterations']} Gauss-Seidel sweeps per chunk"
+             if rep["engine"] == "cpu" else f"all in {rep['rid_dtype']}, the JAX engine's contact solve")
+    print(f"engine {rep['engine']}: reduced dt {rep['reduced_dt']:g} s, {solve}, leg contact points "
           f"{rep['leg_collision_spacing']:g} mm apart (0: every surface node): "
           f"mean node error {rep['mean_node_error_mm']:.3f} mm "
           f"(deformation {rep['mean_deformation_error_mm']:.3f} mm); "
@@ -195,16 +206,21 @@ def register(subparsers) -> None:
     v.add_argument("--reduction", default=None, help="reduction file (default: the shipped one)")
     v.add_argument("--out", default="runs/reduce/validation", help="report directory")
     v.add_argument("--grid", action="store_true", help="3 x 3 grid over (tol_modes, tol_gie) with a plot")
-    v.add_argument("--ensemble", type=int, default=3,
+    v.add_argument("--ensemble", type=int, default=None,
                    help="perturbed exact full-order runs per scene (the chaos floor and reward spread) and as "
-                        "many perturbed reduced runs (the reduced model's own spread); 0: none")
+                        "many perturbed reduced runs (the reduced model's own spread); 0: none (default 3 with "
+                        "--engine cpu, 0 with jax, which has none)")
     v.add_argument("--perturbation", type=float, default=1e-6,
                    help="initial node noise of those runs, mm (default 1e-6)")
     v.add_argument("--dt", type=float, default=None,
                    help="the reduced model's time step, s (default: the reference 0.01; must divide or be a "
                         "multiple of the 0.02 s frame spacing); the full-order references stay exact at 0.01 s")
     v.add_argument("--rid-dtype", choices=RID_DTYPES, default="float64",
-                   help="precision of the reduced model's RID element products (default float64)")
+                   help="precision of the reduced model's RID element products (default float64); with "
+                        "--engine jax, of the whole JAX engine")
+    v.add_argument("--engine", choices=ENGINES, default="cpu",
+                   help="the reduced runs' engine: cpu (the reduced solver) or jax (softcrawl.jaxsim: its "
+                        "contact settings, --contact-max-iterations unused; wall times include compiling)")
     v.add_argument("--contact-max-iterations", type=int, default=RobotConfig.contact_max_iterations,
                    help="the reduced model's Gauss-Seidel sweep limit per chunk (default: the reference 250)")
     v.add_argument("--leg-collision-spacing", type=float, default=0.0,

@@ -24,7 +24,12 @@ Data layout (Model / State / Control, as NVIDIA Warp and Newton split them):
 
 :func:`~softcrawl.jaxsim.engine.step` advances one robot one ``dt``;
 :func:`~softcrawl.jaxsim.engine.make_rollout` gives the jitted, vmapped rollout of a batch for one
-action and :func:`~softcrawl.jaxsim.engine.make_settle` settles a batch to rest.
+action, :func:`~softcrawl.jaxsim.engine.make_schedule_rollout` for per-step commands, and
+:func:`~softcrawl.jaxsim.engine.make_settle` settles a batch to rest.
+:class:`~softcrawl.jaxsim.episodes.JaxEvaluator` runs open-loop episodes of many designs and gaits
+in batches (what the ground truth's design evaluator does on the CPU), and
+:func:`~softcrawl.jaxsim.scenes.run_scene` the reduction's validation scenes
+(``softcrawl reduce validate --engine jax``).
 :func:`~softcrawl.jaxsim.model.build_model` makes the model of a list of reduced robots
 (``RobotConfig(model="reduced")``, the default floating disk), padding every robot to the most
 legs among them (absent legs masked: one compiled program per leg-slot count, and a batch of

@@ -250,10 +250,12 @@ def step(model, state: State, control: Control) -> State:
 
 
 def max_speed(model, state: State):
-    """Fastest node speed of one robot, mm/s: the disk's nodes and the legs' collision nodes
-    (the outer surface, where a leg moves fastest)."""
-    _, vl = _leg_points(model.leg, model.robot, state.q, state.qdot)
-    return jnp.sqrt(jnp.maximum(jnp.max(jnp.sum(state.v ** 2, axis=1)), jnp.max(jnp.sum(vl ** 2, axis=1))))
+    """Fastest node speed of one robot over all its nodes, mm/s, as the CPU rule
+    (:func:`softcrawl.robot.episode.settle`) watches them: the disk's nodes and every leg node,
+    ``|R Phi_n qdot| = |Phi_n qdot|`` (reduction.md, "Reduced kinematics"; absent legs masked)."""
+    qdot = state.qdot * model.robot.leg_mask[:, None]
+    vl = jnp.einsum("nam,lm->lna", model.leg.basis, qdot)
+    return jnp.sqrt(jnp.maximum(jnp.max(jnp.sum(state.v ** 2, axis=1)), jnp.max(jnp.sum(vl ** 2, axis=2))))
 
 
 def make_settle(rest_speed: float = 0.5, hold_steps: int = 5, max_steps: int = 300):
@@ -303,5 +305,41 @@ def make_rollout(n_steps: int, physics_only: bool = False):
     def rollout(model, state, control):
         return jax.vmap(one, in_axes=(None, 0, 0, 0))(dataclasses.replace(model, robot=None), model.robot, state,
                                                       control)
+
+    return rollout
+
+
+def make_schedule_rollout(physics_only: bool = False, trace: bool = False):
+    """A jitted ``rollout(model, state, schedule) -> (state, peak_speed, frames)`` that steps each
+    robot of the batch through its own per-step commands (one ``jax.lax.scan`` over the steps,
+    ``jax.vmap`` ped over the batch; the shape of ``schedule`` fixes the compiled program).
+
+    Args:
+        physics_only: ``schedule`` holds sim kPa per channel for :func:`physics_step` (no
+            regulators; any number of channels ``c``) instead of real kPa regulator commands
+            ``(c = 3)`` for :func:`step`.
+        trace: also return every step's legs' modal displacements and disk positions.
+
+    The returned function takes ``schedule`` ``(B, n, c)`` (command of step ``k`` in row ``k``)
+    and returns the state after ``n`` steps, ``peak_speed`` ``(B,)`` the fastest node speed met
+    (:func:`max_speed`, mm/s; the CPU engine calls a run faster than its ``max_speed`` diverged)
+    and, with ``trace``, ``frames = (q, x)``: ``(B, n, L, m)`` and ``(B, n, nd, 3)`` after each
+    step (None without)."""
+
+    def one(model, rd, state, schedule):
+        mdl = dataclasses.replace(model, robot=rd)
+
+        def body(carry, command):
+            s, peak = carry
+            s = physics_step(mdl, s, command) if physics_only else step(mdl, s, Control(command))
+            return (s, jnp.maximum(peak, max_speed(mdl, s))), ((s.q, s.x) if trace else None)
+
+        (s, peak), frames = jax.lax.scan(body, (state, jnp.zeros((), state.x.dtype)), schedule)
+        return s, peak, frames
+
+    @jax.jit
+    def rollout(model, state, schedule):
+        return jax.vmap(one, in_axes=(None, 0, 0, 0))(dataclasses.replace(model, robot=None), model.robot, state,
+                                                      schedule)
 
     return rollout

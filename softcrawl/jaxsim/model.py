@@ -71,6 +71,7 @@ class LegPart:
             ``(T, 3)`` indices into them.
         coll_rest, coll_basis: ``(nc, 3)``, ``(nc, 3, m)`` of the collision nodes.
         att_rest, att_basis: ``(F, 3)``, ``(F, 3, m)`` weighted attachment patches.
+        basis: ``(n, 3, m)`` the basis rows of every node (node speeds ``|Phi_n qdot|``, mm/s).
     """
 
     strain_modes: object
@@ -86,6 +87,7 @@ class LegPart:
     coll_basis: object
     att_rest: object
     att_basis: object
+    basis: object
 
 
 @dataclass(frozen=True)
@@ -203,7 +205,7 @@ def _leg_part(robot) -> LegPart:
     att_basis = np.stack([np.einsum("n,nam->am", w, rows[nd]) for nd, w in patches])
     mass_rows = np.einsum("n,nam->am", body.nodal_mass, rows)
     part = LegPart(np.asarray(rb.strain_modes), rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
-                   X[cav], rows[cav], local.reshape(tris.shape), X[coll], rows[coll], att_rest, att_basis)
+                   X[cav], rows[cav], local.reshape(tris.shape), X[coll], rows[coll], att_rest, att_basis, rows)
     return part
 
 
@@ -311,3 +313,21 @@ def select_robots(model: Model, robots) -> Model:
     e.g. many copies of a few designs)."""
     pick = jnp.asarray(robots)
     return dataclasses.replace(model, robot=jax.tree_util.tree_map(lambda a: a[pick], model.robot))
+
+
+#: The engine's precisions by name.
+PRECISIONS = {"float32": jnp.float32, "float64": jnp.float64}
+
+
+def engine_dtype(precision: str):
+    """The array dtype of ``precision`` (``"float32"`` or ``"float64"``) for :func:`build_model`.
+
+    Raises:
+        ValueError: an unknown precision, or float64 while ``jax_enable_x64`` is off (JAX would
+            silently compute in float32; the caller switches it on).
+    """
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
+    if precision == "float64" and not jax.config.jax_enable_x64:
+        raise ValueError("the JAX engine in float64 needs jax.config.update('jax_enable_x64', True) first")
+    return PRECISIONS[precision]

@@ -36,6 +36,9 @@ from softcrawl.reduction.scenes import Scene, reduced_scene_robot, run_scene, va
 from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.episode import MM_PER_CM
 
+#: Engines of the reduced runs: the CPU reduced solver, the JAX engine (:mod:`softcrawl.jaxsim`).
+ENGINES = ("cpu", "jax")
+
 
 def fom_references(workdir: str | os.PathLike, config: RobotConfig, scenes: tuple[Scene, ...],
                    record_every: int = 2, workers: int | None = None, progress: bool = True,
@@ -121,13 +124,17 @@ def _reduced_recording(config: RobotConfig, record_every: int, reduced_dt: float
 def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, reference: Path,
                   record_every: int = 2, ensemble: list[Path] = (), perturbation: float = 0.0,
                   reduced_dt: float | None = None, rid_dtype: str = "float64",
-                  contact_max_iterations: int | None = None, leg_collision_spacing: float = 0.0) -> dict:
+                  contact_max_iterations: int | None = None, leg_collision_spacing: float = 0.0,
+                  engine: str = "cpu") -> dict:
     """Run ``scene`` with the reduction and compare it with its full-order ``reference`` run
     (recorded every ``record_every`` steps of ``config.dt``); ``reduced_dt``: the reduced
     model's time step (s; None: ``config.dt``), frames compared at the same times;
     ``rid_dtype``: the precision of its RID products and ``contact_max_iterations`` its
     Gauss-Seidel sweep limit (:class:`RobotConfig`; None: ``config``'s), ``leg_collision_spacing``
-    its legs' contact points (mm, :attr:`RobotConfig.leg_collision_spacing`).
+    its legs' contact points (mm, :attr:`RobotConfig.leg_collision_spacing`). ``engine``:
+    ``"cpu"`` the reduced solver, ``"jax"`` the JAX engine (:func:`softcrawl.jaxsim.scenes.run_scene`,
+    all of it in ``rid_dtype``; ``jax_enable_x64`` must be on for float64; its wall time includes
+    compiling; no ensemble).
 
     Given perturbed full-order runs (``ensemble``), also their mean distance to the reference
     (keys ``floor_*``) and their rewards (``ensemble_rewards_cm``, the reference's first); and
@@ -147,7 +154,12 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
     reduced_config, record_every, stride = _reduced_recording(config, record_every, reduced_dt, rid_dtype,
                                                               contact_max_iterations, leg_collision_spacing)
     robot = reduced_scene_robot(scene, reduced_config, reduction)
-    rec = run_scene(robot, scene.animation, record_every=record_every)
+    if engine == "jax":
+        from softcrawl.jaxsim.scenes import run_scene as run_jax_scene
+
+        rec = run_jax_scene(robot, scene.animation, record_every=record_every, precision=rid_dtype)
+    else:
+        rec = run_scene(robot, scene.animation, record_every=record_every)
     fom_x = ref["positions"][::stride].astype(float)
     k = len(rec.positions)
     if rec.positions.shape[1:] != fom_x.shape[1:] or k > len(fom_x):
@@ -163,7 +175,7 @@ def compare_scene(reduction: RobotReduction, config: RobotConfig, scene: Scene, 
         errors = _errors(rom_x, fom_x[:k], bodies, node)
         reward_rom, reward_fom = _reward(rom_x, node), _reward(fom_x[:k], node)
     steps_fom = int(ref["steps"])
-    row = {"scene": scene.name, "diverged": rec.diverged, "frames": k, **errors,
+    row = {"scene": scene.name, "engine": engine, "diverged": rec.diverged, "frames": k, **errors,
            "reward_full_cm": reward_fom, "reward_reduced_cm": reward_rom,
            "reward_error_cm": abs(reward_rom - reward_fom),
            "seconds_per_step_full": float(ref["wall_seconds"]) / steps_fom,
@@ -191,7 +203,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
                        workers: int | None = None, progress: bool = True, ensemble: int = 3,
                        perturbation: float = 1e-6, reduced_dt: float | None = None,
                        rid_dtype: str = "float64", contact_max_iterations: int | None = None,
-                       leg_collision_spacing: float = 0.0) -> dict:
+                       leg_collision_spacing: float = 0.0, engine: str = "cpu") -> dict:
     """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
@@ -208,9 +220,11 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
         ensemble: perturbed full-order runs per scene (the chaos floor and reward spread; 0:
             none), and as many perturbed reduced runs.
         perturbation: their initial noise amplitude, mm.
+        engine: the reduced model's engine, ``"cpu"`` or ``"jax"`` (:func:`compare_scene`).
 
     Raises:
-        ValueError: a negative ensemble, or an ensemble without a positive perturbation.
+        ValueError: a negative ensemble, an ensemble without a positive perturbation, an
+            unknown engine, or an ensemble with the JAX engine.
 
     Returns:
         ``{"scenes": [per-scene dicts of compare_scene], "mean_node_error_mm",
@@ -221,14 +235,18 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     if ensemble < 0 or (ensemble and not perturbation > 0):
         raise ValueError(f"an ensemble needs a positive perturbation, got ensemble={ensemble}, "
                          f"perturbation={perturbation}")
+    if engine not in ENGINES or (engine == "jax" and ensemble):
+        raise ValueError(f"engine must be one of {ENGINES} (the JAX engine without an ensemble), got "
+                         f"engine={engine!r}, ensemble={ensemble}")
     scenes = scenes or validation_scenes()
     refs = fom_references(workdir, config, scenes, record_every, workers, progress)
     members = [fom_references(workdir, config, scenes, record_every, workers, progress, perturbation, seed)
                for seed in range(1, ensemble + 1)]
     warm = scenes[0]  # compile the reduced kernels before anything is timed (numba's cache may be cold)
-    run_scene(reduced_scene_robot(warm, config, reduction), warm.animation, duration=config.dt)
+    if engine == "cpu":
+        run_scene(reduced_scene_robot(warm, config, reduction), warm.animation, duration=config.dt)
     rows = [compare_scene(reduction, config, s, r, record_every, [m[i] for m in members], perturbation, reduced_dt,
-                          rid_dtype, contact_max_iterations, leg_collision_spacing)
+                          rid_dtype, contact_max_iterations, leg_collision_spacing, engine)
             for i, (s, r) in enumerate(tqdm(list(zip(scenes, refs)), desc="reduced runs", unit="scene",
                                             disable=not progress))]
     full = float(np.mean([r["seconds_per_step_full"] for r in rows]))
@@ -237,7 +255,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     means = {key: float(np.mean([r.get(key, np.nan) for r in rows])) for key in
              ("mean_node_error_mm", "mean_deformation_error_mm", "floor_mean_node_error_mm",
               "floor_mean_deformation_error_mm") if key in rows[0]}
-    return {"scenes": rows, **means, "ensemble": ensemble, "perturbation_mm": perturbation,
+    return {"scenes": rows, **means, "engine": engine, "ensemble": ensemble, "perturbation_mm": perturbation,
             "max_scene_node_error_mm": float(max(r["mean_node_error_mm"] for r in rows)),
             "mean_seconds_per_step_full": full, "mean_seconds_per_step_reduced": red, "speedup": full / red,
             "reduced_dt": reduced_dt or config.dt, "rid_dtype": rid_dtype,
