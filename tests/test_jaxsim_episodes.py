@@ -41,11 +41,13 @@ def test_commands_are_what_run_episode_commands():
         episode_steps(0.004, dt)
 
 
-def test_batches_are_padded_to_powers_of_two():
-    from softcrawl.jaxsim.episodes import padded_size
+def test_batches_are_padded_to_a_few_sizes():
+    """The ground truth's batches: powers of two from 1; the vector env's: powers of four from 4."""
+    from softcrawl.jaxsim.batch import padded_size
 
-    assert [padded_size(n, 64) for n in (1, 2, 3, 5, 33, 64)] == [1, 2, 4, 8, 64, 64]
-    assert padded_size(3, 2) == 2
+    assert [padded_size(n, 64, 2, 1) for n in (1, 2, 3, 5, 33, 64)] == [1, 2, 4, 8, 64, 64]
+    assert padded_size(3, 2, 2, 1) == 2
+    assert [padded_size(n, 96) for n in (1, 4, 5, 17, 70, 96)] == [4, 4, 16, 64, 96, 96]
 
 
 def test_evaluator_refuses_what_it_cannot_run():

@@ -73,7 +73,8 @@ def _run(args: argparse.Namespace) -> int:
                                 finalists=args.finalists, seed=args.seed,
                                 robot=gt_robot(leg_mesh_size=args.leg_mesh_size, disk_mesh_size=args.disk_mesh_size,
                                                reduction=args.reduction, rid_dtype=args.rid_dtype, dt=args.dt),
-                                baseline_phases=_phases(args.baseline_phases)).validate()
+                                baseline_phases=_phases(args.baseline_phases), engine=args.engine,
+                                jax_batch=args.jax_batch).validate()
     check_ray_address(args.executor, args.ray_address)
     s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
                         progress=not args.no_progress, ray_address=args.ray_address)
@@ -122,5 +123,9 @@ def register(subparsers) -> None:
                    help="precision of the reduced legs' RID products (default float32, validated)")
     p.add_argument("--baseline-phases", default="0:180:10",
                    help="expert-baseline lags swept, START:STOP:STEP or a list, degrees, or none")
+    p.add_argument("--engine", choices=("cpu", "jax"), default="cpu",
+                   help="cpu (default: one design per worker) or jax (every design's episode of a search round "
+                        "in one batch on JAX's default device, CPU or GPU; --rid-dtype is its precision)")
+    p.add_argument("--jax-batch", type=int, default=1024, help="largest JAX batch, a power of two (default 1024)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run)

@@ -44,11 +44,13 @@ def robot_rows(model, robot) -> RobotData:
                        for a in (getattr(rows, f.name) for f in dataclasses.fields(RobotData))))
 
 
-def padded_size(n: int, batch: int) -> int:
-    """The smallest power of four ``>= max(n, 4)``, at most ``batch`` (``n <= batch``)."""
-    size = 4
-    while size < n:
-        size *= 4
+def padded_size(n: int, batch: int, base: int = 4, smallest: int = 4) -> int:
+    """The smallest power of ``base`` that is ``>= max(n, smallest)``, at most ``batch``
+    (``n <= batch``): the padded leading size of ``n`` rows, so that a caller compiles a few
+    programs (one per size), not one per row count."""
+    size = 1
+    while size < max(n, smallest):
+        size *= base
     return min(batch, size)
 
 

@@ -26,13 +26,13 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from softcrawl.design.space import Design, canonicalize
 from softcrawl.fem.solver import SolverSettings
 from softcrawl.gaits.pressure import check_pressures
+from softcrawl.jaxsim.batch import padded_size, stack_padded, take
 from softcrawl.jaxsim.engine import make_schedule_rollout, make_settle, rest_state
 from softcrawl.jaxsim.model import Model, build_model, engine_dtype
 from softcrawl.robot.actuation import PressureCalibration
@@ -64,25 +64,9 @@ def gait_commands(gait, n_steps: int, dt: float) -> np.ndarray:
     return cmd
 
 
-def padded_size(n: int, max_batch: int) -> int:
-    """The batch a group of ``n`` (1..``max_batch``) runs in: the next power of two, at most
-    ``max_batch`` (a power of two)."""
-    return min(max_batch, 1 << max(0, n - 1).bit_length())
-
-
-def stack_rows(rows: Sequence) -> object:
-    """Pytrees with a leading axis of 1 (or more) stacked along it."""
-    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *rows)
-
-
-def row(tree, b: int) -> object:
-    """Entry ``b`` of a batched pytree, keeping a leading axis of 1."""
-    return jax.tree_util.tree_map(lambda a: a[b:b + 1], tree)
-
-
 @dataclass(frozen=True, eq=False)
 class SettledDesign:
-    """A design's cached model rows and rested state (leading batch axis of 1).
+    """A design's cached model rows and rested state (numpy on the host, no batch axis).
 
     Attributes:
         legs: leg count (its group); rows: its :class:`~softcrawl.jaxsim.model.RobotData`;
@@ -169,20 +153,19 @@ class JaxEvaluator:
             model = build_model([build_robot(d, self.config)], **self._model_kw)
             if self._parts is None:
                 self._parts = dataclasses.replace(model, robot=None)
-            new.setdefault(int(model.robot.leg_mask.shape[1]), []).append((d, model.robot))
+            new.setdefault(int(model.robot.leg_mask.shape[1]), []).append((d, take(model.robot, 0)))
         for legs, items in new.items():
             for i in range(0, len(items), self.max_batch):
                 chunk = items[i:i + self.max_batch]
-                pad = padded_size(len(chunk), self.max_batch) - len(chunk)
-                model = self._model(stack_rows([r for _, r in chunk] + [chunk[-1][1]] * pad))
+                model = self._model(stack_padded([r for _, r in chunk], padded_size(len(chunk), self.max_batch, 2, 1)))
                 state, steps = self._settle(model, rest_state(model))
                 node = model.disk.reward_node
                 for b, (d, rows) in enumerate(chunk):
-                    st = row(state, b)
+                    st = take(state, b)
                     n = int(steps[b])
                     self._designs[d] = SettledDesign(
-                        legs, rows, st, float(st.x[0, node, 0]), n, n < cap,
-                        bool(int(st.bad[0]) > 0 or not np.isfinite(np.asarray(st.x)).all()))
+                        legs, rows, st, float(st.x[node, 0]), n, n < cap,
+                        bool(int(st.bad) > 0 or not np.isfinite(st.x).all()))
                     self.settles += 1
 
     def evaluate(self, requests: Sequence[tuple]) -> list[tuple[float, bool]]:
@@ -222,11 +205,11 @@ class JaxEvaluator:
 
     def _run(self, designs: list[SettledDesign], commands: list[np.ndarray]) -> list[tuple[float, bool]]:
         """One padded batch of episodes of equal length and leg count."""
-        size = padded_size(len(designs), self.max_batch)
+        size = padded_size(len(designs), self.max_batch, 2, 1)
         pad = size - len(designs)
         designs, commands = designs + designs[-1:] * pad, commands + commands[-1:] * pad
-        model = self._model(stack_rows([d.rows for d in designs]))
-        state = stack_rows([d.state for d in designs])
+        model = self._model(stack_padded([d.rows for d in designs], size))
+        state = stack_padded([d.state for d in designs], size)
         dtype = state.x.dtype
         final, peak, _ = self._rollout(model, state, jnp.asarray(np.stack(commands), dtype))
         self.robot_steps += size * commands[0].shape[0]

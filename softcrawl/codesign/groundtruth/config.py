@@ -11,6 +11,8 @@ from softcrawl.robot.assembly import RobotConfig
 
 #: Upper bounds of the search settings (far beyond the defaults 36, 2 and cma's 4 + 3 ln n).
 MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
+#: Engines of the searched episodes (:attr:`GroundTruthConfig.engine`) and the JAX batch's bound.
+ENGINES, MAX_JAX_BATCH = ("cpu", "jax"), 65_536
 
 
 def gt_robot(**changes) -> RobotConfig:
@@ -42,6 +44,12 @@ class GroundTruthConfig:
             other field the robot's default: dt 0.01 s, 6 mm legs, 10 mm disk).
         baseline_phases: expert-baseline phase lags swept for ``references.json`` (degrees;
             empty: no sweep).
+        engine: what simulates the searched episodes (:data:`ENGINES`): ``"cpu"``, the CPU
+            reduced engine, one design per worker; ``"jax"``, the JAX engine
+            (:class:`softcrawl.jaxsim.episodes.JaxEvaluator`) with every unfinished design's
+            episode of a round in one batch, in ``robot.rid_dtype`` throughout. The
+            references (``references.json``) are computed on the CPU either way.
+        jax_batch: the JAX engine's largest batch (a power of two).
     """
 
     duration: float = 20.0
@@ -55,6 +63,8 @@ class GroundTruthConfig:
     seed: int = 0
     robot: RobotConfig = field(default_factory=gt_robot)
     baseline_phases: tuple[float, ...] = tuple(range(0, 181, 10))
+    engine: str = "cpu"
+    jax_batch: int = 1024
 
     def validate(self) -> GroundTruthConfig:
         """Raise ValueError naming the first bad setting; returns self."""
@@ -76,6 +86,13 @@ class GroundTruthConfig:
                 check_bounds(name, v, low, high)
                 if int(v) != v:
                     raise ValueError(f"{name} must be an integer, got {v!r}")
+        if self.engine not in ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES}, got {self.engine!r}")
+        if self.engine == "jax" and self.robot.model != "reduced":
+            raise ValueError(f'engine "jax" steps the reduced robot only, got robot.model={self.robot.model!r}')
+        check_bounds("jax_batch", self.jax_batch, 1, MAX_JAX_BATCH)
+        if int(self.jax_batch) != self.jax_batch or self.jax_batch & (self.jax_batch - 1):
+            raise ValueError(f"jax_batch must be a power of two, got {self.jax_batch!r}")
         from softcrawl.robot.sweep import MAX_PHASES
 
         if len(self.baseline_phases) > MAX_PHASES:

@@ -174,6 +174,27 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
         return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs, evaluate_many)
 
 
+def jax_evaluate_many(cfg: GroundTruthConfig) -> EvaluateMany:
+    """The batched JAX engine of ``cfg`` (:class:`softcrawl.jaxsim.episodes.JaxEvaluator` in
+    ``cfg.robot.rid_dtype``, batches of at most ``cfg.jax_batch``, diverged episodes scored
+    :data:`DIVERGED_CM`) as an :data:`EvaluateMany`. float64 turns on ``jax_enable_x64`` for the
+    process.
+
+    Raises:
+        ImportError: JAX is not installed (``pip install "softcrawl[jax]"``).
+    """
+    try:
+        import jax
+    except ImportError as exc:
+        raise ImportError('engine "jax" needs JAX: pip install "softcrawl[jax]" (or "softcrawl[gpu]")') from exc
+    from softcrawl.jaxsim.episodes import JaxEvaluator
+
+    if cfg.robot.rid_dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    return JaxEvaluator(cfg.robot, precision=cfg.robot.rid_dtype, max_batch=cfg.jax_batch,
+                        diverged_cm=DIVERGED_CM).evaluate
+
+
 def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor, progress, task, ray_address,
              refs, evaluate_many) -> dict:
     """The body of :func:`run_groundtruth` once the folder is locked and its settings known."""
@@ -194,6 +215,8 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
         bar.update()
         bar.set_postfix(last=f"{r.reward_cm:+.2f}cm", refresh=False)
 
+    if todo and evaluate_many is None and cfg.engine == "jax":
+        evaluate_many = jax_evaluate_many(cfg)
     if todo:
         if evaluate_many is not None:
             for r in search_many(todo, cfg, evaluate_many):
