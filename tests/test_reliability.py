@@ -75,22 +75,45 @@ def _one_line_error(capsys, rc: int, *needles: str) -> str:
 
 
 # -- 1: no code execution from run files ---------------------------------------------------------------
-def test_1_crafted_model_pt_is_refused_by_evaluate_and_resume(run, tmp_path, capsys):
-    import torch
-
+def test_1_crafted_learner_file_is_refused_by_evaluate_and_resume(run, tmp_path, capsys):
+    """A pickle in ``learner.msgpack`` (its checksum updated) is refused, never unpickled."""
     marker = tmp_path / "pwned"
     latest = run / "checkpoints" / (run / "checkpoints" / "latest").read_text().strip()
-    torch.save({"policy": Evil(marker)}, latest / "model.pt")
+    (latest / "learner.msgpack").write_bytes(pickle.dumps({"policy": Evil(marker)}))
     _rehash(latest)
     rc = main(["evaluate", str(run), "--design", "1,0,0,2,2,0,0,0", "--out", str(tmp_path / "ev"), "--no-progress"])
-    _one_line_error(capsys, rc, "model.pt", "refused")
+    _one_line_error(capsys, rc, "learner.msgpack", "refused")
     before = _tree(run)
     rc = main(["train", "--resume", "--out", str(run), "--no-progress"])
     _one_line_error(capsys, rc, "refused")
     rc = main(["report", str(run), "--phases", ""])  # the best design's re-simulation loads the policy
-    _one_line_error(capsys, rc, "model.pt", "refused")
+    _one_line_error(capsys, rc, "learner.msgpack", "refused")
     assert not marker.exists() and not (tmp_path / "ev").exists()
     assert _tree(run) == before  # nothing truncated or written, no report
+
+
+def test_1_torch_learner_checkpoints_are_refused_naming_their_version(run, tmp_path, capsys):
+    """A run of the torch learner (checkpoint format 1: ``model.pt``, here with a pickle that
+    would run code) is refused by evaluate, resume and report with one line naming the version
+    that wrote it; ``model.pt`` is never unpickled."""
+    from softcrawl.codesign.run import _sha256
+
+    marker = tmp_path / "pwned"
+    for ck in (run / "checkpoints").glob("step-*"):
+        (ck / "learner.msgpack").unlink()
+        with open(ck / "model.pt", "wb") as f:
+            pickle.dump({"policy": Evil(marker)}, f)
+        st = json.loads((ck / "state.json").read_text())
+        st.update(format=1, version="0.1.9")
+        (ck / "state.json").write_text(json.dumps(st))
+        files = {f: _sha256(ck / f) for f in ("model.pt", "replay_buffer.npz", "state.json")}
+        (ck / "manifest.json").write_text(json.dumps({"format": 1, "files": files}))
+    before = _tree(run)
+    for argv in (["evaluate", str(run), "--design", "1,0,0,2,2,0,0,0", "--out", str(tmp_path / "ev"), "--no-progress"],
+                 ["train", "--resume", "--out", str(run), "--no-progress"], ["report", str(run), "--no-simulate"]):
+        _one_line_error(capsys, main(argv), "written by softcrawl 0.1.9 with its torch learner", "format 1")
+    assert not marker.exists() and not (tmp_path / "ev").exists()
+    assert _tree(run) == before
 
 
 def test_1_pickled_replay_buffer_never_loads(run, tmp_path, capsys):
@@ -225,7 +248,7 @@ def test_2_no_complete_checkpoint_refuses_and_keeps_everything(run):
 def test_3_corrupt_latest_falls_back_to_the_previous_one(run, capsys):
     from softcrawl.codesign.run import Run
 
-    model = run / "checkpoints" / "step-0000000160" / "model.pt"
+    model = run / "checkpoints" / "step-0000000160" / "learner.msgpack"
     data = bytearray(model.read_bytes())
     data[len(data) // 2] ^= 0xFF
     model.write_bytes(bytes(data))
@@ -508,32 +531,43 @@ def test_6_bad_reduction_fails_before_the_run_starts(tmp_path):
     assert not (tmp_path / "run" / "config.json").exists()
 
 
-def test_6_a_gpu_torch_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatch):
-    import torch
+def _no_gpu(monkeypatch, gpus=()):
+    """JAX as a CPU-only jaxlib sees it (``gpus``: the GPUs it would see instead)."""
+    import jax
 
+    cpu = jax.devices("cpu")
+
+    def devices(backend=None):
+        if backend == "cpu":
+            return cpu
+        if not gpus:
+            raise RuntimeError(f"Unknown backend: '{backend}' requested")
+        return list(gpus)
+
+    monkeypatch.setattr(jax, "devices", devices)
+
+
+def test_6_a_gpu_jax_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatch):
     from softcrawl.codesign.training import train
 
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(ValueError, match="sac.device='cuda:1'.*no CUDA GPU"):
-        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+    _no_gpu(monkeypatch)
+    with pytest.raises(ValueError, match="sac.device='gpu:1'.*sees no GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="gpu:1"']), progress=False)
     assert not (tmp_path / "run").exists()
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
-    with pytest.raises(ValueError, match="sees 1 CUDA GPU"):
+    _no_gpu(monkeypatch, gpus=["gpu0"])
+    with pytest.raises(ValueError, match="sees 1 GPU"):
         train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
     assert not (tmp_path / "run").exists()
 
 
 def test_6_a_run_trained_on_a_gpu_is_evaluated_on_the_cpu(run, monkeypatch):
-    import torch
-
     from softcrawl.codesign.evaluation import evaluate_policy
 
     on_cpu = evaluate_policy(run, "1,0,0,2,2,0,0,0").returns_cm
     cfg = json.loads((run / "config.json").read_text())
-    cfg["config"]["sac"]["device"] = "cuda"
+    cfg["config"]["sac"]["device"] = "gpu"
     (run / "config.json").write_text(json.dumps(cfg))
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    _no_gpu(monkeypatch)
     assert evaluate_policy(run, "1,0,0,2,2,0,0,0").returns_cm == on_cpu
 
 
@@ -902,7 +936,7 @@ def test_fuzz_train_set_strings(sets, monkeypatch_module, capsys):
 
 
 _RUN_FILES = ["config.json", "episodes.csv", "sessions.csv", "distribution.csv", "checkpoints/latest",
-              "checkpoints/LATEST/state.json", "checkpoints/LATEST/manifest.json", "checkpoints/LATEST/model.pt",
+              "checkpoints/LATEST/state.json", "checkpoints/LATEST/manifest.json", "checkpoints/LATEST/learner.msgpack",
               "checkpoints/LATEST/replay_buffer.npz", "checkpoints/LATEST", "checkpoints", "snapshots/t-0000000040.npz",
               "snapshots", "logs", "report"]
 _DAMAGE = ["delete", "empty", "garbage", "crafted", "flip", "link-out", "json-list"]
@@ -913,8 +947,6 @@ _DAMAGE = ["delete", "empty", "garbage", "crafted", "flip", "link-out", "json-li
 @given(damage=st.lists(st.tuples(st.sampled_from(_RUN_FILES), st.sampled_from(_DAMAGE)), min_size=1, max_size=3),
        command=st.sampled_from(["report", "evaluate", "resume"]), noise=st.binary(min_size=1, max_size=64))
 def test_fuzz_run_folders(trained, damage, command, noise, monkeypatch_module, capsys):
-    import torch
-
     import softcrawl.cli.train as train_cli
     import softcrawl.codesign.factory as factory
 
@@ -948,7 +980,7 @@ def test_fuzz_run_folders(trained, damage, command, noise, monkeypatch_module, c
             elif how == "json-list":
                 p.write_text("[1, 2]")
             elif how == "crafted":
-                torch.save({"policy": Evil(marker)}, p)
+                p.write_bytes(pickle.dumps({"policy": Evil(marker)}))
             elif how == "flip" and p.is_file() and p.stat().st_size:
                 data = bytearray(p.read_bytes())
                 data[noise[0] % len(data)] ^= 0xFF

@@ -10,7 +10,7 @@ builds a run's paths) and :mod:`~softcrawl.codesign.factory` (envs, robots, samp
 :mod:`~softcrawl.codesign.report` (reads runs). Training does not import the report: ``softcrawl
 train`` writes it afterwards (:func:`softcrawl.cli.train.train_and_report`).
 
-Heavy modules (torch / stable-baselines3: :mod:`softcrawl.codesign.sac`,
+Heavy modules (JAX / SBX / stable-baselines3: :mod:`softcrawl.codesign.sac`,
 :mod:`softcrawl.codesign.training`, :mod:`softcrawl.codesign.report`) are not imported here.
 """
 

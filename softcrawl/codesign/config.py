@@ -173,14 +173,14 @@ class SACConfig:
 
     ``timeout``: ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"``
     (reference implementation). ``overlap``: run the gradient updates of a vectorised step
-    while the envs simulate the next one (:class:`softcrawl.codesign.sac.SplitLRSAC`; the
-    policy acting lags one vectorised step behind the updates). ``threads``: torch threads of
-    the learner (1: the simulation has the other cores; more where cores are plentiful: the
-    ``paper`` preset's million updates of batch 512 are learner-bound on many cores,
-    ``benchmarks/RESULTS.md``). ``device``: torch device of the networks and their updates,
-    ``"cpu"`` or ``"cuda"`` / ``"cuda:N"`` (a GPU takes the learner off the simulation's cores;
-    the env workers never use it; checkpoints are read onto the CPU, so ``report`` and
-    ``evaluate`` need no GPU)."""
+    while the envs simulate the next one (:class:`softcrawl.codesign.sac.CodesignSAC`; the
+    policy acting lags one vectorised step behind the updates). ``threads``: CPU threads of
+    the learner, XLA's and torch's (1: the simulation has the other cores; more where cores are
+    plentiful; read when JAX starts in the process, :func:`softcrawl.codesign.sac.configure_threads`).
+    ``device``: JAX device of the networks and their updates, ``"cpu"`` or ``"gpu"`` /
+    ``"gpu:N"`` (``"cuda"`` / ``"cuda:N"`` are read as the same; a GPU takes the learner off
+    the simulation's cores; the env workers never use it; checkpoints are read onto the CPU, so
+    ``report`` and ``evaluate`` need no GPU)."""
 
     policy_lr: float = 6e-4
     q_lr: float = 2e-3
@@ -269,8 +269,9 @@ class TrainConfig:
             raise ValueError(f"env.model must be one of {MODELS}, got {self.env.model!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {tuple(BACKENDS)}, got {self.backend!r}")
-        if not re.fullmatch(r"cpu|cuda(:\d+)?", self.sac.device):
-            raise ValueError(f"sac.device must be 'cpu', 'cuda' or 'cuda:N', got {self.sac.device!r}")
+        if not re.fullmatch(r"cpu|(gpu|cuda)(:\d+)?", self.sac.device):
+            raise ValueError(f"sac.device must be 'cpu', 'gpu' or 'gpu:N' ('cuda' is read as 'gpu'), got "
+                             f"{self.sac.device!r}")
         if self.sac.timeout not in TIMEOUTS:
             raise ValueError(f"sac.timeout must be one of {TIMEOUTS}, got {self.sac.timeout!r}")
         if not self.env.legs or any(k not in range(MIN_LEGS, MAX_LEGS + 1) for k in self.env.legs):

@@ -102,11 +102,14 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     only saw canonical designs).
 
     ``checkpoint`` (default: the run's newest complete one) must be a complete checkpoint of
-    the run (its folder or its name); its weights are read with ``torch.load(weights_only=True)``.
+    the run (its folder or its name); its networks are read from flax msgpack
+    (:meth:`Run.load_learner`) and the actions computed on the CPU, whatever device the run
+    trained on.
 
     Raises:
-        ValueError: not a training run, no complete checkpoint, a damaged or crafted one,
-            ``episodes < 1``, ranges the run's action timing cannot take.
+        ValueError: not a training run, no complete checkpoint, a damaged or crafted one, one
+            of the torch learner (named), ``episodes < 1``, ranges the run's action timing
+            cannot take.
         InvalidDesignError: an invalid design.
     """
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -125,13 +128,13 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
         ck = r.require_checkpoint()
     else:  # a folder, or a checkpoint's name (step-XXXXXXXXXX) in the run
         ck = Path(checkpoint) if Path(checkpoint).exists() else r.checkpoints_dir / str(checkpoint)
-    weights = r.load_policy_weights(ck)
+    learner = r.read_learner(ck)  # before the env is built
     cfg.env.randomize = randomize if randomize is not None else DomainRanges()
     env = env_fn(cfg)()
     cfg.sac.buffer_size = 1
     cfg.sac.device = "cpu"  # whatever the run trained on: 20 actions need no GPU
-    model = make_sac(DummyVecEnv([lambda: env]), cfg.sac)
-    model.policy.load_state_dict(weights)
+    model = make_sac(DummyVecEnv([lambda: env]), cfg.sac, seed=cfg.seed)
+    r.load_learner(ck, model, learner)
     returns, diverged, first, domains = [], [], None, []
     for k in range(episodes):
         obs, info = env.reset(seed=seed if k == 0 else None, options={"design": design})

@@ -17,18 +17,21 @@ it; nothing else builds a run's paths by hand. Layout::
     │   ├── latest                 text: name of the newest complete checkpoint (a hint, checked, never followed
     │   │                          out of checkpoints/)
     │   └── step-XXXXXXXXXX/       complete iff manifest.json's SHA-256 sums match:
-    │       ├── model.pt           tensors only (torch.load(weights_only=True)): policy, critics, targets,
-    │       │                      optimizers, log temperature, torch RNG
+    │       ├── learner.msgpack    flax msgpack of arrays (softcrawl.codesign.sac.learner_state_bytes): actor,
+    │       │                      critics, target critics, Adam states, log temperature, JAX random keys
     │       ├── replay_buffer.npz  the SB3 replay buffer's arrays and pos/full (np.load(allow_pickle=False))
-    │       ├── state.json         counters, design sampler (distribution + its RNG), numpy and python RNG,
-    │       │                      the designs of the episodes just begun (at an episode boundary, else null)
-    │       └── manifest.json      {"format": 1, "files": {name: sha256}}
+    │       ├── state.json         counters, design sampler (distribution + its RNG), numpy, python and
+    │       │                      action-space RNGs, the designs of the episodes just begun (at an episode
+    │       │                      boundary, else null)
+    │       └── manifest.json      {"format": 2, "files": {name: sha256}}
     └── report/                    softcrawl report (built in .report.partial-*, swapped in when complete)
 
-Nothing read from a run folder is executed: no pickle, tensors only with ``weights_only=True``,
-JSON and ``allow_pickle=False`` npz; the old pickle format (``state.pkl``, ``replay_buffer.pkl``)
-is refused. Nothing is read or written through links out of the run: a run whose entries above
-are symbolic links is refused (:meth:`Run.check_links`), and ``latest`` is only a name.
+Nothing read from a run folder is executed: msgpack of arrays, JSON and ``allow_pickle=False``
+npz only; no file of a checkpoint is ever unpickled. Checkpoints of the torch learner (format 1,
+``model.pt``: refused with a line naming the softcrawl version that wrote them) and of the pickle
+format before it (``state.pkl``, ``replay_buffer.pkl``) are not read. Nothing is read or written
+through links out of the run: a run whose entries above are symbolic links is refused
+(:meth:`Run.check_links`), and ``latest`` is only a name.
 
 Checkpoints are written into ``step-*.tmp`` and renamed into place, ``latest`` is replaced
 atomically; a missing, dangling or damaged ``latest`` falls back to the newest complete
@@ -62,8 +65,8 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.design.space import validate_design
 from softcrawl.safeio import atomic_write_text
 
-CHECKPOINT_FORMAT = 1
-CHECKPOINT_FILES = ("model.pt", "replay_buffer.npz", "state.json")
+CHECKPOINT_FORMAT = 2
+CHECKPOINT_FILES = ("learner.msgpack", "replay_buffer.npz", "state.json")
 _STEP = re.compile(r"step-(\d{10})")
 _BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 
@@ -277,6 +280,8 @@ class Run:
         try:
             manifest = json.loads((path / "manifest.json").read_text(encoding="utf-8"))
             files = manifest["files"]
+            if manifest.get("format") == 1:
+                return _torch_learner_checkpoint(path)
             if manifest.get("format") != CHECKPOINT_FORMAT or set(files) != set(CHECKPOINT_FILES):
                 return "unknown checkpoint format"
             for name in CHECKPOINT_FILES:
@@ -321,17 +326,27 @@ class Run:
         return complete[-1] if complete else None
 
     def require_checkpoint(self) -> Path:
-        """:meth:`latest_checkpoint`, or ValueError if the run has none."""
+        """:meth:`latest_checkpoint`, or ValueError if the run has none (naming the softcrawl
+        version that wrote them if its checkpoints are of the torch learner)."""
         ck = self.latest_checkpoint()
         if ck is None:
+            self.refuse_torch_learner()
             raise ValueError(f"{self.path} has no complete checkpoint (not a training run, or it has not "
                              "checkpointed yet)")
         return ck
 
+    def refuse_torch_learner(self) -> None:
+        """Raise ValueError (one line naming the softcrawl version that wrote it) if the newest
+        checkpoint folder is one of the torch learner (format 1); else nothing."""
+        steps = self._step_dirs()
+        why = self.check_checkpoint(steps[-1]) if steps else None
+        if why is not None and why.startswith(_TORCH_LEARNER):
+            raise ValueError(f"{steps[-1]}: {why}")
+
     def save_checkpoint(self, model, sampler, keep: int = 2) -> Path:
-        """Write a complete checkpoint of ``model`` (a :class:`SplitLRSAC`) and ``sampler`` (a
-        :class:`GibbsDesignSampler`) atomically, point ``latest`` at it and prune complete
-        checkpoints beyond the newest ``max(keep, 2)``. Returns its folder.
+        """Write a complete checkpoint of ``model`` (a :class:`~softcrawl.codesign.sac.CodesignSAC`)
+        and ``sampler`` (a :class:`GibbsDesignSampler`) atomically, point ``latest`` at it and
+        prune complete checkpoints beyond the newest ``max(keep, 2)``. Returns its folder.
 
         Raises:
             NoSpaceError: disk full / read-only: the partial ``.tmp`` is removed, ``latest`` is
@@ -364,25 +379,41 @@ class Run:
             shutil.rmtree(p, ignore_errors=True)
         return final
 
-    def _load_model_file(self, path: Path) -> dict:
-        import torch
+    def read_learner(self, path: Path) -> dict:
+        """The decoded ``learner.msgpack`` of checkpoint ``path``
+        (:func:`~softcrawl.codesign.sac.decode_learner_state`: arrays only, nothing unpickled).
+
+        Raises:
+            ValueError: incomplete, damaged, of another format (the torch learner's: named), or
+                not a learner state.
+        """
+        from softcrawl.codesign.sac import decode_learner_state
+        from softcrawl.safeio import read_bytes
 
         why = self.check_checkpoint(path)
         if why is not None:
             raise ValueError(f"{path}: {why}")
+        f = Path(path) / "learner.msgpack"
         try:
-            data = torch.load(Path(path) / "model.pt", weights_only=True, map_location="cpu")
-        except Exception as exc:  # UnpicklingError (refused), zip and EOF errors
-            raise ValueError(f"{path / 'model.pt'}: refused: not a tensors-only checkpoint "
-                             f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
-        if not isinstance(data, dict) or "policy" not in data:
-            raise ValueError(f"{path / 'model.pt'}: not a softcrawl checkpoint")
-        return data
+            return decode_learner_state(read_bytes(f))
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{f}: refused: {exc}") from None
 
-    def load_policy_weights(self, path: Path) -> dict:
-        """The policy's ``state_dict`` (actor, critics, targets) of checkpoint ``path``
-        (ValueError if incomplete, damaged or not tensors-only)."""
-        return self._load_model_file(path)["policy"]
+    def load_learner(self, path: Path, model, raw: dict | None = None) -> None:
+        """Restore the networks, optimizer states, temperature and JAX keys of checkpoint
+        ``path`` (or its :meth:`read_learner` output ``raw``) into ``model``, a
+        :class:`~softcrawl.codesign.sac.CodesignSAC` of the run's config.
+
+        Raises:
+            ValueError: as :meth:`read_learner`, or a learner state of another config.
+        """
+        from softcrawl.codesign.sac import restore_learner_state
+
+        raw = self.read_learner(path) if raw is None else raw
+        try:
+            restore_learner_state(model, raw)
+        except ValueError as exc:
+            raise ValueError(f"{Path(path) / 'learner.msgpack'}: refused: {exc}") from None
 
     def read_checkpoint_state(self, path: Path) -> dict:
         """``state.json`` of checkpoint ``path`` with ``sampler`` decoded
@@ -403,16 +434,14 @@ class Run:
 
     def load_checkpoint(self, path: Path, model, sampler) -> None:
         """Restore checkpoint ``path`` into a freshly built model / sampler (same config), and
-        the torch / numpy / python RNGs. ``model._last_obs`` is cleared so ``learn()`` starts
+        the numpy / python / action-space RNGs. ``model._last_obs`` is cleared so ``learn()`` starts
         fresh episodes: with the checkpoint's ``next_designs`` (an episode boundary) if it has
         them (:meth:`softcrawl.envs.DesignVecEnv.resume_with`), else with new draws.
 
         Raises:
-            ValueError: incomplete, damaged, not tensors-only, or built for another config.
+            ValueError: incomplete, damaged, not a learner state, or built for another config.
         """
-        import torch
-
-        ck = self._load_model_file(path)
+        self.load_learner(path, model)
         state = self.read_checkpoint_state(path)
         try:
             with np.load(Path(path) / "replay_buffer.npz", allow_pickle=False) as z:
@@ -424,18 +453,12 @@ class Run:
                     continue
                 if k not in buffer or buffer[k].shape != have.shape or buffer[k].dtype != have.dtype:
                     raise ValueError(f"replay buffer array {k!r} does not match this run's config")
-            model.policy.load_state_dict(ck["policy"])
-            model.actor.optimizer.load_state_dict(ck["actor_optimizer"])
-            model.critic.optimizer.load_state_dict(ck["critic_optimizer"])
-            with torch.no_grad():
-                model.log_ent_coef.copy_(ck["log_ent_coef"])
-            model.ent_coef_optimizer.load_state_dict(ck["ent_coef_optimizer"])
             sampler.load_state_dict(state["sampler"])
             for k in _BUFFER_ARRAYS:
                 if getattr(rb, k, None) is not None:
                     getattr(rb, k)[...] = buffer[k]
             rb.pos, rb.full = int(buffer["pos"]), bool(buffer["full"])
-            torch.set_rng_state(ck["torch_rng"])
+            model.action_space.np_random.bit_generator.state = state["action_space_rng"]
             r = state["numpy_rng"]
             np.random.set_state((r["name"], np.array(r["key"], dtype=np.uint32), r["pos"], r["has_gauss"],
                                  r["cached_gaussian"]))
@@ -444,7 +467,7 @@ class Run:
             env = _vec_env(model)
             if env is not None and state["next_designs"] is not None:
                 env.resume_with(state["next_designs"])  # the designs the uninterrupted run had drawn
-        except Exception as exc:  # zip/npy errors, shapes, state_dict keys: all mean "not restorable"
+        except Exception as exc:  # zip/npy errors, shapes, RNG states: all mean "not restorable"
             msg = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
             raise ValueError(f"{path}: cannot restore checkpoint ({msg})") from None
         model.num_timesteps, model._n_updates = state["num_timesteps"], state["n_updates"]
@@ -486,16 +509,9 @@ class Run:
 
 def _write_checkpoint(folder: Path, model, sampler) -> None:
     """The checkpoint files of ``model`` and ``sampler`` (module docstring) into ``folder``."""
-    import torch
+    from softcrawl.codesign.sac import learner_state_bytes
 
-    torch.save({
-        "policy": model.policy.state_dict(),
-        "actor_optimizer": model.actor.optimizer.state_dict(),
-        "critic_optimizer": model.critic.optimizer.state_dict(),
-        "log_ent_coef": model.log_ent_coef.detach().clone(),
-        "ent_coef_optimizer": model.ent_coef_optimizer.state_dict(),
-        "torch_rng": torch.get_rng_state(),
-    }, folder / "model.pt")
+    (folder / "learner.msgpack").write_bytes(learner_state_bytes(model))
     rb = model.replay_buffer
     arrays = {k: getattr(rb, k) for k in _BUFFER_ARRAYS if getattr(rb, k, None) is not None}
     np.savez(folder / "replay_buffer.npz", pos=np.int64(rb.pos), full=np.bool_(rb.full), **arrays)
@@ -509,11 +525,27 @@ def _write_checkpoint(folder: Path, model, sampler) -> None:
         "numpy_rng": {"name": np_rng[0], "key": np_rng[1].tolist(), "pos": int(np_rng[2]),
                       "has_gauss": int(np_rng[3]), "cached_gaussian": float(np_rng[4])},
         "python_rng": [py_rng[0], list(py_rng[1]), py_rng[2]],
+        "action_space_rng": model.action_space.np_random.bit_generator.state,
         "next_designs": _starting_designs(model),
     }
     (folder / "state.json").write_text(json.dumps(state), encoding="utf-8")
     manifest = {"format": CHECKPOINT_FORMAT, "files": {f: _sha256(folder / f) for f in CHECKPOINT_FILES}}
     (folder / "manifest.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
+
+
+_TORCH_LEARNER = "written by softcrawl"
+
+
+def _torch_learner_checkpoint(path: Path) -> str:
+    """Why checkpoint ``path`` (manifest format 1: the torch learner's ``model.pt``, never
+    unpickled) is not read, naming the softcrawl version that wrote it (its ``state.json``)."""
+    try:
+        version = str(json.loads((path / "state.json").read_text(encoding="utf-8"))["version"])[:40]
+    except (OSError, ValueError, KeyError, TypeError):
+        version = "0.2.0 or older"
+    return (f"{_TORCH_LEARNER} {version} with its torch learner (checkpoint format 1, model.pt, not read); this "
+            f"softcrawl ({__version__}, JAX learner) reads checkpoint format {CHECKPOINT_FORMAT} only: evaluate, "
+            f"report or resume the run with the softcrawl release that wrote it ({version})")
 
 
 def _vec_env(model):

@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 from tqdm.auto import tqdm
@@ -33,7 +32,7 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.factory import check_reduction, make_sampler, make_vec_env
 from softcrawl.codesign.randomization import DomainLog
 from softcrawl.codesign.run import Run
-from softcrawl.codesign.sac import check_device, make_sac
+from softcrawl.codesign.sac import check_device, configure_threads, make_sac
 from softcrawl.codesign.sampler import GibbsDesignSampler
 
 
@@ -148,10 +147,12 @@ def _resume_point(run: Run) -> Path | None:
     """The checkpoint to resume from; None for a run that never logged anything.
 
     Raises:
-        ValueError: the run has history but no complete checkpoint (nothing is changed).
+        ValueError: the run has history but no complete checkpoint, or checkpoints of the torch
+            learner (nothing is changed).
     """
     ck = run.latest_checkpoint()
     if ck is None and run.has_history():
+        run.refuse_torch_learner()
         raise ValueError(f"cannot resume {run.path}: it has logged history but no complete checkpoint; "
                          "nothing was changed (start a new run with another --out)")
     return ck
@@ -194,11 +195,10 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         ckpt = None
     if ray_address is not None and cfg.backend != "ray":
         raise ValueError(f"a Ray address is used only by backend \"ray\", not {cfg.backend!r}")
+    configure_threads(cfg.sac.threads)  # before JAX starts its CPU backend (check_device)
     check_device(cfg.sac.device)  # before the workers start
-    torch.set_num_threads(cfg.sac.threads)
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
-    torch.manual_seed(cfg.seed)
     sampler = make_sampler(cfg)
     venv = make_vec_env(cfg, sampler, ray_address)
     wall = time.perf_counter()
