@@ -35,6 +35,7 @@ from sbx import SAC
 from stable_baselines3.common.logger import Logger
 
 from softcrawl.codesign.config import SACConfig
+from softcrawl.codesign.sac_nets import Actor, VectorCritic, actor_step, critic_step
 
 _DEVICE = re.compile(r"(cpu|gpu|cuda)(?::(\d+))?")
 
@@ -115,6 +116,9 @@ class CodesignSAC(SAC):
         jax_device: where the networks live and the updates and actions are computed.
     """
 
+    update_critic = staticmethod(critic_step)
+    update_actor = staticmethod(actor_step)
+
     def __init__(self, *args, jax_device: jax.Device | None = None, overlap: bool = False, **kwargs):
         self.jax_device = jax_device or jax.devices("cpu")[0]
         self.overlap = overlap
@@ -176,7 +180,7 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> CodesignSAC:
         tau=cfg.tau, gamma=cfg.gamma, train_freq=(1, "step"), gradient_steps=grad_steps,
         ent_coef="auto", target_entropy=cfg.target_entropy,
         replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"},
-        policy_kwargs={"net_arch": list(cfg.net_arch)},
+        policy_kwargs={"net_arch": list(cfg.net_arch), "actor_class": Actor, "vector_critic_class": VectorCritic},
         seed=seed, verbose=0, overlap=cfg.overlap, jax_device=device,
     )
     # a logger writing nowhere until the caller sets one: SB3's default makes /tmp/SB3-<date>/
