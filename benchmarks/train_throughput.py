@@ -3,30 +3,30 @@
 ``paper`` preset (1M transitions, one update per transition) on this machine and on 32 cores.
 Prints JSON.
 
-Learners (``--learner``): ``new``, softcrawl's (SBX's SAC on JAX, all gradient steps of a
-vectorised step in one compiled call: ``--grad-steps``, default 96 = the paper's envs), and
-``old``, the torch learner it replaced (stable-baselines3's SAC with the split learning rates and
-the critics' weights frozen during the actor's step; kept here only, to compare against);
-``both`` (the default) measures them in one run, alternating ``--repeats`` blocks of ``--updates``
-updates each, and reports their ratio per wall second and per CPU second of this process (the
-latter is what a shared machine cannot skew: one thread, ``--threads``, each).
+Learners (``--learner``, ``sac.learner``): ``sbx`` (SBX's SAC on JAX, all gradient steps of a
+vectorised step in one compiled call: ``--grad-steps``, default 96 = the paper's envs) and
+``torch`` (stable-baselines3's SAC with the split learning rates and the critics' weights frozen
+during the actor's step); ``both`` (the default) measures them in one run, alternating
+``--repeats`` blocks of ``--updates`` updates each, and reports their ratio per wall second and
+per CPU second of this process (the latter is what a shared machine cannot skew: one thread,
+``--threads``, each).
 
 Projection: wall = transitions x (sim seconds per transition / cores + seconds per update):
 simulation parallel over cores, learning serial in the learner process.
 
 Components (one env in-process, SAC on a dummy env):
-  OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--learner both|new|old] [--batch 512]
+  OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--learner both|sbx|torch] [--batch 512]
        [--updates 192] [--grad-steps 96] [--repeats 3] [--threads 1] [--device cpu|gpu|gpu:N]
        [--model full|reduced --leg-mesh 16 --disk-mesh 25 --refactor-every 5 --steps-per-action 2
         --actions 20] [--design 1,0,0,2,2,0,0,0] [--no-env]
   Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --steps-per-action 100
-  The learner on a GPU (the new one; ``--device`` is JAX's): --learner new --device gpu --no-env
+  The learner on a GPU: --learner sbx --device gpu --no-env
 
 End to end (``softcrawl train`` itself: ``--preset`` (default ``paper``) with ``--n-envs`` envs in
 one worker process per core, learning from the second round of transitions on, ``--rounds``
-rounds; ``--learner both`` runs the old learner, then the new one, same seed, one after the other):
+rounds; ``--learner both`` runs the torch learner, then the JAX one, same seed, one after the other):
   OMP_NUM_THREADS=1 python benchmarks/train_throughput.py --end-to-end --n-envs 96 --rounds 6
-       [--learner new|old|both] [--stepping batched|serial|both] [--preset paper|reference|crawl|demo]
+       [--learner sbx|torch|both] [--stepping batched|serial|both] [--preset paper|reference|crawl|demo]
        [--set KEY=VALUE] [--no-overlap] [--learner-cost]
 ``--stepping``: workers step their envs' robots as one batch (``batched``, the default of
 :class:`softcrawl.envs.backends.subprocess.SubprocessBackend`) or one env after another (``serial``); ``both``
@@ -49,7 +49,7 @@ import platform
 import resource
 import statistics
 import time
-from contextlib import contextmanager
+from dataclasses import replace
 
 import numpy as np
 
@@ -64,64 +64,8 @@ from softcrawl.robot import RobotConfig
 # worker RSS this benchmark reports should be that of a training worker, which has neither.
 
 
-def make_old_sac(env, cfg: SACConfig, seed: int | None = None):
-    """The torch learner softcrawl had before its JAX one: stable-baselines3's SAC whose critic
-    optimizer uses ``cfg.q_lr``, whose actor step leaves the critics' weight gradients out
-    (their weights frozen from the critic optimizer's step to the actor optimizer's), with the
-    same ``overlap`` / ``flush`` / ``learner_seconds`` as :class:`softcrawl.codesign.sac.CodesignSAC`."""
-    from stable_baselines3 import SAC
-    from stable_baselines3.common.logger import Logger
-
-    class SplitLRSAC(SAC):
-        def __init__(self, *args, q_learning_rate=None, overlap=False, **kwargs):
-            self.q_learning_rate, self.overlap, self._deferred, self.learner_seconds = q_learning_rate, overlap, 0, 0.0
-            super().__init__(*args, **kwargs)
-            if overlap and hasattr(self.env, "while_stepping"):
-                self.env.while_stepping = self.flush
-            self.critic.optimizer.register_step_post_hook(lambda *_: self._critic_weight_grads(False))
-            self.actor.optimizer.register_step_post_hook(lambda *_: self._critic_weight_grads(True))
-
-        def _critic_weight_grads(self, on):
-            for p in self.critic.parameters():
-                p.requires_grad_(on)
-
-        def train(self, gradient_steps, batch_size=64):
-            if self.overlap and getattr(self.env, "while_stepping", None) == self.flush:
-                self._deferred += gradient_steps
-                return
-            self._update(gradient_steps, batch_size)
-
-        def flush(self):
-            n, self._deferred = self._deferred, 0
-            if n:
-                self._update(n, self.batch_size)
-
-        def _update(self, gradient_steps, batch_size):
-            t = time.perf_counter()
-            self._critic_weight_grads(True)
-            super().train(gradient_steps, batch_size)
-            self.learner_seconds += time.perf_counter() - t
-
-        def _update_learning_rate(self, optimizers):
-            critic_opt = self.critic.optimizer
-            super()._update_learning_rate([o for o in optimizers if o is not critic_opt])
-            for group in critic_opt.param_groups:
-                group["lr"] = float(self.q_learning_rate)
-
-    model = SplitLRSAC(
-        "MlpPolicy", env, learning_rate=cfg.policy_lr, q_learning_rate=cfg.q_lr, buffer_size=cfg.buffer_size,
-        learning_starts=cfg.learning_starts, batch_size=cfg.batch_size, tau=cfg.tau, gamma=cfg.gamma,
-        train_freq=(1, "step"), gradient_steps=max(1, round(cfg.utd_ratio * env.num_envs)), ent_coef="auto",
-        target_entropy=cfg.target_entropy,
-        replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"},
-        policy_kwargs={"net_arch": list(cfg.net_arch), "optimizer_kwargs": {"betas": (0.9, 0.999)}},
-        seed=seed, device=cfg.device.replace("gpu", "cuda"), verbose=0, overlap=cfg.overlap)
-    model.set_logger(Logger(folder=None, output_formats=[]))
-    return model
-
-
 def _learner_on_dummy(learner: str, batch: int, net_arch, device: str):
-    """A learner of kind ``learner`` ("new" or "old") on a one-env dummy with the crawler's
+    """A learner of kind ``learner`` ("sbx" or "torch") on a one-env dummy with the crawler's
     spaces (observations 44, actions 3) and a replay buffer of 4 batches of random data."""
     import gymnasium as gym
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -138,8 +82,9 @@ def _learner_on_dummy(learner: str, batch: int, net_arch, device: str):
         def step(self, a):
             return self.observation_space.sample(), 0.0, False, False, {}
 
-    cfg = SACConfig(batch_size=batch, buffer_size=10_000, net_arch=tuple(net_arch), device=device, overlap=False)
-    model = (make_sac if learner == "new" else make_old_sac)(DummyVecEnv([Dummy]), cfg, seed=0)
+    cfg = SACConfig(batch_size=batch, buffer_size=10_000, net_arch=tuple(net_arch), device=device, overlap=False,
+                    learner=learner)
+    model = make_sac(DummyVecEnv([Dummy]), cfg, seed=0)
     rb, rng = model.replay_buffer, np.random.default_rng(0)
     for _ in range(4 * batch):
         o = rng.uniform(-1, 1, (1, 44)).astype(np.float32)
@@ -151,13 +96,13 @@ def _learner_on_dummy(learner: str, batch: int, net_arch, device: str):
 def sac_updates_per_s(learners, batch: int, updates: int, grad_steps: int = 96, repeats: int = 1,
                       net_arch=(400, 200, 100), device: str = "cpu") -> dict:
     """Gradient updates per wall second and per CPU second of this process for each learner of
-    ``learners`` (``"new"``, ``"old"``), on the device ``device`` (the old learner: torch's
-    ``cuda`` for ``gpu``), in ``repeats`` rounds that alternate the learners (each round runs
-    ``updates`` updates of each: the new one in calls of ``grad_steps`` compiled updates, the
-    old one as SB3 makes them). Medians over the rounds; the first call of each (compilation,
+    ``learners`` (``"sbx"``, ``"torch"``), on the device ``device`` (torch's ``cuda`` for
+    ``gpu``), in ``repeats`` rounds that alternate the learners (each round runs ``updates``
+    updates of each: the JAX one in calls of ``grad_steps`` compiled updates, the torch one as
+    SB3 makes them). Medians over the rounds; the first call of each (compilation,
     warm-up) is not timed."""
     models = {k: _learner_on_dummy(k, batch, net_arch, device) for k in learners}
-    per_call = {k: grad_steps if k == "new" else updates for k in learners}
+    per_call = {k: grad_steps if k == "sbx" else updates for k in learners}
     for k, m in models.items():
         m.train(gradient_steps=per_call[k], batch_size=batch)  # compile / warm up
     wall, cpu = {k: [] for k in learners}, {k: [] for k in learners}
@@ -172,9 +117,10 @@ def sac_updates_per_s(learners, batch: int, updates: int, grad_steps: int = 96, 
     out = {k: {"updates_per_s": statistics.median(wall[k]), "updates_per_cpu_s": statistics.median(cpu[k]),
                "rounds_updates_per_s": wall[k], "grad_steps_per_call": per_call[k]} for k in learners}
     if len(learners) == 2:
-        out["new_over_old"] = {"updates_per_s": out["new"]["updates_per_s"] / out["old"]["updates_per_s"],
-                               "updates_per_cpu_s": out["new"]["updates_per_cpu_s"] / out["old"]["updates_per_cpu_s"],
-                               "rounds_updates_per_s": [a / b for a, b in zip(wall["new"], wall["old"])]}
+        out["sbx_over_torch"] = {
+            "updates_per_s": out["sbx"]["updates_per_s"] / out["torch"]["updates_per_s"],
+            "updates_per_cpu_s": out["sbx"]["updates_per_cpu_s"] / out["torch"]["updates_per_cpu_s"],
+            "rounds_updates_per_s": [a / b for a, b in zip(wall["sbx"], wall["torch"])]}
     return out
 
 
@@ -233,28 +179,12 @@ class WorkerMemory:
         self._thread.join()
 
 
-@contextmanager
-def old_learner():
-    """``softcrawl train`` with the old (torch) learner: its :func:`make_old_sac` instead of
-    softcrawl's, and no checkpoint (the run folder holds the JAX learner's only)."""
-    import softcrawl.codesign.training as training
-    from softcrawl.codesign.run import Run
-
-    saved = training.make_sac, Run.save_checkpoint
-    training.make_sac, Run.save_checkpoint = make_old_sac, lambda self, *a, **k: None
-    try:
-        yield
-    finally:
-        training.make_sac, Run.save_checkpoint = saved
-
-
-def end_to_end(args, batched: bool = True, updates: bool = True, learner: str = "new") -> dict:
+def end_to_end(args, batched: bool = True, updates: bool = True, learner: str = "sbx") -> dict:
     """Transitions/s of :func:`softcrawl.codesign.training.train` (preset ``args.preset``,
     ``n_envs`` envs, learning from the second round on, or never if not ``updates``; workers
-    step their robots as one batch if ``batched``; the ``learner``, "new" or "old"), the wall
+    step their robots as one batch if ``batched``; the ``learner``, "sbx" or "torch"), the wall
     seconds of its gradient updates (overlapped with the simulation unless ``--no-overlap``),
     the CPU seconds of the learner process and of the workers, and the peak worker RSS."""
-    import contextlib
     import tempfile
 
     import softcrawl.envs.backends.subprocess as subprocess_backend
@@ -266,10 +196,10 @@ def end_to_end(args, batched: bool = True, updates: bool = True, learner: str = 
     sets = [f"n_envs={n}", f"total_steps={total}", f"sac.learning_starts={n if updates else total}",
             f"checkpoint_every={10 * total}", f"snapshot_every={n}", f"sac.overlap={str(not args.no_overlap).lower()}"]
     cfg = override(preset(args.preset), sets + list(args.set or []))
+    cfg = replace(cfg, sac=replace(cfg.sac, learner=learner))
     subprocess_backend.BATCHED_WORKERS = batched
     cpu0 = time.process_time()
-    with tempfile.TemporaryDirectory() as tmp, WorkerMemory() as memory, \
-            (old_learner() if learner == "old" else contextlib.nullcontext()):
+    with tempfile.TemporaryDirectory() as tmp, WorkerMemory() as memory:
         res = train(f"{tmp}/run", cfg, progress=True)
     sim_s_per_transition = res.wall_seconds / res.steps
     cores = os.cpu_count()
@@ -297,13 +227,13 @@ def project(run: dict, updates_per_s: float, cores: int) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--learner", choices=("both", "new", "old"), default="both",
-                   help="the JAX learner (new), the torch one it replaced (old), or both in one run")
+    p.add_argument("--learner", choices=("both", "sbx", "torch"), default="both",
+                   help="the JAX learner (sbx), the torch one, or both in one run")
     p.add_argument("--batch", type=int, default=512)
     p.add_argument("--threads", type=int, default=1, help="CPU threads of the learners (XLA's and torch's)")
     p.add_argument("--updates", type=int, default=192, help="updates per learner and round (components)")
     p.add_argument("--grad-steps", type=int, default=96,
-                   help="the new learner's gradient steps per compiled call (components; end to end: n_envs)")
+                   help="the JAX learner's gradient steps per compiled call (components; end to end: n_envs)")
     p.add_argument("--repeats", type=int, default=3, help="rounds alternating the learners (components)")
     p.add_argument("--device", default="cpu", help="JAX device of the SAC updates: cpu, gpu, gpu:N (components; "
                                                     "end to end: --set sac.device=...)")
@@ -331,10 +261,11 @@ def main() -> None:
     import jax
     import torch
 
-    from softcrawl.codesign.sac import configure_threads
+    from softcrawl.codesign.sac import learner_module
 
-    configure_threads(1 if args.end_to_end else args.threads)
-    learners = ("old", "new") if args.learner == "both" else (args.learner,)
+    for name in ("sbx", "torch"):
+        learner_module(name).configure_threads(1 if args.end_to_end else args.threads)
+    learners = ("torch", "sbx") if args.learner == "both" else (args.learner,)
     head = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__, "jax": jax.__version__,
             "threads": 1 if args.end_to_end else args.threads}
     if args.end_to_end:
@@ -346,8 +277,8 @@ def main() -> None:
                 k: runs[f"batched/{k}"]["transitions_per_s"] / runs[f"serial/{k}"]["transitions_per_s"]
                 for k in learners}
         if len(learners) == 2:
-            out["new_over_old_transitions_per_s"] = {
-                mode: runs[f"{mode}/new"]["transitions_per_s"] / runs[f"{mode}/old"]["transitions_per_s"]
+            out["sbx_over_torch_transitions_per_s"] = {
+                mode: runs[f"{mode}/sbx"]["transitions_per_s"] / runs[f"{mode}/torch"]["transitions_per_s"]
                 for mode in modes}
         if args.learner_cost:
             sim_only = end_to_end(args, modes[-1] == "batched", updates=False, learner=learners[-1])

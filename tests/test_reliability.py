@@ -92,10 +92,10 @@ def test_1_crafted_learner_file_is_refused_by_evaluate_and_resume(run, tmp_path,
     assert _tree(run) == before  # nothing truncated or written, no report
 
 
-def test_1_torch_learner_checkpoints_are_refused_naming_their_version(run, tmp_path, capsys):
-    """A run of the torch learner (checkpoint format 1: ``model.pt``, here with a pickle that
-    would run code) is refused by evaluate, resume and report with one line naming the version
-    that wrote it; ``model.pt`` is never unpickled."""
+def test_1_crafted_model_pt_of_the_torch_learner_is_refused(run, tmp_path, capsys):
+    """A checkpoint of the torch learner (format 1) whose ``model.pt`` is a pickle that would
+    run code (checksums updated) is read by the torch learner with ``weights_only=True`` and
+    refused by evaluate, resume and report; nothing is unpickled, nothing written."""
     from softcrawl.codesign.run import _sha256
 
     marker = tmp_path / "pwned"
@@ -104,14 +104,14 @@ def test_1_torch_learner_checkpoints_are_refused_naming_their_version(run, tmp_p
         with open(ck / "model.pt", "wb") as f:
             pickle.dump({"policy": Evil(marker)}, f)
         st = json.loads((ck / "state.json").read_text())
-        st.update(format=1, version="0.1.9")
+        st.update(format=1)
         (ck / "state.json").write_text(json.dumps(st))
         files = {f: _sha256(ck / f) for f in ("model.pt", "replay_buffer.npz", "state.json")}
         (ck / "manifest.json").write_text(json.dumps({"format": 1, "files": files}))
     before = _tree(run)
     for argv in (["evaluate", str(run), "--design", "1,0,0,2,2,0,0,0", "--out", str(tmp_path / "ev"), "--no-progress"],
-                 ["train", "--resume", "--out", str(run), "--no-progress"], ["report", str(run), "--no-simulate"]):
-        _one_line_error(capsys, main(argv), "written by softcrawl 0.1.9 with its torch learner", "format 1")
+                 ["train", "--resume", "--out", str(run), "--no-progress"], ["report", str(run), "--phases", ""]):
+        _one_line_error(capsys, main(argv), "model.pt", "refused")
     assert not marker.exists() and not (tmp_path / "ev").exists()
     assert _tree(run) == before
 
@@ -557,6 +557,24 @@ def test_6_a_gpu_jax_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatc
     _no_gpu(monkeypatch, gpus=["gpu0"])
     with pytest.raises(ValueError, match="sees 1 GPU"):
         train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_6_a_gpu_torch_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatch):
+    import torch
+
+    from softcrawl.codesign.training import train
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="sac.device='cuda:1'.*no CUDA GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="gpu:1"', 'sac.learner="torch"']),
+              progress=False)
+    assert not (tmp_path / "run").exists()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match="sees 1 CUDA GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"', 'sac.learner="torch"']),
+              progress=False)
     assert not (tmp_path / "run").exists()
 
 

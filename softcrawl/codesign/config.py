@@ -90,9 +90,12 @@ RANDOMIZE_BOUNDS: dict[str, tuple[float, float]] = {
     "pressure_gain": (0.0, 5.0), "pressure_offset": (-90.0, 90.0), "tau_inflate": (0.0, 10.0),
     "tau_vent": (0.0, 10.0), "control_period": (0.5, 2.0),
 }
-#: ``env`` settings added after runs were saved, and the value that reproduces those runs.
+#: ``env`` and ``sac`` settings added after runs were saved, and the value that reproduces those runs.
 _BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250, "leg_collision_spacing": 0.0}
+_SAC_BEFORE_SETTING = {"learner": "torch"}
 TIMEOUTS = ("bootstrap", "terminal")
+#: The SAC learners (:mod:`softcrawl.codesign.sac`): SBX's SAC on JAX, stable-baselines3's on torch.
+LEARNERS = ("sbx", "torch")
 
 
 @dataclass
@@ -171,16 +174,18 @@ class EnvConfig:
 class SACConfig:
     """SAC hyper-parameters (paper table; see :mod:`softcrawl.codesign.sac`).
 
-    ``timeout``: ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"``
-    (reference implementation). ``overlap``: run the gradient updates of a vectorised step
-    while the envs simulate the next one (:class:`softcrawl.codesign.sac.CodesignSAC`; the
+    ``learner``: ``"sbx"`` (SBX's SAC on JAX, :mod:`softcrawl.codesign.sac_jax`) or ``"torch"``
+    (stable-baselines3's, :mod:`softcrawl.codesign.sac_torch`): the same updates; a run's
+    checkpoints are read by the learner that wrote them. ``timeout``: ``"bootstrap"`` (time
+    limit is a truncation, default) or ``"terminal"`` (reference implementation). ``overlap``:
+    run the gradient updates of a vectorised step while the envs simulate the next one (the
     policy acting lags one vectorised step behind the updates). ``threads``: CPU threads of
-    the learner, XLA's and torch's (1: the simulation has the other cores; more where cores are
-    plentiful; read when JAX starts in the process, :func:`softcrawl.codesign.sac.configure_threads`).
-    ``device``: JAX device of the networks and their updates, ``"cpu"`` or ``"gpu"`` /
-    ``"gpu:N"`` (``"cuda"`` / ``"cuda:N"`` are read as the same; a GPU takes the learner off
-    the simulation's cores; the env workers never use it; checkpoints are read onto the CPU, so
-    ``report`` and ``evaluate`` need no GPU)."""
+    the learner (XLA's and torch's; 1: the simulation has the other cores; more where cores are
+    plentiful; set when the learner's library starts in the process,
+    :func:`softcrawl.codesign.sac.prepare_learner`). ``device``: where the networks and their
+    updates are, ``"cpu"`` or ``"gpu"`` / ``"gpu:N"`` (``"cuda"`` / ``"cuda:N"`` are read as
+    the same; a GPU takes the learner off the simulation's cores; the env workers never use
+    it; checkpoints are read onto the CPU, so ``report`` and ``evaluate`` need no GPU)."""
 
     policy_lr: float = 6e-4
     q_lr: float = 2e-3
@@ -196,6 +201,7 @@ class SACConfig:
     overlap: bool = True
     threads: int = 1
     device: str = "cpu"
+    learner: str = "sbx"
 
 
 @dataclass
@@ -272,6 +278,8 @@ class TrainConfig:
         if not re.fullmatch(r"cpu|(gpu|cuda)(:\d+)?", self.sac.device):
             raise ValueError(f"sac.device must be 'cpu', 'gpu' or 'gpu:N' ('cuda' is read as 'gpu'), got "
                              f"{self.sac.device!r}")
+        if self.sac.learner not in LEARNERS:
+            raise ValueError(f"sac.learner must be one of {LEARNERS}, got {self.sac.learner!r}")
         if self.sac.timeout not in TIMEOUTS:
             raise ValueError(f"sac.timeout must be one of {TIMEOUTS}, got {self.sac.timeout!r}")
         if not self.env.legs or any(k not in range(MIN_LEGS, MAX_LEGS + 1) for k in self.env.legs):
@@ -343,6 +351,8 @@ class TrainConfig:
             return kind(**kw)
         if isinstance(d, dict) and isinstance(d.get("env"), dict):  # saved before a setting: its reference value
             d = {**d, "env": {**_BEFORE_SETTING, **d["env"]}}
+        if isinstance(d, dict) and isinstance(d.get("sac"), dict):
+            d = {**d, "sac": {**_SAC_BEFORE_SETTING, **d["sac"]}}
         return build(cls, d, "").validate()
 
 

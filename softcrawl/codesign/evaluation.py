@@ -102,14 +102,13 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     only saw canonical designs).
 
     ``checkpoint`` (default: the run's newest complete one) must be a complete checkpoint of
-    the run (its folder or its name); its networks are read from flax msgpack
-    (:meth:`Run.load_learner`) and the actions computed on the CPU, whatever device the run
-    trained on.
+    the run (its folder or its name); its networks are read by the learner that wrote it
+    (:meth:`Run.load_learner`: arrays, or tensors with ``weights_only=True``) and the actions
+    computed on the CPU, whatever device the run trained on.
 
     Raises:
-        ValueError: not a training run, no complete checkpoint, a damaged or crafted one, one
-            of the torch learner (named), ``episodes < 1``, ranges the run's action timing
-            cannot take.
+        ValueError: not a training run, no complete checkpoint, a damaged or crafted one,
+            ``episodes < 1``, ranges the run's action timing cannot take.
         InvalidDesignError: an invalid design.
     """
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -133,6 +132,7 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     env = env_fn(cfg)()
     cfg.sac.buffer_size = 1
     cfg.sac.device = "cpu"  # whatever the run trained on: 20 actions need no GPU
+    cfg.sac.learner = r.checkpoint_learner(ck)
     model = make_sac(DummyVecEnv([lambda: env]), cfg.sac, seed=cfg.seed)
     r.load_learner(ck, model, learner)
     returns, diverged, first, domains = [], [], None, []

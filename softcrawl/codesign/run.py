@@ -17,19 +17,21 @@ it; nothing else builds a run's paths by hand. Layout::
     │   ├── latest                 text: name of the newest complete checkpoint (a hint, checked, never followed
     │   │                          out of checkpoints/)
     │   └── step-XXXXXXXXXX/       complete iff manifest.json's SHA-256 sums match:
-    │       ├── learner.msgpack    flax msgpack of arrays (softcrawl.codesign.sac.learner_state_bytes): actor,
-    │       │                      critics, target critics, Adam states, log temperature, JAX random keys
+    │       ├── learner.msgpack    sbx learner (format 2): flax msgpack of arrays (softcrawl.codesign.sac_jax):
+    │       │                      actor, critics, target critics, Adam states, log temperature, JAX random keys
+    │       ├── model.pt           or torch learner (format 1): tensors only (torch.load(weights_only=True)):
+    │       │                      policy, critics, targets, optimizers, log temperature, torch RNG
     │       ├── replay_buffer.npz  the SB3 replay buffer's arrays and pos/full (np.load(allow_pickle=False))
     │       ├── state.json         counters, design sampler (distribution + its RNG), numpy, python and
     │       │                      action-space RNGs, the designs of the episodes just begun (at an episode
     │       │                      boundary, else null)
-    │       └── manifest.json      {"format": 2, "files": {name: sha256}}
+    │       └── manifest.json      {"format": 2 or 1, "files": {name: sha256}}
     └── report/                    softcrawl report (built in .report.partial-*, swapped in when complete)
 
-Nothing read from a run folder is executed: msgpack of arrays, JSON and ``allow_pickle=False``
-npz only; no file of a checkpoint is ever unpickled. Checkpoints of the torch learner (format 1,
-``model.pt``: refused with a line naming the softcrawl version that wrote them) and of the pickle
-format before it (``state.pkl``, ``replay_buffer.pkl``) are not read. Nothing is read or written
+Nothing read from a run folder is executed: msgpack of arrays, tensors only with
+``weights_only=True``, JSON and ``allow_pickle=False`` npz; the old pickle format
+(``state.pkl``, ``replay_buffer.pkl``) is refused. A checkpoint is read by the learner that
+wrote it (its format), whatever the run's ``sac.learner`` says. Nothing is read or written
 through links out of the run: a run whose entries above are symbolic links is refused
 (:meth:`Run.check_links`), and ``latest`` is only a name.
 
@@ -65,8 +67,9 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.design.space import validate_design
 from softcrawl.safeio import atomic_write_text
 
-CHECKPOINT_FORMAT = 2
-CHECKPOINT_FILES = ("learner.msgpack", "replay_buffer.npz", "state.json")
+#: Checkpoint format of each learner and the file of its state (module docstring).
+CHECKPOINT_FORMATS = {"sbx": 2, "torch": 1}
+LEARNER_FILES = {"sbx": "learner.msgpack", "torch": "model.pt"}
 _STEP = re.compile(r"step-(\d{10})")
 _BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 
@@ -280,11 +283,10 @@ class Run:
         try:
             manifest = json.loads((path / "manifest.json").read_text(encoding="utf-8"))
             files = manifest["files"]
-            if manifest.get("format") == 1:
-                return _torch_learner_checkpoint(path)
-            if manifest.get("format") != CHECKPOINT_FORMAT or set(files) != set(CHECKPOINT_FILES):
+            learner = _FORMAT_LEARNERS.get(manifest.get("format"))
+            if learner is None or set(files) != set(_checkpoint_files(learner)):
                 return "unknown checkpoint format"
-            for name in CHECKPOINT_FILES:
+            for name in _checkpoint_files(learner):
                 f = path / name
                 if f.is_symlink() or not f.is_file() or _sha256(f) != files[name]:
                     return f"{name} is missing or damaged (checksum)"
@@ -326,25 +328,28 @@ class Run:
         return complete[-1] if complete else None
 
     def require_checkpoint(self) -> Path:
-        """:meth:`latest_checkpoint`, or ValueError if the run has none (naming the softcrawl
-        version that wrote them if its checkpoints are of the torch learner)."""
+        """:meth:`latest_checkpoint`, or ValueError if the run has none."""
         ck = self.latest_checkpoint()
         if ck is None:
-            self.refuse_torch_learner()
             raise ValueError(f"{self.path} has no complete checkpoint (not a training run, or it has not "
                              "checkpointed yet)")
         return ck
 
-    def refuse_torch_learner(self) -> None:
-        """Raise ValueError (one line naming the softcrawl version that wrote it) if the newest
-        checkpoint folder is one of the torch learner (format 1); else nothing."""
-        steps = self._step_dirs()
-        why = self.check_checkpoint(steps[-1]) if steps else None
-        if why is not None and why.startswith(_TORCH_LEARNER):
-            raise ValueError(f"{steps[-1]}: {why}")
+    def checkpoint_learner(self, path: Path) -> str:
+        """The ``sac.learner`` that wrote complete checkpoint ``path`` (``"sbx"`` or ``"torch"``,
+        from its format).
+
+        Raises:
+            ValueError: not a complete checkpoint of this run.
+        """
+        why = self.check_checkpoint(path)
+        if why is not None:
+            raise ValueError(f"{path}: {why}")
+        manifest = json.loads((Path(path) / "manifest.json").read_text(encoding="utf-8"))
+        return _FORMAT_LEARNERS[manifest["format"]]
 
     def save_checkpoint(self, model, sampler, keep: int = 2) -> Path:
-        """Write a complete checkpoint of ``model`` (a :class:`~softcrawl.codesign.sac.CodesignSAC`)
+        """Write a complete checkpoint of ``model`` (a learner of :mod:`softcrawl.codesign.sac`)
         and ``sampler`` (a :class:`GibbsDesignSampler`) atomically, point ``latest`` at it and
         prune complete checkpoints beyond the newest ``max(keep, 2)``. Returns its folder.
 
@@ -380,40 +385,42 @@ class Run:
         return final
 
     def read_learner(self, path: Path) -> dict:
-        """The decoded ``learner.msgpack`` of checkpoint ``path``
-        (:func:`~softcrawl.codesign.sac.decode_learner_state`: arrays only, nothing unpickled).
+        """The decoded learner state of checkpoint ``path`` (its learner's
+        ``decode_learner_state``, :mod:`softcrawl.codesign.sac`: arrays, or tensors read with
+        ``weights_only=True``; nothing else unpickled).
 
         Raises:
-            ValueError: incomplete, damaged, of another format (the torch learner's: named), or
-                not a learner state.
+            ValueError: incomplete, damaged, or not a learner state.
         """
-        from softcrawl.codesign.sac import decode_learner_state
+        from softcrawl.codesign.sac import learner_module
         from softcrawl.safeio import read_bytes
 
-        why = self.check_checkpoint(path)
-        if why is not None:
-            raise ValueError(f"{path}: {why}")
-        f = Path(path) / "learner.msgpack"
+        learner = self.checkpoint_learner(path)
+        f = Path(path) / LEARNER_FILES[learner]
         try:
-            return decode_learner_state(read_bytes(f))
+            return learner_module(learner).decode_learner_state(read_bytes(f))
         except (OSError, ValueError) as exc:
             raise ValueError(f"{f}: refused: {exc}") from None
 
     def load_learner(self, path: Path, model, raw: dict | None = None) -> None:
-        """Restore the networks, optimizer states, temperature and JAX keys of checkpoint
-        ``path`` (or its :meth:`read_learner` output ``raw``) into ``model``, a
-        :class:`~softcrawl.codesign.sac.CodesignSAC` of the run's config.
+        """Restore the networks, optimizer states, temperature and random state of checkpoint
+        ``path`` (or its :meth:`read_learner` output ``raw``) into ``model``, a learner of the
+        run's config and of the checkpoint's learner (:meth:`checkpoint_learner`).
 
         Raises:
-            ValueError: as :meth:`read_learner`, or a learner state of another config.
+            ValueError: as :meth:`read_learner`, a checkpoint of the other learner, or a learner
+                state of another config.
         """
-        from softcrawl.codesign.sac import restore_learner_state
+        from softcrawl.codesign.sac import learner_module
 
+        learner = self.checkpoint_learner(path)
+        if model.learner != learner:
+            raise ValueError(f"{path}: a checkpoint of the {learner!r} learner, read into the {model.learner!r} one")
         raw = self.read_learner(path) if raw is None else raw
         try:
-            restore_learner_state(model, raw)
+            learner_module(learner).restore_learner_state(model, raw)
         except ValueError as exc:
-            raise ValueError(f"{Path(path) / 'learner.msgpack'}: refused: {exc}") from None
+            raise ValueError(f"{Path(path) / LEARNER_FILES[learner]}: refused: {exc}") from None
 
     def read_checkpoint_state(self, path: Path) -> dict:
         """``state.json`` of checkpoint ``path`` with ``sampler`` decoded
@@ -458,7 +465,8 @@ class Run:
                 if getattr(rb, k, None) is not None:
                     getattr(rb, k)[...] = buffer[k]
             rb.pos, rb.full = int(buffer["pos"]), bool(buffer["full"])
-            model.action_space.np_random.bit_generator.state = state["action_space_rng"]
+            if "action_space_rng" in state:  # absent in checkpoints written before it existed
+                model.action_space.np_random.bit_generator.state = state["action_space_rng"]
             r = state["numpy_rng"]
             np.random.set_state((r["name"], np.array(r["key"], dtype=np.uint32), r["pos"], r["has_gauss"],
                                  r["cached_gaussian"]))
@@ -509,16 +517,16 @@ class Run:
 
 def _write_checkpoint(folder: Path, model, sampler) -> None:
     """The checkpoint files of ``model`` and ``sampler`` (module docstring) into ``folder``."""
-    from softcrawl.codesign.sac import learner_state_bytes
+    from softcrawl.codesign.sac import learner_module
 
-    (folder / "learner.msgpack").write_bytes(learner_state_bytes(model))
+    (folder / LEARNER_FILES[model.learner]).write_bytes(learner_module(model.learner).learner_state_bytes(model))
     rb = model.replay_buffer
     arrays = {k: getattr(rb, k) for k in _BUFFER_ARRAYS if getattr(rb, k, None) is not None}
     np.savez(folder / "replay_buffer.npz", pos=np.int64(rb.pos), full=np.bool_(rb.full), **arrays)
     np_rng = np.random.get_state()
     py_rng = random.getstate()
     state = {
-        "format": CHECKPOINT_FORMAT, "version": __version__,
+        "format": CHECKPOINT_FORMATS[model.learner], "version": __version__,
         "num_timesteps": int(model.num_timesteps), "n_updates": int(model._n_updates),
         "episode_num": int(model._episode_num),
         "sampler": sampler_state_to_json(sampler.state_dict()),
@@ -529,23 +537,17 @@ def _write_checkpoint(folder: Path, model, sampler) -> None:
         "next_designs": _starting_designs(model),
     }
     (folder / "state.json").write_text(json.dumps(state), encoding="utf-8")
-    manifest = {"format": CHECKPOINT_FORMAT, "files": {f: _sha256(folder / f) for f in CHECKPOINT_FILES}}
+    manifest = {"format": CHECKPOINT_FORMATS[model.learner],
+                "files": {f: _sha256(folder / f) for f in _checkpoint_files(model.learner)}}
     (folder / "manifest.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
 
 
-_TORCH_LEARNER = "written by softcrawl"
+_FORMAT_LEARNERS = {v: k for k, v in CHECKPOINT_FORMATS.items()}
 
 
-def _torch_learner_checkpoint(path: Path) -> str:
-    """Why checkpoint ``path`` (manifest format 1: the torch learner's ``model.pt``, never
-    unpickled) is not read, naming the softcrawl version that wrote it (its ``state.json``)."""
-    try:
-        version = str(json.loads((path / "state.json").read_text(encoding="utf-8"))["version"])[:40]
-    except (OSError, ValueError, KeyError, TypeError):
-        version = "0.2.0 or older"
-    return (f"{_TORCH_LEARNER} {version} with its torch learner (checkpoint format 1, model.pt, not read); this "
-            f"softcrawl ({__version__}, JAX learner) reads checkpoint format {CHECKPOINT_FORMAT} only: evaluate, "
-            f"report or resume the run with the softcrawl release that wrote it ({version})")
+def _checkpoint_files(learner: str) -> tuple[str, ...]:
+    """The files (besides the manifest) of a checkpoint of ``learner``."""
+    return LEARNER_FILES[learner], "replay_buffer.npz", "state.json"
 
 
 def _vec_env(model):

@@ -1,252 +1,68 @@
-"""Soft actor-critic for co-design: SBX's SAC (the JAX port of stable-baselines3's SAC by its
-maintainers) with separate policy and Q learning rates, one gradient update per environment
-transition (codesign.md, "Soft actor-critic"; Haarnoja et al. 2018, "Soft Actor-Critic
-Algorithms and Applications", automatic temperature, section 5).
+"""Soft actor-critic for co-design: separate policy and Q learning rates, one gradient update per
+environment transition, automatic temperature (codesign.md, "Soft actor-critic"; Haarnoja et
+al. 2018, "Soft Actor-Critic Algorithms and Applications", section 5).
 
-All gradient updates due after one vectorised step run in one compiled call: SBX samples their
-``gradient_steps x batch_size`` transitions at once and runs the updates in a ``jax.lax.fori_loop``
-inside one ``jax.jit`` (critic step, target smoothing, actor and temperature step per update).
+Two learners run the same updates, ``sac.learner``:
+
+* ``"sbx"`` (:mod:`softcrawl.codesign.sac_jax`): SBX's SAC on JAX, all gradient updates due
+  after a vectorised step in one compiled call, stable-baselines3's networks and losses
+  (:mod:`softcrawl.codesign.sac_nets`); checkpoints of arrays (flax msgpack).
+* ``"torch"`` (:mod:`softcrawl.codesign.sac_torch`): stable-baselines3's SAC; checkpoints
+  read with ``torch.load(weights_only=True)``.
+
+Given the same weights, batches and noise their updates agree to float32 rounding
+(``tests/test_learner.py``).
 
 Time limit. An episode ends after 20 actions by *truncation*: the observation (design + the
 last 4 actions) does not contain the time, but the MDP continues physically, so the Q target
-bootstraps through the cut (``r + gamma Q(s', a')``): SB3's replay buffer (SBX uses it) reads
-``info["TimeLimit.truncated"]`` (set by :class:`softcrawl.envs.vec.DesignVecEnv`) with
-``handle_timeout_termination=True``. The reference implementation treated the limit as a true
-terminal (``SACConfig.timeout = "terminal"`` reproduces that). Divergence of the simulation is a
-true terminal (no bootstrap).
-
-The learner's state (networks, target networks, Adam states, temperature, JAX random keys)
-is one pytree of arrays: :func:`learner_state_bytes` writes it as flax msgpack (arrays only,
-nothing that can run code when read) and :func:`restore_learner_state` reads it back into a
-learner built with the same config.
+bootstraps through the cut (``r + gamma Q(s', a')``): SB3's replay buffer (both learners use
+it) reads ``info["TimeLimit.truncated"]`` (set by :class:`softcrawl.envs.vec.DesignVecEnv`)
+with ``handle_timeout_termination=True``. The reference implementation treated the limit as
+a true terminal (``SACConfig.timeout = "terminal"`` reproduces that). Divergence of the
+simulation is a true terminal (no bootstrap).
 """
 
 from __future__ import annotations
 
-import os
-import re
-import time
-from pathlib import Path
+from types import ModuleType
 
-import jax
-import numpy as np
-from flax import serialization
-from sbx import SAC
-from stable_baselines3.common.logger import Logger
-
-from softcrawl.codesign.config import SACConfig
-from softcrawl.codesign.sac_nets import Actor, VectorCritic, actor_step, critic_step
-
-_DEVICE = re.compile(r"(cpu|gpu|cuda)(?::(\d+))?")
+from softcrawl.codesign.config import LEARNERS, SACConfig
 
 
-def configure_threads(threads: int) -> None:
-    """Threads of the learner's CPU work: XLA's intra-op thread pool (``XLA_FLAGS``, read once,
-    when JAX starts its backends in this process: call this before the first learner is built)
-    and torch's (SB3's replay buffer copies its samples through torch tensors). A ``XLA_FLAGS``
-    that already sets ``intra_op_parallelism_threads`` is left as it is. A GPU's memory is
-    allocated as the learner needs it, not 75% of it at the start (JAX's default), unless
-    ``XLA_PYTHON_CLIENT_PREALLOCATE`` says otherwise."""
-    import torch
+def learner_module(name: str) -> ModuleType:
+    """The module of learner ``name`` (``"sbx"`` or ``"torch"``), imported now (JAX or torch).
 
-    torch.set_num_threads(threads)
-    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "intra_op_parallelism_threads" not in flags:
-        extra = f"intra_op_parallelism_threads={threads}"
-        if threads == 1:
-            extra = "--xla_cpu_multi_thread_eigen=false " + extra
-        os.environ["XLA_FLAGS"] = f"{flags} {extra}".strip()
-
-
-def use_compilation_cache() -> None:
-    """Keep the learner's compiled XLA programs on disk (JAX's persistent compilation cache),
-    so a process that builds the same learner again (``resume``, ``evaluate``, ``report``, the
-    next run) loads them instead of compiling (5-10 CPU seconds for the paper's networks).
-    The cache is ``$SOFTCRAWL_CACHE_DIR/jax`` or ``~/.cache/softcrawl/jax``, the user's own, as
-    numba's caches are; a cache directory set through JAX's own settings is left as it is.
-    Takes effect if called before the process's first compilation."""
-    if jax.config.jax_compilation_cache_dir is None:
-        root = Path(os.environ.get("SOFTCRAWL_CACHE_DIR") or Path.home() / ".cache" / "softcrawl")
-        jax.config.update("jax_compilation_cache_dir", str(root / "jax"))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-
-
-def check_device(device: str) -> jax.Device:
-    """The JAX device of ``sac.device``: ``"cpu"``, ``"gpu"`` / ``"gpu:N"`` (``"cuda"`` /
-    ``"cuda:N"`` are read as the same).
+    Each has ``make_sac``, ``configure_threads``, ``check_device``, ``learner_state_bytes``,
+    ``decode_learner_state`` and ``restore_learner_state``.
 
     Raises:
-        ValueError: a malformed name, no GPU that JAX can use (a CPU-only jaxlib, no CUDA
-            plugin, no driver), or no GPU number N.
+        ValueError: an unknown name.
     """
-    m = _DEVICE.fullmatch(device)
-    if m is None:
-        raise ValueError(f"sac.device must be 'cpu', 'gpu' or 'gpu:N' ('cuda' is read as 'gpu'), got {device!r}")
-    kind, index = m.group(1), int(m.group(2) or 0)
-    if kind == "cpu":
-        return jax.devices("cpu")[0]
-    try:
-        gpus = jax.devices("gpu")
-    except RuntimeError:
-        gpus = []
-    if not gpus:
-        raise ValueError(f"sac.device={device!r}, but JAX {jax.__version__} sees no GPU (use sac.device=\"cpu\", or "
-                         "install softcrawl[gpu]: jax with its CUDA plugin)")
-    if index >= len(gpus):
-        raise ValueError(f"sac.device={device!r}, but JAX sees {len(gpus)} GPU(s)")
-    return gpus[index]
+    if name == "sbx":
+        from softcrawl.codesign import sac_jax as module
+    elif name == "torch":
+        from softcrawl.codesign import sac_torch as module
+    else:
+        raise ValueError(f"sac.learner must be one of {LEARNERS}, got {name!r}")
+    return module
 
 
-class CodesignSAC(SAC):
-    """SBX's SAC on JAX device ``jax_device``, its updates optionally overlapped with the
-    simulation.
-
-    With ``overlap`` (and an env with a ``while_stepping`` hook, :class:`DesignVecEnv`), the
-    gradient updates due after a vectorised step are deferred and run while the envs simulate
-    the next one (the workers are separate processes), so the learner costs wall time only
-    where it takes longer than the simulation. The policy that picks the actions of step
-    ``t + 1`` is then the one before the updates of step ``t`` (a lag of one vectorised step,
-    as in asynchronous actor-learner schemes); the number of updates and the data they sample
-    are those of SB3's schedule. :meth:`flush` runs deferred updates now (before a checkpoint,
-    at the end of ``learn``).
-
-    Attributes:
-        learner_seconds: wall seconds spent in gradient updates (all of them).
-        jax_device: where the networks live and the updates and actions are computed.
-    """
-
-    update_critic = staticmethod(critic_step)
-    update_actor = staticmethod(actor_step)
-
-    def __init__(self, *args, jax_device: jax.Device | None = None, overlap: bool = False, **kwargs):
-        self.jax_device = jax_device or jax.devices("cpu")[0]
-        self.overlap = overlap
-        self._deferred = 0
-        self.learner_seconds = 0.0
-        with jax.default_device(self.jax_device):
-            super().__init__(*args, **kwargs)
-        if overlap and hasattr(self.env, "while_stepping"):
-            self.env.while_stepping = self.flush
-
-    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        """SBX's updates (one compiled call), or (``overlap``) deferred to the next env step
-        (:meth:`flush`)."""
-        if self.overlap and getattr(self.env, "while_stepping", None) == self.flush:
-            self._deferred += gradient_steps
-            return
-        self._update(gradient_steps, batch_size)
-
-    def flush(self) -> None:
-        """Run the deferred gradient updates now."""
-        n, self._deferred = self._deferred, 0
-        if n:
-            self._update(n, self.batch_size)
-
-    def _update(self, gradient_steps: int, batch_size: int) -> None:
-        t = time.perf_counter()
-        with jax.default_device(self.jax_device):
-            super().train(gradient_steps, batch_size)  # returns after reading the losses: all done
-        self.learner_seconds += time.perf_counter() - t
-
-    def predict(self, observation, state=None, episode_start=None, deterministic: bool = False):
-        """SB3's ``predict`` (actions in the env's action space), computed on :attr:`jax_device`."""
-        with jax.default_device(self.jax_device):
-            return super().predict(observation, state, episode_start, deterministic)
-
-
-def make_sac(env, cfg: SACConfig, seed: int | None = None) -> CodesignSAC:
-    """The SAC learner for a vectorised crawler env.
-
-    ``gradient_steps`` per vectorised step = ``round(cfg.utd_ratio * env.num_envs)`` (at least 1),
-    i.e. ``utd_ratio`` updates per transition (paper: 1), run in one compiled call. Networks: MLP
-    ``cfg.net_arch`` with ReLU for the actor and both critics; Adam (β1 0.9, β2 0.999, ε 1e-8:
-    optax's defaults, as torch's) at ``cfg.policy_lr`` for the actor and the temperature and
-    ``cfg.q_lr`` for the critics; automatic temperature with target entropy
-    ``cfg.target_entropy`` (−3 = −dim A); updates overlapped with the simulation if
-    ``cfg.overlap`` (:class:`CodesignSAC`), on JAX device ``cfg.device``. Its logger writes
-    nowhere until ``set_logger`` is called (SB3's default would create ``/tmp/SB3-<date>/``).
+def prepare_learner(cfg: SACConfig) -> None:
+    """Set the learner's CPU threads and check its device, before any learner is built and
+    before the env workers start.
 
     Raises:
-        ValueError: ``cfg.device`` is not a device this JAX can use (:func:`check_device`).
+        ValueError: ``cfg.device`` is not a device the learner can use.
     """
-    use_compilation_cache()
-    device = check_device(cfg.device)
-    grad_steps = max(1, round(cfg.utd_ratio * env.num_envs))
-    model = CodesignSAC(
-        "MlpPolicy", env,
-        learning_rate=cfg.policy_lr, qf_learning_rate=cfg.q_lr,
-        buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
-        tau=cfg.tau, gamma=cfg.gamma, train_freq=(1, "step"), gradient_steps=grad_steps,
-        ent_coef="auto", target_entropy=cfg.target_entropy,
-        replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"},
-        policy_kwargs={"net_arch": list(cfg.net_arch), "actor_class": Actor, "vector_critic_class": VectorCritic},
-        seed=seed, verbose=0, overlap=cfg.overlap, jax_device=device,
-    )
-    # a logger writing nowhere until the caller sets one: SB3's default makes /tmp/SB3-<date>/
-    model.set_logger(Logger(folder=None, output_formats=[]))
-    return model
+    module = learner_module(cfg.learner)
+    module.configure_threads(cfg.threads)
+    module.check_device(cfg.device)
 
 
-# -- the learner's state as arrays ---------------------------------------------------------------
-def _state_tree(model: CodesignSAC) -> dict:
-    """The learner's state as a pytree: actor (parameters, Adam state, step count), critics
-    (parameters, target parameters, Adam state), temperature (log α, Adam state) and the JAX
-    random keys of the updates (``key``) and of the exploration noise (``policy_key``,
-    ``noise_key``)."""
-    p = model.policy
-    return {"actor": p.actor_state, "qf": p.qf_state, "ent_coef": model.ent_coef_state,
-            "key": model.key, "policy_key": p.key, "noise_key": p.noise_key}
-
-
-def learner_state_bytes(model: CodesignSAC) -> bytes:
-    """:func:`_state_tree` of ``model`` as flax msgpack bytes (arrays, numbers and strings only)."""
-    return serialization.to_bytes(_state_tree(model))
-
-
-def decode_learner_state(data: bytes) -> dict:
-    """The nested dict of arrays that :func:`learner_state_bytes` wrote.
-
-    msgpack decodes into arrays, numbers, strings and containers only: an array of Python
-    objects cannot be decoded (numpy refuses ``frombuffer`` with an object dtype), and nothing
-    is unpickled.
+def make_sac(env, cfg: SACConfig, seed: int | None = None):
+    """The ``cfg.learner`` SAC learner for vectorised env ``env`` (its module's ``make_sac``).
 
     Raises:
-        ValueError: the bytes are not such a document.
+        ValueError: ``cfg.device`` is not a device the learner can use.
     """
-    try:
-        raw = serialization.msgpack_restore(data)
-    except Exception as exc:  # msgpack and dtype errors: all mean "not a learner state"
-        raise ValueError(f"not a learner state ({_first_line(exc)})") from None
-    if not isinstance(raw, dict) or set(raw) != {"actor", "qf", "ent_coef", "key", "policy_key", "noise_key"}:
-        raise ValueError("not a learner state (not the document learner_state_bytes writes)")
-    return raw
-
-
-def restore_learner_state(model: CodesignSAC, raw: dict) -> None:
-    """Put :func:`decode_learner_state` output into ``model`` (built with the same config):
-    every array must have the shape of the model's own and a numeric dtype.
-
-    Raises:
-        ValueError: a learner state of another network layout or config.
-    """
-    target = _state_tree(model)
-    try:
-        restored = serialization.from_state_dict(target, raw)
-    except Exception as exc:  # missing or extra keys
-        raise ValueError(f"not a learner state of this config ({_first_line(exc)})") from None
-    mine, theirs = jax.tree_util.tree_leaves(target), jax.tree_util.tree_leaves(restored)
-    if len(mine) != len(theirs):
-        raise ValueError("not a learner state of this config (another number of arrays)")
-    for a, b in zip(mine, theirs):
-        if np.shape(a) != np.shape(b) or np.asarray(b).dtype.kind not in "biuf":
-            raise ValueError(f"not a learner state of this config (a {np.asarray(b).dtype} array of shape "
-                             f"{np.shape(b)} where {np.shape(a)} was expected)")
-    restored = jax.device_put(restored, model.jax_device)
-    p = model.policy
-    p.actor_state, p.qf_state, model.ent_coef_state = restored["actor"], restored["qf"], restored["ent_coef"]
-    model.key, p.key, p.noise_key = restored["key"], restored["policy_key"], restored["noise_key"]
-
-
-def _first_line(exc: BaseException) -> str:
-    return str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+    return learner_module(cfg.learner).make_sac(env, cfg, seed)

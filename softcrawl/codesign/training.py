@@ -32,7 +32,7 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.factory import check_reduction, make_sampler, make_vec_env
 from softcrawl.codesign.randomization import DomainLog
 from softcrawl.codesign.run import Run
-from softcrawl.codesign.sac import check_device, configure_threads, make_sac
+from softcrawl.codesign.sac import make_sac, prepare_learner
 from softcrawl.codesign.sampler import GibbsDesignSampler
 
 
@@ -147,12 +147,10 @@ def _resume_point(run: Run) -> Path | None:
     """The checkpoint to resume from; None for a run that never logged anything.
 
     Raises:
-        ValueError: the run has history but no complete checkpoint, or checkpoints of the torch
-            learner (nothing is changed).
+        ValueError: the run has history but no complete checkpoint (nothing is changed).
     """
     ck = run.latest_checkpoint()
     if ck is None and run.has_history():
-        run.refuse_torch_learner()
         raise ValueError(f"cannot resume {run.path}: it has logged history but no complete checkpoint; "
                          "nothing was changed (start a new run with another --out)")
     return ck
@@ -185,6 +183,8 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
     if resume:
         cfg = run.read_config()
         ckpt = _resume_point(run)
+        if ckpt is not None:
+            cfg.sac.learner = run.checkpoint_learner(ckpt)  # the learner that wrote it
     else:
         if cfg is None:
             raise ValueError("a new run needs a config")
@@ -195,8 +195,7 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         ckpt = None
     if ray_address is not None and cfg.backend != "ray":
         raise ValueError(f"a Ray address is used only by backend \"ray\", not {cfg.backend!r}")
-    configure_threads(cfg.sac.threads)  # before JAX starts its CPU backend (check_device)
-    check_device(cfg.sac.device)  # before the workers start
+    prepare_learner(cfg.sac)  # threads before JAX / torch start; the device before the workers start
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
     sampler = make_sampler(cfg)
