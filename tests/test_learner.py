@@ -7,7 +7,6 @@ and cannot run code when read."""
 
 from __future__ import annotations
 
-import dataclasses
 import pickle
 
 import gymnasium as gym
@@ -17,8 +16,8 @@ import numpy as np
 import pytest
 
 from softcrawl.codesign.config import SACConfig
-from softcrawl.codesign.sac import make_sac
-from softcrawl.codesign.sac_jax import check_device, decode_learner_state, learner_state_bytes, restore_learner_state
+from softcrawl.codesign.sac_jax import (check_device, decode_learner_state, learner_state_bytes, make_sac,
+                                        restore_learner_state)
 from softcrawl.envs.backends import SerialBackend
 from softcrawl.envs.vec import DesignVecEnv
 
@@ -207,8 +206,8 @@ def _torch_weights_in_jax(torch_model, jax_model) -> None:
     actor = {"params": {f"Linear_{i}": dense(m) for i, m in enumerate(linears(a.latent_pi) + [a.mu, a.log_std])}}
     p = jax_model.policy
     for mine, theirs in ((p.actor_state.params, actor), (p.qf_state.params, critics(torch_model.critic))):
-        assert jax.tree_util.tree_structure(mine) == jax.tree_util.tree_structure(theirs)
-        assert all(x.shape == y.shape for x, y in zip(jax.tree_util.tree_leaves(mine), jax.tree_util.tree_leaves(theirs)))
+        shapes = jax.tree_util.tree_map(np.shape, mine), jax.tree_util.tree_map(np.shape, theirs)
+        assert shapes[0] == shapes[1]
     actor, qf = jax.tree_util.tree_map(jax.numpy.asarray, (actor, critics(torch_model.critic)))
     p.actor_state = p.actor_state.replace(params=actor, opt_state=p.actor_state.tx.init(actor))
     p.qf_state = p.qf_state.replace(params=qf, opt_state=p.qf_state.tx.init(qf),
@@ -240,8 +239,10 @@ def test_the_jax_updates_are_the_torch_learners(no_exploration_noise):
     import torch
     from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
+    from softcrawl.codesign import sac_torch
+
     cfg = SACConfig(buffer_size=200, batch_size=32, learning_starts=0, net_arch=(32, 16), overlap=False)
-    mt = make_sac(DesignVecEnv(SerialBackend([_Tiny])), dataclasses.replace(cfg, learner="torch"), seed=0)
+    mt = sac_torch.make_sac(DesignVecEnv(SerialBackend([_Tiny])), cfg, seed=0)
     mj = make_sac(DesignVecEnv(SerialBackend([_Tiny])), cfg, seed=0)
     _torch_weights_in_jax(mt, mj)
     rng = np.random.default_rng(1)
@@ -264,18 +265,19 @@ def test_the_jax_updates_are_the_torch_learners(no_exploration_noise):
 
 def test_fresh_networks_are_drawn_as_torchs():
     """Kernels and biases uniform on +-1/sqrt(fan_in) (torch's nn.Linear; flax's default would
-    be LeCun-normal kernels, sqrt(3) larger, and zero biases): the paper's first layer (44
-    inputs, 400 units) has std 1/sqrt(3 * 44) within 3%, and a fresh actor's mean actions and
-    log-stds are small (|mean| < 0.3, |log std| < 0.3 on random observations)."""
+    be LeCun-normal kernels, sqrt(3) larger in std, and zero biases): every array of the paper's
+    networks within the bound and without zeros, those of 400+ entries with the uniform's std
+    ``bound / sqrt(3)`` within 10% (4.5 standard errors at 400 entries); a fresh actor's mean
+    actions and log-stds are small (|mean| < 0.3, |log std| < 0.3 on random observations; with
+    flax's defaults they reached 0.46-0.87 and 0.41-0.72, seeds 0-2)."""
     model = make_sac(DesignVecEnv(SerialBackend([_Tiny])), SACConfig(buffer_size=10), seed=0)
     for tree in (model.policy.actor_state.params, model.policy.qf_state.params):
         for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
             leaf = np.asarray(leaf)
-            fan_in = leaf.shape[-2] if path[-1].key == "kernel" else tree_fan_in(tree, path)
-            assert np.abs(leaf).max() <= 1 / np.sqrt(fan_in)
-            assert np.abs(leaf).max() > 0.9 / np.sqrt(fan_in)  # biases too: not zeros
-    first = np.asarray(model.policy.actor_state.params["params"]["Linear_0"]["kernel"])
-    assert first.shape == (44, 400) and first.std() == pytest.approx(1 / np.sqrt(3 * 44), rel=0.03)
+            bound = 1 / np.sqrt(leaf.shape[-2] if path[-1].key == "kernel" else tree_fan_in(tree, path))
+            assert np.abs(leaf).max() <= bound and np.all(leaf != 0)
+            if leaf.size >= 400:
+                assert leaf.std() == pytest.approx(bound / np.sqrt(3), rel=0.1)
     obs = np.random.default_rng(0).uniform(-1, 1, (256, 44)).astype(np.float32)
     dist = model.policy.actor_state.apply_fn(model.policy.actor_state.params, obs)
     assert np.abs(np.asarray(dist.mean)).max() < 0.3 and np.abs(np.asarray(dist.log_std)).max() < 0.3

@@ -36,7 +36,8 @@ def trained(tmp_path_factory) -> Path:
     from softcrawl.codesign.training import train
 
     run = tmp_path_factory.mktemp("trained") / "run"
-    train(run, override(preset("smoke"), ["checkpoint_every=40", "keep_checkpoints=4"]), progress=False)
+    cfg = override(preset("smoke"), ["checkpoint_every=40", "keep_checkpoints=4", 'sac.learner="sbx"'])
+    train(run, cfg, progress=False)
     return run
 
 
@@ -552,11 +553,11 @@ def test_6_a_gpu_jax_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatc
 
     _no_gpu(monkeypatch)
     with pytest.raises(ValueError, match="sac.device='gpu:1'.*sees no GPU"):
-        train(tmp_path / "run", override(preset("smoke"), ['sac.device="gpu:1"']), progress=False)
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="gpu:1"', 'sac.learner="sbx"']), progress=False)
     assert not (tmp_path / "run").exists()
     _no_gpu(monkeypatch, gpus=["gpu0"])
     with pytest.raises(ValueError, match="sees 1 GPU"):
-        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"', 'sac.learner="sbx"']), progress=False)
     assert not (tmp_path / "run").exists()
 
 

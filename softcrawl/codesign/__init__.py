@@ -3,14 +3,16 @@ SAC learner and the training driver.
 
 Layers (each module imports only those above it; ``tests/test_import_graph.py`` checks the
 graph is acyclic): :mod:`~softcrawl.codesign.config` → :mod:`~softcrawl.codesign.distribution`,
-:mod:`~softcrawl.codesign.sampler`, :mod:`~softcrawl.codesign.sac` →
+:mod:`~softcrawl.codesign.sampler`, :mod:`~softcrawl.codesign.sac` (the learners:
+:mod:`~softcrawl.codesign.sac_jax` on :mod:`~softcrawl.codesign.sac_nets`,
+:mod:`~softcrawl.codesign.sac_torch`, both on :mod:`~softcrawl.codesign.overlap`) →
 :mod:`~softcrawl.codesign.run` (the run folder: layout, checkpoints, logs; the only module that
 builds a run's paths) and :mod:`~softcrawl.codesign.factory` (envs, robots, sampler of a config)
 → :mod:`~softcrawl.codesign.training` (writes runs) and :mod:`~softcrawl.codesign.evaluation` →
 :mod:`~softcrawl.codesign.report` (reads runs). Training does not import the report: ``softcrawl
 train`` writes it afterwards (:func:`softcrawl.cli.train.train_and_report`).
 
-Heavy modules (JAX / SBX / stable-baselines3: :mod:`softcrawl.codesign.sac`,
+Heavy modules (JAX / SBX / torch / stable-baselines3: the learners,
 :mod:`softcrawl.codesign.training`, :mod:`softcrawl.codesign.report`) are not imported here.
 """
 
