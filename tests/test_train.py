@@ -68,7 +68,7 @@ def test_run_config_saved_before_a_setting_reads_back_with_its_reference_value()
     d = preset("demo").to_dict()
     del d["sac"]["learner"]  # runs saved before sac.learner were the torch learner's
     assert TrainConfig.from_dict(json.loads(json.dumps(d))).sac.learner == "torch"
-    assert new.sac.learner == "sbx"
+    assert new.sac.learner == "torch"
     with pytest.raises(ValueError, match="sac.learner must be one of"):
         override(new, ['sac.learner="tf"'])
 
@@ -79,7 +79,8 @@ def test_sac_learns_one_update_per_transition():
     from softcrawl.codesign.sac import make_sac
 
     venv = DummyVecEnv([lambda: gym.make("Pendulum-v1")] * 2)
-    cfg = SACConfig(policy_lr=1e-3, q_lr=5e-3, learning_starts=20, batch_size=16, buffer_size=500, net_arch=(32, 16))
+    cfg = SACConfig(policy_lr=1e-3, q_lr=5e-3, learning_starts=20, batch_size=16, buffer_size=500, net_arch=(32, 16),
+                    learner="sbx")
     model = make_sac(venv, cfg, seed=0)
     assert model.gradient_steps == 2  # one update per transition with 2 envs
     model.learn(60)

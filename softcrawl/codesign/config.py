@@ -94,8 +94,8 @@ RANDOMIZE_BOUNDS: dict[str, tuple[float, float]] = {
 _BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250, "leg_collision_spacing": 0.0}
 _SAC_BEFORE_SETTING = {"learner": "torch"}
 TIMEOUTS = ("bootstrap", "terminal")
-#: The SAC learners (:mod:`softcrawl.codesign.sac`): SBX's SAC on JAX, stable-baselines3's on torch.
-LEARNERS = ("sbx", "torch")
+#: The SAC learners (:mod:`softcrawl.codesign.sac`): stable-baselines3's on torch, SBX's on JAX.
+LEARNERS = ("torch", "sbx")
 
 
 @dataclass
@@ -174,11 +174,11 @@ class EnvConfig:
 class SACConfig:
     """SAC hyper-parameters (paper table; see :mod:`softcrawl.codesign.sac`).
 
-    ``learner``: ``"sbx"`` (SBX's SAC on JAX, :mod:`softcrawl.codesign.sac_jax`) or ``"torch"``
-    (stable-baselines3's, :mod:`softcrawl.codesign.sac_torch`): the same updates; a run's
-    checkpoints are read by the learner that wrote them. ``timeout``: ``"bootstrap"`` (time
-    limit is a truncation, default) or ``"terminal"`` (reference implementation). ``overlap``:
-    run the gradient updates of a vectorised step while the envs simulate the next one (the
+    ``learner``: ``"torch"`` (stable-baselines3's SAC, :mod:`softcrawl.codesign.sac_torch`;
+    the default) or ``"sbx"`` (SBX's SAC on JAX, :mod:`softcrawl.codesign.sac_jax`): the same
+    updates; a run's checkpoints are read by the learner that wrote them. ``timeout``:
+    ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"`` (reference
+    implementation). ``overlap``: run the gradient updates of a vectorised step while the envs simulate the next one (the
     policy acting lags one vectorised step behind the updates). ``threads``: CPU threads of
     the learner (XLA's and torch's; 1: the simulation has the other cores; more where cores are
     plentiful; set when the learner's library starts in the process,
@@ -201,7 +201,7 @@ class SACConfig:
     overlap: bool = True
     threads: int = 1
     device: str = "cpu"
-    learner: str = "sbx"
+    learner: str = "torch"
 
 
 @dataclass
