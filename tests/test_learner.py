@@ -21,76 +21,44 @@ from softcrawl.codesign.sac_jax import (check_device, decode_learner_state, lear
 from softcrawl.envs.backends import SerialBackend
 from softcrawl.envs.vec import DesignVecEnv
 
-
-class _Tiny(gym.Env):
-    """Episodes of 5 steps with the crawler's spaces (44 observations, 3 actions)."""
-
-    observation_space = gym.spaces.Box(-1, 1, (44,), np.float32)
-    action_space = gym.spaces.Box(-1, 1, (3,), np.float32)
-
-    def reset(self, *, seed=None, options=None):
-        self.k = 0
-        return np.zeros(44, np.float32), {}
-
-    def step(self, a):
-        self.k += 1
-        return np.full(44, 0.1 * self.k, np.float32), float(a[0]), False, self.k >= 5, {}
+from helpers import continued_and_restored, filled_learner, tiny_env_class, update_spy
 
 
-class _Spy(SerialBackend):
-    """Counts the gradient updates made while a step is in flight (between send and receive)."""
-
-    def __init__(self, fns):
-        super().__init__(fns)
-        self.in_flight, self.model, self.during = False, None, 0
-
-    def step_send(self, actions):
-        super().step_send(actions)
-        self.in_flight, self.before = True, self.model._n_updates
-
-    def step_recv(self):
-        self.during += self.model._n_updates - self.before
-        self.in_flight = False
-        return super().step_recv()
+_Tiny = tiny_env_class()
 
 
+@pytest.mark.parametrize("learner", ["sbx", "torch"])
 @pytest.mark.parametrize("overlap", [False, True])
-def test_overlapped_updates_follow_the_schedule_in_one_compiled_call_per_step(overlap):
-    backend = _Spy([_Tiny] * 2)
+def test_overlapped_updates_follow_the_schedule(overlap, learner):
+    """Both learners; the JAX one makes a vectorised step's updates in one compiled call."""
+    from softcrawl.codesign.sac import learner_module
+
+    backend = update_spy([_Tiny] * 2)
     venv = DesignVecEnv(backend)
     cfg = SACConfig(buffer_size=200, batch_size=8, learning_starts=10, net_arch=(8,), overlap=overlap)
-    model = make_sac(venv, cfg, seed=0)
+    model = learner_module(learner).make_sac(venv, cfg, seed=0)
     backend.model = model
     calls = []
-    compiled = model._train  # SBX's jitted fori_loop over the gradient steps
+    if learner == "sbx":
+        compiled = model._train  # SBX's jitted fori_loop over the gradient steps
 
-    def spy(*args, **kwargs):
-        calls.append(args[2])  # gradient_steps
-        return compiled(*args, **kwargs)
+        def spy(*args, **kwargs):
+            calls.append(args[2])  # gradient_steps
+            return compiled(*args, **kwargs)
 
-    model._train = spy
+        model._train = spy
     model.learn(total_timesteps=40)
     model.flush()
     # one update per transition after learning_starts: 2 per vectorised step of 2 envs; the
-    # first come after step 6 (12 transitions > 10), the last after step 20: 15 x 2, in one
-    # compiled call per vectorised step
-    assert model._n_updates == 30 and calls == [2] * 15
+    # first come after step 6 (12 transitions > 10), the last after step 20: 15 x 2 (the JAX
+    # learner: in one compiled call per vectorised step)
+    assert model._n_updates == 30 and calls == ([2] * 15 if learner == "sbx" else [])
     if overlap:
         # all but the last step's updates ran while the next step was simulated
         assert backend.during == 30 - 2 and model._deferred == 0
     else:
         assert backend.during == 0
     assert model.learner_seconds > 0
-
-
-def _filled(cfg: SACConfig, n: int = 64):
-    model = make_sac(DesignVecEnv(SerialBackend([_Tiny])), cfg, seed=0)
-    rng = np.random.default_rng(0)
-    for _ in range(n):
-        o = rng.uniform(-1, 1, (1, 44)).astype(np.float32)
-        model.replay_buffer.add(o, o, rng.uniform(-1, 1, (1, 3)), rng.uniform(-1, 1, 1), np.zeros(1), [{}])
-    model._setup_learn(1)
-    return model
 
 
 _SMALL = SACConfig(buffer_size=200, batch_size=16, learning_starts=0, net_arch=(16, 8), overlap=False,
@@ -104,7 +72,7 @@ def _leaves(model) -> list[np.ndarray]:
 
 
 def test_split_learning_rates_and_network_layout():
-    model = _filled(_SMALL)
+    model = filled_learner(make_sac, _SMALL)
     model.train(gradient_steps=3, batch_size=16)
     p = model.policy
     assert float(p.actor_state.opt_state.hyperparams["learning_rate"]) == pytest.approx(1e-3)
@@ -115,23 +83,17 @@ def test_split_learning_rates_and_network_layout():
     widths = [actor[k]["kernel"].shape[1] for k in sorted(actor) if k.startswith("Linear")]
     assert widths[:2] == [16, 8]  # hidden layers; then the mean and log-std heads (3 each)
     assert model.replay_buffer.handle_timeout_termination
-    assert not _filled(SACConfig(timeout="terminal", buffer_size=100, net_arch=(8,))).replay_buffer \
-        .handle_timeout_termination
+    terminal = filled_learner(make_sac, SACConfig(timeout="terminal", buffer_size=100, net_arch=(8,)))
+    assert not terminal.replay_buffer.handle_timeout_termination
 
 
 def test_a_restored_learner_continues_to_the_bit():
     """Learner state written after 5 updates and read into a fresh learner: the next 5 updates
     (same replay sample: numpy's RNG restored as a checkpoint does) give the same networks,
     optimizer states, temperature and keys, and the same actions, as the learner that went on."""
-    a = _filled(_SMALL)
-    np.random.seed(1)
-    a.train(gradient_steps=5, batch_size=16)
-    data, rng = learner_state_bytes(a), np.random.get_state()
-    a.train(gradient_steps=5, batch_size=16)
-    b = _filled(_SMALL)
-    restore_learner_state(b, decode_learner_state(data))
-    np.random.set_state(rng)
-    b.train(gradient_steps=5, batch_size=16)
+    from softcrawl.codesign import sac_jax
+
+    a, b = continued_and_restored(sac_jax, _SMALL)
     assert all(np.array_equal(x, y) for x, y in zip(_leaves(a), _leaves(b)))
     obs = np.linspace(-1, 1, 44, dtype=np.float32)
     assert np.array_equal(a.predict(obs, deterministic=True)[0], b.predict(obs, deterministic=True)[0])
@@ -161,8 +123,8 @@ def test_a_crafted_learner_file_cannot_run_code(tmp_path):
     with pytest.raises(ValueError, match="not a learner state"):
         decode_learner_state(crafted)
     assert not marker.exists()
-    model = _filled(_SMALL)
-    other = _filled(SACConfig(buffer_size=200, batch_size=16, learning_starts=0, net_arch=(16, 4), overlap=False))
+    model = filled_learner(make_sac, _SMALL)
+    other = filled_learner(make_sac, SACConfig(buffer_size=200, batch_size=16, net_arch=(16, 4), overlap=False))
     with pytest.raises(ValueError, match="of this config"):
         restore_learner_state(model, decode_learner_state(learner_state_bytes(other)))
 

@@ -5,7 +5,7 @@ Layers (each module imports only those above it; ``tests/test_import_graph.py`` 
 graph is acyclic): :mod:`~softcrawl.codesign.config` → :mod:`~softcrawl.codesign.distribution`,
 :mod:`~softcrawl.codesign.sampler`, :mod:`~softcrawl.codesign.sac` (the learners:
 :mod:`~softcrawl.codesign.sac_jax` on :mod:`~softcrawl.codesign.sac_nets`,
-:mod:`~softcrawl.codesign.sac_torch`, both on :mod:`~softcrawl.codesign.overlap`) →
+:mod:`~softcrawl.codesign.sac_torch`, both on :mod:`~softcrawl.codesign.sac_common`) →
 :mod:`~softcrawl.codesign.run` (the run folder: layout, checkpoints, logs; the only module that
 builds a run's paths) and :mod:`~softcrawl.codesign.factory` (envs, robots, sampler of a config)
 → :mod:`~softcrawl.codesign.training` (writes runs) and :mod:`~softcrawl.codesign.evaluation` →

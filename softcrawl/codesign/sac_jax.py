@@ -27,7 +27,7 @@ from sbx import SAC
 from stable_baselines3.common.logger import Logger
 
 from softcrawl.codesign.config import SACConfig
-from softcrawl.codesign.overlap import OverlappedUpdates
+from softcrawl.codesign.sac_common import OverlappedUpdates, sb3_arguments
 from softcrawl.codesign.sac_nets import Actor, VectorCritic, actor_step, critic_step
 
 _DEVICE = re.compile(r"(cpu|gpu|cuda)(?::(\d+))?")
@@ -128,12 +128,12 @@ class CodesignSAC(OverlappedUpdates, SAC):
 def make_sac(env, cfg: SACConfig, seed: int | None = None) -> CodesignSAC:
     """The SAC learner for a vectorised crawler env.
 
-    ``gradient_steps`` per vectorised step = ``round(cfg.utd_ratio * env.num_envs)`` (at least 1),
-    i.e. ``utd_ratio`` updates per transition (paper: 1), run in one compiled call. Networks: MLP
-    ``cfg.net_arch`` with ReLU for the actor and both critics; Adam (β1 0.9, β2 0.999, ε 1e-8:
-    optax's defaults, as torch's) at ``cfg.policy_lr`` for the actor and the temperature and
-    ``cfg.q_lr`` for the critics; automatic temperature with target entropy
-    ``cfg.target_entropy`` (−3 = −dim A); updates overlapped with the simulation if
+    SB3's settings from ``cfg`` (:func:`~softcrawl.codesign.sac_common.sb3_arguments`: update
+    ratio, temperature, time limit); the updates of a vectorised step in one compiled call.
+    Networks: MLP ``cfg.net_arch`` with ReLU for the actor and both critics
+    (:mod:`~softcrawl.codesign.sac_nets`); Adam (β1 0.9, β2 0.999, ε 1e-8: optax's defaults, as
+    torch's) at ``cfg.policy_lr`` for the actor and the temperature and ``cfg.q_lr`` for the
+    critics; updates overlapped with the simulation if
     ``cfg.overlap`` (:class:`CodesignSAC`), on JAX device ``cfg.device``. Its logger writes
     nowhere until ``set_logger`` is called (SB3's default would create ``/tmp/SB3-<date>/``).
 
@@ -142,16 +142,10 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> CodesignSAC:
     """
     use_compilation_cache()
     device = check_device(cfg.device)
-    grad_steps = max(1, round(cfg.utd_ratio * env.num_envs))
     model = CodesignSAC(
-        "MlpPolicy", env,
-        learning_rate=cfg.policy_lr, qf_learning_rate=cfg.q_lr,
-        buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
-        tau=cfg.tau, gamma=cfg.gamma, train_freq=(1, "step"), gradient_steps=grad_steps,
-        ent_coef="auto", target_entropy=cfg.target_entropy,
-        replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"},
+        "MlpPolicy", env, learning_rate=cfg.policy_lr, qf_learning_rate=cfg.q_lr,
         policy_kwargs={"net_arch": list(cfg.net_arch), "actor_class": Actor, "vector_critic_class": VectorCritic},
-        seed=seed, verbose=0, overlap=cfg.overlap, jax_device=device,
+        seed=seed, overlap=cfg.overlap, jax_device=device, **sb3_arguments(env, cfg),
     )
     # a logger writing nowhere until the caller sets one: SB3's default makes /tmp/SB3-<date>/
     model.set_logger(Logger(folder=None, output_formats=[]))

@@ -15,7 +15,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.logger import Logger
 
 from softcrawl.codesign.config import SACConfig
-from softcrawl.codesign.overlap import OverlappedUpdates
+from softcrawl.codesign.sac_common import OverlappedUpdates, sb3_arguments
 
 
 class SplitLRSAC(OverlappedUpdates, SAC):
@@ -84,10 +84,9 @@ def check_device(device: str) -> None:
 def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
     """The SAC learner for a vectorised crawler env.
 
-    ``gradient_steps`` per vectorised step = ``round(cfg.utd_ratio * env.num_envs)`` (at least 1),
-    i.e. ``utd_ratio`` updates per transition (paper: 1). Networks: MLP ``cfg.net_arch`` with ReLU
-    for the actor and both critics; Adam(β1 0.9, β2 0.999); automatic temperature with target
-    entropy ``cfg.target_entropy`` (−3 = −dim A); updates overlapped with the simulation if
+    SB3's settings from ``cfg`` (:func:`~softcrawl.codesign.sac_common.sb3_arguments`: update
+    ratio, temperature, time limit). Networks: MLP ``cfg.net_arch`` with ReLU for the actor and
+    both critics; Adam(β1 0.9, β2 0.999); updates overlapped with the simulation if
     ``cfg.overlap`` (:class:`SplitLRSAC`), on torch device ``cfg.device``. Its logger writes
     nowhere until ``set_logger`` is called (SB3's default would create ``/tmp/SB3-<date>/``).
 
@@ -95,16 +94,10 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> SplitLRSAC:
         ValueError: ``cfg.device`` is a GPU this torch cannot use.
     """
     check_device(cfg.device)
-    grad_steps = max(1, round(cfg.utd_ratio * env.num_envs))
     model = SplitLRSAC(
-        "MlpPolicy", env,
-        learning_rate=cfg.policy_lr, q_learning_rate=cfg.q_lr,
-        buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
-        tau=cfg.tau, gamma=cfg.gamma, train_freq=(1, "step"), gradient_steps=grad_steps,
-        ent_coef="auto", target_entropy=cfg.target_entropy,
-        replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"},
+        "MlpPolicy", env, learning_rate=cfg.policy_lr, q_learning_rate=cfg.q_lr,
         policy_kwargs={"net_arch": list(cfg.net_arch), "optimizer_kwargs": {"betas": (0.9, 0.999)}},
-        seed=seed, device=_torch_device(cfg.device), verbose=0, overlap=cfg.overlap,
+        seed=seed, device=_torch_device(cfg.device), overlap=cfg.overlap, **sb3_arguments(env, cfg),
     )
     # a logger writing nowhere until the caller sets one: SB3's default makes /tmp/SB3-<date>/
     model.set_logger(Logger(folder=None, output_formats=[]))

@@ -1,9 +1,25 @@
-"""Gradient updates overlapped with the simulation, shared by both SAC learners
-(:mod:`softcrawl.codesign.sac`)."""
+"""What both SAC learners (:mod:`softcrawl.codesign.sac`) share: their stable-baselines3
+settings from a :class:`SACConfig`, and gradient updates overlapped with the simulation."""
 
 from __future__ import annotations
 
 import time
+
+from softcrawl.codesign.config import SACConfig
+
+
+def sb3_arguments(env, cfg: SACConfig) -> dict:
+    """The keyword arguments of SB3's (and SBX's) ``SAC`` that both learners take from ``cfg``
+    for vectorised env ``env``: ``gradient_steps`` per vectorised step =
+    ``round(cfg.utd_ratio * env.num_envs)`` (at least 1), i.e. ``utd_ratio`` updates per
+    transition (paper: 1); automatic temperature (initial 1) with target entropy
+    ``cfg.target_entropy`` (-3 = -dim A); the time limit bootstrapped unless ``cfg.timeout``
+    is ``"terminal"``."""
+    return dict(
+        buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts, batch_size=cfg.batch_size,
+        tau=cfg.tau, gamma=cfg.gamma, train_freq=(1, "step"),
+        gradient_steps=max(1, round(cfg.utd_ratio * env.num_envs)), ent_coef="auto", target_entropy=cfg.target_entropy,
+        replay_buffer_kwargs={"handle_timeout_termination": cfg.timeout == "bootstrap"}, verbose=0)
 
 
 class OverlappedUpdates:
