@@ -111,7 +111,7 @@ def test_the_torch_learner_trains_checkpoints_and_evaluates(tmp_path):
     saved["config"]["sac"]["learner"] = "sbx"
     (tmp_path / "run" / "config.json").write_text(json.dumps(saved))
     assert evaluate_policy(tmp_path / "run", "1,0,0,2,2,0,0,0").returns_cm == on_torch
-    jax_learner = make_sac(DummyVecEnv([lambda: gym.make("Pendulum-v1")]), SACConfig(buffer_size=10))
+    jax_learner = make_sac(DummyVecEnv([lambda: gym.make("Pendulum-v1")]), SACConfig(buffer_size=10, learner="sbx"))
     with pytest.raises(ValueError, match="a checkpoint of the 'torch' learner, read into the 'sbx' one"):
         r.load_learner(ck, jax_learner)
 
