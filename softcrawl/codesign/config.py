@@ -178,9 +178,9 @@ class SACConfig:
     the default) or ``"sbx"`` (SBX's SAC on JAX, :mod:`softcrawl.codesign.sac_jax`): the same
     updates; a run's checkpoints are read by the learner that wrote them. ``timeout``:
     ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"`` (reference
-    implementation). ``overlap``: run the gradient updates of a vectorised step while the envs simulate the next one (the
-    policy acting lags one vectorised step behind the updates). ``threads``: CPU threads of
-    the learner (XLA's and torch's; 1: the simulation has the other cores; more where cores are
+    implementation). ``overlap``: run the gradient updates of a vectorised step while the
+    envs simulate the next one (the policy acting lags one vectorised step behind the
+    updates). ``threads``: CPU threads of the learner (XLA's and torch's; 1: the simulation has the other cores; more where cores are
     plentiful; set when the learner's library starts in the process,
     :func:`softcrawl.codesign.sac.prepare_learner`). ``device``: where the networks and their
     updates are, ``"cpu"`` or ``"gpu"`` / ``"gpu:N"`` (``"cuda"`` / ``"cuda:N"`` are read as

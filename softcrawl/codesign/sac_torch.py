@@ -28,7 +28,7 @@ class SplitLRSAC(OverlappedUpdates, SAC):
     critics' weights are frozen from their optimizer's step to the actor optimizer's step
     (optimizer hooks), so the actor's backward pass skips their weight gradients, which SB3
     computes and then discards (about 11% of an update's matrix products; updates 1.15-1.19x
-    faster, ``CHANGELOG.md``, and the same to the bit, ``tests/test_learner.py``).
+    faster, ``CHANGELOG.md``, and the same to the bit, ``tests/test_learner_torch.py``).
     Everything else is SB3's SAC.
 
     Attributes:
