@@ -94,8 +94,8 @@ RANDOMIZE_BOUNDS: dict[str, tuple[float, float]] = {
 _BEFORE_SETTING = {"rid_dtype": "float64", "contact_max_iterations": 250, "leg_collision_spacing": 0.0}
 _SAC_BEFORE_SETTING = {"learner": "torch"}
 TIMEOUTS = ("bootstrap", "terminal")
-#: The SAC learners (:mod:`softcrawl.codesign.sac`): stable-baselines3's on torch, SBX's on JAX.
-LEARNERS = ("torch", "sbx")
+#: The SAC learners (:mod:`softcrawl.codesign.sac`): SBX's on JAX, stable-baselines3's on torch.
+LEARNERS = ("sbx", "torch")
 
 
 @dataclass
@@ -174,8 +174,8 @@ class EnvConfig:
 class SACConfig:
     """SAC hyper-parameters (paper table; see :mod:`softcrawl.codesign.sac`).
 
-    ``learner``: ``"torch"`` (stable-baselines3's SAC, :mod:`softcrawl.codesign.sac_torch`;
-    the default) or ``"sbx"`` (SBX's SAC on JAX, :mod:`softcrawl.codesign.sac_jax`): the same
+    ``learner``: ``"sbx"`` (SBX's SAC on JAX, :mod:`softcrawl.codesign.sac_jax`; the default)
+    or ``"torch"`` (stable-baselines3's SAC, :mod:`softcrawl.codesign.sac_torch`): the same
     updates; a run's checkpoints are read by the learner that wrote them. ``timeout``:
     ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"`` (reference
     implementation). ``overlap``: run the gradient updates of a vectorised step while the
@@ -201,7 +201,7 @@ class SACConfig:
     overlap: bool = True
     threads: int = 1
     device: str = "cpu"
-    learner: str = "torch"
+    learner: str = "sbx"
 
 
 @dataclass

@@ -4,11 +4,11 @@ al. 2018, "Soft Actor-Critic Algorithms and Applications", section 5).
 
 Two learners run the same updates, ``sac.learner``:
 
-* ``"torch"`` (the default; :mod:`softcrawl.codesign.sac_torch`): stable-baselines3's SAC;
-  checkpoints read with ``torch.load(weights_only=True)``.
-* ``"sbx"`` (:mod:`softcrawl.codesign.sac_jax`): SBX's SAC on JAX, all gradient updates due
-  after a vectorised step in one compiled call, stable-baselines3's networks and losses
-  (:mod:`softcrawl.codesign.sac_nets`); checkpoints of arrays (flax msgpack).
+* ``"sbx"`` (the default; :mod:`softcrawl.codesign.sac_jax`): SBX's SAC on JAX, all gradient
+  updates due after a vectorised step in one compiled call, stable-baselines3's networks and
+  losses (:mod:`softcrawl.codesign.sac_nets`); checkpoints of arrays (flax msgpack).
+* ``"torch"`` (:mod:`softcrawl.codesign.sac_torch`): stable-baselines3's SAC; checkpoints read
+  with ``torch.load(weights_only=True)``.
 
 Given the same weights, batches and noise their updates agree to float32 rounding
 (``tests/test_learner.py``).
@@ -30,7 +30,7 @@ from softcrawl.codesign.config import LEARNERS, SACConfig
 
 
 def learner_module(name: str) -> ModuleType:
-    """The module of learner ``name`` (``"torch"`` or ``"sbx"``), imported now (JAX or torch).
+    """The module of learner ``name`` (``"sbx"`` or ``"torch"``), imported now (JAX or torch).
 
     Each has ``make_sac``, ``configure_threads``, ``check_device``, ``learner_state_bytes``,
     ``decode_learner_state`` and ``restore_learner_state``.
