@@ -1,31 +1,42 @@
-"""Co-design throughput: SAC gradient updates per second (paper networks, CPU, 1 thread) and
-crawler-env transitions per second, and from them the projected wall time of the ``paper``
-preset (1M transitions, one update per transition) on this machine and on 32 cores. Prints JSON.
+"""Co-design throughput: SAC gradient updates per second of the learner (paper networks, batch
+512) and crawler-env transitions per second, and from them the projected wall time of the
+``paper`` preset (1M transitions, one update per transition) on this machine and on 32 cores.
+Prints JSON.
+
+Learners (``--learner``, ``sac.learner``): ``sbx`` (SBX's SAC on JAX, all gradient steps of a
+vectorised step in one compiled call: ``--grad-steps``, default 96 = the paper's envs) and
+``torch`` (stable-baselines3's SAC with the split learning rates and the critics' weights frozen
+during the actor's step); ``both`` (the default) measures them in one run, alternating
+``--repeats`` blocks of ``--updates`` updates each, and reports their ratio per wall second and
+per CPU second of this process (the latter is what a shared machine cannot skew: one thread,
+``--threads``, each).
 
 Projection: wall = transitions x (sim seconds per transition / cores + seconds per update):
-simulation parallel over cores, learning serial in the learner process (SB3 SAC on one thread).
+simulation parallel over cores, learning serial in the learner process.
 
 Components (one env in-process, SAC on a dummy env):
-  OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--batch 512] [--updates 200]
-       [--threads 1] [--device cpu] [--autocast none|bf16]
+  OMP_NUM_THREADS=1 python benchmarks/train_throughput.py [--learner both|sbx|torch] [--batch 512]
+       [--updates 192] [--grad-steps 96] [--repeats 3] [--threads 1] [--device cpu|gpu|gpu:N]
        [--model full|reduced --leg-mesh 16 --disk-mesh 25 --refactor-every 5 --steps-per-action 2
-        --actions 20] [--design 1,0,0,2,2,0,0,0]
+        --actions 20] [--design 1,0,0,2,2,0,0,0] [--no-env]
   Paper's env: --model reduced --leg-mesh 6 --disk-mesh 10 --steps-per-action 100
+  The learner on a GPU: --learner sbx --device gpu --no-env
 
 End to end (``softcrawl train`` itself: ``--preset`` (default ``paper``) with ``--n-envs`` envs in
 one worker process per core, learning from the second round of transitions on, ``--rounds``
-rounds):
+rounds; ``--learner both`` runs the torch learner, then the JAX one, same seed, one after the other):
   OMP_NUM_THREADS=1 python benchmarks/train_throughput.py --end-to-end --n-envs 96 --rounds 6
-       [--stepping batched|serial|both] [--preset paper|reference|crawl|demo] [--set KEY=VALUE]
-       [--no-overlap] [--learner-cost]
+       [--learner sbx|torch|both] [--stepping batched|serial|both] [--preset paper|reference|crawl|demo]
+       [--set KEY=VALUE] [--no-overlap] [--learner-cost]
 ``--set backend='"jax"'``: all envs one batch of the JAX engine in the learner's process on JAX's
 default device (``--stepping`` does not apply; ``jax_precision`` as set, float64 by default).
 ``--stepping``: workers step their envs' robots as one batch (``batched``, the default of
 :class:`softcrawl.envs.backends.subprocess.SubprocessBackend`) or one env after another (``serial``); ``both``
 runs the two one after the other in this process (same seed, same designs) and reports each and
 their ratio. Each run reports the wall seconds of its gradient updates (overlapped with the
-simulation unless ``--no-overlap``), the largest worker RSS and the workers' CPU seconds
-(sampled every 0.5 s).
+simulation unless ``--no-overlap``), the learner process's CPU seconds, the largest worker RSS and
+the workers' CPU seconds (sampled every 0.5 s); ``learner_cpu_share`` is the learner process's
+share of all CPU seconds used.
 ``--learner-cost`` also runs the same without any update: the learner's share of the wall time is
 ``1 - wall(no updates) / wall(updates)``, and the ``paper`` preset is projected from the
 simulation-only rate and the learner's rate (overlapped: the larger of the two; serial: their sum).
@@ -38,7 +49,9 @@ import json
 import os
 import platform
 import resource
+import statistics
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -48,21 +61,18 @@ from softcrawl.envs import BuildRobot, CrawlerEnv
 from softcrawl.envs.backends import SerialBackend
 from softcrawl.robot import RobotConfig
 
-# torch, stable-baselines3 and what imports them are imported in the functions that use them:
-# the env workers re-run this module's top-level imports (forkserver/spawn), and the peak
-# worker RSS this benchmark reports should be that of a training worker, which has no torch.
+# JAX, torch, stable-baselines3 and what imports them are imported in the functions that use
+# them: the env workers re-run this module's top-level imports (forkserver/spawn), and the peak
+# worker RSS this benchmark reports should be that of a training worker, which has neither.
 
 
-def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100), device: str = "cpu",
-                      autocast: str = "none") -> float:
-    """Gradient updates/s of SAC on a filled replay buffer (observations 44, actions 3) on torch
-    ``device``; ``autocast="bf16"`` runs the updates under ``torch.autocast`` in bfloat16 (a probe
-    of what a lower-precision learner would cost: no preset trains that way)."""
-    import contextlib
-
+def _learner_on_dummy(learner: str, batch: int, net_arch, device: str):
+    """A learner of kind ``learner`` ("sbx" or "torch") on a one-env dummy with the crawler's
+    spaces (observations 44, actions 3) and a replay buffer of 4 batches of random data."""
     import gymnasium as gym
-    import torch
     from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from softcrawl.codesign.sac import make_sac
 
     class Dummy(gym.Env):
         observation_space = gym.spaces.Box(-1, 1, (44,), np.float32)
@@ -74,22 +84,46 @@ def sac_updates_per_s(batch: int, updates: int, net_arch=(400, 200, 100), device
         def step(self, a):
             return self.observation_space.sample(), 0.0, False, False, {}
 
-    from softcrawl.codesign.sac import make_sac
-
-    model = make_sac(DummyVecEnv([Dummy]), SACConfig(batch_size=batch, buffer_size=10_000, net_arch=tuple(net_arch),
-                                                    device=device))
+    cfg = SACConfig(batch_size=batch, buffer_size=10_000, net_arch=tuple(net_arch), device=device, overlap=False,
+                    learner=learner)
+    model = make_sac(DummyVecEnv([Dummy]), cfg, seed=0)
     rb, rng = model.replay_buffer, np.random.default_rng(0)
-    for _ in range(2 * batch):
+    for _ in range(4 * batch):
         o = rng.uniform(-1, 1, (1, 44)).astype(np.float32)
         rb.add(o, o, rng.uniform(-1, 1, (1, 3)), np.zeros(1), np.zeros(1), [{}])
     model._setup_learn(1)
-    precision = (torch.autocast(torch.device(device).type, dtype=torch.bfloat16) if autocast == "bf16"
-                 else contextlib.nullcontext())
-    with precision:
-        model.train(gradient_steps=5, batch_size=batch)  # warm-up
-        t = time.perf_counter()
-        model.train(gradient_steps=updates, batch_size=batch)
-    return updates / (time.perf_counter() - t)
+    return model
+
+
+def sac_updates_per_s(learners, batch: int, updates: int, grad_steps: int = 96, repeats: int = 1,
+                      net_arch=(400, 200, 100), device: str = "cpu") -> dict:
+    """Gradient updates per wall second and per CPU second of this process for each learner of
+    ``learners`` (``"sbx"``, ``"torch"``), on the device ``device`` (torch's ``cuda`` for
+    ``gpu``), in ``repeats`` rounds that alternate the learners (each round runs ``updates``
+    updates of each: the JAX one in calls of ``grad_steps`` compiled updates, the torch one as
+    SB3 makes them). Medians over the rounds; the first call of each (compilation,
+    warm-up) is not timed."""
+    models = {k: _learner_on_dummy(k, batch, net_arch, device) for k in learners}
+    per_call = {k: grad_steps if k == "sbx" else updates for k in learners}
+    for k, m in models.items():
+        m.train(gradient_steps=per_call[k], batch_size=batch)  # compile / warm up
+    wall, cpu = {k: [] for k in learners}, {k: [] for k in learners}
+    for _ in range(repeats):
+        for k, m in models.items():
+            calls = max(1, updates // per_call[k])
+            t, c = time.perf_counter(), time.process_time()
+            for _ in range(calls):
+                m.train(gradient_steps=per_call[k], batch_size=batch)  # returns when its updates are done
+            wall[k].append(calls * per_call[k] / (time.perf_counter() - t))
+            cpu[k].append(calls * per_call[k] / (time.process_time() - c))
+    out = {k: {"updates_per_s": statistics.median(wall[k]), "updates_per_cpu_s": statistics.median(cpu[k]),
+               "rounds_updates_per_s": wall[k], "grad_steps_per_call": per_call[k]} for k in learners}
+    if len(learners) == 2:
+        out["sbx_over_torch"] = {
+            "updates_per_s": out["sbx"]["updates_per_s"] / out["torch"]["updates_per_s"],
+            "updates_per_cpu_s": out["sbx"]["updates_per_cpu_s"] / out["torch"]["updates_per_cpu_s"],
+            "rounds_updates_per_s": [a / b for a, b in zip(wall["sbx"], wall["torch"])]}
+    return out
 
 
 def env_rates(args) -> dict:
@@ -147,11 +181,12 @@ class WorkerMemory:
         self._thread.join()
 
 
-def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
+def end_to_end(args, batched: bool = True, updates: bool = True, learner: str = "sbx") -> dict:
     """Transitions/s of :func:`softcrawl.codesign.training.train` (preset ``args.preset``,
     ``n_envs`` envs, learning from the second round on, or never if not ``updates``; workers
-    step their robots as one batch if ``batched``), the wall seconds of its gradient updates
-    (overlapped with the simulation unless ``--no-overlap``) and the peak worker RSS."""
+    step their robots as one batch if ``batched``; the ``learner``, "sbx" or "torch"), the wall
+    seconds of its gradient updates (overlapped with the simulation unless ``--no-overlap``),
+    the CPU seconds of the learner process and of the workers, and the peak worker RSS."""
     import tempfile
 
     import softcrawl.envs.backends.subprocess as subprocess_backend
@@ -163,13 +198,16 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
     sets = [f"n_envs={n}", f"total_steps={total}", f"sac.learning_starts={n if updates else total}",
             f"checkpoint_every={10 * total}", f"snapshot_every={n}", f"sac.overlap={str(not args.no_overlap).lower()}"]
     cfg = override(preset(args.preset), sets + list(args.set or []))
+    cfg = replace(cfg, sac=replace(cfg.sac, learner=learner))
     subprocess_backend.BATCHED_WORKERS = batched
     cpu0 = time.process_time()
     with tempfile.TemporaryDirectory() as tmp, WorkerMemory() as memory:
         res = train(f"{tmp}/run", cfg, progress=True)
     sim_s_per_transition = res.wall_seconds / res.steps
     cores = os.cpu_count()
-    return {"preset": args.preset, "backend": cfg.backend, "stepping": "batched" if batched else "serial", "n_envs": n,
+    learner_cpu = time.process_time() - cpu0
+    return {"preset": args.preset, "learner": learner, "backend": cfg.backend,
+            "stepping": "batched" if batched else "serial", "n_envs": n,
             "transitions": res.steps, "updates": res.updates, "overlap": cfg.sac.overlap, "wall_s": res.wall_seconds,
             "transitions_per_s": res.steps / res.wall_seconds, "learner_s": res.learner_seconds,
             "learner_share_of_wall_upper_bound": res.learner_seconds / res.wall_seconds,
@@ -177,7 +215,7 @@ def end_to_end(args, batched: bool = True, updates: bool = True) -> dict:
             "sim_steps_per_s_core": cfg.env.steps_per_action / (sim_s_per_transition * cores),
             "peak_rss_mb_learner": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "peak_rss_mb_worker": memory.peak_mb, "worker_cpu_s": memory.cpu_s,
-            "learner_process_cpu_s": time.process_time() - cpu0}
+            "learner_process_cpu_s": learner_cpu, "learner_cpu_share": learner_cpu / (learner_cpu + memory.cpu_s)}
 
 
 def project(run: dict, updates_per_s: float, cores: int) -> dict:
@@ -191,14 +229,18 @@ def project(run: dict, updates_per_s: float, cores: int) -> dict:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--learner", choices=("both", "sbx", "torch"), default="both",
+                   help="the JAX learner (sbx), the torch one, or both in one run")
     p.add_argument("--batch", type=int, default=512)
-    p.add_argument("--threads", type=int, default=1, help="torch threads of the SAC updates (components)")
-    p.add_argument("--updates", type=int, default=200)
-    p.add_argument("--device", default="cpu", help="torch device of the SAC updates (components; end to end: "
-                                                    "--set sac.device=...)")
-    p.add_argument("--autocast", choices=("none", "bf16"), default="none",
-                   help="components: SAC updates under torch.autocast in bfloat16 (a probe; no preset uses it)")
+    p.add_argument("--threads", type=int, default=1, help="CPU threads of the learners (XLA's and torch's)")
+    p.add_argument("--updates", type=int, default=192, help="updates per learner and round (components)")
+    p.add_argument("--grad-steps", type=int, default=96,
+                   help="the JAX learner's gradient steps per compiled call (components; end to end: n_envs)")
+    p.add_argument("--repeats", type=int, default=3, help="rounds alternating the learners (components)")
+    p.add_argument("--device", default="cpu", help="JAX device of the SAC updates: cpu, gpu, gpu:N (components; "
+                                                    "end to end: --set sac.device=...)")
+    p.add_argument("--no-env", action="store_true", help="components: the learners only, no env")
     p.add_argument("--model", choices=("full", "reduced"), default="full")
     p.add_argument("--leg-mesh", type=float, default=16)
     p.add_argument("--disk-mesh", type=float, default=25)
@@ -219,37 +261,48 @@ def main() -> None:
                    help="end to end: also run without updates; report the learner's share of the wall time "
                         "and the paper preset's projection")
     args = p.parse_args()
+    import jax
     import torch
 
-    torch.set_num_threads(1 if args.end_to_end else args.threads)
+    from softcrawl.codesign.sac import learner_module
+
+    for name in ("sbx", "torch"):
+        learner_module(name).configure_threads(1 if args.end_to_end else args.threads)
+    learners = ("torch", "sbx") if args.learner == "both" else (args.learner,)
+    head = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__, "jax": jax.__version__,
+            "threads": 1 if args.end_to_end else args.threads}
     if args.end_to_end:
-        head = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__}
         modes = ("serial", "batched") if args.stepping == "both" else (args.stepping,)
-        runs = {mode: end_to_end(args, mode == "batched") for mode in modes}
+        runs = {f"{mode}/{k}": end_to_end(args, mode == "batched", learner=k) for mode in modes for k in learners}
         out = {**head, "runs": runs}
-        if len(runs) == 2:
-            out["batched_over_serial_transitions_per_s"] = (runs["batched"]["transitions_per_s"]
-                                                            / runs["serial"]["transitions_per_s"])
+        if len(modes) == 2:
+            out["batched_over_serial_transitions_per_s"] = {
+                k: runs[f"batched/{k}"]["transitions_per_s"] / runs[f"serial/{k}"]["transitions_per_s"]
+                for k in learners}
+        if len(learners) == 2:
+            out["sbx_over_torch_transitions_per_s"] = {
+                mode: runs[f"{mode}/sbx"]["transitions_per_s"] / runs[f"{mode}/torch"]["transitions_per_s"]
+                for mode in modes}
         if args.learner_cost:
-            last = runs[modes[-1]]
-            sim_only = end_to_end(args, modes[-1] == "batched", updates=False)
-            rate = sac_updates_per_s(preset(args.preset).sac.batch_size, args.updates)
+            sim_only = end_to_end(args, modes[-1] == "batched", updates=False, learner=learners[-1])
+            rates = sac_updates_per_s(learners, preset(args.preset).sac.batch_size, args.updates, args.grad_steps)
             out["without_updates"] = sim_only
-            out["learner_share_of_wall"] = 1 - sim_only["wall_s"] / last["wall_s"]
-            out["sac_updates_per_s"] = rate
-            out["paper_preset_projected_hours"] = project(sim_only, rate, os.cpu_count())
+            out["learner_share_of_wall"] = {k: 1 - sim_only["wall_s"] / runs[f"{modes[-1]}/{k}"]["wall_s"]
+                                            for k in learners}
+            out["sac"] = rates
+            out["paper_preset_projected_hours"] = {k: project(sim_only, rates[k]["updates_per_s"], os.cpu_count())
+                                                   for k in learners}
         print(json.dumps(out, indent=2))
         return
-    updates = sac_updates_per_s(args.batch, args.updates, device=args.device, autocast=args.autocast)
-    env = env_rates(args)
-    transitions = preset("paper").total_steps
-    hours = {f"{n}_cores": transitions * (1 / env["transitions_per_s"] / n + 1 / updates) / 3600
-             for n in (os.cpu_count(), 32)}
-    out = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
-           "torch_threads": torch.get_num_threads(), "device": args.device, "autocast": args.autocast,
-           "batch": args.batch,
-           "sac_updates_per_s": updates,
-           "env": {**vars(args), **env}, "paper_preset_projected_hours": hours}
+    rates = sac_updates_per_s(learners, args.batch, args.updates, args.grad_steps, args.repeats, device=args.device)
+    out = {**head, "device": args.device, "batch": args.batch, "sac": rates}
+    if not args.no_env:
+        env = env_rates(args)
+        transitions = preset("paper").total_steps
+        out["env"] = {**vars(args), **env}
+        out["paper_preset_projected_hours"] = {
+            k: {f"{n}_cores": transitions * (1 / env["transitions_per_s"] / n + 1 / rates[k]["updates_per_s"]) / 3600
+                for n in (os.cpu_count(), 32)} for k in learners}
     print(json.dumps(out, indent=2))
 
 

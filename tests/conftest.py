@@ -53,7 +53,8 @@ def trained(tmp_path_factory):
     from softcrawl.codesign.training import train
 
     run = tmp_path_factory.mktemp("trained") / "run"
-    train(run, override(preset("smoke"), ["checkpoint_every=40", "keep_checkpoints=4"]), progress=False)
+    cfg = override(preset("smoke"), ["checkpoint_every=40", "keep_checkpoints=4", 'sac.learner="sbx"'])
+    train(run, cfg, progress=False)
     return run
 
 

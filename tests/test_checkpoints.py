@@ -19,7 +19,7 @@ from helpers import one_line_error, restored_learner
 def test_corrupt_latest_falls_back_to_the_previous_one(run, capsys):
     from softcrawl.codesign.run import Run
 
-    model = run / "checkpoints" / "step-0000000160" / "model.pt"
+    model = run / "checkpoints" / "step-0000000160" / "learner.msgpack"
     data = bytearray(model.read_bytes())
     data[len(data) // 2] ^= 0xFF
     model.write_bytes(bytes(data))

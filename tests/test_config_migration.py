@@ -25,10 +25,12 @@ DATA = Path(__file__).parent / "data"
 
 def test_a_format_1_run_reads_back_as_the_preset_it_was_trained_with(tmp_path):
     """``run_config_v1.json``: the config.json of ``softcrawl train --preset smoke --seed 0``
-    written by the format-1 code; its robot is the one that code's factory built."""
+    written by the format-1 code; its robot is the one that code's factory built, its learner
+    the torch one (the only learner of formats 1 and 2)."""
     shutil.copy(DATA / "run_config_v1.json", tmp_path / "config.json")
     cfg = Run(tmp_path).read_config()
-    assert cfg == preset("smoke")
+    assert cfg.sac.learner == "torch" and preset("smoke").sac.learner == "sbx"
+    assert cfg == override(preset("smoke"), ['sac.learner="torch"'])
     assert robot_factory(cfg).config == RobotConfig(
         leg_mesh_size=6.0, disk_mesh_size=25, refactor_every=None, rid_dtype="float32", dt=0.01, model="reduced",
         reduction=None, contact_max_iterations=100, leg_collision_spacing=0.0)
@@ -41,6 +43,13 @@ def test_a_run_is_written_in_the_current_format_and_read_back(tmp_path):
     assert doc["config_version"] == CONFIG_VERSION and doc["config"]["env"]["robot"]["friction"] == 0.9
     assert "dt" not in doc["config"]["env"]  # held once, in env.robot
     assert Run(tmp_path).read_config() == cfg
+
+
+def test_a_format_2_run_reads_back_with_the_torch_learner(tmp_path):
+    doc = {"config_version": 2, "config": preset("smoke").to_dict()}
+    del doc["config"]["sac"]["learner"]
+    (tmp_path / "config.json").write_text(json.dumps(doc))
+    assert Run(tmp_path).read_config().sac.learner == "torch"
 
 
 def test_a_format_1_ground_truth_reads_back_with_its_robot(tmp_path):

@@ -295,11 +295,11 @@ def test_an_env_does_not_settle_a_design_again_after_its_robot_was_dropped(monke
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/PID/maps")
-def test_a_subprocess_worker_does_not_load_torch(tmp_path):
+def test_a_subprocess_worker_loads_neither_torch_nor_jax(tmp_path):
     """A training worker holds the backends, the batched stepper and its envs, nothing of the
-    learner (which the caller imports once it runs, as ``softcrawl train`` does): torch and
-    stable-baselines3 cost ~200 MB of RSS per worker (regression: the backends lived beside the
-    SB3 ``VecEnv``, so every worker imported torch). A worker re-runs the caller's module-level
+    learner (which the caller imports once it runs, as ``softcrawl train`` does): JAX, torch
+    and stable-baselines3 cost hundreds of MB of RSS per worker (regression: the backends lived
+    beside the SB3 ``VecEnv``, so every worker imported torch). A worker re-runs the caller's module-level
     imports (``spawn``/``forkserver`` semantics), so a script keeps the learner's out of them,
     as the ``softcrawl`` command does."""
     import subprocess
@@ -308,12 +308,13 @@ def test_a_subprocess_worker_does_not_load_torch(tmp_path):
     script.write_text(
         "from softcrawl.envs.backends import SubprocessBackend\n"
         "if __name__ == '__main__':\n"
-        "    import torch  # noqa: F401 - the learner's, in the caller only\n"
+        "    import jax  # noqa: F401 - the learner's, in the caller only\n"
+        "    import torch  # noqa: F401\n"
         "    from softcrawl.codesign.config import preset\n"
         "    from softcrawl.codesign.factory import env_fn\n"
         "    be = SubprocessBackend([env_fn(preset('paper'))] * 2, n_workers=1)\n"
         "    maps = open(f'/proc/{be.processes[0].pid}/maps').read()\n"
         "    be.close()\n"
-        "    print('torch' in maps)\n")
+        "    print('torch' in maps or 'jax' in maps)\n")
     out = subprocess.run([sys.executable, str(script)], capture_output=True, check=True, cwd=tmp_path)
     assert out.stdout.decode().strip() == "False", out.stderr.decode()[-2000:]

@@ -14,22 +14,45 @@ from softcrawl.cli import main
 from helpers import Evil, file_tree, one_line_error, rehash
 
 
-def test_crafted_model_pt_is_refused_by_evaluate_and_resume(run, tmp_path, capsys):
-    import torch
-
+def test_crafted_learner_file_is_refused_by_evaluate_and_resume(run, tmp_path, capsys):
+    """A pickle in ``learner.msgpack`` (its checksum updated) is refused, never unpickled."""
     marker = tmp_path / "pwned"
     latest = run / "checkpoints" / (run / "checkpoints" / "latest").read_text().strip()
-    torch.save({"policy": Evil(marker)}, latest / "model.pt")
+    (latest / "learner.msgpack").write_bytes(pickle.dumps({"policy": Evil(marker)}))
     rehash(latest)
     rc = main(["evaluate", str(run), "--design", "1,0,0,2,2,0,0,0", "--out", str(tmp_path / "ev"), "--no-progress"])
-    one_line_error(capsys, rc, "model.pt", "refused")
+    one_line_error(capsys, rc, "learner.msgpack", "refused")
     before = file_tree(run)
     rc = main(["train", "--resume", "--out", str(run), "--no-progress"])
     one_line_error(capsys, rc, "refused")
     rc = main(["report", str(run), "--phases", ""])  # the best design's re-simulation loads the policy
-    one_line_error(capsys, rc, "model.pt", "refused")
+    one_line_error(capsys, rc, "learner.msgpack", "refused")
     assert not marker.exists() and not (tmp_path / "ev").exists()
     assert file_tree(run) == before  # nothing truncated or written, no report
+
+
+def test_crafted_model_pt_of_the_torch_learner_is_refused(run, tmp_path, capsys):
+    """A checkpoint of the torch learner (format 1) whose ``model.pt`` is a pickle that would
+    run code (checksums updated) is read by the torch learner with ``weights_only=True`` and
+    refused by evaluate, resume and report; nothing is unpickled, nothing written."""
+    from softcrawl.codesign.checkpoints import _sha256, checkpoint_files
+
+    marker = tmp_path / "pwned"
+    for ck in (run / "checkpoints").glob("step-*"):
+        (ck / "learner.msgpack").unlink()
+        with open(ck / "model.pt", "wb") as f:
+            pickle.dump({"policy": Evil(marker)}, f)
+        st = json.loads((ck / "state.json").read_text())
+        st.update(format=1)
+        (ck / "state.json").write_text(json.dumps(st))
+        files = {f: _sha256(ck / f) for f in checkpoint_files("torch")}
+        (ck / "manifest.json").write_text(json.dumps({"format": 1, "files": files}))
+    before = file_tree(run)
+    for argv in (["evaluate", str(run), "--design", "1,0,0,2,2,0,0,0", "--out", str(tmp_path / "ev"), "--no-progress"],
+                 ["train", "--resume", "--out", str(run), "--no-progress"], ["report", str(run), "--phases", ""]):
+        one_line_error(capsys, main(argv), "model.pt", "refused")
+    assert not marker.exists() and not (tmp_path / "ev").exists()
+    assert file_tree(run) == before
 
 
 def test_pickled_replay_buffer_never_loads(run, tmp_path, capsys):

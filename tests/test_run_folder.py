@@ -9,21 +9,21 @@ import math
 
 import pytest
 
-from softcrawl.codesign.checkpoints import CHECKPOINT_FILES, CHECKPOINT_FORMAT, _sha256, sampler_state_to_json
+from softcrawl.codesign.checkpoints import CHECKPOINT_FORMATS, _sha256, checkpoint_files, sampler_state_to_json
 from softcrawl.codesign.config import preset
 from softcrawl.codesign.factory import make_sampler
 from softcrawl.codesign.run import Run
 
 
 def _checkpoint(run: Run, step: int, state: bytes):
-    """A checkpoint folder whose manifest matches its files (placeholder model and buffer)."""
+    """A torch-learner checkpoint folder whose manifest matches its files (placeholder model and buffer)."""
     ck = run.checkpoints_dir / f"step-{step:010d}"
     ck.mkdir(parents=True)
     (ck / "model.pt").write_bytes(b"model")
     (ck / "replay_buffer.npz").write_bytes(b"buffer")
     (ck / "state.json").write_bytes(state)
-    files = {f: _sha256(ck / f) for f in CHECKPOINT_FILES}
-    (ck / "manifest.json").write_text(json.dumps({"format": CHECKPOINT_FORMAT, "files": files}))
+    files = {f: _sha256(ck / f) for f in checkpoint_files("torch")}
+    (ck / "manifest.json").write_text(json.dumps({"format": CHECKPOINT_FORMATS["torch"], "files": files}))
     return ck
 
 

@@ -32,9 +32,11 @@ def test_presets_and_overrides():
     assert cfg.sac.batch_size == 64 and cfg.env.legs == (3, 4) and cfg.backend == "serial"
     assert cfg.design.untried == "zero"
     for bad in (["sac.nope=1"], ["n_envs=0"], ["env.legs=[2]"], ["backend=\"mpi\""], ["sac.timeout=\"x\""], ["n_envs"],
-                ['sac.device="gpu"'], ['sac.device="cuda:x"']):
+                ['sac.device="tpu"'], ['sac.device="gpu:x"'], ['sac.device="cuda:x"']):
         with pytest.raises(ValueError):
             override(paper, bad)
+    for device in ("cpu", "gpu", "gpu:1", "cuda", "cuda:0"):  # "cuda": configs written before the JAX learner
+        assert override(paper, [f'sac.device="{device}"']).sac.device == device
     with pytest.raises(ValueError):
         preset("huge")
 
@@ -66,27 +68,55 @@ def test_run_config_saved_before_a_setting_reads_back_with_its_reference_value()
     for bad in (["env.contact_max_iterations=0"], ["env.contact_max_iterations=2.5"]):
         with pytest.raises(ValueError, match="env.contact_max_iterations"):
             override(new, bad)
+    d = preset("demo").to_dict()
+    del d["sac"]["learner"]  # runs saved before sac.learner were the torch learner's
+    assert TrainConfig.from_dict(json.loads(json.dumps(d))).sac.learner == "torch"
+    assert new.sac.learner == "sbx"
+    with pytest.raises(ValueError, match="sac.learner must be one of"):
+        override(new, ['sac.learner="tf"'])
 
 
-def test_sac_split_learning_rates_and_update_ratio():
+def test_sac_learns_one_update_per_transition():
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from softcrawl.codesign.sac import make_sac
 
     venv = DummyVecEnv([lambda: gym.make("Pendulum-v1")] * 2)
-    cfg = SACConfig(policy_lr=1e-3, q_lr=5e-3, learning_starts=20, batch_size=16, buffer_size=500, net_arch=(32, 16))
+    cfg = SACConfig(policy_lr=1e-3, q_lr=5e-3, learning_starts=20, batch_size=16, buffer_size=500, net_arch=(32, 16),
+                    learner="sbx")
     model = make_sac(venv, cfg, seed=0)
     assert model.gradient_steps == 2  # one update per transition with 2 envs
-    assert model.replay_buffer.handle_timeout_termination
     model.learn(60)
-    assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
-    assert model.critic.optimizer.param_groups[0]["lr"] == pytest.approx(5e-3)
-    assert model.ent_coef_optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
     assert model._n_updates == 60 - 20  # one per transition after learning_starts (2 per vectorised step)
-    sizes = [m.out_features for m in model.actor.latent_pi if hasattr(m, "out_features")]
-    assert sizes == [32, 16]
-    terminal = make_sac(venv, SACConfig(timeout="terminal", buffer_size=100, net_arch=(8,)))
-    assert not terminal.replay_buffer.handle_timeout_termination
+    assert float(model.policy.qf_state.opt_state.hyperparams["learning_rate"]) == pytest.approx(5e-3)
+
+
+def test_the_torch_learner_trains_checkpoints_and_evaluates(tmp_path):
+    """``sac.learner="torch"``: a smoke run writes checkpoints of format 1 (``model.pt``), which
+    a fresh torch learner restores (counters, replay buffer) and evaluation reads, whatever the
+    config's learner says; a JAX learner refuses to read them."""
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from softcrawl.codesign.evaluation import evaluate_policy
+    from softcrawl.codesign.run import Run
+    from softcrawl.codesign.sac import make_sac
+    from softcrawl.codesign.training import train
+
+    cfg = override(preset("smoke"), ['sac.learner="torch"', "checkpoint_every=80"])
+    res = train(tmp_path / "run", cfg, progress=False)
+    r = Run(tmp_path / "run")
+    ck = r.latest_checkpoint()
+    assert r.checkpoint_learner(ck) == "torch" and (ck / "model.pt").exists() and res.updates == 160 - 40
+    model = restored_learner(tmp_path / "run")[0]
+    assert model.learner == "torch" and model._n_updates == 160 - 40 and model.replay_buffer.pos == 80
+    on_torch = evaluate_policy(tmp_path / "run", "1,0,0,2,2,0,0,0").returns_cm
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    saved["config"]["sac"]["learner"] = "sbx"
+    (tmp_path / "run" / "config.json").write_text(json.dumps(saved))
+    assert evaluate_policy(tmp_path / "run", "1,0,0,2,2,0,0,0").returns_cm == on_torch
+    jax_learner = make_sac(DummyVecEnv([lambda: gym.make("Pendulum-v1")]), SACConfig(buffer_size=10, learner="sbx"))
+    with pytest.raises(ValueError, match="a checkpoint of the 'torch' learner, read into the 'sbx' one"):
+        r.load_learner(ck, jax_learner)
 
 
 def _rows(path):

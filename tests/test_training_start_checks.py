@@ -37,6 +37,35 @@ def test_bad_reduction_fails_before_the_run_starts(tmp_path):
     assert not (tmp_path / "run" / "config.json").exists()
 
 
+def _no_gpu(monkeypatch, gpus=()):
+    """JAX as a CPU-only jaxlib sees it (``gpus``: the GPUs it would see instead)."""
+    import jax
+
+    cpu = jax.devices("cpu")
+
+    def devices(backend=None):
+        if backend == "cpu":
+            return cpu
+        if not gpus:
+            raise RuntimeError(f"Unknown backend: '{backend}' requested")
+        return list(gpus)
+
+    monkeypatch.setattr(jax, "devices", devices)
+
+
+def test_a_gpu_jax_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatch):
+    from softcrawl.codesign.training import train
+
+    _no_gpu(monkeypatch)
+    with pytest.raises(ValueError, match="sac.device='gpu:1'.*sees no GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="gpu:1"', 'sac.learner="sbx"']), progress=False)
+    assert not (tmp_path / "run").exists()
+    _no_gpu(monkeypatch, gpus=["gpu0"])
+    with pytest.raises(ValueError, match="sees 1 GPU"):
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"', 'sac.learner="sbx"']), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_gpu_torch_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatch):
     import torch
 
@@ -44,25 +73,25 @@ def test_a_gpu_torch_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatc
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ValueError, match="sac.device='cuda:1'.*no CUDA GPU"):
-        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="gpu:1"', 'sac.learner="torch"']),
+              progress=False)
     assert not (tmp_path / "run").exists()
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     with pytest.raises(ValueError, match="sees 1 CUDA GPU"):
-        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"']), progress=False)
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"', 'sac.learner="torch"']),
+              progress=False)
     assert not (tmp_path / "run").exists()
 
 
 def test_a_run_trained_on_a_gpu_is_evaluated_on_the_cpu(run, monkeypatch):
-    import torch
-
     from softcrawl.codesign.evaluation import evaluate_policy
 
     on_cpu = evaluate_policy(run, "1,0,0,2,2,0,0,0").returns_cm
     cfg = json.loads((run / "config.json").read_text())
-    cfg["config"]["sac"]["device"] = "cuda"
+    cfg["config"]["sac"]["device"] = "gpu"
     (run / "config.json").write_text(json.dumps(cfg))
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    _no_gpu(monkeypatch)
     assert evaluate_policy(run, "1,0,0,2,2,0,0,0").returns_cm == on_cpu
 
 

@@ -38,7 +38,7 @@ def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, res
     """
     from softcrawl.codesign.report import write_report
     from softcrawl.codesign.run import NoSpaceError, Run, is_no_space
-    from softcrawl.codesign.training import train  # heavy: torch, stable-baselines3
+    from softcrawl.codesign.training import train  # heavy: torch or JAX, stable-baselines3
 
     run = Run(out)
     try:

@@ -3,7 +3,9 @@ SAC learner and the training driver.
 
 Layers (each module imports only those above it; ``tests/test_import_graph.py`` checks the
 graph is acyclic): :mod:`~softcrawl.codesign.config` → :mod:`~softcrawl.codesign.distribution`,
-:mod:`~softcrawl.codesign.sampler`, :mod:`~softcrawl.codesign.sac` →
+:mod:`~softcrawl.codesign.sampler`, :mod:`~softcrawl.codesign.sac` (the learners:
+:mod:`~softcrawl.codesign.sac_jax` on :mod:`~softcrawl.codesign.sac_nets`,
+:mod:`~softcrawl.codesign.sac_torch`, both on :mod:`~softcrawl.codesign.sac_common`) →
 :mod:`~softcrawl.codesign.checkpoints` (writing, checking, reading and rescuing a run's
 checkpoints) → :mod:`~softcrawl.codesign.run` (the run folder: layout, settings, logs; the only
 module that builds a run's paths) and :mod:`~softcrawl.codesign.factory` (envs, robots, sampler of a config)
@@ -13,7 +15,7 @@ train`` writes it afterwards (:func:`softcrawl.cli.train.train_and_report`). A s
 ``config.json`` of an older format is read through :mod:`~softcrawl.codesign.migrate`; the ground
 truth of the design space is the package :mod:`~softcrawl.codesign.groundtruth`.
 
-Heavy modules (torch / stable-baselines3: :mod:`softcrawl.codesign.sac`,
+Heavy modules (JAX / SBX / torch / stable-baselines3: the learners,
 :mod:`softcrawl.codesign.training`, :mod:`softcrawl.codesign.report`) are not imported here.
 """
 

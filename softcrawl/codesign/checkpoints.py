@@ -1,10 +1,13 @@
 """Checkpoints of a co-design run: written, checked, read back and rescued.
 
 A checkpoint is the folder ``checkpoints/step-XXXXXXXXXX/`` of a run (layout:
-:mod:`softcrawl.codesign.run`): ``model.pt`` (tensors only: ``torch.load(weights_only=True)``),
-``replay_buffer.npz`` (``np.load(allow_pickle=False)``), ``state.json`` and ``manifest.json``
-(``{"format": 1, "files": {name: sha256}}``); it is complete iff the manifest's SHA-256 sums
-match. The old pickle format (``state.pkl``, ``replay_buffer.pkl``) is refused.
+:mod:`softcrawl.codesign.run`): the learner's state, ``learner.msgpack`` (the sbx learner,
+format 2: flax msgpack of arrays) or ``model.pt`` (the torch learner, format 1: tensors only,
+``torch.load(weights_only=True)``), ``replay_buffer.npz`` (``np.load(allow_pickle=False)``),
+``state.json`` and ``manifest.json`` (``{"format": 2 or 1, "files": {name: sha256}}``); it is
+complete iff the manifest's SHA-256 sums match. A checkpoint is read by the learner that wrote
+it (its format), whatever the run's ``sac.learner`` says. The old pickle format
+(``state.pkl``, ``replay_buffer.pkl``) is refused.
 
 Checkpoints are written into ``step-*.tmp`` and renamed into place, ``latest`` is replaced
 atomically; a missing, dangling or damaged ``latest`` falls back to the newest complete
@@ -40,8 +43,10 @@ from softcrawl.codesign.notes import note
 from softcrawl.design.space import validate_design
 from softcrawl.safeio import atomic_write_text, load_json, read_text
 
-CHECKPOINT_FORMAT = 1
-CHECKPOINT_FILES = ("model.pt", "replay_buffer.npz", "state.json")
+#: Checkpoint format of each learner and the file of its state (module docstring).
+CHECKPOINT_FORMATS = {"sbx": 2, "torch": 1}
+LEARNER_FILES = {"sbx": "learner.msgpack", "torch": "model.pt"}
+_FORMAT_LEARNERS = {v: k for k, v in CHECKPOINT_FORMATS.items()}
 _STEP = re.compile(r"step-(\d{10})")
 _BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
 
@@ -84,9 +89,10 @@ class RunCheckpoints:
         try:
             manifest = load_json(path / "manifest.json")
             files = manifest["files"]
-            if manifest.get("format") != CHECKPOINT_FORMAT or set(files) != set(CHECKPOINT_FILES):
+            learner = _FORMAT_LEARNERS.get(manifest.get("format"))
+            if learner is None or set(files) != set(checkpoint_files(learner)):
                 return "unknown checkpoint format"
-            for name in CHECKPOINT_FILES:
+            for name in checkpoint_files(learner):
                 f = path / name
                 if f.is_symlink() or not f.is_file() or _sha256(f) != files[name]:
                     return f"{name} is missing or damaged (checksum)"
@@ -171,25 +177,55 @@ class RunCheckpoints:
             shutil.rmtree(p, ignore_errors=True)
         return final
 
-    def _load_model_file(self, path: Path) -> dict:
-        import torch
+    def checkpoint_learner(self, path: Path) -> str:
+        """The ``sac.learner`` that wrote complete checkpoint ``path`` (``"sbx"`` or ``"torch"``,
+        from its format).
 
+        Raises:
+            ValueError: not a complete checkpoint of this run.
+        """
         why = self.check_checkpoint(path)
         if why is not None:
             raise ValueError(f"{path}: {why}")
-        try:
-            data = torch.load(Path(path) / "model.pt", weights_only=True, map_location="cpu")
-        except Exception as exc:  # UnpicklingError (refused), zip and EOF errors
-            raise ValueError(f"{path / 'model.pt'}: refused: not a tensors-only checkpoint "
-                             f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
-        if not isinstance(data, dict) or "policy" not in data:
-            raise ValueError(f"{path / 'model.pt'}: not a softcrawl checkpoint")
-        return data
+        return _FORMAT_LEARNERS[load_json(Path(path) / "manifest.json")["format"]]
 
-    def load_policy_weights(self, path: Path) -> dict:
-        """The policy's ``state_dict`` (actor, critics, targets) of checkpoint ``path``
-        (ValueError if incomplete, damaged or not tensors-only)."""
-        return self._load_model_file(path)["policy"]
+    def read_learner(self, path: Path) -> dict:
+        """The decoded learner state of checkpoint ``path`` (its learner's
+        ``decode_learner_state``, :mod:`softcrawl.codesign.sac`: arrays, or tensors read with
+        ``weights_only=True``; nothing else unpickled).
+
+        Raises:
+            ValueError: incomplete, damaged, or not a learner state.
+        """
+        from softcrawl.codesign.sac import learner_module
+        from softcrawl.safeio import read_bytes
+
+        learner = self.checkpoint_learner(path)
+        f = Path(path) / LEARNER_FILES[learner]
+        try:
+            return learner_module(learner).decode_learner_state(read_bytes(f))
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{f}: refused: {exc}") from None
+
+    def load_learner(self, path: Path, model, raw: dict | None = None) -> None:
+        """Restore the networks, optimizer states, temperature and random state of checkpoint
+        ``path`` (or its :meth:`read_learner` output ``raw``) into ``model``, a learner of the
+        run's config and of the checkpoint's learner (:meth:`checkpoint_learner`).
+
+        Raises:
+            ValueError: as :meth:`read_learner`, a checkpoint of the other learner, or a learner
+                state of another config.
+        """
+        from softcrawl.codesign.sac import learner_module
+
+        learner = self.checkpoint_learner(path)
+        if model.learner != learner:
+            raise ValueError(f"{path}: a checkpoint of the {learner!r} learner, read into the {model.learner!r} one")
+        raw = self.read_learner(path) if raw is None else raw
+        try:
+            learner_module(learner).restore_learner_state(model, raw)
+        except ValueError as exc:
+            raise ValueError(f"{Path(path) / LEARNER_FILES[learner]}: refused: {exc}") from None
 
     def read_checkpoint_state(self, path: Path) -> dict:
         """``state.json`` of checkpoint ``path`` with ``sampler`` decoded
@@ -210,16 +246,14 @@ class RunCheckpoints:
 
     def load_checkpoint(self, path: Path, model, sampler) -> None:
         """Restore checkpoint ``path`` into a freshly built model / sampler (same config), and
-        the torch / numpy / python RNGs. ``model._last_obs`` is cleared so ``learn()`` starts
+        the numpy / python / action-space RNGs. ``model._last_obs`` is cleared so ``learn()`` starts
         fresh episodes: with the checkpoint's ``next_designs`` (an episode boundary) if it has
         them (:meth:`softcrawl.envs.DesignVecEnv.resume_with`), else with new draws.
 
         Raises:
-            ValueError: incomplete, damaged, not tensors-only, or built for another config.
+            ValueError: incomplete, damaged, not a learner state, or built for another config.
         """
-        import torch
-
-        ck = self._load_model_file(path)
+        self.load_learner(path, model)
         state = self.read_checkpoint_state(path)
         try:
             with np.load(Path(path) / "replay_buffer.npz", allow_pickle=False) as z:
@@ -231,18 +265,13 @@ class RunCheckpoints:
                     continue
                 if k not in buffer or buffer[k].shape != have.shape or buffer[k].dtype != have.dtype:
                     raise ValueError(f"replay buffer array {k!r} does not match this run's config")
-            model.policy.load_state_dict(ck["policy"])
-            model.actor.optimizer.load_state_dict(ck["actor_optimizer"])
-            model.critic.optimizer.load_state_dict(ck["critic_optimizer"])
-            with torch.no_grad():
-                model.log_ent_coef.copy_(ck["log_ent_coef"])
-            model.ent_coef_optimizer.load_state_dict(ck["ent_coef_optimizer"])
             sampler.load_state_dict(state["sampler"])
             for k in _BUFFER_ARRAYS:
                 if getattr(rb, k, None) is not None:
                     getattr(rb, k)[...] = buffer[k]
             rb.pos, rb.full = int(buffer["pos"]), bool(buffer["full"])
-            torch.set_rng_state(ck["torch_rng"])
+            if "action_space_rng" in state:  # absent in checkpoints written before it existed
+                model.action_space.np_random.bit_generator.state = state["action_space_rng"]
             r = state["numpy_rng"]
             np.random.set_state((r["name"], np.array(r["key"], dtype=np.uint32), r["pos"], r["has_gauss"],
                                  r["cached_gaussian"]))
@@ -251,7 +280,7 @@ class RunCheckpoints:
             env = _vec_env(model)
             if env is not None and state["next_designs"] is not None:
                 env.resume_with(state["next_designs"])  # the designs the uninterrupted run had drawn
-        except Exception as exc:  # zip/npy errors, shapes, state_dict keys: all mean "not restorable"
+        except Exception as exc:  # zip/npy errors, shapes, RNG states: all mean "not restorable"
             msg = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
             raise ValueError(f"{path}: cannot restore checkpoint ({msg})") from None
         model.num_timesteps, model._n_updates = state["num_timesteps"], state["n_updates"]
@@ -265,34 +294,34 @@ class RunCheckpoints:
 
 def _write_checkpoint(folder: Path, model, sampler) -> None:
     """The checkpoint files of ``model`` and ``sampler`` (module docstring) into ``folder``."""
-    import torch
+    from softcrawl.codesign.sac import learner_module
 
-    torch.save({
-        "policy": model.policy.state_dict(),
-        "actor_optimizer": model.actor.optimizer.state_dict(),
-        "critic_optimizer": model.critic.optimizer.state_dict(),
-        "log_ent_coef": model.log_ent_coef.detach().clone(),
-        "ent_coef_optimizer": model.ent_coef_optimizer.state_dict(),
-        "torch_rng": torch.get_rng_state(),
-    }, folder / "model.pt")
+    (folder / LEARNER_FILES[model.learner]).write_bytes(learner_module(model.learner).learner_state_bytes(model))
     rb = model.replay_buffer
     arrays = {k: getattr(rb, k) for k in _BUFFER_ARRAYS if getattr(rb, k, None) is not None}
     np.savez(folder / "replay_buffer.npz", pos=np.int64(rb.pos), full=np.bool_(rb.full), **arrays)
     np_rng = np.random.get_state()
     py_rng = random.getstate()
     state = {
-        "format": CHECKPOINT_FORMAT, "version": __version__,
+        "format": CHECKPOINT_FORMATS[model.learner], "version": __version__,
         "num_timesteps": int(model.num_timesteps), "n_updates": int(model._n_updates),
         "episode_num": int(model._episode_num),
         "sampler": sampler_state_to_json(sampler.state_dict()),
         "numpy_rng": {"name": np_rng[0], "key": np_rng[1].tolist(), "pos": int(np_rng[2]),
                       "has_gauss": int(np_rng[3]), "cached_gaussian": float(np_rng[4])},
         "python_rng": [py_rng[0], list(py_rng[1]), py_rng[2]],
+        "action_space_rng": model.action_space.np_random.bit_generator.state,
         "next_designs": _starting_designs(model),
     }
     (folder / "state.json").write_text(json.dumps(state), encoding="utf-8")
-    manifest = {"format": CHECKPOINT_FORMAT, "files": {f: _sha256(folder / f) for f in CHECKPOINT_FILES}}
+    manifest = {"format": CHECKPOINT_FORMATS[model.learner],
+                "files": {f: _sha256(folder / f) for f in checkpoint_files(model.learner)}}
     (folder / "manifest.json").write_text(json.dumps(manifest, indent=1), encoding="utf-8")
+
+
+def checkpoint_files(learner: str) -> tuple[str, ...]:
+    """The files (besides the manifest) of a checkpoint of ``learner``."""
+    return LEARNER_FILES[learner], "replay_buffer.npz", "state.json"
 
 
 def _vec_env(model):

@@ -97,6 +97,8 @@ RANDOMIZE_BOUNDS: dict[str, tuple[float, float]] = {
     "tau_vent": (0.0, 10.0), "control_period": (0.5, 2.0),
 }
 TIMEOUTS = ("bootstrap", "terminal")
+#: The SAC learners (:mod:`softcrawl.codesign.sac`): SBX's on JAX, stable-baselines3's on torch.
+LEARNERS = ("sbx", "torch")
 
 
 def env_robot(**changes) -> RobotConfig:
@@ -164,16 +166,18 @@ class EnvConfig:
 class SACConfig:
     """SAC hyper-parameters (paper table; see :mod:`softcrawl.codesign.sac`).
 
-    ``timeout``: ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"``
-    (reference implementation). ``overlap``: run the gradient updates of a vectorised step
-    while the envs simulate the next one (:class:`softcrawl.codesign.sac.SplitLRSAC`; the
-    policy acting lags one vectorised step behind the updates). ``threads``: torch threads of
-    the learner (1: the simulation has the other cores; more where cores are plentiful: the
-    ``paper`` preset's million updates of batch 512 are learner-bound on many cores,
-    ``benchmarks/RESULTS.md``). ``device``: torch device of the networks and their updates,
-    ``"cpu"`` or ``"cuda"`` / ``"cuda:N"`` (a GPU takes the learner off the simulation's cores;
-    the env workers never use it; checkpoints are read onto the CPU, so ``report`` and
-    ``evaluate`` need no GPU)."""
+    ``learner``: ``"sbx"`` (SBX's SAC on JAX, :mod:`softcrawl.codesign.sac_jax`; the default)
+    or ``"torch"`` (stable-baselines3's SAC, :mod:`softcrawl.codesign.sac_torch`): the same
+    updates; a run's checkpoints are read by the learner that wrote them. ``timeout``:
+    ``"bootstrap"`` (time limit is a truncation, default) or ``"terminal"`` (reference
+    implementation). ``overlap``: run the gradient updates of a vectorised step while the
+    envs simulate the next one (the policy acting lags one vectorised step behind the
+    updates). ``threads``: CPU threads of the learner (XLA's and torch's; 1: the simulation has the other cores; more where cores are
+    plentiful; set when the learner's library starts in the process,
+    :func:`softcrawl.codesign.sac.prepare_learner`). ``device``: where the networks and their
+    updates are, ``"cpu"`` or ``"gpu"`` / ``"gpu:N"`` (``"cuda"`` / ``"cuda:N"`` are read as
+    the same; a GPU takes the learner off the simulation's cores; the env workers never use
+    it; checkpoints are read onto the CPU, so ``report`` and ``evaluate`` need no GPU)."""
 
     policy_lr: float = 6e-4
     q_lr: float = 2e-3
@@ -189,6 +193,7 @@ class SACConfig:
     overlap: bool = True
     threads: int = 1
     device: str = "cpu"
+    learner: str = "sbx"
 
 
 @dataclass
@@ -275,8 +280,11 @@ class TrainConfig:
         check_precision(self.jax_precision)
         if self.backend == "jax":
             check_jax_env(self.env.robot.model, self.env.randomize)
-        if not re.fullmatch(r"cpu|cuda(:\d+)?", self.sac.device):
-            raise ValueError(f"sac.device must be 'cpu', 'cuda' or 'cuda:N', got {self.sac.device!r}")
+        if not re.fullmatch(r"cpu|(gpu|cuda)(:\d+)?", self.sac.device):
+            raise ValueError(f"sac.device must be 'cpu', 'gpu' or 'gpu:N' ('cuda' is read as 'gpu'), got "
+                             f"{self.sac.device!r}")
+        if self.sac.learner not in LEARNERS:
+            raise ValueError(f"sac.learner must be one of {LEARNERS}, got {self.sac.learner!r}")
         if self.sac.timeout not in TIMEOUTS:
             raise ValueError(f"sac.timeout must be one of {TIMEOUTS}, got {self.sac.timeout!r}")
         if not self.env.legs or any(k not in range(MIN_LEGS, MAX_LEGS + 1) for k in self.env.legs):

@@ -102,7 +102,9 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     only saw canonical designs).
 
     ``checkpoint`` (default: the run's newest complete one) must be a complete checkpoint of
-    the run (its folder or its name); its weights are read with ``torch.load(weights_only=True)``.
+    the run (its folder or its name); its networks are read by the learner that wrote it
+    (:meth:`Run.load_learner`: arrays, or tensors with ``weights_only=True``) and the actions
+    computed on the CPU, whatever device the run trained on.
 
     Raises:
         ValueError: not a training run, no complete checkpoint, a damaged or crafted one,
@@ -125,13 +127,14 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
         ck = r.require_checkpoint()
     else:  # a folder, or a checkpoint's name (step-XXXXXXXXXX) in the run
         ck = Path(checkpoint) if Path(checkpoint).exists() else r.checkpoints_dir / str(checkpoint)
-    weights = r.load_policy_weights(ck)
+    learner = r.read_learner(ck)  # before the env is built
     cfg.env.randomize = randomize if randomize is not None else DomainRanges()
     env = env_fn(cfg)()
     cfg.sac.buffer_size = 1
     cfg.sac.device = "cpu"  # whatever the run trained on: 20 actions need no GPU
-    model = make_sac(DummyVecEnv([lambda: env]), cfg.sac)
-    model.policy.load_state_dict(weights)
+    cfg.sac.learner = r.checkpoint_learner(ck)
+    model = make_sac(DummyVecEnv([lambda: env]), cfg.sac, seed=cfg.seed)
+    r.load_learner(ck, model, learner)
     returns, diverged, first, domains = [], [], None, []
     for k in range(episodes):
         obs, info = env.reset(seed=seed if k == 0 else None, options={"design": design})

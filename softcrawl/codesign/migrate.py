@@ -8,12 +8,13 @@ what the older code simulated, never the current defaults.
 
 Version 2: the robot's settings are one :class:`softcrawl.robot.RobotConfig` object (``env.robot``
 of a training run, ``robot`` of a ground truth) instead of fields copied beside the others.
+Version 3: a training run's ``sac.learner`` (runs of the older formats trained the torch learner).
 """
 
 from __future__ import annotations
 
 #: Current format of the saved settings.
-CONFIG_VERSION = 2
+CONFIG_VERSION = 3
 
 #: A version-1 run's robot fields with the values its code used when a field was absent (the
 #: three added last were written from the version that introduced them: older runs simulated
@@ -52,8 +53,19 @@ def _groundtruth_v1_to_v2(config: dict) -> dict:
     return _robot_v1_to_v2(config, _GT_V1_ROBOT, {"model": "reduced"})
 
 
-#: ``kind -> [step from version 1 to 2, ...]``.
-STEPS = {"train": [_train_v1_to_v2], "groundtruth": [_groundtruth_v1_to_v2]}
+def _train_v2_to_v3(config: dict) -> dict:
+    sac = config.get("sac")
+    if not isinstance(sac, dict):
+        return config
+    return {**config, "sac": {"learner": "torch", **sac}}
+
+
+def _unchanged(config: dict) -> dict:
+    return config
+
+
+#: ``kind -> [step from version 1 to 2, from 2 to 3, ...]``.
+STEPS = {"train": [_train_v1_to_v2, _train_v2_to_v3], "groundtruth": [_groundtruth_v1_to_v2, _unchanged]}
 
 
 def config_version(doc: dict) -> int:

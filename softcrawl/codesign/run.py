@@ -19,16 +19,19 @@ it; nothing else builds a run's paths by hand. Layout::
     │   ├── latest                 text: name of the newest complete checkpoint (a hint, checked, never followed
     │   │                          out of checkpoints/)
     │   └── step-XXXXXXXXXX/       complete iff manifest.json's SHA-256 sums match:
-    │       ├── model.pt           tensors only (torch.load(weights_only=True)): policy, critics, targets,
-    │       │                      optimizers, log temperature, torch RNG
+    │       ├── learner.msgpack    sbx learner (format 2): flax msgpack of arrays (softcrawl.codesign.sac_jax):
+    │       │                      actor, critics, target critics, Adam states, log temperature, JAX random keys
+    │       ├── model.pt           or torch learner (format 1): tensors only (torch.load(weights_only=True)):
+    │       │                      policy, critics, targets, optimizers, log temperature, torch RNG
     │       ├── replay_buffer.npz  the SB3 replay buffer's arrays and pos/full (np.load(allow_pickle=False))
-    │       ├── state.json         counters, design sampler (distribution + its RNG), numpy and python RNG,
-    │       │                      the designs of the episodes just begun (at an episode boundary, else null)
-    │       └── manifest.json      {"format": 1, "files": {name: sha256}}
+    │       ├── state.json         counters, design sampler (distribution + its RNG), numpy, python and
+    │       │                      action-space RNGs, the designs of the episodes just begun (at an episode
+    │       │                      boundary, else null)
+    │       └── manifest.json      {"format": 2 or 1, "files": {name: sha256}}
     └── report/                    softcrawl report (built in .report.partial-*, swapped in when complete)
 
-Nothing read from a run folder is executed: no pickle, tensors only with ``weights_only=True``,
-JSON (read with :mod:`softcrawl.safeio`) and ``allow_pickle=False`` npz. Nothing is read or
+Nothing read from a run folder is executed: msgpack of arrays, tensors only with
+``weights_only=True``, JSON (read with :mod:`softcrawl.safeio`) and ``allow_pickle=False`` npz. Nothing is read or
 written through links out of the run: a run whose entries above are symbolic links is refused
 (:meth:`Run.check_links`), and ``latest`` is only a name. Errors about a run's CSV files name
 the file and the 1-based line.

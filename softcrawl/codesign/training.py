@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 from tqdm.auto import tqdm
@@ -33,7 +32,7 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.factory import check_reduction, make_sampler, make_vec_env
 from softcrawl.codesign.randomization import DomainLog
 from softcrawl.codesign.run import Run
-from softcrawl.codesign.sac import check_device, make_sac
+from softcrawl.codesign.sac import make_sac, prepare_learner
 from softcrawl.codesign.sampler import GibbsDesignSampler
 
 
@@ -184,6 +183,8 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
     if resume:
         cfg = run.read_config()
         ckpt = _resume_point(run)
+        if ckpt is not None:
+            cfg.sac.learner = run.checkpoint_learner(ckpt)  # the learner that wrote it
     else:
         if cfg is None:
             raise ValueError("a new run needs a config")
@@ -194,11 +195,9 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         ckpt = None
     if ray_address is not None and cfg.backend != "ray":
         raise ValueError(f"a Ray address is used only by backend \"ray\", not {cfg.backend!r}")
-    check_device(cfg.sac.device)  # before the workers start
-    torch.set_num_threads(cfg.sac.threads)
+    prepare_learner(cfg.sac)  # threads before JAX / torch start; the device before the workers start
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
-    torch.manual_seed(cfg.seed)
     sampler = make_sampler(cfg)
     venv = make_vec_env(cfg, sampler, ray_address)
     wall = time.perf_counter()

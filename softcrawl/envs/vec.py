@@ -32,7 +32,7 @@ class DesignVecEnv(VecEnv):
 
     :attr:`while_stepping` (None, or a zero-argument callable) runs in :meth:`step_wait` while
     the backend's envs step (they were started by :meth:`step_async`): the learner's gradient
-    updates overlap the simulation (:class:`softcrawl.codesign.sac.SplitLRSAC`).
+    updates overlap the simulation (:class:`softcrawl.codesign.sac_common.OverlappedUpdates`).
     """
 
     def __init__(self, backend: EnvBackend, sampler=None):
