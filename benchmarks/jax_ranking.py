@@ -68,7 +68,7 @@ def main() -> None:
     ranked = sorted(results.values(), key=lambda r: -r.reward_cm)
     rows = stratified(ranked, args.designs or len(ranked), args.offset)
     requests = [(r.design, PeriodicGait.from_dict(r.gait), duration) for r in rows]
-    ev = JaxEvaluator(cfg.robot_config(), args.precision, max_batch=args.max_batch, diverged_cm=DIVERGED_CM)
+    ev = JaxEvaluator(cfg.robot, args.precision, max_batch=args.max_batch, diverged_cm=DIVERGED_CM)
     wall, cpu_time = time.perf_counter(), time.process_time()
     ev.prepare([r.design for r in rows])
     settling = (time.perf_counter() - wall, time.process_time() - cpu_time)
@@ -82,7 +82,7 @@ def main() -> None:
     jx = np.array([g for g, _ in got])
     report = {
         "groundtruth": str(args.groundtruth), "designs": len(rows), "of": len(ranked), "duration_s": duration,
-        "dt_s": cfg.robot_config().dt, "precision": args.precision, "max_batch": args.max_batch,
+        "dt_s": cfg.robot.dt, "precision": args.precision, "max_batch": args.max_batch,
         "diverged": int(sum(d for _, d in got)),
         "settle_steps": {"mean": float(np.mean([ev.settled(r.design).steps for r in rows])),
                          "not_at_rest": int(sum(not ev.settled(r.design).at_rest for r in rows))},

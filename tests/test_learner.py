@@ -100,6 +100,19 @@ def test_a_restored_learner_continues_to_the_bit():
     assert np.array_equal(a.predict(obs)[0], b.predict(obs)[0])  # the exploration noise's key too
 
 
+def test_the_learner_stays_float32_where_the_process_runs_float64_robots(x64):
+    """The JAX engine turns ``jax_enable_x64`` on for float64 robots (``backend="jax"``) in the
+    learner's process: the learner is built, updated and restored in float32 all the same (SBX's
+    update loop failed with float64 branches)."""
+    from softcrawl.codesign import sac_jax
+
+    assert jax.config.jax_enable_x64
+    a, b = continued_and_restored(sac_jax, _SMALL)
+    assert {np.asarray(x).dtype for x in _leaves(a) if np.asarray(x).dtype.kind == "f"} == {np.dtype(np.float32)}
+    assert all(np.array_equal(x, y) for x, y in zip(_leaves(a), _leaves(b)))
+    assert a.predict(np.zeros(44, np.float32), deterministic=True)[0].dtype == np.float32
+
+
 class _Evil:
     """Unpickling this creates ``marker``: proof that a file ran code when it was read."""
 

@@ -43,7 +43,7 @@ def test_preset_table_matches_the_presets():
         n_designs = 6_972 if designs.startswith("all 6,972") else 280
         assert len(cfg.env.designs()) == n_designs, name
         if "25 mm disk" in designs or designs == "as `crawl`":
-            assert cfg.env.disk_mesh_size == 25.0, name
+            assert cfg.env.robot.disk_mesh_size == 25.0, name
         per = re.search(r"1 update per (\d+ )?transition", schedule)
         if per:
             assert cfg.sac.utd_ratio == pytest.approx(1 / int(per.group(1) or 1)), name
@@ -60,12 +60,12 @@ def test_training_episode_and_step_of_the_presets():
 
     for name in ("paper", "reference", "crawl", "demo"):
         e = preset(name).env
-        assert e.n_actions == 20 and e.dt * e.steps_per_action == pytest.approx(1.0), name
-        assert e.dt == 0.02 and e.rid_dtype == "float32" and e.contact_max_iterations == 100, name
+        assert e.n_actions == 20 and e.robot.dt * e.steps_per_action == pytest.approx(1.0), name
+        assert e.robot.dt == 0.02 and e.robot.rid_dtype == "float32" and e.robot.contact_max_iterations == 100, name
     demo = preset("demo")
     assert demo.total_steps // demo.env.n_actions == 400 and demo.n_envs == 8 and demo.n_workers == 2
     smoke = preset("smoke").env
-    assert smoke.n_actions == 20 and smoke.dt * smoke.steps_per_action * smoke.n_actions == pytest.approx(0.4)
+    assert smoke.n_actions == 20 and smoke.robot.dt * smoke.steps_per_action * smoke.n_actions == pytest.approx(0.4)
 
 
 def test_design_space_and_pressure_warp():
@@ -94,7 +94,7 @@ def test_shipped_groundtruth_is_valid_and_matches_the_documented_figures():
 
     cfg, res, refs = load_groundtruth(SHIPPED_GT)
     assert set(res) == set(EnvConfig(legs=(3,)).designs()) and len(res) == 280
-    assert (cfg.disk_mesh_size, cfg.dt, tuple(cfg.cycles), cfg.evals_per_cycle) == (25.0, 0.02, (2, 3, 4), 30)
+    assert (cfg.robot.disk_mesh_size, cfg.robot.dt, tuple(cfg.cycles), cfg.evals_per_cycle) == (25.0, 0.02, (2, 3, 4), 30)
     assert not any(r.diverged for r in res.values()) and all(np.isfinite(r.reward_cm) for r in res.values())
     assert all(r.sim_seconds == 620.0 for r in res.values())
     ranked = sorted(res, key=lambda d: -res[d].reward_cm)

@@ -16,6 +16,7 @@ learner built with the same config.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 from pathlib import Path
@@ -99,6 +100,10 @@ class CodesignSAC(OverlappedUpdates, SAC):
     :func:`~softcrawl.codesign.sac_nets.actor_step` (stable-baselines3's losses); the
     temperature step, target smoothing and the loop over the updates are SBX's.
 
+    The networks, optimizer states and updates are float32 whatever ``jax_enable_x64`` says
+    (the JAX engine turns it on for float64 robots in the same process; SBX's update loop mixes
+    Python floats into its branches, which would then trace as float64 and fail).
+
     Attributes:
         learner: ``"sbx"``, the ``sac.learner`` name.
         jax_device: where the networks live and the updates and actions are computed.
@@ -110,18 +115,24 @@ class CodesignSAC(OverlappedUpdates, SAC):
 
     def __init__(self, *args, jax_device: jax.Device | None = None, overlap: bool = False, **kwargs):
         self.jax_device = jax_device or jax.devices("cpu")[0]
-        with jax.default_device(self.jax_device):
+        with self.on_device():
             super().__init__(*args, **kwargs)
         self.hook_overlap(overlap)
 
+    @contextlib.contextmanager
+    def on_device(self):
+        """JAX's default device :attr:`jax_device` and 32-bit types, in this thread."""
+        with jax.default_device(self.jax_device), jax.enable_x64(False):
+            yield
+
     def run_updates(self, gradient_steps: int, batch_size: int) -> None:
         """SBX's updates, in one compiled call."""
-        with jax.default_device(self.jax_device):
+        with self.on_device():
             SAC.train(self, gradient_steps, batch_size)  # returns after reading the losses: all done
 
     def predict(self, observation, state=None, episode_start=None, deterministic: bool = False):
         """SB3's ``predict`` (actions in the env's action space), computed on :attr:`jax_device`."""
-        with jax.default_device(self.jax_device):
+        with self.on_device():
             return super().predict(observation, state, episode_start, deterministic)
 
 
@@ -206,7 +217,8 @@ def restore_learner_state(model: CodesignSAC, raw: dict) -> None:
         if np.shape(a) != np.shape(b) or np.asarray(b).dtype.kind not in "biuf":
             raise ValueError(f"not a learner state of this config (a {np.asarray(b).dtype} array of shape "
                              f"{np.shape(b)} where {np.shape(a)} was expected)")
-    restored = jax.device_put(restored, model.jax_device)
+    with model.on_device():
+        restored = jax.device_put(restored, model.jax_device)
     p = model.policy
     p.actor_state, p.qf_state, model.ent_coef_state = restored["actor"], restored["qf"], restored["ent_coef"]
     model.key, p.key, p.noise_key = restored["key"], restored["policy_key"], restored["noise_key"]
