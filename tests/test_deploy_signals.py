@@ -187,8 +187,18 @@ def _handlers():
     return {s: signal.getsignal(s) for s in STOP_SIGNALS}
 
 
+@pytest.fixture
+def default_disposition(sig):
+    """Signal ``sig`` at its default disposition for the test, restored afterwards: a runner may
+    ignore it (SIGHUP under ``nohup``, SIGQUIT in a shell's background job), and deploy rightly
+    keeps an ignored signal ignored."""
+    old = signal.signal(getattr(signal, sig), signal.SIG_DFL)
+    yield
+    signal.signal(getattr(signal, sig), old)
+
+
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP", "SIGQUIT"])
-def test_signal_in_process_vents_and_restores_handlers(tmp_path, sig):
+def test_signal_in_process_vents_and_restores_handlers(tmp_path, sig, default_disposition):
     sim = SimRig()
     before = _handlers()
     sent = []
