@@ -23,23 +23,29 @@ from softcrawl.jaxsim.model import RobotData, _robot_data
 from softcrawl.jaxsim.rig import healthy
 
 
-def robot_rows(model, robot) -> RobotData:
+def robot_rows(model, robot, n_slots: int | None = None, inverse: np.ndarray | None = None) -> RobotData:
     """``robot``'s :class:`RobotData` (no batch axis, numpy, the model's float precision) for
-    ``model``'s leg slots and disk: the row :func:`~softcrawl.jaxsim.model.build_model` would
-    stack for it.
+    ``model``'s disk and ``n_slots`` leg slots (default: the model's): the row
+    :func:`~softcrawl.jaxsim.model.build_model` would stack for it, without building the shared
+    parts again (the disk's dense ``A_0^-1`` above all).
+
+    Args:
+        inverse: the disk's ``A_0^-1`` ``(3n, 3n)`` in float64, for the attachment Gram blocks
+            (default: the model's; in float32 those blocks are then within one rounding of
+            ``build_model``'s, which come from the float64 inverse).
 
     Raises:
-        ValueError: ``robot`` has more legs than the model's slots, another disk mesh, or an
+        ValueError: ``robot`` has more legs than the slots, another disk mesh, or an
             attachment that does not tie a leg to the disk.
     """
-    n_slots = model.robot.leg_mask.shape[-1]
+    n_slots = model.robot.leg_mask.shape[-1] if n_slots is None else n_slots
     if len(robot.legs) > n_slots:
         raise ValueError(f"a design with {len(robot.legs)} legs does not fit the JAX batch's {n_slots} leg slots")
     dtype = np.dtype(model.disk.rest.dtype)
     disk = np.asarray(robot.model.bodies[robot.disk_body].mesh.points).astype(dtype)
     if not np.array_equal(disk, np.asarray(model.disk.rest)):
         raise ValueError("a robot of another disk mesh than the JAX batch's")
-    rows = _robot_data(robot, n_slots, np.asarray(model.disk.inverse, np.float64))
+    rows = _robot_data(robot, n_slots, np.asarray(model.disk.inverse if inverse is None else inverse, np.float64))
     return RobotData(*(a.astype(dtype) if a.dtype.kind == "f" else a
                        for a in (getattr(rows, f.name) for f in dataclasses.fields(RobotData))))
 

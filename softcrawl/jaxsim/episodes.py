@@ -32,9 +32,9 @@ import numpy as np
 from softcrawl.design.space import Design, canonicalize
 from softcrawl.fem.solver import SolverSettings
 from softcrawl.gaits.pressure import check_pressures
-from softcrawl.jaxsim.batch import padded_size, stack_padded, take
+from softcrawl.jaxsim.batch import padded_size, robot_rows, stack_padded, take
 from softcrawl.jaxsim.engine import make_schedule_rollout, make_settle, rest_state
-from softcrawl.jaxsim.model import Model, build_model, engine_dtype
+from softcrawl.jaxsim.model import Model, build_model, disk_inverse, engine_dtype
 from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.assembly import RobotConfig, build_robot
 from softcrawl.robot.episode import MM_PER_CM, Settling
@@ -128,6 +128,7 @@ class JaxEvaluator:
         self._settle = make_settle(settling.rest_speed, hold, cap)
         self._rollout = make_schedule_rollout()
         self._parts: Model | None = None  # the shared leg, disk and settings (robot rows None)
+        self._inverse: np.ndarray | None = None  # the disk's A_0^-1, float64 (exact attachment rows)
         self._designs: dict[Design, SettledDesign] = {}
         self.settles, self.episodes, self.sim_seconds, self.robot_steps = 0, 0, 0.0, 0
 
@@ -150,10 +151,12 @@ class JaxEvaluator:
         for d in dict.fromkeys(canonicalize(d) for d in designs):
             if d in self._designs:
                 continue
-            model = build_model([build_robot(d, self.config)], **self._model_kw)
-            if self._parts is None:
-                self._parts = dataclasses.replace(model, robot=None)
-            new.setdefault(int(model.robot.leg_mask.shape[1]), []).append((d, take(model.robot, 0)))
+            robot = build_robot(d, self.config)
+            if self._parts is None:  # the shared parts, built once
+                self._parts = dataclasses.replace(build_model([robot], **self._model_kw), robot=None)
+                self._inverse = disk_inverse(robot)
+            legs = len(robot.legs)
+            new.setdefault(legs, []).append((d, robot_rows(self._parts, robot, legs, self._inverse)))
         for legs, items in new.items():
             for i in range(0, len(items), self.max_batch):
                 chunk = items[i:i + self.max_batch]

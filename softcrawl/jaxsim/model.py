@@ -209,16 +209,22 @@ def _leg_part(robot) -> LegPart:
     return part
 
 
+def disk_inverse(robot) -> np.ndarray:
+    """``A_0^-1`` ``(3n, 3n)`` float64 of a reduced robot's floating-frame disk: the inverse of its
+    linearly implicit step matrix ``A_0 = h (h + beta) K_0 + (1 + h alpha) M`` (Rayleigh damping
+    ``alpha`` mass, ``beta`` stiffness; physics.md, "Time stepping") at rest, dense."""
+    fb = robot.reduced[robot.disk_body]
+    h, rM, rK = robot.config.dt, robot.model.rayleigh_mass, robot.model.rayleigh_stiffness
+    A0 = h * (h + rK) * fb.rest_stiffness.toarray() + np.diag((1 + h * rM) * np.repeat(fb.body.nodal_mass, 3))
+    return np.linalg.inv(A0)
+
+
 def _disk_part(robot) -> DiskPart:
     """The shared floating-frame disk data of a reduced robot."""
     fb = robot.reduced[robot.disk_body]
-    h, rM, rK = robot.config.dt, robot.model.rayleigh_mass, robot.model.rayleigh_stiffness
-    K0 = fb.rest_stiffness.toarray()
-    mass = fb.body.nodal_mass
-    A0 = h * (h + rK) * K0 + np.diag((1 + h * rM) * np.repeat(mass, 3))
     node = robot.reward_node - int(robot.model.node_offsets[robot.disk_body])
-    return DiskPart(fb.body.mesh.points, fb.weighted_rest, mass, K0, np.linalg.inv(A0),
-                    np.asarray(fb.body.collision_nodes, np.int64), node)
+    return DiskPart(fb.body.mesh.points, fb.weighted_rest, fb.body.nodal_mass, fb.rest_stiffness.toarray(),
+                    disk_inverse(robot), np.asarray(fb.body.collision_nodes, np.int64), node)
 
 
 def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
