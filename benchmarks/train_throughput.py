@@ -9,7 +9,16 @@ vectorised step in one compiled call: ``--grad-steps``, default 96 = the paper's
 during the actor's step); ``both`` (the default) measures them in one run, alternating
 ``--repeats`` blocks of ``--updates`` updates each, and reports their ratio per wall second and
 per CPU second of this process (the latter is what a shared machine cannot skew: one thread,
-``--threads``, each).
+``--threads``, each). XLA may still run the Python thread and its compute thread side by side:
+pin the process to one core (``taskset -c 1 ...``) to measure "one CPU thread".
+
+Arithmetic bound (``arithmetic`` in the output, with ``--no-env``): the floating-point operations of
+one update, counted by XLA's cost analysis of the JAX learner's compiled update
+(``flops_per_update``; about 1.91 GFLOP for the paper's networks at batch 512: critic, actor and
+target passes), the float32 matrix-product rate of this core at the networks' layer shapes for
+numpy's BLAS, torch and XLA (``matmul_gflops``, the threads as set), and from the fastest of them
+the updates per CPU second no learner can exceed on this core (``bound_updates_per_s``) and each
+learner's share of it (``share_of_bound``, from its updates per CPU second).
 
 Projection: wall = transitions x (sim seconds per transition / cores + seconds per update):
 simulation parallel over cores, learning serial in the learner process.
@@ -228,6 +237,59 @@ def project(run: dict, updates_per_s: float, cores: int) -> dict:
                            "serial": total * (sim / c + 1 / updates_per_s) / 3600} for c in (cores, 32)}
 
 
+def _sbx_update_flops(batch: int, net_arch, device: str) -> float:
+    """Floating-point operations of one compiled update of the JAX learner (XLA's cost analysis
+    of SBX's ``_train`` with one gradient step), FLOP."""
+    model = _learner_on_dummy("sbx", batch, net_arch, device)
+    calls = []
+    model._train = lambda *a, _train=model._train: calls.append(a) or _train(*a)
+    model.train(gradient_steps=1, batch_size=batch)
+    jitted = next(k.__dict__["_train"].__func__ for k in type(model).__mro__ if "_train" in k.__dict__)
+    with model.on_device():
+        cost = jitted.lower(type(model), *calls[0]).compile().cost_analysis()
+    return float((cost[0] if isinstance(cost, list) else cost)["flops"])
+
+
+def matmul_gflops(batch: int, net_arch, obs_dim: int = 44, act_dim: int = 3, seconds: float = 0.5) -> dict:
+    """float32 matrix-product rate, GFLOP per CPU second of this process, of numpy's BLAS, torch
+    and XLA (jitted) on the forward shapes of the critic's layers (``batch x (obs + act) ->
+    net_arch``), their FLOPs summed over the layers, on the threads each library is set to (one:
+    per CPU second is per thread, what a shared machine cannot skew)."""
+    import jax
+    import jax.numpy as jnp
+    import torch
+
+    dims = (obs_dim + act_dim, *net_arch)
+    rng = np.random.default_rng(0)
+    xs = [rng.standard_normal((batch, a)).astype(np.float32) for a in dims[:-1]]
+    ws = [rng.standard_normal((a, b)).astype(np.float32) for a, b in zip(dims[:-1], dims[1:])]
+    flops = sum(2.0 * batch * a * b for a, b in zip(dims[:-1], dims[1:]))
+    jit_layers = jax.jit(lambda xs, ws: [x @ w for x, w in zip(xs, ws)])
+    txs, tws = [torch.from_numpy(x) for x in xs], [torch.from_numpy(w) for w in ws]
+    jxs, jws = [jnp.asarray(x) for x in xs], [jnp.asarray(w) for w in ws]
+    kernels = {"numpy": lambda: [x @ w for x, w in zip(xs, ws)],
+               "torch": lambda: [x @ w for x, w in zip(txs, tws)],
+               "jax": lambda: jax.block_until_ready(jit_layers(jxs, jws))}
+    out = {}
+    for name, run in kernels.items():
+        run()
+        n, t = 0, time.process_time()
+        while time.process_time() - t < seconds:
+            run()
+            n += 1
+        out[name] = n * flops / (time.process_time() - t) / 1e9
+    return out
+
+
+def arithmetic_bound(rates: dict, batch: int, net_arch, device: str) -> dict:
+    """The updates/s this core's fastest float32 matrix product allows (module docstring)."""
+    flops = _sbx_update_flops(batch, net_arch, device)
+    gflops = matmul_gflops(batch, net_arch)
+    bound = max(gflops.values()) * 1e9 / flops
+    return {"flops_per_update": flops, "matmul_gflops": gflops, "bound_updates_per_s": bound,
+            "share_of_bound": {k: rates[k]["updates_per_cpu_s"] / bound for k in ("sbx", "torch") if k in rates}}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--learner", choices=("both", "sbx", "torch"), default="both",
@@ -296,6 +358,8 @@ def main() -> None:
         return
     rates = sac_updates_per_s(learners, args.batch, args.updates, args.grad_steps, args.repeats, device=args.device)
     out = {**head, "device": args.device, "batch": args.batch, "sac": rates}
+    if args.no_env and args.device == "cpu":
+        out["arithmetic"] = arithmetic_bound(rates, args.batch, (400, 200, 100), args.device)
     if not args.no_env:
         env = env_rates(args)
         transitions = preset("paper").total_steps
