@@ -31,6 +31,8 @@ from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.assembly import RobotConfig, build_robot, disk_params, material, pneunet_params
 
 PAPER_TOML = shipped_space_path("paper")
+#: SHA-256 of the shipped paper reduction (``pneunet_6mm.npz``), as paper.toml names it.
+SHIPPED_SHA256 = "1779cfb179a167c019356494192f9be3ed4e94e1fcb10e5979263eb8e7d7b847"
 HEX6_TOML = shipped_space_path("hex6")
 
 
@@ -179,6 +181,14 @@ MALFORMED = [
     ("base_length_mm = 115.0", "base_length_mm = 100.0",
      r"actuator\.pneunet: base must be at least as long and wide as the block$"),
     ('reduction = "softcrawl:pneunet_6mm.npz"', 'reduction = "missing.npz"', r"actuator\.reduction: no such file"),
+    (f'reduction_sha256 = "{SHIPPED_SHA256}"', f'reduction_sha256 = "{SHIPPED_SHA256[:63]}"',
+     r"actuator\.reduction_sha256: must be 64 hex digits, got '1779c"),
+    (f'reduction_sha256 = "{SHIPPED_SHA256}"', f'reduction_sha256 = "{SHIPPED_SHA256[:63]}g"',
+     r"actuator\.reduction_sha256: must be 64 hex digits"),
+    (f'reduction_sha256 = "{SHIPPED_SHA256}"', "reduction_sha256 = 1779",
+     r"actuator\.reduction_sha256: must be a string, got 1779"),
+    ('reduction = "softcrawl:pneunet_6mm.npz"\n', "",
+     r"actuator\.reduction_sha256: given without a reduction"),
     ("[actuator.pneunet]", "[actuator.pneunets]", r"actuator\.pneunets: unknown key"),
     ("[slots]", "[slot]", r"slot: unknown key"),
     ("count = 8", "count = 8 8", r"TOML"),
@@ -314,6 +324,7 @@ def test_reduction_of_another_pneunet_is_refused(tmp_path):
     """The shipped reduction (9 chambers) named by a space of 6-chamber legs: refused when a
     reduced robot is built, naming the dimensions that differ."""
     text = HEX6_TOML.read_text().replace("mass_kg = 0.08", "mass_kg = 0.105")  # the reduction's leg mass
+    text = re.sub(r"^reduction(_sha256)? = .*\n", "", text, flags=re.M)  # hex6's own reduction
     text = text.replace('paper_thickness_mm = 1.0', 'paper_thickness_mm = 1.0\nreduction = "softcrawl:pneunet_6mm.npz"')
     path = tmp_path / "hex6_wrong_reduction.toml"
     path.write_text(text)

@@ -6,9 +6,15 @@ Examples::
     softcrawl reduce build --out pneunet_6mm.npz --workdir runs/reduce
     softcrawl reduce validate --workdir runs/reduce --out runs/reduce/validation
     softcrawl reduce validate --grid --workdir runs/reduce --out runs/reduce/grid
+    softcrawl reduce build --space hex6 --out pneunet6_6mm.npz --workdir runs/reduce/hex6
+    softcrawl reduce validate --space hex6 --reduction pneunet6_6mm.npz --workdir runs/reduce/hex6
 
-Full-order runs live in ``--workdir`` and are reused after an interruption or by a later
-command with the same settings.
+``--space`` (a shipped space's name or a space file; default the paper's) picks the scenes'
+slots and leg counts and the parts reduced (reduction.md, "Reducing your own part");
+``validate`` then checks the space's own reduction (``[actuator] reduction``, its SHA-256 and
+part) unless ``--reduction`` names another. Full-order runs live in ``--workdir`` (default
+``runs/reduce``, ``runs/reduce/<space name>`` for another space) and are reused after an
+interruption or by a later command with the same settings.
 """
 
 from __future__ import annotations
@@ -18,10 +24,11 @@ import dataclasses
 import json
 from pathlib import Path
 
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import DesignSpace, resolve_space
 from softcrawl.fem.solver import RID_DTYPES
-from softcrawl.reduction.artifact import load_reduction, save_reduction
+from softcrawl.reduction.artifact import file_sha256, load_reduction, save_reduction
 from softcrawl.reduction.build import BuildSettings, build_reduction, build_reductions
-from softcrawl.reduction.data import default_reduction_path
 from softcrawl.reduction.model import PartReduction
 from softcrawl.reduction.validate import ENGINES, validate_reduction
 from softcrawl.robot.assembly import REDUCED_DISKS, RobotConfig
@@ -46,19 +53,35 @@ def _describe(name: str, part: PartReduction) -> str:
     return text
 
 
-def _config(args: argparse.Namespace) -> RobotConfig:
-    return RobotConfig(leg_mesh_size=args.mesh_size, reduced_disk=args.reduced_disk)
+def _space(args: argparse.Namespace) -> DesignSpace:
+    return resolve_space(args.space) if args.space else DEFAULT_SPACE
+
+
+def _config(args: argparse.Namespace, space: DesignSpace) -> RobotConfig:
+    """The space's robot settings (:meth:`RobotConfig.for_space`; the paper's: ``RobotConfig()``)
+    with ``--mesh-size`` and ``--reduced-disk``."""
+    mesh = {} if args.mesh_size is None else {"leg_mesh_size": args.mesh_size}
+    return RobotConfig.for_space(space, reduced_disk=args.reduced_disk, **mesh)
+
+
+def _workdir(args: argparse.Namespace, space: DesignSpace) -> Path:
+    if args.workdir is not None:
+        return Path(args.workdir)
+    return Path("runs/reduce") if space == DEFAULT_SPACE else Path("runs/reduce") / space.name
 
 
 def _build(args: argparse.Namespace) -> int:
-    config = _config(args)
+    space = _space(args)
+    config = _config(args, space)
     settings = _settings(args, tol_modes=args.tol_modes, tol_gie=args.tol_gie)
-    reduction = build_reduction(args.workdir, config, settings, args.workers, not args.no_progress)
+    reduction = build_reduction(_workdir(args, space), config, settings, args.workers, not args.no_progress, space)
     out = save_reduction(args.out, reduction, dataclasses.asdict(config))
     meta = reduction.metadata
     parts = "; ".join(_describe(name, part) for name, part in reduction.parts.items())
     print(f"wrote {out}: {parts}; {meta['wall_seconds']['total']:.0f} s, peak memory "
           f"{meta['peak_rss_mb']['with_workers']} MB with its workers (main process {meta['peak_rss_mb']['main']} MB)")
+    print(f"for the space file: [actuator] reduction = \"{out}\" (relative to the file), "
+          f"reduction_sha256 = \"{file_sha256(out)}\"")
     return 0
 
 
@@ -123,19 +146,24 @@ def _plot_grid(path: Path, rows: list[dict]) -> None:
 
 
 def _validate(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    config = _config(args)
+    space = _space(args)
+    config = _config(args, space)
+    workdir = _workdir(args, space)
     progress = not args.no_progress
     if args.grid and args.engine != "cpu":
         raise ValueError("--grid runs the CPU engine only")
+    path = args.reduction or space.reduction
+    if not args.grid and path is None:
+        raise ValueError(f"the design space {space.name!r} names no reduction ([actuator] reduction): give --reduction")
+    out = Path(args.out)
     if args.grid:
+        out.mkdir(parents=True, exist_ok=True)
         rows = []
         for tm in GRID_TOL_MODES:
             settings = _settings(args, tol_modes=tm)
-            for reduction in build_reductions(args.workdir, config, settings, GRID_TOL_GIE, args.workers, progress):
-                rep = validate_reduction(reduction, config, args.workdir, workers=args.workers, progress=progress,
-                                         ensemble=0)
+            for reduction in build_reductions(workdir, config, settings, GRID_TOL_GIE, args.workers, progress, space):
+                rep = validate_reduction(reduction, config, workdir, workers=args.workers, progress=progress,
+                                         ensemble=0, space=space)
                 rep.update(tol_modes=tm, tol_gie=reduction.metadata["settings"]["tol_gie"])
                 rows.append(rep)
                 print(f"tol_modes {tm:g} tol_gie {rep['tol_gie']:g}: {rep['n_modes']} modes, RID "
@@ -146,8 +174,10 @@ def _validate(args: argparse.Namespace) -> int:
         _plot_grid(out / "error_vs_time.png", rows)
         print(f"wrote {out / 'grid.json'} and {out / 'error_vs_time.png'}")
         return 0
-    path = args.reduction or default_reduction_path()
-    reduction, _ = load_reduction(path, expect=dataclasses.asdict(config))
+    reduction, _ = load_reduction(path, expect=dataclasses.asdict(config),
+                                  part=space.part_record(config.leg_mesh_size, config.disk_mesh_size),
+                                  sha256=space.reduction_sha256 if str(path) == space.reduction else None)
+    out.mkdir(parents=True, exist_ok=True)
     ensemble = args.ensemble if args.ensemble is not None else (3 if args.engine == "cpu" else 0)
     if args.engine == "jax":
         try:
@@ -155,11 +185,12 @@ def _validate(args: argparse.Namespace) -> int:
         except ImportError:
             raise ValueError("--engine jax needs JAX (pip install 'softcrawl[jax]')") from None
         jax.config.update("jax_enable_x64", args.rid_dtype == "float64")
-    rep = validate_reduction(reduction, config, args.workdir, workers=args.workers, progress=progress,
+    rep = validate_reduction(reduction, config, workdir, workers=args.workers, progress=progress,
                              ensemble=ensemble, perturbation=args.perturbation, reduced_dt=args.dt,
                              rid_dtype=args.rid_dtype, contact_max_iterations=args.contact_max_iterations,
-                             leg_collision_spacing=args.leg_collision_spacing, engine=args.engine)
+                             leg_collision_spacing=args.leg_collision_spacing, engine=args.engine, space=space)
     rep["reduction"] = str(path)
+    rep["space"] = space.name
     (out / "validation.json").write_text(json.dumps(jsonable(rep), indent=1) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(_markdown(rep), encoding="utf-8")
     print(_markdown(rep))
@@ -179,8 +210,14 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("reduce", help="build and validate the leg (and disk) reduction (POD + ECSW)")
     sub = p.add_subparsers(dest="reduce_command", required=True)
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--workdir", default="runs/reduce", help="full-order runs, reused (default runs/reduce)")
-    common.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size, help="leg mesh size, mm")
+    common.add_argument("--space", default=None, metavar="NAME|FILE",
+                        help="design space: a shipped one's name (paper, hex6) or a space file (default: the "
+                             "paper's); its slots, leg counts and parts make the scenes")
+    common.add_argument("--workdir", default=None,
+                        help="full-order runs, reused (default runs/reduce; runs/reduce/<space name> for a space "
+                             "other than the paper's)")
+    common.add_argument("--mesh-size", type=float, default=None,
+                        help="leg mesh size, mm (default: the space's, 6 for the paper's)")
     common.add_argument("--designs", type=int, default=BuildSettings.n_designs, help="training designs")
     common.add_argument("--gait-designs", type=int, default=BuildSettings.gait_designs,
                         help=f"crawling training scenes (sine gaits) besides the Gray-code walks (default "
@@ -203,7 +240,8 @@ def register(subparsers) -> None:
     b.add_argument("--tol-gie", type=float, default=BuildSettings.tol_gie, help="ECSW relative residual tolerance")
     b.set_defaults(func=_build)
     v = sub.add_parser("validate", parents=[common], help="compare with the full model on 4 held-out scenes")
-    v.add_argument("--reduction", default=None, help="reduction file (default: the shipped one)")
+    v.add_argument("--reduction", default=None,
+                   help="reduction file (default: the space's [actuator] reduction; the shipped one for the paper's)")
     v.add_argument("--out", default="runs/reduce/validation", help="report directory")
     v.add_argument("--grid", action="store_true", help="3 x 3 grid over (tol_modes, tol_gie) with a plot")
     v.add_argument("--ensemble", type=int, default=None,

@@ -38,6 +38,8 @@ degrees about +z from +x, Young's moduli kPa)::
     paper_thickness_mm = 1.0
     reduction = "softcrawl:pneunet_6mm.npz"   # optional; a path relative to this file, or softcrawl:NAME
                                               # for one shipped in softcrawl/reduction/data
+    reduction_sha256 = "<64 hex digits>"      # optional (needs reduction): the file's SHA-256, 64 hex
+                                              # digits; a reduction file with another is refused on loading
     [actuator.pneunet]                 # every PneuNetParams dimension except mesh_size, with _mm
     n_chambers = 9
     base_length_mm = 115.0
@@ -53,7 +55,7 @@ import hashlib
 import itertools
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from functools import cached_property
 from pathlib import Path
 
@@ -142,6 +144,8 @@ class DesignSpace:
         leg: the actuator (``params``: ``n_chambers`` and :data:`PNEUNET_KEYS`).
         paper_material, paper_thickness: the leg's strain-limiting layer (mm).
         reduction: the actuator's reduction file (resolved path) or None.
+        reduction_sha256: the SHA-256 (64 lower-case hex digits) the reduction file must have,
+            or None (not checked).
         name: a label. source: the file read (not compared). sha256: its checksum (not compared).
 
     Raises:
@@ -163,6 +167,7 @@ class DesignSpace:
     name: str = ""
     source: str = field(default="", compare=False)
     sha256: str = field(default="", compare=False)
+    reduction_sha256: str | None = None
 
     def __post_init__(self) -> None:
         s = self.n_slots
@@ -308,6 +313,30 @@ class DesignSpace:
             raise IndexError(f"design index {i} out of range [0, {len(designs)})")
         return designs[int(i)]
 
+    def part_record(self, leg_mesh_size: float | None = None, disk_mesh_size: float | None = None) -> dict:
+        """What a reduction of this space's parts is built for: a JSON-able record that
+        :func:`softcrawl.reduction.artifact.save_reduction` stores and
+        :func:`~softcrawl.reduction.artifact.load_reduction` compares (reduction.md, "Reducing
+        your own part").
+
+        Args:
+            leg_mesh_size, disk_mesh_size: the tet sizes in use, mm (default: the parts' own).
+
+        Returns:
+            ``{"leg": {"params": {PneuNet dimensions (mm), "n_chambers", "mesh_size"},
+            "material": {...}, "paper_material": {...}, "paper_thickness": mm}, "disk":
+            {"params": {disk dimensions (mm), "mesh_size"}, "material": {...}}}``; a material is
+            ``{"name", "youngs_modulus_kpa", "poisson_ratio", "density_kg_per_m3"}`` (kPa,
+            kg/m^3; a known name leaves the constants None). Masses are not in it: the
+            reduction's ``valid_for`` holds them.
+        """
+        def params(part: Part, mesh_size: float | None) -> dict:
+            return {**dict(part.params), "mesh_size": float(mesh_size if mesh_size is not None else part.mesh_size)}
+
+        return {"leg": {"params": params(self.leg, leg_mesh_size), "material": asdict(self.leg.material),
+                        "paper_material": asdict(self.paper_material), "paper_thickness": self.paper_thickness},
+                "disk": {"params": params(self.disk, disk_mesh_size), "material": asdict(self.disk.material)}}
+
     def one_hot_batch(self, designs: Iterable[Sequence[int] | str] | np.ndarray) -> np.ndarray:
         """One-hot codes, ``(n, S * (R + 1))`` float32: ``S`` slot-major blocks of length
         ``R + 1`` (value 0..R). Designs are encoded as given (not canonicalised).
@@ -385,7 +414,9 @@ _BODY_KEYS = tuple(f"{k}_mm" for k in DISK_KEYS) + ("mesh_size_mm", "mass_kg", "
 _SLOTS_KEYS = ("count", "first_angle_deg", "angles_deg")
 _DESIGN_KEYS = ("regulators", "min_legs", "max_legs", "mirror_x")
 _ACTUATOR_KEYS = ("mesh_size_mm", "mass_kg", "material", "paper_material", "paper_thickness_mm", "reduction",
-                  "pneunet")
+                  "reduction_sha256", "pneunet")
+#: A SHA-256 checksum as written in a space file: 64 hex digits.
+_SHA256_DIGITS = 64
 _PNEUNET_KEYS = ("n_chambers",) + tuple(f"{k}_mm" for k in PNEUNET_KEYS)
 _MATERIAL_KEYS = ("youngs_modulus_kpa", "poisson_ratio", "density_kg_per_m3")
 
@@ -514,6 +545,17 @@ class _Reader:
             raise self.fail("actuator.reduction", f"no such file {path}")
         return str(path)
 
+    def reduction_sha256(self, tbl: dict) -> str | None:
+        """``reduction_sha256`` lower-cased: 64 hex digits, and only beside ``reduction``."""
+        digest = self.text(tbl, "reduction_sha256", "actuator")
+        if digest is None:
+            return None
+        if "reduction" not in tbl:
+            raise self.fail("actuator.reduction_sha256", "given without a reduction")
+        if len(digest) != _SHA256_DIGITS or any(c not in "0123456789abcdefABCDEF" for c in digest):
+            raise self.fail("actuator.reduction_sha256", f"must be {_SHA256_DIGITS} hex digits, got {digest!r}")
+        return digest.lower()
+
 
 def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
     """Read a design-space file (format: module docstring) with :func:`softcrawl.safeio.load_toml`.
@@ -570,9 +612,10 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
     paper = r.material(act, "paper_material", "actuator")
     paper_thickness = r.number(act, "paper_thickness_mm", "actuator")
     reduction = r.reduction(act)
+    reduction_sha256 = r.reduction_sha256(act)
     try:
         space = DesignSpace(angles, regulators, min_legs, max_legs, disk, leg, paper, paper_thickness, mirror,
-                            reduction, name, str(path), hashlib.sha256(data).hexdigest())
+                            reduction, name, str(path), hashlib.sha256(data).hexdigest(), reduction_sha256)
     except ValueError as exc:  # the counts are checked above: the mirror image of an asymmetric slot set
         raise r.fail("design.mirror_x", str(exc)) from None
     if check_geometry:
@@ -584,6 +627,20 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
             msg = str(exc).split(": PneuNetParams(")[0]
             raise r.fail("actuator.pneunet", msg) from None
     return space
+
+
+def resolve_space(value: str | Path, check_geometry: bool = True) -> DesignSpace:
+    """The space a command-line ``--space`` names: a shipped space's name (``"paper"``,
+    ``"hex6"``: :func:`shipped_space_path`) or the path of a space file.
+
+    Raises:
+        FileNotFoundError: neither a shipped name nor an existing file.
+        SpaceFileError: as :func:`load_space`.
+    """
+    text = str(value)
+    if not Path(text).is_file() and "/" not in text and not text.endswith(".toml"):
+        return load_space(shipped_space_path(text), check_geometry)
+    return load_space(text, check_geometry)
 
 
 def shipped_space_path(name: str) -> Path:

@@ -11,6 +11,13 @@ unnoticed either. :func:`load_reduction` rejects a file that is unreadable, of a
 version, altered (either checksum), inconsistent (``n_rigid`` against the basis), or whose mesh
 or parameters do not match. Files written before ``metadata_checksum`` existed are accepted only
 if their metadata is one of :data:`_TRUSTED_LEGACY_METADATA` (the shipped reduction).
+
+The build records the part each reduced body was built for (``metadata["build"]["part"]``: the
+PneuNet's or disk's dimensions and mesh size, its material, and the leg's paper layer;
+:meth:`softcrawl.design.spacefile.DesignSpace.part_record`). Given the part in use,
+:func:`load_reduction` refuses a reduction of another part; files written before the record
+existed were built for the paper's materials (:data:`PAPER_MATERIALS`; their dimensions are
+their mesh's). Given a space's ``reduction_sha256``, it refuses a file with another SHA-256.
 """
 
 from __future__ import annotations
@@ -19,6 +26,8 @@ import hashlib
 import json
 import os
 from pathlib import Path
+
+from softcrawl.safeio import read_bytes
 
 import numpy as np
 
@@ -41,7 +50,24 @@ class ReductionFileError(ValueError):
 
 
 class ReductionMismatchError(ValueError):
-    """A reduction does not match the mesh or the model parameters in use."""
+    """A reduction does not match the mesh, the part or the model parameters in use, or not
+    the checksum its design space expects."""
+
+
+#: Per part, what a reduction file without a part record was built for besides its mesh's
+#: dimensions: the paper's materials and paper layer (the only ones softcrawl could build for
+#: then; ``paper.toml``, checked against it by the tests).
+PAPER_MATERIALS = {
+    "leg": {"material": {"name": "dragonskin30", "youngs_modulus_kpa": None, "poisson_ratio": None,
+                         "density_kg_per_m3": None},
+            "paper_material": {"name": "paper", "youngs_modulus_kpa": None, "poisson_ratio": None,
+                               "density_kg_per_m3": None},
+            "paper_thickness": 1.0},
+    "disk": {"material": {"name": "printed_polymer", "youngs_modulus_kpa": None, "poisson_ratio": None,
+                          "density_kg_per_m3": None}},
+}
+#: How the parts are named in messages.
+_PART_NAMES = {"leg": "PneuNet", "disk": "disk"}
 
 
 def mesh_hash(mesh: TetMesh) -> str:
@@ -120,8 +146,61 @@ def save_reduction(path: str | os.PathLike, reduction: RobotReduction, valid_for
     return path
 
 
-def load_reduction(path: str | os.PathLike, expect: dict | None = None,
-                   check: bool = True) -> tuple[RobotReduction, dict]:
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 (64 lower-case hex digits) of a file's bytes (a space's ``reduction_sha256``).
+
+    Raises:
+        ValueError: not a regular file or too large (:func:`softcrawl.safeio.read_bytes`).
+    """
+    return hashlib.sha256(read_bytes(Path(path))).hexdigest()
+
+
+def part_record(meta: dict, name: str) -> dict:
+    """The part a reduction file's ``name`` part (``"leg"``, ``"disk"``) was built for: its
+    recorded ``metadata["build"]["part"][name]``, or for a file without one its mesh's
+    dimensions (``params``) and :data:`PAPER_MATERIALS`."""
+    recorded = (meta.get("build") or {}).get("part") or {}
+    if name in recorded:
+        return recorded[name]
+    return {"params": dict(meta["parts"][name].get("mesh_params", {})), **PAPER_MATERIALS.get(name, {})}
+
+
+def check_part(path: str | os.PathLike, meta: dict, part: dict) -> None:
+    """Refuse a reduction whose parts were built for another part than ``part``.
+
+    Args:
+        path: the file (for the message).
+        meta: its metadata (:func:`load_reduction`).
+        part: the parts in use, ``{"leg": {...}, "disk": {...}}`` as
+            :meth:`softcrawl.design.spacefile.DesignSpace.part_record` gives; each part the
+            file has is compared, key by key (``params`` dimension by dimension).
+
+    Raises:
+        ReductionMismatchError: one line naming every differing value, the file's and the one in use.
+    """
+    for name in meta.get("parts", {}):
+        if name not in part:
+            continue
+        have, want = part_record(meta, name), part[name]
+        pairs = [(k, have.get("params", {}).get(k), v) for k, v in want.get("params", {}).items()]
+        pairs += [(k, have.get(k), v) for k, v in want.items() if k != "params"]
+        diff = [f"{k}: {_show(a)} != {_show(b)}" for k, a, b in sorted(pairs) if a != b]
+        if diff:
+            raise ReductionMismatchError(f"reduction {path} was built for another {_PART_NAMES.get(name, name)} "
+                                         f"than the one in use (the reduction's != in use: {', '.join(diff)}); "
+                                         "build one for this part with `softcrawl reduce build --space` or use "
+                                         "--model full")
+
+
+def _show(value) -> str:
+    """A record value in a message: a material by its name when it has one."""
+    if isinstance(value, dict) and value.get("name"):
+        return str(value["name"])
+    return json.dumps(value) if isinstance(value, dict) else str(value)
+
+
+def load_reduction(path: str | os.PathLike, expect: dict | None = None, check: bool = True,
+                   part: dict | None = None, sha256: str | None = None) -> tuple[RobotReduction, dict]:
     """Read a reduction file and check it.
 
     Args:
@@ -130,19 +209,31 @@ def load_reduction(path: str | os.PathLike, expect: dict | None = None,
             of :data:`MATCHED_FIELDS` (and :data:`DISK_MATCHED_FIELDS` if the file has a disk
             part) present here must equal the file's ``valid_for`` value.
         check: verify format, version, checksum and mesh hashes.
+        part: the parts in use (:meth:`softcrawl.design.spacefile.DesignSpace.part_record`;
+            None: not checked): the file's parts must have been built for them (:func:`check_part`).
+        sha256: the SHA-256 the file must have (a space's ``reduction_sha256``; None: not checked).
 
     Returns:
         ``(reduction, metadata)``.
 
     Raises:
         ReductionFileError: missing, unreadable, other format/version, checksum mismatch.
-        ReductionMismatchError: a parameter in ``expect`` differs from the file's.
+        ReductionMismatchError: another SHA-256 than ``sha256``, a parameter in ``expect``
+            that differs from the file's, or parts built for another part than ``part``.
     """
     path = Path(path)
     if path.is_dir():
         raise ReductionFileError(f"reduction file {path} is a directory; give the .npz file")
     if not path.is_file():
         raise ReductionFileError(f"reduction file {path} does not exist (build one with `softcrawl reduce build`)")
+    if sha256 is not None:
+        try:
+            actual = file_sha256(path)
+        except ValueError as exc:
+            raise ReductionFileError(f"cannot read reduction file {path}: {exc}") from None
+        if actual != sha256.lower():
+            raise ReductionMismatchError(f"reduction {path} has SHA-256 {actual}, but its design space expects "
+                                         f"{sha256.lower()} ([actuator] reduction_sha256)")
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
@@ -170,17 +261,17 @@ def load_reduction(path: str | os.PathLike, expect: dict | None = None,
     parts_meta = meta.get("parts", {})
     try:
         parts = {name: _part(data, name, parts_meta[name]) for name in parts_meta}
-        for name, part in parts.items():
-            recorded = parts_meta[name].get("n_rigid", part.n_rigid)
-            if not 0 <= part.n_rigid <= part.basis.shape[1] or recorded != part.n_rigid:
-                raise ValueError(f"{name}: n_rigid {part.n_rigid} (metadata {recorded!r}) does not fit a basis of "
-                                 f"{part.basis.shape[1]} modes")
+        for name, reduced in parts.items():
+            recorded = parts_meta[name].get("n_rigid", reduced.n_rigid)
+            if not 0 <= reduced.n_rigid <= reduced.basis.shape[1] or recorded != reduced.n_rigid:
+                raise ValueError(f"{name}: n_rigid {reduced.n_rigid} (metadata {recorded!r}) does not fit a basis of "
+                                 f"{reduced.basis.shape[1]} modes")
         reduction = RobotReduction(parts["leg"], parts.get("disk"), meta.get("build", {}))
     except (KeyError, ValueError, TypeError, AttributeError, IndexError) as exc:
         raise ReductionFileError(f"reduction file {path} is incomplete or inconsistent: {exc}") from exc
     if check:
-        for name, part in parts.items():
-            if mesh_hash(part.mesh) != parts_meta[name].get("mesh_hash"):
+        for name, reduced in parts.items():
+            if mesh_hash(reduced.mesh) != parts_meta[name].get("mesh_hash"):
                 raise ReductionFileError(f"reduction file {path}: the {name} mesh does not match its recorded hash")
     if expect:
         valid = meta.get("valid_for", {})
@@ -190,4 +281,6 @@ def load_reduction(path: str | os.PathLike, expect: dict | None = None,
         if diff:
             raise ReductionMismatchError(f"reduction {path} does not match the model ({'; '.join(diff)}); "
                                          "rebuild it with `softcrawl reduce build` or use --model full")
+    if part is not None:
+        check_part(path, meta, part)
     return reduction, meta

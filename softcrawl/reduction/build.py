@@ -4,7 +4,10 @@ Each part (the PneuNet leg and, optionally, the disk) gets its own basis and RID
 same runs (reduction.md; paper sec. IV reduces the legs only and keeps a coarse full-order
 disk, as the default here). ``softcrawl reduce build`` calls :func:`build_reduction`. Every
 phase shows a progress bar; the full-order runs are saved per scene and reused after an
-interruption (:mod:`softcrawl.reduction.runs`).
+interruption (:mod:`softcrawl.reduction.runs`). The scenes and the parts come from a design
+space (default the paper's): a space's reduction is built from robots of that space, with its
+PneuNet and disk, and records that part (``metadata["part"]``,
+:meth:`softcrawl.design.spacefile.DesignSpace.part_record`) for the loader to check.
 """
 
 from __future__ import annotations
@@ -18,8 +21,10 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from softcrawl.geometry.disk import DiskParams, disk_mesh
-from softcrawl.geometry.pneunet import PneuNetParams, pneunet_mesh
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import DesignSpace
+from softcrawl.geometry.disk import disk_mesh
+from softcrawl.geometry.pneunet import pneunet_mesh
 from softcrawl.parallel import PeakMemory, run_pool
 from softcrawl.reduction.ecsw import GramAccumulator, ecsw_weights
 from softcrawl.reduction.kernels import element_terms
@@ -27,7 +32,7 @@ from softcrawl.reduction.model import PartReduction, ReducedBody, RobotReduction
 from softcrawl.reduction.pod import PODBasis, pod_basis
 from softcrawl.reduction.runs import SNAPSHOT_KEYS, run_fom_scenes
 from softcrawl.reduction.scenes import Scene, gait_scenes, reduced_scene_robot, run_scene, training_scenes
-from softcrawl.robot.assembly import RobotConfig
+from softcrawl.robot.assembly import RobotConfig, disk_params, pneunet_params
 
 
 @dataclass(frozen=True)
@@ -87,15 +92,15 @@ class BuildSettings:
     ecsw_every: int = 10
     fom_refactor_every: int = 5
 
-    def scenes(self) -> tuple[Scene, ...]:
-        """The training scenes: the Gray-code walks, then the crawling scenes."""
-        return (training_scenes(self.n_designs, self.sizes, state_seconds=self.state_seconds)
-                + gait_scenes(self.gait_designs, seconds=self.gait_seconds))
+    def scenes(self, space: DesignSpace = DEFAULT_SPACE) -> tuple[Scene, ...]:
+        """The training scenes of ``space``: the Gray-code walks, then the crawling scenes."""
+        return (training_scenes(self.n_designs, self.sizes, state_seconds=self.state_seconds, space=space)
+                + gait_scenes(self.gait_designs, seconds=self.gait_seconds, space=space))
 
-    def ecsw_training_scenes(self) -> tuple[Scene, ...]:
+    def ecsw_training_scenes(self, space: DesignSpace = DEFAULT_SPACE) -> tuple[Scene, ...]:
         """The scenes re-run with the Galerkin ROM: ``ecsw_scenes`` of :meth:`scenes`, half of
         them crawling ones when there are any."""
-        scenes = self.scenes()
+        scenes = self.scenes(space)
         walks, crawls = scenes[:self.n_designs], scenes[self.n_designs:]
         n_crawl = min(len(crawls), self.ecsw_scenes // 2)
         return walks[:self.ecsw_scenes - n_crawl] + crawls[:n_crawl]
@@ -168,8 +173,9 @@ def ecsw_grams(states: list[tuple[ReducedBody, np.ndarray]], progress: bool = Tr
 
 def build_reduction(workdir: str | os.PathLike, config: RobotConfig = RobotConfig(),
                     settings: BuildSettings = BuildSettings(), workers: int | None = None,
-                    progress: bool = True) -> RobotReduction:
-    """Build the leg (and disk) reduction for ``config`` (its mesh sizes and materials).
+                    progress: bool = True, space: DesignSpace = DEFAULT_SPACE) -> RobotReduction:
+    """Build the leg (and disk) reduction of ``space``'s parts for ``config`` (its mesh sizes
+    and masses; for a space other than the paper's, :meth:`RobotConfig.for_space`).
 
     Args:
         workdir: where snapshot runs are kept (reused when the settings match).
@@ -177,48 +183,55 @@ def build_reduction(workdir: str | os.PathLike, config: RobotConfig = RobotConfi
         settings: the build settings.
         workers: parallel processes for the scene runs (default: CPU count).
         progress: progress bars.
+        space: the design space whose slots, leg counts and parts the scenes have.
 
     Returns:
         The :class:`RobotReduction`. Each part's ``metadata`` holds its sizes and the
         tolerances reached; the reduction's ``metadata`` holds the settings, the wall time
-        of each phase and the peak resident memory (``peak_rss_mb``: of the main process,
-        and of it with its workers, MB).
+        of each phase, the peak resident memory (``peak_rss_mb``: of the main process,
+        and of it with its workers, MB), the space (``space``: name and file SHA-256) and the
+        parts it was built for (``part``: :meth:`DesignSpace.part_record` of the reduced parts
+        at ``config``'s mesh sizes).
+
+    Raises:
+        ValueError: the space has too few slot sets for the settings' scenes.
+        RuntimeError: a full-order or Galerkin scene run diverged.
     """
-    return build_reductions(workdir, config, settings, (settings.tol_gie,), workers, progress)[0]
+    return build_reductions(workdir, config, settings, (settings.tol_gie,), workers, progress, space)[0]
 
 
 def build_reductions(workdir: str | os.PathLike, config: RobotConfig, settings: BuildSettings,
                      tol_gies: tuple[float, ...], workers: int | None = None,
-                     progress: bool = True) -> list[RobotReduction]:
+                     progress: bool = True, space: DesignSpace = DEFAULT_SPACE) -> list[RobotReduction]:
     """:func:`build_reduction` for several ECSW tolerances sharing the bases and one ECSW
     training set (``settings.tol_gie`` is replaced by each of ``tol_gies``)."""
     with PeakMemory() as memory:
-        reductions = _build(workdir, config, settings, tol_gies, workers, progress)
+        reductions = _build(workdir, config, settings, tol_gies, workers, progress, space)
     for r in reductions:
         r.metadata["peak_rss_mb"] = {"main": round(memory.main_mb), "with_workers": round(memory.total_mb)}
     return reductions
 
 
 def _build(workdir, config: RobotConfig, settings: BuildSettings, tol_gies: tuple[float, ...],
-           workers: int | None, progress: bool) -> list[RobotReduction]:
+           workers: int | None, progress: bool, space: DesignSpace) -> list[RobotReduction]:
     t0 = time.perf_counter()
     workdir = Path(workdir)
     fom = dataclasses.replace(config, model="full", reduction=None, refactor_every=settings.fom_refactor_every)
-    scenes = settings.scenes()
+    scenes = settings.scenes(space)
     paths = run_fom_scenes(workdir / "snapshots", scenes, fom, "snapshots", settings.record_every, workers, progress)
     t1 = time.perf_counter()
-    leg = pneunet_mesh(PneuNetParams(mesh_size=config.leg_mesh_size))
+    leg = pneunet_mesh(pneunet_params(space, config.leg_mesh_size))
     meshes = {"leg": leg}
     pods = {"leg": pod_basis(load_snapshots(paths, "leg"), leg.points, settings.tol_modes, settings.rigid)}
     galerkin = {"leg": PartReduction.full(leg, pods["leg"].basis, len(leg.surfaces["paper"]), pods["leg"].n_rigid)}
     if settings.disk:
-        meshes["disk"] = disk = disk_mesh(DiskParams(mesh_size=config.disk_mesh_size))
+        meshes["disk"] = disk = disk_mesh(disk_params(space, config.disk_mesh_size))
         pods["disk"] = pod_basis(load_snapshots(paths, "disk"), disk.points, settings.disk_tol_modes,
                                  settings.disk_rigid)
         galerkin["disk"] = PartReduction.full(disk, pods["disk"].basis, 0, pods["disk"].n_rigid)
     galerkin_reduction = RobotReduction(galerkin["leg"], galerkin.get("disk"))
     t2 = time.perf_counter()
-    ecsw_scenes = settings.ecsw_training_scenes()
+    ecsw_scenes = settings.ecsw_training_scenes(space)
     results: dict[str, dict[str, np.ndarray]] = {}
     with tqdm(total=len(ecsw_scenes), desc="Galerkin ROM runs", unit="scene", disable=not progress,
               dynamic_ncols=True) as bar:
@@ -238,6 +251,7 @@ def _build(workdir, config: RobotConfig, settings: BuildSettings, tol_gies: tupl
     t3 = time.perf_counter()
     grams = {name: ecsw_grams(states[name], progress, f"ECSW training matrix ({name})") for name in galerkin}
     t4 = time.perf_counter()
+    record = space.part_record(config.leg_mesh_size, config.disk_mesh_size)
     out = []
     for tol in tol_gies:
         ta = time.perf_counter()
@@ -245,6 +259,8 @@ def _build(workdir, config: RobotConfig, settings: BuildSettings, tol_gies: tupl
         nnls = time.perf_counter() - ta
         meta = {"settings": dataclasses.asdict(dataclasses.replace(settings, tol_gie=tol)),
                 "config": dataclasses.asdict(fom), "training_scenes": [sc.name for sc in scenes],
+                "space": {"name": space.name, "sha256": space.sha256},
+                "part": {name: record[name] for name in galerkin},
                 "wall_seconds": {"snapshots": t1 - t0, "pod": t2 - t1, "galerkin": t3 - t2, "ecsw": t4 - t3 + nnls,
                                  "total": t4 - t0 + nnls}}
         out.append(RobotReduction(parts["leg"], parts.get("disk"), meta))

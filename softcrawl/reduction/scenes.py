@@ -6,6 +6,11 @@ The leg-local displacement of leg ``i`` (placed by rotation ``R_i``) is
 frame (reduction.md, "Design-reconfigurable reduction"). The disk is placed unrotated in
 every design: its snapshots are ``x - X_placed``.
 
+Every scene belongs to a design space (:class:`softcrawl.design.spacefile.DesignSpace`,
+default the paper's): its slots, parts and leg counts. The scenes of a space are drawn from
+its slots with its leg counts, so a new part or body is reduced from robots of its own space
+(reduction.md, "Reducing your own part"); the paper's space gives the paper's scenes.
+
 Part of the reduction's build pipeline, which sits above :mod:`softcrawl.robot` (a scene is an
 assembled robot, settled and stepped by the robot's episode code); :mod:`softcrawl.reduction`
 says why that arrow is right and the robot never imports this module.
@@ -15,13 +20,15 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from softcrawl.design.space import BASELINE_DESIGN, N_SLOTS
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import Design, DesignSpace
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.fem.state import Control
 from softcrawl.gaits import SineGait
@@ -41,23 +48,32 @@ class Scene:
 
     Attributes:
         name: label (file names, reports).
-        legs: ``(slot, channel)`` per leg.
+        legs: ``(slot, channel)`` per leg (slots of ``space``).
         animation: object with ``sim_pressure_at(t)`` and ``duration``.
+        space: the design space whose slots and parts the robot has.
     """
 
     name: str
     legs: tuple[tuple[int, int], ...]
     animation: object
+    space: DesignSpace = DEFAULT_SPACE
 
     @property
     def slots(self) -> tuple[int, ...]:
         return tuple(s for s, _ in self.legs)
 
     def describe(self) -> dict:
+        """JSON-able settings of the scene (what a saved run is matched on); a space other than
+        the paper's adds ``"space"``: its name, slot angles and parts
+        (:meth:`DesignSpace.part_record`)."""
         anim = self.animation
-        return {"name": self.name, "legs": [list(leg) for leg in self.legs], "animation": type(anim).__name__,
-                "animation_params": {k: (str(v) if not isinstance(v, (int, float, tuple)) else v)
-                                     for k, v in dataclasses.asdict(anim).items()}}
+        out = {"name": self.name, "legs": [list(leg) for leg in self.legs], "animation": type(anim).__name__,
+               "animation_params": {k: (str(v) if not isinstance(v, (int, float, tuple)) else v)
+                                    for k, v in dataclasses.asdict(anim).items()}}
+        if self.space != DEFAULT_SPACE:
+            out["space"] = {"name": self.space.name, "slot_angles_deg": list(self.space.slot_angles_deg),
+                            "parts": self.space.part_record()}
+        return out
 
 
 def per_leg(slots: Sequence[int]) -> tuple[tuple[int, int], ...]:
@@ -65,79 +81,170 @@ def per_leg(slots: Sequence[int]) -> tuple[tuple[int, int], ...]:
     return tuple((int(s), i) for i, s in enumerate(sorted(slots)))
 
 
-#: Slot sets of the validation scenes (never used for training).
-_BASELINE_SLOTS = tuple(i for i, r in enumerate(BASELINE_DESIGN) if r)
-_TWO_LEG_SLOTS = (0, 2)  # 22.5 and 112.5 deg: 90 deg apart
-_SIX_LEG_SLOTS = (0, 1, 3, 4, 5, 7)
+#: Legs of a space's symmetric design (:func:`symmetric_design`), clipped to its leg counts.
+SYMMETRIC_LEGS = 4
+#: Names of the held-out scene driving ``n`` legs in two alternating groups (``"six_leg"``).
+_COUNT_WORDS = ("one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten", "eleven", "twelve")
 
 
-def validation_scenes(duration: float = 4.0) -> tuple[Scene, ...]:
-    """The paper's four held-out animations (reduction.md, "Validating a reduction"):
-    Hamiltonian on the baseline design, the baseline sine gait (φ = 110°), two legs 90° apart
-    inflating alternately, six legs inflating in two alternating groups of three."""
-    baseline = tuple((s, BASELINE_DESIGN[s] - 1) for s in _BASELINE_SLOTS)
+def _axis_distance(angle_deg: float) -> float:
+    """Angle (degrees, rounded to 1e-6) between a slot direction and the x axis, either way."""
+    folded = angle_deg % 180.0
+    return round(min(folded, 180.0 - folded), 6)
+
+
+def symmetric_design(space: DesignSpace = DEFAULT_SPACE) -> Design:
+    """A design of ``space`` shaped like the paper's expert baseline (codesign.md): the
+    ``SYMMETRIC_LEGS`` slots nearest the x axis (clipped to ``min_legs..max_legs``; ties by slot
+    index), those in front (``cos(theta) > 0``) on regulator 1, the others on regulator 2 (1 if
+    the space has one regulator). The paper's space gives ``BASELINE_DESIGN`` (1,0,0,2,2,0,0,1);
+    a mirror-symmetric slot set gives a design mirror-symmetric about the x axis.
+    """
+    n = min(max(SYMMETRIC_LEGS, space.min_legs), space.max_legs)
+    angles = space.slot_angles_deg
+    slots = sorted(range(space.n_slots), key=lambda i: (_axis_distance(angles[i]), i))[:n]
+    rear = min(2, space.n_regulators)
+    design = [0] * space.n_slots
+    for i in slots:
+        design[i] = 1 if math.cos(math.radians(angles[i])) > 0 else rear
+    return space.validate_design(design)
+
+
+def held_out_slots(space: DesignSpace = DEFAULT_SPACE) -> tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]:
+    """Slot sets of a space's validation scenes (never used for training; reduction.md,
+    "Validating a reduction"), each ascending:
+
+    - the legs of :func:`symmetric_design`;
+    - two slots as near 90 degrees apart as the space has (the first such pair);
+    - ``max_legs`` slots: every slot but ``k = S - max_legs`` spread ones (slots
+      ``floor((j + 1/2) S / k)``, ``j < k``), or those dropped slots moved one up if that
+      leaves the symmetric design's legs.
+
+    The paper's space gives (0, 3, 4, 7), (0, 2) (22.5 and 112.5 degrees) and (0, 1, 3, 4, 5, 7).
+    """
+    s, angles = space.n_slots, space.slot_angles_deg
+    symmetric = tuple(i for i, r in enumerate(symmetric_design(space)) if r)
+
+    def gap(pair: tuple[int, int]) -> float:
+        d = abs(angles[pair[0]] - angles[pair[1]]) % 360.0
+        return round(abs(min(d, 360.0 - d) - 90.0), 6)
+
+    two = min(itertools.combinations(range(s), 2), key=lambda p: (gap(p), p)) if s > 1 else (0,)
+    k = s - space.max_legs
+    drop = {math.floor((j + 0.5) * s / k) for j in range(k)}
+    many = tuple(i for i in range(s) if i not in drop)
+    if k and many == symmetric:
+        many = tuple(i for i in range(s) if (i - 1) % s not in drop)
+    return symmetric, two, many
+
+
+def validation_scenes(duration: float = 4.0, space: DesignSpace = DEFAULT_SPACE) -> tuple[Scene, ...]:
+    """The paper's four held-out animations (reduction.md, "Validating a reduction") on a
+    space's :func:`held_out_slots`: Hamiltonian on the symmetric design's legs, the baseline
+    sine gait (phase lag 110 degrees) on the symmetric design (:func:`symmetric_design`), two
+    legs about 90 degrees apart inflating alternately, ``max_legs`` legs inflating in two
+    alternating groups (every other leg). The paper's space: the baseline design, and six legs
+    in groups of three (``"six_leg"``)."""
+    symmetric, two, many = held_out_slots(space)
+    design = symmetric_design(space)
+    baseline = tuple((s, design[s] - 1) for s in symmetric)
+    n = len(many)
+    name = f"{_COUNT_WORDS[n - 1] if n <= len(_COUNT_WORDS) else n}_leg"
+    groups = (tuple(range(0, n, 2)), tuple(range(1, n, 2)))
     return (
-        Scene("hamiltonian", per_leg(_BASELINE_SLOTS), HamiltonianAnimation(4)),
-        Scene("baseline", baseline, GaitAnimation(SineGait(phase_deg=110.0), duration)),
-        Scene("two_leg", per_leg(_TWO_LEG_SLOTS), AlternatingAnimation(((0,), (1,)), duration=duration)),
-        Scene("six_leg", per_leg(_SIX_LEG_SLOTS), AlternatingAnimation(((0, 2, 4), (1, 3, 5)), duration=duration)),
+        Scene("hamiltonian", per_leg(symmetric), HamiltonianAnimation(len(symmetric)), space),
+        Scene("baseline", baseline, GaitAnimation(SineGait(phase_deg=110.0), duration), space),
+        Scene("two_leg", per_leg(two), AlternatingAnimation(((0,), (1,)), duration=duration), space),
+        Scene(name, per_leg(many), AlternatingAnimation(groups, duration=duration), space),
     )
 
 
-def training_scenes(n_designs: int = 8, sizes: Sequence[int] = (3, 4), seed: int = 0,
-                    state_seconds: float = 0.3) -> tuple[Scene, ...]:
-    """Training scenes: ``n_designs`` distinct slot subsets (sizes cycling through ``sizes``,
-    drawn with a seeded RNG, excluding the validation slot sets), each leg on its own channel,
-    each driven by the Hamiltonian animation of its legs.
+def _leg_counts(sizes: Sequence[int], space: DesignSpace) -> tuple[int, ...]:
+    """``sizes`` clipped to the space's ``min_legs..max_legs``, repeats dropped, order kept.
 
     Raises:
-        ValueError: non-positive count or a size outside 1..8.
+        ValueError: no sizes, or a size outside ``1..S``.
     """
-    if n_designs < 1 or not sizes or not all(1 <= s <= N_SLOTS for s in sizes):
-        raise ValueError(f"need n_designs >= 1 and sizes in 1..{N_SLOTS}, got {n_designs}, {sizes}")
-    held_out = {_BASELINE_SLOTS, _TWO_LEG_SLOTS, _SIX_LEG_SLOTS}
-    rng = np.random.default_rng(seed)
-    pools = {s: [c for c in itertools.combinations(range(N_SLOTS), s) if c not in held_out] for s in set(sizes)}
-    for s in pools:
-        pools[s] = [pools[s][i] for i in rng.permutation(len(pools[s]))]
+    if not sizes or not all(1 <= s <= space.n_slots for s in sizes):
+        raise ValueError(f"need leg counts in 1..{space.n_slots}, got {tuple(sizes)}")
+    return tuple(dict.fromkeys(min(max(int(s), space.min_legs), space.max_legs) for s in sizes))
+
+
+def _slot_pools(sizes: Sequence[int], space: DesignSpace, rng: np.random.Generator) -> dict[int, list[tuple]]:
+    """Per leg count, the slot sets of that size that no validation scene uses, shuffled by
+    ``rng`` (one permutation per size, in the iteration order of ``sizes``)."""
+    held_out = set(held_out_slots(space))
+    pools = {s: [c for c in itertools.combinations(range(space.n_slots), s) if c not in held_out] for s in sizes}
+    return {s: [pool[i] for i in rng.permutation(len(pool))] for s, pool in pools.items()}
+
+
+def _pick(pools: dict[int, list[tuple]], size: int) -> tuple[int, ...]:
+    """The next unused slot set of ``size`` legs.
+
+    Raises:
+        ValueError: the space has no more distinct ones.
+    """
+    if not pools[size]:
+        raise ValueError(f"the design space has too few distinct {size}-leg slot sets for the scenes asked for")
+    return pools[size].pop(0)
+
+
+def training_scenes(n_designs: int = 8, sizes: Sequence[int] = (3, 4), seed: int = 0,
+                    state_seconds: float = 0.3, space: DesignSpace = DEFAULT_SPACE) -> tuple[Scene, ...]:
+    """Training scenes: ``n_designs`` distinct slot subsets of ``space`` (sizes cycling through
+    ``sizes`` clipped to the space's leg counts, drawn with a seeded RNG, excluding the
+    validation slot sets :func:`held_out_slots`), each leg on its own channel, each driven by
+    the Hamiltonian animation of its legs.
+
+    Raises:
+        ValueError: non-positive count, a size outside ``1..S``, or more designs of a size than
+            the space has.
+    """
+    if n_designs < 1:
+        raise ValueError(f"need n_designs >= 1, got {n_designs}")
+    sizes = _leg_counts(sizes, space)
+    pools = _slot_pools(set(sizes), space, np.random.default_rng(seed))
     scenes = []
     for k in range(n_designs):
         s = sizes[k % len(sizes)]
-        pick = pools[s].pop(0)
+        pick = _pick(pools, s)
         scenes.append(Scene(f"train{k:03d}_" + "".join(map(str, pick)), per_leg(pick),
-                            HamiltonianAnimation(s, state_seconds=state_seconds, ramp_seconds=state_seconds / 2)))
+                            HamiltonianAnimation(s, state_seconds=state_seconds, ramp_seconds=state_seconds / 2),
+                            space))
     return tuple(scenes)
 
 
-def gait_scenes(n_designs: int, seed: int = 1, seconds: float = 4.0) -> tuple[Scene, ...]:
-    """Crawling training scenes: ``n_designs`` distinct slot subsets of 3 and 4 legs (alternately,
-    never a validation slot set), the legs on regulators 1, 2, 3, 1, ... in slot order, each
-    driven for ``seconds`` by the sine gait (:class:`softcrawl.gaits.SineGait`) at a phase lag
-    drawn from 0, 10, ..., 350 degrees (``seed``).
+def gait_scenes(n_designs: int, seed: int = 1, seconds: float = 4.0,
+                space: DesignSpace = DEFAULT_SPACE) -> tuple[Scene, ...]:
+    """Crawling training scenes: ``n_designs`` distinct slot subsets of ``space`` with 3 and 4
+    legs (alternately; clipped to the space's leg counts; never a validation slot set), the
+    legs on regulators 1, 2, ..., R, 1, ... in slot order, each driven for ``seconds`` by the
+    sine gait (:class:`softcrawl.gaits.SineGait`) at a phase lag drawn from 0, 10, ..., 350
+    degrees (``seed``).
 
     Raises:
-        ValueError: a negative count or a non-positive duration.
+        ValueError: a negative count, a non-positive duration, or more designs of a size than
+            the space has.
     """
     if n_designs < 0 or not seconds > 0:
         raise ValueError(f"need n_designs >= 0 and seconds > 0, got {n_designs}, {seconds}")
-    held_out = {_BASELINE_SLOTS, _TWO_LEG_SLOTS, _SIX_LEG_SLOTS}
+    sizes = _leg_counts((3, 4), space)
     rng = np.random.default_rng(seed)
-    pools = {s: [c for c in itertools.combinations(range(N_SLOTS), s) if c not in held_out] for s in (3, 4)}
-    for s in pools:
-        pools[s] = [pools[s][i] for i in rng.permutation(len(pools[s]))]
+    pools = _slot_pools(sizes, space, rng)
     scenes = []
     for k in range(n_designs):
-        pick = pools[(3, 4)[k % 2]].pop(0)
+        pick = _pick(pools, sizes[k % len(sizes)])
         phase = 10.0 * int(rng.integers(36))
         scenes.append(Scene(f"gait{k:03d}_" + "".join(map(str, pick)) + f"_{phase:.0f}",
-                            tuple((s, i % 3) for i, s in enumerate(pick)),
-                            GaitAnimation(SineGait(phase_deg=phase), seconds)))
+                            tuple((s, i % space.n_regulators) for i, s in enumerate(pick)),
+                            GaitAnimation(SineGait(phase_deg=phase), seconds), space))
     return tuple(scenes)
 
 
 def scene_robot(scene: Scene, config: RobotConfig, leg_mesh=None, disk_mesh_local=None) -> Robot:
-    """The full-order robot of a scene (one channel per leg unless the scene says otherwise)."""
-    return assemble_robot(scene.legs, config, leg_mesh=leg_mesh, disk_mesh_local=disk_mesh_local)
+    """The full-order robot of a scene in its space (one channel per leg unless the scene says
+    otherwise)."""
+    return assemble_robot(scene.legs, config, leg_mesh=leg_mesh, disk_mesh_local=disk_mesh_local, space=scene.space)
 
 
 def reduced_scene_robot(scene: Scene, config: RobotConfig, reduction: RobotReduction) -> Robot:

@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.reduction.floating import rigid_fit_rotation
 from softcrawl.reduction.model import RobotReduction
 from softcrawl.reduction.runs import run_fom_scenes
@@ -203,10 +205,13 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
                        workers: int | None = None, progress: bool = True, ensemble: int = 3,
                        perturbation: float = 1e-6, reduced_dt: float | None = None,
                        rid_dtype: str = "float64", contact_max_iterations: int | None = None,
-                       leg_collision_spacing: float = 0.0, engine: str = "cpu") -> dict:
+                       leg_collision_spacing: float = 0.0, engine: str = "cpu",
+                       space: DesignSpace = DEFAULT_SPACE) -> dict:
     """Compare ``reduction`` with the exact full-order model on the held-out scenes.
 
     Args:
+        scenes: the scenes (default: ``space``'s :func:`validation_scenes`).
+        space: the design space whose held-out scenes are run (when ``scenes`` is None).
         reduced_dt: the reduced model's time step, s (None: ``config.dt``); the references stay
             exact full-order runs at ``config.dt`` (the reference 0.01 s), so this measures what a
             larger step costs in accuracy (the settings study).
@@ -238,7 +243,7 @@ def validate_reduction(reduction: RobotReduction, config: RobotConfig, workdir: 
     if engine not in ENGINES or (engine == "jax" and ensemble):
         raise ValueError(f"engine must be one of {ENGINES} (the JAX engine without an ensemble), got "
                          f"engine={engine!r}, ensemble={ensemble}")
-    scenes = scenes or validation_scenes()
+    scenes = scenes or validation_scenes(space=space)
     refs = fom_references(workdir, config, scenes, record_every, workers, progress)
     members = [fom_references(workdir, config, scenes, record_every, workers, progress, perturbation, seed)
                for seed in range(1, ensemble + 1)]

@@ -493,9 +493,10 @@ def _space_reduction(space: DesignSpace, config: RobotConfig) -> RobotReduction:
     """The reduction of a reduced model: ``config.reduction``, else the space's.
 
     Raises:
-        ValueError: the space names none, the file does not match ``config``
-            (:func:`softcrawl.reduction.artifact.load_reduction`), or its leg (or disk) was
-            built for other dimensions than the space's.
+        ValueError: the space names none, or the file does not match ``config``, was built for
+            another part than the space's (dimensions, mesh size, materials, paper layer), or,
+            being the space's own, has another SHA-256 than its ``reduction_sha256``
+            (:func:`softcrawl.reduction.artifact.load_reduction`).
     """
     from softcrawl.reduction.artifact import load_reduction
 
@@ -503,12 +504,7 @@ def _space_reduction(space: DesignSpace, config: RobotConfig) -> RobotReduction:
     if path is None:
         raise ValueError(f"the design space {space.name!r} ({space.source or 'no file'}) names no reduction "
                          f"([actuator] reduction) and the config none: use the full-order model")
-    reduction, _ = load_reduction(path, expect=dataclasses.asdict(config))
-    parts = [("PneuNet", reduction.leg, space.leg)] + ([("disk", reduction.disk, space.disk)] if reduction.disk else [])
-    for name, part, own in parts:
-        have = part.mesh.params
-        wrong = sorted(k for k, v in own.params if k in have and have[k] != v)
-        if wrong:
-            raise ValueError(f"reduction {path} was built for another {name} than the space {space.name!r}'s "
-                             f"({', '.join(f'{k}: {have[k]} != {dict(own.params)[k]}' for k in wrong)})")
+    reduction, _ = load_reduction(path, expect=dataclasses.asdict(config),
+                                  part=space.part_record(config.leg_mesh_size, config.disk_mesh_size),
+                                  sha256=space.reduction_sha256 if str(path) == space.reduction else None)
     return reduction
