@@ -252,7 +252,7 @@ def test_hex6_full_order_robot_builds():
     assert min(b.mesh.points[:, 2].min() for b in robot.model.bodies) == pytest.approx(0.01, abs=1e-12)
     with pytest.raises(InvalidDesignError):
         build_robot("1,0,0,2,2,0,0,1", config, space=space)
-    with pytest.raises(ValueError, match="names no reduction"):
+    with pytest.raises(ValueError, match=r"leg_mesh_size: 6\.0 in the reduction, 12\.0 in use"):  # its own is 6 mm
         build_robot("1,0,2,0,1,0", dataclasses.replace(config, model="reduced"), space=space)
 
 

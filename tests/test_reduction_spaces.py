@@ -236,6 +236,23 @@ def test_resolve_space_takes_a_shipped_name_or_a_path(tmp_path):
 
 
 # ---------------------------------------------------------------------- the shipped hex6 reduction
+def test_shipped_hex6_reduction_is_named_by_its_space_and_simulates():
+    """hex6.toml names the shipped 6-chamber reduction by its checksum; it records hex6's part
+    and a reduced robot of the space's symmetric design steps under pressure (finite, within
+    the floor's contact distance)."""
+    assert Path(HEX6.reduction) == default_reduction_path().with_name("pneunet6_6mm.npz")
+    assert file_sha256(HEX6.reduction) == HEX6.reduction_sha256
+    reduction, meta = load_reduction(HEX6.reduction)
+    assert meta["build"]["part"] == {"leg": HEX6.part_record()["leg"]} and reduction.disk is None
+    assert meta["build"]["space"]["name"] == "hex6" and reduction.leg.mesh.params["n_chambers"] == 6
+    robot = build_robot(symmetric_design(HEX6), RobotConfig.for_space(HEX6, model="reduced"), space=HEX6)
+    assert len(robot.reduced) == 5 and robot.model.n_channels == 2
+    solver, state = robot.make_solver(), robot.model.rest_state()
+    for _ in range(10):
+        state = solver.step(state, robot.control(np.array([300.0, 0.0])))
+    assert np.isfinite(state.x).all() and state.x[:, 2].min() > -0.5
+
+
 @pytest.mark.slow
 def test_shipped_hex6_reduction_meets_the_target_on_its_held_out_scenes(tmp_path):
     """``softcrawl reduce validate --space hex6`` (its 4 held-out scenes, 4 s, against the exact
