@@ -80,7 +80,7 @@ def _build(args: argparse.Namespace) -> int:
     parts = "; ".join(_describe(name, part) for name, part in reduction.parts.items())
     print(f"wrote {out}: {parts}; {meta['wall_seconds']['total']:.0f} s, peak memory "
           f"{meta['peak_rss_mb']['with_workers']} MB with its workers (main process {meta['peak_rss_mb']['main']} MB)")
-    print(f"for the space file: [actuator] reduction = \"{out}\" (relative to the file), "
+    print(f"for a space file's [actuator]: reduction = (the path of {out} relative to the space file), "
           f"reduction_sha256 = \"{file_sha256(out)}\"")
     return 0
 
