@@ -89,6 +89,11 @@ def test_hex6_scenes_come_from_its_slots_and_leg_counts():
     assert {c for s in gait_scenes(4, space=HEX6) for _, c in s.legs} == {0, 1}  # the space's 2 regulators
     with pytest.raises(ValueError, match="too few distinct 3-leg slot sets"):
         training_scenes(40, sizes=(3,), space=HEX6)  # C(6, 3) = 20
+    with pytest.raises(ValueError, match="leg counts in 1..6"):
+        training_scenes(2, sizes=(7,), space=HEX6)
+    # training robots are layouts, not designs: a size outside the leg counts is kept as given
+    assert [len(s.legs) for s in training_scenes(2, sizes=(2,))] == [2, 2]
+    assert [len(s.legs) for s in training_scenes(2, sizes=(5,), space=HEX6)] == [5, 5]
 
 
 @pytest.mark.parametrize("count, regulators, min_legs, max_legs", [(3, 1, 1, 3), (5, 2, 2, 2), (12, 4, 5, 5)])
@@ -246,6 +251,7 @@ def test_shipped_hex6_reduction_is_named_by_its_space_and_simulates():
     reduction, meta = load_reduction(HEX6.reduction)
     assert meta["build"]["part"] == {"leg": HEX6.part_record()["leg"]} and reduction.disk is None
     assert meta["build"]["space"]["name"] == "hex6" and reduction.leg.mesh.params["n_chambers"] == 6
+    assert meta["build"]["training_scenes"] == [s.name for s in BuildSettings().scenes(HEX6)]  # its own scenes
     robot = build_robot(symmetric_design(HEX6), RobotConfig.for_space(HEX6, model="reduced"), space=HEX6)
     assert len(robot.reduced) == 5 and robot.model.n_channels == 2
     solver, state = robot.make_solver(), robot.model.rest_state()

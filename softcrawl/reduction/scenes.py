@@ -159,15 +159,10 @@ def validation_scenes(duration: float = 4.0, space: DesignSpace = DEFAULT_SPACE)
     )
 
 
-def _leg_counts(sizes: Sequence[int], space: DesignSpace) -> tuple[int, ...]:
-    """``sizes`` clipped to the space's ``min_legs..max_legs``, repeats dropped, order kept.
-
-    Raises:
-        ValueError: no sizes, or a size outside ``1..S``.
-    """
+def _check_leg_counts(sizes: Sequence[int], space: DesignSpace) -> None:
+    """Raises ValueError: no sizes, or a size outside ``1..S``."""
     if not sizes or not all(1 <= s <= space.n_slots for s in sizes):
         raise ValueError(f"need leg counts in 1..{space.n_slots}, got {tuple(sizes)}")
-    return tuple(dict.fromkeys(min(max(int(s), space.min_legs), space.max_legs) for s in sizes))
 
 
 def _slot_pools(sizes: Sequence[int], space: DesignSpace, rng: np.random.Generator) -> dict[int, list[tuple]]:
@@ -192,9 +187,10 @@ def _pick(pools: dict[int, list[tuple]], size: int) -> tuple[int, ...]:
 def training_scenes(n_designs: int = 8, sizes: Sequence[int] = (3, 4), seed: int = 0,
                     state_seconds: float = 0.3, space: DesignSpace = DEFAULT_SPACE) -> tuple[Scene, ...]:
     """Training scenes: ``n_designs`` distinct slot subsets of ``space`` (sizes cycling through
-    ``sizes`` clipped to the space's leg counts, drawn with a seeded RNG, excluding the
-    validation slot sets :func:`held_out_slots`), each leg on its own channel, each driven by
-    the Hamiltonian animation of its legs.
+    ``sizes``, drawn with a seeded RNG, excluding the validation slot sets
+    :func:`held_out_slots`), each leg on its own channel, each driven by the Hamiltonian
+    animation of its legs. Like the held-out ``two_leg`` scene, a size need not be one of the
+    space's leg counts (one channel per leg: these robots are layouts, not designs).
 
     Raises:
         ValueError: non-positive count, a size outside ``1..S``, or more designs of a size than
@@ -202,7 +198,7 @@ def training_scenes(n_designs: int = 8, sizes: Sequence[int] = (3, 4), seed: int
     """
     if n_designs < 1:
         raise ValueError(f"need n_designs >= 1, got {n_designs}")
-    sizes = _leg_counts(sizes, space)
+    _check_leg_counts(sizes, space)
     pools = _slot_pools(set(sizes), space, np.random.default_rng(seed))
     scenes = []
     for k in range(n_designs):
@@ -228,7 +224,7 @@ def gait_scenes(n_designs: int, seed: int = 1, seconds: float = 4.0,
     """
     if n_designs < 0 or not seconds > 0:
         raise ValueError(f"need n_designs >= 0 and seconds > 0, got {n_designs}, {seconds}")
-    sizes = _leg_counts((3, 4), space)
+    sizes = tuple(dict.fromkeys(min(max(s, space.min_legs), space.max_legs) for s in (3, 4)))
     rng = np.random.default_rng(seed)
     pools = _slot_pools(sizes, space, rng)
     scenes = []
