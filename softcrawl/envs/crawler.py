@@ -62,7 +62,7 @@ from typing import ClassVar
 import gymnasium as gym
 import numpy as np
 
-from softcrawl.design.space import DEFAULT_SPACE, N_REGULATORS, Design
+from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.envs.robot_cache import RobotCache, process_cache
 from softcrawl.fem.solver import SimulationDiverged
@@ -135,8 +135,8 @@ class CrawlerEnv(gym.Env):
             rule, shared with every other env of the process that asks for it
             (:func:`softcrawl.envs.robot_cache.process_cache`; training's envs do), instead of
             a cache of this env's own.
-        space: the design space: designs, one-hot code, number of regulators (actions). Domain
-            randomization needs the paper's 3 regulators.
+        space: the design space: designs, one-hot code, number of regulators (actions; domain
+            randomization draws its per-regulator quantities for each of them).
 
     Attributes:
         nominal_steps_per_action: simulator steps per action without control-period dilation.
@@ -171,8 +171,6 @@ class CrawlerEnv(gym.Env):
         if randomize is not None and not isinstance(randomize, DomainRanges):
             raise ValueError(f"randomize must be DomainRanges or None, got {type(randomize).__name__}")
         self.randomize = randomize if randomize is not None and randomize.enabled else None
-        if self.randomize is not None and space.n_regulators != N_REGULATORS:
-            raise ValueError(f"domain randomization needs {N_REGULATORS} regulators, the space has {space.n_regulators}")
         if self.randomize is not None:
             self.randomize.check_steps(self.nominal_steps_per_action)
         self.domain: DomainSample | None = None
@@ -187,7 +185,7 @@ class CrawlerEnv(gym.Env):
         self._robots = (process_cache(self.robot_factory, settling, self.max_cached) if share_robots
                         else RobotCache(self.max_cached)).attach()
         n_reg, n_code = space.n_regulators, space.one_hot_size
-        self._state_dim = STATE_DIM - N_REGULATORS + n_reg
+        self._state_dim = STATE_DIM - DEFAULT_SPACE.n_regulators + n_reg
         n_hist = n_reg * self.history
         low = np.concatenate([np.zeros(n_code), -np.ones(n_hist)]).astype(np.float32)
         high = np.ones(n_code + n_hist, np.float32)
@@ -223,8 +221,9 @@ class CrawlerEnv(gym.Env):
             return Episode(robot, self.calibration, self.settling, settled=settled)
         if sample.physical:
             robot, settled = sample.apply(robot), None
-        episode = Episode(robot, sample.calibration(self.calibration), self.settling, settled=settled)
-        episode.regulators = sample.regulators(episode.regulators.rate_kpa_s)
+        n_reg = self.space.n_regulators
+        episode = Episode(robot, sample.calibration(self.calibration, n_reg), self.settling, settled=settled)
+        episode.regulators = sample.regulators(episode.regulators.rate_kpa_s, n_reg)
         return episode
 
     # -- observation / info -----------------------------------------------------------------
@@ -286,7 +285,8 @@ class CrawlerEnv(gym.Env):
         else:
             design = self.designs[int(self.np_random.integers(len(self.designs)))]
         self.design = design
-        self.domain = self.randomize.draw(self.np_random) if self.randomize is not None else None
+        self.domain = (self.randomize.draw(self.np_random, self.space.n_regulators) if self.randomize is not None
+                       else None)
         self._one_hot = self.space.one_hot_batch([design])[0]
         self._hist[:] = 0.0
         self._k = self._t_steps = 0
