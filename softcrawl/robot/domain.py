@@ -484,5 +484,5 @@ class LaggedRegulatorBank(RegulatorBank):
         return self.state.copy()
 
 
-__all__ = ["KEYS", "PAPER_REGULATORS", "PHYSICAL_KEYS", "DomainRanges", "DomainSample", "LaggedRegulatorBank", "RegulatorWarp",
-           "randomized_robot", "scaled_body"]
+__all__ = ["KEYS", "PAPER_REGULATORS", "PHYSICAL_KEYS", "DomainRanges", "DomainSample", "LaggedRegulatorBank",
+           "RegulatorWarp", "randomized_robot", "scaled_body"]
