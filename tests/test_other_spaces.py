@@ -209,6 +209,38 @@ def test_randomized_env_of_two_regulators(six, six_config):
     env.close()
 
 
+def test_batched_backend_of_two_regulator_envs_is_the_serial_one(six, six_config):
+    """A worker's batched backend settles the given designs of a 2-regulator space together and
+    steps their reduced robots in one batch, the rig randomized: every transition equals the
+    serial backend's to the bit (regression: its settling validated designs in the paper's
+    space)."""
+    from softcrawl.envs import BuildRobot, CrawlerEnv
+    from softcrawl.envs.backends.batched import BatchedBackend
+    from softcrawl.envs.backends.serial import SerialBackend
+    from softcrawl.robot import DomainRanges
+
+    def make():
+        return CrawlerEnv(BuildRobot(six_config, six), steps_per_action=5, n_actions=2, randomize=DomainRanges(**RIG),
+                          space=six)
+
+    def run(backend):
+        try:
+            out = [backend.reset([0, 1], [DESIGN, (1, 0, 2, 0, 1, 0)], [1, 2])]
+            for a in ([[1.0, -0.5], [0.0, 1.0]], [[-1.0, 1.0], [1.0, 1.0]]):
+                out.append(backend.step(np.array(a, np.float32)))
+            return out
+        finally:
+            backend.close()
+
+    serial, batched = run(SerialBackend([make] * 2)), run(BatchedBackend([make] * 2))
+    for ref, got in zip(serial[1:], batched[1:]):
+        for (o1, r1, *_, i1), (o2, r2, *_, i2) in zip(ref, got):
+            np.testing.assert_array_equal(o1, o2)
+            assert r1 == r2 and i1["applied_kpa"].shape == (2,)
+            np.testing.assert_array_equal(i1["disk_position_mm"], i2["disk_position_mm"])
+    assert [i["domain"] for _, i in serial[0]] == [i["domain"] for _, i in batched[0]]
+
+
 @pytest.mark.slow
 def test_jax_backend_runs_two_regulator_envs_as_the_cpu_env(x64, six, six_config):
     """The JAX vector env of 2-regulator envs with the rig randomized: each env draws 2 values
@@ -277,3 +309,30 @@ def test_groundtruth_search_of_a_two_regulator_design(six, six_robot):
     assert json.dumps(a) == json.dumps(b)
     with pytest.raises(InvalidDesignError):
         design_search(DESIGN, cfg)
+
+
+# -- the expert baseline's phase sweep on another space ---------------------------------------------
+def test_phase_sweep_of_a_two_regulator_design(six, six_config, six_robot, tmp_path):
+    """The phase sweep of a 2-regulator design runs the expert wave on the space's regulators
+    (:meth:`PeriodicGait.expert_sine`): each phase's reward is that of :func:`run_episode` of that
+    gait from the design's rested state, to the bit; its settings name the space; the paper's
+    settings are those of the 3-regulator :class:`SineGait` and name no space."""
+    import dataclasses
+
+    from softcrawl.robot import settle
+    from softcrawl.robot.sweep import baseline_gait, run_sweep, sweep_settings
+
+    result = run_sweep(tmp_path / "sweep", (0.0, 90.0), DESIGN, six_config, duration=0.2, workers=1,
+                       progress=False, space=six)
+    assert result.settings["space"] == {"name": "six2", "sha256": six.sha256}
+    assert json.loads((tmp_path / "sweep" / "sweep.json").read_text())["settings"]["space"]["name"] == "six2"
+    settled = settle(six_robot)
+    for r in result.phases:
+        gait = baseline_gait(r.phase_deg, 2)
+        assert isinstance(gait, PeriodicGait) and gait.n_regulators == 2
+        ref = run_episode(six_robot, gait, 0.2, record_every=None, progress=False, settled=settled)
+        assert r.reward_cm == ref.reward_cm and not r.diverged
+    paper = sweep_settings((1, 0, 0, 2, 2, 0, 0, 0), RobotConfig(), 20.0)
+    assert "space" not in paper and paper["gait"] == {"type": "SineGait", **{
+        k: v for k, v in dataclasses.asdict(SineGait()).items() if k != "phase_deg"}}
+    assert isinstance(baseline_gait(110.0), SineGait)

@@ -326,7 +326,7 @@ class CrawlerEnv(gym.Env):
     def begin_action(self, action) -> np.ndarray | None:
         """The first part of :meth:`step`, for a driver that steps many envs' robots together
         (:class:`softcrawl.envs.backends.batched.BatchedBackend`): checks ``action`` and records it in the
-        history. Returns the commanded real kPa ``(3,)`` to hold for :attr:`steps_per_action`
+        history. Returns the commanded real kPa ``(R,)`` to hold for :attr:`steps_per_action`
         simulator steps (:meth:`Episode.next_control` for each, the driver setting
         ``episode.state``), or None if this episode's simulation has diverged (nothing to step).
         Finish with :meth:`end_action`.
