@@ -336,3 +336,26 @@ def test_phase_sweep_of_a_two_regulator_design(six, six_config, six_robot, tmp_p
     assert "space" not in paper and paper["gait"] == {"type": "SineGait", **{
         k: v for k, v in dataclasses.asdict(SineGait()).items() if k != "phase_deg"}}
     assert isinstance(baseline_gait(110.0), SineGait)
+
+
+def test_animation_of_a_four_regulator_robot(tmp_path):
+    """A space with more regulators than the paper's colour table (4, the paper's parts, full
+    order, coarse): an episode records 4 pressures and its crawl GIF colours and labels regulator
+    4's leg (regression: the renderer looked regulators up in a 3-entry table)."""
+    from PIL import Image
+
+    from softcrawl.robot.animation import write_animation
+
+    text = shipped_space_path("paper").read_text()
+    assert text.count("regulators = 3") == 1
+    path = tmp_path / "four.toml"
+    path.write_text(text.replace("regulators = 3", "regulators = 4"))
+    four = load_space(path)
+    robot = build_robot((1, 2, 3, 4, 0, 0, 0, 0), RobotConfig.for_space(four, leg_mesh_size=12.0, disk_mesh_size=25.0),
+                        space=four)
+    res = run_episode(robot, ActionSequence([[90.0, 60.0, 30.0, 90.0]]), duration=0.02, settling=NO_SETTLING,
+                      record_every=1, progress=False)
+    assert res.applied.shape == (3, 4) and len(res.frames) == 3
+    assert write_animation(tmp_path / "crawl.gif", robot, res, max_frames=2, size=(96, 64)) == 2
+    with Image.open(tmp_path / "crawl.gif") as gif:
+        assert gif.size == (96, 64) and gif.n_frames == 2
