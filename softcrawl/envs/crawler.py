@@ -266,7 +266,7 @@ class CrawlerEnv(gym.Env):
 
     # -- gymnasium API ----------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Start an episode: ``options={"design": ...}`` (8 slot values or a string) or a random
+        """Start an episode: ``options={"design": ...}`` (one value per slot of the space, or a string) or a random
         design of ``designs``. Returns ``(obs, info)``. A diverged settling is reported with
         ``info["diverged"]`` and the first step then terminates with reward 0."""
         design = self.begin_reset(seed=seed, options=options)

@@ -211,7 +211,7 @@ class LegSlot:
         body: index of the leg's body in the model.
         slot: slot index (0..7 in the paper's space).
         angle_deg: slot angle about +z from +x, degrees.
-        regulator: pressure regulator driving the leg (1..3 in a design; ``channel + 1``).
+        regulator: pressure regulator driving the leg (1..R of the space; ``channel + 1``).
         channel: model pressure channel (``regulator - 1``).
         rotation: ``(3, 3)`` rotation placing the leg-local frame in the world
             (``R_z(angle) R_y(tilt)``, see :func:`leg_transform`).
