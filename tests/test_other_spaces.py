@@ -130,7 +130,8 @@ def test_jax_engine_follows_the_cpu_engine_on_the_six_slot_space(x64, six, six_r
     from the assembled pose (0.5 s at zero pressure), then 1 s with the regulators at 90 and
     40 kPa: the mean node distance to the CPU reduced engine over the scene stays below 0.3 mm and
     the reward point ends within 0.3 mm of it, the bounds of the paper-space test
-    (``tests/test_jaxsim_robot.py``; the engines differ in the contact solve only)."""
+    (``tests/test_jaxsim_robot.py``; the engines differ in the contact solve only). Measured
+    0.086 mm and 0.105 mm (float64), the reward point having moved 17.6 mm."""
     from jaxsim_helpers import scene
 
     from softcrawl.jaxsim.engine import rest_state
