@@ -1,0 +1,106 @@
+"""Resolve a ``--space`` value (a shipped space's name or a space file's path) to a
+:class:`softcrawl.design.spacefile.DesignSpace`: the one helper every command uses
+(``softcrawl train --space``, ``groundtruth --space``, a run's own ``space.toml``).
+
+A value without a path separator and without the ``.toml`` suffix names a shipped space
+(``spaces/<name>.toml``: ``paper``, ``hex6``); anything else is a file path. A file whose
+space equals the paper's (every compared field of :class:`DesignSpace`) resolves to
+:data:`softcrawl.design.space.DEFAULT_SPACE` itself, so the default space's enumerations are
+shared and its robots are the paper's, bit for bit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import SPACES_DIR, DesignSpace, SpaceFileError, load_space
+from softcrawl.safeio import read_bytes
+
+#: Name of the paper's shipped space (``EnvConfig.space``'s default).
+PAPER_SPACE = "paper"
+
+#: ``(resolved path, sha256) -> DesignSpace``: a file read once per content.
+_CACHE: dict[tuple[str, str], DesignSpace] = {}
+
+
+def shipped_space_names() -> tuple[str, ...]:
+    """Names of the shipped space files, sorted (``("hex6", "paper")``)."""
+    return tuple(sorted(p.stem for p in SPACES_DIR.glob("*.toml")))
+
+
+def is_space_name(value: str) -> bool:
+    """Whether ``value`` is read as a shipped space's name (no path separator, no ``.toml``)."""
+    return os.sep not in value and "/" not in value and not value.endswith(".toml")
+
+
+def space_path(value: str | os.PathLike) -> Path:
+    """The file a ``--space`` value names: ``spaces/<value>.toml`` for a shipped name, else
+    the path itself.
+
+    Raises:
+        SpaceFileError: (a ValueError, one line) an unknown shipped name, or no such file.
+    """
+    text = os.fspath(value)
+    if not text:
+        raise SpaceFileError("design space: empty name (a shipped space: "
+                             f"{', '.join(shipped_space_names())}; or a space file's path)")
+    if is_space_name(text):
+        path = SPACES_DIR / f"{text}.toml"
+        if not path.is_file():
+            raise SpaceFileError(f"no shipped design space {text!r} (shipped: {', '.join(shipped_space_names())}; "
+                                 "or give a space file's path)")
+        return path
+    path = Path(text)
+    if not path.is_file():
+        raise SpaceFileError(f"{path}: no such design-space file")
+    return path
+
+
+def resolve_space(value: str | os.PathLike | DesignSpace) -> DesignSpace:
+    """The design space a ``--space`` value names (module docstring), read with
+    :func:`softcrawl.design.spacefile.load_space` (every key checked, PneuNet dimensions too).
+
+    Args:
+        value: a shipped name (``"paper"``, ``"hex6"``), a space file's path, or a
+            :class:`DesignSpace` (returned as it is).
+
+    Returns:
+        The space (:data:`DEFAULT_SPACE` for the paper's).
+
+    Raises:
+        SpaceFileError: (a ValueError) one line: an unknown name, no such file, or a malformed
+            or inconsistent file (:func:`load_space`).
+    """
+    if isinstance(value, DesignSpace):
+        return value
+    if os.fspath(value) == PAPER_SPACE:
+        return DEFAULT_SPACE
+    return space_file(value)[1]
+
+
+def space_file(value: str | os.PathLike) -> tuple[bytes, DesignSpace]:
+    """The bytes of the file a ``--space`` value names and its space (:func:`resolve_space`),
+    read once: the bytes are those the space was read from (what a run keeps as ``space.toml``).
+
+    Raises:
+        SpaceFileError: as :func:`resolve_space`, or the file changed while it was read.
+    """
+    path = space_path(value)
+    try:
+        data = read_bytes(path)
+    except (OSError, ValueError) as exc:
+        raise SpaceFileError(" ".join(f"{path}: {exc}".split())) from None
+    sha = hashlib.sha256(data).hexdigest()
+    key = (str(path.resolve()), sha)
+    if key not in _CACHE:
+        try:
+            space = load_space(path)
+        except FileNotFoundError as exc:
+            raise SpaceFileError(" ".join(str(exc).split())) from None
+        if space.sha256 != sha:
+            raise SpaceFileError(f"{path}: changed while it was read; run the command again")
+        _CACHE[key] = DEFAULT_SPACE if space == DEFAULT_SPACE else space
+    return data, _CACHE[key]
