@@ -140,7 +140,7 @@ def test_a_tampered_space_file_is_refused(hex3_run, tmp_path):
     (copy / "space.toml").write_text(hex3_text().replace("max_legs = 3", "max_legs = 4"), encoding="utf-8")
     for call in (lambda: Run(copy).read_config(), lambda: evaluate_policy(copy, (1, 1, 1, 0, 0, 0)),
                  lambda: write_report(copy, simulate=False)):
-        with pytest.raises(ValueError, match=r"space.toml: sha256 .* (the run's design space was changed)") as exc:
+        with pytest.raises(ValueError, match=r"space.toml: sha256 .* \(the run's design space was changed\)") as exc:
             call()
         assert "\n" not in str(exc.value)
     assert not (copy / "report").exists()
