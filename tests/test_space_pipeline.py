@@ -140,12 +140,12 @@ def test_a_tampered_space_file_is_refused(hex3_run, tmp_path):
     (copy / "space.toml").write_text(hex3_text().replace("max_legs = 3", "max_legs = 4"), encoding="utf-8")
     for call in (lambda: Run(copy).read_config(), lambda: evaluate_policy(copy, (1, 1, 1, 0, 0, 0)),
                  lambda: write_report(copy, simulate=False)):
-        with pytest.raises(ValueError, match=r"space.toml: sha256 .* \(the run's design space was changed\)") as exc:
+        with pytest.raises(ValueError, match=r"space.toml: sha256 .* \(the design space was changed after") as exc:
             call()
         assert "\n" not in str(exc.value)
     assert not (copy / "report").exists()
     (copy / "space.toml").unlink()
-    with pytest.raises(ValueError, match="space.toml: the run's design space cannot be read"):
+    with pytest.raises(ValueError, match="space.toml: the folder's design space cannot be read"):
         Run(copy).read_config()
 
 

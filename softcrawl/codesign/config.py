@@ -105,6 +105,21 @@ PART_FIELDS = ("leg_mesh_size", "disk_mesh_size", "leg_mass", "disk_mass")
 LEARNERS = ("sbx", "torch")
 
 
+def space_robot(robot: RobotConfig, space: DesignSpace) -> RobotConfig:
+    """``robot`` for the robots of ``space``: ``robot`` itself for the paper's space, else
+    :meth:`RobotConfig.for_space` with ``robot``'s settings except the :data:`PART_FIELDS` still
+    at the paper's defaults (``RobotConfig()``), which take the space's parts' values.
+
+    Raises:
+        ValueError, MeshError: as :meth:`RobotConfig.for_space`.
+    """
+    if space == DEFAULT_SPACE:
+        return robot
+    paper = RobotConfig()
+    own = {k: v for k, v in dataclasses.asdict(robot).items() if k not in PART_FIELDS or v != getattr(paper, k)}
+    return RobotConfig.for_space(space, **own)
+
+
 def env_robot(**changes) -> RobotConfig:
     """The training robot (:attr:`EnvConfig.robot`'s default) with ``changes``: the reduced
     model at dt = 0.02 s, float32 RID products, 100 contact sweeps per chunk."""
@@ -183,13 +198,7 @@ class EnvConfig:
         Raises:
             SpaceFileError: as :meth:`design_space`; ValueError, MeshError: as ``for_space``.
         """
-        space = self.design_space()
-        if space == DEFAULT_SPACE:
-            return self.robot
-        paper = RobotConfig()
-        own = {k: v for k, v in dataclasses.asdict(self.robot).items()
-               if k not in PART_FIELDS or v != getattr(paper, k)}
-        return RobotConfig.for_space(space, **own)
+        return space_robot(self.robot, self.design_space())
 
 
 @dataclass

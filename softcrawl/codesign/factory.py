@@ -50,16 +50,23 @@ def check_reduction(cfg: TrainConfig) -> None:
     ``env.robot.reduction``, else the design space's (the paper's: the shipped one).
 
     Raises:
-        ValueError: the space names no reduction (use the full-order model); and
+        ValueError: neither names a reduction (the message says how to go on); and
             ReductionFileError, ReductionMismatchError (ValueErrors): see
-            :func:`softcrawl.reduction.artifact.load_reduction`; a reduction built for another
-            PneuNet than the space's.
+            :func:`softcrawl.reduction.artifact.load_reduction`.
     """
     if cfg.env.robot.model != "reduced":
         return
-    from softcrawl.robot.assembly import _space_reduction
+    import dataclasses
 
-    _space_reduction(cfg.env.design_space(), cfg.env.robot_config())
+    from softcrawl.reduction.artifact import load_reduction
+
+    config, space = cfg.env.robot_config(), cfg.env.design_space()
+    path = config.reduction or space.reduction
+    if path is None:
+        raise ValueError(f'env.robot.model is "reduced" but the design space {space.name!r} names no reduction '
+                         "([actuator] reduction) nor does env.robot.reduction: build one (softcrawl reduce build) "
+                         'or train the full-order model (--set env.robot.model="full")')
+    load_reduction(path, expect=dataclasses.asdict(config))
 
 
 def make_sampler(cfg: TrainConfig) -> GibbsDesignSampler:

@@ -48,7 +48,6 @@ whose methods :class:`Run` has).
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 import json
 import os
@@ -63,10 +62,10 @@ from softcrawl.codesign.checkpoints import NoSpaceError, RunCheckpoints, _sha256
 from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.migrate import CONFIG_VERSION, SPACE_VERSION, config_version, read_settings
 from softcrawl.codesign.notes import note
-from softcrawl.design.resolve import resolve_space, space_file
+from softcrawl.design.resolve import SPACE_COPY, check_space_copy, resolve_space, write_space_copy
 from softcrawl.design.space import DEFAULT_SPACE
 from softcrawl.design.spacefile import DesignSpace
-from softcrawl.safeio import atomic_write_text, load_json, read_bytes
+from softcrawl.safeio import atomic_write_text, load_json
 
 #: Names other modules import from here (the checkpoint helpers live in
 #: :mod:`softcrawl.codesign.checkpoints`, the notes in :mod:`softcrawl.codesign.notes`).
@@ -85,7 +84,7 @@ class Run(RunCheckpoints):
 
     # -- paths -----------------------------------------------------------------------------
     config_path = property(lambda self: self.path / "config.json")
-    space_path = property(lambda self: self.path / "space.toml")
+    space_path = property(lambda self: self.path / SPACE_COPY)
     episodes_csv = property(lambda self: self.path / "episodes.csv")
     distribution_csv = property(lambda self: self.path / "distribution.csv")
     sessions_csv = property(lambda self: self.path / "sessions.csv")
@@ -164,22 +163,8 @@ class Run(RunCheckpoints):
 
     def check_space(self, meta: dict) -> None:
         """Refuse a ``space.toml`` that is missing or whose SHA-256 is not ``meta``'s
-        ``space_sha256`` (the run's design space was changed after training started).
-
-        Raises:
-            ValueError: one line naming the file.
-        """
-        want = meta.get("space_sha256")
-        if not isinstance(want, str):
-            raise ValueError("no space_sha256 (the checksum of the run's space.toml)")
-        try:
-            data = read_bytes(self.space_path)
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"{self.space_path}: the run's design space cannot be read ({exc})") from None
-        have = hashlib.sha256(data).hexdigest()
-        if have != want:
-            raise ValueError(f"{self.space_path}: sha256 {have[:12]}... is not the run's {want[:12]}... "
-                             "(the run's design space was changed); refusing to use it")
+        ``space_sha256`` (:func:`softcrawl.design.resolve.check_space_copy`; ValueError, one line)."""
+        check_space_copy(self.path, meta.get("space_sha256"))
 
     def design_space(self) -> DesignSpace:
         """The run's design space (its ``space.toml``; the paper's for a run of an older format
@@ -194,15 +179,13 @@ class Run(RunCheckpoints):
             SpaceFileError: (a ValueError) the space file cannot be read, or changed since the
                 config was checked.
         """
-        data, space = space_file(cfg.env.space)
-        if space != cfg.env.design_space():
+        self.path.mkdir(parents=True, exist_ok=True)
+        sha = write_space_copy(self.path, cfg.env.space)
+        if resolve_space(self.space_path) != cfg.env.design_space():
             raise ValueError(f"{cfg.env.space}: the design space changed since the config was checked; "
                              "start the run again")
-        self.path.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(self.space_path, data.decode("utf-8"))  # a space file is UTF-8 TOML (load_toml)
         atomic_write_text(self.config_path, json.dumps({"version": __version__, "config_version": CONFIG_VERSION,
-                                                        "space_sha256": hashlib.sha256(data).hexdigest(),
-                                                        "config": cfg.to_dict()}, indent=2))
+                                                        "space_sha256": sha, "config": cfg.to_dict()}, indent=2))
 
     # -- logs ------------------------------------------------------------------------------
     def read_episodes(self) -> dict:

@@ -104,3 +104,44 @@ def space_file(value: str | os.PathLike) -> tuple[bytes, DesignSpace]:
             raise SpaceFileError(f"{path}: changed while it was read; run the command again")
         _CACHE[key] = DEFAULT_SPACE if space == DEFAULT_SPACE else space
     return data, _CACHE[key]
+
+
+#: File name of the copy of its design space that a run or ground-truth folder keeps.
+SPACE_COPY = "space.toml"
+
+
+def write_space_copy(folder: str | os.PathLike, value: str | os.PathLike) -> str:
+    """Copy the file a ``--space`` value names into ``folder`` as :data:`SPACE_COPY`
+    (atomically; the bytes :func:`resolve_space` read) and return its SHA-256 (hex), which the
+    folder's ``config.json`` records for :func:`check_space_copy`.
+
+    Raises:
+        SpaceFileError: as :func:`space_file`. OSError: the folder cannot be written.
+    """
+    from softcrawl.safeio import atomic_write_text
+
+    data, _ = space_file(value)
+    atomic_write_text(Path(folder) / SPACE_COPY, data.decode("utf-8"))  # a space file is UTF-8 TOML (load_toml)
+    return hashlib.sha256(data).hexdigest()
+
+
+def check_space_copy(folder: str | os.PathLike, sha256: object) -> Path:
+    """The folder's :data:`SPACE_COPY`, checked against the SHA-256 its ``config.json``
+    recorded (:func:`write_space_copy`). Returns its path (a ``--space`` value).
+
+    Raises:
+        ValueError: one line: no recorded checksum, the copy is missing or unreadable, or it
+            was changed (its SHA-256 differs).
+    """
+    path = Path(folder) / SPACE_COPY
+    if not isinstance(sha256, str):
+        raise ValueError(f"{path.parent / 'config.json'}: no space_sha256 (the checksum of its {SPACE_COPY})")
+    try:
+        data = read_bytes(path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(" ".join(f"{path}: the folder's design space cannot be read ({exc})".split())) from None
+    have = hashlib.sha256(data).hexdigest()
+    if have != sha256:
+        raise ValueError(f"{path}: sha256 {have[:12]}... is not the recorded {sha256[:12]}... (the design space "
+                         "was changed after the folder was written); refusing to use it")
+    return path

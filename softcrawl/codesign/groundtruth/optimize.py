@@ -32,8 +32,9 @@ class DesignEvaluator:
     def __init__(self, design, cfg: GroundTruthConfig):
         from softcrawl.robot.assembly import build_robot
 
-        self.design, self.cfg = canonicalize(design), cfg
-        self.robot = build_robot(self.design, cfg.robot)
+        space = cfg.design_space()
+        self.design, self.cfg = space.canonicalize(design), cfg
+        self.robot = build_robot(self.design, cfg.robot_config(), space=space)
         self._settled = None
         self.episodes, self.sim_seconds = 0, 0.0
 
