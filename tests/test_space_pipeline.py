@@ -198,3 +198,38 @@ def test_deploy_refuses_a_run_of_another_regulator_count(tmp_path, capsys):
     check_regulators(3, 3, "paper")
     with pytest.raises(ValueError, match="drives 2 regulators"):
         check_regulators(2, 3, "hex6")
+
+
+def test_a_ground_truth_of_the_space_keeps_it_and_regret_compares_like_with_like(hex3_run, space_file, tmp_path):
+    """``groundtruth --space``'s folder (a fake task: no simulation): its space.toml and
+    checksum, its rows validated in its own space, no paper references, resumed with its own
+    settings; regret of the hex3 run against it, and refused against a paper ground truth."""
+    from groundtruth_helpers import fake_task, make_folder
+
+    from softcrawl.codesign.groundtruth import GroundTruthConfig, load_groundtruth, parse_designs, run_groundtruth
+    from softcrawl.codesign.groundtruth.store import read_config
+    from softcrawl.codesign.groundtruth_regret import compute_regret
+
+    space = resolve_space(space_file)
+    designs = parse_designs("3", space)
+    assert designs == [d for d in space.canonical_designs]
+    with pytest.raises(ValueError, match=r"leg counts must be in 3..3"):
+        parse_designs("4", space)
+    gt = tmp_path / "gt"
+    cfg = GroundTruthConfig(baseline_phases=(), space=str(space_file))
+    run_groundtruth(designs, gt, cfg, executor="serial", task=fake_task, progress=False)
+    meta = json.loads((gt / "config.json").read_text())
+    assert (gt / "space.toml").read_bytes() == space_file.read_bytes()
+    assert meta["space_sha256"] == hashlib.sha256(space_file.read_bytes()).hexdigest()
+    assert not (gt / "references.json").exists()
+    saved, results, _ = load_groundtruth(gt)
+    assert saved.design_space() == space and set(results) == set(designs)
+    run_groundtruth(designs, gt, cfg, executor="serial", task=fake_task, progress=False)  # same settings: resumes
+    r = compute_regret(hex3_run, gt, policy=False)
+    assert r["placement"]["of"] == len(designs) and len(r["choice"]["design"]) == 6
+    paper_gt = make_folder(tmp_path / "paper_gt")
+    with pytest.raises(ValueError, match="of different design spaces"):
+        compute_regret(hex3_run, paper_gt, policy=False)
+    (gt / "space.toml").write_text(hex3_text() + "# changed\n", encoding="utf-8")
+    with pytest.raises(ValueError, match=r"space.toml: sha256 .* \(the design space was changed after"):
+        read_config(gt)
