@@ -14,7 +14,6 @@ import numpy as np
 from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
 from softcrawl.codesign.groundtruth.search import design_search, drive, knots_to_gait, seed_knots, used_regulators
-from softcrawl.design.space import canonicalize
 
 
 class DesignEvaluator:
@@ -122,7 +121,7 @@ def screening_agreement(designs: Iterable, cfg: GroundTruthConfig, gaits_per_des
     rng = np.random.default_rng(seed)
     durations = sorted(set([float(s) for s in short] + [cfg.duration]))
     pairs, wall = [], {d: 0.0 for d in durations}
-    designs = [canonicalize(d) for d in designs]
+    designs = [cfg.design_space().canonicalize(d) for d in designs]
     bar = tqdm(total=len(designs) * (gaits_per_design + 1), desc="screening", disable=not progress)
     for d in designs:
         ev = DesignEvaluator(d, cfg)
