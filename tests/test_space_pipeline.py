@@ -158,10 +158,12 @@ def test_a_malformed_space_file_gives_one_line_and_writes_nothing(tmp_path, caps
                        ("nope", "no shipped design space 'nope'"),
                        (str(tmp_path / "none.toml"), "no such design-space file")):
         out = tmp_path / "out"
-        assert main(["train", "--preset", "smoke", "--space", space, "--out", str(out), "--no-progress"]) != 0
-        err = capsys.readouterr().err.strip()
-        assert why in err and len(err.splitlines()) == 1
-        assert not out.exists()
+        for command in (["train", "--preset", "smoke", "--out", str(out), "--no-progress"],
+                        ["groundtruth", "--designs", "3", "--out", str(out), "--no-progress"], ["designs", "count"]):
+            assert main([*command, "--space", space]) != 0
+            err = capsys.readouterr().err.strip()
+            assert why in err and len(err.splitlines()) == 1, (command, err)
+            assert not out.exists()
 
 
 def test_older_runs_are_the_paper_space(tmp_path):

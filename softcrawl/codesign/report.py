@@ -22,9 +22,9 @@ is read through :class:`softcrawl.codesign.run.Run`):
   the episode: a crawler moves in every quarter, a push does not);
 * ``summary.json``: the numbers of ``summary.md`` (steps, wall time, top designs, the best
   design's policy reward, actions and gait analysis, the baseline's best phase and reward);
-* "Expert baseline" (the paper's space only: the baseline design is one of its designs): the baseline design's sine gait swept over ``baseline_phases`` with the
-  run's robot settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase``
-  output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
+* "Expert baseline" (a run of the paper's space only: the baseline design is one of its
+  designs): the baseline design's sine gait swept over ``baseline_phases`` with the run's robot
+  settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase`` output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
   sweep's best phase and reward (comparable only when its episode length and model match the
   run's; the section states both), its ``reward_vs_phase.png`` copied in;
 * with a ground truth (``softcrawl report RUN --groundtruth GT``): where the run's chosen design

@@ -114,8 +114,8 @@ class Run(RunCheckpoints):
         Raises:
             ValueError: naming the first such link.
         """
-        for p in (self.config_path, self.space_path, self.episodes_csv, self.distribution_csv, self.sessions_csv, self.domain_csv,
-                  self.snapshots_dir, self.logs_dir, self.checkpoints_dir, self.report_dir):
+        for p in (self.config_path, self.space_path, self.episodes_csv, self.distribution_csv, self.sessions_csv,
+                  self.domain_csv, self.snapshots_dir, self.logs_dir, self.checkpoints_dir, self.report_dir):
             if p.is_symlink():
                 raise ValueError(f"{p} is a symbolic link: a run's files must be inside its folder (refusing to "
                                  "read or write through it)")
