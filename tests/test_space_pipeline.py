@@ -67,6 +67,8 @@ def test_the_space_sets_the_designs_the_encoding_and_the_leg_bounds(space_file):
     default = preset("smoke")
     assert default.env.space == "paper" and default.env.design_space() is DEFAULT_SPACE
     assert default.env.robot_config() is default.env.robot and len(preset("demo").env.designs()) == 280
+    assert resolve_space("hex6") == resolve_space(shipped_space_path("hex6")) and resolve_space("paper") is DEFAULT_SPACE
+    assert resolve_space(shipped_space_path("paper")) is DEFAULT_SPACE  # the paper's file, by path: the same space
 
 
 def test_robot_settings_of_another_space_take_its_part_values(tmp_path):
