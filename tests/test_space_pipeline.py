@@ -6,6 +6,7 @@ The space of these tests is the paper's PneuNet (so the shipped reduction fits) 
 layout: 6 slots at 30 + 60 i degrees, 3 regulators, exactly 3 legs, mirror symmetry about x.
 """
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -237,3 +238,31 @@ def test_a_ground_truth_of_the_space_keeps_it_and_regret_compares_like_with_like
     (gt / "space.toml").write_text(hex3_text() + "# changed\n", encoding="utf-8")
     with pytest.raises(ValueError, match=r"space.toml: sha256 .* \(the design space was changed after"):
         read_config(gt)
+
+
+def test_a_space_copy_takes_its_relative_reduction_along(tmp_path):
+    """A space naming its reduction by a relative path: the folder's copy reads the same
+    reduction (copied below the folder, byte for byte); a path out of the space's folder is refused."""
+    from softcrawl.design.resolve import write_space_copy
+    from softcrawl.design.spacefile import SpaceFileError
+    from softcrawl.reduction.data import default_reduction_path
+
+    src = tmp_path / "mine"
+    (src / "red").mkdir(parents=True)
+    shutil.copy(default_reduction_path(), src / "red" / "leg.npz")
+    (src / "s.toml").write_text(hex3_text().replace('"softcrawl:pneunet_6mm.npz"', '"red/leg.npz"'), encoding="utf-8")
+    folder = tmp_path / "run"
+    folder.mkdir()
+    sha = write_space_copy(folder, src / "s.toml")
+    assert sha == hashlib.sha256((src / "s.toml").read_bytes()).hexdigest()
+    copy, original = resolve_space(folder / "space.toml"), resolve_space(src / "s.toml")
+    assert copy.reduction == str(folder / "red" / "leg.npz")
+    assert dataclasses.replace(copy, reduction=original.reduction) == original
+    assert (folder / "red" / "leg.npz").read_bytes() == default_reduction_path().read_bytes()
+    (tmp_path / "up.npz").write_bytes(b"x")
+    (src / "t.toml").write_text(hex3_text().replace('"softcrawl:pneunet_6mm.npz"', '"../up.npz"'), encoding="utf-8")
+    with pytest.raises(SpaceFileError, match="leaves the space file's folder"):
+        write_space_copy(tmp_path / "other", src / "t.toml")
+    with pytest.raises(ValueError, match="env.space: .*t.toml: actuator.reduction: '../up.npz' leaves"):
+        override(preset("smoke"), [f"env.space={json.dumps(str(src / 't.toml'))}"])  # refused before any run
+    assert not (tmp_path / "other").exists()

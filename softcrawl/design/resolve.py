@@ -86,7 +86,9 @@ def space_file(value: str | os.PathLike) -> tuple[bytes, DesignSpace]:
     read once: the bytes are those the space was read from (what a run keeps as ``space.toml``).
 
     Raises:
-        SpaceFileError: as :func:`resolve_space`, or the file changed while it was read.
+        SpaceFileError: as :func:`resolve_space`, the file changed while it was read, or it names
+            its reduction by a relative path out of its folder (``..``: a folder's copy,
+            :func:`write_space_copy`, could not take it along).
     """
     path = space_path(value)
     try:
@@ -102,8 +104,28 @@ def space_file(value: str | os.PathLike) -> tuple[bytes, DesignSpace]:
             raise SpaceFileError(" ".join(str(exc).split())) from None
         if space.sha256 != sha:
             raise SpaceFileError(f"{path}: changed while it was read; run the command again")
+        _relative_reduction(data, space)
         _CACHE[key] = DEFAULT_SPACE if space == DEFAULT_SPACE else space
     return data, _CACHE[key]
+
+
+def _relative_reduction(data: bytes, space: DesignSpace) -> str | None:
+    """The ``[actuator] reduction`` of a space file's bytes if it is a relative path (else None).
+
+    Raises:
+        SpaceFileError: the path leaves the space file's folder (``..``).
+    """
+    import tomllib
+
+    from softcrawl.design.spacefile import SHIPPED_PREFIX
+
+    ref = tomllib.loads(data.decode("utf-8")).get("actuator", {}).get("reduction")
+    if not isinstance(ref, str) or ref.startswith(SHIPPED_PREFIX) or Path(ref).is_absolute():
+        return None
+    if ".." in Path(ref).parts:
+        raise SpaceFileError(f"{space.source}: actuator.reduction: {ref!r} leaves the space file's folder; give an "
+                             "absolute path or one below that folder")
+    return ref
 
 
 #: File name of the copy of its design space that a run or ground-truth folder keeps.
@@ -113,15 +135,29 @@ SPACE_COPY = "space.toml"
 def write_space_copy(folder: str | os.PathLike, value: str | os.PathLike) -> str:
     """Copy the file a ``--space`` value names into ``folder`` as :data:`SPACE_COPY`
     (atomically; the bytes :func:`resolve_space` read) and return its SHA-256 (hex), which the
-    folder's ``config.json`` records for :func:`check_space_copy`.
+    folder's ``config.json`` records for :func:`check_space_copy`. A reduction the file names
+    by a relative path is copied too, to the same path below ``folder``, so that the copy
+    reads as the original did (``softcrawl:`` names and absolute paths need no copy).
 
     Raises:
         SpaceFileError: as :func:`space_file`. OSError: the folder cannot be written.
     """
+    import shutil
+    import tempfile
+
     from softcrawl.safeio import atomic_write_text
 
-    data, _ = space_file(value)
-    atomic_write_text(Path(folder) / SPACE_COPY, data.decode("utf-8"))  # a space file is UTF-8 TOML (load_toml)
+    data, space = space_file(value)
+    folder = Path(folder)
+    ref = _relative_reduction(data, space)
+    if ref is not None:
+        target = folder / ref
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        os.close(fd)
+        shutil.copyfile(space.reduction, tmp)
+        os.replace(tmp, target)
+    atomic_write_text(folder / SPACE_COPY, data.decode("utf-8"))  # a space file is UTF-8 TOML (load_toml)
     return hashlib.sha256(data).hexdigest()
 
 
