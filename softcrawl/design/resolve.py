@@ -7,17 +7,24 @@ A value without a path separator and without the ``.toml`` suffix names a shippe
 space equals the paper's (every compared field of :class:`DesignSpace`) resolves to
 :data:`softcrawl.design.space.DEFAULT_SPACE` itself, so the default space's enumerations are
 shared and its robots are the paper's, bit for bit.
+
+A co-design run or a ground-truth folder keeps the file it was started with as ``space.toml``
+(:func:`write_space_copy`, with a reduction the file names by a relative path) and its SHA-256 in
+its ``config.json``; its readers use that copy, checked first (:func:`check_space_copy`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import shutil
+import tempfile
+import tomllib
 from pathlib import Path
 
 from softcrawl.design.space import DEFAULT_SPACE
-from softcrawl.design.spacefile import SPACES_DIR, DesignSpace, SpaceFileError, load_space
-from softcrawl.safeio import read_bytes
+from softcrawl.design.spacefile import SHIPPED_PREFIX, SPACES_DIR, DesignSpace, SpaceFileError, load_space
+from softcrawl.safeio import atomic_write_text, read_bytes
 
 #: Name of the paper's shipped space (``EnvConfig.space``'s default).
 PAPER_SPACE = "paper"
@@ -115,10 +122,6 @@ def _relative_reduction(data: bytes, space: DesignSpace) -> str | None:
     Raises:
         SpaceFileError: the path leaves the space file's folder (``..``).
     """
-    import tomllib
-
-    from softcrawl.design.spacefile import SHIPPED_PREFIX
-
     ref = tomllib.loads(data.decode("utf-8")).get("actuator", {}).get("reduction")
     if not isinstance(ref, str) or ref.startswith(SHIPPED_PREFIX) or Path(ref).is_absolute():
         return None
@@ -142,11 +145,6 @@ def write_space_copy(folder: str | os.PathLike, value: str | os.PathLike) -> str
     Raises:
         SpaceFileError: as :func:`space_file`. OSError: the folder cannot be written.
     """
-    import shutil
-    import tempfile
-
-    from softcrawl.safeio import atomic_write_text
-
     data, space = space_file(value)
     folder = Path(folder)
     ref = _relative_reduction(data, space)
