@@ -111,7 +111,8 @@ def register(subparsers) -> None:
                               "simulation settings; write the outputs of `softcrawl simulate` plus evaluation.json "
                               "and actions.csv into --out.")
     p.add_argument("run", help="training run directory")
-    p.add_argument("--design", required=True, help='8 comma-separated slot values, e.g. "1,0,0,2,2,0,0,0"')
+    p.add_argument("--design", required=True, help="comma-separated slot values, one per slot of the run's design "
+                   'space (the paper\'s: 8), e.g. "1,0,0,2,2,0,0,0"')
     p.add_argument("--episodes", type=int, default=None, help="episodes to run (default 1)")
     p.add_argument("--randomize", type=int, default=None, metavar="N",
                    help="run N domain-randomized episodes (the run's env.randomize ranges or --set ones) and write "

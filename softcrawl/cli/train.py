@@ -6,6 +6,7 @@ Examples::
     softcrawl train --preset demo --out runs/demo
     softcrawl train --preset paper --out runs/paper --set sac.batch_size=256 --set env.legs=[3,4]
     softcrawl train --resume --out runs/paper          # continue a killed run
+    softcrawl train --preset demo --space hex6 --set env.robot.model=\"full\" --out runs/hex6
 
 Writes the run folder described in :mod:`softcrawl.codesign.run` (:mod:`softcrawl.codesign.training`)
 and, at the end, its report (:mod:`softcrawl.codesign.report`; :func:`train_and_report`). Ctrl-C
@@ -15,6 +16,7 @@ stops the run; ``--resume`` continues it from its last checkpoint.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -90,7 +92,7 @@ def check_ray_address(backend: str, address: str | None) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.resume:
         if args.set or any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.workers,
-                                                   args.seed, args.preset)):
+                                                   args.seed, args.preset, args.space)):
             raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings")
         check_ray_address("ray", args.ray_address)
         res = train_and_report(args.out, resume=True, progress=not args.no_progress, ray_address=args.ray_address)
@@ -100,6 +102,8 @@ def _run(args: argparse.Namespace) -> int:
                           (args.workers, "n_workers"), (args.seed, "seed")):
             if flag is not None:
                 sets.append(f"{key}={flag}" if key != "backend" else f'backend="{flag}"')
+        if args.space is not None:
+            sets.append(f"env.space={json.dumps(args.space)}")
         cfg = override(preset(args.preset or "demo"), sets)
         _check_out(args.out)
         check_ray_address(cfg.backend, args.ray_address)
@@ -130,6 +134,9 @@ def register(subparsers) -> None:
     p.add_argument("--backend", choices=BACKENDS, default=None, help="where envs run")
     p.add_argument("--workers", type=int, default=None, help="worker processes of the subprocess backend (0: cores)")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--space", default=None, metavar="NAME|PATH",
+                   help="design space: a shipped one (paper, the default; hex6) or a space file (TOML); "
+                        "the run keeps a copy as space.toml")
     p.add_argument("--ray-address", default=None,
                    help='Ray cluster of --backend ray / --set backend="ray" (default: start a local Ray)')
     p.add_argument("--set", action="append", metavar="KEY=VALUE",

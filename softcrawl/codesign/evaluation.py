@@ -51,7 +51,8 @@ class PolicyEvaluation:
     Attributes:
         design: the canonical design (regulator k of the outputs is the canonical k).
         returns_cm: return of each episode, cm. diverged: per episode.
-        actions_kpa: ``(n_actions, 3)`` real kPa commanded in the first episode.
+        actions_kpa: ``(n_actions, R)`` real kPa commanded in the first episode (``R``: the
+            space's regulators, 3 in the paper's).
         env: the :class:`softcrawl.envs.CrawlerEnv` (its robot cached). config: the run's config
             (its ``env.randomize`` the ranges the episodes were drawn from).
         checkpoint: the checkpoint folder the policy came from.
@@ -115,14 +116,13 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
 
     from softcrawl.codesign.factory import env_fn
     from softcrawl.codesign.sac import make_sac
-    from softcrawl.design.space import canonicalize
     from softcrawl.envs import action_to_kpa
 
     r = Run(run)
     cfg = r.read_config()
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    design = canonicalize(design)
+    design = cfg.env.design_space().canonicalize(design)
     if checkpoint is None:
         ck = r.require_checkpoint()
     else:  # a folder, or a checkpoint's name (step-XXXXXXXXXX) in the run

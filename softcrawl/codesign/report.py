@@ -7,7 +7,8 @@ is read through :class:`softcrawl.codesign.run.Run`):
 * ``summary.md``: run settings, steps, episodes, best return, final entropy/beta, and the
   top-k table (design, latest return R (cm; the score in the Gibbs weights), probability,
   episodes, mean and best return, picture);
-* ``top-<i>.png``: pictures of the top-k designs (:func:`softcrawl.design.picture.plot_design`);
+* ``top-<i>.png``: pictures of the top-k designs in the run's design space (its slots and
+  regulators; :func:`softcrawl.design.picture.plot_design`);
 * ``reward_histogram.png``: over training (x: steps), the distribution of the designs'
   latest returns (y, cm) weighted by the design distribution p (tried designs only, weights
   renormalised), from the ``snapshots/``, with the best return so far as a line (paper figure);
@@ -21,9 +22,9 @@ is read through :class:`softcrawl.codesign.run.Run`):
   the episode: a crawler moves in every quarter, a push does not);
 * ``summary.json``: the numbers of ``summary.md`` (steps, wall time, top designs, the best
   design's policy reward, actions and gait analysis, the baseline's best phase and reward);
-* "Expert baseline": the baseline design's sine gait swept over ``baseline_phases`` with the
-  run's robot settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase``
-  output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
+* "Expert baseline" (a run of the paper's space only: the baseline design is one of its
+  designs): the baseline design's sine gait swept over ``baseline_phases`` with the run's robot
+  settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase`` output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
   sweep's best phase and reward (comparable only when its episode length and model match the
   run's; the section states both), its ``reward_vs_phase.png`` copied in;
 * with a ground truth (``softcrawl report RUN --groundtruth GT``): where the run's chosen design
@@ -48,6 +49,7 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.evaluation import episode_seconds
 from softcrawl.codesign.run import Run, note
 from softcrawl.design.picture import plot_design
+from softcrawl.design.space import DEFAULT_SPACE
 
 BASELINE_PHASES: tuple[float, ...] = tuple(range(0, 360, 30))
 """Phase lags (degrees) of the report's own baseline sweep."""
@@ -68,7 +70,7 @@ def top_designs(run: str | Path, k: int = 5) -> list[dict]:
     state = r.read_checkpoint_state(r.require_checkpoint())["sampler"]
     from softcrawl.codesign.distribution import GibbsDesignDistribution
 
-    dist = GibbsDesignDistribution(state["distribution"]["designs"])
+    dist = GibbsDesignDistribution(state["distribution"]["designs"], space=r.design_space())
     dist.load_state_dict(state["distribution"])
     p = dist.probs()
     ep = r.read_episodes()
@@ -324,8 +326,10 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
     """Everything of :func:`write_report` into ``out`` (the staging folder)."""
     run = r.path
     ep = r.read_episodes()
+    run_cfg = r.read_config()
+    space = run_cfg.env.design_space()
     for i, row in enumerate(top, 1):
-        plot_design(row["design"], path=out / f"top-{i}.png")
+        plot_design(row["design"], path=out / f"top-{i}.png", space=space)
     has_hist = _histogram_figure(r, ep, out / "reward_histogram.png")
     _returns_figure(ep, out / "returns.png")
     with open(out / "top_designs.csv", "w", newline="") as f:
@@ -336,7 +340,6 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
                         row["episodes"], f"{row['mean_cm']:.4f}", f"{row['best_cm']:.4f}"])
     last = state["distribution"]["last"]
     cfg = meta["config"]
-    run_cfg = r.read_config()
     lines = [
         f"# Co-design run `{run.name}`", "",
         (f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
@@ -346,6 +349,10 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
          f"training wall time {r.wall_seconds() / 60:.1f} min"),
         f"- design distribution last updated at step {state['timestep']} (the last episode end)",
         f"- best episode return: {ep['r'].max():+.3f} cm" if len(ep["r"]) else "- no episode finished",
+        *([] if space == DEFAULT_SPACE else [
+            f"- design space `{space.name}` (the run's `space.toml`): {space.n_slots} slots, "
+            f"{space.n_regulators} regulators, legs {', '.join(map(str, run_cfg.env.legs))} "
+            f"({len(run_cfg.env.designs())} canonical designs in play)"]),
         f"- design distribution: beta = {last.beta:.4g} /cm, entropy {last.entropy:.3f} nats "
         f"(target {last.target:.3f}{', clamped to the tie floor' if last.clamped else ''})" if last else "",
         "", f"## Top {len(top)} designs (by latest return R)", "",
@@ -364,10 +371,13 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
                "training_wall_seconds": r.wall_seconds(), "episodes": int(len(ep["r"])),
                "best_episode_cm": best_cm, "top_designs": [
                    {**row, "design": ",".join(map(str, row["design"]))} for row in top]}
+    if space != DEFAULT_SPACE:
+        numbers["space"] = {"name": space.name, "slots": space.n_slots, "regulators": space.n_regulators,
+                            "slot_angles_deg": list(space.slot_angles_deg), "legs": list(run_cfg.env.legs)}
     if simulate and top:
         more, numbers["best_design"] = _best_design_section(run, out, top[0]["design"], ckpt)
         lines += more
-    own_sweep = sweep is None and simulate and len(baseline_phases) > 0
+    own_sweep = sweep is None and simulate and len(baseline_phases) > 0 and space == DEFAULT_SPACE
     if own_sweep:
         from softcrawl.codesign.evaluation import baseline_sweep
 
