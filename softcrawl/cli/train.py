@@ -21,6 +21,7 @@ from pathlib import Path
 
 from softcrawl.codesign.config import BACKENDS, PRESETS, TrainConfig, override, preset
 from softcrawl.robot.output import check_output_path
+from softcrawl.tasks import TASKS
 
 
 def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
@@ -90,16 +91,16 @@ def check_ray_address(backend: str, address: str | None) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.resume:
         if args.set or any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.workers,
-                                                   args.seed, args.preset)):
+                                                   args.seed, args.preset, args.task)):
             raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings")
         check_ray_address("ray", args.ray_address)
         res = train_and_report(args.out, resume=True, progress=not args.no_progress, ray_address=args.ray_address)
     else:
         sets = list(args.set or [])
         for flag, key in ((args.total_steps, "total_steps"), (args.n_envs, "n_envs"), (args.backend, "backend"),
-                          (args.workers, "n_workers"), (args.seed, "seed")):
+                          (args.workers, "n_workers"), (args.seed, "seed"), (args.task, "env.task")):
             if flag is not None:
-                sets.append(f"{key}={flag}" if key != "backend" else f'backend="{flag}"')
+                sets.append(f"{key}={flag}" if key not in ("backend", "env.task") else f'{key}="{flag}"')
         cfg = override(preset(args.preset or "demo"), sets)
         _check_out(args.out)
         check_ray_address(cfg.backend, args.ray_address)
@@ -130,6 +131,9 @@ def register(subparsers) -> None:
     p.add_argument("--backend", choices=BACKENDS, default=None, help="where envs run")
     p.add_argument("--workers", type=int, default=None, help="worker processes of the subprocess backend (0: cores)")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--task", choices=TASKS, default=None,
+                   help="what the episodes reward, with its default settings (docs/tasks.md; default forward, "
+                   "the paper's); settings: --set 'env.task={\"name\": \"heading\", \"heading_deg\": 90}'")
     p.add_argument("--ray-address", default=None,
                    help='Ray cluster of --backend ray / --set backend="ray" (default: start a local Ray)')
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
