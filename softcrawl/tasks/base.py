@@ -40,6 +40,7 @@ import numpy as np
 
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.domain import randomized_robot
+from softcrawl.robot.episode import MM_PER_CM
 
 #: Bounds of a task's floor friction (Coulomb mu, dimensionless), both included.
 FRICTION_BOUNDS = (0.0, 10.0)
@@ -152,3 +153,36 @@ def on_floor(robot: Robot, friction: float | None = None, gravity=None) -> Robot
     if gravity is not None:
         robot = dataclasses.replace(robot, model=dataclasses.replace(robot.model, gravity=tuple(map(float, gravity))))
     return robot
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    """A recorded state read as an episode by the tasks (module docstring): ``robot``, ``state.x``
+    ``(N, 3)`` mm, ``start`` ``(3,)`` mm (the reward point at the episode's start)."""
+
+    robot: Robot
+    x: np.ndarray
+    start: np.ndarray
+
+    @property
+    def state(self) -> Snapshot:
+        return self
+
+    @property
+    def displacement_cm(self) -> float:
+        """+x displacement of the reward point since ``start``, cm (:attr:`Episode.displacement_cm`)."""
+        return float(self.robot.reward_position(self.x)[0] - self.start[0]) / MM_PER_CM
+
+
+def replay_return(task: Task, robot: Robot, frames) -> float:
+    """``task``'s return over recorded frames: the sum of :meth:`Task.reward` between
+    consecutive frames (``frames`` ``(k, N, 3)`` mm, frame 0 the episode's start, e.g.
+    :attr:`softcrawl.robot.EpisodeResult.frames`); NaN without frames."""
+    frames = np.asarray(frames, dtype=float)
+    if len(frames) == 0:
+        return float("nan")
+    start = np.asarray(robot.reward_position(frames[0]), dtype=float)
+    snaps = [Snapshot(robot, x, start) for x in frames]
+    origin = task.origin(snaps[0])
+    progress = [task.progress(s, origin) for s in snaps]
+    return float(sum(task.reward(a, b) for a, b in zip(progress[:-1], progress[1:])))
