@@ -439,8 +439,8 @@ def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict |
         w.writerow(["phase_deg", "turned_deg", "diverged", "wall_seconds"])
         w.writerows([r.phase_deg, f"{r.turned_deg:.4f}", r.diverged, f"{r.wall_seconds:.2f}"] for r in results)
     design = ",".join(map(str, TURNING_BASELINE_DESIGN))
-    lines += [(f"Hand-made turning gait on the symmetric `{design}` (diagonally opposite leg pairs on regulators 1 "
-               f"and 2, raised-cosine waves 0-90 kPa, period 4 s, pair 2 lagging by the phase), {seconds:g} s "
+    lines += [(f"Hand-made turning gait on the symmetric `{design}` (two diagonally opposite leg pairs on regulators "
+               f"1 and 2, raised-cosine waves 0-90 kPa, period 4 s, pair 2 lagging by the phase), {seconds:g} s "
                f"episodes, this run's robot ({cfg.env.robot.model} model) and floor; degrees turned counter-clockwise "
                "per phase lag:"), "", "| phase lag (deg) | turned (deg) |", "|---|---|"]
     lines += [f"| {r.phase_deg:g} | {'diverged' if r.diverged else f'{r.turned_deg:+.2f}'} |" for r in results]

@@ -4,10 +4,14 @@
   swept over its phase lag by :func:`softcrawl.robot.sweep.run_sweep` (codesign.md).
 * ``"turning"`` (``turning``): a hand-made turning gait, :func:`turning_gait` on
   :data:`TURNING_BASELINE_DESIGN`, a design of the paper's space symmetric under a half turn
-  (legs at 22.5 and 67.5 deg on regulator 1, at 202.5 and 247.5 deg on regulator 2): the
-  diagonally opposite leg pairs inflate alternately, pair 2 lagging pair 1 by a phase lag, the
-  raised-cosine waves of the sine baseline (:class:`softcrawl.gaits.SineGait`: 0-90 kPa, 4 s
-  period). :func:`sweep_turning` tunes the lag as ``softcrawl sweep-phase`` tunes the forward
+  (legs at 22.5 and 202.5 deg on regulator 1, at 67.5 and 247.5 deg on regulator 2): the two
+  diagonally opposite leg pairs inflate alternately, pair 2 lagging pair 1 by a phase lag, with
+  the raised-cosine waves of the sine baseline (:class:`softcrawl.gaits.SineGait`: 0-90 kPa, 4 s
+  period). Every mirror line of the design swaps its two regulators, so a lag other than 0 or
+  180 deg makes the actuation chiral (a lag of -phi is the mirror image of phi and turns the
+  other way); a design with a mirror line that keeps each regulator's legs, such as 22.5 and
+  67.5 deg on regulator 1 and 202.5 and 247.5 deg on regulator 2, cannot turn under any gait
+  of its two regulators. :func:`sweep_turning` tunes the lag as ``softcrawl sweep-phase`` tunes the forward
   baseline's; its score is the yaw the disk turns in the episode, degrees
   (:func:`turned_degrees`).
 """
@@ -27,9 +31,9 @@ from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import Settling, run_episode
 from softcrawl.tasks.builtin import disk_yaw_deg, wrap_deg
 
-#: The turning baseline's design: regulator 1 at 22.5 and 67.5 deg, regulator 2 at 202.5 and
-#: 247.5 deg (slots 0, 1 and 4, 5 of the paper's space): symmetric under a half turn about +z.
-TURNING_BASELINE_DESIGN: tuple[int, ...] = (1, 1, 0, 0, 2, 2, 0, 0)
+#: The turning baseline's design: regulator 1 at 22.5 and 202.5 deg, regulator 2 at 67.5 and
+#: 247.5 deg (slots 0, 4 and 1, 5 of the paper's space): symmetric under a half turn about +z.
+TURNING_BASELINE_DESIGN: tuple[int, ...] = (1, 2, 0, 0, 1, 2, 0, 0)
 #: Phase lags of regulator 2 behind regulator 1 swept by default, degrees.
 TURNING_PHASES: tuple[float, ...] = tuple(float(p) for p in range(0, 360, 45))
 
