@@ -45,6 +45,7 @@ def make_env(**kw):
     kw.setdefault("steps_per_action", 2)
     kw.setdefault("n_actions", 4)
     kw.setdefault("designs", [PAPER_BEST_DESIGN, BASELINE_DESIGN])
+    kw.setdefault("share_robots", True)  # the envs of the tasks on one floor settle a design once
     return CrawlerEnv(**kw)
 
 
@@ -285,3 +286,21 @@ def test_best_turn_and_sweep_checks():
         sweep_turning(BuildRobot(COARSE), [0.0, 0.0])
     with pytest.raises(ValueError, match="duration"):
         sweep_turning(BuildRobot(COARSE), [0.0], duration=0.0)
+
+
+# -- the report ----------------------------------------------------------------------------------
+
+def test_the_reports_baseline_section_of_a_task_without_one(tmp_path):
+    from softcrawl.codesign.report import _task_baseline_section
+
+    cfg = override(preset("smoke"), ["env.task=target"])
+    lines, numbers = _task_baseline_section(cfg, parse_task(cfg.env.task), tmp_path, None, (0.0,), True, 1)
+    assert lines[1] == "## Expert baseline" and "The task `target` has no expert baseline." in lines
+    assert numbers == {} and not any(tmp_path.iterdir())
+
+
+def test_replaying_frames_gives_the_forward_return(robot):
+    x0 = robot.model.rest_state().x
+    frames = [x0 + np.array([d, 0.5 * d, 0.0]) for d in (0.0, 4.0, -2.0, 11.0)]
+    assert replay_return(Forward(), robot, frames) == pytest.approx(1.1, abs=1e-12)  # 11 mm
+    assert math.isnan(replay_return(Forward(), robot, []))
