@@ -304,3 +304,32 @@ def test_replaying_frames_gives_the_forward_return(robot):
     frames = [x0 + np.array([d, 0.5 * d, 0.0]) for d in (0.0, 4.0, -2.0, 11.0)]
     assert replay_return(Forward(), robot, frames) == pytest.approx(1.1, abs=1e-12)  # 11 mm
     assert math.isnan(replay_return(Forward(), robot, []))
+
+
+@pytest.mark.slow  # compiles the JAX engine twice: about 100 s on 2 busy cores
+def test_the_jax_backend_scores_heading_and_tilts_gravity_for_incline(x64):
+    """The JAX backend reads the reward point only: heading 90's rewards are its y increments
+    (cm), and an incline's gravity is in its compiled model."""
+    pytest.importorskip("jax")
+    from softcrawl.codesign.factory import env_fn
+
+    cfg = override(preset("smoke"), ['backend="jax"', "env.steps_per_action=25", "env.n_actions=2",
+                                     'env.task={"name": "heading", "heading_deg": 90}'])
+    b = make_backend("jax", [env_fn(cfg)])
+    try:
+        (_, info), = b.reset([0], [PAPER_BEST_DESIGN], [0])
+        y = [info["disk_position_mm"][1]]
+        rewards = []
+        for a in ACTIONS[:2]:
+            (_, r, _, _, info), = b.step(a[None])
+            rewards.append(r)
+            y.append(info["disk_position_mm"][1])
+        np.testing.assert_allclose(rewards, np.diff(y) / 10.0, rtol=0, atol=1e-12)
+        assert max(abs(r) for r in rewards) > 1e-4
+    finally:
+        b.close()
+    b = make_backend("jax", [env_fn(override(cfg, ['env.task={"name": "incline", "angle_deg": 20}']))])
+    try:
+        np.testing.assert_allclose(b._model.settings.gravity, Incline(angle_deg=20.0).gravity())
+    finally:
+        b.close()
