@@ -86,6 +86,11 @@ def _run(args: argparse.Namespace) -> int:
     gait, robot = ev.gait(), ev.env.episode.robot
     result = ev.resimulate(record_every=args.frames_every, progress=not args.no_progress)
     task, u = ev.task, ev.unit
+    forward = task.name == "forward"
+    if not forward:  # the task's return of the re-run, from its frames
+        from softcrawl.tasks.base import replay_return
+
+        rerun = replay_return(task, robot, result.frames)
 
     def extra(folder):  # written into the staged output: kept (or rescued) with it on a full disk
         write_actions_csv(gait, folder / "actions.csv")
@@ -93,16 +98,16 @@ def _run(args: argparse.Namespace) -> int:
             "run": str(args.run), "checkpoint": ev.checkpoint, "design": list(ev.design),
             "task": task.settings(), "unit": u,
             "episodes": args.episodes, f"returns_{u}": ev.returns_cm, f"mean_return_{u}": float(np.mean(ev.returns_cm)),
-            "diverged": ev.diverged, "rerun_reward_cm": result.reward_cm,
+            "diverged": ev.diverged, "rerun_reward_cm": result.reward_cm, **({} if forward else {f"rerun_{u}": rerun}),
             "hold_s": ev.config.env.steps_per_action * ev.config.env.robot.dt,
             "actions_kpa": np.asarray(ev.actions_kpa).tolist(),
         }, indent=2) + "\n")
 
     out = write_results(args.out, robot, gait, result, ev.env.calibration, overwrite=args.overwrite, extra=extra,
                         animation=args.animation is not False)
-    what = "" if task.name == "forward" else f" (task {task.label()})"
+    what = "" if forward else f" (task {task.label()}; re-run from its frames every {args.frames_every} steps)"
     print(f"design {','.join(map(str, ev.design))}: returns {', '.join(f'{r:+.3f}' for r in ev.returns_cm)} {u}"
-          f"{what} (re-run {result.reward_cm:+.3f} cm{' along +x' if what else ''}); wrote {out}")
+          f"{what} (re-run {result.reward_cm if forward else rerun:+.3f} {u}); wrote {out}")
     return 1 if result.diverged or any(ev.diverged) else 0
 
 
