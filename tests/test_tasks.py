@@ -333,3 +333,31 @@ def test_the_jax_backend_scores_heading_and_tilts_gravity_for_incline(x64):
         np.testing.assert_allclose(b._model.settings.gravity, Incline(angle_deg=20.0).gravity())
     finally:
         b.close()
+
+
+def test_turned_degrees_samples_the_last_step_of_a_short_episode(robot):
+    """Regression: a 0.4 s episode sampled every 1 s was scored from its first frame alone (0°).
+    Here a stub solver turns the robot rigidly by 1° per step: 0.4 s at dt 0.01 s is 40°."""
+    import dataclasses
+
+    from softcrawl.robot import NO_SETTLING
+    from softcrawl.tasks.baselines import turned_degrees, turning_gait
+
+    class Spin:
+        stats = type("Stats", (), {"n_contacts": 0, "contact_sweeps": 0, "factorizations": 0})()
+
+        def step(self, state, control):
+            return dataclasses.replace(state, x=rotate_z(state.x, 1.0), t=state.t + 0.01)
+
+    class Spinning:  # the robot, stepped by Spin
+        def __getattr__(self, name):
+            return getattr(robot, name)
+
+        def make_solver(self):
+            return Spin()
+
+    assert robot.config.dt == 0.01
+    turned, diverged = turned_degrees(Spinning(), turning_gait(90.0), 0.4, settling=NO_SETTLING)
+    assert not diverged and turned == pytest.approx(40.0, abs=1e-8)
+    turned, _ = turned_degrees(Spinning(), turning_gait(90.0), 2.5, settling=NO_SETTLING)
+    assert turned == pytest.approx(250.0, abs=1e-8)  # unwrapped, 1-s samples and the last step

@@ -453,8 +453,8 @@ def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict |
     numbers |= {"best_phase_deg": top.phase_deg, "best_deg": top.turned_deg}
     lines += ["", f"- best phase lag: {top.phase_deg:g}°, {top.turned_deg:+.2f}° in {seconds:g} s"]
     if best is not None and best.get("policy_deg") is not None:
-        ratio = abs(best["policy_deg"]) / abs(top.turned_deg) if top.turned_deg else float("inf")
+        ratio = abs(best["policy_deg"]) / abs(top.turned_deg) if top.turned_deg else None
         numbers["ratio"] = ratio
         lines.append(f"- best design `{best['design']}` with the trained policy: {best['policy_deg']:+.2f}°, "
-                     f"{ratio:.2f}x the baseline's turn")
+                     + (f"{ratio:.2f}x the baseline's turn" if ratio is not None else "the baseline did not turn"))
     return lines, numbers

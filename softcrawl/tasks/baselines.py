@@ -65,9 +65,12 @@ def turned_degrees(robot: Robot, gait, duration: float, settling: Settling = Set
                    sample_every: float = 1.0) -> tuple[float, bool]:
     """Yaw the disk turns under ``gait`` over ``duration`` s (after settling), degrees
     counter-clockwise: :func:`softcrawl.tasks.disk_yaw_deg` sampled every ``sample_every`` s
-    (rounded to whole steps) and its wrapped increments summed (the turning task's return
-    with 1-s actions). Returns ``(degrees, diverged)``; NaN degrees if settling diverged."""
-    every = max(1, int(round(sample_every / robot.config.dt)))
+    (rounded to whole steps; fewer if needed, so that the samples include the episode's last
+    step) and its wrapped increments summed (the turning task's return with 1-s actions).
+    Returns ``(degrees, diverged)``; NaN degrees if settling diverged."""
+    dt = robot.config.dt
+    n = int(round(duration / dt)) if math.isfinite(duration) else 0
+    every = math.gcd(max(1, int(round(sample_every / dt))), max(n, 1))
     yaws: list[float] = []
     res = run_episode(robot, gait, duration, settling=settling, record_every=every, progress=False,
                       on_frame=lambda t, x: yaws.append(disk_yaw_deg(robot, x)))
