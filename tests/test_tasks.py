@@ -116,6 +116,12 @@ def test_disk_yaw_of_a_rigidly_rotated_robot_is_the_rotation(robot, deg):
         assert wrap_deg(disk_yaw_deg(robot, x_rot) - base) == pytest.approx(deg, abs=1e-9)
 
 
+def test_a_non_finite_disk_has_no_yaw(robot):
+    x = robot.model.rest_state().x.copy()
+    x[robot.model.body_slice(robot.disk_body)][3, 1] = np.nan
+    assert math.isnan(disk_yaw_deg(robot, x))
+
+
 def test_turning_return_is_the_unwrapped_turn(robot):
     """Snapshots of the robot rigidly turned by 0, 120, 240, 360, 480 degrees: the wrapped
     per-action rewards add up to 480 (more than a turn)."""

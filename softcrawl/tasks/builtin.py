@@ -77,11 +77,17 @@ def disk_yaw_deg(robot: Robot, x: np.ndarray) -> float:
 
     Args:
         robot: the robot. x: ``(N, 3)`` stacked node positions, mm.
+
+    Returns:
+        The yaw, or NaN if a disk position is not finite (the env then scores the action 0).
     """
     frame = robot.reduced.get(robot.disk_body)
     if not isinstance(frame, FloatingFrameBody):
         frame = FloatingFrameBody(robot.model.bodies[robot.disk_body])
-    R = frame.rotation(np.asarray(x, dtype=float)[robot.model.body_slice(robot.disk_body)])
+    disk = np.asarray(x, dtype=float)[robot.model.body_slice(robot.disk_body)]
+    if not np.all(np.isfinite(disk)):
+        return float("nan")
+    R = frame.rotation(disk)
     return math.degrees(math.atan2(R[1, 0], R[0, 0]))
 
 
