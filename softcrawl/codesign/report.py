@@ -388,7 +388,7 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         lines += more
     if task.baseline != "sine":  # another task's baseline, or none
         if sweep is not None:
-            note(f"the baseline sweep {baseline} is the forward task's; this run's task is {task.name!r}: left out")
+            note(f"the baseline sweep {sweep[0]} is the forward task's; this run's task is {task.name!r}: left out")
         more, base = _task_baseline_section(run_cfg, task, out, numbers.get("best_design"), baseline_phases,
                                             simulate, workers)
         lines += more
