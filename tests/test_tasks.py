@@ -367,3 +367,28 @@ def test_turned_degrees_samples_the_last_step_of_a_short_episode(robot):
     assert not diverged and turned == pytest.approx(40.0, abs=1e-8)
     turned, _ = turned_degrees(Spinning(), turning_gait(90.0), 2.5, settling=NO_SETTLING)
     assert turned == pytest.approx(250.0, abs=1e-8)  # unwrapped, 1-s samples and the last step
+
+
+def test_a_turning_runs_report_is_in_degrees_and_leaves_out_a_forward_sweep(run, tmp_path):
+    """The smoke run's config relabelled as a turning run (its logs stay as they are): the
+    report's columns and numbers say deg, a forward baseline sweep is left out."""
+    import json
+
+    from softcrawl.codesign.report import write_report
+
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["config"]["env"]["task"] = "turning"
+    (run / "config.json").write_text(json.dumps(cfg))
+    sweep = tmp_path / "sweep.json"
+    sweep.write_text(json.dumps({"settings": {"design": [1, 0, 0, 2, 2, 0, 0, 1], "duration_s": 20.0,
+                                              "config": {"model": "reduced"}},
+                                 "best": {"phase_deg": 250.0, "reward_cm": 3.21}}))
+    out = write_report(run, baseline=sweep, simulate=False)
+    summary = (out / "summary.md").read_text()
+    assert "- task: `turning`: degrees the disk yaws counter-clockwise about +z (returns in deg)" in summary
+    assert "| rank | design | R (deg) | p | episodes | mean (deg) | best (deg) | picture |" in summary
+    assert "250°" not in summary and "## Expert baseline" in summary
+    assert (out / "top_designs.csv").read_text().splitlines()[0] == "rank,design,latest_deg,prob,episodes,mean_deg,best_deg"
+    numbers = json.loads((out / "summary.json").read_text())
+    assert numbers["task"] == {"name": "turning", "friction": None} and "best_episode_deg" in numbers
+    assert "baseline" not in numbers
