@@ -392,3 +392,21 @@ def test_a_turning_runs_report_is_in_degrees_and_leaves_out_a_forward_sweep(run,
     numbers = json.loads((out / "summary.json").read_text())
     assert numbers["task"] == {"name": "turning", "friction": None} and "best_episode_deg" in numbers
     assert "baseline" not in numbers
+
+
+def test_train_task_flag(capsys, tmp_path):
+    """``softcrawl train --task``: a bad task's value is one line before any work; the settings
+    of ``--task`` go to a new run's config, not to ``--resume``."""
+    from helpers import one_line_error
+
+    from softcrawl.cli import main
+
+    out = tmp_path / "run"
+    one_line_error(capsys, main(["train", "--resume", "--task", "turning", "--out", str(out), "--no-progress"]),
+                   "--resume uses the run's saved config.json")
+    one_line_error(capsys, main(["train", "--preset", "smoke", "--set", 'env.task={"name": "heading", "heading_deg": 400}',
+                                 "--out", str(out), "--no-progress"]), "env.task: task 'heading': heading_deg")
+    assert not out.exists()  # nothing written
+    with pytest.raises(SystemExit):  # argparse: not one of the registry's names
+        main(["train", "--task", "spin", "--out", str(out)])
+    assert "invalid choice: 'spin'" in capsys.readouterr().err
