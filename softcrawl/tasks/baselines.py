@@ -8,8 +8,9 @@
   diagonally opposite leg pairs inflate alternately, pair 2 lagging pair 1 by a phase lag, with
   the raised-cosine waves of the sine baseline (:class:`softcrawl.gaits.SineGait`: 0-90 kPa, 4 s
   period). Every mirror line of the design swaps its two regulators, so a lag other than 0 or
-  180 deg makes the actuation chiral (a lag of -phi is the mirror image of phi and turns the
-  other way); a design with a mirror line that keeps each regulator's legs, such as 22.5 and
+  180 deg makes the actuation chiral (in a mirror-symmetric model a lag of -phi is the mirror
+  image of phi and turns the other way; the model's inflating legs also twist the disk
+  counter-clockwise, docs/tasks.md); a design with a mirror line that keeps each regulator's legs, such as 22.5 and
   67.5 deg on regulator 1 and 202.5 and 247.5 deg on regulator 2, cannot turn under any gait
   of its two regulators. :func:`sweep_turning` tunes the lag as ``softcrawl sweep-phase`` tunes the forward
   baseline's; its score is the yaw the disk turns in the episode, degrees
