@@ -23,6 +23,7 @@ from pathlib import Path
 
 from softcrawl.codesign.config import BACKENDS, PRESETS, TrainConfig, override, preset
 from softcrawl.robot.output import check_output_path
+from softcrawl.tasks import TASKS
 
 
 def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
@@ -92,16 +93,16 @@ def check_ray_address(backend: str, address: str | None) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.resume:
         if args.set or any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.workers,
-                                                   args.seed, args.preset, args.space)):
+                                                   args.seed, args.preset, args.space, args.task)):
             raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings")
         check_ray_address("ray", args.ray_address)
         res = train_and_report(args.out, resume=True, progress=not args.no_progress, ray_address=args.ray_address)
     else:
         sets = list(args.set or [])
         for flag, key in ((args.total_steps, "total_steps"), (args.n_envs, "n_envs"), (args.backend, "backend"),
-                          (args.workers, "n_workers"), (args.seed, "seed")):
+                          (args.workers, "n_workers"), (args.seed, "seed"), (args.task, "env.task")):
             if flag is not None:
-                sets.append(f"{key}={flag}" if key != "backend" else f'backend="{flag}"')
+                sets.append(f"{key}={flag}" if key not in ("backend", "env.task") else f'{key}="{flag}"')
         if args.space is not None:
             sets.append(f"env.space={json.dumps(args.space)}")
         cfg = override(preset(args.preset or "demo"), sets)
@@ -137,6 +138,9 @@ def register(subparsers) -> None:
     p.add_argument("--space", default=None, metavar="NAME|PATH",
                    help="design space: a shipped one (paper, the default; hex6) or a space file (TOML); "
                         "the run keeps a copy as space.toml")
+    p.add_argument("--task", choices=TASKS, default=None,
+                   help="what the episodes reward, with its default settings (docs/tasks.md; default forward, "
+                   "the paper's); settings: --set 'env.task={\"name\": \"heading\", \"heading_deg\": 90}'")
     p.add_argument("--ray-address", default=None,
                    help='Ray cluster of --backend ray / --set backend="ray" (default: start a local Ray)')
     p.add_argument("--set", action="append", metavar="KEY=VALUE",

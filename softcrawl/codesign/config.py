@@ -53,11 +53,12 @@ from softcrawl.design.resolve import PAPER_SPACE, resolve_space
 from softcrawl.design.space import DEFAULT_SPACE
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.envs.backends.factory import BACKENDS
-from softcrawl.envs.backends.jaxcheck import check_jax_env, check_precision
+from softcrawl.envs.backends.jaxcheck import check_jax_env, check_jax_task, check_precision
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.robot.assembly import MODELS, RobotConfig
 from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import Settling
+from softcrawl.tasks import DEFAULT_TASK, parse_task
 
 #: Bounds of the simulation settings shared with :class:`softcrawl.codesign.groundtruth.GroundTruthConfig`:
 #: ``name: (low, high, unit)``, both included. The time step: the presets use 0.02 s and 0.01 s
@@ -162,6 +163,9 @@ class EnvConfig:
             ``--set env.randomize.friction=[0.8,1.6]`` sets one range,
             ``--set env.randomize=rig`` the rig's measured ranges, ``env.randomize=off`` (or
             ``null``) none. Every range lies within :data:`RANDOMIZE_BOUNDS`.
+        task: what the episodes reward (:mod:`softcrawl.tasks`, docs/tasks.md): a task's name
+            (default ``"forward"``, the paper's) or a table with its name and settings
+            (``--set 'env.task={"name": "heading", "heading_deg": 90}'``; ``softcrawl train --task NAME``).
     """
 
     robot: RobotConfig = field(default_factory=env_robot)
@@ -175,6 +179,7 @@ class EnvConfig:
     space: str = PAPER_SPACE
     max_cached_robots: int = 16
     randomize: DomainRanges = field(default_factory=DomainRanges)
+    task: str | dict = DEFAULT_TASK
 
     def settling(self) -> Settling:
         """The :class:`Settling` these fields describe (ValueError if invalid)."""
@@ -317,8 +322,13 @@ class TrainConfig:
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {tuple(BACKENDS)}, got {self.backend!r}")
         check_precision(self.jax_precision)
+        try:
+            task = parse_task(self.env.task)
+        except ValueError as exc:
+            raise ValueError(f"env.task: {exc}") from None
         if self.backend == "jax":
             check_jax_env(self.env.robot.model, self.env.randomize)
+            check_jax_task(task)
         if not re.fullmatch(r"cpu|(gpu|cuda)(:\d+)?", self.sac.device):
             raise ValueError(f"sac.device must be 'cpu', 'gpu' or 'gpu:N' ('cuda' is read as 'gpu'), got "
                              f"{self.sac.device!r}")
@@ -571,7 +581,7 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
             target, kind = target[p], typing.get_type_hints(kind)[p]
         if parts[-1] not in target:
             raise ValueError(f"unknown setting {key!r}")
-        if isinstance(target[parts[-1]], dict):  # a sub-config: only by preset name (null: "off")
+        if isinstance(target[parts[-1]], dict) and parts != ["env", "task"]:  # a sub-config: by preset name
             sub = typing.get_type_hints(kind)[parts[-1]]
             if not callable(getattr(sub, "preset", None)):
                 raise ValueError(f"{key.strip()} is a section; set its fields ({key.strip()}.FIELD=VALUE)")

@@ -19,6 +19,7 @@ from softcrawl.codesign.run import Run
 from softcrawl.gaits import ActionSequence
 from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import EpisodeResult, run_episode
+from softcrawl.tasks import Task, parse_task
 
 
 def load_run_config(run: str | Path) -> TrainConfig:
@@ -50,7 +51,8 @@ class PolicyEvaluation:
 
     Attributes:
         design: the canonical design (regulator k of the outputs is the canonical k).
-        returns_cm: return of each episode, cm. diverged: per episode.
+        returns_cm: return of each episode in the run's task's unit (:attr:`unit`: cm for
+            ``forward``, the paper's task). diverged: per episode.
         actions_kpa: ``(n_actions, R)`` real kPa commanded in the first episode (``R``: the
             space's regulators, 3 in the paper's).
         env: the :class:`softcrawl.envs.CrawlerEnv` (its robot cached). config: the run's config
@@ -68,6 +70,16 @@ class PolicyEvaluation:
     config: TrainConfig
     checkpoint: str
     domains: list = field(default_factory=list)
+
+    @property
+    def task(self) -> Task:
+        """The run's task (:mod:`softcrawl.tasks`)."""
+        return parse_task(self.config.env.task)
+
+    @property
+    def unit(self) -> str:
+        """The unit of :attr:`returns_cm`: the task's, ``"cm"`` or ``"deg"``."""
+        return self.task.unit
 
     def gait(self) -> ActionSequence:
         """The first episode's actions as a gait with the run's hold time."""

@@ -31,7 +31,7 @@ def env_fn(cfg: TrainConfig):
     return partial(CrawlerEnv, robot_factory=robot_factory(cfg), steps_per_action=e.steps_per_action,
                    n_actions=e.n_actions, observe_state=e.observe_state, designs=e.designs(),
                    settling=e.settling(), max_cached=e.max_cached_robots, randomize=e.randomize, share_robots=True,
-                   space=e.design_space())
+                   space=e.design_space(), task=e.task)
 
 
 def make_vec_env(cfg: TrainConfig, sampler, ray_address: str | None = None) -> DesignVecEnv:

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softcrawl.envs.backends.jaxcheck import check_precision, check_randomized
+from softcrawl.envs.backends.jaxcheck import check_jax_task, check_precision, check_randomized
 from softcrawl.envs.backends.serial import SerialBackend
 from softcrawl.envs.crawler import CrawlerEnv
 from softcrawl.fem.solver import SimulationDiverged
@@ -137,7 +137,8 @@ class JaxBackend(SerialBackend):
 
     Raises:
         ValueError: no env, an env that is not a :class:`CrawlerEnv`, envs that differ in robot
-            factory, settling or calibration, randomization the JAX engine cannot draw, an
+            factory, settling or calibration, randomization the JAX engine cannot draw, a task it
+            cannot score (:func:`~softcrawl.envs.backends.jaxcheck.check_jax_task`), an
             unknown precision, a robot model the JAX engine cannot step (not reduced, no
             floating-frame disk).
     """
@@ -151,6 +152,7 @@ class JaxBackend(SerialBackend):
             raise ValueError('backend "jax" runs CrawlerEnv environments only')
         for env in envs:
             check_randomized(env.randomize)
+            check_jax_task(env.task)
             if (env.robot_factory, env.settling, env.calibration) != (first.robot_factory, first.settling,
                                                                       first.calibration):
                 raise ValueError('backend "jax" needs envs of one robot factory, settling rule and calibration')
