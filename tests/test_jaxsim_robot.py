@@ -6,6 +6,7 @@ import functools
 
 import numpy as np
 import pytest
+from jaxsim_helpers import node_positions, scene
 
 jax = pytest.importorskip("jax")
 
@@ -65,13 +66,6 @@ def test_leg_free_motion_matches_the_cpu_kernels(x64, robot):
     np.testing.assert_allclose(np.asarray(chol), ref_chol, rtol=0, atol=1e-9 * np.abs(ref_chol).max())
 
 
-def node_positions(robot, model, state, b=0):
-    """``(N, 3)`` all nodes of robot ``b`` of a batched JAX state, stacked as the CPU engine's."""
-    from softcrawl.jaxsim.scenes import node_positions as positions
-
-    return positions(robot, model, state.q[b][None], state.x[b][None], b)[0]
-
-
 def cpu_run(robot, n, sim_kpa):
     """The CPU reduced engine's positions ``(n, N, 3)`` over ``n`` steps at ``sim_kpa``."""
     from softcrawl.fem.state import Control
@@ -121,28 +115,6 @@ def precision(request):
     jax.config.update("jax_enable_x64", request.param == "float64")
     yield request.param
     jax.config.update("jax_enable_x64", old)
-
-
-def scene(robot, model, commands, per):
-    """Both engines over segments of ``per`` steps holding regulator ``commands`` (real kPa):
-    ``(cpu, jax)`` node positions ``(frames, N, 3)`` every 10 steps and the JAX engine's last state."""
-    import jax.numpy as jnp
-
-    from softcrawl.jaxsim.engine import Control, make_rollout, rest_state
-    from softcrawl.robot import PressureCalibration, RegulatorBank
-
-    solver, bank, cal = robot.make_solver(), RegulatorBank(), PressureCalibration()
-    s, ref = robot.model.rest_state(), []
-    roll, st, got = make_rollout(10), rest_state(model), []
-    for c in commands:
-        for i in range(per):
-            s = solver.step(s, robot.control(cal.to_sim(bank.step(np.asarray(c, float), robot.config.dt))))
-            if (i + 1) % 10 == 0:
-                ref.append(s.x.copy())
-        for _ in range(per // 10):
-            st = roll(model, st, Control(jnp.asarray(c, st.x.dtype)[None]))
-            got.append(node_positions(robot, model, st))
-    return np.stack(ref), np.stack(got), st
 
 
 def test_landing_and_actuation_match_the_cpu_engine(precision, robot):

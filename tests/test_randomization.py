@@ -95,7 +95,9 @@ def test_ranges_direct_and_presets():
     with pytest.raises(ValueError, match=r"env\.randomize\.mass_scale: value 0\.0 must be > 0"):
         DomainSample(mass_scale=0.0)
     with pytest.raises(ValueError, match=r"env\.randomize\.pressure_gain: need 3 values"):
-        DomainSample(pressure_gain=(1.0, 1.0))
+        DomainSample(pressure_gain=(1.0, 1.0)).check_regulators(3)  # 2 regulators' values on a 3-regulator space
+    with pytest.raises(ValueError, match=r"env\.randomize\.pressure_gain/tau_vent: need one value per regulator"):
+        DomainSample(pressure_gain=(1.0, 1.0), tau_vent=(0.1, 0.1, 0.1))
     assert not DomainRanges().enabled and DomainRanges().draw(np.random.default_rng(0)) is None
     rig = smoke("env.randomize=rig").env.randomize
     assert rig == DomainRanges.rig() and rig.enabled and not rig.physical

@@ -30,7 +30,7 @@ def _main(monkeypatch, module, *args):
 def _fake_run_phase(calls, interrupt_at=None):
     """Stand-in for :func:`run_phase` (in-process sweeps): reward = phase / 100 cm; records its calls."""
 
-    def run(design, config, phase, duration):
+    def run(design, config, phase, duration, calibration=None, space=None):  # run_phase's arguments
         if phase == interrupt_at:
             raise KeyboardInterrupt
         calls.append(phase)

@@ -84,7 +84,7 @@ def gait_actions(args: argparse.Namespace):
 
 def _run(args: argparse.Namespace) -> int:
     from softcrawl.hardware.config import example_rig_path, load_rig_config
-    from softcrawl.hardware.deploy import deploy, validate_actions
+    from softcrawl.hardware.deploy import check_regulators, deploy, validate_actions
     from softcrawl.hardware.errors import RigError
 
     sim = args.rig == "sim"
@@ -96,6 +96,11 @@ def _run(args: argparse.Namespace) -> int:
         from softcrawl.hardware.calibration import load_calibration
 
         calibration = load_calibration(args.calibration)
+    if args.run is not None:  # before the policy is rolled out: a space for another rig is refused at once
+        from softcrawl.codesign.run import Run
+
+        space = Run(args.run).design_space()
+        check_regulators(space.n_regulators, len(cfg.regulators), f"run {args.run} (design space {space.name!r})")
     actions, meta = gait_actions(args)
     actions = validate_actions(actions, cfg.rig.max_kpa)  # refuse before anything moves
     if calibration is not None:
@@ -147,7 +152,8 @@ def register(subparsers) -> None:
     src.add_argument("--run", default=None, help="trained co-design run: deploy its policy for --design")
     src.add_argument("--actions", metavar="FILE.csv", default=None, help="action CSV p1,p2,p3 (real kPa per action)")
     src.add_argument("--gait", choices=GAITS, default="sine", help="built-in gait (default sine)")
-    p.add_argument("--design", default=None, help="with --run: 8 comma-separated slot values")
+    p.add_argument("--design", default=None, help="with --run: comma-separated slot values (8 in the paper's space; "
+                   "as many as the run's space has slots)")
     p.add_argument("--checkpoint", default=None, help="with --run: checkpoint folder (default: the latest)")
     p.add_argument("--phase", type=float, default=110.0, help="sine gait: lag of regulator 2, degrees")
     p.add_argument("--n-actions", type=int, default=20, help="built-in gaits: number of actions (default 20)")

@@ -1,5 +1,6 @@
-"""``softcrawl designs``: inspect a body design space (count, list, show); ``--space FILE``
-reads the space from a file (:mod:`softcrawl.design.spacefile`; default the paper's)."""
+"""``softcrawl designs``: inspect a body design space (count, list, show); ``--space NAME|FILE``
+names a shipped space or reads one from a file (:func:`softcrawl.design.resolve.resolve_space`;
+default the paper's)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,9 @@ import argparse
 from collections import Counter
 
 from softcrawl.design.picture import design_ascii, plot_design
+from softcrawl.design.resolve import resolve_space
 from softcrawl.design.space import DEFAULT_SPACE
-from softcrawl.design.spacefile import DesignSpace, load_space
+from softcrawl.design.spacefile import DesignSpace
 
 
 def _fmt(d) -> str:
@@ -16,7 +18,7 @@ def _fmt(d) -> str:
 
 
 def _space(args: argparse.Namespace) -> DesignSpace:
-    return load_space(args.space) if args.space else DEFAULT_SPACE
+    return resolve_space(args.space) if args.space else DEFAULT_SPACE
 
 
 def _count(args: argparse.Namespace) -> int:
@@ -75,8 +77,9 @@ def register(subparsers) -> None:
         "designs", help="inspect the body design space", description="Inspect the body design space: count, list, show."
     )
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--space", metavar="FILE", default=None,
-                        help="design-space file (TOML; default: the paper's space, 8 slots, 3 regulators, 3-6 legs)")
+    common.add_argument("--space", metavar="NAME|FILE", default=None,
+                        help="design space: a shipped one (paper, hex6) or a file (TOML; default: the paper's space, "
+                             "8 slots, 3 regulators, 3-6 legs)")
     actions = p.add_subparsers(dest="action", required=True)
 
     a = actions.add_parser("count", parents=[common], help="raw and canonical design counts per number of legs")

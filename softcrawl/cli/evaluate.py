@@ -1,6 +1,7 @@
 """``softcrawl evaluate RUN --design D``: re-simulate a design with the trained policy
 (deterministic actions) and write the outputs of ``softcrawl simulate`` plus
-``evaluation.json`` (returns of all episodes, cm; the hold per action ``hold_s``) and
+``evaluation.json`` (the run's task and its unit, returns of all episodes in that unit:
+``returns_cm`` or ``returns_deg``; the hold per action ``hold_s``) and
 ``actions.csv`` (real kPa, one row per action; ``softcrawl simulate --actions`` replays it with
 1 s holds, i.e. faithfully only for runs with 1 s actions such as the ``paper`` preset).
 
@@ -84,21 +85,29 @@ def _run(args: argparse.Namespace) -> int:
     ev = evaluate_policy(args.run, args.design, args.episodes)
     gait, robot = ev.gait(), ev.env.episode.robot
     result = ev.resimulate(record_every=args.frames_every, progress=not args.no_progress)
+    task, u = ev.task, ev.unit
+    forward = task.name == "forward"
+    if not forward:  # the task's return of the re-run, from its frames
+        from softcrawl.tasks.base import replay_return
+
+        rerun = replay_return(task, robot, result.frames)
 
     def extra(folder):  # written into the staged output: kept (or rescued) with it on a full disk
         write_actions_csv(gait, folder / "actions.csv")
         (folder / "evaluation.json").write_text(json.dumps({
             "run": str(args.run), "checkpoint": ev.checkpoint, "design": list(ev.design),
-            "episodes": args.episodes, "returns_cm": ev.returns_cm, "mean_return_cm": float(np.mean(ev.returns_cm)),
-            "diverged": ev.diverged, "rerun_reward_cm": result.reward_cm,
+            "task": task.settings(), "unit": u,
+            "episodes": args.episodes, f"returns_{u}": ev.returns_cm, f"mean_return_{u}": float(np.mean(ev.returns_cm)),
+            "diverged": ev.diverged, "rerun_reward_cm": result.reward_cm, **({} if forward else {f"rerun_{u}": rerun}),
             "hold_s": ev.config.env.steps_per_action * ev.config.env.robot.dt,
             "actions_kpa": np.asarray(ev.actions_kpa).tolist(),
         }, indent=2) + "\n")
 
     out = write_results(args.out, robot, gait, result, ev.env.calibration, overwrite=args.overwrite, extra=extra,
                         animation=args.animation is not False)
-    print(f"design {','.join(map(str, ev.design))}: returns {', '.join(f'{r:+.3f}' for r in ev.returns_cm)} cm "
-          f"(re-run {result.reward_cm:+.3f} cm); wrote {out}")
+    what = "" if forward else f" (task {task.label()}; re-run from its frames every {args.frames_every} steps)"
+    print(f"design {','.join(map(str, ev.design))}: returns {', '.join(f'{r:+.3f}' for r in ev.returns_cm)} {u}"
+          f"{what} (re-run {result.reward_cm if forward else rerun:+.3f} {u}); wrote {out}")
     return 1 if result.diverged or any(ev.diverged) else 0
 
 
@@ -111,7 +120,8 @@ def register(subparsers) -> None:
                               "simulation settings; write the outputs of `softcrawl simulate` plus evaluation.json "
                               "and actions.csv into --out.")
     p.add_argument("run", help="training run directory")
-    p.add_argument("--design", required=True, help='8 comma-separated slot values, e.g. "1,0,0,2,2,0,0,0"')
+    p.add_argument("--design", required=True, help="comma-separated slot values, one per slot of the run's design "
+                   'space (the paper\'s: 8), e.g. "1,0,0,2,2,0,0,0"')
     p.add_argument("--episodes", type=int, default=None, help="episodes to run (default 1)")
     p.add_argument("--randomize", type=int, default=None, metavar="N",
                    help="run N domain-randomized episodes (the run's env.randomize ranges or --set ones) and write "

@@ -52,11 +52,19 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError(f"--executor must be one of {EXECUTORS}")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
-    designs = parse_designs(args.designs)
+    from softcrawl.codesign.groundtruth.store import folder_space
+    from softcrawl.design.resolve import resolve_space
+
+    if args.resume and args.space is not None:
+        raise ValueError("--resume uses the folder's own design space (its space.toml); drop --space")
+    space = resolve_space(args.space or "paper") if not args.resume else None
+    if space is not None:
+        designs = parse_designs(args.designs, space)
     check_folder(args.out)
     if args.resume:
         if not (Path(args.out) / "config.json").exists():
             raise ValueError(f"--resume: {args.out} is not a ground-truth folder (no config.json)")
+        designs = parse_designs(args.designs, folder_space(args.out))
         cfg = None
     else:
         screen = None
@@ -74,7 +82,7 @@ def _run(args: argparse.Namespace) -> int:
                                 robot=gt_robot(leg_mesh_size=args.leg_mesh_size, disk_mesh_size=args.disk_mesh_size,
                                                reduction=args.reduction, rid_dtype=args.rid_dtype, dt=args.dt),
                                 baseline_phases=_phases(args.baseline_phases), engine=args.engine,
-                                jax_batch=args.jax_batch).validate()
+                                jax_batch=args.jax_batch, space=args.space or "paper").validate()
     check_ray_address(args.executor, args.ray_address)
     s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
                         progress=not args.no_progress, ray_address=args.ray_address)
@@ -105,6 +113,9 @@ def register(subparsers) -> None:
     p.add_argument("--designs", default="3", help='"3" (the 280 three-legged designs, default), leg counts '
                    'like "3,4", "all" (6,972), or designs separated by ";" e.g. "1,0,0,2,2,0,0,0;1,0,0,2,2,0,0,1"')
     p.add_argument("--resume", action="store_true", help="continue with the folder's saved settings")
+    p.add_argument("--space", default=None, metavar="NAME|PATH",
+                   help="design space: a shipped one (paper, the default; hex6) or a space file (TOML); the folder "
+                        "keeps a copy as space.toml (the expert-baseline references are the paper space's only)")
     p.add_argument("--workers", type=int, default=None, help="processes (or Ray CPUs); default: all cores")
     p.add_argument("--executor", default="process", help="process (default), serial or ray")
     p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local Ray)")

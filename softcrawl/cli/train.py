@@ -6,6 +6,7 @@ Examples::
     softcrawl train --preset demo --out runs/demo
     softcrawl train --preset paper --out runs/paper --set sac.batch_size=256 --set env.legs=[3,4]
     softcrawl train --resume --out runs/paper          # continue a killed run
+    softcrawl train --preset demo --space hex6 --set env.robot.model=\"full\" --out runs/hex6
 
 Writes the run folder described in :mod:`softcrawl.codesign.run` (:mod:`softcrawl.codesign.training`)
 and, at the end, its report (:mod:`softcrawl.codesign.report`; :func:`train_and_report`). Ctrl-C
@@ -15,12 +16,14 @@ stops the run; ``--resume`` continues it from its last checkpoint.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
 
 from softcrawl.codesign.config import BACKENDS, PRESETS, TrainConfig, override, preset
 from softcrawl.robot.output import check_output_path
+from softcrawl.tasks import TASKS
 
 
 def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
@@ -90,16 +93,18 @@ def check_ray_address(backend: str, address: str | None) -> None:
 def _run(args: argparse.Namespace) -> int:
     if args.resume:
         if args.set or any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.workers,
-                                                   args.seed, args.preset)):
+                                                   args.seed, args.preset, args.space, args.task)):
             raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings")
         check_ray_address("ray", args.ray_address)
         res = train_and_report(args.out, resume=True, progress=not args.no_progress, ray_address=args.ray_address)
     else:
         sets = list(args.set or [])
         for flag, key in ((args.total_steps, "total_steps"), (args.n_envs, "n_envs"), (args.backend, "backend"),
-                          (args.workers, "n_workers"), (args.seed, "seed")):
+                          (args.workers, "n_workers"), (args.seed, "seed"), (args.task, "env.task")):
             if flag is not None:
-                sets.append(f"{key}={flag}" if key != "backend" else f'backend="{flag}"')
+                sets.append(f"{key}={flag}" if key not in ("backend", "env.task") else f'{key}="{flag}"')
+        if args.space is not None:
+            sets.append(f"env.space={json.dumps(args.space)}")
         cfg = override(preset(args.preset or "demo"), sets)
         _check_out(args.out)
         check_ray_address(cfg.backend, args.ray_address)
@@ -130,6 +135,12 @@ def register(subparsers) -> None:
     p.add_argument("--backend", choices=BACKENDS, default=None, help="where envs run")
     p.add_argument("--workers", type=int, default=None, help="worker processes of the subprocess backend (0: cores)")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--space", default=None, metavar="NAME|PATH",
+                   help="design space: a shipped one (paper, the default; hex6) or a space file (TOML); "
+                        "the run keeps a copy as space.toml")
+    p.add_argument("--task", choices=TASKS, default=None,
+                   help="what the episodes reward, with its default settings (docs/tasks.md; default forward, "
+                   "the paper's); settings: --set 'env.task={\"name\": \"heading\", \"heading_deg\": 90}'")
     p.add_argument("--ray-address", default=None,
                    help='Ray cluster of --backend ray / --set backend="ray" (default: start a local Ray)')
     p.add_argument("--set", action="append", metavar="KEY=VALUE",

@@ -40,7 +40,6 @@ import numpy as np
 
 from softcrawl import __version__
 from softcrawl.codesign.notes import note
-from softcrawl.design.space import validate_design
 from softcrawl.safeio import atomic_write_text, load_json, read_text
 
 #: Checkpoint format of each learner and the file of its state (module docstring).
@@ -71,7 +70,7 @@ def _sha256(path: Path) -> str:
 
 class RunCheckpoints:
     """The checkpoint methods of :class:`softcrawl.codesign.run.Run` (that class's
-    ``checkpoints_dir``, ``path`` and ``_inside``)."""
+    ``checkpoints_dir``, ``path``, ``_inside`` and ``design_space``)."""
 
     def _step_dirs(self) -> list[Path]:
         root = self.checkpoints_dir
@@ -233,13 +232,14 @@ class RunCheckpoints:
         why = self.check_checkpoint(path)
         if why is not None:
             raise ValueError(f"{path}: {why}")
+        space = self.design_space()
         try:
             state = load_json(Path(path) / "state.json", allow_nan=True)
             state["sampler"] = sampler_state_from_json(state["sampler"])
             for key in ("num_timesteps", "n_updates", "episode_num"):
                 state[key] = int(state[key])
             nxt = state.get("next_designs")  # absent in checkpoints written before it existed
-            state["next_designs"] = None if nxt is None else [validate_design(d) for d in nxt]
+            state["next_designs"] = None if nxt is None else [space.validate_design(d) for d in nxt]
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"{path / 'state.json'}: malformed ({exc!r})") from None
         return state

@@ -49,13 +49,16 @@ import types
 import typing
 from dataclasses import asdict, dataclass, field
 
-from softcrawl.design.space import MAX_LEGS, MIN_LEGS, canonical_designs
+from softcrawl.design.resolve import PAPER_SPACE, resolve_space
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.envs.backends.factory import BACKENDS
-from softcrawl.envs.backends.jaxcheck import check_jax_env, check_precision
+from softcrawl.envs.backends.jaxcheck import check_jax_env, check_jax_task, check_precision
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.robot.assembly import MODELS, RobotConfig
 from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import Settling
+from softcrawl.tasks import DEFAULT_TASK, parse_task
 
 #: Bounds of the simulation settings shared with :class:`softcrawl.codesign.groundtruth.GroundTruthConfig`:
 #: ``name: (low, high, unit)``, both included. The time step: the presets use 0.02 s and 0.01 s
@@ -97,8 +100,25 @@ RANDOMIZE_BOUNDS: dict[str, tuple[float, float]] = {
     "tau_vent": (0.0, 10.0), "control_period": (0.5, 2.0),
 }
 TIMEOUTS = ("bootstrap", "terminal")
+#: The :class:`RobotConfig` fields a design space gives (:meth:`EnvConfig.robot_config`).
+PART_FIELDS = ("leg_mesh_size", "disk_mesh_size", "leg_mass", "disk_mass")
 #: The SAC learners (:mod:`softcrawl.codesign.sac`): SBX's on JAX, stable-baselines3's on torch.
 LEARNERS = ("sbx", "torch")
+
+
+def space_robot(robot: RobotConfig, space: DesignSpace) -> RobotConfig:
+    """``robot`` for the robots of ``space``: ``robot`` itself for the paper's space, else
+    :meth:`RobotConfig.for_space` with ``robot``'s settings except the :data:`PART_FIELDS` still
+    at the paper's defaults (``RobotConfig()``), which take the space's parts' values.
+
+    Raises:
+        ValueError, MeshError: as :meth:`RobotConfig.for_space`.
+    """
+    if space == DEFAULT_SPACE:
+        return robot
+    paper = RobotConfig()
+    own = {k: v for k, v in dataclasses.asdict(robot).items() if k not in PART_FIELDS or v != getattr(paper, k)}
+    return RobotConfig.for_space(space, **own)
 
 
 def env_robot(**changes) -> RobotConfig:
@@ -130,7 +150,11 @@ class EnvConfig:
         settle_speed, settle_hold, settle_max_seconds: the rest rule of the zero-pressure
             settling before each episode (mm/s, s, s; :class:`softcrawl.robot.Settling`);
             presets may change the threshold, not skip settling.
-        legs: leg counts of the designs in play (default 3..6: all 6,972 canonical designs).
+        legs: leg counts of the designs in play (default 3..6: all 6,972 canonical designs of
+            the paper's space); within the space's ``min_legs..max_legs``.
+        space: the design space: a shipped space's name (``"paper"``, the default; ``"hex6"``)
+            or a space file's path (:func:`softcrawl.design.resolve.resolve_space`; a saved
+            run reads its own copy, ``space.toml``, :mod:`softcrawl.codesign.run`).
         max_cached_robots: robots kept per worker process beyond one per env (LRU, shared by its envs;
             the settled states of dropped robots stay longer, up to 128 MB per worker:
             :mod:`softcrawl.envs.robot_cache`).
@@ -139,6 +163,9 @@ class EnvConfig:
             ``--set env.randomize.friction=[0.8,1.6]`` sets one range,
             ``--set env.randomize=rig`` the rig's measured ranges, ``env.randomize=off`` (or
             ``null``) none. Every range lies within :data:`RANDOMIZE_BOUNDS`.
+        task: what the episodes reward (:mod:`softcrawl.tasks`, docs/tasks.md): a task's name
+            (default ``"forward"``, the paper's) or a table with its name and settings
+            (``--set 'env.task={"name": "heading", "heading_deg": 90}'``; ``softcrawl train --task NAME``).
     """
 
     robot: RobotConfig = field(default_factory=env_robot)
@@ -149,17 +176,34 @@ class EnvConfig:
     settle_hold: float = 0.05
     settle_max_seconds: float = 3.0
     legs: tuple[int, ...] = (3, 4, 5, 6)
+    space: str = PAPER_SPACE
     max_cached_robots: int = 16
     randomize: DomainRanges = field(default_factory=DomainRanges)
+    task: str | dict = DEFAULT_TASK
 
     def settling(self) -> Settling:
         """The :class:`Settling` these fields describe (ValueError if invalid)."""
         return Settling(rest_speed=self.settle_speed, hold_seconds=self.settle_hold,
                         max_seconds=self.settle_max_seconds)
 
+    def design_space(self) -> DesignSpace:
+        """The :class:`DesignSpace` ``space`` names (SpaceFileError, a ValueError, if it names none)."""
+        return resolve_space(self.space)
+
     def designs(self) -> tuple[tuple[int, ...], ...]:
-        """The canonical designs with a leg count in ``legs`` (sorted)."""
-        return tuple(d for d in canonical_designs() if sum(v > 0 for v in d) in self.legs)
+        """The space's canonical designs with a leg count in ``legs`` (sorted)."""
+        return tuple(d for d in self.design_space().canonical_designs if sum(v > 0 for v in d) in self.legs)
+
+    def robot_config(self) -> RobotConfig:
+        """The simulated robot's settings: ``robot`` for the paper's space; for another space
+        :meth:`RobotConfig.for_space` with ``robot``'s settings, except the part settings
+        (:data:`PART_FIELDS`) still at the paper's defaults, which take the space's values (its
+        parts' mesh sizes and masses; a preset's coarse 25 mm disk stays 25 mm).
+
+        Raises:
+            SpaceFileError: as :meth:`design_space`; ValueError, MeshError: as ``for_space``.
+        """
+        return space_robot(self.robot, self.design_space())
 
 
 @dataclass
@@ -278,8 +322,13 @@ class TrainConfig:
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {tuple(BACKENDS)}, got {self.backend!r}")
         check_precision(self.jax_precision)
+        try:
+            task = parse_task(self.env.task)
+        except ValueError as exc:
+            raise ValueError(f"env.task: {exc}") from None
         if self.backend == "jax":
             check_jax_env(self.env.robot.model, self.env.randomize)
+            check_jax_task(task)
         if not re.fullmatch(r"cpu|(gpu|cuda)(:\d+)?", self.sac.device):
             raise ValueError(f"sac.device must be 'cpu', 'gpu' or 'gpu:N' ('cuda' is read as 'gpu'), got "
                              f"{self.sac.device!r}")
@@ -287,8 +336,15 @@ class TrainConfig:
             raise ValueError(f"sac.learner must be one of {LEARNERS}, got {self.sac.learner!r}")
         if self.sac.timeout not in TIMEOUTS:
             raise ValueError(f"sac.timeout must be one of {TIMEOUTS}, got {self.sac.timeout!r}")
-        if not self.env.legs or any(k not in range(MIN_LEGS, MAX_LEGS + 1) for k in self.env.legs):
-            raise ValueError(f"env.legs must be a non-empty subset of {MIN_LEGS}..{MAX_LEGS}, got {self.env.legs}")
+        try:
+            space = self.env.design_space()
+        except ValueError as exc:
+            raise ValueError(f"env.space: {exc}") from None
+        lo, hi = space.min_legs, space.max_legs
+        if not self.env.legs or any(k not in range(lo, hi + 1) for k in self.env.legs):
+            raise ValueError(f"env.legs must be a non-empty subset of {lo}..{hi}"
+                             f"{'' if space == DEFAULT_SPACE else ' (the legs of space ' + repr(space.name) + ')'}, "
+                             f"got {self.env.legs}")
         if not 0 <= self.design.t0_fraction <= self.design.t1_fraction:
             raise ValueError("design fractions need 0 <= t0_fraction <= t1_fraction")
         if not (0 < self.sac.gamma <= 1 and 0 < self.sac.tau <= 1 and self.sac.utd_ratio > 0):
@@ -525,7 +581,7 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
             target, kind = target[p], typing.get_type_hints(kind)[p]
         if parts[-1] not in target:
             raise ValueError(f"unknown setting {key!r}")
-        if isinstance(target[parts[-1]], dict):  # a sub-config: only by preset name (null: "off")
+        if isinstance(target[parts[-1]], dict) and parts != ["env", "task"]:  # a sub-config: by preset name
             sub = typing.get_type_hints(kind)[parts[-1]]
             if not callable(getattr(sub, "preset", None)):
                 raise ValueError(f"{key.strip()} is a section; set its fields ({key.strip()}.FIELD=VALUE)")

@@ -41,7 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
-from softcrawl.design.space import Design, canonical_designs, canonicalize
+from softcrawl.design.space import DEFAULT_SPACE, Design
+from softcrawl.design.spacefile import DesignSpace
 
 UNTRIED_POLICIES = ("mean", "zero", "optimistic")
 
@@ -131,6 +132,7 @@ class GibbsDesignDistribution:
         beta_max: upper bound on ``beta``, 1/cm.
         floor_margin: nats added to the tie floor ``ln m`` when a target is clamped (the
             floor itself needs ``beta = inf`` unless every design is tied).
+        space: the design space whose canonical forms the designs take (default the paper's).
 
     Attributes:
         designs: tuple of the ``n`` designs; ``returns``: ``(n,)`` latest return of each, cm
@@ -139,14 +141,15 @@ class GibbsDesignDistribution:
     """
 
     def __init__(self, designs: Sequence[Sequence[int]] | None = None, untried: str = "mean",
-                 beta_max: float = 1e6, floor_margin: float = 1e-3):
+                 beta_max: float = 1e6, floor_margin: float = 1e-3, space: DesignSpace = DEFAULT_SPACE):
         if untried not in UNTRIED_POLICIES:
             raise ValueError(f"untried must be one of {UNTRIED_POLICIES}, got {untried!r}")
         if not (math.isfinite(beta_max) and beta_max > 0):
             raise ValueError(f"beta_max must be positive and finite, got {beta_max}")
         if not (0 < floor_margin < 0.01):
             raise ValueError(f"floor_margin must be in (0, 0.01) nats, got {floor_margin}")
-        ds = canonical_designs() if designs is None else tuple(canonicalize(d) for d in designs)
+        self.space = space
+        ds = space.canonical_designs if designs is None else tuple(space.canonicalize(d) for d in designs)
         if len(ds) == 0:
             raise ValueError("the design list is empty")
         if len(set(ds)) != len(ds):
@@ -168,7 +171,7 @@ class GibbsDesignDistribution:
 
     def index(self, design: Sequence[int]) -> int:
         """Index of (the canonical form of) ``design``; ValueError if not in the support."""
-        d = canonicalize(design)
+        d = self.space.canonicalize(design)
         if d not in self._index:
             raise ValueError(f"design {d} is not in this distribution's support")
         return self._index[d]

@@ -19,6 +19,7 @@ from softcrawl.codesign.run import Run
 from softcrawl.gaits import ActionSequence
 from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import EpisodeResult, run_episode
+from softcrawl.tasks import Task, parse_task
 
 
 def load_run_config(run: str | Path) -> TrainConfig:
@@ -50,8 +51,10 @@ class PolicyEvaluation:
 
     Attributes:
         design: the canonical design (regulator k of the outputs is the canonical k).
-        returns_cm: return of each episode, cm. diverged: per episode.
-        actions_kpa: ``(n_actions, 3)`` real kPa commanded in the first episode.
+        returns_cm: return of each episode in the run's task's unit (:attr:`unit`: cm for
+            ``forward``, the paper's task). diverged: per episode.
+        actions_kpa: ``(n_actions, R)`` real kPa commanded in the first episode (``R``: the
+            space's regulators, 3 in the paper's).
         env: the :class:`softcrawl.envs.CrawlerEnv` (its robot cached). config: the run's config
             (its ``env.randomize`` the ranges the episodes were drawn from).
         checkpoint: the checkpoint folder the policy came from.
@@ -67,6 +70,16 @@ class PolicyEvaluation:
     config: TrainConfig
     checkpoint: str
     domains: list = field(default_factory=list)
+
+    @property
+    def task(self) -> Task:
+        """The run's task (:mod:`softcrawl.tasks`)."""
+        return parse_task(self.config.env.task)
+
+    @property
+    def unit(self) -> str:
+        """The unit of :attr:`returns_cm`: the task's, ``"cm"`` or ``"deg"``."""
+        return self.task.unit
 
     def gait(self) -> ActionSequence:
         """The first episode's actions as a gait with the run's hold time."""
@@ -115,14 +128,13 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
 
     from softcrawl.codesign.factory import env_fn
     from softcrawl.codesign.sac import make_sac
-    from softcrawl.design.space import canonicalize
     from softcrawl.envs import action_to_kpa
 
     r = Run(run)
     cfg = r.read_config()
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    design = canonicalize(design)
+    design = cfg.env.design_space().canonicalize(design)
     if checkpoint is None:
         ck = r.require_checkpoint()
     else:  # a folder, or a checkpoint's name (step-XXXXXXXXXX) in the run

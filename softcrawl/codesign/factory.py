@@ -19,8 +19,10 @@ from softcrawl.envs.vec import DesignVecEnv
 
 
 def robot_factory(cfg: TrainConfig) -> BuildRobot:
-    """Picklable ``design -> Robot`` for ``cfg.env.robot`` (full-order or reduced model)."""
-    return BuildRobot(cfg.env.robot)
+    """Picklable ``design -> Robot`` of ``cfg.env``'s design space with
+    :meth:`EnvConfig.robot_config` (``cfg.env.robot`` for the paper's space; full-order or
+    reduced model)."""
+    return BuildRobot(cfg.env.robot_config(), cfg.env.design_space())
 
 
 def env_fn(cfg: TrainConfig):
@@ -28,7 +30,8 @@ def env_fn(cfg: TrainConfig):
     e = cfg.env
     return partial(CrawlerEnv, robot_factory=robot_factory(cfg), steps_per_action=e.steps_per_action,
                    n_actions=e.n_actions, observe_state=e.observe_state, designs=e.designs(),
-                   settling=e.settling(), max_cached=e.max_cached_robots, randomize=e.randomize, share_robots=True)
+                   settling=e.settling(), max_cached=e.max_cached_robots, randomize=e.randomize, share_robots=True,
+                   space=e.design_space(), task=e.task)
 
 
 def make_vec_env(cfg: TrainConfig, sampler, ray_address: str | None = None) -> DesignVecEnv:
@@ -43,10 +46,12 @@ def make_vec_env(cfg: TrainConfig, sampler, ray_address: str | None = None) -> D
 
 def check_reduction(cfg: TrainConfig) -> None:
     """Load and check the reduction file of a reduced-model config now (robots are built
-    lazily, at the first reset), so a bad file fails before a run is started.
+    lazily, at the first reset), so a bad file fails before a run is started: the config's
+    ``env.robot.reduction``, else the design space's (the paper's: the shipped one).
 
     Raises:
-        ReductionFileError, ReductionMismatchError (ValueErrors): see
+        ValueError: neither names a reduction (the message says how to go on); and
+            ReductionFileError, ReductionMismatchError (ValueErrors): see
             :func:`softcrawl.reduction.artifact.load_reduction`.
     """
     if cfg.env.robot.model != "reduced":
@@ -54,16 +59,21 @@ def check_reduction(cfg: TrainConfig) -> None:
     import dataclasses
 
     from softcrawl.reduction.artifact import load_reduction
-    from softcrawl.reduction.data import default_reduction_path
 
-    config = cfg.env.robot
-    load_reduction(config.reduction or default_reduction_path(), expect=dataclasses.asdict(config))
+    config, space = cfg.env.robot_config(), cfg.env.design_space()
+    path = config.reduction or space.reduction
+    if path is None:
+        raise ValueError(f'env.robot.model is "reduced" but the design space {space.name!r} names no reduction '
+                         "([actuator] reduction) nor does env.robot.reduction: build one (softcrawl reduce build) "
+                         'or train the full-order model (--set env.robot.model="full")')
+    load_reduction(path, expect=dataclasses.asdict(config))
 
 
 def make_sampler(cfg: TrainConfig) -> GibbsDesignSampler:
     """Design distribution over ``cfg.env.designs()`` with the entropy schedule of ``cfg``
     (its own RNG seeded with ``cfg.seed + 1``)."""
-    dist = GibbsDesignDistribution(cfg.env.designs(), untried=cfg.design.untried, beta_max=cfg.design.beta_max)
+    dist = GibbsDesignDistribution(cfg.env.designs(), untried=cfg.design.untried, beta_max=cfg.design.beta_max,
+                                   space=cfg.env.design_space())
     sched = EntropySchedule(t0=int(cfg.design.t0_fraction * cfg.total_steps),
                             t1=int(cfg.design.t1_fraction * cfg.total_steps), h_max=dist.h_max,
                             h_end=min(cfg.design.h_end, dist.h_max))

@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from softcrawl.codesign.groundtruth import GroundTruthConfig, PeriodicGait, load_groundtruth
-from softcrawl.design.space import canonicalize
 
 
 # -- the one place that reads a training run -----------------------------------------------------
@@ -80,6 +79,14 @@ def run_settings(run: str | Path) -> dict:
             "disk_mesh_size": float(robot.get("disk_mesh_size", 10.0)), "dt": float(robot["dt"]),
             "hold_s": round(hold, 9), "episode_seconds": round(hold * float(e["n_actions"]), 9),
             "reduction": robot.get("reduction")}
+
+
+def run_space(run: str | Path):
+    """The run's :class:`~softcrawl.design.spacefile.DesignSpace` (its ``space.toml``; the
+    paper's for a run of an older format). ValueError as :meth:`Run.read_config`."""
+    from softcrawl.codesign.run import Run
+
+    return Run(run).design_space()
 # -------------------------------------------------------------------------------------------------
 
 
@@ -104,8 +111,10 @@ def place_design(design, gt_dir: str | Path, results: dict | None = None) -> dic
     Raises:
         ValueError: ``design`` is not in the ground truth, or the folder is not one.
     """
+    from softcrawl.codesign.groundtruth.store import folder_space
+
     res = load_groundtruth(gt_dir)[1] if results is None else results
-    d = canonicalize(design)
+    d = folder_space(gt_dir).canonicalize(design)
     if d not in res:
         raise ValueError(f"design {','.join(map(str, d))} is not in the ground truth {gt_dir} ({len(res)} designs)")
     rewards = np.array([r.reward_cm for r in res.values()])
@@ -130,9 +139,14 @@ def compute_regret(run: str | Path, gt_dir: str | Path, policy: bool = True) -> 
         diverged policy episode's reward) is None.
 
     Raises:
-        ValueError: not a run / ground truth, or the chosen design is not in the ground truth.
+        ValueError: not a run / ground truth, the two of different design spaces, or the chosen
+            design is not in the ground truth.
     """
     cfg, res, _ = load_groundtruth(gt_dir)
+    mine, theirs = run_space(run), cfg.design_space()
+    if mine != theirs:
+        raise ValueError(f"the run {run} (design space {mine.name!r}) and the ground truth {gt_dir} (design "
+                         f"space {theirs.name!r}) are of different design spaces")
     choice = run_choice(run)
     placement = place_design(choice["design"], gt_dir, res)
     rs, gs = run_settings(run), gt_settings(cfg)

@@ -9,12 +9,17 @@ what the older code simulated, never the current defaults.
 Version 2: the robot's settings are one :class:`softcrawl.robot.RobotConfig` object (``env.robot``
 of a training run, ``robot`` of a ground truth) instead of fields copied beside the others.
 Version 3: a training run's ``sac.learner`` (runs of the older formats trained the torch learner).
+Version 4: a training run's ``env.space`` and a ground truth's ``space`` (the design space, a name
+or a file; runs and ground truths of the older formats are the paper's space, ``"paper"``); a
+run of this format keeps its space file as ``space.toml`` (:mod:`softcrawl.codesign.run`).
 """
 
 from __future__ import annotations
 
 #: Current format of the saved settings.
-CONFIG_VERSION = 3
+CONFIG_VERSION = 4
+#: The first format whose training runs keep their design space as ``space.toml``.
+SPACE_VERSION = 4
 
 #: A version-1 run's robot fields with the values its code used when a field was absent (the
 #: three added last were written from the version that introduced them: older runs simulated
@@ -64,8 +69,20 @@ def _unchanged(config: dict) -> dict:
     return config
 
 
+def _train_v3_to_v4(config: dict) -> dict:
+    env = config.get("env")
+    if not isinstance(env, dict):
+        return config
+    return {**config, "env": {**env, "space": "paper"}}
+
+
+def _groundtruth_v3_to_v4(config: dict) -> dict:
+    return {**config, "space": "paper"}
+
+
 #: ``kind -> [step from version 1 to 2, from 2 to 3, ...]``.
-STEPS = {"train": [_train_v1_to_v2, _train_v2_to_v3], "groundtruth": [_groundtruth_v1_to_v2, _unchanged]}
+STEPS = {"train": [_train_v1_to_v2, _train_v2_to_v3, _train_v3_to_v4],
+         "groundtruth": [_groundtruth_v1_to_v2, _unchanged, _groundtruth_v3_to_v4]}
 
 
 def config_version(doc: dict) -> int:

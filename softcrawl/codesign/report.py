@@ -4,12 +4,15 @@ Writes ``RUN/report/`` (built in ``RUN/.report.partial-*`` and swapped in when c
 failed report leaves the previous one; a ``report`` that links out of the run is refused; the run
 is read through :class:`softcrawl.codesign.run.Run`):
 
-* ``summary.md``: run settings, steps, episodes, best return, final entropy/beta, and the
-  top-k table (design, latest return R (cm; the score in the Gibbs weights), probability,
-  episodes, mean and best return, picture);
-* ``top-<i>.png``: pictures of the top-k designs (:func:`softcrawl.design.picture.plot_design`);
+* ``summary.md``: run settings, the task (:mod:`softcrawl.tasks`: its name, settings, reward
+  and unit, ``U``: cm or deg), steps, episodes, best return, final entropy/beta, and the
+  top-k table (design, latest return R (``U``; the score in the Gibbs weights), probability,
+  episodes, mean and best return, picture); every return is in the task's unit and every
+  column that holds one says it (``R (deg)``, ``latest_deg``);
+* ``top-<i>.png``: pictures of the top-k designs in the run's design space (its slots and
+  regulators; :func:`softcrawl.design.picture.plot_design`);
 * ``reward_histogram.png``: over training (x: steps), the distribution of the designs'
-  latest returns (y, cm) weighted by the design distribution p (tried designs only, weights
+  latest returns (y, ``U``) weighted by the design distribution p (tried designs only, weights
   renormalised), from the ``snapshots/``, with the best return so far as a line (paper figure);
 * ``returns.png``: episode returns over training with a running mean;
 * ``top_designs.csv``: the top-k table;
@@ -21,11 +24,15 @@ is read through :class:`softcrawl.codesign.run.Run`):
   the episode: a crawler moves in every quarter, a push does not);
 * ``summary.json``: the numbers of ``summary.md`` (steps, wall time, top designs, the best
   design's policy reward, actions and gait analysis, the baseline's best phase and reward);
-* "Expert baseline": the baseline design's sine gait swept over ``baseline_phases`` with the
+* "Expert baseline", the task's (:attr:`softcrawl.tasks.Task.baseline`): for ``forward`` in the
+  paper's space (the baseline design is one of its designs), the baseline design's sine gait swept over ``baseline_phases`` with the
   run's robot settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase``
   output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
   sweep's best phase and reward (comparable only when its episode length and model match the
-  run's; the section states both), its ``reward_vs_phase.png`` copied in;
+  run's; the section states both), its ``reward_vs_phase.png`` copied in; for ``turning``, the
+  hand-made turning gait (:mod:`softcrawl.tasks.baselines`) swept over ``baseline_phases`` with
+  the run's robot, floor and episode length (``baseline_turning.csv``), its best turn next to
+  the best design's; other tasks have none (the section says so);
 * with a ground truth (``softcrawl report RUN --groundtruth GT``): where the run's chosen design
   ranks in it, its regret in cm and its learned policy's reward next to the ground-truth gait's
   (:mod:`softcrawl.codesign.groundtruth_regret`; ``summary.json`` key ``regret``).
@@ -48,6 +55,8 @@ from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.evaluation import episode_seconds
 from softcrawl.codesign.run import Run, note
 from softcrawl.design.picture import plot_design
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.tasks import Task, parse_task
 
 BASELINE_PHASES: tuple[float, ...] = tuple(range(0, 360, 30))
 """Phase lags (degrees) of the report's own baseline sweep."""
@@ -68,7 +77,7 @@ def top_designs(run: str | Path, k: int = 5) -> list[dict]:
     state = r.read_checkpoint_state(r.require_checkpoint())["sampler"]
     from softcrawl.codesign.distribution import GibbsDesignDistribution
 
-    dist = GibbsDesignDistribution(state["distribution"]["designs"])
+    dist = GibbsDesignDistribution(state["distribution"]["designs"], space=r.design_space())
     dist.load_state_dict(state["distribution"])
     p = dist.probs()
     ep = r.read_episodes()
@@ -84,7 +93,7 @@ def top_designs(run: str | Path, k: int = 5) -> list[dict]:
     return rows
 
 
-def _histogram_figure(run: Run, ep: dict, path: Path) -> bool:
+def _histogram_figure(run: Run, ep: dict, path: Path, unit: str = "cm") -> bool:
     from matplotlib.figure import Figure
 
     snaps = run.snapshots()
@@ -121,13 +130,13 @@ def _histogram_figure(run: Run, ep: dict, path: Path) -> bool:
         ax.step(ep["t"], np.maximum.accumulate(ep["r"]), where="post", color="tab:red", label="best so far")
         ax.legend(loc="lower right")
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("latest return R (cm per episode)")
+    ax.set_ylabel(f"latest return R ({unit} per episode)")
     ax.set_title("Returns weighted by the design distribution")
     fig.savefig(path, dpi=110, bbox_inches="tight")
     return True
 
 
-def _returns_figure(ep: dict, path: Path) -> None:
+def _returns_figure(ep: dict, path: Path, unit: str = "cm") -> None:
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(7, 3.5))
@@ -139,7 +148,7 @@ def _returns_figure(ep: dict, path: Path) -> None:
         ax.plot(ep["t"][w - 1:], run_mean, color="k", label=f"running mean ({w})")
         ax.legend()
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("return (cm)")
+    ax.set_ylabel(f"return ({unit})")
     fig.savefig(path, dpi=110, bbox_inches="tight")
 
 
@@ -239,24 +248,32 @@ def _describe_gait(g: dict) -> str:
             "part at least 10% of the mean).")
 
 
-def _best_design_section(run: Path, out: Path, design, checkpoint: Path) -> tuple[list[str], dict]:
+def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
+                         task: Task | None = None) -> tuple[list[str], dict]:
     """Re-simulate ``design`` with the run's policy into ``out/best_design``; Markdown lines and
-    the numbers for ``summary.json``."""
+    the numbers for ``summary.json`` (returns in the unit of ``task``, default ``forward``'s cm)."""
     from softcrawl.codesign.evaluation import evaluate_policy
     from softcrawl.robot.output import write_results
+    from softcrawl.tasks.base import replay_return
 
+    task = task if task is not None else parse_task("forward")
     ev = evaluate_policy(run, design, checkpoint=checkpoint)
     result = ev.resimulate(record_every=10)
-    write_results(out / "best_design", ev.env.episode.robot, ev.gait(), result, ev.env.calibration, overwrite=True,
+    robot = ev.env.episode.robot
+    write_results(out / "best_design", robot, ev.gait(), result, ev.env.calibration, overwrite=True,
                   animation=True)
     name = ",".join(map(str, ev.design))
     g = gait_analysis(ev.actions_kpa, result.time, result.position[:, 0])
-    numbers = {"design": name, "policy_cm": float(ev.returns_cm[0]), "resimulated_cm": float(result.reward_cm),
+    unit = task.unit
+    rerun = float(result.reward_cm) if task.name == "forward" else replay_return(task, robot, result.frames)
+    numbers = {"design": name, f"policy_{unit}": float(ev.returns_cm[0]), "resimulated_cm": float(result.reward_cm),
                "diverged": bool(result.diverged), "gait": g,
                "actions_kpa": np.round(np.asarray(ev.actions_kpa, float), 2).tolist()}
+    if task.name != "forward":
+        numbers[f"resimulated_{unit}"] = rerun
     return ["", "## Best design's gait", "",
-            (f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} cm per episode "
-             f"(re-run {result.reward_cm:+.3f} cm{', DIVERGED' if result.diverged else ''}); commanded (dashed) "
+            (f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} {unit} per episode "
+             f"(re-run {rerun:+.3f} {unit}{', DIVERGED' if result.diverged else ''}); commanded (dashed) "
              f"vs applied (solid) pressures and x(t); ParaView series in `best_design/crawl.pvd`."), "",
             _describe_gait(g), "",
             *(["![best design crawling](best_design/crawl.gif)", ""] if (out / "best_design" / "crawl.gif").exists()
@@ -324,19 +341,22 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
     """Everything of :func:`write_report` into ``out`` (the staging folder)."""
     run = r.path
     ep = r.read_episodes()
+    run_cfg = r.read_config()
+    space = run_cfg.env.design_space()
     for i, row in enumerate(top, 1):
-        plot_design(row["design"], path=out / f"top-{i}.png")
-    has_hist = _histogram_figure(r, ep, out / "reward_histogram.png")
-    _returns_figure(ep, out / "returns.png")
+        plot_design(row["design"], path=out / f"top-{i}.png", space=space)
+    task = parse_task(run_cfg.env.task)
+    u = task.unit
+    has_hist = _histogram_figure(r, ep, out / "reward_histogram.png", u)
+    _returns_figure(ep, out / "returns.png", u)
     with open(out / "top_designs.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["rank", "design", "latest_cm", "prob", "episodes", "mean_cm", "best_cm"])
+        w.writerow(["rank", "design", f"latest_{u}", "prob", "episodes", f"mean_{u}", f"best_{u}"])
         for i, row in enumerate(top, 1):
             w.writerow([i, ",".join(map(str, row["design"])), f"{row['latest_cm']:.4f}", f"{row['prob']:.4g}",
                         row["episodes"], f"{row['mean_cm']:.4f}", f"{row['best_cm']:.4f}"])
     last = state["distribution"]["last"]
     cfg = meta["config"]
-    run_cfg = r.read_config()
     lines = [
         f"# Co-design run `{run.name}`", "",
         (f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
@@ -345,11 +365,16 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         (f"- steps done (last checkpoint): {r.checkpoint_steps(ckpt)}; "
          f"training wall time {r.wall_seconds() / 60:.1f} min"),
         f"- design distribution last updated at step {state['timestep']} (the last episode end)",
-        f"- best episode return: {ep['r'].max():+.3f} cm" if len(ep["r"]) else "- no episode finished",
-        f"- design distribution: beta = {last.beta:.4g} /cm, entropy {last.entropy:.3f} nats "
+        f"- task: `{task.label()}`: {task.describe} (returns in {u})",
+        f"- best episode return: {ep['r'].max():+.3f} {u}" if len(ep["r"]) else "- no episode finished",
+        *([] if space == DEFAULT_SPACE else [
+            f"- design space `{space.name}` (the run's `space.toml`): {space.n_slots} slots, "
+            f"{space.n_regulators} regulators, legs {', '.join(map(str, run_cfg.env.legs))} "
+            f"({len(run_cfg.env.designs())} canonical designs in play)"]),
+        f"- design distribution: beta = {last.beta:.4g} /{u}, entropy {last.entropy:.3f} nats "
         f"(target {last.target:.3f}{', clamped to the tie floor' if last.clamped else ''})" if last else "",
         "", f"## Top {len(top)} designs (by latest return R)", "",
-        "| rank | design | R (cm) | p | episodes | mean (cm) | best (cm) | picture |",
+        f"| rank | design | R ({u}) | p | episodes | mean ({u}) | best ({u}) | picture |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for i, row in enumerate(top, 1):
@@ -360,14 +385,28 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         lines.append("![reward histogram weighted by the design distribution](reward_histogram.png)")
     lines += ["", "![episode returns](returns.png)"]
     best_cm = float(ep["r"].max()) if len(ep["r"]) else None
-    numbers = {"run": run.name, "preset": cfg["preset"], "steps": r.checkpoint_steps(ckpt),
+    numbers = {"run": run.name, "preset": cfg["preset"], "task": task.settings(), "unit": u,
+               "steps": r.checkpoint_steps(ckpt),
                "training_wall_seconds": r.wall_seconds(), "episodes": int(len(ep["r"])),
-               "best_episode_cm": best_cm, "top_designs": [
+               f"best_episode_{u}": best_cm, "top_designs": [
                    {**row, "design": ",".join(map(str, row["design"]))} for row in top]}
+    if space != DEFAULT_SPACE:
+        numbers["space"] = {"name": space.name, "slots": space.n_slots, "regulators": space.n_regulators,
+                            "slot_angles_deg": list(space.slot_angles_deg), "legs": list(run_cfg.env.legs)}
     if simulate and top:
-        more, numbers["best_design"] = _best_design_section(run, out, top[0]["design"], ckpt)
+        more, numbers["best_design"] = _best_design_section(run, out, top[0]["design"], ckpt, task)
         lines += more
-    own_sweep = sweep is None and simulate and len(baseline_phases) > 0
+    if task.baseline != "sine":  # another task's baseline, or none
+        if sweep is not None:
+            note(f"the baseline sweep {sweep[0]} is the forward task's; this run's task is {task.name!r}: left out")
+        more, base = _task_baseline_section(run_cfg, task, out, numbers.get("best_design"), baseline_phases,
+                                            simulate, workers)
+        lines += more
+        if base:
+            numbers["baseline"] = base
+        sweep = None
+    own_sweep = sweep is None and simulate and len(baseline_phases) > 0 and task.baseline == "sine" \
+        and space == DEFAULT_SPACE
     if own_sweep:
         from softcrawl.codesign.evaluation import baseline_sweep
 
@@ -386,3 +425,47 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         lines += more
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     (out / "summary.json").write_text(json.dumps(numbers, indent=1, default=float) + "\n", encoding="utf-8")
+
+
+def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict | None, phases, simulate: bool,
+                           workers: int | None) -> tuple[list[str], dict]:
+    """The expert-baseline section of a task other than ``forward``: the turning gait of
+    :mod:`softcrawl.tasks.baselines` swept over ``phases`` (degrees) on the run's robot, floor,
+    settling and episode length, written to ``out/baseline_turning.csv``, its best turn next to
+    the best design's (``best``: :func:`_best_design_section`'s numbers); or a line saying the
+    task has none. Returns the Markdown lines and the numbers (empty: none)."""
+    lines = ["", "## Expert baseline", ""]
+    if task.baseline != "turning":
+        return lines + [f"The task `{task.name}` has no expert baseline."], {}
+    if not (simulate and len(phases)):
+        return lines + ["Not simulated (no phases, or --no-simulate)."], {}
+    from softcrawl.codesign.evaluation import episode_seconds
+    from softcrawl.codesign.factory import robot_factory
+    from softcrawl.tasks.baselines import TURNING_BASELINE_DESIGN, best_turn, sweep_turning
+
+    seconds = episode_seconds(cfg)
+    results = sweep_turning(task.robots(robot_factory(cfg)), phases, seconds, cfg.env.settling(), workers=workers)
+    with open(out / "baseline_turning.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["phase_deg", "turned_deg", "diverged", "wall_seconds"])
+        w.writerows([r.phase_deg, f"{r.turned_deg:.4f}", r.diverged, f"{r.wall_seconds:.2f}"] for r in results)
+    design = ",".join(map(str, TURNING_BASELINE_DESIGN))
+    lines += [(f"Hand-made turning gait on the symmetric `{design}` (two diagonally opposite leg pairs on regulators "
+               f"1 and 2, raised-cosine waves 0-90 kPa, period 4 s, pair 2 lagging by the phase), {seconds:g} s "
+               f"episodes, this run's robot ({cfg.env.robot.model} model) and floor; degrees turned counter-clockwise "
+               "per phase lag:"), "", "| phase lag (deg) | turned (deg) |", "|---|---|"]
+    lines += [f"| {r.phase_deg:g} | {'diverged' if r.diverged else f'{r.turned_deg:+.2f}'} |" for r in results]
+    top = best_turn(results)
+    numbers = {"kind": "turning", "design": design, "duration_s": seconds,
+               "phases": [{"phase_deg": r.phase_deg, "turned_deg": r.turned_deg, "diverged": r.diverged}
+                          for r in results]}
+    if top is None:
+        return lines + ["", "Every phase diverged."], numbers
+    numbers |= {"best_phase_deg": top.phase_deg, "best_deg": top.turned_deg}
+    lines += ["", f"- best phase lag: {top.phase_deg:g}°, {top.turned_deg:+.2f}° in {seconds:g} s"]
+    if best is not None and best.get("policy_deg") is not None:
+        ratio = abs(best["policy_deg"]) / abs(top.turned_deg) if top.turned_deg else None
+        numbers["ratio"] = ratio
+        lines.append(f"- best design `{best['design']}` with the trained policy: {best['policy_deg']:+.2f}°, "
+                     + (f"{ratio:.2f}x the baseline's turn" if ratio is not None else "the baseline did not turn"))
+    return lines, numbers

@@ -5,9 +5,12 @@ it; nothing else builds a run's paths by hand. Layout::
 
     RUN/
     ├── config.json                {"version": softcrawl version, "config_version": format,
-    │                              "config": TrainConfig.to_dict()} (written once the run has started:
-    │                              config valid, envs built; an older format is read through
-    │                              softcrawl.codesign.migrate)
+    │                              "space_sha256": space.toml's SHA-256, "config": TrainConfig.to_dict()}
+    │                              (written once the run has started: config valid, envs built; an
+    │                              older format is read through softcrawl.codesign.migrate)
+    ├── space.toml                 the design space's file as it was when training started (a copy of
+    │                              env.space's file; written just before config.json); the run's
+    │                              readers use it, never the file env.space names (format 4 on)
     ├── episodes.csv               t (transitions), design, return_cm, diverged; one row per episode
     ├── distribution.csv           t, beta, entropy, target, effective_target, floor, clamped, top designs
     ├── sessions.csv               first step, last step, wall seconds, version; one row per train/resume call,
@@ -57,8 +60,11 @@ import numpy as np
 from softcrawl import __version__
 from softcrawl.codesign.checkpoints import NoSpaceError, RunCheckpoints, _sha256, is_no_space
 from softcrawl.codesign.config import TrainConfig
-from softcrawl.codesign.migrate import CONFIG_VERSION, read_settings
+from softcrawl.codesign.migrate import CONFIG_VERSION, SPACE_VERSION, config_version, read_settings
 from softcrawl.codesign.notes import note
+from softcrawl.design.resolve import SPACE_COPY, check_space_copy, resolve_space, write_space_copy
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.safeio import atomic_write_text, load_json
 
 #: Names other modules import from here (the checkpoint helpers live in
@@ -78,6 +84,7 @@ class Run(RunCheckpoints):
 
     # -- paths -----------------------------------------------------------------------------
     config_path = property(lambda self: self.path / "config.json")
+    space_path = property(lambda self: self.path / SPACE_COPY)
     episodes_csv = property(lambda self: self.path / "episodes.csv")
     distribution_csv = property(lambda self: self.path / "distribution.csv")
     sessions_csv = property(lambda self: self.path / "sessions.csv")
@@ -107,8 +114,8 @@ class Run(RunCheckpoints):
         Raises:
             ValueError: naming the first such link.
         """
-        for p in (self.config_path, self.episodes_csv, self.distribution_csv, self.sessions_csv, self.domain_csv,
-                  self.snapshots_dir, self.logs_dir, self.checkpoints_dir, self.report_dir):
+        for p in (self.config_path, self.space_path, self.episodes_csv, self.distribution_csv, self.sessions_csv,
+                  self.domain_csv, self.snapshots_dir, self.logs_dir, self.checkpoints_dir, self.report_dir):
             if p.is_symlink():
                 raise ValueError(f"{p} is a symbolic link: a run's files must be inside its folder (refusing to "
                                  "read or write through it)")
@@ -134,18 +141,51 @@ class Run(RunCheckpoints):
 
     def read_config(self) -> TrainConfig:
         """The run's :class:`TrainConfig`, an older format migrated
-        (:func:`softcrawl.codesign.migrate.read_settings`; ValueError as :meth:`read_meta`, a
-        format this softcrawl does not know, or a bad setting)."""
+        (:func:`softcrawl.codesign.migrate.read_settings`; a run of an older format is the
+        paper's space). A run of format 4 on has ``env.space`` set to its own ``space.toml``
+        (checked against ``config.json``'s ``space_sha256``), whatever file the saved value
+        names, so that the run reads the space it trained on.
+
+        Raises:
+            ValueError: as :meth:`read_meta`, a format this softcrawl does not know, a bad
+                setting, or a missing or changed ``space.toml`` (:meth:`check_space`).
+        """
+        meta = self.read_meta()
         try:
-            return TrainConfig.from_dict(read_settings("train", self.read_meta()))
+            settings = read_settings("train", meta)
+            if config_version(meta) >= SPACE_VERSION:
+                self.check_space(meta)
+                if isinstance(settings.get("env"), dict):
+                    settings = {**settings, "env": {**settings["env"], "space": str(self.space_path)}}
+            return TrainConfig.from_dict(settings)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{self.config_path}: {exc}") from None
 
+    def check_space(self, meta: dict) -> None:
+        """Refuse a ``space.toml`` that is missing or whose SHA-256 is not ``meta``'s
+        ``space_sha256`` (:func:`softcrawl.design.resolve.check_space_copy`; ValueError, one line)."""
+        check_space_copy(self.path, meta.get("space_sha256"))
+
+    def design_space(self) -> DesignSpace:
+        """The run's design space (its ``space.toml``; the paper's for a run of an older format
+        or a folder without ``config.json``). ValueError as :meth:`read_config`."""
+        return resolve_space(self.read_config().env.space) if self.exists() else DEFAULT_SPACE
+
     def write_config(self, cfg: TrainConfig) -> None:
-        """Write ``config.json`` atomically (creates the folder)."""
+        """Write ``space.toml`` (the bytes of the file ``cfg.env.space`` names) and then
+        ``config.json`` with its SHA-256, atomically (creates the folder).
+
+        Raises:
+            SpaceFileError: (a ValueError) the space file cannot be read, or changed since the
+                config was checked.
+        """
         self.path.mkdir(parents=True, exist_ok=True)
+        sha = write_space_copy(self.path, cfg.env.space)
+        if resolve_space(self.space_path) != cfg.env.design_space():
+            raise ValueError(f"{cfg.env.space}: the design space changed since the config was checked; "
+                             "start the run again")
         atomic_write_text(self.config_path, json.dumps({"version": __version__, "config_version": CONFIG_VERSION,
-                                                        "config": cfg.to_dict()}, indent=2))
+                                                        "space_sha256": sha, "config": cfg.to_dict()}, indent=2))
 
     # -- logs ------------------------------------------------------------------------------
     def read_episodes(self) -> dict:

@@ -15,13 +15,18 @@ when none is given).
 * These sizes are the paper's design space's; an env of another ``space``
   (:class:`softcrawl.design.spacefile.DesignSpace`, ``S`` slots, ``R`` regulators) has ``R``
   actions, a one-hot of ``S (R + 1)``, ``R`` actions per history entry and ``6 + R`` state numbers.
-* Reward: cm crawled along +x by the disk top centre during the action (the episode return is
-  the +x displacement, codesign.md / paper).
-* ``terminated``: only on a diverged simulation (``SimulationDiverged``): ``info["diverged"]``
+* Reward: the ``task``'s (:mod:`softcrawl.tasks`, docs/tasks.md; default ``forward``, the
+  paper's: cm crawled along +x by the disk top centre during the action, so the episode return
+  is the +x displacement, codesign.md / paper): :meth:`Task.reward` of the task's progress
+  before and after the action, in :attr:`Task.unit` (cm or degrees). The task's floor
+  (friction, gravity) applies to every robot the env builds (:meth:`Task.robots`).
+* ``terminated``: on a diverged simulation (``SimulationDiverged``): ``info["diverged"]``
   is True and ``info["reason"]`` holds the message; the reward of that action counts up to the
-  last valid state. ``truncated``: after ``n_actions`` actions (the time limit; learners should
+  last valid state; or when the task's goal is reached (:meth:`Task.reached`, e.g. ``target``).
+  ``truncated``: after ``n_actions`` actions (the time limit; learners should
   bootstrap through it, see :mod:`softcrawl.codesign.sac`).
-* ``info``: ``design``, ``t`` (s), ``disk_position_mm`` (3,), ``displacement_cm``,
+* ``info``: ``design``, ``t`` (s), ``disk_position_mm`` (3,), ``displacement_cm`` (+x),
+  ``progress`` (the task's progress since the start, in its unit),
   ``applied_kpa`` (3,) and ``commanded_kpa`` (3,), ``diverged``, ``reason``, and how the
   episode's start was reached (:meth:`softcrawl.robot.episode.SettledState.as_dict`):
   ``settle_steps``, ``settle_seconds``, ``rest_speed_mm_s`` and ``at_rest`` (False: the robot
@@ -62,7 +67,7 @@ from typing import ClassVar
 import gymnasium as gym
 import numpy as np
 
-from softcrawl.design.space import DEFAULT_SPACE, N_REGULATORS, Design
+from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.envs.robot_cache import RobotCache, process_cache
 from softcrawl.fem.solver import SimulationDiverged
@@ -70,6 +75,7 @@ from softcrawl.robot.actuation import P_MAX_KPA, PressureCalibration
 from softcrawl.robot.assembly import Robot, RobotConfig, build_robot
 from softcrawl.robot.domain import DomainRanges, DomainSample
 from softcrawl.robot.episode import MM_PER_CM, Episode, SettledState, Settling
+from softcrawl.tasks import DEFAULT_TASK, Task, parse_task
 
 N_ACTIONS = 20
 HISTORY = 4
@@ -135,8 +141,10 @@ class CrawlerEnv(gym.Env):
             rule, shared with every other env of the process that asks for it
             (:func:`softcrawl.envs.robot_cache.process_cache`; training's envs do), instead of
             a cache of this env's own.
-        space: the design space: designs, one-hot code, number of regulators (actions). Domain
-            randomization needs the paper's 3 regulators.
+        space: the design space: designs, one-hot code, number of regulators (actions; domain
+            randomization draws its per-regulator quantities for each of them).
+        task: what the env rewards (:mod:`softcrawl.tasks`): a :class:`Task`, a name or a table
+            of settings (:func:`softcrawl.tasks.parse_task`; default ``"forward"``, the paper's).
 
     Attributes:
         nominal_steps_per_action: simulator steps per action without control-period dilation.
@@ -145,7 +153,8 @@ class CrawlerEnv(gym.Env):
     Raises:
         ValueError: non-positive ``steps_per_action``/``n_actions``/``max_cached``, negative
             ``history``, an empty or invalid ``designs`` list, a control-period range that
-            gives actions of less than one step.
+            gives actions of less than one step, an invalid task or one that observes the
+            robot's state without ``observe_state``.
     """
 
     metadata: ClassVar[dict] = {"render_modes": []}
@@ -156,7 +165,7 @@ class CrawlerEnv(gym.Env):
                  designs: Sequence[Sequence[int]] | None = None, settling: Settling = Settling(),
                  calibration: PressureCalibration | None = None, max_cached: int = 16,
                  randomize: DomainRanges | None = None, share_robots: bool = False,
-                 space: DesignSpace = DEFAULT_SPACE):
+                 space: DesignSpace = DEFAULT_SPACE, task: Task | str | dict = DEFAULT_TASK):
         super().__init__()
         for name, v in (("steps_per_action", steps_per_action), ("n_actions", n_actions), ("max_cached", max_cached)):
             if int(v) != v or v < 1:
@@ -164,15 +173,16 @@ class CrawlerEnv(gym.Env):
         if int(history) != history or history < 0:
             raise ValueError(f"history must be a non-negative integer, got {history!r}")
         self.space = space
-        self.robot_factory = robot_factory if robot_factory is not None else BuildRobot(
-            RobotConfig.for_space(space), space)
+        self.task = parse_task(task)
+        if self.task.observes_state and not observe_state:
+            raise ValueError(f"task {self.task.name!r} observes the robot's state: set observe_state")
+        self.robot_factory = self.task.robots(robot_factory if robot_factory is not None else BuildRobot(
+            RobotConfig.for_space(space), space))
         self.nominal_steps_per_action, self.n_actions = int(steps_per_action), int(n_actions)
         self.history = int(history)
         if randomize is not None and not isinstance(randomize, DomainRanges):
             raise ValueError(f"randomize must be DomainRanges or None, got {type(randomize).__name__}")
         self.randomize = randomize if randomize is not None and randomize.enabled else None
-        if self.randomize is not None and space.n_regulators != N_REGULATORS:
-            raise ValueError(f"domain randomization needs {N_REGULATORS} regulators, the space has {space.n_regulators}")
         if self.randomize is not None:
             self.randomize.check_steps(self.nominal_steps_per_action)
         self.domain: DomainSample | None = None
@@ -187,7 +197,7 @@ class CrawlerEnv(gym.Env):
         self._robots = (process_cache(self.robot_factory, settling, self.max_cached) if share_robots
                         else RobotCache(self.max_cached)).attach()
         n_reg, n_code = space.n_regulators, space.one_hot_size
-        self._state_dim = STATE_DIM - N_REGULATORS + n_reg
+        self._state_dim = STATE_DIM - DEFAULT_SPACE.n_regulators + n_reg
         n_hist = n_reg * self.history
         low = np.concatenate([np.zeros(n_code), -np.ones(n_hist)]).astype(np.float32)
         high = np.ones(n_code + n_hist, np.float32)
@@ -203,6 +213,7 @@ class CrawlerEnv(gym.Env):
         self._dead, self._reason = False, ""
         self._one_hot = np.zeros(n_code, np.float32)
         self._settled_info: dict = {}
+        self._origin = None  # the task's start reference (Task.origin)
 
     @property
     def steps_per_action(self) -> int:
@@ -223,8 +234,9 @@ class CrawlerEnv(gym.Env):
             return Episode(robot, self.calibration, self.settling, settled=settled)
         if sample.physical:
             robot, settled = sample.apply(robot), None
-        episode = Episode(robot, sample.calibration(self.calibration), self.settling, settled=settled)
-        episode.regulators = sample.regulators(episode.regulators.rate_kpa_s)
+        n_reg = self.space.n_regulators
+        episode = Episode(robot, sample.calibration(self.calibration, n_reg), self.settling, settled=settled)
+        episode.regulators = sample.regulators(episode.regulators.rate_kpa_s, n_reg)
         return episode
 
     # -- observation / info -----------------------------------------------------------------
@@ -247,6 +259,7 @@ class CrawlerEnv(gym.Env):
         return {
             "design": self.design, "t": self._t_steps * ep.dt,
             "disk_position_mm": np.array(pos, dtype=float), "displacement_cm": self._displacement(),
+            "progress": self._progress(),
             "applied_kpa": ep.applied, "commanded_kpa": np.zeros(len(ep.applied)) if commanded is None else commanded,
             "diverged": self._dead, "reason": self._reason, **self._settled_info,
             **({"domain": self.domain.as_dict()} if self.domain is not None else {}),
@@ -254,6 +267,10 @@ class CrawlerEnv(gym.Env):
 
     def _displacement(self) -> float:
         return self.episode.displacement_cm if (not self._dead or self._k > 0) else 0.0
+
+    def _progress(self) -> float:
+        """The task's progress since the start (its unit; 0 if settling diverged)."""
+        return self.task.progress(self.episode, self._origin) if (not self._dead or self._k > 0) else 0.0
 
     def _steps_of(self, k: int) -> int:
         n = self.nominal_steps_per_action
@@ -267,7 +284,7 @@ class CrawlerEnv(gym.Env):
 
     # -- gymnasium API ----------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Start an episode: ``options={"design": ...}`` (8 slot values or a string) or a random
+        """Start an episode: ``options={"design": ...}`` (one value per slot of the space, or a string) or a random
         design of ``designs``. Returns ``(obs, info)``. A diverged settling is reported with
         ``info["diverged"]`` and the first step then terminates with reward 0."""
         design = self.begin_reset(seed=seed, options=options)
@@ -286,7 +303,8 @@ class CrawlerEnv(gym.Env):
         else:
             design = self.designs[int(self.np_random.integers(len(self.designs)))]
         self.design = design
-        self.domain = self.randomize.draw(self.np_random) if self.randomize is not None else None
+        self.domain = (self.randomize.draw(self.np_random, self.space.n_regulators) if self.randomize is not None
+                       else None)
         self._one_hot = self.space.one_hot_batch([design])[0]
         self._hist[:] = 0.0
         self._k = self._t_steps = 0
@@ -307,11 +325,12 @@ class CrawlerEnv(gym.Env):
         if settled is not None:
             self._robots.keep_settled(self.design, self.episode.robot, settled)
         self._settled_info = settled.as_dict() if settled is not None else {}
+        self._origin = self.task.origin(self.episode)
         return self._obs(), self._info()
 
     def step(self, action):
         """Apply one action for ``steps_per_action`` steps; returns
-        ``(obs, reward_cm, terminated, truncated, info)``."""
+        ``(obs, reward, terminated, truncated, info)`` (reward in the task's unit)."""
         kpa = self.begin_action(action)
         error = None
         if kpa is not None:
@@ -326,7 +345,7 @@ class CrawlerEnv(gym.Env):
     def begin_action(self, action) -> np.ndarray | None:
         """The first part of :meth:`step`, for a driver that steps many envs' robots together
         (:class:`softcrawl.envs.backends.batched.BatchedBackend`): checks ``action`` and records it in the
-        history. Returns the commanded real kPa ``(3,)`` to hold for :attr:`steps_per_action`
+        history. Returns the commanded real kPa ``(R,)`` to hold for :attr:`steps_per_action`
         simulator steps (:meth:`Episode.next_control` for each, the driver setting
         ``episode.state``), or None if this episode's simulation has diverged (nothing to step).
         Finish with :meth:`end_action`.
@@ -340,7 +359,7 @@ class CrawlerEnv(gym.Env):
         if a.shape != self.action_space.shape or not np.all(np.isfinite(a)):
             raise ValueError(f"action must be {self.action_space.shape[0]} finite numbers in [-1, 1], got {action!r}")
         a = np.clip(a, -1.0, 1.0)
-        self._action_kpa, self._action_before = action_to_kpa(a), self._displacement()
+        self._action_kpa, self._action_before = action_to_kpa(a), self._progress()
         if self.history:
             self._hist[1:] = self._hist[:-1].copy()
             self._hist[0] = a
@@ -348,14 +367,15 @@ class CrawlerEnv(gym.Env):
 
     def end_action(self, error: SimulationDiverged | None = None):
         """The last part of :meth:`step` once the driver has stepped the episode (``error``: the
-        divergence that stopped it, if any): ``(obs, reward_cm, terminated, truncated, info)``."""
+        divergence that stopped it, if any): ``(obs, reward, terminated, truncated, info)``
+        (reward in the task's unit)."""
         if error is not None:
             self._dead, self._reason = True, str(error)
         self._next_action()
-        reward = self._displacement() - self._action_before
+        reward = self.task.reward(self._action_before, self._progress())
         if not math.isfinite(reward):
             reward = 0.0
-        terminated = self._dead
+        terminated = self._dead or self.task.reached(self.episode, self._origin)
         truncated = (not terminated) and self._k >= self.n_actions
         return self._obs(), float(reward), terminated, truncated, self._info(self._action_kpa)
 

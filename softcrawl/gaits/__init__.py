@@ -1,4 +1,4 @@
-"""Open-loop gaits for the 3 pressure regulators, in real kPa.
+"""Open-loop gaits for the pressure regulators of a design space (3 in the paper's), in real kPa.
 
 Below the simulator: imports nothing of :mod:`softcrawl.robot`, :mod:`softcrawl.envs` or
 :mod:`softcrawl.fem` (the regulators' command range is :mod:`softcrawl.gaits.pressure`, which
@@ -10,6 +10,7 @@ from softcrawl.gaits.gaits import (
     ActionSequence,
     Gait,
     SineGait,
+    csv_header,
     paper_best_gait,
     read_actions_csv,
     write_actions_csv,
@@ -27,6 +28,7 @@ __all__ = [
     "PressureRangeError",
     "SineGait",
     "check_pressures",
+    "csv_header",
     "paper_best_gait",
     "read_actions_csv",
     "write_actions_csv",

@@ -1,9 +1,12 @@
-"""Open-loop gaits for the 3 pressure regulators, in REAL kPa (paper Sec. "Gaits"; ``codesign.md``).
+"""Open-loop gaits for ``R`` pressure regulators, in REAL kPa (paper Sec. "Gaits"; ``codesign.md``).
 
-A gait is anything with ``pressure_at(t) -> (3,)`` (the :class:`Gait` protocol): the
-commanded real pressures of regulators 1, 2, 3 at time ``t`` seconds. Column ``k - 1``
-of every pressure array is regulator ``k``. Convert to sim pressures with
-:class:`softcrawl.robot.actuation.PressureCalibration`.
+A gait is anything with ``pressure_at(t) -> (R,)`` (the :class:`Gait` protocol): the
+commanded real pressures of regulators ``1..R`` at time ``t`` seconds (``R = 3`` in the
+paper's design space; another space's ``R`` is its ``[design] regulators``,
+:class:`softcrawl.design.spacefile.DesignSpace`). Column ``k - 1`` of every pressure array is
+regulator ``k``. A gait takes ``R`` from its data (the columns of an action array, the number
+of patterns) or, where nothing else tells, from an ``n_regulators`` argument (default 3).
+Convert to sim pressures with :class:`softcrawl.robot.actuation.PressureCalibration`.
 """
 
 from __future__ import annotations
@@ -19,13 +22,22 @@ import numpy as np
 from softcrawl.gaits.pressure import P_MAX_KPA, P_MIN_KPA, PressureRangeError, check_pressures, pressure_problem
 from softcrawl.safeio import UnsafeFileError, read_text
 
+#: Regulators of the paper's design space: the default where no data gives ``R``.
 N_REGULATORS = 3
-CSV_HEADER = ("p1", "p2", "p3")
+
+
+def csv_header(n_regulators: int = N_REGULATORS) -> tuple[str, ...]:
+    """Header of an action CSV for ``n_regulators`` regulators: ``("p1", ..., "pR")``."""
+    return tuple(f"p{k}" for k in range(1, int(n_regulators) + 1))
+
+
+#: Header of an action CSV of the paper's 3 regulators.
+CSV_HEADER = csv_header()
 
 
 @runtime_checkable
 class Gait(Protocol):
-    """An open-loop gait: commanded real pressures ``(3,)`` kPa at time ``t`` s."""
+    """An open-loop gait: commanded real pressures ``(R,)`` kPa at time ``t`` s (one per regulator)."""
 
     def pressure_at(self, t: float) -> np.ndarray: ...
 
@@ -35,8 +47,9 @@ class ActionSequence:
     """Piecewise-constant gait: action ``i`` is held during ``[i * hold, (i + 1) * hold)``.
 
     Attributes:
-        actions: ``(k, 3)`` float64 real kPa, ``k >= 1``, finite, within [0, 90] kPa
-            (stored as a read-only copy).
+        actions: ``(k, R)`` float64 real kPa, ``k >= 1`` actions of ``R >= 1`` regulators
+            (column ``j`` = regulator ``j + 1``), finite, within [0, 90] kPa (stored as a
+            read-only copy).
         hold: seconds per action, > 0 (default 1.0).
 
     Raises:
@@ -49,8 +62,8 @@ class ActionSequence:
 
     def __post_init__(self) -> None:
         a = np.array(self.actions, dtype=float)  # copy
-        if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] != N_REGULATORS:
-            raise ValueError(f"actions must have shape (k, {N_REGULATORS}) with k >= 1, got {a.shape}")
+        if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] < 1:
+            raise ValueError(f"actions must have shape (k, R) with k >= 1 actions of R >= 1 regulators, got {a.shape}")
         check_pressures(a, "action")
         if not (math.isfinite(self.hold) and self.hold > 0):
             raise ValueError(f"hold must be finite and > 0 s, got {self.hold}")
@@ -62,31 +75,44 @@ class ActionSequence:
         return len(self.actions)
 
     @property
+    def n_regulators(self) -> int:
+        """``R``, the regulators of each action (the array's columns)."""
+        return self.actions.shape[1]
+
+    @property
     def duration(self) -> float:
         """Total duration ``k * hold`` in seconds."""
         return len(self.actions) * self.hold
 
     def pressure_at(self, t: float) -> np.ndarray:
-        """Commanded ``(3,)`` real kPa at ``t`` s: the current action; before 0 the first,
+        """Commanded ``(R,)`` real kPa at ``t`` s: the current action; before 0 the first,
         after the end the last."""
         i = min(max(int(math.floor(t / self.hold)), 0), len(self.actions) - 1)
         return self.actions[i].copy()
 
 
-def read_actions_csv(path: str | Path, hold: float = 1.0) -> ActionSequence:
-    """Read an action sequence: one row ``p1,p2,p3`` (real kPa) per action, optional header
-    line ``p1,p2,p3``; blank lines are skipped; a UTF-8 byte-order mark (spreadsheet export) is
+def read_actions_csv(path: str | Path, hold: float = 1.0, n_regulators: int | None = None) -> ActionSequence:
+    """Read an action sequence: one row ``p1,...,pR`` (real kPa) per action, optional header
+    line ``p1,...,pR``; blank lines are skipped; a UTF-8 byte-order mark (spreadsheet export) is
     accepted.
+
+    Args:
+        path: the CSV file.
+        hold: seconds per action.
+        n_regulators: ``R``, the columns every row must have (a design space's regulators);
+            None: the header's count, else the first row's.
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
         ValueError: if the file cannot be read / decoded (or is a directory), a row does not
-            have 3 numbers, or it has no actions.
+            have ``R`` numbers, or it has no actions.
         PressureRangeError: for a non-finite or out-of-range pressure.
 
     Every error about a row names the file and its 1-based line (``a.csv, line 4, p3: ...``).
     """
     path = Path(path)
+    if n_regulators is not None and (int(n_regulators) != n_regulators or n_regulators < 1):
+        raise ValueError(f"n_regulators must be a positive integer, got {n_regulators!r}")
     try:
         text = read_text(path)  # a regular file of bounded size; a UTF-8 byte-order mark is dropped
     except FileNotFoundError:
@@ -94,19 +120,23 @@ def read_actions_csv(path: str | Path, hold: float = 1.0) -> ActionSequence:
     except (OSError, UnsafeFileError) as exc:  # not UTF-8, not a regular file, too large, unreadable
         raise ValueError(f"cannot read action CSV: {exc}") from exc
     rows: list[list[float]] = []
+    width = n_regulators
     for lineno, row in enumerate(csv.reader(text.splitlines()), start=1):
         cells = [c.strip() for c in row]
         if not any(cells):
             continue
-        if not rows and tuple(c.lower() for c in cells) == CSV_HEADER:
+        lowered = tuple(c.lower() for c in cells)
+        if not rows and lowered == csv_header(len(cells)) and width in (None, len(cells)):
+            width = len(cells)
             continue
-        if len(cells) != N_REGULATORS:
-            raise ValueError(f"{path}, line {lineno}: expected {N_REGULATORS} columns, got {len(cells)}: {row!r}")
+        width = len(cells) if width is None else width
+        if len(cells) != width:
+            raise ValueError(f"{path}, line {lineno}: expected {width} columns, got {len(cells)}: {row!r}")
         try:
             values = [float(c) for c in cells]
         except ValueError:
             raise ValueError(f"{path}, line {lineno}: non-numeric pressure in {row!r}") from None
-        for name, v in zip(CSV_HEADER, values):
+        for name, v in zip(csv_header(width), values):
             if (problem := pressure_problem(v)) is not None:
                 raise PressureRangeError(f"{path}, line {lineno}, {name}: {v:g} kPa {problem}")
         rows.append(values)
@@ -116,11 +146,11 @@ def read_actions_csv(path: str | Path, hold: float = 1.0) -> ActionSequence:
 
 
 def write_actions_csv(seq: ActionSequence, path: str | Path) -> None:
-    """Write ``seq.actions`` as CSV with header ``p1,p2,p3`` (full float precision; ``hold``
+    """Write ``seq.actions`` as CSV with header ``p1,...,pR`` (full float precision; ``hold``
     is not stored)."""
     with Path(path).open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
-        w.writerow(CSV_HEADER)
+        w.writerow(csv_header(seq.n_regulators))
         w.writerows([repr(float(p)) for p in row] for row in seq.actions)
 
 
@@ -130,6 +160,8 @@ class SineGait:
 
     Front regulator 1: ``p(t) = offset - amplitude * cos(2 pi t / period)``; rear regulator 2
     lags it by ``phase_deg``: ``p2(t) = p(t - phase_deg / 360 * period)``; regulator 3 stays 0.
+    The paper's 3 regulators; the same wave for ``R`` regulators is
+    :meth:`softcrawl.gaits.PeriodicGait.expert_sine` with ``n_regulators=R``.
     Defaults give ``p(t) = 45 - 45 cos(2 pi t / 4)``: 0 kPa at t = 0, 90 kPa peak at t = T/2.
 
     Attributes:
@@ -176,11 +208,11 @@ def paper_best_gait(n_cycles: int | None = None, n_actions: int = 20, high_kpa: 
     paper Sec. "Results"), or exactly ``3 * n_cycles`` actions if ``n_cycles`` is given.
 
     Returns:
-        ActionSequence with ``(n, 3)`` real-kPa actions.
+        ActionSequence with ``(n, 3)`` real-kPa actions (the paper's 3 regulators).
     """
     cycle = np.array([[0.0, high_kpa, 0.0], [high_kpa, 0.0, 0.0], [0.0, 0.0, 0.0]])
     n = 3 * int(n_cycles) if n_cycles is not None else int(n_actions)
     if n < 1:
         raise ValueError(f"need at least one action, got {n}")
-    return ActionSequence(np.resize(cycle, (n, N_REGULATORS)), hold=1.0)
+    return ActionSequence(np.resize(cycle, (n, cycle.shape[1])), hold=1.0)
 

@@ -32,7 +32,8 @@ class PeriodicGait:
     """Periodic open-loop gait: per regulator a pattern of knots, repeated.
 
     Attributes:
-        patterns: 3 tuples of knots (real kPa, each in [0, 90]); regulator ``k`` uses
+        patterns: ``R >= 1`` tuples of knots, one per regulator (real kPa, each in [0, 90];
+            ``R = 3`` in the paper's design space); regulator ``k`` uses
             ``patterns[k - 1]`` of length ``L_k`` (1..:data:`MAX_KNOTS`); period of regulator
             ``k``: ``L_k * hold`` s; the gait's period is their least common multiple.
         hold: seconds per knot (> 0; 1 s = one action of the paper).
@@ -49,8 +50,8 @@ class PeriodicGait:
     waveform: str = "step"
 
     def __post_init__(self) -> None:
-        if len(self.patterns) != N_REGULATORS:
-            raise ValueError(f"need {N_REGULATORS} patterns (one per regulator), got {len(self.patterns)}")
+        if isinstance(self.patterns, (str, bytes)) or len(self.patterns) < 1:
+            raise ValueError(f"need one pattern per regulator (at least one), got {self.patterns!r}")
         pats = []
         for k, p in enumerate(self.patterns, start=1):
             a = np.array(p, dtype=float).reshape(-1)
@@ -70,20 +71,35 @@ class PeriodicGait:
     # constructors
     @classmethod
     def from_knots(cls, knots, hold: float = 1.0, waveform: str = "step") -> PeriodicGait:
-        """Gait from a ``(L, 3)`` knot table (real kPa; column ``k - 1`` = regulator ``k``)."""
+        """Gait from a ``(L, R)`` knot table (real kPa; column ``k - 1`` = regulator ``k``, ``R >= 1``).
+
+        Raises:
+            ValueError: a table that is not 2-D with at least one column (and the class's errors).
+        """
         k = np.asarray(knots, dtype=float)
-        if k.ndim != 2 or k.shape[1] != N_REGULATORS:
-            raise ValueError(f"knots must have shape (L, {N_REGULATORS}), got {k.shape}")
-        return cls(tuple(k[:, j] for j in range(N_REGULATORS)), hold, waveform)
+        if k.ndim != 2 or k.shape[1] < 1:
+            raise ValueError(f"knots must have shape (L, R) with R >= 1 regulators, got {k.shape}")
+        return cls(tuple(k[:, j] for j in range(k.shape[1])), hold, waveform)
 
     @classmethod
-    def expert_sine(cls, phase_deg: float, period_knots: int = 4, hold: float = 1.0) -> PeriodicGait:
+    def expert_sine(cls, phase_deg: float, period_knots: int = 4, hold: float = 1.0,
+                    n_regulators: int = N_REGULATORS) -> PeriodicGait:
         """The expert gait :class:`softcrawl.gaits.SineGait` (period ``period_knots * hold`` s,
         0..90 kPa, regulator 2 lagging 1 by ``phase_deg``) as a smooth pattern of its samples;
         equal to it at every ``t`` for ``period_knots >= 3`` (a raised cosine has harmonics 0
-        and 1 only)."""
+        and 1 only). With ``n_regulators`` ``R``: regulators 1 and 2 as in the paper's gait,
+        regulators 3..R at 0 kPa.
+
+        Raises:
+            ValueError: ``n_regulators < 2`` (the gait needs a front and a rear regulator).
+        """
+        if isinstance(n_regulators, bool) or int(n_regulators) != n_regulators or n_regulators < 2:
+            raise ValueError(f"the expert gait drives a front and a rear regulator: n_regulators must be an "
+                             f"integer >= 2, got {n_regulators!r}")
         g = SineGait(period=period_knots * hold, phase_deg=phase_deg)
-        return cls.from_knots([g.pressure_at(i * hold) for i in range(period_knots)], hold, "smooth")
+        knots = np.zeros((period_knots, int(n_regulators)))
+        knots[:, :2] = [g.pressure_at(i * hold)[:2] for i in range(period_knots)]
+        return cls.from_knots(knots, hold, "smooth")
 
     @classmethod
     def paper_cycle(cls, high_kpa: float = P_MAX_KPA, hold: float = 1.0) -> PeriodicGait:
@@ -91,6 +107,11 @@ class PeriodicGait:
         front regulator 1, then both vent (codesign.md); equals
         :func:`softcrawl.gaits.paper_best_gait` step for step."""
         return cls.from_knots([[0.0, high_kpa, 0.0], [high_kpa, 0.0, 0.0], [0.0, 0.0, 0.0]], hold, "step")
+
+    @property
+    def n_regulators(self) -> int:
+        """``R``, the regulators driven (one pattern each)."""
+        return len(self.patterns)
 
     @property
     def period(self) -> float:
@@ -101,9 +122,9 @@ class PeriodicGait:
         return PeriodicGait(self.patterns, self.hold, waveform)
 
     def pressure_at(self, t: float) -> np.ndarray:
-        """Commanded ``(3,)`` real kPa at ``t`` s (periodic, defined for all ``t``)."""
+        """Commanded ``(R,)`` real kPa at ``t`` s (periodic, defined for all ``t``)."""
         u = t / self.hold
-        out = np.empty(N_REGULATORS)
+        out = np.empty(len(self.patterns))
         for k, p in enumerate(self.patterns):
             n = len(p)
             if n == 1 or self.waveform == "step":

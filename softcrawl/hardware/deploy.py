@@ -199,6 +199,23 @@ class _Watchdog:
         self._stop.set()
 
 
+def check_regulators(space_regulators: int, rig_regulators: int, where: str) -> None:
+    """Refuse a gait of a design space with another number of regulators than the rig has
+    (a policy's actions are one pressure per regulator of its run's space; issue 41).
+
+    Args:
+        space_regulators: regulators of the design space the gait was made for.
+        rig_regulators: regulators of the rig config (``len(RigConfig.regulators)``).
+        where: what the gait came from, named in the message (a run, a space).
+
+    Raises:
+        ValueError: one line, when the counts differ.
+    """
+    if space_regulators != rig_regulators:
+        raise ValueError(f"{where} drives {space_regulators} regulators but the rig config has {rig_regulators}; "
+                         "refusing to deploy")
+
+
 def validate_actions(actions, max_kpa: float) -> np.ndarray:
     """``(n, 3)`` float kPa, every entry finite and in ``[0, max_kpa]``.
 

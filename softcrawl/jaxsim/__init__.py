@@ -20,7 +20,8 @@ Data layout (Model / State / Control, as NVIDIA Warp and Newton split them):
 * :class:`~softcrawl.jaxsim.engine.State`: per robot, the legs' modal displacements and velocities
   ``q, qdot`` ``(L, m)`` (part frame), the disk's node positions and velocities ``(n, 3)``, the
   contact points and impulses of the last step (warm start), the regulators' pressures, time.
-* :class:`~softcrawl.jaxsim.engine.Control`: the regulator commands, real kPa ``(3,)``.
+* :class:`~softcrawl.jaxsim.engine.Control`: the regulator commands, real kPa ``(R,)`` (one per regulator of the
+  design space).
 
 :func:`~softcrawl.jaxsim.engine.step` advances one robot one ``dt``;
 :func:`~softcrawl.jaxsim.engine.make_rollout` gives the jitted, vmapped rollout of a batch for one

@@ -45,7 +45,7 @@ class State:
         x, v: ``(n, 3)`` disk node positions (mm) and velocities (mm/s).
         contact_points: ``(K,)`` last step's contact points (index into the disk's collision
             nodes, then each leg slot's); impulses: ``(K, 3)`` their impulses, mN s.
-        pressure: ``(3,)`` regulator outputs, real kPa; t: time, s.
+        pressure: ``(R,)`` regulator outputs, real kPa (``R = settings.channels``); t: time, s.
         bad: inverted or degenerate RID elements met so far (0 for a valid rollout).
     """
 
@@ -62,7 +62,7 @@ class State:
 
 @dataclass(frozen=True)
 class Control:
-    """Regulator commands, real kPa: ``command`` ``(3,)`` (a leading batch axis when batched)."""
+    """Regulator commands, real kPa: ``command`` ``(R,)`` (a leading batch axis when batched)."""
 
     command: jax.Array
 
@@ -83,13 +83,14 @@ def rest_state(model) -> State:
     K = n_contacts(model.settings, L)
     dt = model.disk.rest.dtype
     x = jnp.broadcast_to(model.disk.rest, (B,) + model.disk.rest.shape)
+    R = model.settings.channels
     return State(jnp.zeros((B, L, m), dt), jnp.zeros((B, L, m), dt), x, jnp.zeros_like(x),
-                 jnp.full((B, K), -1, jnp.int32), jnp.zeros((B, K, 3), dt), jnp.zeros((B, 3), dt),
+                 jnp.full((B, K), -1, jnp.int32), jnp.zeros((B, K, 3), dt), jnp.zeros((B, R), dt),
                  jnp.zeros((B,), dt), jnp.zeros((B,), jnp.int32))
 
 
 def sim_pressures(model, pressure):
-    """``(3,)`` sim kPa of regulator outputs ``pressure`` (real kPa): ``max(a p + b, 0)`` (physics.md)."""
+    """``(R,)`` sim kPa of regulator outputs ``pressure`` (real kPa): ``max(a p + b, 0)`` (physics.md)."""
     a, b = model.settings.calibration
     return jnp.maximum(a * pressure + b, 0.0)
 
@@ -194,7 +195,7 @@ def _contact_rows(model, idx, gap, v_free, R, att_nodes, att_weights):
 
 
 def physics_step(model, state: State, sim_kpa) -> State:
-    """One ``dt`` of one robot at cavity pressures ``sim_kpa`` ``(3,)`` (sim kPa per regulator);
+    """One ``dt`` of one robot at cavity pressures ``sim_kpa`` ``(R,)`` (sim kPa per regulator);
     the regulators are not stepped (module doc, steps 2-4)."""
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
     h = st.dt
@@ -267,7 +268,7 @@ def make_settle(rest_speed: float = 0.5, hold_steps: int = 5, max_steps: int = 3
 
     def one(model, rd, state):
         mdl = dataclasses.replace(model, robot=rd)
-        zero = jnp.zeros(3, state.x.dtype)
+        zero = jnp.zeros(model.settings.channels, state.x.dtype)
 
         def cond(c):
             return (c[2] < max_steps) & (c[1] < hold_steps)
@@ -291,7 +292,7 @@ def make_rollout(n_steps: int, physics_only: bool = False):
     """A jitted ``rollout(model, state, control) -> state`` that holds each robot's control for
     ``n_steps`` steps (``jax.lax.scan``), ``jax.vmap`` ped over the batch (the model's per-robot
     data, the states and the controls carry a leading batch axis; the parts are shared).
-    ``physics_only``: ``control`` is ``(B, 3)`` sim kPa for :func:`physics_step` (no regulators)."""
+    ``physics_only``: ``control`` is ``(B, R)`` sim kPa for :func:`physics_step` (no regulators)."""
 
     def one(model, rd, state, control):
         mdl = dataclasses.replace(model, robot=rd)
@@ -317,7 +318,7 @@ def make_schedule_rollout(physics_only: bool = False, trace: bool = False):
     Args:
         physics_only: ``schedule`` holds sim kPa per channel for :func:`physics_step` (no
             regulators; any number of channels ``c``) instead of real kPa regulator commands
-            ``(c = 3)`` for :func:`step`.
+            (``c = R``, the model's ``settings.channels``) for :func:`step`.
         trace: also return every step's legs' modal displacements and disk positions.
 
     The returned function takes ``schedule`` ``(B, n, c)`` (command of step ``k`` in row ``k``)

@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from softcrawl.design.space import Design, canonicalize
+from softcrawl.design.space import DEFAULT_SPACE, Design
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.fem.solver import SolverSettings
 from softcrawl.gaits.pressure import check_pressures
 from softcrawl.jaxsim.batch import padded_size, robot_rows, stack_padded, take
@@ -53,7 +54,7 @@ def episode_steps(duration: float, dt: float) -> int:
 
 
 def gait_commands(gait, n_steps: int, dt: float) -> np.ndarray:
-    """``(n_steps, 3)`` real kPa: row ``k`` is ``gait.pressure_at(k dt)``, what
+    """``(n_steps, R)`` real kPa: row ``k`` is ``gait.pressure_at(k dt)``, what
     :func:`softcrawl.robot.run_episode` commands at step ``k``.
 
     Raises:
@@ -99,6 +100,9 @@ class JaxEvaluator:
         diverged_cm: the score of a diverged episode
             (:data:`softcrawl.codesign.groundtruth.DIVERGED_CM`).
         leg_contacts, disk_contacts, sweeps: the contact solve (:func:`build_model`).
+        space: the design space of the designs (their slots, regulators and parts; built with
+            ``build_robot(design, config, space=space)``, so ``config`` is that space's,
+            :meth:`~softcrawl.robot.RobotConfig.for_space`).
 
     Attributes:
         settles: designs settled so far (each once); episodes, sim_seconds: episodes run and
@@ -112,7 +116,7 @@ class JaxEvaluator:
     def __init__(self, config: RobotConfig, precision: str = "float32", settling: Settling = Settling(),
                  calibration: PressureCalibration = PressureCalibration(), rate_kpa_s: float = 150.0,
                  max_batch: int = 64, diverged_cm: float = -100.0, leg_contacts: int = 12,
-                 disk_contacts: int = 8, sweeps: int = 100):
+                 disk_contacts: int = 8, sweeps: int = 100, space: DesignSpace = DEFAULT_SPACE):
         if config.model != "reduced" or config.reduced_disk != "floating":
             raise ValueError("the JAX engine steps reduced robots with a floating disk "
                              f"(RobotConfig(model='reduced')), got model={config.model!r}, "
@@ -120,7 +124,7 @@ class JaxEvaluator:
         dtype = engine_dtype(precision)
         if max_batch < 1 or max_batch & (max_batch - 1):
             raise ValueError(f"max_batch must be a power of two, got {max_batch}")
-        self.config, self.precision, self.settling = config, precision, settling
+        self.config, self.precision, self.settling, self.space = config, precision, settling, space
         self.max_batch, self.diverged_cm = int(max_batch), float(diverged_cm)
         self._model_kw = dict(leg_contacts=leg_contacts, disk_contacts=disk_contacts, sweeps=sweeps,
                               dtype=dtype, calibration=calibration, rate_kpa_s=rate_kpa_s)
@@ -135,7 +139,7 @@ class JaxEvaluator:
     def settled(self, design) -> SettledDesign:
         """The cached :class:`SettledDesign` of ``design`` (settled now if new)."""
         self.prepare([design])
-        return self._designs[canonicalize(design)]
+        return self._designs[self.space.canonicalize(design)]
 
     def _model(self, rows) -> Model:
         return dataclasses.replace(self._parts, robot=rows)
@@ -148,10 +152,10 @@ class JaxEvaluator:
         """
         _, cap = self.settling.steps(self.config.dt)
         new: dict[int, list] = {}
-        for d in dict.fromkeys(canonicalize(d) for d in designs):
+        for d in dict.fromkeys(self.space.canonicalize(d) for d in designs):
             if d in self._designs:
                 continue
-            robot = build_robot(d, self.config)
+            robot = build_robot(d, self.config, space=self.space)
             if self._parts is None:  # the shared parts, built once
                 self._parts = dataclasses.replace(build_model([robot], **self._model_kw), robot=None)
                 self._inverse = disk_inverse(robot)
@@ -175,22 +179,28 @@ class JaxEvaluator:
         """``(reward_cm, diverged)`` of each ``(design, gait, duration)`` request, in order.
 
         Args:
-            requests: designs (8 slot values or a string), gaits (``pressure_at(t) -> (3,)``
-                real kPa) and episode lengths (s, rounded to whole steps of ``config.dt``).
+            requests: designs (one value per slot of the space, or a string), gaits
+                (``pressure_at(t) -> (R,)`` real kPa, ``R`` the space's regulators) and episode
+                lengths (s, rounded to whole steps of ``config.dt``).
 
         Returns:
             Per request the +x crawl of the disk's top centre, cm, and whether the episode
             diverged (its reward then ``diverged_cm``).
 
         Raises:
-            InvalidDesignError: an invalid design. ValueError: a duration under one step.
-            PressureRangeError: a gait commands a pressure outside [0, 90] kPa. All are raised
-            before anything is simulated.
+            InvalidDesignError: an invalid design. ValueError: a duration under one step, a gait
+                that does not command ``R`` pressures. PressureRangeError: a gait commands a
+                pressure outside [0, 90] kPa. All are raised before anything is simulated.
         """
         dt = self.config.dt
-        designs = [canonicalize(d) for d, _, _ in requests]
+        designs = [self.space.canonicalize(d) for d, _, _ in requests]
         steps = [episode_steps(float(T), dt) for _, _, T in requests]
         commands = [gait_commands(g, n, dt) for (_, g, _), n in zip(requests, steps)]
+        n_reg = self.space.n_regulators
+        for (_, g, _), c in zip(requests, commands):
+            if c.shape[1] != n_reg:
+                raise ValueError(f"gait {g!r} commands {c.shape[1]} pressures; the space {self.space.name!r} has "
+                                 f"{n_reg} regulators")
         self.prepare(designs)
         groups: dict[tuple[int, int], list[int]] = {}
         for i, (d, n) in enumerate(zip(designs, steps)):

@@ -117,7 +117,7 @@ class RobotData:
 
     Attributes:
         leg_mask: ``(L,)`` bool; rotation: ``(L, 3, 3)`` part -> world; translation: ``(L, 3)``, mm;
-        channel: ``(L,)`` regulator channel 0..2 of each leg.
+        channel: ``(L,)`` regulator channel ``0..R-1`` of each leg.
         disk_nodes, disk_weights: ``(L, F, 4)`` the disk side of each attachment point.
         att_gram: ``(L F, L F, 3, 3)`` ``E^T A_0^-1 E`` of the attachment points (body frame).
     """
@@ -140,7 +140,9 @@ class Settings:
         floor: whether there is a floor; floor_z, contact_distance: mm; friction: Coulomb mu;
         disk_contacts, leg_contacts: contact points of the disk and of each leg slot per step
             (each body's lowest predicted gaps); sweeps: Gauss-Seidel sweeps;
-        calibration: ``(a, b)`` of ``sim = max(a real + b, 0)``; rate: regulator slew, kPa/s.
+        calibration: ``(a, b)`` of ``sim = max(a real + b, 0)``; rate: regulator slew, kPa/s;
+        channels: ``R``, the pressure channels (regulators of the robots' design space; 3 in the
+            paper's): the length of every robot's regulator pressures.
     """
 
     dt: float
@@ -156,6 +158,7 @@ class Settings:
     sweeps: int
     calibration: tuple
     rate: float
+    channels: int = 3
 
 
 @dataclass(frozen=True)
@@ -261,7 +264,8 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
 
     Args:
         robots: reduced :class:`~softcrawl.robot.Robot` s (``RobotConfig(model="reduced")``, floating
-            disk) sharing one leg reduction, disk mesh and config.
+            disk) sharing one leg reduction, disk mesh, config and pressure channels (the
+            regulators of their design space), of any slot angles.
         leg_contacts, disk_contacts: floor contact points kept per leg and for the disk each step
             (each body's lowest predicted gaps).
         sweeps: Gauss-Seidel sweeps of each contact solve.
@@ -290,6 +294,9 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
                 or r.config != first.config or [nd.tobytes() + w.tobytes() for nd, w in _patches(r)] != key
                 or not np.array_equal(r.model.bodies[r.disk_body].mesh.points, disk.rest)):
             raise ValueError("robots of one JAX model must share the leg reduction, disk, attachments and config")
+        if r.model.n_channels != first.model.n_channels:
+            raise ValueError(f"robots of one JAX model must share their regulators, got {first.model.n_channels} "
+                             f"and {r.model.n_channels} pressure channels")
     if L < max(len(r.legs) for r in robots):
         raise ValueError(f"n_slots={L} is fewer than a robot's legs")
     data = [_robot_data(r, L, disk.inverse) for r in robots]
@@ -300,7 +307,7 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
                         tuple(float(g) for g in mdl.gravity), bool(floor and mdl.floor is not None),
                         float(mdl.floor.height), float(mdl.floor.contact_distance), float(mdl.floor.friction),
                         int(disk_contacts), int(leg_contacts), int(sweeps), (float(cal.a), float(cal.b)),
-                        float(rate_kpa_s))
+                        float(rate_kpa_s), int(mdl.n_channels))
     if dtype is None:
         dtype = jnp.asarray(0.0).dtype  # float64 under jax_enable_x64, else float32
 

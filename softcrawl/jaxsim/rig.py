@@ -34,9 +34,9 @@ class Rig:
     """Each robot's regulators and warp (a leading batch axis on every field when batched).
 
     Attributes:
-        gain: ``(3,)`` gain on each regulator's output (nominal 1).
-        offset: ``(3,)`` offset added to it, real kPa (nominal 0).
-        tau_inflate, tau_vent: ``(3,)`` first-order lags, s (0: none).
+        gain: ``(R,)`` gain on each regulator's output (nominal 1).
+        offset: ``(R,)`` offset added to it, real kPa (nominal 0).
+        tau_inflate, tau_vent: ``(R,)`` first-order lags, s (0: none).
     """
 
     gain: jax.Array
@@ -49,7 +49,7 @@ register_pytree(Rig)
 
 
 def regulator_step(settings, rig: Rig, pressure, command):
-    """Regulator outputs ``(3,)`` real kPa after one ``settings.dt`` towards ``command`` ``(3,)``
+    """Regulator outputs ``(R,)`` real kPa after one ``settings.dt`` towards ``command`` ``(R,)``
     from ``pressure`` (module doc; the model's slew rate ``settings.rate`` kPa/s)."""
     tau = jnp.where(command > pressure, rig.tau_inflate, rig.tau_vent)
     lagged = tau > 0
@@ -59,7 +59,7 @@ def regulator_step(settings, rig: Rig, pressure, command):
 
 
 def rig_pressures(settings, rig: Rig, pressure):
-    """Sim kPa ``(3,)`` of regulator outputs ``pressure`` ``(3,)`` real kPa (module doc)."""
+    """Sim kPa ``(R,)`` of regulator outputs ``pressure`` ``(R,)`` real kPa (module doc)."""
     a, b = settings.calibration
     return jnp.maximum(a * jnp.maximum(rig.gain * pressure + rig.offset, 0.0) + b, 0.0)
 
@@ -73,7 +73,7 @@ def healthy(state) -> jax.Array:
 
 def make_action_rollout(n_steps: int):
     """A jitted ``rollout(model, rig, state, command, steps) -> (state, diverged)`` for a batch:
-    robot ``b`` holds ``command[b]`` ``(3,)`` (real kPa) for ``steps[b]`` (<= ``n_steps``) steps
+    robot ``b`` holds ``command[b]`` ``(R,)`` (real kPa) for ``steps[b]`` (<= ``n_steps``) steps
     of its own regulators (:func:`regulator_step`, :func:`rig_pressures`) and
     :func:`~softcrawl.jaxsim.engine.physics_step`, then waits; a robot whose step gives an
     invalid state (:func:`healthy`) keeps its last valid state and waits too, flagged in

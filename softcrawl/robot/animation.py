@@ -4,7 +4,7 @@
 body's tet mesh, :func:`robot_surface`) at up to :data:`MAX_FRAMES` of the episode's recorded
 frames, evenly spaced in time, and plays them at :data:`FPS` (a 20 s episode recorded every
 0.2 s becomes a 5 s time-lapse). Each frame: the disk grey, each leg in its regulator's colour
-(:data:`softcrawl.design.picture.REGULATOR_COLOURS`) from pale at 0 kPa to full at
+(:func:`softcrawl.design.picture.regulator_colour`) from pale at 0 kPa to full at
 :data:`~softcrawl.gaits.pressure.P_MAX_KPA` (the applied pressure of that regulator at the
 frame's time), flat-shaded by a fixed light; a 20 mm floor grid at ``z = 0`` fixed in the world,
 so forward motion shows against it; an orthographic 3/4 view from the front right (elevation
@@ -28,7 +28,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
-from softcrawl.design.picture import REGULATOR_COLOURS
+from softcrawl.design.picture import regulator_colour
 from softcrawl.gaits.pressure import P_MAX_KPA
 from softcrawl.geometry.mesh import boundary_triangles
 from softcrawl.robot.assembly import Robot
@@ -55,7 +55,8 @@ class RobotSurface:
     Attributes:
         triangles: ``(k, 3)`` int64 global node indices, outward normals
             (``(x1 - x0) x (x2 - x0)``).
-        regulator: ``(k,)`` int64: the regulator (1..3) driving the triangle's leg, 0 for the disk.
+        regulator: ``(k,)`` int64: the regulator (1..R of the robot's space) driving the
+            triangle's leg, 0 for the disk.
     """
 
     triangles: np.ndarray
@@ -135,8 +136,7 @@ class _Renderer:
         e, a = np.radians(ELEVATION_DEG), np.radians(AZIMUTH_DEG)
         self.eye = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
         self.light = _unit(self.eye + np.array([-0.4, 0.2, 1.2]))
-        base = {0: DISK_COLOUR, **REGULATOR_COLOURS}
-        self.base = np.array([to_rgb(base.get(int(r), DISK_COLOUR)) for r in surface.regulator])
+        self.base = np.array([to_rgb(regulator_colour(int(r)) if r else DISK_COLOUR) for r in surface.regulator])
         self.is_leg = surface.regulator > 0
 
         dpi = 100
@@ -155,7 +155,7 @@ class _Renderer:
         font = dict(ha="left", va="top", family="monospace", fontsize=max(5.0, 9.0 * size[1] / SIZE[1]))
         self.caption = self.fig.text(0.02, 0.97, "", **font)
         # one label per used regulator, in its legs' colour
-        self.labels = {k: self.fig.text(0.02 + 0.3 * j, 0.90, "", color=REGULATOR_COLOURS[k], **font)
+        self.labels = {k: self.fig.text(0.02 + 0.3 * j, 0.90, "", color=regulator_colour(k), **font)
                        for j, k in enumerate(regulators)}
 
     def _grid(self, cx: float, cy: float) -> np.ndarray:
@@ -167,8 +167,8 @@ class _Renderer:
         return np.array(lx + ly)
 
     def draw(self, x: np.ndarray, pressure_kpa: np.ndarray, caption: str) -> np.ndarray:
-        """Render one frame: ``x`` ``(N, 3)`` mm, ``pressure_kpa`` ``(3,)`` applied real kPa
-        (regulators 1..3), ``caption`` above the pressures; returns the ``(height, width, 3)``
+        """Render one frame: ``x`` ``(N, 3)`` mm, ``pressure_kpa`` ``(R,)`` applied real kPa
+        (regulators 1..R), ``caption`` above the pressures; returns the ``(height, width, 3)``
         uint8 image."""
         cx, cy = x[self.disk, :2].mean(axis=0) + self.offset
         r = self.radius
@@ -201,7 +201,7 @@ def write_animation(path: str | os.PathLike, robot: Robot, result: EpisodeResult
             :func:`softcrawl.robot.output.write_results`).
         robot: the robot the episode ran (its meshes give the surface).
         result: the episode; ``result.frames`` ``(k, N, 3)`` mm at ``result.frame_times`` ``(k,)``
-            s; ``result.applied`` ``(n + 1, 3)`` real kPa at ``result.time`` colours the legs.
+            s; ``result.applied`` ``(n + 1, R)`` real kPa at ``result.time`` colours the legs.
         fps: frames per second of the GIF, in (0, 100].
         max_frames: most frames drawn (>= 1); more recorded frames are subsampled evenly.
         size: ``(width, height)`` pixels, integers in [64, 4096].

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from softcrawl.design.space import DEFAULT_SPACE, N_REGULATORS, Design
+from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace, Material
 from softcrawl.fem.body import Body, Cavity, Membrane
 from softcrawl.fem.materials import DRAGONSKIN_30, PAPER, PRINTED_POLYMER, LinearElastic
@@ -211,7 +211,7 @@ class LegSlot:
         body: index of the leg's body in the model.
         slot: slot index (0..7 in the paper's space).
         angle_deg: slot angle about +z from +x, degrees.
-        regulator: pressure regulator driving the leg (1..3 in a design; ``channel + 1``).
+        regulator: pressure regulator driving the leg (1..R of the space; ``channel + 1``).
         channel: model pressure channel (``regulator - 1``).
         rotation: ``(3, 3)`` rotation placing the leg-local frame in the world
             (``R_z(angle) R_y(tilt)``, see :func:`leg_transform`).
@@ -261,11 +261,16 @@ class Robot:
         """Regulator (1..R) -> model pressure channel (``regulator - 1``), every regulator of the space."""
         return {k: k - 1 for k in range(1, self.space.n_regulators + 1)}
 
-    @staticmethod
-    def channel_of(regulator: int) -> int:
-        """Model channel of regulator ``k`` (1..3): ``k - 1``. Raises ValueError otherwise."""
-        if not 1 <= regulator <= N_REGULATORS:
-            raise ValueError(f"regulator must be in 1..{N_REGULATORS}, got {regulator}")
+    def channel_of(self, regulator: int) -> int:
+        """Model channel of regulator ``k`` (1..R of the robot's space): ``k - 1``.
+
+        Raises:
+            ValueError: ``k`` outside 1..R.
+        """
+        n = self.space.n_regulators
+        if not 1 <= regulator <= n:
+            raise ValueError(f"regulator must be in 1..{n} (the regulators of the space {self.space.name!r}), "
+                             f"got {regulator}")
         return regulator - 1
 
     def control(self, sim_kpa: np.ndarray) -> Control:
@@ -273,7 +278,7 @@ class Robot:
 
         Args:
             sim_kpa: ``(n_channels,)`` sim gauge pressures, kPa (after the real-to-sim
-                calibration): regulators 1..3 of a design. Unused regulators have no effect.
+                calibration): regulators 1..R of the space. Unused regulators have no effect.
 
         Returns:
             A ``Control`` with ``model.n_channels`` pressures (channel = regulator - 1).

@@ -13,7 +13,8 @@ kPa, lags s):
   vol. 1, eq. 6.13 and 4.14), so every element stiffness is ``s`` times the nominal one.
 - ``mass_scale``: every body's mass times ``m`` (legs and disk; lumped masses, gravity loads and
   the Rayleigh mass damping follow).
-- ``pressure_gain``, ``pressure_offset``: per regulator ``k``, the pressure reaching the legs is
+- ``pressure_gain``, ``pressure_offset``: per regulator ``k`` (one value per regulator of the
+  design space: ``R`` draws, 3 in the paper's space), the pressure reaching the legs is
   ``max(g_k p_k + o_k, 0)`` real kPa for the regulator output ``p_k`` (the steady-state model
   ``gain * command + offset`` of :mod:`softcrawl.hardware.regulator_model`), then the pressure
   warp of the paper (Sec. "Sim-to-real"): sim kPa ``= max(a (g_k p_k + o_k) + b, 0)``, i.e. the
@@ -53,7 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softcrawl.design.space import N_REGULATORS
+from softcrawl.design.space import DEFAULT_SPACE
 from softcrawl.fem.body import Body
 from softcrawl.fem.materials import LinearElastic
 from softcrawl.robot.actuation import PressureCalibration, RegulatorBank
@@ -94,6 +95,8 @@ RIG_RANGES: dict[str, tuple[float, float]] = {
     "tau_vent": (0.264, 0.691),
     "control_period": (1.062, 1.070),
 }
+#: Regulators of the paper's design space: the default count of per-regulator draws and columns.
+PAPER_REGULATORS = DEFAULT_SPACE.n_regulators
 
 
 def _check_value(key: str, v: float, what: str) -> None:
@@ -164,21 +167,29 @@ class DomainRanges:
         """The randomized keys, in draw order."""
         return tuple(k for k in KEYS if getattr(self, k) is not None)
 
-    def columns(self) -> tuple[str, ...]:
-        """CSV column names of the samples of these ranges (:meth:`DomainSample.columns`)."""
-        return tuple(_column_names(self.keys()))
+    def columns(self, n_regulators: int = PAPER_REGULATORS) -> tuple[str, ...]:
+        """CSV column names of the samples of these ranges (:meth:`DomainSample.columns`) for
+        a space of ``n_regulators`` regulators."""
+        return tuple(_column_names(self.keys(), n_regulators))
 
-    def draw(self, rng: np.random.Generator) -> DomainSample | None:
+    def draw(self, rng: np.random.Generator, n_regulators: int = PAPER_REGULATORS) -> DomainSample | None:
         """One :class:`DomainSample`: ``rng.uniform(low, high)`` for each randomized key in
-        :data:`KEYS` order (3 draws for a per-regulator key); None if nothing is randomized (no
-        draw at all, so the RNG's stream is that of an env without randomization)."""
+        :data:`KEYS` order (``n_regulators`` draws for a per-regulator key: one per regulator of
+        the design space, 3 in the paper's); None if nothing is randomized (no draw at all, so
+        the RNG's stream is that of an env without randomization).
+
+        Raises:
+            ValueError: ``n_regulators < 1``.
+        """
+        if int(n_regulators) != n_regulators or n_regulators < 1:
+            raise ValueError(f"n_regulators must be a positive integer, got {n_regulators!r}")
         if not self.enabled:
             return None
         out = {}
         for key in self.keys():
             lo, hi = getattr(self, key)
             if KEYS[key][2]:
-                out[key] = tuple(float(v) for v in rng.uniform(lo, hi, N_REGULATORS))
+                out[key] = tuple(float(v) for v in rng.uniform(lo, hi, int(n_regulators)))
             else:
                 out[key] = float(rng.uniform(lo, hi))
         return DomainSample(**out)
@@ -212,48 +223,72 @@ class DomainRanges:
         raise ValueError(f"unknown {CONFIG_PREFIX.rstrip('.')} preset {name!r}; choose one of {PRESETS}")
 
 
-def _column_names(keys) -> list[str]:
+def _column_names(keys, n_regulators: int) -> list[str]:
     cols = []
     for key in keys:
         unit, per_reg = KEYS[key][3], KEYS[key][2]
-        cols += [f"{key}_{k}{unit}" for k in range(1, N_REGULATORS + 1)] if per_reg else [f"{key}{unit}"]
+        cols += [f"{key}_{k}{unit}" for k in range(1, int(n_regulators) + 1)] if per_reg else [f"{key}{unit}"]
     return cols
 
 
 @dataclass(frozen=True)
 class DomainSample:
     """One episode's randomized quantities (module docstring; None: nominal). Per-regulator
-    values are ``(3,)`` tuples (regulators 1..3; a single number is repeated).
+    values are ``(R,)`` tuples, one per regulator of the design space (regulators 1..R; the
+    same ``R >= 1`` for every per-regulator key); a single number is repeated ``R`` times, ``R``
+    being that of the key given as a sequence, else the paper's 3 (:data:`PAPER_REGULATORS`).
+    Whether ``R`` is the space's is checked where the sample meets the space
+    (:meth:`check_regulators`, called by :meth:`calibration` and :meth:`regulators`).
 
     Raises:
-        ValueError: a value outside its key's bounds (:data:`KEYS`) or not finite.
+        ValueError: a value outside its key's bounds (:data:`KEYS`) or not finite; per-regulator
+            keys of different lengths, or an empty one.
     """
 
     friction: float | None = None
     youngs_scale: float | None = None
     mass_scale: float | None = None
-    pressure_gain: tuple[float, float, float] | None = None
-    pressure_offset: tuple[float, float, float] | None = None
-    tau_inflate: tuple[float, float, float] | None = None
-    tau_vent: tuple[float, float, float] | None = None
+    pressure_gain: tuple[float, ...] | None = None
+    pressure_offset: tuple[float, ...] | None = None
+    tau_inflate: tuple[float, ...] | None = None
+    tau_vent: tuple[float, ...] | None = None
     control_period: float | None = None
 
     def __post_init__(self) -> None:
+        given = {key: np.asarray(v, dtype=float) for key, (_, _, per_reg, _) in KEYS.items()
+                 if per_reg and (v := getattr(self, key)) is not None and np.ndim(v) != 0}
+        lengths = {a.shape[0] if a.ndim == 1 else 0 for a in given.values()}
+        if len(lengths) > 1 or 0 in lengths:
+            raise ValueError(f"{CONFIG_PREFIX}{'/'.join(given)}: need one value per regulator, the same number for "
+                             f"each, got {', '.join(f'{k}={getattr(self, k)!r}' for k in given)}")
+        n = lengths.pop() if lengths else PAPER_REGULATORS
         for key, (_, _, per_reg, _) in KEYS.items():
             v = getattr(self, key)
             if v is None:
                 continue
             if per_reg:
-                arr = np.broadcast_to(np.asarray(v, dtype=float), (N_REGULATORS,)) if np.ndim(v) == 0 \
-                    else np.asarray(v, dtype=float)
-                if arr.shape != (N_REGULATORS,):
-                    raise ValueError(f"{CONFIG_PREFIX}{key}: need {N_REGULATORS} values (one per regulator), got {v!r}")
+                arr = given.get(key)
+                arr = np.full(n, float(v)) if arr is None else arr
                 for x in arr:
                     _check_value(key, float(x), "value")
                 object.__setattr__(self, key, tuple(float(x) for x in arr))
             else:
                 _check_value(key, float(v), "value")
                 object.__setattr__(self, key, float(v))
+
+    @property
+    def n_regulators(self) -> int | None:
+        """``R``, the length of the per-regulator values (None: none is set)."""
+        return next((len(v) for k in KEYS if KEYS[k][2] and (v := getattr(self, k)) is not None), None)
+
+    def check_regulators(self, n_regulators: int) -> None:
+        """Raise ValueError (one line naming the key) unless every per-regulator value has one
+        entry per regulator of a space of ``n_regulators`` regulators."""
+        for key in KEYS:
+            v = getattr(self, key)
+            if KEYS[key][2] and v is not None and len(v) != n_regulators:
+                raise ValueError(f"{CONFIG_PREFIX}{key}: need {n_regulators} values (one per regulator of the "
+                                 f"design space), got {list(v)!r}")
 
     @property
     def physical(self) -> bool:
@@ -272,7 +307,7 @@ class DomainSample:
         for k in keys:
             v = getattr(self, k)
             values += list(v) if isinstance(v, tuple) else [v]
-        return dict(zip(_column_names(keys), values))
+        return dict(zip(_column_names(keys, self.n_regulators or PAPER_REGULATORS), values))
 
     # -- applying it ------------------------------------------------------------------------
     def apply(self, robot: Robot) -> Robot:
@@ -282,21 +317,34 @@ class DomainSample:
             return robot
         return randomized_robot(robot, self.friction, self.youngs_scale, self.mass_scale)
 
-    def calibration(self, base: PressureCalibration) -> PressureCalibration | RegulatorWarp:
-        """The real-to-sim pressure map of the episode: ``base`` itself, or ``base`` after the
-        per-regulator gains and offsets (:class:`RegulatorWarp`)."""
+    def calibration(self, base: PressureCalibration,
+                    n_regulators: int = PAPER_REGULATORS) -> PressureCalibration | RegulatorWarp:
+        """The real-to-sim pressure map of the episode on a space of ``n_regulators``
+        regulators: ``base`` itself, or ``base`` after the per-regulator gains and offsets
+        (:class:`RegulatorWarp`).
+
+        Raises:
+            ValueError: per-regulator values of another length (:meth:`check_regulators`).
+        """
+        self.check_regulators(n_regulators)
         if self.pressure_gain is None and self.pressure_offset is None:
             return base
-        return RegulatorWarp(base, self.pressure_gain or (1.0,) * N_REGULATORS,
-                             self.pressure_offset or (0.0,) * N_REGULATORS)
+        return RegulatorWarp(base, self.pressure_gain or (1.0,) * n_regulators,
+                             self.pressure_offset or (0.0,) * n_regulators)
 
-    def regulators(self, rate_kpa_s: float = 150.0) -> RegulatorBank:
-        """The episode's regulators: the nominal slew-limited :class:`RegulatorBank`, or a
-        :class:`LaggedRegulatorBank` when a lag is set (an unset lag is 0)."""
+    def regulators(self, rate_kpa_s: float = 150.0, n_regulators: int = PAPER_REGULATORS) -> RegulatorBank:
+        """The episode's ``n_regulators`` regulators: the nominal slew-limited
+        :class:`RegulatorBank`, or a :class:`LaggedRegulatorBank` when a lag is set (an unset
+        lag is 0).
+
+        Raises:
+            ValueError: per-regulator values of another length (:meth:`check_regulators`).
+        """
+        self.check_regulators(n_regulators)
         if self.tau_inflate is None and self.tau_vent is None:
-            return RegulatorBank(N_REGULATORS, rate_kpa_s)
-        zero = (0.0,) * N_REGULATORS
-        return LaggedRegulatorBank(N_REGULATORS, rate_kpa_s, self.tau_inflate or zero, self.tau_vent or zero)
+            return RegulatorBank(n_regulators, rate_kpa_s)
+        zero = (0.0,) * n_regulators
+        return LaggedRegulatorBank(n_regulators, rate_kpa_s, self.tau_inflate or zero, self.tau_vent or zero)
 
     def action_steps(self, nominal: int, k: int) -> int:
         """Simulator steps of action ``k`` (0-based) when every action nominally takes
@@ -372,19 +420,19 @@ def randomized_robot(robot: Robot, friction: float | None = None, youngs_scale: 
 class RegulatorWarp:
     """Real-to-sim pressure map with per-regulator gain and offset before the pressure warp:
     sim kPa ``= base.to_sim(max(gain_k p_k + offset_k, 0))`` for the regulator outputs ``p``
-    (real kPa, last axis = regulators 1..3), i.e. ``max(a (g p + o) + b, 0)`` with the base
+    (real kPa, last axis = regulators 1..R), i.e. ``max(a (g p + o) + b, 0)`` with the base
     warp's ``a, b`` (:class:`~softcrawl.robot.actuation.PressureCalibration`).
 
     Attributes:
-        base: the nominal warp. gain: ``(3,)``. offset: ``(3,)`` real kPa.
+        base: the nominal warp. gain: ``(R,)``. offset: ``(R,)`` real kPa.
     """
 
     base: PressureCalibration
-    gain: tuple[float, float, float]
-    offset: tuple[float, float, float]
+    gain: tuple[float, ...]
+    offset: tuple[float, ...]
 
     def to_sim(self, real_kpa):
-        """Sim kPa for real regulator outputs ``real_kpa`` ``(..., 3)`` (an array of that shape)."""
+        """Sim kPa for real regulator outputs ``real_kpa`` ``(..., R)`` (an array of that shape)."""
         real = np.maximum(np.asarray(self.gain) * np.asarray(real_kpa, dtype=float) + np.asarray(self.offset), 0.0)
         return self.base.to_sim(real)
 
@@ -436,5 +484,5 @@ class LaggedRegulatorBank(RegulatorBank):
         return self.state.copy()
 
 
-__all__ = ["KEYS", "PHYSICAL_KEYS", "DomainRanges", "DomainSample", "LaggedRegulatorBank", "RegulatorWarp",
-           "randomized_robot", "scaled_body"]
+__all__ = ["KEYS", "PAPER_REGULATORS", "PHYSICAL_KEYS", "DomainRanges", "DomainSample", "LaggedRegulatorBank",
+           "RegulatorWarp", "randomized_robot", "scaled_body"]

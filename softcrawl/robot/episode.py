@@ -13,7 +13,8 @@ pose to the end of the episode. The settled state depends on the robot only, so 
 run many episodes of one design keep it (:class:`Episode` takes a cached
 :class:`SettledState`) and every episode starts from it with a fresh solver.
 
-Gaits are duck-typed (anything with ``pressure_at(t) -> (3,)`` real kPa), so this module
+Gaits are duck-typed (anything with ``pressure_at(t) -> (R,)`` real kPa for the robot's ``R``
+regulators, ``robot.model.n_channels``; 3 in the paper's space), so this module
 does not import :mod:`softcrawl.gaits` (which imports :mod:`softcrawl.robot`).
 """
 
@@ -232,7 +233,8 @@ class EpisodeResult:
     Attributes:
         time: ``(n + 1,)`` s.
         position: ``(n + 1, 3)`` disk top-centre position, mm.
-        commanded, applied: ``(n + 1, 3)`` regulator pressures, real kPa.
+        commanded, applied: ``(n + 1, R)`` regulator pressures, real kPa (``R`` regulators of
+            the robot's space).
         contacts: ``(n + 1,)`` active floor contacts.
         contact_sweeps: ``(n + 1,)`` Gauss-Seidel sweeps of the contact solve.
         factorizations: total matrix factorizations of the episode steps.
@@ -279,8 +281,9 @@ def run_episode(robot: Robot, gait, duration: float = 20.0,
 
     Args:
         robot: the assembled robot.
-        gait: object with ``pressure_at(t) -> (3,)`` commanded real kPa (regulators 1..3),
-            queried at the start ``t = k * dt`` of each step ``k``.
+        gait: object with ``pressure_at(t) -> (R,)`` commanded real kPa (regulators 1..R of
+            the robot's space, ``R = robot.model.n_channels``), queried at the start
+            ``t = k * dt`` of each step ``k``.
         duration: episode length, s (rounded to whole steps of ``robot.config.dt``).
         calibration: real-to-sim pressure map.
         settling: the rest rule before the episode (not counted; :func:`settle`).
@@ -295,7 +298,7 @@ def run_episode(robot: Robot, gait, duration: float = 20.0,
         caught: ``diverged=True``, ``reason`` set, arrays truncated at the last valid state.
 
     Raises:
-        ValueError: non-positive duration or record_every.
+        ValueError: non-positive duration or record_every; a gait command that is not ``(R,)``.
         PressureRangeError: if the gait commands a pressure outside [0, 90] kPa.
     """
     dt = robot.config.dt
@@ -305,7 +308,8 @@ def run_episode(robot: Robot, gait, duration: float = 20.0,
     if record_every is not None and record_every < 1:
         raise ValueError(f"record_every must be >= 1 or None, got {record_every}")
     ep = Episode(robot, calibration, settling, settled=settled)
-    pos, cmd, app = np.zeros((n + 1, 3)), np.zeros((n + 1, 3)), np.zeros((n + 1, 3))
+    n_reg = robot.model.n_channels
+    pos, cmd, app = np.zeros((n + 1, 3)), np.zeros((n + 1, n_reg)), np.zeros((n + 1, n_reg))
     contacts, sweeps = np.zeros(n + 1, np.int64), np.zeros(n + 1, np.int64)
     frame_times, frames = [], []
     factorizations, done, reason = 0, -1, ""
@@ -327,7 +331,11 @@ def run_episode(robot: Robot, gait, duration: float = 20.0,
         record(0)
         done = 0
         for k in range(n):
-            cmd[k + 1] = gait.pressure_at(k * dt)
+            command = np.asarray(gait.pressure_at(k * dt), dtype=float)
+            if command.shape != (n_reg,):
+                raise ValueError(f"the gait commands pressures of shape {command.shape} at t = {k * dt:g} s; "
+                                 f"the robot has {n_reg} regulators")
+            cmd[k + 1] = command
             ep.step(cmd[k + 1])
             factorizations += ep.solver.stats.factorizations
             record(k + 1)

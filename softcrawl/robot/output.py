@@ -4,7 +4,8 @@ Layout of an output directory:
 
 - ``summary.json``: design, gait, reward, timing, model size, solver statistics, version.
 - ``trajectory.npz`` / ``trajectory.csv``: per step ``t, x, y, z`` (disk top centre, mm),
-  ``cmd_1..3`` and ``applied_1..3`` (real kPa), ``contacts``.
+  ``cmd_1..R`` and ``applied_1..R`` (real kPa; ``R`` regulators of the robot's space, 3 in the
+  paper's), ``contacts``.
 - ``trajectory.png``: displacement x(t) in cm and pressures vs t (commanded dashed,
   applied solid).
 - ``crawl.pvd`` + ``frames/frame_NNNNN.vtu``: all bodies' tetrahedra in one grid per frame
@@ -44,15 +45,21 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from softcrawl import __version__
-from softcrawl.design.space import N_REGULATORS
 from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.animation import write_animation
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import MM_PER_CM, EpisodeResult
 
-_REGS = range(1, N_REGULATORS + 1)
-#: Columns of ``trajectory.csv``.
-CSV_COLUMNS = ("t", "x", "y", "z", *(f"cmd_{k}" for k in _REGS), *(f"applied_{k}" for k in _REGS), "contacts")
+
+
+def csv_columns(n_regulators: int) -> tuple[str, ...]:
+    """Columns of ``trajectory.csv`` of a robot with ``n_regulators`` regulators."""
+    regs = range(1, int(n_regulators) + 1)
+    return ("t", "x", "y", "z", *(f"cmd_{k}" for k in regs), *(f"applied_{k}" for k in regs), "contacts")
+
+
+#: Columns of ``trajectory.csv`` in the paper's space (3 regulators).
+CSV_COLUMNS = csv_columns(3)
 
 
 class OutputExistsError(ValueError):
@@ -252,19 +259,21 @@ def summary(robot: Robot, gait, result: EpisodeResult, calibration: PressureCali
 
 
 def trajectory_table(result: EpisodeResult) -> np.ndarray:
-    """``(n + 1, 11)`` float array with the columns :data:`CSV_COLUMNS`."""
+    """``(n + 1, 5 + 2 R)`` float array with the columns :func:`csv_columns` of ``R`` regulators
+    (:data:`CSV_COLUMNS`: ``(n + 1, 11)`` in the paper's space)."""
     return np.column_stack([result.time, result.position, result.commanded, result.applied, result.contacts])
 
 
 def write_trajectory(directory: Path, result: EpisodeResult) -> None:
-    """Write ``trajectory.npz`` (named arrays) and ``trajectory.csv`` (header :data:`CSV_COLUMNS`)."""
+    """Write ``trajectory.npz`` (named arrays) and ``trajectory.csv`` (header :func:`csv_columns`
+    of the result's regulators)."""
     np.savez_compressed(
         directory / "trajectory.npz", t=result.time, position=result.position, commanded=result.commanded,
         applied=result.applied, contacts=result.contacts, contact_sweeps=result.contact_sweeps,
     )
     with (directory / "trajectory.csv").open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
-        w.writerow(CSV_COLUMNS)
+        w.writerow(csv_columns(result.commanded.shape[1]))
         for row in trajectory_table(result):
             w.writerow([f"{v:.6g}" for v in row[:-1]] + [int(row[-1])])
 

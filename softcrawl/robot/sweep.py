@@ -41,9 +41,10 @@ from matplotlib.figure import Figure
 from tqdm.auto import tqdm
 
 from softcrawl import __version__
-from softcrawl.design.space import validate_design
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.fem.solver import SimulationDiverged
-from softcrawl.gaits import SineGait
+from softcrawl.gaits import PeriodicGait, SineGait
 from softcrawl.geometry.io import replace_atomically
 from softcrawl.parallel import run_pool
 from softcrawl.robot.actuation import PressureCalibration
@@ -163,47 +164,65 @@ def parse_phases(spec: str) -> tuple[float, ...]:
     return phases
 
 
+def baseline_gait(phase_deg: float, n_regulators: int = DEFAULT_SPACE.n_regulators) -> SineGait | PeriodicGait:
+    """The expert's sine gait with the rear regulator lagging by ``phase_deg`` for a space of
+    ``n_regulators`` regulators: :class:`SineGait` for the paper's 3, else the same wave as
+    :meth:`PeriodicGait.expert_sine` (regulators 3..R at 0 kPa).
+
+    Raises:
+        ValueError: ``n_regulators < 2``.
+    """
+    if n_regulators == DEFAULT_SPACE.n_regulators:
+        return SineGait(phase_deg=phase_deg)
+    return PeriodicGait.expert_sine(phase_deg, n_regulators=n_regulators)
+
+
 def sweep_settings(design, config: RobotConfig, duration: float,
-                   calibration: PressureCalibration = PressureCalibration()) -> dict:
+                   calibration: PressureCalibration = PressureCalibration(),
+                   space: DesignSpace = DEFAULT_SPACE) -> dict:
     """JSON-ready dict of everything that determines an episode of the sweep except the phase:
     design, the sine gait's other parameters, duration (s), robot config, calibration, the
-    settling rule and the software version. Two sweeps may share finished phases only if these match."""
-    gait = describe_gait(SineGait())
-    gait.pop("phase_deg")
+    settling rule and the software version, and for a space other than the paper's its name
+    and file checksum. Two sweeps may share finished phases only if these match."""
+    gait = describe_gait(baseline_gait(0.0, space.n_regulators))
+    gait.pop("phase_deg", None)
+    other = {} if space == DEFAULT_SPACE else {"space": {"name": space.name, "sha256": space.sha256}}
     return jsonable({
-        "design": list(validate_design(design)), "gait": gait, "duration_s": float(duration),
+        "design": list(space.validate_design(design)), "gait": gait, "duration_s": float(duration),
         "config": dataclasses.asdict(config), "calibration": {"a": calibration.a, "b": calibration.b},
-        "settling": dataclasses.asdict(Settling()), "softcrawl_version": __version__,
+        "settling": dataclasses.asdict(Settling()), "softcrawl_version": __version__, **other,
     })
 
 
 @functools.lru_cache(maxsize=1)
-def _robot(design: tuple[int, ...], config: RobotConfig):
-    return build_robot(design, config)  # one per worker process; episodes do not modify it
+def _robot(design: tuple[int, ...], config: RobotConfig, space: DesignSpace = DEFAULT_SPACE):
+    return build_robot(design, config, space=space)  # one per worker process; episodes do not modify it
 
 
 @functools.lru_cache(maxsize=1)
-def _settled(design: tuple[int, ...], config: RobotConfig) -> SettledState | None:
+def _settled(design: tuple[int, ...], config: RobotConfig, space: DesignSpace = DEFAULT_SPACE) -> SettledState | None:
     """The robot at rest, once per worker process (None if settling diverged: each episode
     then settles again and reports the divergence)."""
     try:
-        return settle(_robot(design, config))
+        return settle(_robot(design, config, space))
     except SimulationDiverged:
         return None
 
 
 def run_phase(design: Sequence[int], config: RobotConfig, phase_deg: float, duration: float,
-              calibration: PressureCalibration = PressureCalibration()) -> PhaseResult:
-    """Run one episode of ``SineGait(phase_deg=phase_deg)`` (no frames, no progress bar).
+              calibration: PressureCalibration = PressureCalibration(),
+              space: DesignSpace = DEFAULT_SPACE) -> PhaseResult:
+    """Run one episode of the expert gait at ``phase_deg`` (:func:`baseline_gait` of the
+    space's regulators; no frames, no progress bar) on ``design`` of ``space``.
 
     A diverged episode is returned with ``diverged=True`` and ``reward_cm`` NaN.
 
     Raises:
         InvalidDesignError, ValueError, MeshError: for invalid inputs (see :func:`build_robot`).
     """
-    design = validate_design(design)
-    res = run_episode(_robot(design, config), SineGait(phase_deg=phase_deg), duration, calibration,
-                      record_every=None, progress=False, settled=_settled(design, config))
+    design = space.validate_design(design)
+    res = run_episode(_robot(design, config, space), baseline_gait(phase_deg, space.n_regulators), duration,
+                      calibration, record_every=None, progress=False, settled=_settled(design, config, space))
     return PhaseResult(float(phase_deg), float("nan") if res.diverged else res.reward_cm, res.reward_cm,
                        res.diverged, res.reason, res.steps, res.wall_seconds)
 
@@ -252,20 +271,22 @@ def _save_phase(work: Path, r: PhaseResult) -> None:
 
 def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: RobotConfig = RobotConfig(),
               duration: float = 20.0, workers: int | None = None, overwrite: bool = False,
-              progress: bool = True) -> SweepResult:
+              progress: bool = True, space: DesignSpace = DEFAULT_SPACE) -> SweepResult:
     """Run (or resume) the phase sweep and write its outputs (module docstring) into ``out``.
 
     Args:
         out: output directory; its work directory is ``<out>.partial``.
         phases: phase lags φ, degrees (distinct, finite).
-        design: 8 slot values (sequence or string such as ``"1,0,0,2,2,0,0,1"``).
-        config: robot settings (leg mesh size, factorization reuse, ...).
+        design: one value per slot of ``space`` (sequence or string such as ``"1,0,0,2,2,0,0,1"``).
+        config: robot settings (leg mesh size, factorization reuse, ...; another space's:
+            :meth:`RobotConfig.for_space`).
         duration: episode length, s.
         workers: worker processes (default ``os.cpu_count()``; capped at the number of phases
             left). Each is started with one BLAS thread (spawn context). 1 runs the episodes in
             this process.
         overwrite: replace an existing ``out``.
         progress: tqdm bar over finished episodes (rate, ETA) on stderr.
+        space: the design's space (slots, regulators, parts; at least 2 regulators).
 
     Returns:
         The :class:`SweepResult` (phases in the given order).
@@ -285,16 +306,16 @@ def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: R
     workers = (os.cpu_count() or 1) if workers is None else int(workers)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    design = validate_design(design)
+    design = space.validate_design(design)
     out = check_output_path(out, overwrite)
     work = out.with_name(out.name + ".partial")
-    settings = sweep_settings(design, config, duration)
+    settings = sweep_settings(design, config, duration, space=space)
     done = _open_work_dir(work, settings)
     todo = [p for p in phases if p not in done]
     workers = max(1, min(workers, len(todo)))
     wall = time.perf_counter()
     if todo:
-        _robot(design, config)  # fail early on a bad config; fills the mesh cache for the workers
+        _robot(design, config, space)  # fail early on a bad config; fills the mesh cache for the workers
     bar = tqdm(total=len(todo), unit="episode", desc=f"sweep ({len(done)} reused)" if done else "sweep",
                disable=not progress, dynamic_ncols=True)
 
@@ -316,7 +337,8 @@ def run_sweep(out: str | os.PathLike, phases: Sequence[float], design, config: R
         bar.update()
 
     try:
-        run_pool(run_phase, workers, [(design, config, p, duration) for p in todo], finished)
+        calibration = PressureCalibration()
+        run_pool(run_phase, workers, [(design, config, p, duration, calibration, space) for p in todo], finished)
     finally:
         bar.close()
     result = SweepResult(settings, tuple(done[p] for p in phases), time.perf_counter() - wall, workers)

@@ -17,7 +17,7 @@ import os
 import numpy as np
 from matplotlib.colors import to_hex
 
-from softcrawl.design.picture import REGULATOR_COLOURS
+from softcrawl.design.picture import regulator_colour
 from softcrawl.robot.animation import DISK_COLOUR, frame_caption, robot_surface
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import MM_PER_CM, EpisodeResult
@@ -29,7 +29,11 @@ SIZE = (640, 360)
 #: Camera offset from the disk centre, mm (front right, above: a 3/4 view).
 CAMERA_OFFSET = np.array([260.0, -340.0, 240.0])
 _INSTALL = "pip install softcrawl[video]"
-_COLORS = tuple(to_hex(c) for c in (DISK_COLOUR, *(REGULATOR_COLOURS[k] for k in (1, 2, 3))))  # disk, regs 1..3
+
+
+def _colors(n_regulators: int) -> list[str]:
+    """The colour map of the surface's ``color`` values 0 (disk) .. R (regulator R's legs)."""
+    return [to_hex(c) for c in (DISK_COLOUR, *(regulator_colour(k) for k in range(1, n_regulators + 1)))]
 
 
 class VideoUnavailableError(ValueError):
@@ -105,7 +109,8 @@ def write_video(path: str | os.PathLike, robot: Robot, result: EpisodeResult,
     try:
         pl.set_background("white")
         pl.add_mesh(floor, color="#f2efe6", show_edges=True, edge_color="#c9c4b5", lighting=False)
-        pl.add_mesh(surface, scalars="color", cmap=list(_COLORS), clim=(-0.5, 3.5), n_colors=4,
+        n_reg = robot.model.n_channels
+        pl.add_mesh(surface, scalars="color", cmap=_colors(n_reg), clim=(-0.5, n_reg + 0.5), n_colors=n_reg + 1,
                     show_scalar_bar=False, smooth_shading=False)
         label = pl.add_text("", position="upper_left", font_size=12, color="black")  # corner 2 = upper left
         writer = imageio_ffmpeg.write_frames(str(path), tuple(size), fps=fps, macro_block_size=2)

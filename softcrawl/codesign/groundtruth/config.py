@@ -5,7 +5,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS, build_config, check_bounds
+from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS, build_config, check_bounds, space_robot
+from softcrawl.design.resolve import PAPER_SPACE, resolve_space
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import MAX_KNOTS
 from softcrawl.robot.assembly import RobotConfig
 
@@ -50,6 +52,9 @@ class GroundTruthConfig:
             episode of a round in one batch, in ``robot.rid_dtype`` throughout. The
             references (``references.json``) are computed on the CPU either way.
         jax_batch: the JAX engine's largest batch (a power of two).
+        space: the design space (a shipped space's name, ``"paper"`` by default, or a space
+            file's path; a ground-truth folder reads its own copy, ``space.toml``,
+            :mod:`softcrawl.codesign.groundtruth.store`).
     """
 
     duration: float = 20.0
@@ -65,11 +70,25 @@ class GroundTruthConfig:
     baseline_phases: tuple[float, ...] = tuple(range(0, 181, 10))
     engine: str = "cpu"
     jax_batch: int = 1024
+    space: str = PAPER_SPACE
+
+    def design_space(self) -> DesignSpace:
+        """The :class:`DesignSpace` ``space`` names (SpaceFileError, a ValueError, if none)."""
+        return resolve_space(self.space)
+
+    def robot_config(self) -> RobotConfig:
+        """The simulated robot's settings: ``robot`` for the space's robots
+        (:func:`softcrawl.codesign.config.space_robot`; ``robot`` itself in the paper's space)."""
+        return space_robot(self.robot, self.design_space())
 
     def validate(self) -> GroundTruthConfig:
         """Raise ValueError naming the first bad setting; returns self."""
         if not isinstance(self.robot, RobotConfig):
             raise ValueError(f"robot must be RobotConfig, got {type(self.robot).__name__}")
+        try:
+            self.design_space()
+        except ValueError as exc:
+            raise ValueError(f"space: {exc}") from None
         for name, (low, high, unit) in SIM_BOUNDS.items():
             check_bounds(f"robot.{name}", getattr(self.robot, name), low, high, unit)
         for name, high, unit in (("duration", MAX_EPISODE_S, "s"), ("hold", MAX_HOLD_S, "s"),

@@ -14,7 +14,6 @@ import numpy as np
 from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
 from softcrawl.codesign.groundtruth.search import design_search, drive, knots_to_gait, seed_knots, used_regulators
-from softcrawl.design.space import canonicalize
 
 
 class DesignEvaluator:
@@ -32,8 +31,9 @@ class DesignEvaluator:
     def __init__(self, design, cfg: GroundTruthConfig):
         from softcrawl.robot.assembly import build_robot
 
-        self.design, self.cfg = canonicalize(design), cfg
-        self.robot = build_robot(self.design, cfg.robot)
+        space = cfg.design_space()
+        self.design, self.cfg = space.canonicalize(design), cfg
+        self.robot = build_robot(self.design, cfg.robot_config(), space=space)
         self._settled = None
         self.episodes, self.sim_seconds = 0, 0.0
 
@@ -121,7 +121,7 @@ def screening_agreement(designs: Iterable, cfg: GroundTruthConfig, gaits_per_des
     rng = np.random.default_rng(seed)
     durations = sorted(set([float(s) for s in short] + [cfg.duration]))
     pairs, wall = [], {d: 0.0 for d in durations}
-    designs = [canonicalize(d) for d in designs]
+    designs = [cfg.design_space().canonicalize(d) for d in designs]
     bar = tqdm(total=len(designs) * (gaits_per_design + 1), desc="screening", disable=not progress)
     for d in designs:
         ev = DesignEvaluator(d, cfg)

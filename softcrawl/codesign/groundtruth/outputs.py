@@ -14,7 +14,7 @@ import numpy as np
 from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DesignResult
 from softcrawl.codesign.groundtruth.store import read_config, read_references, read_results
-from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN, canonicalize
+from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN
 from softcrawl.gaits.periodic import PeriodicGait
 from softcrawl.safeio import atomic_write_text
 
@@ -31,7 +31,7 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
     cfg = read_config(out)
     done, bad = read_results(out)  # the bad rows are listed in the summary
     if designs is not None:
-        keep = {canonicalize(d) for d in designs}
+        keep = {cfg.design_space().canonicalize(d) for d in designs}
         done = {d: r for d, r in done.items() if d in keep}
     rows = sorted(done.values(), key=lambda r: (-r.reward_cm, r.design))
     table = io.StringIO()

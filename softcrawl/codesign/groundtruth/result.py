@@ -7,7 +7,8 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from softcrawl.design.space import Design, canonicalize
+from softcrawl.design.space import DEFAULT_SPACE, Design
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import MAX_KNOTS, WAVEFORMS, PeriodicGait
 
 #: Objective value (cm) given to an episode whose simulation diverged.
@@ -49,8 +50,8 @@ class DesignResult:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "result") -> DesignResult:
-        """Inverse of :meth:`to_dict`, validated: a canonical design of the space, finite
+    def from_dict(cls, d: dict, where: str = "result", space: DesignSpace = DEFAULT_SPACE) -> DesignResult:
+        """Inverse of :meth:`to_dict`, validated: a canonical design of ``space`` (default the paper's), finite
         rewards and times, counts >= 0, a gait of the family (knots in [0, 90] kPa). Keys
         that are not fields are ignored (a newer version's additions).
 
@@ -66,10 +67,10 @@ class DesignResult:
             raise ValueError(f"{where}: missing {', '.join(missing)}")
         design = d["design"]
         if not isinstance(design, list) or any(isinstance(v, bool) or not isinstance(v, int) for v in design):
-            raise ValueError(f"{where}: design must be a list of 8 integers, got {design!r}")
+            raise ValueError(f"{where}: design must be a list of {space.n_slots} integers, got {design!r}")
         design = tuple(design)
         try:
-            canonical = canonicalize(design)
+            canonical = space.canonicalize(design)
         except ValueError as exc:  # InvalidDesignError names the fault
             raise ValueError(f"{where}: {exc}") from None
         if canonical != design:

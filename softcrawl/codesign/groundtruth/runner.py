@@ -21,12 +21,15 @@ from softcrawl.codesign.groundtruth.store import (
     _append,
     check_folder,
     folder_lock,
+    folder_space,
     load_results,
     read_config,
     read_references,
 )
 from softcrawl.codesign.migrate import CONFIG_VERSION
-from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN, Design, canonical_designs, canonicalize
+from softcrawl.design.resolve import write_space_copy
+from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE, PAPER_BEST_DESIGN, Design
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import PeriodicGait
 from softcrawl.safeio import atomic_write_text
 
@@ -35,26 +38,27 @@ EXECUTORS = ("process", "serial", "ray")
 PAPER_L1_CM = 10.0
 
 
-def parse_designs(spec: str) -> list[Design]:
-    """Design set from text: ``"3"`` (all canonical designs with 3 legs; ``"3,4"`` ...), ``"all"``
-    (6,972), or designs separated by ``;`` (``"1,0,0,2,2,0,0,0; 1,0,0,2,2,0,0,1"``), canonicalised.
+def parse_designs(spec: str, space: DesignSpace = DEFAULT_SPACE) -> list[Design]:
+    """Design set of ``space`` (default the paper's) from text: ``"3"`` (all canonical designs
+    with 3 legs; ``"3,4"`` ...), ``"all"`` (6,972 in the paper's space), or designs separated by
+    ``;`` (``"1,0,0,2,2,0,0,0; 1,0,0,2,2,0,0,1"``), canonicalised.
 
     Raises:
-        ValueError / InvalidDesignError: an unreadable set.
+        ValueError / InvalidDesignError: an unreadable set, leg counts outside the space's.
     """
     spec = spec.strip()
     if spec == "all":
-        return list(canonical_designs())
+        return list(space.canonical_designs)
     if ";" not in spec and all(p.strip().isdigit() and len(p.strip()) == 1 for p in spec.split(",")) \
-            and len(spec.split(",")) < 8:
+            and len(spec.split(",")) < space.n_slots:
         legs = {int(p) for p in spec.split(",")}
-        if not legs <= {3, 4, 5, 6}:
-            raise ValueError(f"leg counts must be in 3..6, got {sorted(legs)}")
-        return [d for d in canonical_designs() if sum(v > 0 for v in d) in legs]
+        if not legs <= set(range(space.min_legs, space.max_legs + 1)):
+            raise ValueError(f"leg counts must be in {space.min_legs}..{space.max_legs}, got {sorted(legs)}")
+        return [d for d in space.canonical_designs if sum(v > 0 for v in d) in legs]
     out, seen = [], set()
     for part in spec.split(";"):
         if part.strip():
-            d = canonicalize(part)
+            d = space.canonicalize(part)
             if d not in seen:
                 seen.add(d)
                 out.append(d)
@@ -149,19 +153,22 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
     """
     if executor not in EXECUTORS:
         raise ValueError(f"executor must be one of {EXECUTORS}, got {executor!r}")
-    designs = list(dict.fromkeys(canonicalize(d) for d in designs))
-    if not designs:
-        raise ValueError("empty design set")
     out = check_folder(out_dir)
     if cfg is not None:
         cfg.validate()
+    space = cfg.design_space() if cfg is not None else folder_space(out)
+    designs = list(dict.fromkeys(space.canonicalize(d) for d in designs))
+    if not designs:
+        raise ValueError("empty design set")
     out.mkdir(parents=True, exist_ok=True)
     with folder_lock(out):
         cfg_path = out / "config.json"
         if cfg_path.exists():
             saved = read_config(out)
-            if cfg is not None and cfg.to_dict() != saved.to_dict():
-                diff = {k: (v, cfg.to_dict()[k]) for k, v in saved.to_dict().items() if cfg.to_dict()[k] != v}
+            given = None if cfg is None else cfg.to_dict() | (  # the folder keeps its space as its own file
+                {"space": saved.space} if cfg.design_space() == saved.design_space() else {})
+            if given is not None and given != saved.to_dict():
+                diff = {k: (v, given[k]) for k, v in saved.to_dict().items() if given[k] != v}
                 raise ValueError(f"{out} holds a ground truth with other settings (saved vs given: {diff}); "
                                  "use another folder")
             cfg = saved
@@ -169,8 +176,11 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
             cfg = (cfg or GroundTruthConfig()).validate()
             from softcrawl import __version__
 
-            saved = {"config": cfg.to_dict(), "config_version": CONFIG_VERSION, "softcrawl": __version__}
+            sha = write_space_copy(out, cfg.space)  # before config.json, which marks the folder a ground truth
+            saved = {"config": cfg.to_dict(), "config_version": CONFIG_VERSION, "space_sha256": sha,
+                     "softcrawl": __version__}
             atomic_write_text(cfg_path, json.dumps(saved, indent=2) + "\n")
+            cfg = read_config(out)  # its space: the folder's copy
         return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs, evaluate_many)
 
 
@@ -201,7 +211,7 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
     done = load_results(out)
     todo = [d for d in designs if d not in done]
     res_path = out / RESULTS
-    cd = cfg.to_dict()
+    cd, space = cfg.to_dict(), cfg.design_space()
     wall = time.perf_counter()
     from tqdm.auto import tqdm
 
@@ -209,7 +219,7 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
                disable=not progress, dynamic_ncols=True)
 
     def finish(d_result: dict) -> None:
-        r = DesignResult.from_dict(d_result)
+        r = DesignResult.from_dict(d_result, space=space)
         _append(res_path, r)
         done[r.design] = r
         bar.update()
@@ -248,6 +258,6 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
                 finish(res)
     bar.close()
     ref_path = out / "references.json"
-    if refs and read_references(out) is None:
+    if refs and read_references(out) is None and cfg.design_space() == DEFAULT_SPACE:  # designs of the paper's
         atomic_write_text(ref_path, json.dumps(references(cfg), indent=2, allow_nan=False) + "\n")
     return write_outputs(out, designs, time.perf_counter() - wall)

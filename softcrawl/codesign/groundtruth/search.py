@@ -26,14 +26,19 @@ import numpy as np
 
 from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
-from softcrawl.design.space import N_REGULATORS, Design, canonicalize
+from softcrawl.design.space import DEFAULT_SPACE, Design
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import WAVEFORMS, PeriodicGait
 from softcrawl.gaits.pressure import P_MAX_KPA
 
 
-def used_regulators(design) -> int:
-    """Regulators a canonical design uses (canonical labels are 1..m), m."""
-    return max(canonicalize(design))
+def used_regulators(design, space: DesignSpace = DEFAULT_SPACE) -> int:
+    """Regulators a canonical design of ``space`` uses (canonical labels are 1..m), m.
+
+    Raises:
+        InvalidDesignError: ``design`` is not a design of ``space``.
+    """
+    return max(space.canonicalize(design))
 
 
 def seed_knots(m: int, L: int) -> list[np.ndarray]:
@@ -64,9 +69,11 @@ def seed_knots(m: int, L: int) -> list[np.ndarray]:
     return uniq
 
 
-def knots_to_gait(x: np.ndarray, m: int, L: int, hold: float, waveform: str = "step") -> PeriodicGait:
-    """CMA-ES vector ``(m L,)`` in [0, 1] -> gait (regulators beyond m stay at 0 kPa)."""
-    k = np.zeros((L, N_REGULATORS))
+def knots_to_gait(x: np.ndarray, m: int, L: int, hold: float, waveform: str = "step",
+                  n_regulators: int = DEFAULT_SPACE.n_regulators) -> PeriodicGait:
+    """CMA-ES vector ``(m L,)`` in [0, 1] -> gait of ``n_regulators`` regulators (the design
+    space's ``R >= m``; regulators beyond m stay at 0 kPa)."""
+    k = np.zeros((L, n_regulators))
     k[:, :m] = np.clip(np.asarray(x, float).reshape(L, m), 0.0, 1.0) * P_MAX_KPA
     return PeriodicGait.from_knots(k, hold, waveform)
 
@@ -153,8 +160,10 @@ def cma_maximize(f: Callable[[np.ndarray], float], dim: int, budget: int, seeds:
 
 
 def design_seed(design: Design, seed: int) -> int:
-    """Deterministic per-design seed (independent of set order and Python's hash salt)."""
-    return (seed * 1_000_003 + int("".join(map(str, design)), 4)) % (2**31 - 2)
+    """Deterministic per-design seed (independent of set order and Python's hash salt): the
+    design's digits read in base ``max(4, largest value + 1)`` (base 4 for the paper's space)."""
+    base = max(4, max(design) + 1)
+    return (seed * 1_000_003 + sum(v * base**i for i, v in enumerate(reversed(design)))) % (2**31 - 2)
 
 
 #: An episode a search asks for: ``(gait, duration s)``; its answer: ``(reward cm, diverged)``.
@@ -162,7 +171,8 @@ Request = tuple[PeriodicGait, float]
 Reply = tuple[float, bool]
 
 
-def design_search(design, cfg: GroundTruthConfig) -> typing.Generator[Request, Reply, DesignResult]:
+def design_search(design, cfg: GroundTruthConfig,
+                  space: DesignSpace = DEFAULT_SPACE) -> typing.Generator[Request, Reply, DesignResult]:
     """The best gait of ``design`` in the family as a coroutine (the search of the module
     docstring): it yields the episodes it needs, ``(gait, duration)``, one at a time, and is
     sent each one's ``(reward cm, diverged)``; a diverged episode (or a non-finite reward)
@@ -171,6 +181,7 @@ def design_search(design, cfg: GroundTruthConfig) -> typing.Generator[Request, R
     ``2 * cfg.finalists`` finals of ``cfg.duration`` s.
 
     The design and the settings are checked when this is called, before the first request.
+    The gaits command the ``R`` regulators of ``space`` (the design's design space).
 
     Returns (``StopIteration.value``):
         :class:`DesignResult` with ``wall_seconds`` 0 (the driver knows the time it took).
@@ -179,12 +190,12 @@ def design_search(design, cfg: GroundTruthConfig) -> typing.Generator[Request, R
         InvalidDesignError: invalid design. ValueError: invalid ``cfg``.
     """
     cfg.validate()
-    return _search(canonicalize(design), cfg)
+    return _search(space.canonicalize(design), cfg, space.n_regulators)
 
 
-def _search(design: Design, cfg: GroundTruthConfig) -> typing.Generator[Request, Reply, DesignResult]:
+def _search(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Generator[Request, Reply, DesignResult]:
     """The body of :func:`design_search` (a generator, run only once asked for its first request)."""
-    m = used_regulators(design)
+    m = max(design)  # canonical labels are 1..m (used_regulators)
     screen = cfg.screen_duration if cfg.screen_duration is not None and cfg.screen_duration < cfg.duration else None
     search_t = screen or cfg.duration
     n_eval, n_full, sim, n_div = 0, 0, 0.0, 0
@@ -203,7 +214,8 @@ def _search(design: Design, cfg: GroundTruthConfig) -> typing.Generator[Request,
         try:
             x = next(cma)
             while True:
-                x = cma.send(score((yield knots_to_gait(x, m, L, cfg.hold), search_t), search_t))
+                gait = knots_to_gait(x, m, L, cfg.hold, n_regulators=n_reg)
+                x = cma.send(score((yield gait, search_t), search_t))
         except StopIteration as stop:
             hist = stop.value
         per_cycle[int(L)] = max(hist, key=lambda h: h[1])[1]
@@ -221,7 +233,7 @@ def _search(design: Design, cfg: GroundTruthConfig) -> typing.Generator[Request,
     best = None  # (full reward, screen reward, gait, L)
     for v, L, x in finals:
         for wf in WAVEFORMS:
-            gait = knots_to_gait(x, m, L, cfg.hold, wf)
+            gait = knots_to_gait(x, m, L, cfg.hold, wf, n_reg)
             if wf == "step" and screen is None:
                 r = v
             else:
@@ -238,7 +250,8 @@ def _search(design: Design, cfg: GroundTruthConfig) -> typing.Generator[Request,
 EvaluateMany = Callable[[list[tuple[Design, PeriodicGait, float]]], Sequence[Reply]]
 
 
-def search_many(designs: Iterable, cfg: GroundTruthConfig, evaluate_many: EvaluateMany) -> Iterator[DesignResult]:
+def search_many(designs: Iterable, cfg: GroundTruthConfig, evaluate_many: EvaluateMany,
+                space: DesignSpace = DEFAULT_SPACE) -> Iterator[DesignResult]:
     """The searches of ``designs`` (:func:`design_search`) advanced in lockstep: each round
     collects the pending episode of every unfinished design and makes one call
     ``evaluate_many([(design, gait, duration), ...])`` (any engine: a batched simulator, or
@@ -247,9 +260,10 @@ def search_many(designs: Iterable, cfg: GroundTruthConfig, evaluate_many: Evalua
     with the same episodes' answers.
 
     Args:
-        designs: designs (canonicalised; duplicates dropped).
+        designs: designs of ``space`` (canonicalised; duplicates dropped).
         cfg: settings.
         evaluate_many: see :data:`EvaluateMany`.
+        space: the designs' design space (its canonical forms, its regulators).
 
     Yields:
         :class:`DesignResult` of each design as it finishes (designs with fewer episodes first);
@@ -261,8 +275,8 @@ def search_many(designs: Iterable, cfg: GroundTruthConfig, evaluate_many: Evalua
             answered a round with another number of replies than it was asked.
     """
     pending = {}  # design -> [search, its request, wall seconds]
-    for d in dict.fromkeys(canonicalize(d) for d in designs):
-        search = design_search(d, cfg)
+    for d in dict.fromkeys(space.canonicalize(d) for d in designs):
+        search = design_search(d, cfg, space)
         pending[d] = [search, next(search), 0.0]
     while pending:
         round_ = list(pending.items())

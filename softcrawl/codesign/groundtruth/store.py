@@ -19,9 +19,11 @@ from pathlib import Path
 
 from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DesignResult, _finite
-from softcrawl.codesign.migrate import read_settings
+from softcrawl.codesign.migrate import SPACE_VERSION, config_version, read_settings
 from softcrawl.codesign.run import note
-from softcrawl.design.space import Design
+from softcrawl.design.resolve import check_space_copy
+from softcrawl.design.space import DEFAULT_SPACE, Design
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.safeio import UnsafeFileError, load_json, loads_json, read_text
 
 RESULTS = "results.jsonl"
@@ -42,18 +44,25 @@ def read_results(out_dir: str | Path) -> tuple[dict[Design, DesignResult], list[
         raise UnsafeFileError(f"{path} is a symbolic link; a ground truth's results must be a file in its folder")
     if not path.exists():
         return {}, []
+    space = folder_space(out_dir)
     good, bad = {}, []
     for n, line in enumerate(read_text(path).split("\n"), start=1):
         if not line.strip():
             continue
         where = f"{path}, line {n}"
         try:
-            r = DesignResult.from_dict(loads_json(line, where), where)
+            r = DesignResult.from_dict(loads_json(line, where), where, space)
         except ValueError as exc:
             bad.append(str(exc))
             continue
         good[r.design] = r
     return good, bad
+
+
+def folder_space(out_dir: str | Path) -> DesignSpace:
+    """The design space of a ground-truth folder (its ``space.toml``, :func:`read_config`);
+    the paper's for a folder without ``config.json``. ValueError as :func:`read_config`."""
+    return read_config(out_dir).design_space() if (Path(out_dir) / "config.json").exists() else DEFAULT_SPACE
 
 
 def load_results(out_dir: str | Path) -> dict[Design, DesignResult]:
@@ -102,16 +111,22 @@ class FolderLockedError(ValueError):
 
 def read_config(out_dir: str | Path) -> GroundTruthConfig:
     """The settings saved in a ground-truth folder's ``config.json`` (an older format read
-    through :func:`softcrawl.codesign.migrate.read_settings`).
+    through :func:`softcrawl.codesign.migrate.read_settings`: the paper's space). From format 4
+    on, ``space`` is the folder's own ``space.toml``, checked against the ``space_sha256`` of
+    ``config.json`` (:func:`softcrawl.design.resolve.check_space_copy`).
 
     Raises:
         FileNotFoundError: no ``config.json``.
-        ValueError: not a ground truth's ``config.json`` (the message names the file).
+        ValueError: not a ground truth's ``config.json``, or a missing or changed
+            ``space.toml`` (the message names the file).
     """
     path = Path(out_dir) / "config.json"
     doc = load_json(path)
     try:
-        return GroundTruthConfig.from_dict(read_settings("groundtruth", doc))
+        settings = read_settings("groundtruth", doc)
+        if config_version(doc) >= SPACE_VERSION:
+            settings = {**settings, "space": str(check_space_copy(out_dir, doc.get("space_sha256")))}
+        return GroundTruthConfig.from_dict(settings)
     except ValueError as exc:
         raise ValueError(f"{path}: not a ground truth's settings ({exc})") from None
 

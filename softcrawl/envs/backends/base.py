@@ -31,7 +31,7 @@ class EnvBackend:
         raise NotImplementedError
 
     def step(self, actions: np.ndarray) -> list[StepResult]:  # pragma: no cover
-        """Step all envs with ``actions`` ``(N, 3)``; no auto-reset."""
+        """Step all envs with ``actions`` ``(N, R)`` (``R`` regulators of the envs' space); no auto-reset."""
         raise NotImplementedError
 
     def step_send(self, actions: np.ndarray) -> None:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 
-from softcrawl.design.space import validate_design
 from softcrawl.envs.backends.base import StepResult
 from softcrawl.envs.backends.serial import SerialBackend
 from softcrawl.envs.crawler import CrawlerEnv
@@ -78,7 +77,7 @@ class BatchedBackend(SerialBackend):
         for env, design in zip(envs, designs):
             if design is None or not isinstance(env, CrawlerEnv):
                 continue
-            design = validate_design(design)
+            design = env.space.validate_design(design)
             robot, settled = env.cached_robot(design)
             if settled is not None or not robot.reduced:
                 continue
@@ -103,7 +102,8 @@ class BatchedBackend(SerialBackend):
                     env.store_settled(design, out)
 
     def step(self, actions) -> list[StepResult]:
-        """Step every env with its action ``actions[i]`` ``(3,)`` (no auto-reset)."""
+        """Step every env with its action ``actions[i]`` ``(R,)``, one per regulator of its
+        space (no auto-reset)."""
         envs = self.envs
         results: list[StepResult | None] = [None] * len(envs)
         batched = [i for i, env in enumerate(envs) if batchable(env)]

@@ -10,6 +10,7 @@ regulator lags, the control period) are per-env inputs of the compiled rollout.
 from __future__ import annotations
 
 from softcrawl.robot.domain import DomainRanges
+from softcrawl.tasks import Task
 
 #: Float precisions of the JAX backend (``jax_enable_x64`` on for float64).
 PRECISIONS = ("float64", "float32")
@@ -39,3 +40,12 @@ def check_jax_env(model: str, randomize: DomainRanges | None) -> None:
     if model != "reduced":
         raise ValueError(f'backend "jax" steps the reduced robot only (env.model="reduced"), got env.model={model!r}')
     check_randomized(randomize)
+
+
+def check_jax_task(task: Task) -> None:
+    """Raise ValueError (one line) unless the JAX backend can score ``task``: it returns the
+    reward point (the disk's top centre) only, so a task whose progress reads the disk's nodes
+    (:attr:`softcrawl.tasks.Task.reads_disk`: ``turning``) is refused."""
+    if task.reads_disk:
+        raise ValueError(f'backend "jax" does not run task {task.name!r}: its reward reads the disk\'s rotation '
+                         'and the JAX backend returns the disk\'s top centre only; use backend "subprocess"')

@@ -38,8 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softcrawl.design.space import N_REGULATORS
-from softcrawl.envs.backends.jaxcheck import check_precision, check_randomized
+from softcrawl.envs.backends.jaxcheck import check_jax_task, check_precision, check_randomized
 from softcrawl.envs.backends.serial import SerialBackend
 from softcrawl.envs.crawler import CrawlerEnv
 from softcrawl.fem.solver import SimulationDiverged
@@ -79,13 +78,14 @@ class JaxEpisode:
     Args:
         dt: simulator step, s. point: ``(2, 3)`` the settled reward point's position (mm) and
             velocity (mm/s). settled: the settling statistics (None: settling diverged).
+        n_regulators: ``R``, the regulators of the env's design space.
     """
 
     robot = _RewardPoint()
 
-    def __init__(self, dt: float, point: np.ndarray, settled: SettledState | None):
+    def __init__(self, dt: float, point: np.ndarray, settled: SettledState | None, n_regulators: int):
         self.dt, self.settled = dt, settled
-        self.update(point, np.zeros(N_REGULATORS))
+        self.update(point, np.zeros(n_regulators))
         self.start = self.state.x[0].copy()
 
     def reset(self) -> None:
@@ -95,7 +95,7 @@ class JaxEpisode:
 
     def update(self, point: np.ndarray, applied: np.ndarray) -> None:
         """The state after an action: ``point`` ``(2, 3)`` as in the constructor, ``applied``
-        ``(3,)`` regulator outputs, real kPa."""
+        ``(R,)`` regulator outputs, real kPa."""
         point = np.asarray(point, dtype=float)
         self.state = PointState(point[:1].copy(), point[1:].copy())
         self.applied = np.asarray(applied, dtype=float).copy()
@@ -128,7 +128,8 @@ class JaxBackend(SerialBackend):
     Args:
         env_fns: one zero-argument constructor per env, each giving a :class:`CrawlerEnv` of a
             reduced robot with the floating-frame disk; all with the same robot factory,
-            settling rule and pressure calibration.
+            settling rule, pressure calibration and design space (any slots and regulators whose
+            leg has a reduction).
         precision: ``"float64"`` (the validated one; sets ``jax_enable_x64``) or ``"float32"``
             (clears it). JAX's setting is process-wide: set here, once, never at import.
         cache_mb: memory of the per-design cache of robot rows and settled states, MB (at
@@ -136,7 +137,8 @@ class JaxBackend(SerialBackend):
 
     Raises:
         ValueError: no env, an env that is not a :class:`CrawlerEnv`, envs that differ in robot
-            factory, settling or calibration, randomization the JAX engine cannot draw, an
+            factory, settling or calibration, randomization the JAX engine cannot draw, a task it
+            cannot score (:func:`~softcrawl.envs.backends.jaxcheck.check_jax_task`), an
             unknown precision, a robot model the JAX engine cannot step (not reduced, no
             floating-frame disk).
     """
@@ -150,9 +152,12 @@ class JaxBackend(SerialBackend):
             raise ValueError('backend "jax" runs CrawlerEnv environments only')
         for env in envs:
             check_randomized(env.randomize)
+            check_jax_task(env.task)
             if (env.robot_factory, env.settling, env.calibration) != (first.robot_factory, first.settling,
                                                                       first.calibration):
                 raise ValueError('backend "jax" needs envs of one robot factory, settling rule and calibration')
+            if env.space != first.space:
+                raise ValueError('backend "jax" needs envs of one design space')
         jax.config.update("jax_enable_x64", precision == "float64")
         self.precision = precision
         n = self.num_envs
@@ -162,7 +167,8 @@ class JaxBackend(SerialBackend):
         self._model = select_robots(shared, np.zeros(n, np.int32))
         self._dtype = np.dtype(self._model.disk.rest.dtype)
         self._state = rest_state(self._model)
-        ones, zeros = np.ones((n, N_REGULATORS), self._dtype), np.zeros((n, N_REGULATORS), self._dtype)
+        self._n_reg = first.space.n_regulators
+        ones, zeros = np.ones((n, self._n_reg), self._dtype), np.zeros((n, self._n_reg), self._dtype)
         self._rig = jax.tree_util.tree_map(jnp.asarray, Rig(ones, zeros, zeros, zeros))
         self._dt = float(self._model.settings.dt)
         self._steps_max = max(self._longest_action(env) for env in envs)
@@ -249,13 +255,13 @@ class JaxBackend(SerialBackend):
         self._model = dataclasses.replace(self._model, robot=robot)
         out = []
         for i, e in zip(indices, entries):
-            self._episodes[i] = JaxEpisode(self._dt, e.point, e.settled)
+            self._episodes[i] = JaxEpisode(self._dt, e.point, e.settled, self._n_reg)
             out.append(self.envs[i].end_reset(self._episodes[i]))
         return out
 
     def _rig_of(self, env: CrawlerEnv):
-        """The :class:`~softcrawl.jaxsim.rig.Rig` row ``(3,)`` per field of ``env``'s domain sample."""
-        s, n = env.domain, N_REGULATORS
+        """The :class:`~softcrawl.jaxsim.rig.Rig` row ``(R,)`` per field of ``env``'s domain sample."""
+        s, n = env.domain, self._n_reg
         pick = (lambda v, nominal: np.asarray(v if v is not None else (nominal,) * n, self._dtype))
         if s is None:
             return Rig(pick(None, 1.0), pick(None, 0.0), pick(None, 0.0), pick(None, 0.0))
@@ -263,7 +269,7 @@ class JaxBackend(SerialBackend):
                    pick(s.tau_vent, 0.0))
 
     def step(self, actions):
-        """Step every env with its action ``actions[i]`` ``(3,)``: one compiled call for all live
+        """Step every env with its action ``actions[i]`` ``(R,)``: one compiled call for all live
         envs, then each env's transition (no auto-reset)."""
         return self._finish(*self._launch(actions))
 
@@ -279,7 +285,7 @@ class JaxBackend(SerialBackend):
     def _launch(self, actions):
         """Begin every env's action and dispatch the rollout of the live ones; returns
         ``(steps, outputs)`` (outputs None: no env is live)."""
-        command = np.zeros((self.num_envs, N_REGULATORS), self._dtype)
+        command = np.zeros((self.num_envs, self._n_reg), self._dtype)
         steps = np.zeros(self.num_envs, np.int32)
         for i, (env, a) in enumerate(zip(self.envs, actions)):
             kpa = env.begin_action(a)

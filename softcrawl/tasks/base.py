@@ -1,0 +1,188 @@
+"""The task interface: what an episode is scored on, and the floor it runs on.
+
+A task is a frozen dataclass of numbers (its settings, checked at construction: one clear
+``ValueError`` line naming the task and the setting). It is data, not code: a run's
+``config.json`` holds its name and settings (:func:`softcrawl.tasks.registry.parse_task`
+rebuilds it). What every task defines (docs/tasks.md):
+
+* :attr:`Task.unit`: the unit of its reward, ``"cm"`` or ``"deg"``;
+* :meth:`Task.origin` / :meth:`Task.progress`: a scalar measure of the episode's progress since
+  its start (after settling), in :attr:`Task.unit`; the reward of an action is
+  :meth:`Task.reward` of the measures before and after it (``after - before`` unless the task
+  says otherwise), so an episode's return is its progress;
+* :meth:`Task.reached`: its termination (a goal reached), if any; a diverged simulation ends
+  every task's episode (:mod:`softcrawl.envs.crawler`);
+* the floor: :attr:`Task.friction` (Coulomb mu; None: the robot config's, 1.2 by default) and
+  :meth:`Task.gravity` (mm/s^2; None: the model's ``(0, 0, -9800)``), applied to every robot
+  the env builds (:meth:`Task.robots`);
+* :attr:`Task.observes_state`: whether its policy needs the robot-state summary in its
+  observation (none of the shipped tasks does: open-loop observations, codesign.md);
+* :attr:`Task.baseline`: the expert baseline it has (``"sine"``: the paper's sine gait on the
+  baseline design, ``"turning"``: :mod:`softcrawl.tasks.baselines`; None: none);
+* :attr:`Task.reads_disk`: whether :meth:`progress` reads the disk's nodes (not only the
+  reward point, the disk's top centre): the JAX backend returns the reward point only.
+
+Episodes are read duck-typed: an object with ``robot`` (``reward_position(x)``; with
+:attr:`reads_disk` a :class:`softcrawl.robot.Robot`), ``state.x`` ``(N, 3)`` mm, ``start``
+``(3,)`` mm (the reward point after settling) and ``displacement_cm``
+(:class:`softcrawl.robot.episode.Episode`, or the JAX backend's point episode).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from softcrawl.robot.assembly import Robot
+from softcrawl.robot.domain import randomized_robot
+from softcrawl.robot.episode import MM_PER_CM
+
+#: Bounds of a task's floor friction (Coulomb mu, dimensionless), both included.
+FRICTION_BOUNDS = (0.0, 10.0)
+
+
+def check_number(task: str, name: str, value, low: float, high: float, unit: str = "") -> float:
+    """``value`` as a float if it is a number in ``[low, high]``; else ValueError (one line
+    naming the task and the setting)."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and math.isfinite(value) and low <= value <= high):  # NaN fails too
+        raise ValueError(f"task {task!r}: {name} must be a number in [{low:g}, {high:g}]"
+                         f"{' ' + unit if unit else ''}, got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class Task:
+    """Base of the tasks (module docstring). Settings are dataclass fields (numbers).
+
+    Attributes:
+        friction: the floor's Coulomb coefficient mu (``[0, 10]``); None: the robot config's
+            (:attr:`softcrawl.robot.RobotConfig.friction`, 1.2: the paper's floor).
+
+    Raises:
+        ValueError: a setting that is not a finite number in its range (one line).
+    """
+
+    name: ClassVar[str] = ""
+    unit: ClassVar[str] = "cm"
+    baseline: ClassVar[str | None] = None
+    observes_state: ClassVar[bool] = False
+    reads_disk: ClassVar[bool] = False
+    #: One line on the reward, for reports and ``docs/tasks.md``.
+    describe: ClassVar[str] = ""
+
+    friction: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.friction is not None:
+            object.__setattr__(self, "friction", check_number(self.name, "friction", self.friction, *FRICTION_BOUNDS))
+
+    # -- floor ---------------------------------------------------------------------------
+    def gravity(self) -> tuple[float, float, float] | None:
+        """Gravity of the task's world, ``(3,)`` mm/s^2 (None: the model's own)."""
+        return None
+
+    def robots(self, factory: Callable) -> Callable:
+        """``factory`` (``design -> Robot``) whose robots stand on this task's floor: the same
+        object when the task keeps the robot's floor (so robot caches keyed on the factory
+        stay shared), else a picklable :class:`OnFloor` wrapper."""
+        gravity = self.gravity()
+        if self.friction is None and gravity is None:
+            return factory
+        return OnFloor(factory, self.friction, gravity)
+
+    # -- scoring -------------------------------------------------------------------------
+    def origin(self, episode) -> object:
+        """What :meth:`progress` measures from, taken at the episode's start: by default the
+        reward point's settled position ``episode.start`` ``(3,)`` mm."""
+        return np.asarray(episode.start, dtype=float).copy()
+
+    def progress(self, episode, origin) -> float:
+        """The episode's progress since its start, in :attr:`unit` (subclasses)."""
+        raise NotImplementedError
+
+    def reward(self, before: float, after: float) -> float:
+        """The reward of an action from the progress before and after it: ``after - before``."""
+        return after - before
+
+    def reached(self, episode, origin) -> bool:
+        """Whether the episode ends now with its goal reached (default: never)."""
+        return False
+
+    def settings(self) -> dict:
+        """``{"name": ..., setting: value, ...}``: the table :func:`parse_task` reads back."""
+        return {"name": self.name, **dataclasses.asdict(self)}
+
+    def label(self) -> str:
+        """A short human label: the name and its non-default settings, e.g. ``heading (heading_deg=90)``."""
+        default = type(self)()
+        changed = [f"{f.name}={getattr(self, f.name):g}" for f in dataclasses.fields(self)
+                   if getattr(self, f.name) != getattr(default, f.name)]
+        return f"{self.name} ({', '.join(changed)})" if changed else self.name
+
+
+@dataclass(frozen=True)
+class OnFloor:
+    """A robot factory whose robots stand on another floor (picklable, hashable).
+
+    Attributes:
+        factory: ``design -> Robot``.
+        friction: the floor's Coulomb mu (None: the robot's).
+        gravity: ``(3,)`` mm/s^2 (None: the model's).
+    """
+
+    factory: Callable
+    friction: float | None = None
+    gravity: tuple[float, float, float] | None = None
+
+    def __call__(self, design) -> Robot:
+        return on_floor(self.factory(design), self.friction, self.gravity)
+
+
+def on_floor(robot: Robot, friction: float | None = None, gravity=None) -> Robot:
+    """``robot`` with the floor's friction ``friction`` (:func:`softcrawl.robot.domain.randomized_robot`:
+    ``robot.config`` records it) and gravity ``gravity`` ``(3,)`` mm/s^2 (None: unchanged). The
+    solvers read both from the model when they are made (the reduced legs' gravity loads too)."""
+    if friction is not None:
+        robot = randomized_robot(robot, friction=friction)
+    if gravity is not None:
+        robot = dataclasses.replace(robot, model=dataclasses.replace(robot.model, gravity=tuple(map(float, gravity))))
+    return robot
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    """A recorded state read as an episode by the tasks (module docstring): ``robot``, ``state.x``
+    ``(N, 3)`` mm, ``start`` ``(3,)`` mm (the reward point at the episode's start)."""
+
+    robot: Robot
+    x: np.ndarray
+    start: np.ndarray
+
+    @property
+    def state(self) -> Snapshot:
+        return self
+
+    @property
+    def displacement_cm(self) -> float:
+        """+x displacement of the reward point since ``start``, cm (:attr:`Episode.displacement_cm`)."""
+        return float(self.robot.reward_position(self.x)[0] - self.start[0]) / MM_PER_CM
+
+
+def replay_return(task: Task, robot: Robot, frames) -> float:
+    """``task``'s return over recorded frames: the sum of :meth:`Task.reward` between
+    consecutive frames (``frames`` ``(k, N, 3)`` mm, frame 0 the episode's start, e.g.
+    :attr:`softcrawl.robot.EpisodeResult.frames`); NaN without frames."""
+    frames = np.asarray(frames, dtype=float)
+    if len(frames) == 0:
+        return float("nan")
+    start = np.asarray(robot.reward_position(frames[0]), dtype=float)
+    snaps = [Snapshot(robot, x, start) for x in frames]
+    origin = task.origin(snaps[0])
+    progress = [task.progress(s, origin) for s in snaps]
+    return float(sum(task.reward(a, b) for a, b in zip(progress[:-1], progress[1:])))

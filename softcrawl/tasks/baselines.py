@@ -1,0 +1,119 @@
+"""Expert baselines of the tasks that have one (:attr:`softcrawl.tasks.Task.baseline`).
+
+* ``"sine"`` (``forward``): the paper's sine gait on :data:`softcrawl.design.BASELINE_DESIGN`,
+  swept over its phase lag by :func:`softcrawl.robot.sweep.run_sweep` (codesign.md).
+* ``"turning"`` (``turning``): a hand-made turning gait, :func:`turning_gait` on
+  :data:`TURNING_BASELINE_DESIGN`, a design of the paper's space symmetric under a half turn
+  (legs at 22.5 and 202.5 deg on regulator 1, at 67.5 and 247.5 deg on regulator 2): the two
+  diagonally opposite leg pairs inflate alternately, pair 2 lagging pair 1 by a phase lag, with
+  the raised-cosine waves of the sine baseline (:class:`softcrawl.gaits.SineGait`: 0-90 kPa, 4 s
+  period). Every mirror line of the design swaps its two regulators, so a lag other than 0 or
+  180 deg makes the actuation chiral (in a mirror-symmetric model a lag of -phi is the mirror
+  image of phi and turns the other way; the model's inflating legs also twist the disk
+  counter-clockwise, docs/tasks.md); a design with a mirror line that keeps each regulator's legs, such as 22.5 and
+  67.5 deg on regulator 1 and 202.5 and 247.5 deg on regulator 2, cannot turn under any gait
+  of its two regulators. :func:`sweep_turning` tunes the lag as ``softcrawl sweep-phase`` tunes the forward
+  baseline's; its score is the yaw the disk turns in the episode, degrees
+  (:func:`turned_degrees`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from softcrawl.gaits import SineGait
+from softcrawl.parallel import run_pool
+from softcrawl.robot.assembly import Robot
+from softcrawl.robot.episode import Settling, run_episode
+from softcrawl.tasks.builtin import disk_yaw_deg, wrap_deg
+
+#: The turning baseline's design: regulator 1 at 22.5 and 202.5 deg, regulator 2 at 67.5 and
+#: 247.5 deg (slots 0, 4 and 1, 5 of the paper's space): symmetric under a half turn about +z.
+TURNING_BASELINE_DESIGN: tuple[int, ...] = (1, 2, 0, 0, 1, 2, 0, 0)
+#: Phase lags of regulator 2 behind regulator 1 swept by default, degrees.
+TURNING_PHASES: tuple[float, ...] = tuple(float(p) for p in range(0, 360, 45))
+
+
+def turning_gait(phase_deg: float) -> SineGait:
+    """The turning baseline's gait: the sine baseline's waves (0-90 kPa raised cosine, period
+    4 s) on regulators 1 and 2, regulator 2 lagging by ``phase_deg`` degrees, regulator 3 off."""
+    return SineGait(phase_deg=phase_deg)
+
+
+@dataclass(frozen=True)
+class TurnResult:
+    """One episode of a turning gait.
+
+    Attributes:
+        phase_deg: the gait's phase lag, degrees.
+        turned_deg: counter-clockwise yaw of the disk over the episode, degrees (up to the last
+            valid state if it diverged; NaN if settling diverged).
+        diverged: whether the simulation failed. wall_seconds: its wall-clock time.
+    """
+
+    phase_deg: float
+    turned_deg: float
+    diverged: bool
+    wall_seconds: float
+
+
+def turned_degrees(robot: Robot, gait, duration: float, settling: Settling = Settling(),
+                   sample_every: float = 1.0) -> tuple[float, bool]:
+    """Yaw the disk turns under ``gait`` over ``duration`` s (after settling), degrees
+    counter-clockwise: :func:`softcrawl.tasks.disk_yaw_deg` sampled every ``sample_every`` s
+    (rounded to whole steps; fewer if needed, so that the samples include the episode's last
+    step) and its wrapped increments summed (the turning task's return with 1-s actions).
+    Returns ``(degrees, diverged)``; NaN degrees if settling diverged."""
+    dt = robot.config.dt
+    n = int(round(duration / dt)) if math.isfinite(duration) else 0
+    every = math.gcd(max(1, int(round(sample_every / dt))), max(n, 1))
+    yaws: list[float] = []
+    res = run_episode(robot, gait, duration, settling=settling, record_every=every, progress=False,
+                      on_frame=lambda t, x: yaws.append(disk_yaw_deg(robot, x)))
+    if not yaws:
+        return float("nan"), True
+    total = sum(wrap_deg(b - a) for a, b in zip(yaws[:-1], yaws[1:]))
+    return float(total), bool(res.diverged)
+
+
+def run_turning_phase(factory: Callable, phase_deg: float, duration: float,
+                      settling: Settling = Settling()) -> TurnResult:
+    """One episode of :func:`turning_gait` at ``phase_deg`` on ``factory(TURNING_BASELINE_DESIGN)``."""
+    wall = time.perf_counter()
+    turned, diverged = turned_degrees(factory(TURNING_BASELINE_DESIGN), turning_gait(phase_deg), duration, settling)
+    return TurnResult(float(phase_deg), turned, diverged, time.perf_counter() - wall)
+
+
+def sweep_turning(factory: Callable, phases: Sequence[float] = TURNING_PHASES, duration: float = 20.0,
+                  settling: Settling = Settling(), workers: int | None = 1) -> list[TurnResult]:
+    """The turning baseline at each phase lag of ``phases`` (degrees), in that order.
+
+    Args:
+        factory: picklable ``design -> Robot`` (a run's robot factory on the task's floor).
+        duration: episode length, s. settling: the rest rule before each episode.
+        workers: processes (:func:`softcrawl.parallel.run_pool`; 1: in this process).
+
+    Raises:
+        ValueError: no phases, a non-finite or repeated phase, a non-positive duration.
+    """
+    phases = tuple(float(p) for p in phases)
+    if not phases or not all(map(math.isfinite, phases)) or len(set(phases)) != len(phases):
+        raise ValueError(f"phases must be non-empty, finite and distinct, got {phases}")
+    if not (math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be a positive number of seconds, got {duration}")
+    done: dict[float, TurnResult] = {}
+    run_pool(run_turning_phase, workers, [(factory, p, duration, settling) for p in phases],
+             lambda r: done.__setitem__(r.phase_deg, r))
+    return [done[p] for p in phases]
+
+
+def best_turn(results: Sequence[TurnResult]) -> TurnResult | None:
+    """The result that turned furthest in either direction (largest ``|turned_deg|``; the
+    mirror image of a gait turns the other way), None if every episode diverged."""
+    ok = [r for r in results if not r.diverged and np.isfinite(r.turned_deg)]
+    return max(ok, key=lambda r: abs(r.turned_deg)) if ok else None
