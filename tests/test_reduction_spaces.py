@@ -16,7 +16,7 @@ import pytest
 
 from softcrawl import cli
 from softcrawl.design import space as default
-from softcrawl.design.spacefile import load_space, resolve_space, shipped_space_path
+from softcrawl.design.spacefile import load_space, shipped_space_path
 from softcrawl.reduction.artifact import (
     PAPER_MATERIALS,
     ReductionMismatchError,
@@ -228,17 +228,6 @@ def test_cli_validate_refuses_a_space_without_reduction_or_with_a_wrong_checksum
     assert f"expects {'a' * 64}" in err and len(err.splitlines()) == 1 and not out.exists(), err
     assert cli.main(["reduce", "validate", "--space", "octo", "--out", str(out), "--no-progress"]) == 2
     assert "no shipped design space 'octo'" in capsys.readouterr().err and not out.exists()
-
-
-def test_resolve_space_takes_a_shipped_name_or_a_path(tmp_path):
-    assert resolve_space("paper") == default.DEFAULT_SPACE
-    assert resolve_space(str(shipped_space_path("hex6"))) == HEX6
-    copy = _space_file(tmp_path, shipped_space_path("hex6").read_text().replace('"hex6"', '"hex6copy"', 1), "hex6")
-    assert resolve_space(copy).name == "hex6copy"  # an existing file wins over a shipped name
-    with pytest.raises(FileNotFoundError, match="shipped: hex6, paper"):
-        resolve_space("octo")
-    with pytest.raises(FileNotFoundError):
-        resolve_space(tmp_path / "none.toml")
 
 
 # ---------------------------------------------------------------------- the shipped hex6 reduction

@@ -25,7 +25,8 @@ import json
 from pathlib import Path
 
 from softcrawl.design.space import DEFAULT_SPACE
-from softcrawl.design.spacefile import DesignSpace, resolve_space
+from softcrawl.design.resolve import resolve_space
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.reduction.artifact import file_sha256, load_reduction, save_reduction
 from softcrawl.reduction.build import BuildSettings, build_reduction, build_reductions

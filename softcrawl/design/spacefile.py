@@ -629,20 +629,6 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
     return space
 
 
-def resolve_space(value: str | Path, check_geometry: bool = True) -> DesignSpace:
-    """The space a command-line ``--space`` names: a shipped space's name (``"paper"``,
-    ``"hex6"``: :func:`shipped_space_path`) or the path of a space file.
-
-    Raises:
-        FileNotFoundError: neither a shipped name nor an existing file.
-        SpaceFileError: as :func:`load_space`.
-    """
-    text = str(value)
-    if not Path(text).is_file() and "/" not in text and not text.endswith(".toml"):
-        return load_space(shipped_space_path(text), check_geometry)
-    return load_space(text, check_geometry)
-
-
 def shipped_space_path(name: str) -> Path:
     """Path of a shipped space file (``"paper"``, ``"hex6"``).
 
