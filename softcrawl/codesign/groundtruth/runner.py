@@ -225,7 +225,7 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
                disable=not progress, dynamic_ncols=True)
 
     def finish(d_result: dict) -> None:
-        r = DesignResult.from_dict(d_result, space=space, unit=unit)
+        r = DesignResult.from_dict(d_result, space=space)  # a worker's dict: DesignResult.to_dict()
         _append(res_path, r, unit)
         done[r.design] = r
         bar.update()
