@@ -168,3 +168,22 @@ def test_a_task_the_jax_engine_cannot_score_is_refused():
         GroundTruthConfig(task="turning", engine="jax").validate()
     with pytest.raises(ValueError, match="task: unknown task"):
         GroundTruthConfig(task="fly").validate()
+
+
+@pytest.mark.slow
+def test_hex6_jax_groundtruth_rows_are_the_cpu_engines(tmp_path, cache):
+    """``--engine jax`` on the hex6 space: each row's reward is the CPU engine's reward of the
+    row's own gait within 0.03 cm (the bound tests/test_other_spaces.py measures for 2-regulator
+    robots: 0.007 cm)."""
+    pytest.importorskip("jax")
+    hex6 = resolve_space("hex6")
+    designs = parse_designs("2", hex6)[:2]
+    out = tmp_path / "gt"
+    spec = ";".join(",".join(map(str, d)) for d in designs)
+    assert cli_main(["groundtruth", "--out", str(out), "--space", "hex6", "--duration", "1.0", "--designs", spec,
+                     "--engine", "jax", "--jax-batch", "4", *TINY]) == 0
+    cfg, res, _ = load_groundtruth(out)
+    assert set(res) == set(designs)
+    for design, row in res.items():
+        cpu, diverged = DesignEvaluator(design, cfg)(PeriodicGait.from_dict(row.gait), cfg.duration)
+        assert not diverged and abs(cpu - row.reward_cm) <= 0.03, (design, cpu, row.reward_cm)
