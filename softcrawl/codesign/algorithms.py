@@ -240,8 +240,9 @@ class GibbsSACReplay(CodesignAlgorithm):
 
 
 class SimEvaluator:
-    """``(design, gait, duration) -> cm`` on the reduced model of a ground truth's settings,
-    keeping the ``max_robots`` most recent designs' robots (and rested states). Counts episodes."""
+    """``(design, gait, duration) -> return`` (the task's unit) on the reduced model of a ground
+    truth's settings (its space and task), keeping the ``max_robots`` most recent designs' robots
+    (and rested states). Counts episodes."""
 
     def __init__(self, cfg: GroundTruthConfig, max_robots: int = 16):
         from softcrawl.codesign.groundtruth import DesignEvaluator

@@ -23,8 +23,9 @@ from softcrawl.tasks import DEFAULT_TASK, Task
 def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_seconds: float | None = None) -> dict:
     """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` (each replaced
     atomically; rewards keyed ``reward_<unit>`` in the task's unit, and for a task other than
-    ``forward`` the summary's ``task``: its settings and unit) from the valid rows of ``results.jsonl`` (only those in ``designs`` if given;
-    the bad rows, by file and line, in the summary's ``bad_rows``); returns the summary.
+    ``forward`` the summary's ``task``: its settings and unit) from the valid rows of
+    ``results.jsonl`` (only those in ``designs`` if given; the bad rows, by file and line, in
+    the summary's ``bad_rows``); returns the summary.
 
     Raises:
         ValueError: the folder's ``config.json`` is missing or not a ground truth's.

@@ -94,7 +94,8 @@ class DesignResult:
                 return float("nan")
             if not (_finite(v) and v >= low and (isinstance(v, int) or not integer)):
                 kind = "an integer" if integer else "a finite number"
-                raise ValueError(f"{at}: {_unit_key(key, unit)} must be {kind}{f' >= {low:g}' if low > -math.inf else ''}, got {v!r}")
+                raise ValueError(f"{at}: {_unit_key(key, unit)} must be {kind}"
+                                 f"{f' >= {low:g}' if low > -math.inf else ''}, got {v!r}")
             return v if integer else float(v)
 
         try:

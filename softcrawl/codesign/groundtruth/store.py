@@ -83,8 +83,9 @@ def load_results(out_dir: str | Path) -> dict[Design, DesignResult]:
 
 
 def _append(path: Path, result: DesignResult, unit: str = "cm") -> None:
-    """Append one row to ``results.jsonl`` (its rewards keyed in ``unit``, the task's) and fsync it. A last line left unfinished by a
-    killed run is first ended, so that it stays a (bad) line of its own.
+    """Append one row to ``results.jsonl`` (its rewards keyed in ``unit``, the task's) and fsync
+    it. A last line left unfinished by a killed run is first ended, so that it stays a (bad)
+    line of its own.
 
     Raises:
         UnsafeFileError: the file is a symbolic link or not a regular file.
