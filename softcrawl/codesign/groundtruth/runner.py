@@ -190,8 +190,7 @@ def jax_evaluate_many(cfg: GroundTruthConfig) -> EvaluateMany:
     """The batched JAX engine of ``cfg`` (:class:`softcrawl.jaxsim.episodes.JaxEvaluator` of
     ``cfg``'s design space and robot, on the forward task's floor, in ``cfg.robot.rid_dtype``,
     batches of at most ``cfg.jax_batch``, diverged episodes scored :data:`DIVERGED_CM`) as an
-    :data:`EvaluateMany`. float64 turns on ``jax_enable_x64`` for the
-    process.
+    :data:`EvaluateMany`. float64 turns on ``jax_enable_x64`` for the process.
 
     Raises:
         ImportError: JAX is not installed (``pip install "softcrawl[jax]"``).
