@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import softcrawl.codesign.groundtruth_regret as rg
@@ -187,3 +188,23 @@ def test_hex6_jax_groundtruth_rows_are_the_cpu_engines(tmp_path, cache):
     for design, row in res.items():
         cpu, diverged = DesignEvaluator(design, cfg)(PeriodicGait.from_dict(row.gait), cfg.duration)
         assert not diverged and abs(cpu - row.reward_cm) <= 0.03, (design, cpu, row.reward_cm)
+
+
+@pytest.mark.parametrize("name", ["random", "tpe"])
+def test_algorithms_propose_designs_and_gaits_of_the_configs_space(name):
+    """The baseline algorithms search hex6's canonical designs with gaits of its 2 regulators
+    (no simulation: each proposal is checked, then given a made-up return)."""
+    from softcrawl.codesign.algorithms import make_algorithm
+
+    hex6 = resolve_space("hex6")
+    designs = parse_designs("2", hex6)
+    algo = make_algorithm(name, designs, GroundTruthConfig(space="hex6"), seed=0, evals_per_design=3, cycles=(2,))
+    for _ in range(8):
+        (p,) = algo.propose()
+        assert p.design in designs and p.design == hex6.canonicalize(p.design)
+        k = np.array([p.gait.pressure_at(t) for t in (0.0, 1.0)])
+        assert k.shape == (2, 2) and np.all((0 <= k) & (k <= 90))
+        used = max(p.design)  # regulators the design uses; the others stay vented
+        assert np.all(k[:, used:] == 0)
+        algo.tell([p], [float(sum(p.design))])
+    assert algo.incumbent in designs

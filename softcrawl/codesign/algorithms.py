@@ -120,7 +120,8 @@ class RandomSearch(CodesignAlgorithm):
     def propose(self) -> list[Proposal]:
         if self._gen is None:
             self._next_design()
-        return [Proposal(self._design, knots_to_gait(self._x, self._m, self._L, self.hold), self.duration)]
+        gait = knots_to_gait(self._x, self._m, self._L, self.hold, n_regulators=self.space.n_regulators)
+        return [Proposal(self._design, gait, self.duration)]
 
     def tell(self, proposals, returns) -> None:
         super().tell(proposals, returns)

@@ -11,7 +11,8 @@ from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import MAX_KNOTS, WAVEFORMS, PeriodicGait
 
-#: Objective value (cm) given to an episode whose simulation diverged.
+#: Objective value given to an episode whose simulation diverged, in the task's unit (cm; degrees
+#: for ``turning``).
 DIVERGED_CM = -100.0
 
 
