@@ -33,7 +33,7 @@ from softcrawl.codesign.groundtruth.store import folder_task
 from softcrawl.design.resolve import resolve_space
 from softcrawl.robot.assembly import build_robot
 from softcrawl.tasks import Forward, Heading, make_task
-from softcrawl.tasks.baselines import turned_degrees
+from softcrawl.tasks.baselines import TURNING_BASELINE_DESIGN, turned_degrees, turning_gait
 
 #: The smallest search: one cycle length, 3 screening episodes of 0.5 s, one finalist (step and
 #: smooth finals of ``--duration``), the demo's coarse disk, no expert-baseline sweep.
@@ -72,7 +72,7 @@ def test_hex6_groundtruth_through_the_cli(tmp_path, cache, capsys):
 def test_turning_groundtruth_rewards_the_yaw(tmp_path, cache, capsys):
     out = tmp_path / "gt"
     assert cli_main(["groundtruth", "--out", str(out), "--task", "turning", "--duration", "2.0",
-                     "--designs", "1,0,0,2,2,0,0,0", *TINY]) == 0
+                     "--designs", "1,0,0,2,2,0,0,0", *TINY, "--baseline-phases", "90"]) == 0
     cfg = read_config(out)
     assert cfg.task == "turning" and folder_task(out) == make_task("turning")
     rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
@@ -80,13 +80,19 @@ def test_turning_groundtruth_rewards_the_yaw(tmp_path, cache, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["task"] == {"name": "turning", "friction": None, "unit": "deg"}
     assert summary["best"][0]["reward_deg"] == rows[0]["reward_deg"]
-    assert not (out / "references.json").exists()  # forward references only
-    assert "deg" in capsys.readouterr().out
+    assert "turning baseline (90 deg lag)" in capsys.readouterr().out
     # independent recomputation: the disk's yaw sampled every second, wrapped increments summed
     robot = build_robot(L1, cfg.robot_config())
     turned, diverged = turned_degrees(robot, PeriodicGait.from_dict(rows[0]["gait"]), 2.0, sample_every=1.0)
     assert not diverged and math.isfinite(turned)
     assert rows[0]["reward_deg"] == pytest.approx(turned, abs=1e-9)
+    # the references: the turning task's hand-made baseline, not the forward ones, in degrees
+    refs = json.loads((out / "references.json").read_text())
+    assert set(refs) == {"turning_baseline"} and refs["turning_baseline"]["best_phase_deg"] == 90.0
+    base = build_robot(TURNING_BASELINE_DESIGN, cfg.robot_config())
+    turned, _ = turned_degrees(base, turning_gait(90.0), 2.0, sample_every=1.0)
+    assert refs["turning_baseline"]["reward_deg"] == pytest.approx(turned, abs=1e-9)
+    assert summary["designs_beating_turning_baseline"] == int(rows[0]["reward_deg"] > turned)
 
 
 @dataclass(frozen=True)

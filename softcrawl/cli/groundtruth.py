@@ -119,6 +119,10 @@ def _run(args: argparse.Namespace) -> int:
         b = s["references"]["expert_baseline"]
         print(f"expert baseline (sine, {b['best_phase_deg']:.0f} deg): {b['reward_cm']:+.2f} cm; "
               f"{s.get('designs_beating_expert_baseline', 0)} designs beat it")
+    if "turning_baseline" in s["references"]:
+        b = s["references"]["turning_baseline"]
+        print(f"turning baseline ({b['best_phase_deg']:.0f} deg lag): {b['reward_deg']:+.2f} deg; "
+              f"{s.get('designs_beating_turning_baseline', 0)} designs beat it")
     if s["bad_rows"]:
         print(f"{len(s['bad_rows'])} bad rows of {args.out}/results.jsonl left in place and not used "
               f"(summary.json lists them); first: {s['bad_rows'][0]}")
@@ -143,7 +147,8 @@ def register(subparsers) -> None:
                    help="what the gait search maximises (docs/tasks.md): forward (the default, the paper's), heading, "
                         "turning, target or incline, or a JSON table of its settings, e.g. "
                         "'{\"name\": \"heading\", \"heading_deg\": 90}'; rewards are in the task's unit "
-                        "(cm, or deg for turning); the references are the forward task's only")
+                        "(cm, or deg for turning); references: the forward task's, or turning's hand-made baseline "
+                        "(--baseline-phases its lags)")
     p.add_argument("--workers", type=int, default=None, help="processes (or Ray CPUs); default: all cores")
     p.add_argument("--executor", default="process", help="process (default), serial or ray")
     p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local Ray)")

@@ -70,7 +70,7 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
                       "median": float(np.median(rewards)) if len(rows) else None,
                       "min": float(rewards.min()) if len(rows) else None},
         "paper_l1": place(PAPER_BEST_DESIGN), "expert_design": place(BASELINE_DESIGN),
-        "references": {k: {kk: vv for kk, vv in v.items() if kk != "sweep_cm"} for k, v in refs.items()},
+        "references": {k: {kk: vv for kk, vv in v.items() if kk != f"sweep_{unit}"} for k, v in refs.items()},
         "cost": {"evaluations": int(sum(r.evaluations for r in rows)),
                  "sim_seconds": float(sum(r.sim_seconds for r in rows)),
                  "cpu_seconds": float(sum(r.wall_seconds for r in rows)),
@@ -80,6 +80,8 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
     }
     if task.name != DEFAULT_TASK:  # a forward ground truth's summary stays as it was
         summary["task"] = {**task.settings(), "unit": unit}
+    if "turning_baseline" in refs and len(rows):
+        summary["designs_beating_turning_baseline"] = int(np.sum(rewards > refs["turning_baseline"]["reward_deg"]))
     if "expert_baseline" in refs and len(rows):
         b = refs["expert_baseline"]["reward_cm"]
         summary["designs_beating_expert_baseline"] = int(np.sum(rewards > b))
@@ -107,6 +109,10 @@ def _ranked_plot(rows: list[DesignResult], refs: dict, path: Path, cfg: GroundTr
         b = refs["expert_baseline"]
         ax.axhline(b["reward_cm"], color="C0", ls="--", lw=1,
                    label=f"expert baseline (sine, {b['best_phase_deg']:.0f} deg): {b['reward_cm']:+.2f} cm")
+    if "turning_baseline" in refs:
+        b = refs["turning_baseline"]
+        ax.axhline(b["reward_deg"], color="C0", ls="--", lw=1,
+                   label=f"turning baseline ({b['best_phase_deg']:.0f} deg lag): {b['reward_deg']:+.2f} deg")
     if "paper_l1_gait" in refs:
         ax.axhline(refs["paper_l1_gait"]["reward_cm"], color="C3", ls=":", lw=1,
                    label=f"paper L1 with paper's 3-s gait: {refs['paper_l1_gait']['reward_cm']:+.2f} cm")

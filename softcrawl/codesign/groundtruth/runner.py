@@ -101,8 +101,26 @@ def _pin_threads(parent_pid: int | None = None) -> None:
 def references(cfg: GroundTruthConfig, progress: bool = False) -> dict:
     """Reference gaits with the run's settings: the expert baseline (design
     :data:`BASELINE_DESIGN`, smooth sine at every lag of ``cfg.baseline_phases``, best kept) and
-    the paper's 3-s cycle on :data:`PAPER_BEST_DESIGN`; cm per ``cfg.duration`` s."""
+    the paper's 3-s cycle on :data:`PAPER_BEST_DESIGN`; cm per ``cfg.duration`` s. For the
+    ``turning`` task, its hand-made baseline instead (:mod:`softcrawl.tasks.baselines`:
+    :func:`~softcrawl.tasks.baselines.turning_gait` on
+    :data:`~softcrawl.tasks.baselines.TURNING_BASELINE_DESIGN` at every lag of
+    ``cfg.baseline_phases``, the lag of the largest counter-clockwise turn kept, the ground
+    truth's objective), degrees per ``cfg.duration`` s."""
     out: dict = {}
+    if cfg.task_spec().name == "turning":
+        if cfg.baseline_phases:
+            from softcrawl.tasks.baselines import TURNING_BASELINE_DESIGN, turning_gait
+
+            ev = DesignEvaluator(TURNING_BASELINE_DESIGN, cfg)  # the design is canonical: its labels stay
+            sweep = {}
+            for ph in cfg.baseline_phases:
+                r, div = ev(turning_gait(ph), cfg.duration)
+                sweep[str(ph)] = DIVERGED_CM if div else r
+            best = max(sweep, key=sweep.get)
+            out["turning_baseline"] = {"design": list(TURNING_BASELINE_DESIGN), "best_phase_deg": float(best),
+                                       "reward_deg": sweep[best], "sweep_deg": sweep}
+        return out
     if cfg.baseline_phases:
         ev = DesignEvaluator(BASELINE_DESIGN, cfg)
         sweep = {}
@@ -263,7 +281,8 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
                 finish(res)
     bar.close()
     ref_path = out / "references.json"
-    if refs and read_references(out) is None and space == DEFAULT_SPACE and cfg.task_spec() == Forward():
-        # the references are designs and gaits of the paper's space, scored by its task on its floor
+    if refs and read_references(out) is None and space == DEFAULT_SPACE and (
+            cfg.task_spec() == Forward() or cfg.task_spec().name == "turning"):
+        # designs and gaits of the paper's space: the forward task's on its floor, or the turning baseline
         atomic_write_text(ref_path, json.dumps(references(cfg), indent=2, allow_nan=False) + "\n")
     return write_outputs(out, designs, time.perf_counter() - wall)

@@ -197,13 +197,15 @@ def folder_lock(out: Path):
 
 def read_references(out_dir: str | Path) -> dict | None:
     """``references.json`` of a ground-truth folder, or None if it is missing or not valid
-    (a note says so): an object of references, each with a finite ``reward_cm``."""
+    (a note says so): an object of references, each with a finite ``reward_<unit>`` (the
+    folder's task's unit, :func:`folder_task`)."""
     path = Path(out_dir) / "references.json"
     if not path.exists() and not path.is_symlink():
         return None
     try:
+        key = f"reward_{folder_task(out_dir).unit}"
         refs = load_json(path)
-        if not isinstance(refs, dict) or not all(isinstance(v, dict) and _finite(v.get("reward_cm"))
+        if not isinstance(refs, dict) or not all(isinstance(v, dict) and _finite(v.get(key))
                                                  for v in refs.values()):
             raise ValueError("not an object of references with finite rewards")
         if not _finite(refs.get("expert_baseline", {"best_phase_deg": 0.0}).get("best_phase_deg")):
