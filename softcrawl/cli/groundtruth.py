@@ -36,6 +36,25 @@ def _phases(text: str) -> tuple[float, ...]:
         raise ValueError(f"--baseline-phases: {exc}") from None
 
 
+def parse_task_option(text: str):
+    """``--task``: a task's name (``turning``) or a JSON table of its settings
+    (``{"name": "heading", "heading_deg": 90}``), as the value of ``EnvConfig.task``; returned
+    as that value (a name or a dict), checked by :func:`softcrawl.tasks.parse_task`.
+
+    Raises:
+        ValueError: not a task (one line).
+    """
+    from softcrawl.safeio import loads_json
+    from softcrawl.tasks import parse_task
+
+    spec = loads_json(text, "--task") if text.lstrip().startswith("{") else text.strip()
+    try:
+        parse_task(spec)
+    except ValueError as exc:
+        raise ValueError(f"--task: {exc}") from None
+    return spec
+
+
 def _run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -57,6 +76,9 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.resume and args.space is not None:
         raise ValueError("--resume uses the folder's own design space (its space.toml); drop --space")
+    if args.resume and args.task is not None:
+        raise ValueError("--resume uses the folder's own task (its config.json); drop --task")
+    task = parse_task_option(args.task) if args.task is not None else "forward"
     space = resolve_space(args.space or "paper") if not args.resume else None
     if space is not None:
         designs = parse_designs(args.designs, space)
@@ -82,20 +104,25 @@ def _run(args: argparse.Namespace) -> int:
                                 robot=gt_robot(leg_mesh_size=args.leg_mesh_size, disk_mesh_size=args.disk_mesh_size,
                                                reduction=args.reduction, rid_dtype=args.rid_dtype, dt=args.dt),
                                 baseline_phases=_phases(args.baseline_phases), engine=args.engine,
-                                jax_batch=args.jax_batch, space=args.space or "paper").validate()
+                                jax_batch=args.jax_batch, space=args.space or "paper", task=task).validate()
     check_ray_address(args.executor, args.ray_address)
     s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
                         progress=not args.no_progress, ray_address=args.ray_address)
     best = s["best"][0] if s["best"] else None
+    u = s.get("task", {}).get("unit", "cm")  # the summary's rewards are in its task's unit
     print(f"{s['designs']} of {s['requested']} designs done; best {','.join(map(str, best['design']))} "
-          f"{best['reward_cm']:+.2f} cm ({best['gait']})" if best else "no design finished")
+          f"{best[f'reward_{u}']:+.2f} {u} ({best['gait']})" if best else "no design finished")
     for key, name in (("paper_l1", "paper L1"), ("expert_design", "expert design")):
         if s.get(key):
-            print(f"{name}: rank {s[key]['rank']} of {s['designs']} ({s[key]['reward_cm']:+.2f} cm)")
+            print(f"{name}: rank {s[key]['rank']} of {s['designs']} ({s[key][f'reward_{u}']:+.2f} {u})")
     if "expert_baseline" in s["references"]:
         b = s["references"]["expert_baseline"]
         print(f"expert baseline (sine, {b['best_phase_deg']:.0f} deg): {b['reward_cm']:+.2f} cm; "
               f"{s.get('designs_beating_expert_baseline', 0)} designs beat it")
+    if "turning_baseline" in s["references"]:
+        b = s["references"]["turning_baseline"]
+        print(f"turning baseline ({b['best_phase_deg']:.0f} deg lag): {b['reward_deg']:+.2f} deg; "
+              f"{s.get('designs_beating_turning_baseline', 0)} designs beat it")
     if s["bad_rows"]:
         print(f"{len(s['bad_rows'])} bad rows of {args.out}/results.jsonl left in place and not used "
               f"(summary.json lists them); first: {s['bad_rows'][0]}")
@@ -116,6 +143,12 @@ def register(subparsers) -> None:
     p.add_argument("--space", default=None, metavar="NAME|PATH",
                    help="design space: a shipped one (paper, the default; hex6) or a space file (TOML); the folder "
                         "keeps a copy as space.toml (the expert-baseline references are the paper space's only)")
+    p.add_argument("--task", default=None, metavar="NAME|TABLE",
+                   help="what the gait search maximises (docs/tasks.md): forward (the default, the paper's), heading, "
+                        "turning, target or incline, or a JSON table of its settings, e.g. "
+                        "'{\"name\": \"heading\", \"heading_deg\": 90}'; rewards are in the task's unit "
+                        "(cm, or deg for turning); references: the forward task's, or turning's hand-made baseline "
+                        "(--baseline-phases its lags)")
     p.add_argument("--workers", type=int, default=None, help="processes (or Ray CPUs); default: all cores")
     p.add_argument("--executor", default="process", help="process (default), serial or ray")
     p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local Ray)")

@@ -1,6 +1,7 @@
 """Co-design algorithms behind one small interface, compared against the ground truth.
 
-An algorithm *proposes* (design, gait) pairs and *receives* their episode returns (cm):
+An algorithm *proposes* (design, gait) pairs of a design space and *receives* their episode
+returns (the ground truth's task's unit, cm for the paper's):
 
 * :class:`RandomSearch`: designs in a random order without replacement, each with the
   per-design CMA-ES gait search of :mod:`softcrawl.codesign.groundtruth` (``evals_per_design``
@@ -37,7 +38,8 @@ from softcrawl.codesign.groundtruth import (
     seed_knots,
     used_regulators,
 )
-from softcrawl.design.space import Design, canonicalize
+from softcrawl.design.space import DEFAULT_SPACE, Design
+from softcrawl.design.spacefile import DesignSpace
 
 ALGORITHMS = ("random", "tpe", "ga")
 
@@ -86,17 +88,19 @@ class RandomSearch(CodesignAlgorithm):
     """Random designs (without replacement, then again) each with a CMA-ES gait search.
 
     Args:
-        designs: the design space. duration: episode s. hold: s per knot.
+        designs: the designs searched (of ``space``). duration: episode s. hold: s per knot.
         evals_per_design: episodes per design. cycles: pattern lengths (one drawn per design).
-        seed: RNG seed.
+        seed: RNG seed. space: the designs' design space (canonical forms, regulators; default
+            the paper's).
     """
 
     name = "random"
 
     def __init__(self, designs: Sequence, duration: float, hold: float = 1.0, evals_per_design: int = 24,
-                 cycles: Sequence[int] = (3, 4), seed: int = 0):
+                 cycles: Sequence[int] = (3, 4), seed: int = 0, space: DesignSpace = DEFAULT_SPACE):
         super().__init__()
-        self.designs = [canonicalize(d) for d in designs]
+        self.space = space
+        self.designs = [space.canonicalize(d) for d in designs]
         self.duration, self.hold, self.evals, self.cycles = duration, hold, int(evals_per_design), tuple(cycles)
         self.rng = np.random.default_rng(seed)
         self.seed = seed
@@ -108,7 +112,7 @@ class RandomSearch(CodesignAlgorithm):
         if not self._order:
             self._order = [self.designs[i] for i in self.rng.permutation(len(self.designs))]
         self._design = self._order.pop()
-        self._m, self._L = used_regulators(self._design), int(self.rng.choice(self.cycles))
+        self._m, self._L = used_regulators(self._design, self.space), int(self.rng.choice(self.cycles))
         self._gen = cma_search(self._m * self._L, self.evals, [s.ravel() for s in seed_knots(self._m, self._L)],
                                seed=design_seed(self._design, self.seed))
         self._x = next(self._gen)
@@ -116,7 +120,8 @@ class RandomSearch(CodesignAlgorithm):
     def propose(self) -> list[Proposal]:
         if self._gen is None:
             self._next_design()
-        return [Proposal(self._design, knots_to_gait(self._x, self._m, self._L, self.hold), self.duration)]
+        gait = knots_to_gait(self._x, self._m, self._L, self.hold, n_regulators=self.space.n_regulators)
+        return [Proposal(self._design, gait, self.duration)]
 
     def tell(self, proposals, returns) -> None:
         super().tell(proposals, returns)
@@ -130,17 +135,17 @@ class OptunaSearch(CodesignAlgorithm):
     """One optuna study over (design, cycle length, knots of the used regulators, kPa).
 
     Args:
-        designs: the design space. duration, hold: s. cycles: pattern lengths.
+        designs: the designs searched (of ``space``). duration, hold: s. cycles: pattern lengths.
         sampler: ``"tpe"`` (:class:`optuna.samplers.TPESampler`) or ``"ga"``
             (:class:`optuna.samplers.NSGAIISampler`, population ``population``).
-        seed: sampler seed.
+        seed: sampler seed. space: the designs' design space (default the paper's).
 
     Raises:
         ValueError: unknown sampler.
     """
 
     def __init__(self, designs: Sequence, duration: float, hold: float = 1.0, cycles: Sequence[int] = (3, 4),
-                 sampler: str = "tpe", seed: int = 0, population: int = 16):
+                 sampler: str = "tpe", seed: int = 0, population: int = 16, space: DesignSpace = DEFAULT_SPACE):
         import optuna
 
         super().__init__()
@@ -152,7 +157,9 @@ class OptunaSearch(CodesignAlgorithm):
         else:
             raise ValueError(f"sampler must be 'tpe' or 'ga', got {sampler!r}")
         self.name = sampler
-        self.designs = {"".join(map(str, canonicalize(d))): canonicalize(d) for d in designs}
+        self.space = space
+        canonical = [space.canonicalize(d) for d in designs]
+        self.designs = {",".join(map(str, d)) if max(d) > 9 else "".join(map(str, d)): d for d in canonical}
         self.duration, self.hold, self.cycles = duration, hold, tuple(int(c) for c in cycles)
         self.study = optuna.create_study(direction="maximize", sampler=s)
         self._trial = None
@@ -161,8 +168,8 @@ class OptunaSearch(CodesignAlgorithm):
         t = self.study.ask()
         d = self.designs[t.suggest_categorical("design", list(self.designs))]
         L = t.suggest_categorical("cycle", list(self.cycles))
-        knots = np.zeros((L, 3))
-        for k in range(used_regulators(d)):
+        knots = np.zeros((L, self.space.n_regulators))
+        for k in range(used_regulators(d, self.space)):
             for i in range(L):
                 knots[i, k] = t.suggest_float(f"p{k + 1}_{i}", 0.0, 90.0)
         self._trial = t
@@ -204,7 +211,8 @@ class GibbsSACReplay(CodesignAlgorithm):
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{r.config_path}: no env settings n_actions, steps_per_action, robot.dt ({exc!r})") \
                 from None
-        keep = None if designs is None else {canonicalize(d) for d in designs}
+        space = r.design_space()  # the run's own (its space.toml; the paper's for an older run)
+        keep = None if designs is None else {space.canonicalize(d) for d in designs}
         self.keep = keep
         ep = r.read_episodes()  # ValueError naming the file and line of a bad row
         self.rows = [(int(t), d, float(ret), keep is None or d in keep)
@@ -233,18 +241,20 @@ class GibbsSACReplay(CodesignAlgorithm):
 
 
 class SimEvaluator:
-    """``(design, gait, duration) -> cm`` on the reduced model of a ground truth's settings,
-    keeping the ``max_robots`` most recent designs' robots (and rested states). Counts episodes."""
+    """``(design, gait, duration) -> return`` (the task's unit) on the reduced model of a ground
+    truth's settings (its space and task), keeping the ``max_robots`` most recent designs' robots
+    (and rested states). Counts episodes."""
 
     def __init__(self, cfg: GroundTruthConfig, max_robots: int = 16):
         from softcrawl.codesign.groundtruth import DesignEvaluator
 
         self.cfg, self.max_robots, self.cls = cfg, max_robots, DesignEvaluator
+        self.space = cfg.design_space()
         self._cache: OrderedDict = OrderedDict()
         self.episodes = 0
 
     def __call__(self, design, gait, duration) -> float:
-        d = canonicalize(design)
+        d = self.space.canonicalize(design)
         if d not in self._cache:
             self._cache[d] = self.cls(d, self.cfg)
             while len(self._cache) > self.max_robots:
@@ -297,14 +307,15 @@ def best_so_far_on_grid(trace: dict, grid: np.ndarray) -> np.ndarray:
 def make_algorithm(name: str, designs: Sequence, cfg: GroundTruthConfig, seed: int, evals_per_design: int = 24,
                    cycles: Sequence[int] = (3, 4), duration: float | None = None) -> CodesignAlgorithm:
     """``"random"``, ``"tpe"`` or ``"ga"`` over ``designs`` with ``cfg``'s hold and episode
-    length (``duration`` overrides it).
+    length (``duration`` overrides it), in ``cfg``'s design space.
 
     Raises:
         ValueError: unknown name.
     """
     T = cfg.duration if duration is None else duration
+    space = cfg.design_space()
     if name == "random":
-        return RandomSearch(designs, T, cfg.hold, evals_per_design, cycles, seed)
+        return RandomSearch(designs, T, cfg.hold, evals_per_design, cycles, seed, space)
     if name in ("tpe", "ga"):
-        return OptunaSearch(designs, T, cfg.hold, cycles, name, seed)
+        return OptunaSearch(designs, T, cfg.hold, cycles, name, seed, space=space)
     raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {name!r}")

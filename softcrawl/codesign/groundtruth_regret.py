@@ -3,8 +3,12 @@
 The run's *chosen design* is the most probable design of its final design distribution (ties:
 the higher latest return); it is placed in a ground truth
 (:mod:`softcrawl.codesign.groundtruth`): its true rank and percentile among the ground truth's
-designs, its regret (best ground-truth reward − its ground-truth reward, cm per episode of the
-ground truth), and its learned policy's reward next to its ground-truth gait's.
+designs, its regret (best ground-truth reward − its ground-truth reward per episode of the
+ground truth), and its learned policy's reward next to its ground-truth gait's. The run and the
+ground truth must be of one design space and one task (:mod:`softcrawl.tasks`, its settings
+included); the rewards are in the task's unit (:attr:`softcrawl.tasks.Task.unit`: cm for the
+paper's ``forward``, degrees for ``turning``), and the keys of the numbers name it
+(``reward_cm``, ``regret_deg``, ...).
 
 The rewards are only comparable when the run and the ground truth simulate the same episodes;
 :func:`compute_regret` lists every setting that differs (``settings_differ``) and the Markdown
@@ -22,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from softcrawl.codesign.groundtruth import GroundTruthConfig, PeriodicGait, load_groundtruth
+from softcrawl.tasks import DEFAULT_TASK
 
 
 # -- the one place that reads a training run -----------------------------------------------------
@@ -44,12 +49,14 @@ def run_choice(run: str | Path) -> dict:
 
 def policy_reward(run: str | Path, design) -> dict:
     """The run's learned policy on ``design`` (deterministic, the run's settings):
-    ``{"reward_cm", "diverged", "actions_kpa", "episode_seconds", "hold_s"}``."""
+    ``{"reward_<unit>", "diverged", "actions_kpa", "episode_seconds", "hold_s"}``, its return
+    in the unit of the run's task (``reward_cm`` for ``forward``)."""
     from softcrawl.codesign.evaluation import episode_seconds, evaluate_policy
+    from softcrawl.tasks import parse_task
 
     ev = evaluate_policy(run, design, episodes=1)
     e = ev.config.env
-    return {"reward_cm": float(ev.returns_cm[0]), "diverged": bool(ev.diverged[0]),
+    return {f"reward_{parse_task(e.task).unit}": float(ev.returns_cm[0]), "diverged": bool(ev.diverged[0]),
             "actions_kpa": np.asarray(ev.actions_kpa).round(2).tolist(),
             "episode_seconds": episode_seconds(ev.config), "hold_s": e.robot.dt * e.steps_per_action}
 
@@ -87,6 +94,17 @@ def run_space(run: str | Path):
     from softcrawl.codesign.run import Run
 
     return Run(run).design_space()
+
+
+def run_task(run: str | Path):
+    """The run's :class:`~softcrawl.tasks.Task` (``env.task`` of its ``config.json``; ``forward``
+    for a run saved before tasks existed, as :func:`run_space`). ValueError as
+    :meth:`Run.read_config`."""
+    from softcrawl.codesign.run import Run
+    from softcrawl.tasks import parse_task
+
+    r = Run(run)
+    return parse_task(r.read_config().env.task if r.exists() else DEFAULT_TASK)
 # -------------------------------------------------------------------------------------------------
 
 
@@ -98,9 +116,11 @@ def gt_settings(cfg: GroundTruthConfig) -> dict:
             "reduction": r.reduction}
 
 
-def place_design(design, gt_dir: str | Path, results: dict | None = None) -> dict:
-    """Rank of ``design`` in a ground truth: ``{"design", "reward_cm", "rank", "of",
-    "percentile", "best_design", "best_cm", "regret_cm", "gait"}`` (rank 1 = best; percentile =
+def place_design(design, gt_dir: str | Path, results: dict | None = None, unit: str | None = None) -> dict:
+    """Rank of ``design`` in a ground truth: ``{"design", "reward_<u>", "rank", "of",
+    "percentile", "best_design", "best_<u>", "regret_<u>", "gait"}``, ``u`` its task's unit
+    (``cm`` for ``forward``, :func:`softcrawl.codesign.groundtruth.store.folder_task`; ``unit``
+    if given) (rank 1 = best; percentile =
     share of designs it beats or ties, %). Only the ground truth's valid rows count
     (:func:`softcrawl.codesign.groundtruth.read_results`; a bad row is a note naming its file
     and line).
@@ -111,8 +131,9 @@ def place_design(design, gt_dir: str | Path, results: dict | None = None) -> dic
     Raises:
         ValueError: ``design`` is not in the ground truth, or the folder is not one.
     """
-    from softcrawl.codesign.groundtruth.store import folder_space
+    from softcrawl.codesign.groundtruth.store import folder_space, folder_task
 
+    u = folder_task(gt_dir).unit if unit is None else unit
     res = load_groundtruth(gt_dir)[1] if results is None else results
     d = folder_space(gt_dir).canonicalize(design)
     if d not in res:
@@ -121,9 +142,9 @@ def place_design(design, gt_dir: str | Path, results: dict | None = None) -> dic
     mine = res[d].reward_cm
     best = max(res.values(), key=lambda r: (r.reward_cm, tuple(-v for v in r.design)))
     rank = 1 + int(np.sum(rewards > mine))
-    return {"design": list(d), "reward_cm": mine, "rank": rank, "of": len(res),
+    return {"design": list(d), f"reward_{u}": mine, "rank": rank, "of": len(res),
             "percentile": 100.0 * float(np.mean(rewards <= mine)), "best_design": list(best.design),
-            "best_cm": best.reward_cm, "regret_cm": best.reward_cm - mine, "gait": res[d].gait}
+            f"best_{u}": best.reward_cm, f"regret_{u}": best.reward_cm - mine, "gait": res[d].gait}
 
 
 def compute_regret(run: str | Path, gt_dir: str | Path, policy: bool = True) -> dict:
@@ -133,51 +154,61 @@ def compute_regret(run: str | Path, gt_dir: str | Path, policy: bool = True) -> 
         policy: also roll out the learned policy on the chosen design (one episode).
 
     Returns:
-        dict: ``run``, ``groundtruth``, ``choice`` (:func:`run_choice`), ``placement``
-        (:func:`place_design`), ``policy`` (:func:`policy_reward` or None),
-        ``settings_differ`` (``{key: [run, ground truth]}``); a number that is not finite (a
-        diverged policy episode's reward) is None.
+        dict: ``run``, ``groundtruth``, ``task`` (its settings and ``unit``; left out for
+        ``forward``, the paper's), ``choice``
+        (:func:`run_choice`), ``placement`` (:func:`place_design`), ``policy``
+        (:func:`policy_reward` or None), ``settings_differ`` (``{key: [run, ground truth]}``);
+        a number that is not finite (a diverged policy episode's reward) is None.
 
     Raises:
-        ValueError: not a run / ground truth, the two of different design spaces, or the chosen
-            design is not in the ground truth.
+        ValueError: not a run / ground truth, the two of different design spaces or of
+            different tasks (one line naming both), or the chosen design is not in the ground
+            truth.
     """
     cfg, res, _ = load_groundtruth(gt_dir)
     mine, theirs = run_space(run), cfg.design_space()
     if mine != theirs:
         raise ValueError(f"the run {run} (design space {mine.name!r}) and the ground truth {gt_dir} (design "
                          f"space {theirs.name!r}) are of different design spaces")
+    task, gt_task = run_task(run), cfg.task_spec()
+    if task != gt_task:
+        raise ValueError(f"the run {run} (task {task.label()}) and the ground truth {gt_dir} (task "
+                         f"{gt_task.label()}) are of different tasks")
     choice = run_choice(run)
-    placement = place_design(choice["design"], gt_dir, res)
+    placement = place_design(choice["design"], gt_dir, res, task.unit)
     rs, gs = run_settings(run), gt_settings(cfg)
     differ = {k: [rs[k], gs[k]] for k in rs if rs[k] != gs[k]}
     pol = policy_reward(run, choice["design"]) if policy else None
     from softcrawl.robot.output import jsonable  # JSON has no NaN: a number that is not finite is None
 
     choice = {**choice, "design": list(choice["design"])}
-    return jsonable({"run": str(run), "groundtruth": str(gt_dir), "choice": choice, "placement": placement,
+    about = {} if task.name == DEFAULT_TASK else {"task": {**task.settings(), "unit": task.unit}}
+    return jsonable({"run": str(run), "groundtruth": str(gt_dir), **about, "choice": choice, "placement": placement,
                      "policy": pol, "settings_differ": differ})
 
 
 def regret_markdown(r: dict) -> list[str]:
-    """Markdown lines of a :func:`compute_regret` dict."""
+    """Markdown lines of a :func:`compute_regret` dict (numbers in its task's unit; a dict
+    without ``task``: cm, the forward task)."""
     p, c = r["placement"], r["choice"]
+    u = r.get("task", {}).get("unit", "cm")
     d = ",".join(map(str, p["design"]))
+    task = "" if r.get("task", {}).get("name", "forward") == "forward" else f", task {r['task']['name']}"
     lines = ["## Regret against the ground truth", "",
-             f"Ground truth: `{r['groundtruth']}` ({p['of']} designs, best open-loop gait each).", "",
+             f"Ground truth: `{r['groundtruth']}` ({p['of']} designs, best open-loop gait each{task}).", "",
              "| | |", "|---|---|",
              f"| chosen design (most probable, p = {c['prob']:.3f}) | `{d}` |",
              f"| true rank | {p['rank']} of {p['of']} (percentile {p['percentile']:.1f}) |",
-             f"| its ground-truth reward | {p['reward_cm']:+.2f} cm "
+             f"| its ground-truth reward | {p[f'reward_{u}']:+.2f} {u} "
              f"({PeriodicGait.from_dict(p['gait']).describe()} kPa) |",
-             f"| best design | `{','.join(map(str, p['best_design']))}` {p['best_cm']:+.2f} cm |",
-             f"| regret | {p['regret_cm']:.2f} cm |"]
+             f"| best design | `{','.join(map(str, p['best_design']))}` {p[f'best_{u}']:+.2f} {u} |",
+             f"| regret | {p[f'regret_{u}']:.2f} {u} |"]
     if r.get("policy"):
         pol = r["policy"]
-        reward = "no reward" if pol["reward_cm"] is None else f"{pol['reward_cm']:+.2f} cm"
+        reward = "no reward" if pol[f"reward_{u}"] is None else f"{pol[f'reward_{u}']:+.2f} {u}"
         lines.append(f"| learned policy on the chosen design | {reward}"
                      f"{' (diverged)' if pol['diverged'] else ''} per {pol['episode_seconds']:g} s |")
-        lines.append(f"| ground-truth gait on it | {p['reward_cm']:+.2f} cm |")
+        lines.append(f"| ground-truth gait on it | {p[f'reward_{u}']:+.2f} {u} |")
     lines.append("")
     if r["settings_differ"]:
         diffs = "; ".join(f"{k}: run {a} vs ground truth {b}" for k, (a, b) in r["settings_differ"].items())

@@ -3,7 +3,9 @@
 The paper reports the design its co-design converged to; this package measures how good that
 choice is against the whole space. Each design gets the best gait CMA-ES (the ``cma`` package)
 finds in the periodic open-loop gait family (:class:`softcrawl.gaits.periodic.PeriodicGait`) on
-the reduced model; designs are then ranked by that reward (cm of +x crawl per episode).
+the reduced model; designs are then ranked by that reward: the return of the run's task
+(:attr:`GroundTruthConfig.task`, :mod:`softcrawl.tasks`; cm of +x crawl per episode for the
+paper's ``forward``, degrees for ``turning``), on the design space :attr:`GroundTruthConfig.space`.
 
 **Search** (:mod:`~softcrawl.codesign.groundtruth.search`, driven by :func:`optimize_design` or,
 for many designs in lockstep, :func:`search_many`): for each cycle length ``L`` in
@@ -38,6 +40,7 @@ from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_
 from softcrawl.codesign.groundtruth.optimize import (
     DesignEvaluator,
     SerialEvaluateMany,
+    episode_return,
     optimize_design,
     screening_agreement,
     spearman,
@@ -69,7 +72,9 @@ from softcrawl.codesign.groundtruth.store import (
     FolderLockedError,
     check_folder,
     folder_lock,
+    folder_task,
     load_groundtruth,
+    folder_task,
     load_results,
     read_config,
     read_references,
@@ -101,7 +106,9 @@ __all__ = [
     "design_search",
     "design_seed",
     "drive",
+    "episode_return",
     "folder_lock",
+    "folder_task",
     "gt_robot",
     "knots_to_gait",
     "load_groundtruth",

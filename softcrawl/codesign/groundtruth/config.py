@@ -10,6 +10,7 @@ from softcrawl.design.resolve import PAPER_SPACE, resolve_space
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import MAX_KNOTS
 from softcrawl.robot.assembly import RobotConfig
+from softcrawl.tasks import DEFAULT_TASK, Task, parse_task
 
 #: Upper bounds of the search settings (far beyond the defaults 36, 2 and cma's 4 + 3 ln n).
 MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
@@ -55,6 +56,12 @@ class GroundTruthConfig:
         space: the design space (a shipped space's name, ``"paper"`` by default, or a space
             file's path; a ground-truth folder reads its own copy, ``space.toml``,
             :mod:`softcrawl.codesign.groundtruth.store`).
+        task: what the gait search maximises (:mod:`softcrawl.tasks`, docs/tasks.md): a task's
+            name or a table of its settings (``{"name": "heading", "heading_deg": 90}``), as
+            :attr:`softcrawl.codesign.config.EnvConfig.task`; default ``"forward"``, the paper's.
+            A design's reward is the task's return over the episode (its progress, in
+            :attr:`softcrawl.tasks.Task.unit`; ``"cm"`` or ``"deg"``), on the task's floor. A
+            folder saved before tasks existed reads as ``"forward"``.
     """
 
     duration: float = 20.0
@@ -71,10 +78,15 @@ class GroundTruthConfig:
     engine: str = "cpu"
     jax_batch: int = 1024
     space: str = PAPER_SPACE
+    task: str | dict = DEFAULT_TASK
 
     def design_space(self) -> DesignSpace:
         """The :class:`DesignSpace` ``space`` names (SpaceFileError, a ValueError, if none)."""
         return resolve_space(self.space)
+
+    def task_spec(self) -> Task:
+        """The :class:`softcrawl.tasks.Task` ``task`` names (ValueError, one line, if none)."""
+        return parse_task(self.task)
 
     def robot_config(self) -> RobotConfig:
         """The simulated robot's settings: ``robot`` for the space's robots
@@ -89,6 +101,10 @@ class GroundTruthConfig:
             self.design_space()
         except ValueError as exc:
             raise ValueError(f"space: {exc}") from None
+        try:
+            task = self.task_spec()
+        except ValueError as exc:
+            raise ValueError(f"task: {exc}") from None
         for name, (low, high, unit) in SIM_BOUNDS.items():
             check_bounds(f"robot.{name}", getattr(self.robot, name), low, high, unit)
         for name, high, unit in (("duration", MAX_EPISODE_S, "s"), ("hold", MAX_HOLD_S, "s"),
@@ -109,6 +125,9 @@ class GroundTruthConfig:
             raise ValueError(f"engine must be one of {ENGINES}, got {self.engine!r}")
         if self.engine == "jax" and self.robot.model != "reduced":
             raise ValueError(f'engine "jax" steps the reduced robot only, got robot.model={self.robot.model!r}')
+        if self.engine == "jax" and task.name != DEFAULT_TASK:
+            raise ValueError(f'engine "jax" does not run task {task.name!r}: its episodes return the +x crawl of the '
+                             'disk\'s top centre only (the forward task); use engine "cpu"')
         check_bounds("jax_batch", self.jax_batch, 1, MAX_JAX_BATCH)
         if int(self.jax_batch) != self.jax_batch or self.jax_batch & (self.jax_batch - 1):
             raise ValueError(f"jax_batch must be a power of two, got {self.jax_batch!r}")

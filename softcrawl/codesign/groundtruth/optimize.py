@@ -14,15 +14,21 @@ import numpy as np
 from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
 from softcrawl.codesign.groundtruth.search import design_search, drive, knots_to_gait, seed_knots, used_regulators
+from softcrawl.tasks import DEFAULT_TASK
 
 
 class DesignEvaluator:
-    """Episodes of one design on the reduced model: ``evaluator(gait, duration) -> (cm, diverged)``.
+    """Episodes of one design on the reduced model: ``evaluator(gait, duration) -> (return,
+    diverged)``, the return of ``cfg``'s task (:meth:`GroundTruthConfig.task_spec`) in its unit.
 
-    The robot is built and settled once (:func:`softcrawl.robot.episode.settle` with the default
+    The robot is built in ``cfg``'s design space, stood on the task's floor
+    (:func:`softcrawl.tasks.on_floor`: its friction and gravity), and settled once
+    (:func:`softcrawl.robot.episode.settle` with the default
     :class:`~softcrawl.robot.episode.Settling`); each episode starts from that rested state with
-    a fresh solver (:func:`softcrawl.robot.episode.run_episode`). Counts episodes and simulated
-    seconds in ``episodes`` and ``sim_seconds``.
+    a fresh solver (:func:`softcrawl.robot.episode.run_episode`). The return of the paper's
+    task (``forward``) is the episode's ``reward_cm`` (the +x crawl, cm); any other task's is
+    :func:`episode_return`. Counts episodes and simulated seconds in ``episodes`` and
+    ``sim_seconds``.
 
     Raises:
         InvalidDesignError: invalid design.
@@ -30,10 +36,12 @@ class DesignEvaluator:
 
     def __init__(self, design, cfg: GroundTruthConfig):
         from softcrawl.robot.assembly import build_robot
+        from softcrawl.tasks import on_floor
 
         space = cfg.design_space()
-        self.design, self.cfg = space.canonicalize(design), cfg
-        self.robot = build_robot(self.design, cfg.robot_config(), space=space)
+        self.design, self.cfg, self.task = space.canonicalize(design), cfg, cfg.task_spec()
+        self.robot = on_floor(build_robot(self.design, cfg.robot_config(), space=space), self.task.friction,
+                              self.task.gravity())
         self._settled = None
         self.episodes, self.sim_seconds = 0, 0.0
 
@@ -42,11 +50,49 @@ class DesignEvaluator:
 
         if self._settled is None:
             self._settled = settle(self.robot)
-        res = run_episode(self.robot, gait, duration, record_every=None, progress=False, settled=self._settled)
+        if self.task.name == DEFAULT_TASK:
+            res = run_episode(self.robot, gait, duration, record_every=None, progress=False, settled=self._settled)
+            reward, diverged = float(res.reward_cm), bool(res.diverged)
+        else:
+            reward, diverged = episode_return(self.task, self.robot, gait, duration, self.cfg.hold, self._settled)
         self.episodes += 1
         self.sim_seconds += duration
-        reward = float(res.reward_cm)
-        return (reward if math.isfinite(reward) else DIVERGED_CM), bool(res.diverged)
+        return (reward if math.isfinite(reward) else DIVERGED_CM), diverged
+
+
+def episode_return(task, robot, gait, duration: float, hold: float, settled=None) -> tuple[float, bool]:
+    """``task``'s return of one open-loop episode of ``gait`` on ``robot``, in the task's unit,
+    scored as the env scores an episode of actions of ``hold`` s (softcrawl.envs.crawler): the
+    robot's state is sampled every ``hold`` s (rounded to whole steps of ``robot.config.dt``;
+    fewer if needed so that the samples include the episode's last step, as
+    :func:`softcrawl.tasks.baselines.turned_degrees`), and the return is
+    :func:`softcrawl.tasks.base.replay_return` of the samples up to the first one where the
+    task's goal is reached (:meth:`softcrawl.tasks.Task.reached`; the episode ends there).
+
+    Args:
+        task: a :class:`softcrawl.tasks.Task`. robot: a robot on the task's floor.
+        gait: ``pressure_at(t) -> (R,)`` kPa. duration, hold: s.
+        settled: the robot's cached :func:`softcrawl.robot.episode.settle` (None: settle now).
+
+    Returns:
+        ``(return, diverged)``; the return is NaN if settling diverged.
+    """
+    from softcrawl.robot.episode import run_episode
+    from softcrawl.tasks.base import Snapshot, replay_return
+
+    dt = robot.config.dt
+    n = int(round(duration / dt)) if math.isfinite(duration) else 0
+    every = math.gcd(max(1, int(round(hold / dt))), max(n, 1))
+    frames: list[np.ndarray] = []
+    res = run_episode(robot, gait, duration, record_every=every, progress=False, settled=settled,
+                      on_frame=lambda t, x: frames.append(np.array(x, dtype=float)))
+    if not frames:
+        return float("nan"), True
+    start = np.asarray(robot.reward_position(frames[0]), dtype=float)
+    origin = task.origin(Snapshot(robot, frames[0], start))
+    end = next((k + 1 for k in range(1, len(frames)) if task.reached(Snapshot(robot, frames[k], start), origin)),
+               len(frames))
+    return replay_return(task, robot, np.stack(frames[:end])), bool(res.diverged)
 
 
 def optimize_design(design, cfg: GroundTruthConfig, evaluator: Callable | None = None) -> DesignResult:
@@ -56,8 +102,8 @@ def optimize_design(design, cfg: GroundTruthConfig, evaluator: Callable | None =
     Args:
         design: a design (canonicalised first).
         cfg: settings.
-        evaluator: ``(gait, duration) -> (reward cm, diverged)`` (default: a
-            :class:`DesignEvaluator`, the reduced model).
+        evaluator: ``(gait, duration) -> (return, diverged)`` (default: a
+            :class:`DesignEvaluator`, the reduced model and ``cfg``'s task).
 
     Returns:
         :class:`DesignResult` (``wall_seconds``: from the start of this call, robot build included).
@@ -65,7 +111,7 @@ def optimize_design(design, cfg: GroundTruthConfig, evaluator: Callable | None =
     Raises:
         InvalidDesignError: invalid design. ValueError: invalid ``cfg``.
     """
-    search = design_search(design, cfg)
+    search = design_search(design, cfg, cfg.design_space())
     wall = time.perf_counter()
     ev = evaluator if evaluator is not None else DesignEvaluator(design, cfg)
     result = drive(search, lambda request: ev(*request))
@@ -121,15 +167,16 @@ def screening_agreement(designs: Iterable, cfg: GroundTruthConfig, gaits_per_des
     rng = np.random.default_rng(seed)
     durations = sorted(set([float(s) for s in short] + [cfg.duration]))
     pairs, wall = [], {d: 0.0 for d in durations}
-    designs = [cfg.design_space().canonicalize(d) for d in designs]
+    space = cfg.design_space()
+    designs = [space.canonicalize(d) for d in designs]
     bar = tqdm(total=len(designs) * (gaits_per_design + 1), desc="screening", disable=not progress)
     for d in designs:
         ev = DesignEvaluator(d, cfg)
-        m = used_regulators(d)
-        gaits = [knots_to_gait(seed_knots(m, 3)[0].ravel(), m, 3, cfg.hold)]
+        m, n_reg = used_regulators(d, space), space.n_regulators
+        gaits = [knots_to_gait(seed_knots(m, 3)[0].ravel(), m, 3, cfg.hold, n_regulators=n_reg)]
         for _ in range(gaits_per_design):
             L = int(rng.choice(cfg.cycles))
-            gaits.append(knots_to_gait(rng.random(m * L), m, L, cfg.hold))
+            gaits.append(knots_to_gait(rng.random(m * L), m, L, cfg.hold, n_regulators=n_reg))
         for g in gaits:
             row = {"design": list(d), "gait": g.to_dict(), "reward_cm": {}}
             for T in durations:

@@ -17,18 +17,24 @@ from softcrawl.codesign.groundtruth.store import read_config, read_references, r
 from softcrawl.design.space import BASELINE_DESIGN, PAPER_BEST_DESIGN
 from softcrawl.gaits.periodic import PeriodicGait
 from softcrawl.safeio import atomic_write_text
+from softcrawl.tasks import DEFAULT_TASK, Task
 
 
 def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_seconds: float | None = None) -> dict:
     """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` (each replaced
-    atomically) from the valid rows of ``results.jsonl`` (only those in ``designs`` if given;
-    the bad rows, by file and line, in the summary's ``bad_rows``); returns the summary.
+    atomically; rewards keyed ``reward_<unit>`` in the task's unit, and for a task other than
+    ``forward`` the summary's ``task``: its settings and unit) from the valid rows of
+    ``results.jsonl`` (only those in ``designs`` if given; the bad rows, by file and line, in
+    the summary's ``bad_rows``); returns the summary.
 
     Raises:
         ValueError: the folder's ``config.json`` is missing or not a ground truth's.
     """
     out = Path(out_dir)
     cfg = read_config(out)
+    task = cfg.task_spec()
+    unit = task.unit
+    reward = f"reward_{unit}"  # the rewards' keys and columns are in the task's unit (cm: forward)
     done, bad = read_results(out)  # the bad rows are listed in the summary
     if designs is not None:
         keep = {cfg.design_space().canonicalize(d) for d in designs}
@@ -36,7 +42,7 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
     rows = sorted(done.values(), key=lambda r: (-r.reward_cm, r.design))
     table = io.StringIO()
     w = csv.writer(table)
-    w.writerow(["rank", "design", "reward_cm", "cycle", "waveform", "gait_kpa", "evaluations",
+    w.writerow(["rank", "design", reward, "cycle", "waveform", "gait_kpa", "evaluations",
                 "full_evaluations", "sim_seconds", "wall_seconds", "diverged"])
     for i, r in enumerate(rows, start=1):
         g = PeriodicGait.from_dict(r.gait)
@@ -52,19 +58,19 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
         if d not in done:
             return None
         rank = 1 + int(np.sum(rewards > done[d].reward_cm))
-        return {"design": list(d), "reward_cm": done[d].reward_cm, "rank": rank,
+        return {"design": list(d), reward: done[d].reward_cm, "rank": rank,
                 "percentile": 100.0 * (1 - (rank - 1) / len(rows))}
 
     summary = {
         "designs": len(rows), "requested": len(designs) if designs is not None else len(rows),
         "config": cfg.to_dict(),
-        "best": [{"design": list(r.design), "reward_cm": r.reward_cm, "gait": PeriodicGait.from_dict(r.gait).describe()}
+        "best": [{"design": list(r.design), reward: r.reward_cm, "gait": PeriodicGait.from_dict(r.gait).describe()}
                  for r in rows[:10]],
-        "reward_cm": {"max": float(rewards.max()) if len(rows) else None,
+        reward: {"max": float(rewards.max()) if len(rows) else None,
                       "median": float(np.median(rewards)) if len(rows) else None,
                       "min": float(rewards.min()) if len(rows) else None},
         "paper_l1": place(PAPER_BEST_DESIGN), "expert_design": place(BASELINE_DESIGN),
-        "references": {k: {kk: vv for kk, vv in v.items() if kk != "sweep_cm"} for k, v in refs.items()},
+        "references": {k: {kk: vv for kk, vv in v.items() if kk != f"sweep_{unit}"} for k, v in refs.items()},
         "cost": {"evaluations": int(sum(r.evaluations for r in rows)),
                  "sim_seconds": float(sum(r.sim_seconds for r in rows)),
                  "cpu_seconds": float(sum(r.wall_seconds for r in rows)),
@@ -72,16 +78,20 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
                  "this_call_wall_seconds": wall_seconds},
         "bad_rows": bad,
     }
+    if task.name != DEFAULT_TASK:  # a forward ground truth's summary stays as it was
+        summary["task"] = {**task.settings(), "unit": unit}
+    if "turning_baseline" in refs and len(rows):
+        summary["designs_beating_turning_baseline"] = int(np.sum(rewards > refs["turning_baseline"]["reward_deg"]))
     if "expert_baseline" in refs and len(rows):
         b = refs["expert_baseline"]["reward_cm"]
         summary["designs_beating_expert_baseline"] = int(np.sum(rewards > b))
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
     if rows:
-        _ranked_plot(rows, refs, out / "ranked.png", cfg)
+        _ranked_plot(rows, refs, out / "ranked.png", cfg, task)
     return summary
 
 
-def _ranked_plot(rows: list[DesignResult], refs: dict, path: Path, cfg: GroundTruthConfig) -> None:
+def _ranked_plot(rows: list[DesignResult], refs: dict, path: Path, cfg: GroundTruthConfig, task: Task) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -99,12 +109,17 @@ def _ranked_plot(rows: list[DesignResult], refs: dict, path: Path, cfg: GroundTr
         b = refs["expert_baseline"]
         ax.axhline(b["reward_cm"], color="C0", ls="--", lw=1,
                    label=f"expert baseline (sine, {b['best_phase_deg']:.0f} deg): {b['reward_cm']:+.2f} cm")
+    if "turning_baseline" in refs:
+        b = refs["turning_baseline"]
+        ax.axhline(b["reward_deg"], color="C0", ls="--", lw=1,
+                   label=f"turning baseline ({b['best_phase_deg']:.0f} deg lag): {b['reward_deg']:+.2f} deg")
     if "paper_l1_gait" in refs:
         ax.axhline(refs["paper_l1_gait"]["reward_cm"], color="C3", ls=":", lw=1,
                    label=f"paper L1 with paper's 3-s gait: {refs['paper_l1_gait']['reward_cm']:+.2f} cm")
     ax.set_xlabel("rank")
-    ax.set_ylabel(f"reward (cm per {cfg.duration:g} s)")
-    ax.set_title(f"Ground truth: {len(r)} designs, best gait each (reduced model)")
+    ax.set_ylabel(f"reward ({task.unit} per {cfg.duration:g} s)")
+    what = "" if task.name == DEFAULT_TASK else f", task {task.label()}"
+    ax.set_title(f"Ground truth: {len(r)} designs, best gait each (reduced model{what})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()

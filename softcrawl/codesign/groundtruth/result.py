@@ -11,7 +11,8 @@ from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import MAX_KNOTS, WAVEFORMS, PeriodicGait
 
-#: Objective value (cm) given to an episode whose simulation diverged.
+#: Objective value given to an episode whose simulation diverged, in the task's unit (cm; degrees
+#: for ``turning``).
 DIVERGED_CM = -100.0
 
 
@@ -19,8 +20,13 @@ DIVERGED_CM = -100.0
 class DesignResult:
     """Ground truth of one design.
 
+    The rewards are in the unit of the ground truth's task (:attr:`softcrawl.tasks.Task.unit`:
+    cm for the paper's ``forward``, whose names the fields carry; degrees for ``turning``); a
+    row of ``results.jsonl`` names them in that unit (:meth:`to_dict`).
+
     Attributes:
-        design: canonical design. reward_cm: best full-episode reward, cm per ``duration`` s.
+        design: canonical design. reward_cm: best full-episode reward (the task's return) per
+            ``duration`` s.
         gait: the best :class:`PeriodicGait` as a dict. cycle: its pattern length; waveform.
         evaluations: episodes simulated (search + finals). full_evaluations: of those, full-length.
         sim_seconds: simulated seconds of all episodes. wall_seconds: wall time (1 process).
@@ -42,16 +48,19 @@ class DesignResult:
     per_cycle: dict = field(default_factory=dict)
     diverged: int = 0
 
-    def to_dict(self) -> dict:
-        """JSON-able (NaN written as None)."""
+    def to_dict(self, unit: str = "cm") -> dict:
+        """JSON-able (NaN written as None); the rewards keyed in ``unit`` (the task's:
+        ``reward_<unit>``, ``screen_<unit>``)."""
         d = dataclasses.asdict(self)
         d["design"] = list(self.design)
         d["screen_cm"] = None if not math.isfinite(self.screen_cm) else self.screen_cm
-        return d
+        return {_unit_key(k, unit): v for k, v in d.items()}
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "result", space: DesignSpace = DEFAULT_SPACE) -> DesignResult:
-        """Inverse of :meth:`to_dict`, validated: a canonical design of ``space`` (default the paper's), finite
+    def from_dict(cls, d: dict, where: str = "result", space: DesignSpace = DEFAULT_SPACE,
+                  unit: str = "cm") -> DesignResult:
+        """Inverse of :meth:`to_dict` (rewards keyed in ``unit``), validated: a canonical design
+        of ``space`` (default the paper's), finite
         rewards and times, counts >= 0, a gait of the family (knots in [0, 90] kPa). Keys
         that are not fields are ignored (a newer version's additions).
 
@@ -60,11 +69,14 @@ class DesignResult:
         """
         if not isinstance(d, dict):
             raise ValueError(f"{where}: a result must be a JSON object, got {type(d).__name__}")
+        if unit != "cm":  # the fields' names are cm's
+            d = {k: v for k, v in d.items() if k not in ("reward_cm", "screen_cm")}
+            d = {({_unit_key(f, unit): f for f in ("reward_cm", "screen_cm")}).get(k, k): v for k, v in d.items()}
         fields = {f.name: f for f in dataclasses.fields(cls)}
         missing = [k for k, f in fields.items() if k not in d and f.default is dataclasses.MISSING
                    and f.default_factory is dataclasses.MISSING]
         if missing:
-            raise ValueError(f"{where}: missing {', '.join(missing)}")
+            raise ValueError(f"{where}: missing {', '.join(_unit_key(k, unit) for k in missing)}")
         design = d["design"]
         if not isinstance(design, list) or any(isinstance(v, bool) or not isinstance(v, int) for v in design):
             raise ValueError(f"{where}: design must be a list of {space.n_slots} integers, got {design!r}")
@@ -83,7 +95,8 @@ class DesignResult:
                 return float("nan")
             if not (_finite(v) and v >= low and (isinstance(v, int) or not integer)):
                 kind = "an integer" if integer else "a finite number"
-                raise ValueError(f"{at}: {key} must be {kind}{f' >= {low:g}' if low > -math.inf else ''}, got {v!r}")
+                raise ValueError(f"{at}: {_unit_key(key, unit)} must be {kind}"
+                                 f"{f' >= {low:g}' if low > -math.inf else ''}, got {v!r}")
             return v if integer else float(v)
 
         try:
@@ -104,6 +117,11 @@ class DesignResult:
                    number("evaluations", 0, True), number("full_evaluations", 0, True), number("sim_seconds", 0),
                    number("wall_seconds", 0), number("screen_cm", optional=True),
                    {int(k): float(v) for k, v in per_cycle.items()}, number("diverged", 0, True))
+
+
+def _unit_key(key: str, unit: str) -> str:
+    """``key`` of a reward field named in ``unit``: ``reward_cm`` -> ``reward_deg``."""
+    return key[:-2] + unit if key in ("reward_cm", "screen_cm") else key
 
 
 def _finite(v) -> bool:

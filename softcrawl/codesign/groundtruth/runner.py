@@ -5,6 +5,7 @@ appended to ``results.jsonl`` as its design finishes; then the references and th
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -32,6 +33,7 @@ from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE, PAPER_BEST_DE
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import PeriodicGait
 from softcrawl.safeio import atomic_write_text
+from softcrawl.tasks import Forward
 
 EXECUTORS = ("process", "serial", "ray")
 #: Paper's reward of its best design L1 with its learned gait (codesign.md), cm per 20 s.
@@ -99,8 +101,26 @@ def _pin_threads(parent_pid: int | None = None) -> None:
 def references(cfg: GroundTruthConfig, progress: bool = False) -> dict:
     """Reference gaits with the run's settings: the expert baseline (design
     :data:`BASELINE_DESIGN`, smooth sine at every lag of ``cfg.baseline_phases``, best kept) and
-    the paper's 3-s cycle on :data:`PAPER_BEST_DESIGN`; cm per ``cfg.duration`` s."""
+    the paper's 3-s cycle on :data:`PAPER_BEST_DESIGN`; cm per ``cfg.duration`` s. For the
+    ``turning`` task, its hand-made baseline instead (:mod:`softcrawl.tasks.baselines`:
+    :func:`~softcrawl.tasks.baselines.turning_gait` on
+    :data:`~softcrawl.tasks.baselines.TURNING_BASELINE_DESIGN` at every lag of
+    ``cfg.baseline_phases``, the lag of the largest counter-clockwise turn kept, the ground
+    truth's objective), degrees per ``cfg.duration`` s."""
     out: dict = {}
+    if cfg.task_spec().name == "turning":
+        if cfg.baseline_phases:
+            from softcrawl.tasks.baselines import TURNING_BASELINE_DESIGN, turning_gait
+
+            ev = DesignEvaluator(TURNING_BASELINE_DESIGN, cfg)  # the design is canonical: its labels stay
+            sweep = {}
+            for ph in cfg.baseline_phases:
+                r, div = ev(turning_gait(ph), cfg.duration)
+                sweep[str(ph)] = DIVERGED_CM if div else r
+            best = max(sweep, key=sweep.get)
+            out["turning_baseline"] = {"design": list(TURNING_BASELINE_DESIGN), "best_phase_deg": float(best),
+                                       "reward_deg": sweep[best], "sweep_deg": sweep}
+        return out
     if cfg.baseline_phases:
         ev = DesignEvaluator(BASELINE_DESIGN, cfg)
         sweep = {}
@@ -185,10 +205,10 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
 
 
 def jax_evaluate_many(cfg: GroundTruthConfig) -> EvaluateMany:
-    """The batched JAX engine of ``cfg`` (:class:`softcrawl.jaxsim.episodes.JaxEvaluator` in
-    ``cfg.robot.rid_dtype``, batches of at most ``cfg.jax_batch``, diverged episodes scored
-    :data:`DIVERGED_CM`) as an :data:`EvaluateMany`. float64 turns on ``jax_enable_x64`` for the
-    process.
+    """The batched JAX engine of ``cfg`` (:class:`softcrawl.jaxsim.episodes.JaxEvaluator` of
+    ``cfg``'s design space and robot, on the forward task's floor, in ``cfg.robot.rid_dtype``,
+    batches of at most ``cfg.jax_batch``, diverged episodes scored :data:`DIVERGED_CM`) as an
+    :data:`EvaluateMany`. float64 turns on ``jax_enable_x64`` for the process.
 
     Raises:
         ImportError: JAX is not installed (``pip install "softcrawl[jax]"``).
@@ -201,8 +221,11 @@ def jax_evaluate_many(cfg: GroundTruthConfig) -> EvaluateMany:
 
     if cfg.robot.rid_dtype == "float64":
         jax.config.update("jax_enable_x64", True)
-    return JaxEvaluator(cfg.robot, precision=cfg.robot.rid_dtype, max_batch=cfg.jax_batch,
-                        diverged_cm=DIVERGED_CM).evaluate
+    task = cfg.task_spec()  # forward (GroundTruthConfig.validate refuses the others): its floor's friction
+    robot = cfg.robot_config() if task.friction is None else dataclasses.replace(cfg.robot_config(),
+                                                                                 friction=task.friction)
+    return JaxEvaluator(robot, precision=cfg.robot.rid_dtype, max_batch=cfg.jax_batch,
+                        diverged_cm=DIVERGED_CM, space=cfg.design_space()).evaluate
 
 
 def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor, progress, task, ray_address,
@@ -211,7 +234,7 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
     done = load_results(out)
     todo = [d for d in designs if d not in done]
     res_path = out / RESULTS
-    cd, space = cfg.to_dict(), cfg.design_space()
+    cd, space, unit = cfg.to_dict(), cfg.design_space(), cfg.task_spec().unit
     wall = time.perf_counter()
     from tqdm.auto import tqdm
 
@@ -219,17 +242,17 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
                disable=not progress, dynamic_ncols=True)
 
     def finish(d_result: dict) -> None:
-        r = DesignResult.from_dict(d_result, space=space)
-        _append(res_path, r)
+        r = DesignResult.from_dict(d_result, space=space)  # a worker's dict: DesignResult.to_dict()
+        _append(res_path, r, unit)
         done[r.design] = r
         bar.update()
-        bar.set_postfix(last=f"{r.reward_cm:+.2f}cm", refresh=False)
+        bar.set_postfix(last=f"{r.reward_cm:+.2f}{unit}", refresh=False)
 
     if todo and evaluate_many is None and cfg.engine == "jax":
         evaluate_many = jax_evaluate_many(cfg)
     if todo:
         if evaluate_many is not None:
-            for r in search_many(todo, cfg, evaluate_many):
+            for r in search_many(todo, cfg, evaluate_many, space):
                 finish(r.to_dict())
         elif executor == "serial":
             for d in todo:
@@ -258,6 +281,8 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
                 finish(res)
     bar.close()
     ref_path = out / "references.json"
-    if refs and read_references(out) is None and cfg.design_space() == DEFAULT_SPACE:  # designs of the paper's
+    if refs and read_references(out) is None and space == DEFAULT_SPACE and (
+            cfg.task_spec() == Forward() or cfg.task_spec().name == "turning"):
+        # designs and gaits of the paper's space: the forward task's on its floor, or the turning baseline
         atomic_write_text(ref_path, json.dumps(references(cfg), indent=2, allow_nan=False) + "\n")
     return write_outputs(out, designs, time.perf_counter() - wall)

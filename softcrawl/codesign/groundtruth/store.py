@@ -25,6 +25,7 @@ from softcrawl.design.resolve import check_space_copy
 from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.safeio import UnsafeFileError, load_json, loads_json, read_text
+from softcrawl.tasks import DEFAULT_TASK, Task, parse_task
 
 RESULTS = "results.jsonl"
 
@@ -44,14 +45,14 @@ def read_results(out_dir: str | Path) -> tuple[dict[Design, DesignResult], list[
         raise UnsafeFileError(f"{path} is a symbolic link; a ground truth's results must be a file in its folder")
     if not path.exists():
         return {}, []
-    space = folder_space(out_dir)
+    space, unit = folder_space(out_dir), folder_task(out_dir).unit
     good, bad = {}, []
     for n, line in enumerate(read_text(path).split("\n"), start=1):
         if not line.strip():
             continue
         where = f"{path}, line {n}"
         try:
-            r = DesignResult.from_dict(loads_json(line, where), where, space)
+            r = DesignResult.from_dict(loads_json(line, where), where, space, unit)
         except ValueError as exc:
             bad.append(str(exc))
             continue
@@ -65,6 +66,13 @@ def folder_space(out_dir: str | Path) -> DesignSpace:
     return read_config(out_dir).design_space() if (Path(out_dir) / "config.json").exists() else DEFAULT_SPACE
 
 
+def folder_task(out_dir: str | Path) -> Task:
+    """The task of a ground-truth folder (:attr:`GroundTruthConfig.task` of its ``config.json``;
+    ``forward`` for a folder saved before tasks existed, or without ``config.json``).
+    ValueError as :func:`read_config`."""
+    return read_config(out_dir).task_spec() if (Path(out_dir) / "config.json").exists() else parse_task(DEFAULT_TASK)
+
+
 def load_results(out_dir: str | Path) -> dict[Design, DesignResult]:
     """The valid rows of :func:`read_results`; each bad row is a note on stderr naming its file
     and line (the row stays in the file)."""
@@ -74,14 +82,15 @@ def load_results(out_dir: str | Path) -> dict[Design, DesignResult]:
     return good
 
 
-def _append(path: Path, result: DesignResult) -> None:
-    """Append one row to ``results.jsonl`` and fsync it. A last line left unfinished by a
-    killed run is first ended, so that it stays a (bad) line of its own.
+def _append(path: Path, result: DesignResult, unit: str = "cm") -> None:
+    """Append one row to ``results.jsonl`` (its rewards keyed in ``unit``, the task's) and fsync
+    it. A last line left unfinished by a killed run is first ended, so that it stays a (bad)
+    line of its own.
 
     Raises:
         UnsafeFileError: the file is a symbolic link or not a regular file.
     """
-    line = (json.dumps(result.to_dict(), allow_nan=False) + "\n").encode()
+    line = (json.dumps(result.to_dict(unit), allow_nan=False) + "\n").encode()
     try:
         fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
     except OSError:
@@ -188,13 +197,15 @@ def folder_lock(out: Path):
 
 def read_references(out_dir: str | Path) -> dict | None:
     """``references.json`` of a ground-truth folder, or None if it is missing or not valid
-    (a note says so): an object of references, each with a finite ``reward_cm``."""
+    (a note says so): an object of references, each with a finite ``reward_<unit>`` (the
+    folder's task's unit, :func:`folder_task`)."""
     path = Path(out_dir) / "references.json"
     if not path.exists() and not path.is_symlink():
         return None
     try:
+        key = f"reward_{folder_task(out_dir).unit}"
         refs = load_json(path)
-        if not isinstance(refs, dict) or not all(isinstance(v, dict) and _finite(v.get("reward_cm"))
+        if not isinstance(refs, dict) or not all(isinstance(v, dict) and _finite(v.get(key))
                                                  for v in refs.values()):
             raise ValueError("not an object of references with finite rewards")
         if not _finite(refs.get("expert_baseline", {"best_phase_deg": 0.0}).get("best_phase_deg")):
