@@ -28,6 +28,7 @@ from pathlib import Path
 
 from softcrawl.design.resolve import PAPER_SPACE, resolve_space
 from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE
+from softcrawl.design.spacefile import InvalidDesignError
 from softcrawl.gaits import paper_best_gait, read_actions_csv
 from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.animation import FPS, MAX_FRAMES
@@ -76,7 +77,10 @@ def space_design(space, design: str | None):
             raise ValueError(f"give --design: {space.n_slots} comma-separated slot values in 0..{space.n_regulators} "
                              f"for the design space {space.name!r} (the default design is the paper's)")
         design = ",".join(map(str, BASELINE_DESIGN))
-    return space.validate_design(design)
+    try:
+        return space.validate_design(design)
+    except InvalidDesignError as exc:
+        raise InvalidDesignError(f"{exc} (design space {space.name!r})") from None
 
 
 def _run(args: argparse.Namespace) -> int:
