@@ -214,3 +214,50 @@ def test_train_refuses_a_reduction_of_another_part_in_one_line_and_writes_nothin
     one_line_error(capsys, main(["train", "--preset", "smoke", "--space", str(_other_part_space(tmp_path)),
                                  "--out", str(out), "--no-progress"]), "wall_thickness")
     assert not out.exists()
+
+
+# -- a smoke-sized turning run on hex6: logs, report (slow: about 2 min on 2 cores) ----------------
+@pytest.fixture(scope="module")
+def hex6_turning(tmp_path_factory):
+    """``softcrawl train --preset smoke --space hex6 --task turning`` (with its report)."""
+    run = tmp_path_factory.mktemp("hex6") / "run"
+    assert main(["train", "--preset", "smoke", "--space", "hex6", "--task", "turning", "--out", str(run),
+                 "--no-progress"]) == 0
+    return run
+
+
+@pytest.mark.slow
+def test_a_hex6_turning_runs_logs_and_report(hex6_turning):
+    """The scalars are in deg (no cm key); the report has the designs' pictures, the best
+    design's section and the turning baseline on hex6's half-turn-symmetric design."""
+    header = (hex6_turning / "logs" / "progress.csv").read_text().splitlines()[0].split(",")
+    assert {"codesign/mean_return_deg", "codesign/best_return_deg"} <= set(header)
+    assert not any(k.startswith("codesign/") and k.endswith("_cm") for k in header)
+    report = hex6_turning / "report"
+    summary = (report / "summary.md").read_text()
+    numbers = json.loads((report / "summary.json").read_text())
+    assert (report / "top-1.png").stat().st_size > 0 and (report / "best_design" / "crawl.gif").is_file()
+    assert "## Best design's gait" in summary and "design space `hex6`" in summary
+    assert "Hand-made turning gait on the symmetric `1,2,0,1,2,0`" in summary
+    assert numbers["baseline"]["design"] == "1,2,0,1,2,0" and len(numbers["baseline"]["phases"]) == 12
+    assert (report / "baseline_turning.csv").read_text().splitlines()[0] == "phase_deg,turned_deg,diverged,wall_seconds"
+
+
+@pytest.mark.slow
+def test_a_forward_report_on_hex6_says_why_it_has_no_baseline(hex6_turning, tmp_path):
+    """The same run relabelled ``forward``: the baseline section says the paper's design is not
+    in hex6; nothing is swept."""
+    import shutil
+
+    from softcrawl.codesign.report import write_report
+
+    run = tmp_path / "run"
+    shutil.copytree(hex6_turning, run)
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["config"]["env"]["task"] = "forward"
+    (run / "config.json").write_text(json.dumps(cfg))
+    out = write_report(run, simulate=False)
+    summary = (out / "summary.md").read_text()
+    assert "## Expert baseline\n\nNone: the expert baseline is the paper's design `1,0,0,2,2,0,0,1`" in summary
+    assert "baseline" not in json.loads((out / "summary.json").read_text())
+    assert not (out / "baseline_sweep").exists()

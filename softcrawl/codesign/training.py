@@ -199,6 +199,8 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         ckpt = None
     if ray_address is not None and cfg.backend != "ray":
         raise ValueError(f"a Ray address is used only by backend \"ray\", not {cfg.backend!r}")
+    if not resume:
+        check_reduction(cfg)  # a reduction of another part or model: refused before anything is built
     prepare_learner(cfg.sac)  # threads before JAX / torch start; the device before the workers start
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
@@ -208,7 +210,6 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
     try:
         model = make_sac(venv, cfg.sac, seed=cfg.seed)
         if not resume:
-            check_reduction(cfg)
             run.write_config(cfg)
         if ckpt is not None:
             run.load_checkpoint(ckpt, model, sampler)
