@@ -241,11 +241,16 @@ def gait_analysis(actions_kpa: np.ndarray, time_s: np.ndarray, x_mm: np.ndarray,
             "crawls_throughout": bool(mean > 0 and np.all(legs >= 0.1 * mean))}
 
 
-def _describe_gait(g: dict) -> str:
+def _describe_gait(g: dict, task: Task | None = None) -> str:
+    """One line on the gait (:func:`gait_analysis`); the crawl verdict only for ``forward``
+    (None), whose return the +x distance is."""
     P = g["period_actions"]
     cyc = ("no repeating cycle" if P is None else "a constant command (no cycle)" if P == 1 else
            f"a {P}-action cycle from action {g['periodic_from_action'] + 1} on")
     parts = " / ".join(f"{v:+.2f}" for v in g["distance_per_part_cm"])
+    if task is not None and task.name != "forward":
+        return (f"Gait: {cyc}; +x per {g['part_seconds']:g}-s part of the episode: {parts} cm (not what the "
+                f"`{task.name}` task scores).")
     verdict = "it crawls throughout" if g["crawls_throughout"] else "it does NOT crawl throughout"
     return (f"Gait: {cyc}; +x per {g['part_seconds']:g}-s part of the episode: {parts} cm ({verdict}: every "
             "part at least 10% of the mean).")
@@ -278,7 +283,7 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
             (f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} {unit} per episode "
              f"(re-run {rerun:+.3f} {unit}{', DIVERGED' if result.diverged else ''}); commanded (dashed) "
              f"vs applied (solid) pressures and x(t); ParaView series in `best_design/crawl.pvd`."), "",
-            _describe_gait(g), "",
+            _describe_gait(g, task), "",
             *(["![best design crawling](best_design/crawl.gif)", ""] if (out / "best_design" / "crawl.gif").exists()
               else []),
             "![best design's gait](best_design/trajectory.png)"], numbers
