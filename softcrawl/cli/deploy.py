@@ -154,7 +154,8 @@ def register(subparsers) -> None:
                    help="with --rig sim: the rig description to simulate (default: the shipped example)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--run", default=None, help="trained co-design run: deploy its policy for --design")
-    src.add_argument("--actions", metavar="FILE.csv", default=None, help="action CSV p1,...,pR, one column per regulator of the rig (real kPa per action)")
+    src.add_argument("--actions", metavar="FILE.csv", default=None,
+                     help="action CSV p1,...,pR, one column per regulator of the rig (real kPa per action)")
     src.add_argument("--gait", choices=GAITS, default="sine", help="built-in gait (default sine)")
     p.add_argument("--design", default=None, help="with --run: comma-separated slot values (8 in the paper's space; "
                    "as many as the run's space has slots)")
