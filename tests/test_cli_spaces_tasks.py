@@ -262,3 +262,18 @@ def test_a_forward_report_on_hex6_says_why_it_has_no_baseline(hex6_turning, tmp_
     assert "## Expert baseline\n\nNone: the expert baseline is the paper's design `1,0,0,2,2,0,0,1`" in summary
     assert "baseline" not in json.loads((out / "summary.json").read_text())
     assert not (out / "baseline_sweep").exists()
+
+
+def test_sweep_phase_on_hex6_matches_simulate_with_the_same_gait(capsys, tmp_path):
+    """One phase of ``sweep-phase --space hex6`` (0.05 s) scores what ``simulate --space hex6
+    --gait sine`` gets with the same design, phase and robot, to a relative 1e-9."""
+    design, common = "1,0,2,1,0,2", ["--space", "hex6", "--duration", "0.05", "--no-progress"]
+    assert main(["sweep-phase", *common, "--design", design, "--phases", "90", "--workers", "1",
+                 "--out", str(tmp_path / "sweep")]) == 0
+    sweep = json.loads((tmp_path / "sweep" / "sweep.json").read_text())
+    assert sweep["settings"]["design"] == [1, 0, 2, 1, 0, 2]
+    assert main(["simulate", *common, "--design", design, "--gait", "sine", "--phase", "90", "--no-animation",
+                 "--out", str(tmp_path / "sim")]) == 0
+    reward = json.loads((tmp_path / "sim" / "summary.json").read_text())["reward_cm"]
+    assert reward != 0.0  # about 2e-5 cm: the robot moves, so equality says something
+    assert sweep["best"]["phase_deg"] == 90.0 and sweep["best"]["reward_cm"] == pytest.approx(reward, rel=1e-9)
