@@ -48,7 +48,8 @@ def _say(text: str, err: bool = False) -> None:
 
 
 def policy_actions(run: str, design: str, checkpoint: str | None = None):
-    """The trained run's deterministic actions ``(n, 3)`` real kPa for ``design`` and a
+    """The trained run's deterministic actions ``(n, R)`` real kPa (``R``: the regulators of the
+    run's space) for ``design`` and a
     description dict. The one place that calls the co-design evaluation API."""
     from softcrawl.codesign.evaluation import evaluate_policy
 
@@ -59,8 +60,10 @@ def policy_actions(run: str, design: str, checkpoint: str | None = None):
         "sim_return_cm": float(ev.returns_cm[0]), "sim_hold_s": hold}
 
 
-def gait_actions(args: argparse.Namespace):
-    """``(actions (n, 3) kPa, description)`` from --run / --actions / --gait."""
+def gait_actions(args: argparse.Namespace, n_regulators: int):
+    """``(actions (n, R) kPa, description)`` from --run / --actions / --gait; ``--actions`` is
+    read with ``n_regulators`` columns (the rig's regulators: a file of another width is one
+    ValueError line naming the file and its line, before anything moves)."""
     n = args.n_actions
     if n < 1:
         raise ValueError(f"--n-actions must be >= 1, got {n}")
@@ -73,7 +76,8 @@ def gait_actions(args: argparse.Namespace):
     if args.actions is not None:
         from softcrawl.gaits import read_actions_csv
 
-        return read_actions_csv(args.actions).actions, {"source": "actions", "file": str(args.actions)}
+        return (read_actions_csv(args.actions, n_regulators=n_regulators).actions,
+                {"source": "actions", "file": str(args.actions)})
     from softcrawl.gaits import SineGait, paper_best_gait
 
     if args.gait == "sine":
@@ -101,7 +105,7 @@ def _run(args: argparse.Namespace) -> int:
 
         space = Run(args.run).design_space()
         check_regulators(space.n_regulators, len(cfg.regulators), f"run {args.run} (design space {space.name!r})")
-    actions, meta = gait_actions(args)
+    actions, meta = gait_actions(args, len(cfg.regulators))
     actions = validate_actions(actions, cfg.rig.max_kpa)  # refuse before anything moves
     if calibration is not None:
         meta["calibration"] = {"file": str(args.calibration), "a": calibration.a, "b": calibration.b,
@@ -150,7 +154,8 @@ def register(subparsers) -> None:
                    help="with --rig sim: the rig description to simulate (default: the shipped example)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--run", default=None, help="trained co-design run: deploy its policy for --design")
-    src.add_argument("--actions", metavar="FILE.csv", default=None, help="action CSV p1,p2,p3 (real kPa per action)")
+    src.add_argument("--actions", metavar="FILE.csv", default=None,
+                     help="action CSV p1,...,pR, one column per regulator of the rig (real kPa per action)")
     src.add_argument("--gait", choices=GAITS, default="sine", help="built-in gait (default sine)")
     p.add_argument("--design", default=None, help="with --run: comma-separated slot values (8 in the paper's space; "
                    "as many as the run's space has slots)")

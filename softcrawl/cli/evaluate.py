@@ -60,10 +60,10 @@ def _run_randomized(args: argparse.Namespace) -> int:
     ranges = _randomize_ranges(args.run, args.set or [])
     res = evaluate_randomized(args.run, args.design, args.randomize, ranges, seed=args.seed)
     out = write_randomized(args.out, res, overwrite=args.overwrite)
-    st = res.stats()
-    print(f"design {','.join(map(str, res.design))}: {st['n']} randomized episodes, return {st['mean_cm']:+.3f} "
-          f"+/- {st['std_cm']:.3f} cm (min {st['min_cm']:+.3f}, max {st['max_cm']:+.3f}; nominal "
-          f"{res.nominal_return_cm:+.3f} cm; {st['n_diverged']} diverged); wrote {out}")
+    st, u = res.stats(), res.unit
+    print(f"design {','.join(map(str, res.design))}: {st['n']} randomized episodes, return {st[f'mean_{u}']:+.3f} "
+          f"+/- {st[f'std_{u}']:.3f} {u} (min {st[f'min_{u}']:+.3f}, max {st[f'max_{u}']:+.3f}; nominal "
+          f"{res.nominal_return_cm:+.3f} {u}; {st['n_diverged']} diverged); wrote {out}")
     return 1 if st["n_diverged"] or res.nominal_diverged else 0
 
 

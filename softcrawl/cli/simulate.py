@@ -3,9 +3,17 @@
 Example::
 
     softcrawl simulate --design 1,0,0,2,2,0,0,1 --gait sine --phase 110 --duration 20 --out runs/baseline
+    softcrawl simulate --space hex6 --design 1,0,2,1,0,2 --task turning --out runs/hex6
 
-Inputs are validated (design, gait, action file, output path, and with ``--video`` that pyvista
-can render off-screen) before the model is built;
+``--space`` (a shipped name or a space file, :func:`softcrawl.design.resolve.resolve_space`)
+gives the design's slots and regulators and the robot's parts (:func:`softcrawl.codesign.config.space_robot`);
+``--task`` (:data:`softcrawl.tasks.TASKS`) the floor (:func:`softcrawl.tasks.base.on_floor`) and,
+for a task other than ``forward``, its return in its unit, summed over the recorded frames
+(:func:`softcrawl.tasks.base.replay_return`), printed and written to ``task.json``
+(``{"task": settings, "unit": "cm" | "deg", "return_<unit>": float, "frames_every": K}``).
+
+Inputs are validated (space, design, gait, action file of the space's regulators, output path,
+and with ``--video`` that pyvista can render off-screen) before the model is built;
 outputs appear at ``--out`` only when complete (:mod:`softcrawl.robot.output`). A diverged
 simulation is written (flagged ``"diverged": true``, ``reward_cm`` null) and exits with 1.
 """
@@ -13,17 +21,23 @@ simulation is written (flagged ``"diverged": true``, ``reward_cm`` null) and exi
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 from pathlib import Path
 
-from softcrawl.design.space import BASELINE_DESIGN, validate_design
-from softcrawl.gaits import SineGait, paper_best_gait, read_actions_csv
+from softcrawl.design.resolve import PAPER_SPACE, resolve_space
+from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE
+from softcrawl.design.spacefile import InvalidDesignError
+from softcrawl.gaits import paper_best_gait, read_actions_csv
 from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.animation import FPS, MAX_FRAMES
 from softcrawl.robot.assembly import MODELS, REDUCED_DISKS, RobotConfig, build_robot
 from softcrawl.robot.episode import run_episode
 from softcrawl.robot.output import check_output_path, write_results
+from softcrawl.robot.sweep import baseline_gait
+from softcrawl.tasks import TASKS, make_task
+from softcrawl.tasks.registry import DEFAULT_TASK
 
 GAITS = ("sine", "paper-best")
 #: Longest episode ``simulate`` and ``sweep-phase`` accept, s (1 h of robot time; the paper's are 20 s).
@@ -37,35 +51,76 @@ def check_duration(duration: float) -> float:
     return duration
 
 
-def _gait(args: argparse.Namespace):
-    """The gait named by the arguments (``--actions`` overrides ``--gait``)."""
+def _gait(args: argparse.Namespace, n_regulators: int):
+    """The gait named by the arguments (``--actions`` overrides ``--gait``) for a space of
+    ``n_regulators`` regulators (ValueError: an actions file of another width, or
+    ``--gait paper-best``, a 3-regulator gait, on another space)."""
     if args.actions is not None:
-        return read_actions_csv(args.actions)
+        return read_actions_csv(args.actions, n_regulators=n_regulators)
     if args.gait == "sine":
-        return SineGait(phase_deg=args.phase)
+        return baseline_gait(args.phase, n_regulators)
+    if n_regulators != DEFAULT_SPACE.n_regulators:
+        raise ValueError(f"--gait paper-best drives the paper's {DEFAULT_SPACE.n_regulators} regulators; this space "
+                         f"has {n_regulators}: use --gait sine or --actions")
     return paper_best_gait(n_actions=max(1, math.ceil(args.duration)))
 
 
+def space_design(space, design: str | None):
+    """``design`` validated in ``space`` (:meth:`DesignSpace.validate_design`); None: the
+    paper's baseline design in the paper's space, else ValueError (the space has no default).
+
+    Raises:
+        InvalidDesignError, ValueError: one line naming the space.
+    """
+    if design is None:
+        if space != DEFAULT_SPACE:
+            raise ValueError(f"give --design: {space.n_slots} comma-separated slot values in 0..{space.n_regulators} "
+                             f"for the design space {space.name!r} (the default design is the paper's)")
+        design = ",".join(map(str, BASELINE_DESIGN))
+    try:
+        return space.validate_design(design)
+    except InvalidDesignError as exc:
+        raise InvalidDesignError(f"{exc} (design space {space.name!r})") from None
+
+
 def _run(args: argparse.Namespace) -> int:
-    design = validate_design(args.design)
+    from softcrawl.codesign.config import space_robot
+    from softcrawl.tasks.base import on_floor
+
+    space = resolve_space(args.space)
+    task = make_task(args.task)
+    design = space_design(space, args.design)
     check_duration(args.duration)
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
-    config = RobotConfig(leg_mesh_size=args.mesh_size, disk_mesh_size=args.disk_mesh_size, friction=args.friction,
-                         dt=args.dt, refactor_every=args.refactor_every, **model_fields(args))
-    gait = _gait(args)
+    config = space_robot(RobotConfig(leg_mesh_size=args.mesh_size, disk_mesh_size=args.disk_mesh_size,
+                                     friction=args.friction, dt=args.dt, refactor_every=args.refactor_every,
+                                     **model_fields(args)), space)
+    gait = _gait(args, space.n_regulators)
     check_output_path(args.out, args.overwrite)
     if args.video:
         from softcrawl.robot.video import check_video_support  # optional extra
 
         check_video_support()
-    robot = build_robot(design, config)
+    robot = on_floor(build_robot(design, config, space=space), task.friction, task.gravity())
     calibration = PressureCalibration()
     result = run_episode(robot, gait, args.duration, calibration, record_every=args.frames_every,
                          progress=not args.no_progress)
+    extra, what = None, ""
+    if task.name != DEFAULT_TASK:  # the task's return, from the recorded frames
+        from softcrawl.tasks.base import replay_return
+
+        u, ret = task.unit, replay_return(task, robot, result.frames)
+        record = json.dumps({"task": task.settings(), "unit": u, f"return_{u}": ret if math.isfinite(ret) else None,
+                             "frames_every": args.frames_every}, indent=2) + "\n"
+        what = f"task {task.label()}: return {ret:+.3f} {u} (from frames every {args.frames_every} steps); "
+
+        def extra(folder):
+            (folder / "task.json").write_text(record, encoding="utf-8")
+
     out = write_results(args.out, robot, gait, result, calibration, overwrite=args.overwrite, video=args.video,
-                        animation=args.animation is not False)
-    print(f"reward {result.reward_cm:+.3f} cm after {result.sim_seconds:g} s "
+                        animation=args.animation is not False, extra=extra)
+    print(f"{what}reward {result.reward_cm:+.3f} cm after {result.sim_seconds:g} s "
           f"({result.steps} steps, {result.wall_seconds:.1f} s wall, {result.real_time_factor:.3f}x real time); "
           f"wrote {out}")
     if result.diverged:
@@ -107,6 +162,12 @@ def add_animation_argument(p: argparse.ArgumentParser) -> None:
                         "frames per second, drawn with matplotlib (default; --no-animation skips it)")
 
 
+def add_space_argument(p: argparse.ArgumentParser) -> None:
+    """``--space NAME|PATH`` (shared with ``sweep-phase``), read by :func:`resolve_space`."""
+    p.add_argument("--space", default=PAPER_SPACE, metavar="NAME|PATH",
+                   help="design space: a shipped name (paper, hex6) or a space file (default paper)")
+
+
 def register(subparsers) -> None:
     """Add the ``simulate`` subcommand to ``subparsers``."""
     p = subparsers.add_parser(
@@ -115,14 +176,20 @@ def register(subparsers) -> None:
         "trajectory.{npz,csv,png}, a ParaView series (crawl.pvd + frames/), the animation crawl.gif and, with "
         "--video, crawl.mp4 into --out.",
     )
-    p.add_argument("--design", default=",".join(map(str, BASELINE_DESIGN)),
-                   help='8 comma-separated slot values in {0..3} (default: the baseline "1,0,0,2,2,0,0,1")')
+    add_space_argument(p)
+    p.add_argument("--task", choices=TASKS, default=DEFAULT_TASK,
+                   help="what the episode is scored on, with its default settings (docs/tasks.md; default forward); "
+                   "sets the floor and reports the task's return")
+    p.add_argument("--design", default=None,
+                   help="comma-separated slot values, one per slot of the space, 0 or a regulator (default, paper's "
+                   'space only: the baseline "1,0,0,2,2,0,0,1")')
     p.add_argument("--gait", choices=GAITS, default="sine",
-                   help="sine: the expert baseline (45 - 45 cos(2 pi t / 4 s), rear lags by --phase); "
-                   "paper-best: the paper's learned 3 s cycle")
+                   help="sine: the expert baseline (45 - 45 cos(2 pi t / 4 s), rear lags by --phase; regulators 3..R "
+                   "off on a space of R != 3); paper-best: the paper's learned 3 s cycle (3 regulators)")
     p.add_argument("--phase", type=float, default=110.0, help="sine gait: lag of regulator 2, degrees (default 110)")
     p.add_argument("--actions", metavar="FILE.csv", default=None,
-                   help="action sequence p1,p2,p3 (real kPa, one row per 1 s); overrides --gait")
+                   help="action sequence p1,...,pR, one column per regulator of the space (real kPa, one row per "
+                   "1 s); overrides --gait")
     p.add_argument("--duration", type=float, default=20.0,
                    help=f"episode length, s (default 20, at most {MAX_DURATION_S:g})")
     p.add_argument("--out", required=True, help="output directory (must not exist unless --overwrite)")

@@ -3,6 +3,10 @@
 Example::
 
     softcrawl sweep-phase --out runs/sweep --phases 0:180:10 --duration 20 --workers 2
+    softcrawl sweep-phase --space hex6 --design 1,0,2,1,0,2 --out runs/hex6-sweep
+
+``--space`` (a shipped name or a space file) gives the design's slots and regulators and the
+robot's parts; the gait is :func:`softcrawl.robot.sweep.baseline_gait` of its regulators.
 
 Writes ``sweep.json``, ``sweep.csv`` and ``reward_vs_phase.png`` into ``--out`` (atomically, see
 :mod:`softcrawl.robot.sweep`) and prints the reward table. An interrupted sweep is resumed by
@@ -14,21 +18,25 @@ from __future__ import annotations
 import argparse
 import sys
 
-from softcrawl.cli.simulate import MAX_DURATION_S, add_model_arguments, check_duration, model_fields
-from softcrawl.design.space import BASELINE_DESIGN
+from softcrawl.cli.simulate import (
+    MAX_DURATION_S, add_model_arguments, add_space_argument, check_duration, model_fields, space_design)
+from softcrawl.design.resolve import resolve_space
 from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.sweep import format_table, parse_phases, run_sweep
 
 
 def _run(args: argparse.Namespace) -> int:
+    from softcrawl.codesign.config import space_robot
+
+    space = resolve_space(args.space)
+    design = space_design(space, args.design)
     check_duration(args.duration)
     fields = model_fields(args)
+    config = space_robot(RobotConfig(leg_mesh_size=args.mesh_size, refactor_every=args.refactor_every, **fields),
+                         space)
     try:
-        result = run_sweep(args.out, parse_phases(args.phases), args.design,
-                           RobotConfig(leg_mesh_size=args.mesh_size, refactor_every=args.refactor_every,
-                                       **fields),
-                           args.duration, workers=args.workers, overwrite=args.overwrite,
-                           progress=not args.no_progress)
+        result = run_sweep(args.out, parse_phases(args.phases), design, config, args.duration, workers=args.workers,
+                           overwrite=args.overwrite, progress=not args.no_progress, space=space)
     except KeyboardInterrupt:
         print(f"softcrawl sweep-phase: interrupted; finished phases are kept in {args.out}.partial "
               "(run the same command again to resume)", file=sys.stderr)
@@ -54,8 +62,10 @@ def register(subparsers) -> None:
                    help="phase lags, degrees: start:stop:step (stop included) or a comma list (default 0:180:10)")
     p.add_argument("--duration", type=float, default=20.0,
                    help=f"episode length, s (default 20, at most {MAX_DURATION_S:g})")
-    p.add_argument("--design", default=",".join(map(str, BASELINE_DESIGN)),
-                   help='8 comma-separated slot values in {0..3} (default: the baseline "1,0,0,2,2,0,0,1")')
+    add_space_argument(p)
+    p.add_argument("--design", default=None,
+                   help="comma-separated slot values, one per slot of the space, 0 or a regulator (default, paper's "
+                   'space only: the baseline "1,0,0,2,2,0,0,1")')
     add_model_arguments(p)
     p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size,
                    help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")

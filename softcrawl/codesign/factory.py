@@ -47,11 +47,15 @@ def make_vec_env(cfg: TrainConfig, sampler, ray_address: str | None = None) -> D
 def check_reduction(cfg: TrainConfig) -> None:
     """Load and check the reduction file of a reduced-model config now (robots are built
     lazily, at the first reset), so a bad file fails before a run is started: the config's
-    ``env.robot.reduction``, else the design space's (the paper's: the shipped one).
+    ``env.robot.reduction``, else the design space's (the paper's: the shipped one). The file
+    must match the robot config, have been built for the space's actuator and disk
+    (:meth:`softcrawl.design.spacefile.DesignSpace.part_record` at the config's mesh sizes) and,
+    being the space's own file, have its ``reduction_sha256`` (the checks
+    :func:`softcrawl.robot.build_robot` makes at the first reset).
 
     Raises:
         ValueError: neither names a reduction (the message says how to go on); and
-            ReductionFileError, ReductionMismatchError (ValueErrors): see
+            ReductionFileError, ReductionMismatchError (ValueErrors, one line): see
             :func:`softcrawl.reduction.artifact.load_reduction`.
     """
     if cfg.env.robot.model != "reduced":
@@ -66,7 +70,9 @@ def check_reduction(cfg: TrainConfig) -> None:
         raise ValueError(f'env.robot.model is "reduced" but the design space {space.name!r} names no reduction '
                          "([actuator] reduction) nor does env.robot.reduction: build one (softcrawl reduce build) "
                          'or train the full-order model (--set env.robot.model="full")')
-    load_reduction(path, expect=dataclasses.asdict(config))
+    load_reduction(path, expect=dataclasses.asdict(config),
+                   part=space.part_record(config.leg_mesh_size, config.disk_mesh_size),
+                   sha256=space.reduction_sha256 if str(path) == space.reduction else None)
 
 
 def make_sampler(cfg: TrainConfig) -> GibbsDesignSampler:

@@ -7,17 +7,20 @@ The ranges are ``env.randomize`` of the run's :class:`~softcrawl.codesign.config
 
 ``RUN/domain.csv`` (only in runs that randomize; ``episodes.csv`` keeps its format): a header
 row, then one row per finished episode: ``t`` (transitions, as in ``episodes.csv``), ``design``,
-``return_cm``, ``diverged`` and the drawn values (:meth:`DomainRanges.columns`: ``friction``,
-``youngs_scale``, ``mass_scale``, ``pressure_gain_1..3``, ``pressure_offset_1..3_kpa``,
-``tau_inflate_1..3_s``, ``tau_vent_1..3_s``, ``control_period``, those randomized). A resumed
-run drops the rows after its checkpoint, as it does in ``episodes.csv``.
+``return_<unit>`` (the task's unit: ``return_cm``, ``return_deg`` for ``turning``),
+``diverged`` and the drawn values (:meth:`DomainRanges.columns` for the space's ``R``
+regulators: ``friction``, ``youngs_scale``, ``mass_scale``, ``pressure_gain_1..R``,
+``pressure_offset_1..R_kpa``, ``tau_inflate_1..R_s``, ``tau_vent_1..R_s``, ``control_period``,
+those randomized). A resumed run drops the rows after its checkpoint, as it does in
+``episodes.csv``.
 
 ``softcrawl evaluate RUN --design D --randomize N --out OUT`` writes into ``OUT``:
 
-- ``randomization.json``: run, checkpoint, design, ranges, seed, the nominal return (the same
-  policy without randomization), the N returns, their mean / std (population) / min / max /
-  quartiles, divergences, and every episode's draw;
-- ``randomization.csv``: one row per episode (``episode``, ``return_cm``, ``diverged`` and the
+- ``randomization.json``: run, checkpoint, design, task and unit, ranges, seed, the nominal
+  return (the same policy without randomization), the N returns, their mean / std (population)
+  / min / max / quartiles, divergences, and every episode's draw; return keys end in the task's
+  unit (``nominal_return_cm``, ``returns_cm``, ``mean_cm``, ...; ``_deg`` for ``turning``);
+- ``randomization.csv``: one row per episode (``episode``, ``return_<unit>``, ``diverged`` and the
   drawn values, columns as in ``domain.csv``);
 - ``randomization.png``: the histogram of the returns with the nominal return marked.
 """
@@ -33,10 +36,15 @@ from pathlib import Path
 import numpy as np
 
 from softcrawl.codesign.config import check_randomize
-from softcrawl.robot.domain import DomainRanges, DomainSample
+from softcrawl.robot.domain import PAPER_REGULATORS, DomainRanges, DomainSample
 
-#: Columns of ``domain.csv`` before the drawn values.
+#: Columns of ``domain.csv`` before the drawn values (a forward run's; ``return_<unit>`` in the task's unit).
 DOMAIN_LOG_COLUMNS = ("t", "design", "return_cm", "diverged")
+
+
+def log_columns(unit: str = "cm") -> tuple[str, ...]:
+    """:data:`DOMAIN_LOG_COLUMNS` with the return in ``unit`` (the task's: ``"cm"``, ``"deg"``)."""
+    return ("t", "design", f"return_{unit}", "diverged")
 
 
 def _design_str(d) -> str:
@@ -55,17 +63,20 @@ class DomainLog:
     Args:
         path: the CSV file (a run's :attr:`softcrawl.codesign.run.Run.domain_csv`). ranges: the run's ranges (their columns). after: transitions done
             (a resumed run: rows with a larger ``t`` are dropped; 0 for a new run).
+        unit: the task's unit (the return's column). n_regulators: the space's regulators
+            (the per-regulator columns).
 
     Raises:
         ValueError: an existing file whose header is not this run's columns.
     """
 
-    def __init__(self, path: str | os.PathLike | None, ranges: DomainRanges | None, after: int = 0):
+    def __init__(self, path: str | os.PathLike | None, ranges: DomainRanges | None, after: int = 0,
+                 unit: str = "cm", n_regulators: int = PAPER_REGULATORS):
         self.path = None if path is None or ranges is None or not ranges.enabled else Path(path)
         self._file = self._writer = None
         if self.path is None:
             return
-        self.columns = (*DOMAIN_LOG_COLUMNS, *ranges.columns())
+        self.columns = (*log_columns(unit), *ranges.columns(n_regulators))
         rows = []
         if self.path.exists() and self.path.stat().st_size > 0:
             with open(self.path, newline="", encoding="utf-8") as f:
@@ -102,7 +113,7 @@ class DomainLog:
 
 def read_domain_log(path: str | os.PathLike) -> dict[str, np.ndarray | list]:
     """``domain.csv`` as columns: ``t`` (int64), ``design`` (strings), ``diverged`` (bool) and
-    every other column as float64.
+    every other column (``return_<unit>`` and the draws) as float64.
 
     Raises:
         ValueError: a missing or malformed file (names the file and line).
@@ -112,7 +123,7 @@ def read_domain_log(path: str | os.PathLike) -> dict[str, np.ndarray | list]:
         raise ValueError(f"{path} does not exist (the run did not randomize its domain?)")
     with open(path, newline="", encoding="utf-8") as f:
         rows = list(csv.reader(f))
-    if not rows or tuple(rows[0][:4]) != DOMAIN_LOG_COLUMNS:
+    if not rows or len(rows[0]) < 4 or tuple(rows[0][:4]) != log_columns(rows[0][2].removeprefix("return_")):
         raise ValueError(f"{path}: not a domain log (header {rows[0] if rows else []})")
     header, body = rows[0], [r for r in rows[1:] if r]
     out: dict = {c: [] for c in header}
@@ -137,9 +148,11 @@ class RandomizedEvaluation:
     Attributes:
         run, checkpoint: where the policy came from. design: the canonical design.
         ranges: the ranges drawn from. seed: the env RNG's seed.
-        nominal_return_cm: the policy's return without randomization, cm.
-        returns_cm: ``(N,)`` returns of the randomized episodes, cm. diverged: ``(N,)`` bool.
+        nominal_return_cm: the policy's return without randomization, in :attr:`unit`.
+        returns_cm: ``(N,)`` returns of the randomized episodes, in :attr:`unit`. diverged: ``(N,)`` bool.
         domains: per episode its draw (:meth:`DomainSample.as_dict`).
+        task: the run's task's settings (:meth:`softcrawl.tasks.Task.settings`). unit: its unit
+            (``"cm"``, ``"deg"``). n_regulators: the run's space's regulators (the draws' columns).
     """
 
     run: str
@@ -152,23 +165,30 @@ class RandomizedEvaluation:
     returns_cm: tuple[float, ...]
     diverged: tuple[bool, ...]
     domains: tuple[dict, ...]
+    task: dict | None = None
+    unit: str = "cm"
+    n_regulators: int = PAPER_REGULATORS
 
     def stats(self) -> dict:
-        """``n``, ``mean``, ``std`` (population), ``min``, ``max``, ``q25``, ``median``, ``q75``
-        of the returns (cm), ``n_diverged``."""
+        """``n``, ``mean_<unit>``, ``std_<unit>`` (population), ``min_``, ``max_``, ``q25_``,
+        ``median_``, ``q75_<unit>`` of the returns (:attr:`unit`), ``n_diverged``."""
         r = np.asarray(self.returns_cm, float)
         q = np.percentile(r, [25, 50, 75])
-        return {"n": int(r.size), "mean_cm": float(r.mean()), "std_cm": float(r.std()), "min_cm": float(r.min()),
-                "max_cm": float(r.max()), "q25_cm": float(q[0]), "median_cm": float(q[1]), "q75_cm": float(q[2]),
-                "n_diverged": int(np.sum(self.diverged))}
+        u = self.unit
+        return {"n": int(r.size), f"mean_{u}": float(r.mean()), f"std_{u}": float(r.std()), f"min_{u}": float(r.min()),
+                f"max_{u}": float(r.max()), f"q25_{u}": float(q[0]), f"median_{u}": float(q[1]),
+                f"q75_{u}": float(q[2]), "n_diverged": int(np.sum(self.diverged))}
 
     def to_dict(self) -> dict:
-        """JSON-ready (``randomization.json``)."""
-        return {"run": self.run, "checkpoint": self.checkpoint, "design": list(self.design),
+        """JSON-ready (``randomization.json``; ``task`` and ``unit`` only for a task other than
+        ``forward``)."""
+        u = self.unit
+        task = {} if self.task is None or self.task.get("name") == "forward" else {"task": self.task, "unit": u}
+        return {"run": self.run, "checkpoint": self.checkpoint, "design": list(self.design), **task,
                 "ranges": {k: (list(v) if v is not None else None) for k, v in asdict(self.ranges).items()},
-                "seed": self.seed, "nominal_return_cm": self.nominal_return_cm,
+                "seed": self.seed, f"nominal_return_{u}": self.nominal_return_cm,
                 "nominal_diverged": self.nominal_diverged, **self.stats(),
-                "returns_cm": list(self.returns_cm), "diverged": list(self.diverged), "domains": list(self.domains)}
+                f"returns_{u}": list(self.returns_cm), "diverged": list(self.diverged), "domains": list(self.domains)}
 
 
 def evaluate_randomized(run: str | os.PathLike, design, episodes: int, ranges: DomainRanges | None = None,
@@ -197,7 +217,8 @@ def evaluate_randomized(run: str | os.PathLike, design, episodes: int, ranges: D
     return RandomizedEvaluation(str(run), ev.checkpoint, tuple(ev.design), ranges, int(seed),
                                 float(nominal.returns_cm[0]), bool(nominal.diverged[0]),
                                 tuple(float(r) for r in ev.returns_cm), tuple(bool(d) for d in ev.diverged),
-                                tuple(ev.domains))
+                                tuple(ev.domains), ev.task.settings(), ev.unit,
+                                ev.config.env.design_space().n_regulators)
 
 
 def write_randomized(out: str | os.PathLike, result: RandomizedEvaluation, overwrite: bool = False) -> Path:
@@ -214,12 +235,12 @@ def write_randomized(out: str | os.PathLike, result: RandomizedEvaluation, overw
 
     from softcrawl.robot.output import staged_directory
 
-    columns = list(result.ranges.columns())
+    columns, u = list(result.ranges.columns(result.n_regulators)), result.unit
     with staged_directory(out, overwrite) as tmp:
         (tmp / "randomization.json").write_text(json.dumps(result.to_dict(), indent=2) + "\n")
         with open(tmp / "randomization.csv", "w", newline="", encoding="utf-8") as f:
             w = csv.writer(f)
-            w.writerow(["episode", "return_cm", "diverged", *columns])
+            w.writerow(["episode", f"return_{u}", "diverged", *columns])
             for k, (r, d, dom) in enumerate(zip(result.returns_cm, result.diverged, result.domains)):
                 flat = _flat(dom)
                 w.writerow([k, f"{r:.6g}", int(d), *(f"{flat[c]:.6g}" for c in columns)])
@@ -229,9 +250,9 @@ def write_randomized(out: str | os.PathLike, result: RandomizedEvaluation, overw
         r = np.asarray(result.returns_cm, float)
         ax.hist(r, bins=max(5, min(30, int(np.sqrt(r.size)) + 1)), color="tab:blue", alpha=0.8,
                 label=f"randomized (N = {r.size})")
-        ax.axvline(result.nominal_return_cm, color="k", ls="--", label=f"nominal {result.nominal_return_cm:+.3f} cm")
-        ax.axvline(r.mean(), color="tab:red", label=f"mean {r.mean():+.3f} cm")
-        ax.set_xlabel("return (cm)")
+        ax.axvline(result.nominal_return_cm, color="k", ls="--", label=f"nominal {result.nominal_return_cm:+.3f} {u}")
+        ax.axvline(r.mean(), color="tab:red", label=f"mean {r.mean():+.3f} {u}")
+        ax.set_xlabel(f"return ({u})")
         ax.set_ylabel("episodes")
         ax.set_title(f"design {','.join(map(str, result.design))}: domain-randomized returns")
         ax.legend(fontsize=8)

@@ -31,8 +31,11 @@ is read through :class:`softcrawl.codesign.run.Run`):
   sweep's best phase and reward (comparable only when its episode length and model match the
   run's; the section states both), its ``reward_vs_phase.png`` copied in; for ``turning``, the
   hand-made turning gait (:mod:`softcrawl.tasks.baselines`) swept over ``baseline_phases`` with
-  the run's robot, floor and episode length (``baseline_turning.csv``), its best turn next to
-  the best design's; other tasks have none (the section says so);
+  the run's robot, floor and episode length (``baseline_turning.csv``) on the space's
+  :func:`softcrawl.tasks.baselines.turning_baseline_design`, its best turn next to the best
+  design's; other tasks, a ``forward`` run on another space (the baseline design is not one of
+  its designs; :func:`no_sine_baseline`) and a space without a turning design have none (the
+  section says why);
 * with a ground truth (``softcrawl report RUN --groundtruth GT``): where the run's chosen design
   ranks in it, its regret in cm and its learned policy's reward next to the ground-truth gait's
   (:mod:`softcrawl.codesign.groundtruth_regret`; ``summary.json`` key ``regret``).
@@ -238,11 +241,16 @@ def gait_analysis(actions_kpa: np.ndarray, time_s: np.ndarray, x_mm: np.ndarray,
             "crawls_throughout": bool(mean > 0 and np.all(legs >= 0.1 * mean))}
 
 
-def _describe_gait(g: dict) -> str:
+def _describe_gait(g: dict, task: Task | None = None) -> str:
+    """One line on the gait (:func:`gait_analysis`); the crawl verdict only for ``forward``
+    (None), whose return the +x distance is."""
     P = g["period_actions"]
     cyc = ("no repeating cycle" if P is None else "a constant command (no cycle)" if P == 1 else
            f"a {P}-action cycle from action {g['periodic_from_action'] + 1} on")
     parts = " / ".join(f"{v:+.2f}" for v in g["distance_per_part_cm"])
+    if task is not None and task.name != "forward":
+        return (f"Gait: {cyc}; +x per {g['part_seconds']:g}-s part of the episode: {parts} cm (not what the "
+                f"`{task.name}` task scores).")
     verdict = "it crawls throughout" if g["crawls_throughout"] else "it does NOT crawl throughout"
     return (f"Gait: {cyc}; +x per {g['part_seconds']:g}-s part of the episode: {parts} cm ({verdict}: every "
             "part at least 10% of the mean).")
@@ -275,7 +283,7 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
             (f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} {unit} per episode "
              f"(re-run {rerun:+.3f} {unit}{', DIVERGED' if result.diverged else ''}); commanded (dashed) "
              f"vs applied (solid) pressures and x(t); ParaView series in `best_design/crawl.pvd`."), "",
-            _describe_gait(g), "",
+            _describe_gait(g, task), "",
             *(["![best design crawling](best_design/crawl.gif)", ""] if (out / "best_design" / "crawl.gif").exists()
               else []),
             "![best design's gait](best_design/trajectory.png)"], numbers
@@ -412,6 +420,8 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
 
         baseline_sweep(run, out / "baseline_sweep", baseline_phases, workers=workers)
         sweep = _load_sweep(out / "baseline_sweep")
+    if sweep is None and task.baseline == "sine" and space != DEFAULT_SPACE:
+        lines += ["", "## Expert baseline", "", no_sine_baseline(space)]
     if sweep is not None:
         lines += _baseline_section(*sweep, out, run_cfg, best_cm)
         if own_sweep and sweep[1]["best"] is not None:
@@ -425,6 +435,17 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         lines += more
     (out / "summary.md").write_text("\n".join(lines), encoding="utf-8")
     (out / "summary.json").write_text(json.dumps(numbers, indent=1, default=float) + "\n", encoding="utf-8")
+
+
+def no_sine_baseline(space) -> str:
+    """Why a run on ``space`` (not the paper's) has no forward expert baseline: one Markdown line."""
+    from softcrawl.design.space import BASELINE_DESIGN
+
+    return (f"None: the expert baseline is the paper's design `{','.join(map(str, BASELINE_DESIGN))}` "
+            f"({DEFAULT_SPACE.n_slots} slots, {DEFAULT_SPACE.n_regulators} regulators) with its sine gait, and that "
+            f"design is not in this run's design space `{space.name}` ({space.n_slots} slots, "
+            f"{space.n_regulators} regulators); give a `softcrawl sweep-phase --space` output with --baseline to "
+            "compare with one of its designs.")
 
 
 def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict | None, phases, simulate: bool,
@@ -441,15 +462,22 @@ def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict |
         return lines + ["Not simulated (no phases, or --no-simulate)."], {}
     from softcrawl.codesign.evaluation import episode_seconds
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.tasks.baselines import TURNING_BASELINE_DESIGN, best_turn, sweep_turning
+    from softcrawl.tasks.baselines import best_turn, sweep_turning, turning_baseline_design
 
+    space = cfg.env.design_space()
+    turner = turning_baseline_design(space)
+    if turner is None:
+        return lines + [f"None: the design space `{space.name}` has no half-turn-symmetric design of two leg pairs "
+                        "on regulators 1 and 2 (opposite slots 180° apart, 4 legs) to run the hand-made turning gait "
+                        "on."], {}
     seconds = episode_seconds(cfg)
-    results = sweep_turning(task.robots(robot_factory(cfg)), phases, seconds, cfg.env.settling(), workers=workers)
+    results = sweep_turning(task.robots(robot_factory(cfg)), phases, seconds, cfg.env.settling(), workers=workers,
+                            space=space)
     with open(out / "baseline_turning.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["phase_deg", "turned_deg", "diverged", "wall_seconds"])
         w.writerows([r.phase_deg, f"{r.turned_deg:.4f}", r.diverged, f"{r.wall_seconds:.2f}"] for r in results)
-    design = ",".join(map(str, TURNING_BASELINE_DESIGN))
+    design = ",".join(map(str, turner))
     lines += [(f"Hand-made turning gait on the symmetric `{design}` (two diagonally opposite leg pairs on regulators "
                f"1 and 2, raised-cosine waves 0-90 kPa, period 4 s, pair 2 lagging by the phase), {seconds:g} s "
                f"episodes, this run's robot ({cfg.env.robot.model} model) and floor; degrees turned counter-clockwise "

@@ -34,6 +34,7 @@ from softcrawl.codesign.randomization import DomainLog
 from softcrawl.codesign.run import Run
 from softcrawl.codesign.sac import make_sac, prepare_learner
 from softcrawl.codesign.sampler import GibbsDesignSampler
+from softcrawl.tasks import parse_task
 
 
 # -- logging callback -------------------------------------------------------------------------
@@ -53,6 +54,8 @@ class CodesignCallback(BaseCallback):
         self.start_steps = 0
         self.checkpoint_due = False
         self.session_recorded = False
+        #: the unit of the returns (the task's: cm, deg) in the codesign/*_return_<unit> scalars
+        self.unit = parse_task(cfg.env.task).unit
 
     def record_session(self) -> None:
         """This call's ``sessions.csv`` row, up to the current step (see :meth:`Run.record_session`)."""
@@ -69,7 +72,8 @@ class CodesignCallback(BaseCallback):
         self.ep_writer = csv.writer(self.episodes)
         self.dist_file = open(self.run.distribution_csv, "a", newline="")  # noqa: SIM115
         self.dist_writer = csv.writer(self.dist_file)
-        self.domain_log = DomainLog(self.run.domain_csv, self.cfg.env.randomize, self.num_timesteps)
+        self.domain_log = DomainLog(self.run.domain_csv, self.cfg.env.randomize, self.num_timesteps,
+                                    unit=self.unit, n_regulators=self.cfg.env.design_space().n_regulators)
         self.best = -np.inf
 
     def _on_rollout_start(self) -> None:
@@ -95,12 +99,12 @@ class CodesignCallback(BaseCallback):
             self.logger.record("codesign/entropy", up.entropy)
             self.logger.record("codesign/entropy_target", up.target)
             self.logger.record("codesign/entropy_clamped", int(up.clamped))
-            self.logger.record("codesign/best_return_cm", self.best)
-            self.logger.record("codesign/mean_return_cm", float(np.mean([i["episode"]["r"] for i in rows])))
+            self.logger.record(f"codesign/best_return_{self.unit}", self.best)
+            self.logger.record(f"codesign/mean_return_{self.unit}", float(np.mean([i["episode"]["r"] for i in rows])))
             self.logger.record("codesign/top1_prob", top[0][1])
             self.logger.record("codesign/top_designs", ", ".join(f"{_design_str(d)} p={p:.3g} R={r:+.3f}"
                                                                   for d, p, r in top), exclude=("csv", "stdout"))
-            self.bar.set_postfix(best=f"{self.best:+.2f}cm", H=f"{up.entropy:.2f}", refresh=False)
+            self.bar.set_postfix(best=f"{self.best:+.2f}{self.unit}", H=f"{up.entropy:.2f}", refresh=False)
         every = self.cfg.snapshot_every
         if t // every > (t - self.training_env.num_envs) // every:
             self.write_snapshot()
@@ -195,6 +199,8 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         ckpt = None
     if ray_address is not None and cfg.backend != "ray":
         raise ValueError(f"a Ray address is used only by backend \"ray\", not {cfg.backend!r}")
+    if not resume:
+        check_reduction(cfg)  # a reduction of another part or model: refused before anything is built
     prepare_learner(cfg.sac)  # threads before JAX / torch start; the device before the workers start
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
@@ -204,7 +210,6 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
     try:
         model = make_sac(venv, cfg.sac, seed=cfg.seed)
         if not resume:
-            check_reduction(cfg)
             run.write_config(cfg)
         if ckpt is not None:
             run.load_checkpoint(ckpt, model, sampler)

@@ -14,7 +14,10 @@
   67.5 deg on regulator 1 and 202.5 and 247.5 deg on regulator 2, cannot turn under any gait
   of its two regulators. :func:`sweep_turning` tunes the lag as ``softcrawl sweep-phase`` tunes the forward
   baseline's; its score is the yaw the disk turns in the episode, degrees
-  (:func:`turned_degrees`).
+  (:func:`turned_degrees`). In another design space the same construction
+  (:func:`turning_baseline_design`: regulator 1 on slots 0 and n/2, regulator 2 on slots 1 and
+  1 + n/2) is its baseline where the space has it (opposite slots 180 deg apart, 4 legs
+  allowed), else the space has no turning baseline.
 """
 
 from __future__ import annotations
@@ -26,10 +29,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softcrawl.gaits import SineGait
+from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.spacefile import DesignSpace
+from softcrawl.gaits import PeriodicGait, SineGait
 from softcrawl.parallel import run_pool
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import Settling, run_episode
+from softcrawl.robot.sweep import baseline_gait
 from softcrawl.tasks.builtin import disk_yaw_deg, wrap_deg
 
 #: The turning baseline's design: regulator 1 at 22.5 and 202.5 deg, regulator 2 at 67.5 and
@@ -39,10 +45,30 @@ TURNING_BASELINE_DESIGN: tuple[int, ...] = (1, 2, 0, 0, 1, 2, 0, 0)
 TURNING_PHASES: tuple[float, ...] = tuple(float(p) for p in range(0, 360, 45))
 
 
-def turning_gait(phase_deg: float) -> SineGait:
+def turning_gait(phase_deg: float, n_regulators: int = DEFAULT_SPACE.n_regulators) -> SineGait | PeriodicGait:
     """The turning baseline's gait: the sine baseline's waves (0-90 kPa raised cosine, period
-    4 s) on regulators 1 and 2, regulator 2 lagging by ``phase_deg`` degrees, regulator 3 off."""
-    return SineGait(phase_deg=phase_deg)
+    4 s) on regulators 1 and 2, regulator 2 lagging by ``phase_deg`` degrees
+    (:func:`softcrawl.robot.sweep.baseline_gait` for ``n_regulators`` regulators; the
+    baseline's design puts no leg on regulators 3..R)."""
+    return baseline_gait(phase_deg, n_regulators)
+
+
+def turning_baseline_design(space: DesignSpace) -> tuple[int, ...] | None:
+    """The turning baseline's design in ``space``: regulator 1 on slots 0 and n/2, regulator 2
+    on slots 1 and 1 + n/2 (``n`` slots; :data:`TURNING_BASELINE_DESIGN` in the paper's space),
+    symmetric under a half turn about +z. None when the space has no such design: an odd slot
+    count, fewer than 4 slots or 2 regulators, slots 0 and n/2 (or 1 and 1 + n/2) not 180 deg
+    apart (within 1e-6 deg), or 4 legs outside its leg counts."""
+    n = space.n_slots
+    if n % 2 or n < 4 or space.n_regulators < 2 or not space.min_legs <= 4 <= space.max_legs:
+        return None
+    angles = space.slot_angles_deg
+    if any(abs(wrap_deg(angles[i + n // 2] - angles[i] - 180.0)) > 1e-6 for i in (0, 1)):
+        return None
+    design = [0] * n
+    design[0] = design[n // 2] = 1
+    design[1] = design[1 + n // 2] = 2
+    return tuple(design)
 
 
 @dataclass(frozen=True)
@@ -82,32 +108,41 @@ def turned_degrees(robot: Robot, gait, duration: float, settling: Settling = Set
 
 
 def run_turning_phase(factory: Callable, phase_deg: float, duration: float,
-                      settling: Settling = Settling()) -> TurnResult:
-    """One episode of :func:`turning_gait` at ``phase_deg`` on ``factory(TURNING_BASELINE_DESIGN)``."""
+                      settling: Settling = Settling(), design: tuple[int, ...] = TURNING_BASELINE_DESIGN,
+                      n_regulators: int = DEFAULT_SPACE.n_regulators) -> TurnResult:
+    """One episode of :func:`turning_gait` at ``phase_deg`` (``n_regulators`` regulators) on
+    ``factory(design)``."""
     wall = time.perf_counter()
-    turned, diverged = turned_degrees(factory(TURNING_BASELINE_DESIGN), turning_gait(phase_deg), duration, settling)
+    turned, diverged = turned_degrees(factory(design), turning_gait(phase_deg, n_regulators), duration, settling)
     return TurnResult(float(phase_deg), turned, diverged, time.perf_counter() - wall)
 
 
 def sweep_turning(factory: Callable, phases: Sequence[float] = TURNING_PHASES, duration: float = 20.0,
-                  settling: Settling = Settling(), workers: int | None = 1) -> list[TurnResult]:
+                  settling: Settling = Settling(), workers: int | None = 1,
+                  space: DesignSpace = DEFAULT_SPACE) -> list[TurnResult]:
     """The turning baseline at each phase lag of ``phases`` (degrees), in that order.
 
     Args:
         factory: picklable ``design -> Robot`` (a run's robot factory on the task's floor).
         duration: episode length, s. settling: the rest rule before each episode.
         workers: processes (:func:`softcrawl.parallel.run_pool`; 1: in this process).
+        space: the factory's design space (:func:`turning_baseline_design` and its regulators).
 
     Raises:
-        ValueError: no phases, a non-finite or repeated phase, a non-positive duration.
+        ValueError: no phases, a non-finite or repeated phase, a non-positive duration, a
+            space without a turning baseline design.
     """
     phases = tuple(float(p) for p in phases)
     if not phases or not all(map(math.isfinite, phases)) or len(set(phases)) != len(phases):
         raise ValueError(f"phases must be non-empty, finite and distinct, got {phases}")
     if not (math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration must be a positive number of seconds, got {duration}")
+    design = turning_baseline_design(space)
+    if design is None:
+        raise ValueError(f"the design space {space.name!r} has no turning baseline design (turning_baseline_design)")
     done: dict[float, TurnResult] = {}
-    run_pool(run_turning_phase, workers, [(factory, p, duration, settling) for p in phases],
+    run_pool(run_turning_phase, workers, [(factory, p, duration, settling, design, space.n_regulators)
+                                          for p in phases],
              lambda r: done.__setitem__(r.phase_deg, r))
     return [done[p] for p in phases]
 
