@@ -35,3 +35,16 @@ def scene(robot, model, commands, per):
             st = roll(model, st, Control(jnp.asarray(c, st.x.dtype)[None]))
             got.append(node_positions(robot, model, st))
     return np.stack(ref), np.stack(got), st
+
+
+def assert_follows(robot, ref, got, st, bound_mm=0.3):
+    """The JAX run ``got`` follows the CPU run ``ref`` (``(frames, nodes, 3)`` mm) of a robot
+    that moved (its reward node > 5 mm): no bad step, mean node distance and the reward node's
+    final distance below ``bound_mm`` (the tests' bound: the JAX and CPU reduced engines agree
+    to about 0.1 mm over such a scene)."""
+    assert int(st.bad[0]) == 0
+    node = robot.reward_node
+    assert np.linalg.norm(ref[-1, node] - ref[0, node]) > 5.0  # it moved
+    dist = np.linalg.norm(ref - got, axis=2).mean()
+    assert dist < bound_mm, dist
+    assert np.linalg.norm(ref[-1, node] - got[-1, node]) < bound_mm
