@@ -1,4 +1,4 @@
-"""The commands beyond ``train`` on another design space and task (issue 41): ``simulate`` and
+"""The commands beyond ``train`` on another design space and task: ``simulate`` and
 ``sweep-phase --space``/``--task``, ``deploy``'s action file of the rig's width, the randomized
 evaluation's outputs in the task's unit and the space's regulators, the turning baseline of a
 space, the report's baseline section on another space, and ``check_reduction``'s part check."""

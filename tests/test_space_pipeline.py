@@ -1,4 +1,4 @@
-"""The co-design pipeline on a design space given as a file (issue 41): ``train --space``, the
+"""The co-design pipeline on a design space given as a file: ``train --space``, the
 run's own ``space.toml`` and its checksum, resume, evaluate, report, a tampered or malformed
 space file, older runs read as the paper's space, deploy's regulator count.
 

@@ -201,7 +201,7 @@ class _Watchdog:
 
 def check_regulators(space_regulators: int, rig_regulators: int, where: str) -> None:
     """Refuse a gait of a design space with another number of regulators than the rig has
-    (a policy's actions are one pressure per regulator of its run's space; issue 41).
+    (a policy's actions are one pressure per regulator of its run's space).
 
     Args:
         space_regulators: regulators of the design space the gait was made for.

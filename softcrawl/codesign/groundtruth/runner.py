@@ -98,6 +98,18 @@ def _pin_threads(parent_pid: int | None = None) -> None:
         pass
 
 
+def _phase_sweep(cfg: GroundTruthConfig, design, gait_of) -> tuple[str, dict[str, float]]:
+    """``design``'s return with ``gait_of(phase)`` at every lag of ``cfg.baseline_phases``
+    (the task's unit per ``cfg.duration`` s; :data:`DIVERGED_CM` for a diverged episode):
+    ``(best lag as text, {lag as text: return})``."""
+    ev = DesignEvaluator(design, cfg)
+    sweep = {}
+    for ph in cfg.baseline_phases:
+        r, div = ev(gait_of(ph), cfg.duration)
+        sweep[str(ph)] = DIVERGED_CM if div else r
+    return max(sweep, key=sweep.get), sweep
+
+
 def references(cfg: GroundTruthConfig, progress: bool = False) -> dict:
     """Reference gaits with the run's settings: the expert baseline (design
     :data:`BASELINE_DESIGN`, smooth sine at every lag of ``cfg.baseline_phases``, best kept) and
@@ -112,22 +124,13 @@ def references(cfg: GroundTruthConfig, progress: bool = False) -> dict:
         if cfg.baseline_phases:
             from softcrawl.tasks.baselines import TURNING_BASELINE_DESIGN, turning_gait
 
-            ev = DesignEvaluator(TURNING_BASELINE_DESIGN, cfg)  # the design is canonical: its labels stay
-            sweep = {}
-            for ph in cfg.baseline_phases:
-                r, div = ev(turning_gait(ph), cfg.duration)
-                sweep[str(ph)] = DIVERGED_CM if div else r
-            best = max(sweep, key=sweep.get)
+            # the design is canonical: its labels stay
+            best, sweep = _phase_sweep(cfg, TURNING_BASELINE_DESIGN, turning_gait)
             out["turning_baseline"] = {"design": list(TURNING_BASELINE_DESIGN), "best_phase_deg": float(best),
                                        "reward_deg": sweep[best], "sweep_deg": sweep}
         return out
     if cfg.baseline_phases:
-        ev = DesignEvaluator(BASELINE_DESIGN, cfg)
-        sweep = {}
-        for ph in cfg.baseline_phases:
-            r, div = ev(PeriodicGait.expert_sine(ph, hold=cfg.hold), cfg.duration)
-            sweep[str(ph)] = DIVERGED_CM if div else r
-        best = max(sweep, key=sweep.get)
+        best, sweep = _phase_sweep(cfg, BASELINE_DESIGN, lambda ph: PeriodicGait.expert_sine(ph, hold=cfg.hold))
         out["expert_baseline"] = {"design": list(BASELINE_DESIGN), "best_phase_deg": float(best),
                                   "reward_cm": sweep[best], "sweep_cm": sweep}
     ev = DesignEvaluator(PAPER_BEST_DESIGN, cfg)
