@@ -254,9 +254,8 @@ def matmul_gflops(batch: int, net_arch, obs_dim: int = 44, act_dim: int = 3, sec
     """float32 matrix-product rate, GFLOP per CPU second of this process, of numpy's BLAS, torch
     and XLA (jitted) on the forward shapes of the critic's layers (``batch x (obs + act) ->
     net_arch``), their FLOPs summed over the layers, on the threads each library is set to (one:
-    per CPU second is per thread, what a shared machine cannot skew)."""
+    per CPU second is per thread, what a shared machine cannot skew), all on the CPU."""
     import jax
-    import jax.numpy as jnp
     import torch
 
     dims = (obs_dim + act_dim, *net_arch)
@@ -266,7 +265,8 @@ def matmul_gflops(batch: int, net_arch, obs_dim: int = 44, act_dim: int = 3, sec
     flops = sum(2.0 * batch * a * b for a, b in zip(dims[:-1], dims[1:]))
     jit_layers = jax.jit(lambda xs, ws: [x @ w for x, w in zip(xs, ws)])
     txs, tws = [torch.from_numpy(x) for x in xs], [torch.from_numpy(w) for w in ws]
-    jxs, jws = [jnp.asarray(x) for x in xs], [jnp.asarray(w) for w in ws]
+    cpu = jax.devices("cpu")[0]  # not JAX's default device: on a GPU machine that is the GPU
+    jxs, jws = [jax.device_put(x, cpu) for x in xs], [jax.device_put(w, cpu) for w in ws]
     kernels = {"numpy": lambda: [x @ w for x, w in zip(xs, ws)],
                "torch": lambda: [x @ w for x, w in zip(txs, tws)],
                "jax": lambda: jax.block_until_ready(jit_layers(jxs, jws))}

@@ -232,3 +232,22 @@ def test_build_model_refuses_what_the_engine_cannot_step(robot):
         build_model([dataclasses.replace(robot, reduced={})])
     with pytest.raises(ValueError, match="n_slots"):
         build_model([robot], n_slots=2)
+
+
+def test_float32_products_are_not_lowered_to_tensorfloat32(robot):
+    """Regression: on a GPU the default precision of float32 matrix products is TF32 (10-bit
+    mantissa), which gave every robot of ``benchmarks/gpu_step.py`` inverted elements on an H100;
+    the step's products ask for full precision (``precision = HIGHEST`` in the lowered program,
+    which a CPU ignores and a GPU obeys)."""
+    import re
+
+    import jax.numpy as jnp
+
+    from softcrawl.jaxsim.engine import Control, make_rollout, rest_state
+    from softcrawl.jaxsim.model import build_model
+
+    model = build_model([robot], dtype=jnp.float32)
+    st = rest_state(model)
+    text = make_rollout(1).lower(model, st, Control(jnp.zeros((1, 3), jnp.float32))).as_text()
+    dots = re.findall(r"stablehlo\.dot_general.*", text)
+    assert dots and all("HIGHEST" in d for d in dots), [d for d in dots if "HIGHEST" not in d][:3]

@@ -77,3 +77,21 @@ def test_no_complete_checkpoint_refuses_and_keeps_everything(run):
     with pytest.raises(ValueError, match="no complete checkpoint"):
         train(run, resume=True, progress=False)
     assert file_tree(run) == before
+
+
+def test_a_resumed_run_may_move_but_not_change(trained, run, capsys):
+    """Where a run runs may change on resume (the learner's device, the worker processes: a run
+    started on a GPU machine is finished on a laptop) and the run is the uninterrupted one; what
+    it learns may not: one line, nothing changed."""
+    for name in ("step-0000000120", "step-0000000160"):
+        shutil.rmtree(run / "checkpoints" / name)
+    (run / "checkpoints" / "latest").write_text("step-0000000080")
+    before, config = file_tree(run), (run / "config.json").read_bytes()
+    one_line_error(capsys, main(["train", "--resume", "--out", str(run), "--no-progress",
+                                 "--set", "sac.batch_size=8"]), "only where it runs may change")
+    assert file_tree(run) == before
+    assert main(["train", "--resume", "--out", str(run), "--no-progress", "--workers", "3",
+                 "--set", 'sac.device="cpu"']) == 0
+    assert (run / "config.json").read_bytes() == config
+    for name in ("episodes.csv", "distribution.csv"):
+        assert (run / name).read_text() == (trained / name).read_text(), name

@@ -21,13 +21,14 @@ import os
 import sys
 from pathlib import Path
 
-from softcrawl.codesign.config import BACKENDS, PRESETS, TrainConfig, override, preset
+from softcrawl.codesign.config import BACKENDS, PLACEMENT_KEYS, PRESETS, TrainConfig, override, preset
 from softcrawl.robot.output import check_output_path
 from softcrawl.tasks import TASKS
 
 
 def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
-                     progress: bool = True, report: bool = True, ray_address: str | None = None):
+                     progress: bool = True, report: bool = True, ray_address: str | None = None,
+                     placement: list[str] | None = None):
     """What ``softcrawl train`` does: :func:`softcrawl.codesign.training.train` (arguments as
     there), then, with ``report``, :func:`softcrawl.codesign.report.write_report` of the run.
     Returns the :class:`TrainResult`.
@@ -45,7 +46,7 @@ def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, res
 
     run = Run(out)
     try:
-        res = train(out, cfg, resume=resume, progress=progress, ray_address=ray_address)
+        res = train(out, cfg, resume=resume, progress=progress, ray_address=ray_address, placement=placement)
     except (NoSpaceError, OSError) as exc:
         if not isinstance(exc, NoSpaceError) and not is_no_space(exc):
             raise
@@ -92,11 +93,14 @@ def check_ray_address(backend: str, address: str | None) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     if args.resume:
-        if args.set or any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.workers,
-                                                   args.seed, args.preset, args.space, args.task)):
-            raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings")
+        if any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.seed, args.preset,
+                                       args.space, args.task)):
+            raise ValueError("--resume uses the run's saved config.json; drop --preset and the other settings "
+                             f"(only where it runs may change: --workers, --set {'|'.join(PLACEMENT_KEYS)})")
+        placement = list(args.set or []) + ([f"n_workers={args.workers}"] if args.workers is not None else [])
         check_ray_address("ray", args.ray_address)
-        res = train_and_report(args.out, resume=True, progress=not args.no_progress, ray_address=args.ray_address)
+        res = train_and_report(args.out, resume=True, progress=not args.no_progress, ray_address=args.ray_address,
+                               placement=placement)
     else:
         sets = list(args.set or [])
         for flag, key in ((args.total_steps, "total_steps"), (args.n_envs, "n_envs"), (args.backend, "backend"),
@@ -129,7 +133,9 @@ def register(subparsers) -> None:
     )
     p.add_argument("--preset", choices=PRESETS, default=None, help="settings to start from (default demo)")
     p.add_argument("--out", required=True, help="run directory (new, or the run to --resume)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its last checkpoint, with its saved settings; only where "
+                        "it runs may change: --workers, --set sac.device=...")
     p.add_argument("--total-steps", type=int, default=None, help="environment transitions in total")
     p.add_argument("--n-envs", type=int, default=None, help="parallel environments")
     p.add_argument("--backend", choices=BACKENDS, default=None, help="where envs run")

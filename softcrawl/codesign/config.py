@@ -548,6 +548,27 @@ def preset(name: str) -> TrainConfig:
     raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
 
 
+#: The settings a resumed run may change: where it runs, not what it learns (the learner's device,
+#: the worker processes), e.g. a run started on a GPU machine and finished on a laptop:
+#: ``softcrawl train --resume --out RUN --workers 2 --set sac.device="cpu"``.
+PLACEMENT_KEYS = ("sac.device", "n_workers")
+
+
+def place(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
+    """``cfg`` with ``assignments`` (``"key=value"`` strings of :data:`PLACEMENT_KEYS` only) applied
+    by :func:`override`; the run's ``config.json`` keeps the settings it was started with.
+
+    Raises:
+        ValueError: a key outside :data:`PLACEMENT_KEYS` (named), or as :func:`override`.
+    """
+    for a in assignments:
+        key = a.split("=", 1)[0].strip()
+        if key not in PLACEMENT_KEYS:
+            raise ValueError(f"a resumed run keeps its config.json; only where it runs may change "
+                             f"({', '.join(PLACEMENT_KEYS)}), not {key!r}")
+    return override(cfg, assignments)
+
+
 def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
     """Apply ``"field=value"`` / ``"section.field=value"`` strings (value parsed as JSON if
     possible, else taken as a string). Returns a validated copy.

@@ -28,7 +28,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 from tqdm.auto import tqdm
 
-from softcrawl.codesign.config import TrainConfig
+from softcrawl.codesign.config import TrainConfig, place
 from softcrawl.codesign.factory import check_reduction, make_sampler, make_vec_env
 from softcrawl.codesign.randomization import DomainLog
 from softcrawl.codesign.run import Run
@@ -161,7 +161,7 @@ def _resume_point(run: Run) -> Path | None:
 
 
 def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
-          progress: bool = True, ray_address: str | None = None) -> TrainResult:
+          progress: bool = True, ray_address: str | None = None, placement: list[str] | None = None) -> TrainResult:
     """Train (or, with ``resume``, continue) a co-design run in ``run_dir`` (no report; see
     :func:`softcrawl.cli.train.train_and_report`).
 
@@ -174,24 +174,30 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
         progress: tqdm progress bar on stderr.
         ray_address: the Ray cluster of ``backend="ray"`` (None: a local Ray); a property of
             where the run is, not of the run, so not in its config.
+        placement: with ``resume``, ``"key=value"`` settings of where this session runs
+            (:data:`softcrawl.codesign.config.PLACEMENT_KEYS`: the learner's device, the worker
+            processes), applied to the saved config for this session only.
 
     ``config.json`` is written only after the config is validated, the envs and sampler are
     built and the reduction file is checked, so a failed start leaves an empty folder that the same command can reuse.
 
     Raises:
         ValueError: a bad config, ``run_dir`` a file or non-empty for a new run, a missing run,
-            or a run with history and no complete checkpoint on resume.
+            a run with history and no complete checkpoint on resume, ``placement`` without
+            ``resume`` or with a setting outside ``PLACEMENT_KEYS``.
         NoSpaceError: a checkpoint could not be written (disk full / read-only).
     """
     run = Run(run_dir)
     if resume:
-        cfg = run.read_config()
+        cfg = place(run.read_config(), placement or [])
         ckpt = _resume_point(run)
         if ckpt is not None:
             cfg.sac.learner = run.checkpoint_learner(ckpt)  # the learner that wrote it
     else:
         if cfg is None:
             raise ValueError("a new run needs a config")
+        if placement:
+            raise ValueError("placement applies to a resumed run; a new run takes its settings in cfg")
         cfg.validate()
         if run.path.exists() and (not run.path.is_dir() or any(run.path.iterdir())):
             raise ValueError(f"run directory {run.path} exists and is not an empty folder "

@@ -196,7 +196,17 @@ def _contact_rows(model, idx, gap, v_free, R, att_nodes, att_weights):
 
 def physics_step(model, state: State, sim_kpa) -> State:
     """One ``dt`` of one robot at cavity pressures ``sim_kpa`` ``(R,)`` (sim kPa per regulator);
-    the regulators are not stepped (module doc, steps 2-4)."""
+    the regulators are not stepped (module doc, steps 2-4).
+
+    Matrix products run at the arrays' full precision (``jax.default_matmul_precision("float32")``
+    while tracing): a GPU's default for float32 products, TF32 (10-bit mantissa), gave every robot
+    of ``benchmarks/gpu_step.py`` inverted elements on an H100 (float64: none). On a CPU the
+    setting changes nothing."""
+    with jax.default_matmul_precision("float32"):
+        return _physics_step(model, state, sim_kpa)
+
+
+def _physics_step(model, state: State, sim_kpa) -> State:
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
     h = st.dt
     dt = state.x.dtype
