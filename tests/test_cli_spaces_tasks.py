@@ -47,20 +47,21 @@ def test_sweep_phase_and_simulate_refuse_an_unknown_space_and_task(capsys, tmp_p
     out = tmp_path / "out"
     one_line_error(capsys, main(["sweep-phase", "--space", "nosuch", "--out", str(out)]), "no shipped design space")
     one_line_error(capsys, main(["sweep-phase", "--space", "hex6", "--out", str(out)]), "give --design")
-    with pytest.raises(SystemExit):  # argparse: not one of the registry's names
-        main(["simulate", "--task", "spin", "--out", str(out)])
-    assert "invalid choice: 'spin'" in capsys.readouterr().err
+    one_line_error(capsys, main(["simulate", "--task", "spin", "--out", str(out)]), "--task: unknown task 'spin'")
+    one_line_error(capsys, main(["simulate", "--task", '{"name": "turning", "speed": 1}', "--out", str(out)]),
+                   "--task: task 'turning' has no setting 'speed'")
     assert not out.exists()
 
 
 def test_simulate_hex6_with_a_task_reports_its_return_in_its_unit(capsys, tmp_path):
-    """A 0.2 s hex6 episode driven by a 2-column action file: ``heading`` at 0 deg (the +x
-    displacement, i.e. forward) returns summary.json's reward in cm to 1e-9; ``turning``'s
+    """A 0.2 s hex6 episode driven by a 2-column action file: ``heading`` at 0 deg (a JSON table;
+    the +x displacement, i.e. forward) returns summary.json's reward in cm to 1e-9; ``turning``'s
     return is in deg."""
     actions = _csv(tmp_path / "a2.csv", [("p1", "p2"), (60, 20)])
     out = tmp_path / "heading"
     assert main(["simulate", "--space", "hex6", "--design", "1,0,2,1,0,2", "--actions", str(actions),
-                 "--task", "heading", "--duration", "0.2", "--frames-every", "1", "--out", str(out), *QUICK]) == 0
+                 "--task", '{"name": "heading", "heading_deg": 0}', "--duration", "0.2", "--frames-every", "1",
+                 "--out", str(out), *QUICK]) == 0
     said = capsys.readouterr().out
     task = json.loads((out / "task.json").read_text())
     summary = json.loads((out / "summary.json").read_text())

@@ -407,6 +407,7 @@ def test_train_task_flag(capsys, tmp_path):
     one_line_error(capsys, main(["train", "--preset", "smoke", "--set", 'env.task={"name": "heading", "heading_deg": 400}',
                                  "--out", str(out), "--no-progress"]), "env.task: task 'heading': heading_deg")
     assert not out.exists()  # nothing written
-    with pytest.raises(SystemExit):  # argparse: not one of the registry's names
-        main(["train", "--task", "spin", "--out", str(out)])
-    assert "invalid choice: 'spin'" in capsys.readouterr().err
+    one_line_error(capsys, main(["train", "--task", "spin", "--out", str(out)]), "--task: unknown task 'spin'")
+    one_line_error(capsys, main(["train", "--task", '{"name": "heading", "heading_deg": 400}', "--out", str(out)]),
+                   "--task: task 'heading': heading_deg")
+    assert not out.exists()

@@ -12,6 +12,7 @@ import math
 
 from softcrawl.cli.train import check_ray_address
 from softcrawl.fem.solver import RID_DTYPES
+from softcrawl.tasks.registry import task_spec
 
 
 def _floats(text: str, what: str) -> tuple[float, ...]:
@@ -34,25 +35,6 @@ def _phases(text: str) -> tuple[float, ...]:
         return parse_phases(text)
     except ValueError as exc:
         raise ValueError(f"--baseline-phases: {exc}") from None
-
-
-def parse_task_option(text: str):
-    """``--task``: a task's name (``turning``) or a JSON table of its settings
-    (``{"name": "heading", "heading_deg": 90}``), as the value of ``EnvConfig.task``; returned
-    as that value (a name or a dict), checked by :func:`softcrawl.tasks.parse_task`.
-
-    Raises:
-        ValueError: not a task (one line).
-    """
-    from softcrawl.safeio import loads_json
-    from softcrawl.tasks import parse_task
-
-    spec = loads_json(text, "--task") if text.lstrip().startswith("{") else text.strip()
-    try:
-        parse_task(spec)
-    except ValueError as exc:
-        raise ValueError(f"--task: {exc}") from None
-    return spec
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -78,7 +60,7 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError("--resume uses the folder's own design space (its space.toml); drop --space")
     if args.resume and args.task is not None:
         raise ValueError("--resume uses the folder's own task (its config.json); drop --task")
-    task = parse_task_option(args.task) if args.task is not None else "forward"
+    task = task_spec(args.task, "--task") if args.task is not None else "forward"
     space = resolve_space(args.space or "paper") if not args.resume else None
     if space is not None:
         designs = parse_designs(args.designs, space)

@@ -7,7 +7,7 @@ Example::
 
 ``--space`` (a shipped name or a space file, :func:`softcrawl.design.resolve.resolve_space`)
 gives the design's slots and regulators and the robot's parts (:func:`softcrawl.codesign.config.space_robot`);
-``--task`` (:data:`softcrawl.tasks.TASKS`) the floor (:func:`softcrawl.tasks.base.on_floor`) and,
+``--task`` (a name of :data:`softcrawl.tasks.TASKS` or a JSON table, :func:`softcrawl.tasks.registry.task_spec`) the floor (:func:`softcrawl.tasks.base.on_floor`) and,
 for a task other than ``forward``, its return in its unit, summed over the recorded frames
 (:func:`softcrawl.tasks.base.replay_return`), printed and written to ``task.json``
 (``{"task": settings, "unit": "cm" | "deg", "return_<unit>": float, "frames_every": K}``).
@@ -36,8 +36,7 @@ from softcrawl.robot.assembly import MODELS, REDUCED_DISKS, RobotConfig, build_r
 from softcrawl.robot.episode import run_episode
 from softcrawl.robot.output import check_output_path, write_results
 from softcrawl.robot.sweep import baseline_gait
-from softcrawl.tasks import TASKS, make_task
-from softcrawl.tasks.registry import DEFAULT_TASK
+from softcrawl.tasks.registry import DEFAULT_TASK, parse_task, task_spec
 
 GAITS = ("sine", "paper-best")
 #: Longest episode ``simulate`` and ``sweep-phase`` accept, s (1 h of robot time; the paper's are 20 s).
@@ -88,7 +87,7 @@ def _run(args: argparse.Namespace) -> int:
     from softcrawl.tasks.base import on_floor
 
     space = resolve_space(args.space)
-    task = make_task(args.task)
+    task = parse_task(task_spec(args.task, "--task"))
     design = space_design(space, args.design)
     check_duration(args.duration)
     if args.frames_every < 1:
@@ -177,9 +176,10 @@ def register(subparsers) -> None:
         "--video, crawl.mp4 into --out.",
     )
     add_space_argument(p)
-    p.add_argument("--task", choices=TASKS, default=DEFAULT_TASK,
-                   help="what the episode is scored on, with its default settings (docs/tasks.md; default forward); "
-                   "sets the floor and reports the task's return")
+    p.add_argument("--task", default=DEFAULT_TASK, metavar="NAME|TABLE",
+                   help="what the episode is scored on (docs/tasks.md; default forward): a task's name, or a JSON "
+                   "table of its settings, e.g. '{\"name\": \"incline\", \"angle_deg\": 5}'; sets the floor "
+                   "and reports the task's return")
     p.add_argument("--design", default=None,
                    help="comma-separated slot values, one per slot of the space, 0 or a regulator (default, paper's "
                    'space only: the baseline "1,0,0,2,2,0,0,1")')

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from softcrawl.codesign.config import BACKENDS, PLACEMENT_KEYS, PRESETS, TrainConfig, override, preset
 from softcrawl.robot.output import check_output_path
-from softcrawl.tasks import TASKS
+from softcrawl.tasks.registry import task_spec
 
 
 def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, resume: bool = False,
@@ -104,9 +104,11 @@ def _run(args: argparse.Namespace) -> int:
     else:
         sets = list(args.set or [])
         for flag, key in ((args.total_steps, "total_steps"), (args.n_envs, "n_envs"), (args.backend, "backend"),
-                          (args.workers, "n_workers"), (args.seed, "seed"), (args.task, "env.task")):
+                          (args.workers, "n_workers"), (args.seed, "seed")):
             if flag is not None:
-                sets.append(f"{key}={flag}" if key not in ("backend", "env.task") else f'{key}="{flag}"')
+                sets.append(f"{key}={flag}" if key != "backend" else f'{key}="{flag}"')
+        if args.task is not None:
+            sets.append(f"env.task={json.dumps(task_spec(args.task, '--task'))}")
         if args.space is not None:
             sets.append(f"env.space={json.dumps(args.space)}")
         cfg = override(preset(args.preset or "demo"), sets)
@@ -144,9 +146,10 @@ def register(subparsers) -> None:
     p.add_argument("--space", default=None, metavar="NAME|PATH",
                    help="design space: a shipped one (paper, the default; hex6) or a space file (TOML); "
                         "the run keeps a copy as space.toml")
-    p.add_argument("--task", choices=TASKS, default=None,
-                   help="what the episodes reward, with its default settings (docs/tasks.md; default forward, "
-                   "the paper's); settings: --set 'env.task={\"name\": \"heading\", \"heading_deg\": 90}'")
+    p.add_argument("--task", default=None, metavar="NAME|TABLE",
+                   help="what the episodes reward (docs/tasks.md): forward (the default, the paper's), heading, "
+                   "turning, target or incline, or a JSON table of its settings, e.g. "
+                   "'{\"name\": \"heading\", \"heading_deg\": 90}'")
     p.add_argument("--ray-address", default=None,
                    help='Ray cluster of --backend ray / --set backend="ray" (default: start a local Ray)')
     p.add_argument("--set", action="append", metavar="KEY=VALUE",

@@ -49,3 +49,21 @@ def parse_task(spec) -> Task:
         settings = {str(k): v for k, v in spec.items() if k != "name"}
         return make_task(spec["name"], **settings)
     raise ValueError(f"a task is a name ({', '.join(TASKS)}) or a table with a name and settings, got {spec!r}")
+
+
+def task_spec(text: str, what: str = "task") -> str | dict:
+    """A task written on a command line: a name (``turning``) or a JSON table of its settings
+    (``{"name": "heading", "heading_deg": 90}``), returned as the value of ``EnvConfig.task``
+    (the name or the table), checked by :func:`parse_task`.
+
+    Raises:
+        ValueError: not a task, or malformed JSON (one line, starting with ``what``).
+    """
+    from softcrawl.safeio import loads_json
+
+    spec = loads_json(text, what) if text.lstrip().startswith("{") else text.strip()
+    try:
+        parse_task(spec)
+    except ValueError as exc:
+        raise ValueError(f"{what}: {exc}") from None
+    return spec
