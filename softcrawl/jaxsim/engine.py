@@ -199,9 +199,9 @@ def physics_step(model, state: State, sim_kpa) -> State:
     the regulators are not stepped (module doc, steps 2-4).
 
     Matrix products run at the arrays' full precision (``jax.default_matmul_precision("float32")``
-    while tracing): a GPU's default for float32 products, TF32 (10-bit mantissa), gave every robot
-    of ``benchmarks/gpu_step.py`` inverted elements on an H100 (float64: none). On a CPU the
-    setting changes nothing."""
+    while tracing): a GPU's default for float32 products, TF32 (10-bit mantissa), is too coarse for
+    the step and inverts elements (``benchmarks/RESULTS.md``, the JAX engine). On a CPU the setting
+    changes nothing."""
     with jax.default_matmul_precision("float32"):
         return _physics_step(model, state, sim_kpa)
 
