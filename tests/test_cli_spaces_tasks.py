@@ -239,7 +239,8 @@ def test_a_hex6_turning_runs_logs_and_report(hex6_turning):
     numbers = json.loads((report / "summary.json").read_text())
     assert (report / "top-1.png").stat().st_size > 0 and (report / "best_design" / "crawl.gif").is_file()
     assert "## Best design's gait" in summary and "design space `hex6`" in summary
-    assert "cm (not what the `turning` task scores)." in summary and "crawl throughout" not in summary
+    assert "the `turning` return per " in summary and "crawl throughout" not in summary
+    assert len(numbers["best_design"]["gait"]["return_per_part_deg"]) == 4
     assert "Hand-made turning gait on the symmetric `1,2,0,1,2,0`" in summary
     assert numbers["baseline"]["design"] == "1,2,0,1,2,0" and len(numbers["baseline"]["phases"]) == 12
     assert (report / "baseline_turning.csv").read_text().splitlines()[0] == "phase_deg,turned_deg,diverged,wall_seconds"

@@ -31,3 +31,21 @@ def test_progress_over_the_episode():
     push = gait_analysis(np.tile(A, (20, 1)), t, np.minimum(t, 5.0) * 8.0)  # 40 mm in 5 s, then nothing
     assert push["period_actions"] == 1 and not push["crawls_throughout"]
     assert push["distance_per_part_cm"][0] == 4.0 and push["distance_per_part_cm"][1] == 0.0
+
+
+def test_a_task_other_than_forward_is_read_on_its_own_return():
+    """A turning gait that turns steadily while drifting backwards: the report reads its turn per
+    part (deg) and says it gains throughout; a turn made in the first quarter only does not."""
+    from softcrawl.codesign.report import _describe_gait
+    from softcrawl.tasks import make_task
+
+    t, ft = np.linspace(0.0, 20.0, 1001), np.linspace(0.0, 20.0, 101)
+    acts = np.array([A, B] * 10)
+    steady = gait_analysis(acts, t, -t, task_return=(ft, 0.6 * ft, "deg"))
+    assert np.allclose(steady["return_per_part_deg"], 3.0) and steady["task_throughout"]
+    assert not steady["crawls_throughout"]
+    line = _describe_gait(steady, make_task("turning"))
+    assert "the `turning` return per 5-s part: +3.00 / +3.00 / +3.00 / +3.00 deg (it gains throughout" in line
+    once = gait_analysis(acts, t, -t, task_return=(ft, np.minimum(ft, 5.0) * 2.0, "deg"))
+    assert once["return_per_part_deg"] == [10.0, 0.0, 0.0, 0.0] and not once["task_throughout"]
+    assert "it does NOT gain throughout" in _describe_gait(once, make_task("turning"))

@@ -221,7 +221,21 @@ def gait_period(actions_kpa: np.ndarray, tol_kpa: float = PERIOD_TOLERANCE_KPA) 
     return None
 
 
-def gait_analysis(actions_kpa: np.ndarray, time_s: np.ndarray, x_mm: np.ndarray, parts: int = 4) -> dict:
+def _per_part(time_s: np.ndarray, cumulative: np.ndarray, parts: int) -> tuple[float, np.ndarray]:
+    """Seconds per part and the change of ``cumulative`` (sampled at ``time_s``) over each of
+    ``parts`` equal parts of the episode."""
+    edges = np.linspace(time_s[0], time_s[-1], parts + 1)
+    return float(edges[1] - edges[0]), np.diff(np.interp(edges, time_s, cumulative))
+
+
+def _throughout(per_part: np.ndarray) -> bool:
+    """Every part gains at least 10% of the mean part, and the mean is positive."""
+    mean = float(per_part.mean())
+    return bool(mean > 0 and np.all(per_part >= 0.1 * mean))
+
+
+def gait_analysis(actions_kpa: np.ndarray, time_s: np.ndarray, x_mm: np.ndarray, parts: int = 4,
+                  task_return: tuple[np.ndarray, np.ndarray, str] | None = None) -> dict:
     """How a gait moves the robot over an episode: its cycle (:func:`gait_period`) and the +x
     distance (cm) of each of ``parts`` equal parts of the episode; ``crawls_throughout`` when
     every part moves forward by at least 10% of the mean part (a crawler, not one push).
@@ -229,28 +243,38 @@ def gait_analysis(actions_kpa: np.ndarray, time_s: np.ndarray, x_mm: np.ndarray,
     Args:
         actions_kpa: ``(n, 3)`` commanded real kPa per action.
         time_s: ``(k,)`` times, s; x_mm: ``(k,)`` disk top-centre x, mm.
+        task_return: for a task other than ``forward``, ``(times (j,) s, return so far (j,), unit)``
+            (:func:`softcrawl.tasks.base.return_series`): adds ``return_per_part_<unit>`` and
+            ``task_throughout`` (the same 10% rule on the task's return).
     """
     period = gait_period(actions_kpa)
-    edges = np.linspace(time_s[0], time_s[-1], parts + 1)
-    x_at = np.interp(edges, time_s, x_mm)
-    legs = np.diff(x_at) / 10.0
-    mean = float(legs.mean())
-    return {"period_actions": None if period is None else period[0],
-            "periodic_from_action": None if period is None else period[1],
-            "part_seconds": float(edges[1] - edges[0]), "distance_per_part_cm": [round(float(v), 4) for v in legs],
-            "crawls_throughout": bool(mean > 0 and np.all(legs >= 0.1 * mean))}
+    seconds, legs = _per_part(time_s, x_mm / 10.0, parts)
+    out = {"period_actions": None if period is None else period[0],
+           "periodic_from_action": None if period is None else period[1],
+           "part_seconds": seconds, "distance_per_part_cm": [round(float(v), 4) for v in legs],
+           "crawls_throughout": _throughout(legs)}
+    if task_return is not None:
+        t, series, unit = task_return
+        per = _per_part(np.asarray(t, float), np.asarray(series, float), parts)[1]
+        out.update({f"return_per_part_{unit}": [round(float(v), 4) for v in per], "task_throughout": _throughout(per)})
+    return out
 
 
 def _describe_gait(g: dict, task: Task | None = None) -> str:
-    """One line on the gait (:func:`gait_analysis`); the crawl verdict only for ``forward``
-    (None), whose return the +x distance is."""
+    """One line on the gait (:func:`gait_analysis`): for ``forward`` (None) its +x distance per
+    part and whether it crawls throughout; for another task its return per part (when
+    analysed) and whether it gains throughout, then the +x distance."""
     P = g["period_actions"]
     cyc = ("no repeating cycle" if P is None else "a constant command (no cycle)" if P == 1 else
            f"a {P}-action cycle from action {g['periodic_from_action'] + 1} on")
     parts = " / ".join(f"{v:+.2f}" for v in g["distance_per_part_cm"])
     if task is not None and task.name != "forward":
-        return (f"Gait: {cyc}; +x per {g['part_seconds']:g}-s part of the episode: {parts} cm (not what the "
-                f"`{task.name}` task scores).")
+        per = g.get(f"return_per_part_{task.unit}")
+        gains = "" if per is None else (
+            f"the `{task.name}` return per {g['part_seconds']:g}-s part: {' / '.join(f'{v:+.2f}' for v in per)} "
+            f"{task.unit} ({'it gains' if g['task_throughout'] else 'it does NOT gain'} throughout: every part at "
+            "least 10% of the mean); ")
+        return f"Gait: {cyc}; {gains}+x per {g['part_seconds']:g}-s part: {parts} cm."
     verdict = "it crawls throughout" if g["crawls_throughout"] else "it does NOT crawl throughout"
     return (f"Gait: {cyc}; +x per {g['part_seconds']:g}-s part of the episode: {parts} cm ({verdict}: every "
             "part at least 10% of the mean).")
@@ -262,7 +286,7 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
     the numbers for ``summary.json`` (returns in the unit of ``task``, default ``forward``'s cm)."""
     from softcrawl.codesign.evaluation import evaluate_policy
     from softcrawl.robot.output import write_results
-    from softcrawl.tasks.base import replay_return
+    from softcrawl.tasks.base import return_series
 
     task = task if task is not None else parse_task("forward")
     ev = evaluate_policy(run, design, checkpoint=checkpoint)
@@ -271,9 +295,11 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
     write_results(out / "best_design", robot, ev.gait(), result, ev.env.calibration, overwrite=True,
                   animation=True)
     name = ",".join(map(str, ev.design))
-    g = gait_analysis(ev.actions_kpa, result.time, result.position[:, 0])
     unit = task.unit
-    rerun = float(result.reward_cm) if task.name == "forward" else replay_return(task, robot, result.frames)
+    series = None if task.name == "forward" else return_series(task, robot, result.frames)
+    g = gait_analysis(ev.actions_kpa, result.time, result.position[:, 0],
+                      task_return=None if series is None else (result.frame_times, series, unit))
+    rerun = float(result.reward_cm) if series is None else (float(series[-1]) if len(series) else float("nan"))
     numbers = {"design": name, f"policy_{unit}": float(ev.returns_cm[0]), "resimulated_cm": float(result.reward_cm),
                "diverged": bool(result.diverged), "gait": g,
                "actions_kpa": np.round(np.asarray(ev.actions_kpa, float), 2).tolist()}

@@ -174,15 +174,23 @@ class Snapshot:
         return float(self.robot.reward_position(self.x)[0] - self.start[0]) / MM_PER_CM
 
 
-def replay_return(task: Task, robot: Robot, frames) -> float:
-    """``task``'s return over recorded frames: the sum of :meth:`Task.reward` between
-    consecutive frames (``frames`` ``(k, N, 3)`` mm, frame 0 the episode's start, e.g.
-    :attr:`softcrawl.robot.EpisodeResult.frames`); NaN without frames."""
+def return_series(task: Task, robot: Robot, frames) -> np.ndarray:
+    """``(k,)`` ``task``'s return accumulated from frame 0 to each recorded frame (0 at frame 0), in
+    the task's unit: the running sum of :meth:`Task.reward` between consecutive frames
+    (``frames`` ``(k, N, 3)`` mm, frame 0 the episode's start, e.g.
+    :attr:`softcrawl.robot.EpisodeResult.frames`); empty without frames."""
     frames = np.asarray(frames, dtype=float)
     if len(frames) == 0:
-        return float("nan")
+        return np.zeros(0)
     start = np.asarray(robot.reward_position(frames[0]), dtype=float)
     snaps = [Snapshot(robot, x, start) for x in frames]
     origin = task.origin(snaps[0])
     progress = [task.progress(s, origin) for s in snaps]
-    return float(sum(task.reward(a, b) for a, b in zip(progress[:-1], progress[1:])))
+    return np.concatenate([[0.0], np.cumsum([task.reward(a, b) for a, b in zip(progress[:-1], progress[1:])])])
+
+
+def replay_return(task: Task, robot: Robot, frames) -> float:
+    """``task``'s return over recorded frames (:func:`return_series`'s last value); NaN without
+    frames."""
+    series = return_series(task, robot, frames)
+    return float(series[-1]) if len(series) else float("nan")
