@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import host_fingerprint
+
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.fem.state import Control
 from softcrawl.reduction.batch import BatchedReducedSolver
@@ -95,19 +97,10 @@ def test_a_diverging_robot_is_reported_and_the_others_go_on(robots):
         batch.step(states[:1], [Control(np.zeros(3))])
 
 
-#: The stored result of :func:`fixed_scene` (relative to ``tests/``).
-FIXED_SCENE_DATA = "data/batch_fixed_scene.npz"
-
-
-def host_fingerprint() -> str:
-    """The CPU model (numba's code and OpenBLAS's kernels depend on it) and the numeric
-    libraries' versions: equal fingerprints give equal bits for the same arithmetic."""
-    import llvmlite.binding
-    import numba
-    import scipy
-
-    versions = f"numpy {np.__version__} scipy {scipy.__version__} numba {numba.__version__}"
-    return f"{llvmlite.binding.get_host_cpu_name()} {versions}"
+#: The stored results of :func:`fixed_scene` (relative to ``tests/``): one file per host it was
+#: written on (its ``host`` entry, :func:`helpers.host_fingerprint`); the first is the reference for
+#: other hosts.
+FIXED_SCENE_DATA = ("data/batch_fixed_scene.npz", "data/batch_fixed_scene_znver5.npz")
 
 
 def fixed_scene(steps: int = 30) -> dict[str, np.ndarray]:
@@ -134,24 +127,25 @@ def fixed_scene(steps: int = 30) -> dict[str, np.ndarray]:
 
 
 def test_batched_step_of_a_fixed_scene_reproduces_the_stored_trajectory():
-    """:func:`fixed_scene` equals its stored result (``tests/data/batch_fixed_scene.npz``,
-    written by ``np.savez(path, **fixed_scene())``; to be rewritten only by a change meant to
-    alter the numbers): to the bit on a host with the stored :func:`host_fingerprint` (runs
-    there, with fresh and cached compiled code and reductions, give the same bits), else to
-    1e-9 of each array's largest entry with the same contact counts (other CPUs' BLAS kernels and
-    code round otherwise, and sweep counts follow the round-off; the batched and single paths
-    agree to that, test above)."""
-    ref = dict(np.load(Path(__file__).parent / FIXED_SCENE_DATA))
+    """:func:`fixed_scene` equals its stored result (``FIXED_SCENE_DATA``, each written by
+    ``np.savez(path, **fixed_scene())``; to be rewritten only by a change meant to alter the
+    numbers) to the bit on a host with a stored :func:`helpers.host_fingerprint` (runs there, with
+    fresh and cached compiled code and reductions, give the same bits). Another CPU's code and
+    BLAS kernels round otherwise, and a contact at its threshold or a stick-slip switch follows the
+    round-off (the Zen 3 and Zen 5 results differ by 0.11 mm and one contact in 30 steps): there,
+    every contact count within one and every stored node within 0.5 mm, half the reduced model's
+    own error budget against the full-order model (about 1 mm on held-out scenes)."""
+    refs = [dict(np.load(Path(__file__).parent / f)) for f in FIXED_SCENE_DATA]
     got = fixed_scene()
+    same_host = [r for r in refs if str(r["host"]) == host_fingerprint()]
+    ref = same_host[0] if same_host else refs[0]
     assert sorted(got) == sorted(ref)
     assert ref["stats"][:, -1, 0].min() > 0  # both on the floor at the end
-    exact = str(ref["host"]) == host_fingerprint()
-    for key, want in ref.items():
-        if key == "host":
-            continue
-        if exact or want.dtype.kind == "i":
-            np.testing.assert_array_equal(got[key], want, err_msg=key)
-        elif key == "stats":
-            np.testing.assert_array_equal(got[key][..., 0], want[..., 0])
-        else:
-            assert np.abs(got[key] - want).max() <= 1e-9 * max(1.0, np.abs(want).max()), key
+    if same_host:
+        for key, want in ref.items():
+            if key != "host":
+                np.testing.assert_array_equal(got[key], want, err_msg=key)
+        return
+    assert np.abs(got["stats"][..., 0] - ref["stats"][..., 0]).max() <= 1
+    for key in ("x0", "x1"):
+        assert np.abs(got[key] - ref[key]).max() <= 0.5, key
