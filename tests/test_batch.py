@@ -132,7 +132,7 @@ def test_batched_step_of_a_fixed_scene_reproduces_the_stored_trajectory():
     numbers) to the bit on a host with a stored :func:`helpers.host_fingerprint` (runs there, with
     fresh and cached compiled code and reductions, give the same bits). Another CPU's code and
     BLAS kernels round otherwise, and a contact at its threshold or a stick-slip switch follows the
-    round-off (the Zen 3 and Zen 5 results differ by 0.11 mm and one contact in 30 steps): there,
+    round-off (the two stored results differ by 0.11 mm and one contact in 30 steps): there,
     every contact count within one and every stored node within 0.5 mm, half the reduced model's
     own error budget against the full-order model (about 1 mm on held-out scenes)."""
     refs = [dict(np.load(Path(__file__).parent / f)) for f in FIXED_SCENE_DATA]
