@@ -111,9 +111,10 @@ def test_rig_example_prints_a_rig_file_that_loads(tmp_path, capsys):
 def test_regret_rolls_out_the_learned_policy(trained, tmp_path, capsys):
     """``regret RUN --groundtruth GT`` with the real policy episode (no monkeypatch): a ground
     truth of the run's tried designs with made-up rewards (reward = the design's index among
-    them); the policy's reward is that of the same deterministic episode ``softcrawl evaluate``
-    runs, its actions one per action step of the run and within the regulators' 0-90 kPa."""
-    from softcrawl.codesign.evaluation import evaluate_policy
+    them); the policy's reward is that of the same gait ``softcrawl evaluate`` chooses (the best
+    of the deterministic episode and the default samples), its actions one per action step of
+    the run and within the regulators' 0-90 kPa."""
+    from softcrawl.codesign.evaluation import GAIT_SAMPLES, evaluate_policy
     from softcrawl.codesign.run import Run
 
     tried = groundtruth_of_tried(trained, tmp_path / "gt")
@@ -122,7 +123,9 @@ def test_regret_rolls_out_the_learned_policy(trained, tmp_path, capsys):
     chosen = tuple(r["choice"]["design"])
     assert r["placement"]["rank"] == len(tried) - tried.index(chosen)
     pol = r["policy"]
-    assert pol["reward_cm"] == pytest.approx(float(evaluate_policy(trained, chosen).returns_cm[0]), abs=1e-12)
+    ev = evaluate_policy(trained, chosen, samples=GAIT_SAMPLES)
+    assert pol["reward_cm"] == pytest.approx(ev.gait_return, abs=1e-12) and pol["gait_source"] == ev.gait_source
+    assert np.allclose(pol["actions_kpa"], ev.gait_actions_kpa, atol=0.005)
     actions = np.array(pol["actions_kpa"])
     assert actions.shape == (Run(trained).read_config().env.n_actions, 3)
     assert actions.min() >= 0.0 and actions.max() <= 90.0

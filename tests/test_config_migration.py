@@ -112,3 +112,20 @@ def test_train_cli_takes_the_old_key(tmp_path, capsys):
     assert cli_main(["train", "--preset", "smoke", "--out", str(tmp_path / "r"), "--set", "env.dt=1e308"]) == 2
     err = capsys.readouterr().err
     assert "env.dt (env.robot.dt)" in err and err.count("error:") == 1
+
+
+def test_a_turning_task_saved_before_venting_reads_as_unvented():
+    """Version 5: runs and ground truths of older formats scored a turn while the pressure held
+    (``vent_s = 0``); a newer folder's setting, and every other task, stay as saved."""
+    from softcrawl.tasks import parse_task
+
+    cfg = preset("smoke").to_dict()
+    for saved, expected in (("turning", 0.0), ({"name": "turning", "friction": 0.8}, 0.0)):
+        doc = {"config_version": 4, "config": {**cfg, "env": {**cfg["env"], "task": saved}}}
+        task = parse_task(read_settings("train", doc)["env"]["task"])
+        assert task.vent_s == expected and task.friction == (None if saved == "turning" else 0.8)
+        assert parse_task(read_settings("groundtruth", {"config_version": 4, "config": {"task": saved}})["task"]).vent_s == 0
+    new = {"config_version": CONFIG_VERSION, "config": {**cfg, "env": {**cfg["env"], "task": "turning"}}}
+    assert parse_task(read_settings("train", new)["env"]["task"]).vent_s == 5.0
+    old_forward = {"config_version": 4, "config": {**cfg, "env": {**cfg["env"], "task": "forward"}}}
+    assert read_settings("train", old_forward)["env"]["task"] == "forward"

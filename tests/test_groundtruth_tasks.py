@@ -78,19 +78,21 @@ def test_turning_groundtruth_rewards_the_yaw(tmp_path, cache, capsys):
     rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
     assert "reward_deg" in rows[0] and "reward_cm" not in rows[0]  # keyed in the task's unit
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["task"] == {"name": "turning", "friction": None, "unit": "deg"}
+    assert summary["task"] == {"name": "turning", "friction": None, "vent_s": 5.0, "unit": "deg"}
     assert summary["best"][0]["reward_deg"] == rows[0]["reward_deg"]
     assert "turning baseline (90 deg lag)" in capsys.readouterr().out
-    # independent recomputation: the disk's yaw sampled every second, wrapped increments summed
+    # independent recomputation: the disk's yaw sampled every second, wrapped increments summed,
+    # scored at rest after the task's 5 s of venting
     robot = build_robot(L1, cfg.robot_config())
-    turned, diverged = turned_degrees(robot, PeriodicGait.from_dict(rows[0]["gait"]), 2.0, sample_every=1.0)
+    turned, diverged = turned_degrees(robot, PeriodicGait.from_dict(rows[0]["gait"]), 2.0, sample_every=1.0,
+                                      vent_seconds=5.0)
     assert not diverged and math.isfinite(turned)
     assert rows[0]["reward_deg"] == pytest.approx(turned, abs=1e-9)
     # the references: the turning task's hand-made baseline, not the forward ones, in degrees
     refs = json.loads((out / "references.json").read_text())
     assert set(refs) == {"turning_baseline"} and refs["turning_baseline"]["best_phase_deg"] == 90.0
     base = build_robot(TURNING_BASELINE_DESIGN, cfg.robot_config())
-    turned, _ = turned_degrees(base, turning_gait(90.0), 2.0, sample_every=1.0)
+    turned, _ = turned_degrees(base, turning_gait(90.0), 2.0, sample_every=1.0, vent_seconds=5.0)
     assert refs["turning_baseline"]["reward_deg"] == pytest.approx(turned, abs=1e-9)
     assert summary["designs_beating_turning_baseline"] == int(rows[0]["reward_deg"] > turned)
 

@@ -6,6 +6,7 @@ Uses the coarse full-order robot of tests/test_envs.py (16 mm legs, 25 mm disk) 
 per action."""
 
 import math
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -141,6 +142,28 @@ def test_turning_env_rewards_are_the_disks_yaw_increments():
     assert max(abs(r) for r in rewards) > 1e-6  # it yawed a little: the comparison can fail
 
 
+def test_a_turning_episode_is_scored_at_rest_after_venting():
+    """The env's return of a turning episode is what :func:`vented_return` (one
+    :func:`run_episode` of the same actions, a second code path) keeps after venting, and with
+    ``vent_s = 0`` what it holds at the last action. Tolerance 1e-5°: the replay reads float32
+    frames (see the test of :func:`vented_return` against :func:`turned_degrees`)."""
+    from softcrawl.envs import action_to_kpa
+    from softcrawl.gaits import ActionSequence
+    from softcrawl.tasks.base import vented_return
+
+    returns = {}
+    for vent in (0.0, 0.5):
+        env = make_env(task=Turning(vent_s=vent))
+        rewards, _, _ = run(env)
+        returns[vent] = sum(rewards)
+    robot = env.episode.robot
+    gait = ActionSequence(np.array([action_to_kpa(a) for a in ACTIONS]), hold=2 * robot.config.dt)
+    held, kept, diverged = vented_return(Turning(), robot, gait, 8 * robot.config.dt, env.settling, vent_seconds=0.5)
+    assert not diverged and returns[0.5] == pytest.approx(kept, abs=1e-5) and returns[0.0] == pytest.approx(held, abs=1e-5)
+    assert abs(kept - held) > 1e-3  # the vented robot moved on: the two scores differ, the test can fail
+    assert env.episode.state.t == pytest.approx(8 * robot.config.dt + 0.5, abs=1e-9)  # 50 steps vented
+
+
 # -- target ------------------------------------------------------------------------------------
 
 def test_target_reward_is_the_decrease_of_the_distance_and_it_terminates_within_the_radius(robot):
@@ -214,6 +237,7 @@ def test_the_tasks_floor_reaches_the_robots_and_their_solver():
     ({"name": "incline", "angle_deg": True}, "angle_deg"),
     ({"name": "turning", "friction": -1}, "friction"),
     ({"name": "turning", "speed": 2}, "has no setting 'speed'"),
+    ({"name": "turning", "vent_s": -1}, r"vent_s must be a number in \[0, 60\] s"),
     ({"name": "target", "x_mm": 10, "y_mm": 0, "radius_mm": 20}, "outside the goal radius"),
     ({"heading_deg": 3}, "needs a name"),
     (3, "a task is a name"),
@@ -256,6 +280,15 @@ def test_the_jax_backend_refuses_a_task_that_reads_the_disk_before_any_work():
         check_jax_task(Turning())
     with pytest.raises(ValueError, match='backend "jax" does not run task \'turning\''):
         override(preset("smoke"), ['backend="jax"', 'env.robot.model="reduced"', "env.task=turning"])
+
+    @dataclass(frozen=True)
+    class VentedForward(Forward):  # the reward point only, but scored after venting
+        @property
+        def vent_seconds(self) -> float:
+            return 1.0
+
+    with pytest.raises(ValueError, match="scored after venting"):
+        check_jax_task(VentedForward())
 
 
 def test_the_jax_backend_itself_refuses_turning():
@@ -367,6 +400,71 @@ def test_turned_degrees_samples_the_last_step_of_a_short_episode(robot):
     assert not diverged and turned == pytest.approx(40.0, abs=1e-8)
     turned, _ = turned_degrees(Spinning(), turning_gait(90.0), 2.5, settling=NO_SETTLING)
     assert turned == pytest.approx(250.0, abs=1e-8)  # unwrapped, 1-s samples and the last step
+    turned, _ = turned_degrees(Spinning(), turning_gait(90.0), 0.4, settling=NO_SETTLING, vent_seconds=0.6)
+    assert turned == pytest.approx(100.0, abs=1e-8)  # scored after 60 more steps, vented
+
+
+def test_a_twist_held_by_the_pressure_is_not_kept_after_venting_and_a_turn_is(robot):
+    """:func:`vented_return` on two stub solvers of the robot: one twists the body to 0.1° per
+    simulated kPa of the first cavity and no further (an elastic twist held by the pressure), one
+    turns it 1° per step whatever the pressure (a turn on the floor). The regulators slew to
+    0 kPa at 150 kPa/s (:class:`softcrawl.robot.actuation.RegulatorBank`: 0.3 s from 45 kPa), so
+    after the 5 s the twist is gone and the turn has gone on 500 steps."""
+    import dataclasses
+
+    from softcrawl.gaits import SineGait, VentedAfter
+    from softcrawl.robot import NO_SETTLING
+    from softcrawl.tasks.base import VENT_SECONDS, vented_return
+
+    rest = robot.model.rest_state().x
+
+    class Stub:
+        stats = type("Stats", (), {"n_contacts": 0, "contact_sweeps": 0, "factorizations": 0})()
+
+        def __init__(self, twist):
+            self.twist = twist
+
+        def step(self, state, control):
+            x = rotate_z(rest, 0.1 * control.pressures[0]) if self.twist else rotate_z(state.x, 1.0)
+            return dataclasses.replace(state, x=x, t=state.t + 0.01)
+
+    class Stubbed:
+        def __init__(self, twist):
+            self.twist = twist
+
+        def __getattr__(self, name):
+            return getattr(robot, name)
+
+        def make_solver(self):
+            return Stub(self.twist)
+
+    hold = SineGait(offset=45.0, amplitude=0.0)  # 45 kPa held
+    held, kept, diverged = vented_return(Turning(), Stubbed(True), hold, 2.0, settling=NO_SETTLING)
+    assert not diverged and held > 1.0 and abs(kept) < 0.01 * held
+    held, kept, _ = vented_return(Turning(), Stubbed(False), hold, 2.0, settling=NO_SETTLING)
+    assert held == pytest.approx(200.0, abs=1e-6) and kept == pytest.approx(200.0 + 100 * VENT_SECONDS, abs=1e-6)
+    assert np.array_equal(VentedAfter(hold, 2.0).pressure_at(1.99), [45.0, 45.0, 0.0])
+    assert not VentedAfter(hold, 2.0).pressure_at(2.0).any()
+    with pytest.raises(ValueError, match="after_s"):
+        VentedAfter(hold, -1.0)
+    with pytest.raises(ValueError, match="vent_seconds"):
+        vented_return(Turning(), robot, hold, 2.0, vent_seconds=0.0)
+
+
+def test_the_vented_return_up_to_the_episodes_end_is_the_turning_baselines(robot):
+    """The first number of :func:`vented_return` is the same simulation's yaw as
+    :func:`turned_degrees` gives (coarse robot, 2 s of the baseline gait: both step the same
+    gait from the same settled state until then). Tolerance 1e-5°: the frames it reads are stored
+    in float32 (rounding at most 6e-6 mm at the robot's 100 mm), :func:`turned_degrees` reads
+    float64; one node's rounding moves the fitted yaw by at most 6e-6 / 50 rad = 7e-6°, and the
+    fit averages many nodes (measured 1.7e-7°)."""
+    from softcrawl.tasks.base import vented_return
+    from softcrawl.tasks.baselines import turned_degrees, turning_gait
+
+    gait = turning_gait(90.0)
+    held, kept, diverged = vented_return(Turning(), robot, gait, 2.0, vent_seconds=1.0)
+    turned, _ = turned_degrees(robot, gait, 2.0)
+    assert not diverged and held == pytest.approx(turned, abs=1e-5) and math.isfinite(kept)
 
 
 def test_a_turning_runs_report_is_in_degrees_and_leaves_out_a_forward_sweep(run, tmp_path):
@@ -385,12 +483,13 @@ def test_a_turning_runs_report_is_in_degrees_and_leaves_out_a_forward_sweep(run,
                                  "best": {"phase_deg": 250.0, "reward_cm": 3.21}}))
     out = write_report(run, baseline=sweep, simulate=False)
     summary = (out / "summary.md").read_text()
-    assert "- task: `turning`: degrees the disk yaws counter-clockwise about +z (returns in deg)" in summary
+    assert ("- task: `turning`: degrees the disk yaws counter-clockwise about +z, kept at rest after venting "
+            "(returns in deg)") in summary
     assert "| rank | design | R (deg) | p | episodes | mean (deg) | best (deg) | picture |" in summary
     assert "250°" not in summary and "## Expert baseline" in summary
     assert (out / "top_designs.csv").read_text().splitlines()[0] == "rank,design,latest_deg,prob,episodes,mean_deg,best_deg"
     numbers = json.loads((out / "summary.json").read_text())
-    assert numbers["task"] == {"name": "turning", "friction": None} and "best_episode_deg" in numbers
+    assert numbers["task"] == {"name": "turning", "friction": None, "vent_s": 5.0} and "best_episode_deg" in numbers
     assert "baseline" not in numbers
 
 

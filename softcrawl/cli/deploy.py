@@ -47,17 +47,20 @@ def _say(text: str, err: bool = False) -> None:
         pass
 
 
-def policy_actions(run: str, design: str, checkpoint: str | None = None):
-    """The trained run's deterministic actions ``(n, R)`` real kPa (``R``: the regulators of the
-    run's space) for ``design`` and a
-    description dict. The one place that calls the co-design evaluation API."""
-    from softcrawl.codesign.evaluation import evaluate_policy
+def policy_actions(run: str, design: str, checkpoint: str | None = None, samples: int | None = None):
+    """The trained run's gait for ``design``, ``(n, R)`` real kPa (``R``: the regulators of the
+    run's space), and a description dict: the best of its deterministic actions and ``samples``
+    episodes sampled from the policy (default
+    :data:`~softcrawl.codesign.evaluation.GAIT_SAMPLES`: the report's gait). The one place that
+    calls the co-design evaluation API."""
+    from softcrawl.codesign.evaluation import GAIT_SAMPLES, evaluate_policy
 
-    ev = evaluate_policy(run, design, episodes=1, checkpoint=checkpoint)
+    ev = evaluate_policy(run, design, episodes=1, checkpoint=checkpoint,
+                         samples=GAIT_SAMPLES if samples is None else samples)
     hold = ev.config.env.steps_per_action * ev.config.env.robot.dt
-    return np.asarray(ev.actions_kpa, dtype=float), {
+    return np.asarray(ev.gait_actions_kpa, dtype=float), {
         "source": "policy", "run": str(run), "checkpoint": ev.checkpoint, "design": list(ev.design),
-        "sim_return_cm": float(ev.returns_cm[0]), "sim_hold_s": hold}
+        "gait_source": ev.gait_source, f"sim_return_{ev.unit}": ev.gait_return, "sim_hold_s": hold}
 
 
 def gait_actions(args: argparse.Namespace, n_regulators: int):
@@ -70,9 +73,11 @@ def gait_actions(args: argparse.Namespace, n_regulators: int):
     if args.run is not None:
         if args.design is None:
             raise ValueError("--run needs --design")
-        return policy_actions(args.run, args.design, args.checkpoint)
-    if args.design is not None or args.checkpoint is not None:
-        raise ValueError("--design and --checkpoint go with --run")
+        if args.samples is not None and args.samples < 0:
+            raise ValueError(f"--samples must be >= 0, got {args.samples}")
+        return policy_actions(args.run, args.design, args.checkpoint, args.samples)
+    if args.design is not None or args.checkpoint is not None or args.samples is not None:
+        raise ValueError("--design, --checkpoint and --samples go with --run")
     if args.actions is not None:
         from softcrawl.gaits import read_actions_csv
 
@@ -160,6 +165,9 @@ def register(subparsers) -> None:
     p.add_argument("--design", default=None, help="with --run: comma-separated slot values (8 in the paper's space; "
                    "as many as the run's space has slots)")
     p.add_argument("--checkpoint", default=None, help="with --run: checkpoint folder (default: the latest)")
+    p.add_argument("--samples", type=int, default=None, metavar="K",
+                   help="with --run: episodes sampled from the stochastic policy; the gait is the best of them and "
+                   "the deterministic one, as the report's (default 11; 0: the deterministic one)")
     p.add_argument("--phase", type=float, default=110.0, help="sine gait: lag of regulator 2, degrees")
     p.add_argument("--n-actions", type=int, default=20, help="built-in gaits: number of actions (default 20)")
     p.add_argument("--calibration", metavar="FILE.json", default=None,

@@ -1,12 +1,15 @@
-"""``softcrawl evaluate RUN --design D``: re-simulate a design with the trained policy
-(deterministic actions) and write the outputs of ``softcrawl simulate`` plus
-``evaluation.json`` (the run's task and its unit, returns of all episodes in that unit:
-``returns_cm`` or ``returns_deg``; the hold per action ``hold_s``) and
+"""``softcrawl evaluate RUN --design D``: re-simulate a design with the trained policy's gait
+(the best of its deterministic actions and ``--samples`` episodes sampled from it,
+:attr:`softcrawl.codesign.evaluation.PolicyEvaluation.chosen`) and write the outputs of
+``softcrawl simulate`` plus ``evaluation.json`` (the run's task and its unit, returns of the
+deterministic episodes in that unit: ``returns_cm`` or ``returns_deg``; the sampled ones,
+``sampled_cm``; which is the gait, ``gait_source``, and its return; the hold per action
+``hold_s``) and
 ``actions.csv`` (real kPa, one row per action; ``softcrawl simulate --actions`` replays it with
 1 s holds, i.e. faithfully only for runs with 1 s actions such as the ``paper`` preset).
 
 The episodes run in :class:`softcrawl.envs.CrawlerEnv` with the run's settings; the written
-trajectory is a re-run of the first episode's actions as a
+trajectory is a re-run of the gait's actions as a
 :class:`softcrawl.gaits.ActionSequence` through :func:`softcrawl.robot.run_episode` (same
 physics; its reward is reported next to the env's).
 
@@ -68,11 +71,13 @@ def _run_randomized(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from softcrawl.codesign.evaluation import evaluate_policy
+    from softcrawl.codesign.evaluation import GAIT_SAMPLES, evaluate_policy
     from softcrawl.gaits import write_actions_csv
     from softcrawl.robot.output import check_output_path, write_results
 
     if args.randomize is not None:
+        if args.samples is not None:
+            raise ValueError("--samples goes without --randomize")
         return _run_randomized(args)
     if args.set:
         raise ValueError("--set env.randomize... needs --randomize N")
@@ -82,7 +87,10 @@ def _run(args: argparse.Namespace) -> int:
     check_output_path(args.out, args.overwrite)
     if args.frames_every < 1:
         raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
-    ev = evaluate_policy(args.run, args.design, args.episodes)
+    args.samples = GAIT_SAMPLES if args.samples is None else args.samples
+    if args.samples < 0:
+        raise ValueError(f"--samples must be >= 0, got {args.samples}")
+    ev = evaluate_policy(args.run, args.design, args.episodes, samples=args.samples)
     gait, robot = ev.gait(), ev.env.episode.robot
     result = ev.resimulate(record_every=args.frames_every, progress=not args.no_progress)
     task, u = ev.task, ev.unit
@@ -98,16 +106,20 @@ def _run(args: argparse.Namespace) -> int:
             "run": str(args.run), "checkpoint": ev.checkpoint, "design": list(ev.design),
             "task": task.settings(), "unit": u,
             "episodes": args.episodes, f"returns_{u}": ev.returns_cm, f"mean_return_{u}": float(np.mean(ev.returns_cm)),
-            "diverged": ev.diverged, "rerun_reward_cm": result.reward_cm, **({} if forward else {f"rerun_{u}": rerun}),
+            "diverged": ev.diverged, f"sampled_{u}": ev.sampled_returns, "sampled_diverged": ev.sampled_diverged,
+            "gait_source": ev.gait_source, f"gait_{u}": ev.gait_return,
+            "rerun_reward_cm": result.reward_cm, **({} if forward else {f"rerun_{u}": rerun}),
             "hold_s": ev.config.env.steps_per_action * ev.config.env.robot.dt,
-            "actions_kpa": np.asarray(ev.actions_kpa).tolist(),
+            "actions_kpa": np.asarray(ev.gait_actions_kpa).tolist(),
         }, indent=2) + "\n")
 
     out = write_results(args.out, robot, gait, result, ev.env.calibration, overwrite=args.overwrite, extra=extra,
                         animation=args.animation is not False)
     what = "" if forward else f" (task {task.label()}; re-run from its frames every {args.frames_every} steps)"
-    print(f"design {','.join(map(str, ev.design))}: returns {', '.join(f'{r:+.3f}' for r in ev.returns_cm)} {u}"
-          f"{what} (re-run {result.reward_cm if forward else rerun:+.3f} {u}); wrote {out}")
+    sampled = f"; {len(ev.sampled_returns)} sampled, best {max(ev.sampled_returns):+.3f} {u}" if ev.sampled_returns else ""
+    print(f"design {','.join(map(str, ev.design))}: deterministic returns "
+          f"{', '.join(f'{r:+.3f}' for r in ev.returns_cm)} {u}{sampled}; gait ({ev.gait_source}) "
+          f"{ev.gait_return:+.3f} {u}{what} (re-run {result.reward_cm if forward else rerun:+.3f} {u}); wrote {out}")
     return 1 if result.diverged or any(ev.diverged) else 0
 
 
@@ -116,13 +128,17 @@ def register(subparsers) -> None:
     from softcrawl.cli.simulate import add_animation_argument
 
     p = subparsers.add_parser("evaluate", help="re-simulate a design with a trained policy",
-                              description="Run the trained policy (deterministic) on a design with the run's "
-                              "simulation settings; write the outputs of `softcrawl simulate` plus evaluation.json "
-                              "and actions.csv into --out.")
+                              description="Run the trained policy on a design with the run's simulation "
+                              "settings (deterministic, then --samples episodes sampled from it; the gait is the best "
+                              "of them); write the gait's `softcrawl simulate` outputs plus evaluation.json and "
+                              "actions.csv into --out.")
     p.add_argument("run", help="training run directory")
     p.add_argument("--design", required=True, help="comma-separated slot values, one per slot of the run's design "
                    'space (the paper\'s: 8), e.g. "1,0,0,2,2,0,0,0"')
-    p.add_argument("--episodes", type=int, default=None, help="episodes to run (default 1)")
+    p.add_argument("--episodes", type=int, default=None, help="deterministic episodes to run (default 1)")
+    p.add_argument("--samples", type=int, default=None, metavar="K",
+                   help="then K episodes sampled from the stochastic policy; the written gait is the best of them "
+                   "and the first deterministic one, as the report's (default 11; 0: the deterministic one)")
     p.add_argument("--randomize", type=int, default=None, metavar="N",
                    help="run N domain-randomized episodes (the run's env.randomize ranges or --set ones) and write "
                    "the reward distribution (randomization.json/.csv/.png) instead of a trajectory")

@@ -9,6 +9,7 @@ import argparse
 
 
 def _run(args: argparse.Namespace) -> int:
+    from softcrawl.codesign.evaluation import GAIT_SAMPLES
     from softcrawl.codesign.report import BASELINE_PHASES, write_report
 
     if args.top < 1:
@@ -23,8 +24,11 @@ def _run(args: argparse.Namespace) -> int:
         from softcrawl.codesign.groundtruth_regret import regret_section
 
         extra["regret"] = partial(regret_section, args.run, args.groundtruth, policy=not args.no_simulate)
+    args.samples = GAIT_SAMPLES if args.samples is None else args.samples
+    if args.samples < 0:
+        raise ValueError(f"--samples must be >= 0, got {args.samples}")
     out = write_report(args.run, k=args.top, baseline=args.baseline, baseline_phases=phases,
-                       simulate=not args.no_simulate, workers=args.workers, extra=extra)
+                       simulate=not args.no_simulate, workers=args.workers, extra=extra, samples=args.samples)
     print((out / "summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out}")
     return 0
@@ -49,6 +53,10 @@ def register(subparsers) -> None:
     p.add_argument("--groundtruth", default=None, metavar="GT",
                    help="a softcrawl groundtruth folder: add where the run's chosen design ranks in it and its "
                    "regret (as softcrawl regret)")
+    p.add_argument("--samples", type=int, default=None, metavar="K",
+                   help="episodes sampled from the stochastic policy on the best design; its gait is the best of "
+                   "them and the deterministic one (default 11: with it, as many candidate gaits as the baseline's "
+                   "12 phase lags; 0: the deterministic one)")
     p.add_argument("--no-simulate", action="store_true",
                    help="only what the logs hold: no re-simulation of the best design, no baseline sweep")
     p.set_defaults(func=_run)

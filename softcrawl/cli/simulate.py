@@ -84,7 +84,7 @@ def space_design(space, design: str | None):
 
 def _run(args: argparse.Namespace) -> int:
     from softcrawl.codesign.config import space_robot
-    from softcrawl.tasks.base import on_floor
+    from softcrawl.tasks.base import on_floor, scored_gait
 
     space = resolve_space(args.space)
     task = parse_task(task_spec(args.task, "--task"))
@@ -103,7 +103,8 @@ def _run(args: argparse.Namespace) -> int:
         check_video_support()
     robot = on_floor(build_robot(design, config, space=space), task.friction, task.gravity())
     calibration = PressureCalibration()
-    result = run_episode(robot, gait, args.duration, calibration, record_every=args.frames_every,
+    gait, seconds = scored_gait(gait, args.duration, task.vent_seconds)  # turning: vented, scored at rest
+    result = run_episode(robot, gait, seconds, calibration, record_every=args.frames_every,
                          progress=not args.no_progress)
     extra, what = None, ""
     if task.name != DEFAULT_TASK:  # the task's return, from the recorded frames

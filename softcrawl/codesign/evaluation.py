@@ -21,6 +21,11 @@ from softcrawl.robot.domain import DomainRanges
 from softcrawl.robot.episode import EpisodeResult, run_episode
 from softcrawl.tasks import Task, parse_task
 
+#: Episodes sampled from the stochastic policy by default (:func:`evaluate_policy`'s ``samples``)
+#: where a design's gait is chosen: with the deterministic episode, 12 candidate open-loop gaits,
+#: as many as the phase lags the expert baselines are swept over (``softcrawl report``).
+GAIT_SAMPLES = 11
+
 
 def load_run_config(run: str | Path) -> TrainConfig:
     """The :class:`TrainConfig` saved in ``run/config.json`` (:meth:`Run.read_config`).
@@ -60,6 +65,9 @@ class PolicyEvaluation:
         checkpoint: the checkpoint folder the policy came from.
         domains: per episode, its domain draw (:meth:`softcrawl.robot.domain.DomainSample.as_dict`;
             empty without randomization).
+        sampled_returns: return of each episode with actions sampled from the stochastic policy
+            (:attr:`unit`), after the deterministic ones. sampled_diverged: per sampled episode.
+        sampled_actions: per sampled episode, its ``(n_actions, R)`` commanded real kPa.
     """
 
     design: tuple[int, ...]
@@ -70,6 +78,9 @@ class PolicyEvaluation:
     config: TrainConfig
     checkpoint: str
     domains: list = field(default_factory=list)
+    sampled_returns: list = field(default_factory=list)
+    sampled_diverged: list = field(default_factory=list)
+    sampled_actions: list = field(default_factory=list)
 
     @property
     def task(self) -> Task:
@@ -81,13 +92,42 @@ class PolicyEvaluation:
         """The unit of :attr:`returns_cm`: the task's, ``"cm"`` or ``"deg"``."""
         return self.task.unit
 
+    @property
+    def chosen(self) -> int | None:
+        """Which episode's actions are the design's gait: None for the first deterministic one,
+        or the index of the sampled episode that returned strictly more than it (the highest;
+        diverged ones never). An open-loop gait is a fixed action sequence, so any of them
+        replays to its return: this picks the best of ``1 + samples`` candidate gaits, as the
+        expert baselines pick the best of their phase lags."""
+        best, pick = self.returns_cm[0] if not self.diverged[0] else -math.inf, None
+        for k, (ret, bad) in enumerate(zip(self.sampled_returns, self.sampled_diverged)):
+            if not bad and math.isfinite(ret) and ret > best:
+                best, pick = ret, k
+        return pick
+
+    @property
+    def gait_source(self) -> str:
+        """``"deterministic"`` or ``"sample k"`` (k from 1): where :meth:`gait` comes from."""
+        return "deterministic" if self.chosen is None else f"sample {self.chosen + 1}"
+
+    @property
+    def gait_return(self) -> float:
+        """The return of :meth:`gait`'s episode, in :attr:`unit`."""
+        return float(self.returns_cm[0] if self.chosen is None else self.sampled_returns[self.chosen])
+
+    @property
+    def gait_actions_kpa(self) -> np.ndarray:
+        """``(n_actions, R)`` commanded real kPa of :meth:`gait`."""
+        return np.asarray(self.actions_kpa if self.chosen is None else self.sampled_actions[self.chosen])
+
     def gait(self) -> ActionSequence:
-        """The first episode's actions as a gait with the run's hold time."""
-        e = self.config.env
-        return ActionSequence(self.actions_kpa, hold=action_hold(e.robot.dt, e.steps_per_action, len(self.actions_kpa)))
+        """The design's gait (:attr:`chosen`: the first deterministic episode's actions unless a
+        sampled episode did better) with the run's hold time."""
+        e, a = self.config.env, self.gait_actions_kpa
+        return ActionSequence(a, hold=action_hold(e.robot.dt, e.steps_per_action, len(a)))
 
     def resimulate(self, record_every: int | None = 10, progress: bool = False) -> EpisodeResult:
-        """Re-run the first episode's actions through :func:`softcrawl.robot.run_episode` (same
+        """Re-run :meth:`gait` through :func:`softcrawl.robot.run_episode` (same
         robot, calibration and settling as the env): per-step commanded/applied pressures and
         positions, and ParaView frames every ``record_every`` steps.
 
@@ -96,16 +136,26 @@ class PolicyEvaluation:
         """
         if self.domains:
             raise ValueError("resimulate re-runs a nominal episode; this evaluation was randomized")
+        from softcrawl.tasks.base import scored_gait
+
         e = self.config.env
-        return run_episode(self.env.episode.robot, self.gait(), episode_seconds(self.config), self.env.calibration,
+        gait, seconds = scored_gait(self.gait(), episode_seconds(self.config), self.task.vent_seconds)
+        return run_episode(self.env.episode.robot, gait, seconds, self.env.calibration,
                            settling=e.settling(), record_every=record_every, progress=progress)
 
 
 def evaluate_policy(run: str | Path, design, episodes: int = 1,
                     checkpoint: str | Path | None = None, randomize: DomainRanges | None = None,
-                    seed: int | None = None) -> PolicyEvaluation:
+                    seed: int | None = None, samples: int = 0) -> PolicyEvaluation:
     """Roll out the trained policy (deterministic actions) on ``design`` for ``episodes``
-    episodes in a :class:`softcrawl.envs.CrawlerEnv` with the run's settings.
+    episodes in a :class:`softcrawl.envs.CrawlerEnv` with the run's settings, then ``samples``
+    nominal episodes with actions sampled from the stochastic policy (SAC's squashed Gaussian,
+    its noise seeded by the run's seed, so the same call gives the same samples); the
+    design's gait is the best of them all (:attr:`PolicyEvaluation.chosen`).
+
+    The deterministic action is the squashed mean, which need not do what the policy's samples
+    do (docs/codesign.md, "The design's gait": a turning policy whose mean scored a fifth of
+    what its samples scored).
 
     The episodes are nominal (no domain randomization, even if the run trained with it) unless
     ``randomize`` gives ranges: then each episode draws its own domain from the env's RNG,
@@ -121,7 +171,8 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
 
     Raises:
         ValueError: not a training run, no complete checkpoint, a damaged or crafted one,
-            ``episodes < 1``, ranges the run's action timing cannot take.
+            ``episodes < 1``, ``samples < 0``, ``samples`` with ``randomize``, ranges the run's
+            action timing cannot take.
         InvalidDesignError: an invalid design.
     """
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -134,6 +185,8 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     cfg = r.read_config()
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if samples < 0 or (samples and randomize is not None):
+        raise ValueError(f"samples must be >= 0 and nominal (no randomize), got {samples}")
     design = cfg.env.design_space().canonicalize(design)
     if checkpoint is None:
         ck = r.require_checkpoint()
@@ -147,22 +200,23 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     cfg.sac.learner = r.checkpoint_learner(ck)
     model = make_sac(DummyVecEnv([lambda: env]), cfg.sac, seed=cfg.seed)
     r.load_learner(ck, model, learner)
-    returns, diverged, first, domains = [], [], None, []
-    for k in range(episodes):
+
+    def episode(k: int, deterministic: bool) -> tuple[float, bool, np.ndarray, dict]:
         obs, info = env.reset(seed=seed if k == 0 else None, options={"design": design})
-        if "domain" in info:
-            domains.append(info["domain"])
-        total, acts, done, info = 0.0, [], False, {}
+        total, acts, done, last = 0.0, [], False, {}
         while not done:
-            a, _ = model.predict(obs, deterministic=True)
-            obs, r, term, trunc, info = env.step(a)
+            a, _ = model.predict(obs, deterministic=deterministic)
+            obs, r, term, trunc, last = env.step(a)
             total += r
             acts.append(action_to_kpa(a))
             done = term or trunc
-        returns.append(total)
-        diverged.append(bool(info.get("diverged")))
-        first = first if first is not None else np.array(acts)
-    return PolicyEvaluation(design, returns, diverged, first, env, cfg, str(ck), domains)
+        return total, bool(last.get("diverged")), np.array(acts), info
+
+    runs = [episode(k, True) for k in range(episodes)]
+    sampled = [episode(episodes + k, False) for k in range(samples)]
+    domains = [info["domain"] for *_, info in runs if "domain" in info]
+    return PolicyEvaluation(design, [r[0] for r in runs], [r[1] for r in runs], runs[0][2], env, cfg, str(ck),
+                            domains, [r[0] for r in sampled], [r[1] for r in sampled], [r[2] for r in sampled])
 
 
 def baseline_sweep(run: str | Path, out: str | Path, phases, workers: int | None = None, progress: bool = False):

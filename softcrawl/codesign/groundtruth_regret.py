@@ -48,16 +48,19 @@ def run_choice(run: str | Path) -> dict:
 
 
 def policy_reward(run: str | Path, design) -> dict:
-    """The run's learned policy on ``design`` (deterministic, the run's settings):
-    ``{"reward_<unit>", "diverged", "actions_kpa", "episode_seconds", "hold_s"}``, its return
-    in the unit of the run's task (``reward_cm`` for ``forward``)."""
-    from softcrawl.codesign.evaluation import episode_seconds, evaluate_policy
+    """The run's learned policy's gait on ``design`` (the run's settings; the best of the
+    deterministic policy and :data:`~softcrawl.codesign.evaluation.GAIT_SAMPLES` episodes
+    sampled from it, as the report's, :attr:`~softcrawl.codesign.evaluation.PolicyEvaluation.chosen`):
+    ``{"reward_<unit>", "diverged", "gait_source", "actions_kpa", "episode_seconds", "hold_s"}``,
+    its return in the unit of the run's task (``reward_cm`` for ``forward``)."""
+    from softcrawl.codesign.evaluation import GAIT_SAMPLES, episode_seconds, evaluate_policy
     from softcrawl.tasks import parse_task
 
-    ev = evaluate_policy(run, design, episodes=1)
+    ev = evaluate_policy(run, design, episodes=1, samples=GAIT_SAMPLES)
     e = ev.config.env
-    return {f"reward_{parse_task(e.task).unit}": float(ev.returns_cm[0]), "diverged": bool(ev.diverged[0]),
-            "actions_kpa": np.asarray(ev.actions_kpa).round(2).tolist(),
+    diverged = ev.diverged[0] if ev.chosen is None else ev.sampled_diverged[ev.chosen]
+    return {f"reward_{parse_task(e.task).unit}": ev.gait_return, "diverged": bool(diverged),
+            "gait_source": ev.gait_source, "actions_kpa": np.asarray(ev.gait_actions_kpa).round(2).tolist(),
             "episode_seconds": episode_seconds(ev.config), "hold_s": e.robot.dt * e.steps_per_action}
 
 
@@ -206,8 +209,8 @@ def regret_markdown(r: dict) -> list[str]:
     if r.get("policy"):
         pol = r["policy"]
         reward = "no reward" if pol[f"reward_{u}"] is None else f"{pol[f'reward_{u}']:+.2f} {u}"
-        lines.append(f"| learned policy on the chosen design | {reward}"
-                     f"{' (diverged)' if pol['diverged'] else ''} per {pol['episode_seconds']:g} s |")
+        lines.append(f"| learned policy's gait on the chosen design ({pol.get('gait_source', 'deterministic')}) | "
+                     f"{reward}{' (diverged)' if pol['diverged'] else ''} per {pol['episode_seconds']:g} s |")
         lines.append(f"| ground-truth gait on it | {p[f'reward_{u}']:+.2f} {u} |")
     lines.append("")
     if r["settings_differ"]:

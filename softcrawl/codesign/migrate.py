@@ -12,12 +12,15 @@ Version 3: a training run's ``sac.learner`` (runs of the older formats trained t
 Version 4: a training run's ``env.space`` and a ground truth's ``space`` (the design space, a name
 or a file; runs and ground truths of the older formats are the paper's space, ``"paper"``); a
 run of this format keeps its space file as ``space.toml`` (:mod:`softcrawl.codesign.run`).
+Version 5: the ``turning`` task's ``vent_s`` (a training run's ``env.task``, a ground truth's
+``task``): folders of the older formats scored a turn while the last action's pressure held,
+``vent_s = 0``.
 """
 
 from __future__ import annotations
 
 #: Current format of the saved settings.
-CONFIG_VERSION = 4
+CONFIG_VERSION = 5
 #: The first format whose training runs keep their design space as ``space.toml``.
 SPACE_VERSION = 4
 
@@ -80,9 +83,29 @@ def _groundtruth_v3_to_v4(config: dict) -> dict:
     return {**config, "space": "paper"}
 
 
+def _turning_unvented(task):
+    """A task setting (a name or a table) with ``vent_s = 0`` if it is ``turning`` without one."""
+    if task == "turning":
+        return {"name": "turning", "vent_s": 0.0}
+    if isinstance(task, dict) and task.get("name") == "turning" and "vent_s" not in task:
+        return {**task, "vent_s": 0.0}
+    return task
+
+
+def _train_v4_to_v5(config: dict) -> dict:
+    env = config.get("env")
+    if not isinstance(env, dict) or "task" not in env:
+        return config
+    return {**config, "env": {**env, "task": _turning_unvented(env["task"])}}
+
+
+def _groundtruth_v4_to_v5(config: dict) -> dict:
+    return {**config, "task": _turning_unvented(config["task"])} if "task" in config else config
+
+
 #: ``kind -> [step from version 1 to 2, from 2 to 3, ...]``.
-STEPS = {"train": [_train_v1_to_v2, _train_v2_to_v3, _train_v3_to_v4],
-         "groundtruth": [_groundtruth_v1_to_v2, _unchanged, _groundtruth_v3_to_v4]}
+STEPS = {"train": [_train_v1_to_v2, _train_v2_to_v3, _train_v3_to_v4, _train_v4_to_v5],
+         "groundtruth": [_groundtruth_v1_to_v2, _unchanged, _groundtruth_v3_to_v4, _groundtruth_v4_to_v5]}
 
 
 def config_version(doc: dict) -> int:

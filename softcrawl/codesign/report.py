@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from softcrawl.codesign.config import TrainConfig
-from softcrawl.codesign.evaluation import episode_seconds
+from softcrawl.codesign.evaluation import GAIT_SAMPLES, episode_seconds
 from softcrawl.codesign.run import Run, note
 from softcrawl.design.picture import plot_design
 from softcrawl.design.space import DEFAULT_SPACE
@@ -280,16 +280,31 @@ def _describe_gait(g: dict, task: Task | None = None) -> str:
             "part at least 10% of the mean).")
 
 
+def _sampled_lines(ev, unit: str) -> list[str]:
+    """The Markdown line on an evaluation's sampled episodes (none: no line)."""
+    ret = np.asarray(ev.sampled_returns, float)
+    ok = ret[~np.asarray(ev.sampled_diverged, bool)]
+    if not len(ret):
+        return []
+    stats = (f"mean {ok.mean():+.3f} ± {ok.std():.3f} {unit} (min {ok.min():+.3f}, max {ok.max():+.3f})" if len(ok)
+             else "every one diverged")
+    return [f"Sampled from the stochastic policy, {len(ret)} episodes: {stats}"
+            f"{f'; {len(ret) - len(ok)} diverged' if 0 < len(ok) < len(ret) else ''}. Each is an open-loop gait "
+            "that replays to its return; the best of these and the deterministic one is the design's gait."]
+
+
 def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
-                         task: Task | None = None) -> tuple[list[str], dict]:
-    """Re-simulate ``design`` with the run's policy into ``out/best_design``; Markdown lines and
-    the numbers for ``summary.json`` (returns in the unit of ``task``, default ``forward``'s cm)."""
+                         task: Task | None = None, samples: int = 0) -> tuple[list[str], dict]:
+    """Re-simulate ``design``'s gait (the best of the run's deterministic policy and ``samples``
+    episodes sampled from it, :func:`softcrawl.codesign.evaluation.evaluate_policy`) into
+    ``out/best_design``; Markdown lines and the numbers for ``summary.json`` (returns in the
+    unit of ``task``, default ``forward``'s cm)."""
     from softcrawl.codesign.evaluation import evaluate_policy
     from softcrawl.robot.output import write_results
-    from softcrawl.tasks.base import return_series
+    from softcrawl.tasks.base import VENT_SECONDS, return_series, vented_return
 
     task = task if task is not None else parse_task("forward")
-    ev = evaluate_policy(run, design, checkpoint=checkpoint)
+    ev = evaluate_policy(run, design, checkpoint=checkpoint, samples=samples)
     result = ev.resimulate(record_every=10)
     robot = ev.env.episode.robot
     write_results(out / "best_design", robot, ev.gait(), result, ev.env.calibration, overwrite=True,
@@ -297,19 +312,29 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
     name = ",".join(map(str, ev.design))
     unit = task.unit
     series = None if task.name == "forward" else return_series(task, robot, result.frames)
-    g = gait_analysis(ev.actions_kpa, result.time, result.position[:, 0],
-                      task_return=None if series is None else (result.frame_times, series, unit))
+    seconds = episode_seconds(ev.config)
+    steps, frames = result.time <= seconds + 1e-9, result.frame_times <= seconds + 1e-9  # the gait, not its venting
+    g = gait_analysis(ev.gait_actions_kpa, result.time[steps], result.position[steps, 0],
+                      task_return=None if series is None else (result.frame_times[frames], series[frames], unit))
     rerun = float(result.reward_cm) if series is None else (float(series[-1]) if len(series) else float("nan"))
     numbers = {"design": name, f"policy_{unit}": float(ev.returns_cm[0]), "resimulated_cm": float(result.reward_cm),
-               "diverged": bool(result.diverged), "gait": g,
-               "actions_kpa": np.round(np.asarray(ev.actions_kpa, float), 2).tolist()}
+               "diverged": bool(result.diverged), "gait": g, "gait_source": ev.gait_source,
+               f"gait_{unit}": ev.gait_return, f"sampled_{unit}": [float(v) for v in ev.sampled_returns],
+               "actions_kpa": np.round(np.asarray(ev.gait_actions_kpa, float), 2).tolist()}
     if task.name != "forward":
         numbers[f"resimulated_{unit}"] = rerun
+    held, kept, _ = vented_return(task, robot, ev.gait(), seconds, ev.config.env.settling(), ev.env.calibration)
+    numbers |= {f"held_at_end_{unit}": held, f"kept_after_venting_{unit}": kept}
     return ["", "## Best design's gait", "",
-            (f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} {unit} per episode "
+            f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} {unit} per episode.",
+            *_sampled_lines(ev, unit), "",
+            (f"The gait below ({ev.gait_source}): {ev.gait_return:+.3f} {unit} "
              f"(re-run {rerun:+.3f} {unit}{', DIVERGED' if result.diverged else ''}); commanded (dashed) "
              f"vs applied (solid) pressures and x(t); ParaView series in `best_design/crawl.pvd`."), "",
             _describe_gait(g, task), "",
+            (f"At the gait's end (t = {seconds:g} s): {held:+.3f} {unit}; kept at rest after {VENT_SECONDS:g} s more "
+             f"with every regulator vented: {kept:+.3f} {unit} (what the pressure only held, an elastic twist or "
+             "stretch of the body, springs back)."), "",
             *(["![best design crawling](best_design/crawl.gif)", ""] if (out / "best_design" / "crawl.gif").exists()
               else []),
             "![best design's gait](best_design/trajectory.png)"], numbers
@@ -333,7 +358,8 @@ def _baseline_best(cfg: TrainConfig, out: Path, data: dict) -> list[str]:
 
 def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None,
                  baseline_phases=BASELINE_PHASES, simulate: bool = True, workers: int | None = None,
-                 extra: dict[str, Callable[[], tuple[list[str], dict]]] | None = None) -> Path:
+                 extra: dict[str, Callable[[], tuple[list[str], dict]]] | None = None,
+                 samples: int = GAIT_SAMPLES) -> Path:
     """Write ``run/report/`` (module docstring) and return its path.
 
     Args:
@@ -349,6 +375,8 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
             numbers)``, appended in order (``softcrawl report --groundtruth``: the regret against
             a ground truth, :func:`softcrawl.codesign.groundtruth_regret.regret_section`, which
             reads the run itself and so is passed in rather than imported here).
+        samples: episodes sampled from the stochastic policy on the best design; its gait is
+            the best of them and the deterministic one (0: the deterministic one).
 
     Raises:
         ValueError: ``run`` is not a training run with at least one complete checkpoint, a
@@ -363,7 +391,8 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
     state = r.read_checkpoint_state(ckpt)["sampler"]
     staged = r.report_staging()
     try:
-        _write_report(r, staged, meta, top, state, ckpt, sweep, baseline_phases, simulate, workers, extra or {})
+        _write_report(r, staged, meta, top, state, ckpt, sweep, baseline_phases, simulate, workers, extra or {},
+                      samples)
         return r.install_report(staged)
     except BaseException:
         shutil.rmtree(staged, ignore_errors=True)
@@ -371,7 +400,7 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
 
 
 def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: Path, sweep, baseline_phases,
-                  simulate: bool, workers: int | None, extra: dict) -> None:
+                  simulate: bool, workers: int | None, extra: dict, samples: int) -> None:
     """Everything of :func:`write_report` into ``out`` (the staging folder)."""
     run = r.path
     ep = r.read_episodes()
@@ -428,7 +457,7 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         numbers["space"] = {"name": space.name, "slots": space.n_slots, "regulators": space.n_regulators,
                             "slot_angles_deg": list(space.slot_angles_deg), "legs": list(run_cfg.env.legs)}
     if simulate and top:
-        more, numbers["best_design"] = _best_design_section(run, out, top[0]["design"], ckpt, task)
+        more, numbers["best_design"] = _best_design_section(run, out, top[0]["design"], ckpt, task, samples)
         lines += more
     if task.baseline != "sine":  # another task's baseline, or none
         if sweep is not None:
@@ -488,7 +517,8 @@ def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict |
         return lines + ["Not simulated (no phases, or --no-simulate)."], {}
     from softcrawl.codesign.evaluation import episode_seconds
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.tasks.baselines import best_turn, sweep_turning, turning_baseline_design
+    from softcrawl.tasks.base import vented_return
+    from softcrawl.tasks.baselines import best_turn, sweep_turning, turning_baseline_design, turning_gait
 
     space = cfg.env.design_space()
     turner = turning_baseline_design(space)
@@ -498,7 +528,7 @@ def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict |
                         "on."], {}
     seconds = episode_seconds(cfg)
     results = sweep_turning(task.robots(robot_factory(cfg)), phases, seconds, cfg.env.settling(), workers=workers,
-                            space=space)
+                            space=space, vent_seconds=task.vent_seconds)
     with open(out / "baseline_turning.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["phase_deg", "turned_deg", "diverged", "wall_seconds"])
@@ -515,11 +545,29 @@ def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict |
                           for r in results]}
     if top is None:
         return lines + ["", "Every phase diverged."], numbers
-    numbers |= {"best_phase_deg": top.phase_deg, "best_deg": top.turned_deg}
-    lines += ["", f"- best phase lag: {top.phase_deg:g}°, {top.turned_deg:+.2f}° in {seconds:g} s"]
-    if best is not None and best.get("policy_deg") is not None:
-        ratio = abs(best["policy_deg"]) / abs(top.turned_deg) if top.turned_deg else None
-        numbers["ratio"] = ratio
-        lines.append(f"- best design `{best['design']}` with the trained policy: {best['policy_deg']:+.2f}°, "
-                     + (f"{ratio:.2f}x the baseline's turn" if ratio is not None else "the baseline did not turn"))
+    held, kept, _ = vented_return(task, task.robots(robot_factory(cfg))(turner),
+                                  turning_gait(top.phase_deg, space.n_regulators), seconds, cfg.env.settling())
+    numbers |= {"best_phase_deg": top.phase_deg, "best_deg": top.turned_deg, "held_at_end_deg": held,
+                "kept_after_venting_deg": kept}
+    lines += ["", f"- best phase lag: {top.phase_deg:g}°, {top.turned_deg:+.2f}° (the task's return; at the gait's "
+                  f"end, t = {seconds:g} s: {held:+.2f}°, kept at rest after venting: {kept:+.2f}°)"]
+    if best is not None and best.get("gait_deg") is not None:
+        def times(deg: float) -> str:
+            return f"{abs(deg) / abs(top.turned_deg):.2f}x the baseline's turn" if top.turned_deg else "the baseline did not turn"
+
+        numbers["ratio"] = abs(best["gait_deg"]) / abs(top.turned_deg) if top.turned_deg else None
+        lines.append(f"- best design `{best['design']}`, its gait ({best['gait_source']}): {best['gait_deg']:+.2f}°, "
+                     f"{times(best['gait_deg'])}; the deterministic policy: {best['policy_deg']:+.2f}°, "
+                     f"{times(best['policy_deg'])}")
+        mine = best.get("kept_after_venting_deg")
+        if mine is not None and kept and not task.vent_seconds:  # else the return is already kept at rest
+            numbers["ratio_kept"] = abs(mine) / abs(kept)
+            lines.append(f"- kept at rest after venting: the best design's gait {mine:+.2f}°, the baseline's "
+                         f"{kept:+.2f}°: {numbers['ratio_kept']:.2f}x")
+        sampled = np.asarray(best.get("sampled_deg") or [], float)
+        sampled = sampled[np.isfinite(sampled)]
+        if len(sampled):
+            numbers["ratio_sampled_mean"] = abs(sampled.mean()) / abs(top.turned_deg) if top.turned_deg else None
+            lines.append(f"- its {len(sampled)} sampled gaits, no choice made: mean {sampled.mean():+.2f}°, "
+                         f"{times(sampled.mean())}")
     return lines, numbers

@@ -19,7 +19,9 @@ when none is given).
   paper's: cm crawled along +x by the disk top centre during the action, so the episode return
   is the +x displacement, codesign.md / paper): :meth:`Task.reward` of the task's progress
   before and after the action, in :attr:`Task.unit` (cm or degrees). The task's floor
-  (friction, gravity) applies to every robot the env builds (:meth:`Task.robots`).
+  (friction, gravity) applies to every robot the env builds (:meth:`Task.robots`). A task
+  with :attr:`Task.vent_seconds` (``turning``) has the robot vent that long after the last
+  action, before the last reward is taken: the return is what the robot keeps at rest.
 * ``terminated``: on a diverged simulation (``SimulationDiverged``): ``info["diverged"]``
   is True and ``info["reason"]`` holds the message; the reward of that action counts up to the
   last valid state; or when the task's goal is reached (:meth:`Task.reached`, e.g. ``target``).
@@ -372,12 +374,25 @@ class CrawlerEnv(gym.Env):
         if error is not None:
             self._dead, self._reason = True, str(error)
         self._next_action()
+        if self._k >= self.n_actions and not self._dead and self.task.vent_seconds > 0:
+            self._vent()
         reward = self.task.reward(self._action_before, self._progress())
         if not math.isfinite(reward):
             reward = 0.0
         terminated = self._dead or self.task.reached(self.episode, self._origin)
         truncated = (not terminated) and self._k >= self.n_actions
         return self._obs(), float(reward), terminated, truncated, self._info(self._action_kpa)
+
+    def _vent(self) -> None:
+        """After the last action: every regulator at 0 kPa for the task's
+        :attr:`~softcrawl.tasks.Task.vent_seconds` (rounded to whole steps), so the episode is
+        scored at rest (:mod:`softcrawl.tasks.base`); a divergence ends it as in :meth:`step`."""
+        zero = np.zeros(len(self.episode.applied))
+        try:
+            for _ in range(int(round(self.task.vent_seconds / self.episode.dt))):
+                self.episode.step(zero)
+        except SimulationDiverged as exc:
+            self._dead, self._reason = True, str(exc)
 
     def close(self) -> None:
         """Leave the robot cache (a shared one keeps its robots for the other envs)."""

@@ -200,6 +200,34 @@ class SineGait:
         return np.clip([self._wave(t), self._wave(t - lag), 0.0], P_MIN_KPA, P_MAX_KPA)
 
 
+@dataclass(frozen=True)
+class VentedAfter:
+    """``gait`` until ``after_s`` seconds, then every regulator commanded to 0 kPa (vented).
+
+    Appended to an episode's gait it lets the robot relax, so that what the gait moved the robot
+    can be told from what the pressure only holds in place (a twist of the body that springs back
+    when the legs vent; :func:`softcrawl.tasks.base.vented_return`).
+
+    Attributes:
+        gait: any :class:`Gait`. after_s: seconds, finite and >= 0.
+
+    Raises:
+        ValueError: ``after_s`` negative or not finite.
+    """
+
+    gait: Gait
+    after_s: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.after_s) and self.after_s >= 0):
+            raise ValueError(f"after_s must be a finite number of seconds >= 0, got {self.after_s}")
+
+    def pressure_at(self, t: float) -> np.ndarray:
+        """``gait.pressure_at(t)`` before ``after_s``, zeros of its shape from then on, real kPa."""
+        p = np.asarray(self.gait.pressure_at(t), dtype=float)
+        return p if t < self.after_s else np.zeros_like(p)
+
+
 def paper_best_gait(n_cycles: int | None = None, n_actions: int = 20, high_kpa: float = P_MAX_KPA) -> ActionSequence:
     """The paper's learned gait for ``PAPER_BEST_DESIGN`` (1,0,0,2,2,0,0,0), hold 1 s.
 

@@ -214,9 +214,11 @@ def jsonable(v):
 
 def describe_gait(gait) -> dict:
     """JSON-ready description of a gait: ``{"type": class name, **dataclass fields}``
-    (arrays as lists), or ``{"type", "repr"}`` for other objects."""
+    (arrays as lists, a gait inside a gait described in turn), or ``{"type", "repr"}`` for
+    other objects."""
     if dataclasses.is_dataclass(gait):
-        fields = {f.name: getattr(gait, f.name) for f in dataclasses.fields(gait)}
+        fields = {f.name: describe_gait(v) if dataclasses.is_dataclass(v) else v
+                  for f in dataclasses.fields(gait) for v in (getattr(gait, f.name),)}
     else:
         fields = {"repr": repr(gait)}
     return jsonable({"type": type(gait).__name__, **fields})

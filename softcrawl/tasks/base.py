@@ -20,7 +20,12 @@ rebuilds it). What every task defines (docs/tasks.md):
 * :attr:`Task.baseline`: the expert baseline it has (``"sine"``: the paper's sine gait on the
   baseline design, ``"turning"``: :mod:`softcrawl.tasks.baselines`; None: none);
 * :attr:`Task.reads_disk`: whether :meth:`progress` reads the disk's nodes (not only the
-  reward point, the disk's top centre): the JAX backend returns the reward point only.
+  reward point, the disk's top centre): the JAX backend returns the reward point only;
+* :attr:`Task.vent_seconds`: seconds the episode goes on after its last action with every
+  regulator vented (0 kPa), so that its last reward and its return count what the robot keeps at
+  rest, not a twist or stretch the pressure only holds (0: none, the paper's ``forward``).
+  Every path that scores a task's episode applies it: the env, the ground truth's episodes, the
+  turning baseline and the replays (:func:`scored_gait`).
 
 Episodes are read duck-typed: an object with ``robot`` (``reward_position(x)``; with
 :attr:`reads_disk` a :class:`softcrawl.robot.Robot`), ``state.x`` ``(N, 3)`` mm, ``start``
@@ -40,7 +45,13 @@ import numpy as np
 
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.domain import randomized_robot
-from softcrawl.robot.episode import MM_PER_CM
+from softcrawl.robot.episode import MM_PER_CM, Settling, run_episode
+
+#: Seconds a gait's episode is continued with every regulator vented (0 kPa) to see what of its
+#: return the robot keeps at rest (:func:`vented_return`): the regulators slew to 0 kPa within
+#: 0.6 s (150 kPa/s, :class:`softcrawl.robot.actuation.RegulatorBank`); a vented `demo` robot's
+#: yaw changed by under 0.01° between 2.5 s and 5 s of venting.
+VENT_SECONDS = 5.0
 
 #: Bounds of a task's floor friction (Coulomb mu, dimensionless), both included.
 FRICTION_BOUNDS = (0.0, 10.0)
@@ -81,6 +92,12 @@ class Task:
     def __post_init__(self) -> None:
         if self.friction is not None:
             object.__setattr__(self, "friction", check_number(self.name, "friction", self.friction, *FRICTION_BOUNDS))
+
+    @property
+    def vent_seconds(self) -> float:
+        """Seconds vented after the last action before the episode is scored (module docstring;
+        0 here: scored while the last action's pressure holds)."""
+        return 0.0
 
     # -- floor ---------------------------------------------------------------------------
     def gravity(self) -> tuple[float, float, float] | None:
@@ -194,3 +211,47 @@ def replay_return(task: Task, robot: Robot, frames) -> float:
     frames."""
     series = return_series(task, robot, frames)
     return float(series[-1]) if len(series) else float("nan")
+
+
+def scored_gait(gait, duration: float, vent_seconds: float):
+    """``(gait, duration)`` of an episode as a task with :attr:`Task.vent_seconds` =
+    ``vent_seconds`` scores it: ``gait`` for ``duration`` s, then ``vent_seconds`` more with every
+    regulator vented (:class:`softcrawl.gaits.VentedAfter`); unchanged for 0."""
+    from softcrawl.gaits import VentedAfter
+
+    return (VentedAfter(gait, duration), duration + vent_seconds) if vent_seconds > 0 else (gait, duration)
+
+
+def vented_return(task: Task, robot: Robot, gait, duration: float, settling: Settling = Settling(),
+                  calibration=None, vent_seconds: float = VENT_SECONDS) -> tuple[float, float, bool]:
+    """``task``'s return of ``gait`` over ``duration`` s, and what of it is kept once every
+    regulator has vented for ``vent_seconds`` more (:class:`softcrawl.gaits.VentedAfter`): an
+    elastic twist or stretch that the pressure only holds springs back, a move on the floor
+    stays. One :func:`softcrawl.robot.run_episode` after ``settling``, frames every 1 s (or
+    fewer steps, so that one falls at ``duration``) read by :func:`return_series`.
+
+    Args:
+        task, robot: the task and its robot (the task's floor). gait: any gait, real kPa.
+        duration, vent_seconds: s, > 0. calibration: the rig's pressure calibration (None:
+            the identity).
+
+    Returns:
+        ``(return at duration, return after venting, diverged)`` in the task's unit (NaN where
+        the episode diverged before that frame).
+
+    Raises:
+        ValueError: a non-positive or non-finite ``duration`` or ``vent_seconds``.
+    """
+    from softcrawl.robot.actuation import PressureCalibration
+
+    if not all(math.isfinite(v) and v > 0 for v in (duration, vent_seconds)):
+        raise ValueError(f"duration and vent_seconds must be > 0 s, got {duration}, {vent_seconds}")
+    dt = robot.config.dt
+    n, m = int(round(duration / dt)), int(round((duration + vent_seconds) / dt))
+    every = math.gcd(max(1, int(round(1.0 / dt))), n, m)
+    res = run_episode(robot, *scored_gait(gait, duration, vent_seconds),
+                      calibration if calibration is not None else PressureCalibration(), settling=settling,
+                      record_every=every, progress=False)
+    series = return_series(task, robot, res.frames)
+    held, kept = (float(series[i]) if i < len(series) else float("nan") for i in (n // every, m // every))
+    return held, kept, bool(res.diverged)

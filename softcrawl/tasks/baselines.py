@@ -36,6 +36,7 @@ from softcrawl.parallel import run_pool
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import Settling, run_episode
 from softcrawl.robot.sweep import baseline_gait
+from softcrawl.tasks.base import scored_gait
 from softcrawl.tasks.builtin import disk_yaw_deg, wrap_deg
 
 #: The turning baseline's design: regulator 1 at 22.5 and 202.5 deg, regulator 2 at 67.5 and
@@ -89,12 +90,16 @@ class TurnResult:
 
 
 def turned_degrees(robot: Robot, gait, duration: float, settling: Settling = Settling(),
-                   sample_every: float = 1.0) -> tuple[float, bool]:
+                   sample_every: float = 1.0, vent_seconds: float = 0.0) -> tuple[float, bool]:
     """Yaw the disk turns under ``gait`` over ``duration`` s (after settling), degrees
     counter-clockwise: :func:`softcrawl.tasks.disk_yaw_deg` sampled every ``sample_every`` s
     (rounded to whole steps; fewer if needed, so that the samples include the episode's last
     step) and its wrapped increments summed (the turning task's return with 1-s actions).
+    With ``vent_seconds`` the episode goes on that long with every regulator vented and is
+    scored at its end, at rest (the ``turning`` task's ``vent_s``,
+    :func:`softcrawl.tasks.base.scored_gait`).
     Returns ``(degrees, diverged)``; NaN degrees if settling diverged."""
+    gait, duration = scored_gait(gait, duration, vent_seconds)
     dt = robot.config.dt
     n = int(round(duration / dt)) if math.isfinite(duration) else 0
     every = math.gcd(max(1, int(round(sample_every / dt))), max(n, 1))
@@ -109,17 +114,18 @@ def turned_degrees(robot: Robot, gait, duration: float, settling: Settling = Set
 
 def run_turning_phase(factory: Callable, phase_deg: float, duration: float,
                       settling: Settling = Settling(), design: tuple[int, ...] = TURNING_BASELINE_DESIGN,
-                      n_regulators: int = DEFAULT_SPACE.n_regulators) -> TurnResult:
+                      n_regulators: int = DEFAULT_SPACE.n_regulators, vent_seconds: float = 0.0) -> TurnResult:
     """One episode of :func:`turning_gait` at ``phase_deg`` (``n_regulators`` regulators) on
-    ``factory(design)``."""
+    ``factory(design)``, scored after ``vent_seconds`` vented (:func:`turned_degrees`)."""
     wall = time.perf_counter()
-    turned, diverged = turned_degrees(factory(design), turning_gait(phase_deg, n_regulators), duration, settling)
+    turned, diverged = turned_degrees(factory(design), turning_gait(phase_deg, n_regulators), duration, settling,
+                                      vent_seconds=vent_seconds)
     return TurnResult(float(phase_deg), turned, diverged, time.perf_counter() - wall)
 
 
 def sweep_turning(factory: Callable, phases: Sequence[float] = TURNING_PHASES, duration: float = 20.0,
                   settling: Settling = Settling(), workers: int | None = 1,
-                  space: DesignSpace = DEFAULT_SPACE) -> list[TurnResult]:
+                  space: DesignSpace = DEFAULT_SPACE, vent_seconds: float = 0.0) -> list[TurnResult]:
     """The turning baseline at each phase lag of ``phases`` (degrees), in that order.
 
     Args:
@@ -127,6 +133,8 @@ def sweep_turning(factory: Callable, phases: Sequence[float] = TURNING_PHASES, d
         duration: episode length, s. settling: the rest rule before each episode.
         workers: processes (:func:`softcrawl.parallel.run_pool`; 1: in this process).
         space: the factory's design space (:func:`turning_baseline_design` and its regulators).
+        vent_seconds: seconds vented after each episode before it is scored (the turning
+            task's ``vent_s``; :func:`turned_degrees`).
 
     Raises:
         ValueError: no phases, a non-finite or repeated phase, a non-positive duration, a
@@ -141,8 +149,8 @@ def sweep_turning(factory: Callable, phases: Sequence[float] = TURNING_PHASES, d
     if design is None:
         raise ValueError(f"the design space {space.name!r} has no turning baseline design (turning_baseline_design)")
     done: dict[float, TurnResult] = {}
-    run_pool(run_turning_phase, workers, [(factory, p, duration, settling, design, space.n_regulators)
-                                          for p in phases],
+    run_pool(run_turning_phase, workers, [(factory, p, duration, settling, design, space.n_regulators,
+                                           vent_seconds) for p in phases],
              lambda r: done.__setitem__(r.phase_deg, r))
     return [done[p] for p in phases]
 

@@ -16,7 +16,7 @@ import numpy as np
 from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.robot.assembly import Robot
 from softcrawl.robot.episode import MM_PER_CM
-from softcrawl.tasks.base import Task, check_number
+from softcrawl.tasks.base import VENT_SECONDS, Task, check_number
 
 #: Gravitational acceleration of the models, mm/s^2 (``softcrawl.fem.Model.gravity``).
 G_MM_S2 = 9800.0
@@ -106,13 +106,35 @@ class Turning(Task):
     """Turning in place: degrees the disk yaws about +z, counter-clockwise positive
     (:func:`disk_yaw_deg`). The progress is the yaw since the start wrapped to (-180, 180];
     an action's reward is the wrapped change (an action turns less than half a turn), so an
-    episode's return is the total (unwrapped) turn, degrees. No termination."""
+    episode's return is the total (unwrapped) turn, degrees. No termination.
+
+    The episode is scored at rest: after its last action every regulator vents for ``vent_s``
+    seconds (:attr:`Task.vent_seconds`) and the last action's reward includes what springs back.
+    Inflated legs whose feet stick to the floor can twist the disk elastically by several
+    degrees; the twist springs back when they vent and is not a turn (docs/tasks.md, "Twist or
+    turn").
+
+    Attributes:
+        vent_s: seconds vented after the last action, in [0, 60] (0: scored while the last
+            action's pressure holds).
+    """
 
     name: ClassVar[str] = "turning"
     unit: ClassVar[str] = "deg"
     baseline: ClassVar[str | None] = "turning"
     reads_disk: ClassVar[bool] = True
-    describe: ClassVar[str] = "degrees the disk yaws counter-clockwise about +z"
+    describe: ClassVar[str] = "degrees the disk yaws counter-clockwise about +z, kept at rest after venting"
+
+    vent_s: float = VENT_SECONDS
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "vent_s", check_number(self.name, "vent_s", self.vent_s, 0.0, 60.0, "s"))
+
+    @property
+    def vent_seconds(self) -> float:
+        """:attr:`vent_s`."""
+        return self.vent_s
 
     def origin(self, episode) -> float:
         """The disk's yaw at the start, degrees."""

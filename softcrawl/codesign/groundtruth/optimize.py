@@ -67,7 +67,9 @@ def episode_return(task, robot, gait, duration: float, hold: float, settled=None
     fewer if needed so that the samples include the episode's last step, as
     :func:`softcrawl.tasks.baselines.turned_degrees`), and the return is
     :func:`softcrawl.tasks.base.replay_return` of the samples up to the first one where the
-    task's goal is reached (:meth:`softcrawl.tasks.Task.reached`; the episode ends there).
+    task's goal is reached (:meth:`softcrawl.tasks.Task.reached`; the episode ends there). A
+    task with :attr:`~softcrawl.tasks.Task.vent_seconds` is scored after venting that long, as
+    the env scores it (:func:`softcrawl.tasks.base.scored_gait`).
 
     Args:
         task: a :class:`softcrawl.tasks.Task`. robot: a robot on the task's floor.
@@ -78,8 +80,9 @@ def episode_return(task, robot, gait, duration: float, hold: float, settled=None
         ``(return, diverged)``; the return is NaN if settling diverged.
     """
     from softcrawl.robot.episode import run_episode
-    from softcrawl.tasks.base import Snapshot, replay_return
+    from softcrawl.tasks.base import Snapshot, replay_return, scored_gait
 
+    gait, duration = scored_gait(gait, duration, task.vent_seconds)
     dt = robot.config.dt
     n = int(round(duration / dt)) if math.isfinite(duration) else 0
     every = math.gcd(max(1, int(round(hold / dt))), max(n, 1))

@@ -45,7 +45,11 @@ def check_jax_env(model: str, randomize: DomainRanges | None) -> None:
 def check_jax_task(task: Task) -> None:
     """Raise ValueError (one line) unless the JAX backend can score ``task``: it returns the
     reward point (the disk's top centre) only, so a task whose progress reads the disk's nodes
-    (:attr:`softcrawl.tasks.Task.reads_disk`: ``turning``) is refused."""
+    (:attr:`softcrawl.tasks.Task.reads_disk`: ``turning``) is refused, and so is one scored at
+    rest (:attr:`softcrawl.tasks.Task.vent_seconds`): its episodes do not vent."""
     if task.reads_disk:
         raise ValueError(f'backend "jax" does not run task {task.name!r}: its reward reads the disk\'s rotation '
                          'and the JAX backend returns the disk\'s top centre only; use backend "subprocess"')
+    if task.vent_seconds > 0:
+        raise ValueError(f'backend "jax" does not run task {task.name!r}: it is scored after venting and the JAX '
+                         'backend\'s episodes do not vent; use backend "subprocess"')
