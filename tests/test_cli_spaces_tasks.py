@@ -14,7 +14,7 @@ from helpers import one_line_error
 
 from softcrawl.cli import main
 from softcrawl.design.resolve import resolve_space
-from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE
 from softcrawl.design.spacefile import shipped_space_path
 
 HEX6 = resolve_space("hex6")
@@ -180,12 +180,22 @@ def test_a_space_without_a_turning_design(tmp_path):
             sweep_turning(lambda d: None, [0.0], space=space)
 
 
-def test_the_forward_baseline_note_of_another_space():
+def test_every_space_of_two_regulators_has_a_forward_baseline_design(tmp_path):
+    """The paper's four legs in an X found again among a space's slots
+    (:func:`softcrawl.design.baseline.sine_baseline_design`); a space of one regulator has none
+    and its report says so in one line."""
     from softcrawl.codesign.report import no_sine_baseline
+    from softcrawl.design.baseline import sine_baseline_design
+    from softcrawl.design.spacefile import load_space
 
-    line = no_sine_baseline(HEX6)
-    assert "`1,0,0,2,2,0,0,1` (8 slots, 3 regulators)" in line and "`hex6` (6 slots, 2 regulators)" in line
-    assert "\n" not in line
+    assert sine_baseline_design(DEFAULT_SPACE) == BASELINE_DESIGN
+    assert sine_baseline_design(HEX6) == (1, 0, 2, 2, 0, 1)  # front pair 30/330 deg, rear pair 150/210 deg
+    one = tmp_path / "one.toml"
+    one.write_text(shipped_space_path("hex6").read_text().replace("regulators = 2", "regulators = 1"))
+    space = load_space(one, check_geometry=False)
+    assert sine_baseline_design(space) is None
+    line = no_sine_baseline(space)
+    assert "has 1 regulator" in line and "\n" not in line
 
 
 # -- check_reduction: the reduction's part against the space's -----------------------------------

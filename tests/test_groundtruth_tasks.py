@@ -63,6 +63,8 @@ def test_hex6_groundtruth_through_the_cli(tmp_path, cache, capsys):
     assert gait.pressure_at(0.0).shape == (2,)
     assert read_config(out).design_space() == hex6 and (out / "space.toml").exists()
     assert not (out / "references.json").exists()  # the references are the paper space's designs
+    # regression: the summary named the folder's space file by this machine's absolute path
+    assert json.loads((out / "summary.json").read_text())["config"]["space"] == "space.toml"
     # the row's reward is the CPU engine's episode of its gait, recomputed here
     ev = DesignEvaluator(design, read_config(out))
     assert ev(gait, 1.0)[0] == pytest.approx(r.reward_cm, abs=1e-9)

@@ -128,7 +128,13 @@ def test_evaluate_and_report_use_the_runs_space(hex3_run, tmp_path, monkeypatch)
     out = report.write_report(copy, k=2)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["space"]["slots"] == 6 and summary["space"]["regulators"] == 3
-    assert "baseline" not in summary  # the expert baseline is a design of the paper's space
+    # the expert baseline runs on the space's own four legs in an X, with the run's settings
+    from softcrawl.design.baseline import sine_baseline_design
+
+    sweep = json.loads((out / "baseline_sweep" / "sweep.json").read_text())
+    assert tuple(sweep["settings"]["design"]) == sine_baseline_design(space) and len(sweep["phases"]) == 12
+    assert summary["baseline"]["best_phase_deg"] == sweep["best"]["phase_deg"]
+    assert (out / "baseline_best" / "trajectory.png").exists()
     assert drawn and all(s == space and len(d) == 6 for d, s in drawn)
     assert (out / "top-1.png").stat().st_size > 0 and (out / "best_design" / "trajectory.png").exists()
     assert "design space `hex3`" in (out / "summary.md").read_text()

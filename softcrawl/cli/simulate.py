@@ -11,6 +11,8 @@ gives the design's slots and regulators and the robot's parts (:func:`softcrawl.
 for a task other than ``forward``, its return in its unit, summed over the recorded frames
 (:func:`softcrawl.tasks.base.replay_return`), printed and written to ``task.json``
 (``{"task": settings, "unit": "cm" | "deg", "return_<unit>": float, "frames_every": K}``).
+A task scored at rest (``turning``: :attr:`softcrawl.tasks.Task.vent_seconds`) has the episode
+go on that long after ``--duration`` with every regulator vented, and its outputs show it.
 
 Inputs are validated (space, design, gait, action file of the space's regulators, output path,
 and with ``--video`` that pyvista can render off-screen) before the model is built;
@@ -180,7 +182,7 @@ def register(subparsers) -> None:
     p.add_argument("--task", default=DEFAULT_TASK, metavar="NAME|TABLE",
                    help="what the episode is scored on (docs/tasks.md; default forward): a task's name, or a JSON "
                    "table of its settings, e.g. '{\"name\": \"incline\", \"angle_deg\": 5}'; sets the floor "
-                   "and reports the task's return")
+                   "and reports the task's return (turning: after the robot vents for its vent_s, at rest)")
     p.add_argument("--design", default=None,
                    help="comma-separated slot values, one per slot of the space, 0 or a regulator (default, paper's "
                    'space only: the baseline "1,0,0,2,2,0,0,1")')

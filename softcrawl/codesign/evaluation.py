@@ -220,14 +220,23 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
 
 
 def baseline_sweep(run: str | Path, out: str | Path, phases, workers: int | None = None, progress: bool = False):
-    """The expert baseline (:data:`softcrawl.design.BASELINE_DESIGN`, sine gait) swept over
-    ``phases`` (degrees) with the run's robot settings and episode length, written to ``out``
-    (a ``softcrawl sweep-phase`` output, resumable). Returns the
-    :class:`softcrawl.robot.sweep.SweepResult`."""
+    """The expert baseline (the sine gait on the run's space's
+    :func:`~softcrawl.design.baseline.sine_baseline_design`: the paper's
+    :data:`softcrawl.design.BASELINE_DESIGN` in its space) swept over ``phases`` (degrees) with
+    the run's robot settings and episode length, written to ``out`` (a ``softcrawl sweep-phase``
+    output, resumable). Returns the :class:`softcrawl.robot.sweep.SweepResult`.
+
+    Raises:
+        ValueError: the run's space has no baseline design (one regulator).
+    """
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.design.space import BASELINE_DESIGN
+    from softcrawl.design.baseline import sine_baseline_design
     from softcrawl.robot.sweep import run_sweep
 
     cfg = load_run_config(run)
-    return run_sweep(out, phases, BASELINE_DESIGN, robot_factory(cfg).config, duration=episode_seconds(cfg),
-                     workers=workers, overwrite=True, progress=progress)
+    space = cfg.env.design_space()
+    design = sine_baseline_design(space)
+    if design is None:
+        raise ValueError(f"the design space {space.name!r} has no expert baseline design (one regulator)")
+    return run_sweep(out, phases, design, robot_factory(cfg).config, duration=episode_seconds(cfg),
+                     workers=workers, overwrite=True, progress=progress, space=space)

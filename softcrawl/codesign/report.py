@@ -24,8 +24,9 @@ is read through :class:`softcrawl.codesign.run.Run`):
   the episode: a crawler moves in every quarter, a push does not);
 * ``summary.json``: the numbers of ``summary.md`` (steps, wall time, top designs, the best
   design's policy reward, actions and gait analysis, the baseline's best phase and reward);
-* "Expert baseline", the task's (:attr:`softcrawl.tasks.Task.baseline`): for ``forward`` in the
-  paper's space (the baseline design is one of its designs), the baseline design's sine gait swept over ``baseline_phases`` with the
+* "Expert baseline", the task's (:attr:`softcrawl.tasks.Task.baseline`): for ``forward``, the
+  sine gait on the space's :func:`softcrawl.design.baseline.sine_baseline_design` (the paper's
+  ``1,0,0,2,2,0,0,1`` in its space) swept over ``baseline_phases`` with the
   run's robot settings and episode length (``baseline_sweep/``, a ``softcrawl sweep-phase``
   output), its best phase re-simulated into ``baseline_best/``; or, with ``baseline``, an existing
   sweep's best phase and reward (comparable only when its episode length and model match the
@@ -33,9 +34,8 @@ is read through :class:`softcrawl.codesign.run.Run`):
   hand-made turning gait (:mod:`softcrawl.tasks.baselines`) swept over ``baseline_phases`` with
   the run's robot, floor and episode length (``baseline_turning.csv``) on the space's
   :func:`softcrawl.tasks.baselines.turning_baseline_design`, its best turn next to the best
-  design's; other tasks, a ``forward`` run on another space (the baseline design is not one of
-  its designs; :func:`no_sine_baseline`) and a space without a turning design have none (the
-  section says why);
+  design's; other tasks, a ``forward`` run on a space of one regulator (:func:`no_sine_baseline`)
+  and a space without a turning design have none (the section says why);
 * with a ground truth (``softcrawl report RUN --groundtruth GT``): where the run's chosen design
   ranks in it, its regret in cm and its learned policy's reward next to the ground-truth gait's
   (:mod:`softcrawl.codesign.groundtruth_regret`; ``summary.json`` key ``regret``).
@@ -57,8 +57,9 @@ import numpy as np
 from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.evaluation import GAIT_SAMPLES, episode_seconds
 from softcrawl.codesign.run import Run, note
+from softcrawl.design.baseline import sine_baseline_design
 from softcrawl.design.picture import plot_design
-from softcrawl.design.space import DEFAULT_SPACE
+from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE
 from softcrawl.tasks import Task, parse_task
 
 BASELINE_PHASES: tuple[float, ...] = tuple(range(0, 360, 30))
@@ -187,8 +188,9 @@ def _baseline_section(path: Path, data: dict, out: Path, cfg: TrainConfig, best_
     if best is None:
         lines.append("Every phase of the sweep diverged.")
     else:
-        lines.append(f"- best phase lag: {best['phase_deg']:g}° (paper: {data.get('paper_best_phase_deg', 110)}°), "
-                     f"{best['reward_cm']:+.3f} cm")
+        paper = (f" (paper: {data.get('paper_best_phase_deg', 110)}°)"
+                 if tuple(settings["design"]) == BASELINE_DESIGN else "")  # the paper swept its own design only
+        lines.append(f"- best phase lag: {best['phase_deg']:g}°{paper}, {best['reward_cm']:+.3f} cm")
         if best_cm is not None:
             lines.append(f"- this run's best episode: {best_cm:+.3f} cm")
     if (out / "reward_vs_phase.png").exists():
@@ -344,13 +346,13 @@ def _baseline_best(cfg: TrainConfig, out: Path, data: dict) -> list[str]:
     """Re-simulate the swept baseline at its best phase (robot settings of ``cfg``) into
     ``out/baseline_best``."""
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.design.space import BASELINE_DESIGN
-    from softcrawl.gaits import SineGait
     from softcrawl.robot.episode import run_episode
     from softcrawl.robot.output import write_results
+    from softcrawl.robot.sweep import baseline_gait
 
-    robot = robot_factory(cfg)(BASELINE_DESIGN)
-    gait = SineGait(phase_deg=data["best"]["phase_deg"])
+    space = cfg.env.design_space()
+    robot = robot_factory(cfg)(tuple(data["settings"]["design"]))
+    gait = baseline_gait(data["best"]["phase_deg"], space.n_regulators)
     result = run_episode(robot, gait, data["settings"]["duration_s"], record_every=10, progress=False)
     write_results(out / "baseline_best", robot, gait, result, overwrite=True)
     return ["", "![baseline at its best phase](baseline_best/trajectory.png)"]
@@ -469,13 +471,13 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
             numbers["baseline"] = base
         sweep = None
     own_sweep = sweep is None and simulate and len(baseline_phases) > 0 and task.baseline == "sine" \
-        and space == DEFAULT_SPACE
+        and sine_baseline_design(space) is not None
     if own_sweep:
         from softcrawl.codesign.evaluation import baseline_sweep
 
         baseline_sweep(run, out / "baseline_sweep", baseline_phases, workers=workers)
         sweep = _load_sweep(out / "baseline_sweep")
-    if sweep is None and task.baseline == "sine" and space != DEFAULT_SPACE:
+    if sweep is None and task.baseline == "sine" and sine_baseline_design(space) is None:
         lines += ["", "## Expert baseline", "", no_sine_baseline(space)]
     if sweep is not None:
         lines += _baseline_section(*sweep, out, run_cfg, best_cm)
@@ -493,14 +495,10 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
 
 
 def no_sine_baseline(space) -> str:
-    """Why a run on ``space`` (not the paper's) has no forward expert baseline: one Markdown line."""
-    from softcrawl.design.space import BASELINE_DESIGN
-
-    return (f"None: the expert baseline is the paper's design `{','.join(map(str, BASELINE_DESIGN))}` "
-            f"({DEFAULT_SPACE.n_slots} slots, {DEFAULT_SPACE.n_regulators} regulators) with its sine gait, and that "
-            f"design is not in this run's design space `{space.name}` ({space.n_slots} slots, "
-            f"{space.n_regulators} regulators); give a `softcrawl sweep-phase --space` output with --baseline to "
-            "compare with one of its designs.")
+    """Why a run on ``space`` has no forward expert baseline: one Markdown line."""
+    return (f"None: the expert sine gait lags regulator 2 behind regulator 1, and this run's design space "
+            f"`{space.name}` has {space.n_regulators} regulator; give a `softcrawl sweep-phase --space` output "
+            "with --baseline to compare with one of its designs.")
 
 
 def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict | None, phases, simulate: bool,

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from softcrawl.design.baseline import symmetric_design
 from softcrawl.design.space import DEFAULT_SPACE
 from softcrawl.design.spacefile import Design, DesignSpace
 from softcrawl.fem.solver import SimulationDiverged
@@ -81,33 +82,8 @@ def per_leg(slots: Sequence[int]) -> tuple[tuple[int, int], ...]:
     return tuple((int(s), i) for i, s in enumerate(sorted(slots)))
 
 
-#: Legs of a space's symmetric design (:func:`symmetric_design`), clipped to its leg counts.
-SYMMETRIC_LEGS = 4
 #: Names of the held-out scene driving ``n`` legs in two alternating groups (``"six_leg"``).
 _COUNT_WORDS = ("one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten", "eleven", "twelve")
-
-
-def _axis_distance(angle_deg: float) -> float:
-    """Angle (degrees, rounded to 1e-6) between a slot direction and the x axis, either way."""
-    folded = angle_deg % 180.0
-    return round(min(folded, 180.0 - folded), 6)
-
-
-def symmetric_design(space: DesignSpace = DEFAULT_SPACE) -> Design:
-    """A design of ``space`` shaped like the paper's expert baseline (codesign.md): the
-    ``SYMMETRIC_LEGS`` slots nearest the x axis (clipped to ``min_legs..max_legs``; ties by slot
-    index), those in front (``cos(theta) > 0``) on regulator 1, the others on regulator 2 (1 if
-    the space has one regulator). The paper's space gives ``BASELINE_DESIGN`` (1,0,0,2,2,0,0,1);
-    a mirror-symmetric slot set gives a design mirror-symmetric about the x axis.
-    """
-    n = min(max(SYMMETRIC_LEGS, space.min_legs), space.max_legs)
-    angles = space.slot_angles_deg
-    slots = sorted(range(space.n_slots), key=lambda i: (_axis_distance(angles[i]), i))[:n]
-    rear = min(2, space.n_regulators)
-    design = [0] * space.n_slots
-    for i in slots:
-        design[i] = 1 if math.cos(math.radians(angles[i])) > 0 else rear
-    return space.validate_design(design)
 
 
 def held_out_slots(space: DesignSpace = DEFAULT_SPACE) -> tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]:

@@ -20,6 +20,16 @@ from softcrawl.safeio import atomic_write_text
 from softcrawl.tasks import DEFAULT_TASK, Task
 
 
+
+def _portable(config: dict, out: Path) -> dict:
+    """``config`` with a ``space`` inside the folder ``out`` (its own ``space.toml``, as
+    :func:`softcrawl.codesign.groundtruth.store.read_config` gives it) named relative to it, so
+    the summary does not carry this machine's absolute path."""
+    space = Path(str(config.get("space", "")))
+    if space.is_absolute() and space.parent.resolve() == out.resolve():
+        return {**config, "space": space.name}
+    return config
+
 def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_seconds: float | None = None) -> dict:
     """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` (each replaced
     atomically; rewards keyed ``reward_<unit>`` in the task's unit, and for a task other than
@@ -63,7 +73,7 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
 
     summary = {
         "designs": len(rows), "requested": len(designs) if designs is not None else len(rows),
-        "config": cfg.to_dict(),
+        "config": _portable(cfg.to_dict(), out),
         "best": [{"design": list(r.design), reward: r.reward_cm, "gait": PeriodicGait.from_dict(r.gait).describe()}
                  for r in rows[:10]],
         reward: {"max": float(rewards.max()) if len(rows) else None,
