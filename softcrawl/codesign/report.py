@@ -513,7 +513,6 @@ def _task_baseline_section(cfg: TrainConfig, task: Task, out: Path, best: dict |
         return lines + [f"The task `{task.name}` has no expert baseline."], {}
     if not (simulate and len(phases)):
         return lines + ["Not simulated (no phases, or --no-simulate)."], {}
-    from softcrawl.codesign.evaluation import episode_seconds
     from softcrawl.codesign.factory import robot_factory
     from softcrawl.tasks.base import vented_return
     from softcrawl.tasks.baselines import best_turn, sweep_turning, turning_baseline_design, turning_gait

@@ -49,8 +49,8 @@ from softcrawl.robot.episode import MM_PER_CM, Settling, run_episode
 
 #: Seconds a gait's episode is continued with every regulator vented (0 kPa) to see what of its
 #: return the robot keeps at rest (:func:`vented_return`): the regulators slew to 0 kPa within
-#: 0.6 s (150 kPa/s, :class:`softcrawl.robot.actuation.RegulatorBank`); a vented `demo` robot's
-#: yaw changed by under 0.01° between 2.5 s and 5 s of venting.
+#: 0.6 s (150 kPa/s, :class:`softcrawl.robot.actuation.RegulatorBank`), and the robot is at
+#: rest well before the 5 s end (docs/tasks.md, "Twist or turn").
 VENT_SECONDS = 5.0
 
 #: Bounds of a task's floor friction (Coulomb mu, dimensionless), both included.
