@@ -171,14 +171,3 @@ def continued_and_restored(module, cfg):
     b.train(gradient_steps=5, batch_size=cfg.batch_size)
     return a, b
 
-
-def host_fingerprint() -> str:
-    """The CPU model (numba's code and OpenBLAS's kernels depend on it) and the numeric
-    libraries' versions: equal fingerprints give equal bits for the same arithmetic (the
-    stored-result tests of ``tests/test_batch.py`` and ``tests/test_groundtruth_search.py``)."""
-    import llvmlite.binding
-    import numba
-    import scipy
-
-    versions = f"numpy {np.__version__} scipy {scipy.__version__} numba {numba.__version__}"
-    return f"{llvmlite.binding.get_host_cpu_name()} {versions}"

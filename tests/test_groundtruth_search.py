@@ -1,6 +1,7 @@
 """The per-design search as a coroutine: driven one episode at a time (``optimize_design``) or
-many designs in lockstep (``search_many``), the same results; a small real-model budget
-reproduces the rows the code wrote before the search became a coroutine."""
+many designs in lockstep (``search_many``), the same results; a small real-model budget keeps
+the budget of the rows the code wrote before the search became a coroutine, and their best gait
+crawls as far on any CPU, within half the reduced model's error budget."""
 
 from __future__ import annotations
 
@@ -11,9 +12,9 @@ import numpy as np
 import pytest
 
 from groundtruth_helpers import DESIGNS
-from helpers import host_fingerprint
 from softcrawl.codesign.groundtruth import (
     DIVERGED_CM,
+    DesignEvaluator,
     GroundTruthConfig,
     PeriodicGait,
     SerialEvaluateMany,
@@ -152,17 +153,27 @@ def test_run_groundtruth_with_a_batched_engine_appends_and_resumes(tmp_path):
         _same(r, optimize_design(d, UNEVEN, evaluator=FakeEvaluator(d)))
 
 
+#: cm: the most the stored best gait's reward may move on any CPU (its measurement:
+#: :func:`test_small_real_budget_reproduces_the_rows_of_the_direct_search`).
+REWARD_TOL_CM = 0.05
+
+
 def test_small_real_budget_reproduces_the_rows_of_the_direct_search():
-    """The reduced model, a small budget, with and without screening: driven one design at a time
-    and in lockstep, the search gives the same row to the bit on any host (the same episodes in
-    the same order are the same floating-point operations), and on a host with a stored result
-    (``tests/data/groundtruth_small_budget.json``: ``result``, written by the search before it
-    became a coroutine, in that code's settings format, and ``by_host``, keyed by
-    :func:`helpers.host_fingerprint`) every field but the wall time equals it. Another CPU rounds
-    otherwise and CMA-ES follows its rewards to other gaits: there the row keeps the stored
-    budget (evaluations, simulated seconds, cycles tried) and a finite reward."""
+    """The reduced model, a small budget, with and without screening
+    (``tests/data/groundtruth_small_budget.json``: each case's settings, in the format of the
+    code before the search became a coroutine, and the row that code wrote). Driven one design
+    at a time and in lockstep on this machine, the search gives the same row to the bit (the
+    same episodes in the same order are the same floating-point operations). Against the stored
+    row, what holds on any CPU: the budget (evaluations, full-length ones, simulated seconds,
+    cycles tried: set by the settings, the finalists of continuous CMA-ES samples being
+    distinct), no divergence, a finite reward, and the stored gait's reward recomputed here
+    within :data:`REWARD_TOL_CM` of the stored one. Which gait CMA-ES ends on follows its
+    rewards' round-off, so the row's own gait and reward are not compared.
+    The tolerance: 0.5 mm of crawl, half the reduced model's validated error budget (mean node
+    error <= 1 mm, docs/reduction.md); measured, the stored gait's reward on three CPUs within
+    0.0019 cm of each other, and within 0.0031 cm of the stored one after settling from 20
+    starts translated by 1e-12 mm in random directions."""
     cases = json.loads((DATA / "groundtruth_small_budget.json").read_text())
-    host = host_fingerprint()
     for case in cases:
         cfg = GroundTruthConfig.from_dict(read_settings("groundtruth", {"config": case["config"]}))
         direct = optimize_design(PAPER_BEST_DESIGN, cfg).to_dict()
@@ -171,10 +182,10 @@ def test_small_real_budget_reproduces_the_rows_of_the_direct_search():
         for got in (direct, lockstep):
             got.pop("wall_seconds")
         assert json.dumps(direct) == json.dumps(lockstep)
-        if host in case.get("by_host", {}):
-            assert json.dumps(direct) == json.dumps(case["by_host"][host])
         expect = case["result"]
         assert sorted(direct) == sorted(expect) and direct["design"] == expect["design"]
         for key in ("evaluations", "full_evaluations", "sim_seconds", "diverged"):
             assert direct[key] == expect[key], key
         assert sorted(map(str, direct["per_cycle"])) == sorted(expect["per_cycle"]) and np.isfinite(direct["reward_cm"])
+        reward, diverged = DesignEvaluator(PAPER_BEST_DESIGN, cfg)(PeriodicGait.from_dict(expect["gait"]), cfg.duration)
+        assert not diverged and abs(reward - expect["reward_cm"]) <= REWARD_TOL_CM, (reward, expect["reward_cm"])
