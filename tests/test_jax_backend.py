@@ -141,36 +141,6 @@ def test_settled_states_are_computed_once_per_design(backend, monkeypatch):
     assert calls == [[a, b]]
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_robot_rows_are_the_rows_build_model_stacks(dtype):
-    """:func:`robot_rows` of a robot for a model of other robots (4 leg slots) equals that
-    robot's row of :func:`build_model` of it: exactly in float64; in float32 the attachment
-    Gram blocks come from the model's float32 ``A_0^-1`` (build_model's from the float64 one),
-    so within 5e-7 relative (measured 1.2e-7: one rounding). A robot with more legs than slots
-    or another disk is refused."""
-    import jax.numpy as jnp
-
-    from softcrawl.codesign.factory import robot_factory
-    from softcrawl.jaxsim.batch import robot_rows
-    from softcrawl.jaxsim.model import build_model
-
-    factory = robot_factory(config())
-    best, four = factory(BEST), factory(FOUR)
-    model = build_model([four], dtype=getattr(jnp, dtype))
-    rows = robot_rows(model, best)
-    ref = build_model([best], n_slots=4, dtype=getattr(jnp, dtype)).robot
-    for f in dataclasses.fields(rows):
-        got, want = getattr(rows, f.name), np.asarray(getattr(ref, f.name))[0]
-        assert got.dtype == want.dtype, f.name
-        rtol = 5e-7 if f.name == "att_gram" and dtype == "float32" else 0.0
-        np.testing.assert_allclose(got, want, rtol=rtol, atol=0, err_msg=f.name)
-    with pytest.raises(ValueError, match="leg slots"):
-        robot_rows(build_model([best], dtype=getattr(jnp, dtype)), four)
-    other = dataclasses.replace(model, disk=dataclasses.replace(model.disk, rest=model.disk.rest + 1.0))
-    with pytest.raises(ValueError, match="disk mesh"):
-        robot_rows(other, best)
-
-
 def test_rig_matches_the_cpu_regulators_and_warp():
     """:func:`regulator_step` and :func:`rig_pressures` against :class:`LaggedRegulatorBank` and
     :class:`RegulatorWarp` over 200 steps of random commands, lags (0 included: the plain slew

@@ -41,6 +41,8 @@ follow ``jax_enable_x64``, which the caller sets (never at import).
 contact) of one robot with fixed, padded shapes, ``jax.vmap``-ped over the batch by the engine.
 For a vector env (:mod:`softcrawl.envs.backends.jaxvec`): :mod:`~softcrawl.jaxsim.rig` gives each
 robot its own regulators and pressure warp and stops a robot where it diverged
-(:func:`~softcrawl.jaxsim.rig.make_action_rollout`); :mod:`~softcrawl.jaxsim.batch` builds one
-robot's rows, writes rows into a batch by index and settles new robots together.
+(:func:`~softcrawl.jaxsim.rig.make_action_rollout`); :mod:`~softcrawl.jaxsim.batch` writes rows into
+a batch by index and settles new robots together. :mod:`~softcrawl.jaxsim.tables` gathers any
+design's rows from per-slot tables of its design space (no robot built per design) and caches
+rested states on disk.
 """

@@ -1,13 +1,12 @@
-"""A batch of fixed size whose robots change one by one: per-robot rows of a
-:class:`~softcrawl.jaxsim.model.Model` built without rebuilding its shared parts, rows written
-into a batch by index, and robots settled to rest in batches of a few padded sizes.
+"""A batch of fixed size whose robots change one by one: rows written into a batch by index, and
+robots settled to rest in batches of a few padded sizes.
 
-:func:`~softcrawl.jaxsim.model.build_model` makes the shared leg and disk parts (the disk's
-dense ``A_0^-1`` among them) every time it is called; a vector env that swaps one robot's
-design at a reset needs only that robot's :class:`~softcrawl.jaxsim.model.RobotData` row
-(:func:`robot_rows`). Writing rows into the batch (:func:`put_rows`) and settling new designs
-(:func:`make_batch_settle`) take arrays whose leading size is padded to a power of four or
-``B`` (:func:`padded_size`), so that a run compiles each at most ``log4(B) + 1`` times.
+A vector env that swaps one robot's design at a reset needs only that robot's
+:class:`~softcrawl.jaxsim.model.RobotData` row (gathered from a
+:class:`~softcrawl.jaxsim.tables.DesignTable`) and rested state. Writing rows into the batch
+(:func:`put_rows`) and settling new designs (:func:`make_batch_settle`) take arrays whose
+leading size is padded to a power of four or ``B`` (:func:`padded_size`), so that a run
+compiles each at most ``log4(B) + 1`` times.
 """
 
 from __future__ import annotations
@@ -19,35 +18,7 @@ import jax
 import numpy as np
 
 from softcrawl.jaxsim.engine import max_speed, rest_state
-from softcrawl.jaxsim.model import RobotData, _robot_data
 from softcrawl.jaxsim.rig import healthy
-
-
-def robot_rows(model, robot, n_slots: int | None = None, inverse: np.ndarray | None = None) -> RobotData:
-    """``robot``'s :class:`RobotData` (no batch axis, numpy, the model's float precision) for
-    ``model``'s disk and ``n_slots`` leg slots (default: the model's): the row
-    :func:`~softcrawl.jaxsim.model.build_model` would stack for it, without building the shared
-    parts again (the disk's dense ``A_0^-1`` above all).
-
-    Args:
-        inverse: the disk's ``A_0^-1`` ``(3n, 3n)`` in float64, for the attachment Gram blocks
-            (default: the model's; in float32 those blocks are then within one rounding of
-            ``build_model``'s, which come from the float64 inverse).
-
-    Raises:
-        ValueError: ``robot`` has more legs than the slots, another disk mesh, or an
-            attachment that does not tie a leg to the disk.
-    """
-    n_slots = model.robot.leg_mask.shape[-1] if n_slots is None else n_slots
-    if len(robot.legs) > n_slots:
-        raise ValueError(f"a design with {len(robot.legs)} legs does not fit the JAX batch's {n_slots} leg slots")
-    dtype = np.dtype(model.disk.rest.dtype)
-    disk = np.asarray(robot.model.bodies[robot.disk_body].mesh.points).astype(dtype)
-    if not np.array_equal(disk, np.asarray(model.disk.rest)):
-        raise ValueError("a robot of another disk mesh than the JAX batch's")
-    rows = _robot_data(robot, n_slots, np.asarray(model.disk.inverse if inverse is None else inverse, np.float64))
-    return RobotData(*(a.astype(dtype) if a.dtype.kind == "f" else a
-                       for a in (getattr(rows, f.name) for f in dataclasses.fields(RobotData))))
 
 
 def padded_size(n: int, batch: int, base: int = 4, smallest: int = 4) -> int:
@@ -95,6 +66,7 @@ def make_batch_settle(settle):
 
 
 def take(tree, i: int):
-    """Row ``i`` of every array of a batched pytree (numpy on the host)."""
-    return jax.tree_util.tree_map(lambda a: np.asarray(a[i]), tree)
+    """Row ``i`` of every array of a batched pytree (numpy copies on the host: they do not keep
+    the batch alive)."""
+    return jax.tree_util.tree_map(lambda a: np.array(a[i]), tree)
 

@@ -30,6 +30,9 @@ from softcrawl.jaxsim import legs as leg_motion
 from softcrawl.jaxsim.contact import floor_contacts, solve_constraints
 from softcrawl.jaxsim.model import register_pytree
 
+#: The engine's numerical version: changes whenever a step's result changes (caches of settled
+#: states built by an engine of another version are stale).
+ENGINE_VERSION = 1
 #: Floor contact frame, rows normal, tangent 1, tangent 2 (:mod:`softcrawl.fem.solver`).
 FLOOR_FRAME = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 #: z given to the collision points of absent legs (mm): never a contact.

@@ -4,9 +4,11 @@ What :class:`softcrawl.codesign.groundtruth.DesignEvaluator` does for one design
 reduced engine (:func:`softcrawl.robot.episode.run_episode` from a cached
 :func:`~softcrawl.robot.episode.settle`), for a batch of requests of many designs at once:
 
-* each design is built (:func:`softcrawl.robot.build_robot`) and settled once, by the CPU rule
-  (:class:`~softcrawl.robot.episode.Settling` in steps of the robot's ``dt``,
-  :func:`~softcrawl.jaxsim.engine.make_settle`); its model rows and rested state are cached;
+* each design's model rows are gathered from the space's design table
+  (:class:`~softcrawl.jaxsim.tables.DesignTable`: no robot is built per design) and it is
+  settled once per machine, by the CPU rule (:class:`~softcrawl.robot.episode.Settling` in
+  steps of the robot's ``dt``, :func:`~softcrawl.jaxsim.engine.make_settle`); its rested state
+  is kept, and cached on disk (:class:`~softcrawl.jaxsim.tables.SettledStates`);
 * each request's regulator commands are computed on the host exactly as ``run_episode``
   commands them, ``gait.pressure_at(k dt)`` for step ``k`` (real kPa, range-checked);
 * requests are grouped by leg count (a 3-legged batch is not padded to 6 legs) and episode
@@ -21,8 +23,8 @@ reduced engine (:func:`softcrawl.robot.episode.run_episode` from a cached
 
 from __future__ import annotations
 
-import dataclasses
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -33,11 +35,12 @@ from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.fem.solver import SolverSettings
 from softcrawl.gaits.pressure import check_pressures
-from softcrawl.jaxsim.batch import padded_size, robot_rows, stack_padded, take
-from softcrawl.jaxsim.engine import make_schedule_rollout, make_settle, rest_state
-from softcrawl.jaxsim.model import Model, build_model, disk_inverse, engine_dtype
+from softcrawl.jaxsim.batch import padded_size, stack_padded
+from softcrawl.jaxsim.engine import make_schedule_rollout
+from softcrawl.jaxsim.model import engine_dtype
+from softcrawl.jaxsim.tables import DesignTable, SettledStates, build_table
 from softcrawl.robot.actuation import PressureCalibration
-from softcrawl.robot.assembly import RobotConfig, build_robot
+from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.episode import MM_PER_CM, Settling
 
 def episode_steps(duration: float, dt: float) -> int:
@@ -67,17 +70,17 @@ def gait_commands(gait, n_steps: int, dt: float) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class SettledDesign:
-    """A design's cached model rows and rested state (numpy on the host, no batch axis).
+    """A design's rested state (numpy on the host, no batch axis).
 
     Attributes:
-        legs: leg count (its group); rows: its :class:`~softcrawl.jaxsim.model.RobotData`;
+        legs: leg count (its group, and the leg slots of its state);
         state: the rested :class:`~softcrawl.jaxsim.engine.State` (``t = 0``);
         start_x: x of the disk's top-centre node at rest, mm; steps: settling steps;
-        at_rest: whether the rest rule was met before the cap; diverged: whether settling did.
+        at_rest: whether the rest rule was met before the cap; diverged: whether settling did
+            (:func:`~softcrawl.jaxsim.rig.healthy` false).
     """
 
     legs: int
-    rows: object
     state: object
     start_x: float
     steps: int
@@ -100,13 +103,19 @@ class JaxEvaluator:
         diverged_cm: the score of a diverged episode
             (:data:`softcrawl.codesign.groundtruth.DIVERGED_CM`).
         leg_contacts, disk_contacts, sweeps: the contact solve (:func:`build_model`).
-        space: the design space of the designs (their slots, regulators and parts; built with
-            ``build_robot(design, config, space=space)``, so ``config`` is that space's,
-            :meth:`~softcrawl.robot.RobotConfig.for_space`).
+        space: the design space of the designs (their slots, regulators and parts; its
+            design table is built from ``build_robot(design, config, space=space)``, so
+            ``config`` is that space's, :meth:`~softcrawl.robot.RobotConfig.for_space`).
+        settled_folder: the settled-state cache's folder (default
+            :func:`~softcrawl.jaxsim.tables.settled_cache_dir`).
 
     Attributes:
-        settles: designs settled so far (each once); episodes, sim_seconds: episodes run and
-        their simulated seconds; robot_steps: robot-steps computed, padding included.
+        settles: designs made ready so far (each once): settled now, or read from the
+        settled-state cache; episodes, sim_seconds: episodes run and their simulated seconds;
+        robot_steps: robot-steps computed, padding included; table, states: the space's
+        :class:`~softcrawl.jaxsim.tables.DesignTable` and
+        :class:`~softcrawl.jaxsim.tables.SettledStates` (None until the first design is
+        prepared; ``states.settled`` and ``states.loaded`` count the designs settled and read).
 
     Raises:
         ValueError: a config that is not reduced, an unknown precision, float64 without
@@ -116,7 +125,8 @@ class JaxEvaluator:
     def __init__(self, config: RobotConfig, precision: str = "float32", settling: Settling = Settling(),
                  calibration: PressureCalibration = PressureCalibration(), rate_kpa_s: float = 150.0,
                  max_batch: int = 64, diverged_cm: float = -100.0, leg_contacts: int = 12,
-                 disk_contacts: int = 8, sweeps: int = 100, space: DesignSpace = DEFAULT_SPACE):
+                 disk_contacts: int = 8, sweeps: int = 100, space: DesignSpace = DEFAULT_SPACE,
+                 settled_folder: str | os.PathLike | None = None):
         if config.model != "reduced" or config.reduced_disk != "floating":
             raise ValueError("the JAX engine steps reduced robots with a floating disk "
                              f"(RobotConfig(model='reduced')), got model={config.model!r}, "
@@ -128,11 +138,10 @@ class JaxEvaluator:
         self.max_batch, self.diverged_cm = int(max_batch), float(diverged_cm)
         self._model_kw = dict(leg_contacts=leg_contacts, disk_contacts=disk_contacts, sweeps=sweeps,
                               dtype=dtype, calibration=calibration, rate_kpa_s=rate_kpa_s)
-        hold, cap = settling.steps(config.dt)
-        self._settle = make_settle(settling.rest_speed, hold, cap)
+        self._settled_folder = settled_folder
         self._rollout = make_schedule_rollout()
-        self._parts: Model | None = None  # the shared leg, disk and settings (robot rows None)
-        self._inverse: np.ndarray | None = None  # the disk's A_0^-1, float64 (exact attachment rows)
+        self.table: DesignTable | None = None  # built with the first design
+        self.states: SettledStates | None = None
         self._designs: dict[Design, SettledDesign] = {}
         self.settles, self.episodes, self.sim_seconds, self.robot_steps = 0, 0, 0.0, 0
 
@@ -141,39 +150,25 @@ class JaxEvaluator:
         self.prepare([design])
         return self._designs[self.space.canonicalize(design)]
 
-    def _model(self, rows) -> Model:
-        return dataclasses.replace(self._parts, robot=rows)
-
     def prepare(self, designs: Sequence) -> None:
-        """Build and settle the designs not cached yet, in batches of one leg count.
+        """Settle the designs not ready yet (or read them from the settled-state cache), in
+        batches of one leg count; the design table is built with the first.
 
         Raises:
             InvalidDesignError: an invalid design.
         """
-        _, cap = self.settling.steps(self.config.dt)
-        new: dict[int, list] = {}
-        for d in dict.fromkeys(self.space.canonicalize(d) for d in designs):
-            if d in self._designs:
-                continue
-            robot = build_robot(d, self.config, space=self.space)
-            if self._parts is None:  # the shared parts, built once
-                self._parts = dataclasses.replace(build_model([robot], **self._model_kw), robot=None)
-                self._inverse = disk_inverse(robot)
-            legs = len(robot.legs)
-            new.setdefault(legs, []).append((d, robot_rows(self._parts, robot, legs, self._inverse)))
-        for legs, items in new.items():
-            for i in range(0, len(items), self.max_batch):
-                chunk = items[i:i + self.max_batch]
-                model = self._model(stack_padded([r for _, r in chunk], padded_size(len(chunk), self.max_batch, 2, 1)))
-                state, steps = self._settle(model, rest_state(model))
-                node = model.disk.reward_node
-                for b, (d, rows) in enumerate(chunk):
-                    st = take(state, b)
-                    n = int(steps[b])
-                    self._designs[d] = SettledDesign(
-                        legs, rows, st, float(st.x[node, 0]), n, n < cap,
-                        bool(int(st.bad) > 0 or not np.isfinite(st.x).all()))
-                    self.settles += 1
+        new = [d for d in dict.fromkeys(self.space.canonicalize(d) for d in designs) if d not in self._designs]
+        if not new:
+            return
+        if self.table is None:
+            self.table = build_table(self.space, self.config, **self._model_kw)
+            self.states = SettledStates(self.table, self.settling, self._settled_folder)
+        cap = self.states.rule[2]
+        node = self.table.parts.disk.reward_node
+        for d, r in zip(new, self.states.get(new, batch=self.max_batch, base=2, smallest=1)):
+            self._designs[d] = SettledDesign(sum(v > 0 for v in d), r.state, float(r.state.x[node, 0]), r.steps,
+                                             r.steps < cap, not r.ok)
+            self.settles += 1
 
     def evaluate(self, requests: Sequence[tuple]) -> list[tuple[float, bool]]:
         """``(reward_cm, diverged)`` of each ``(design, gait, duration)`` request, in order.
@@ -209,20 +204,20 @@ class JaxEvaluator:
         for (_, n), idx in groups.items():
             for i in range(0, len(idx), self.max_batch):
                 chunk = idx[i:i + self.max_batch]
-                for j, result in zip(chunk, self._run([self._designs[designs[j]] for j in chunk],
-                                                      [commands[j] for j in chunk])):
+                for j, result in zip(chunk, self._run([designs[j] for j in chunk], [commands[j] for j in chunk])):
                     out[j] = result
                 self.episodes += len(chunk)
                 self.sim_seconds += len(chunk) * n * dt
         return out
 
-    def _run(self, designs: list[SettledDesign], commands: list[np.ndarray]) -> list[tuple[float, bool]]:
-        """One padded batch of episodes of equal length and leg count."""
+    def _run(self, designs: list[Design], commands: list[np.ndarray]) -> list[tuple[float, bool]]:
+        """One padded batch of episodes of equal length and leg count (ready designs)."""
         size = padded_size(len(designs), self.max_batch, 2, 1)
         pad = size - len(designs)
         designs, commands = designs + designs[-1:] * pad, commands + commands[-1:] * pad
-        model = self._model(stack_padded([d.rows for d in designs], size))
-        state = stack_padded([d.state for d in designs], size)
+        ready = [self._designs[d] for d in designs]
+        model = self.table.model(designs, ready[0].legs)
+        state = stack_padded([d.state for d in ready], size)
         dtype = state.x.dtype
         final, peak, _ = self._rollout(model, state, jnp.asarray(np.stack(commands), dtype))
         self.robot_steps += size * commands[0].shape[0]
@@ -230,7 +225,7 @@ class JaxEvaluator:
         bad = np.asarray(final.bad) > 0
         fast = np.asarray(peak, float) > SolverSettings.max_speed
         out = []
-        for b, d in enumerate(designs[:size - pad]):
+        for b, d in enumerate(ready[:size - pad]):
             reward = (x[b] - d.start_x) / MM_PER_CM
             diverged = bool(d.diverged or bad[b] or fast[b] or not math.isfinite(reward))
             out.append((self.diverged_cm if diverged else float(reward), diverged))

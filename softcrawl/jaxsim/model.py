@@ -230,19 +230,24 @@ def _disk_part(robot) -> DiskPart:
                     disk_inverse(robot), np.asarray(fb.body.collision_nodes, np.int64), node)
 
 
-def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
-    """One robot's :class:`RobotData` with ``n_slots`` leg slots (the first ``len(robot.legs)`` used)."""
+def leg_rows(robot) -> tuple[np.ndarray, ...]:
+    """Per leg of a reduced robot, in its order (:attr:`~softcrawl.robot.Robot.legs`):
+    ``(rotation (l, 3, 3) part -> world, translation (l, 3) mm, channel (l,), disk_nodes
+    (l, F, 4), disk_weights (l, F, 4))``, the disk side of each of its ``F`` attachment points
+    (a point on fewer than 4 disk nodes padded with node 0, weight 0).
+
+    Raises:
+        ValueError: an attachment that does not tie a leg to the disk.
+    """
     F = sum(1 for a in robot.model.attachments if a.a.body == robot.legs[0].body)
-    L = n_slots
-    mask = np.zeros(L, bool)
-    rot = np.tile(np.eye(3), (L, 1, 1))
-    trans = np.zeros((L, 3))
-    channel = np.zeros(L, np.int64)
-    dn = np.zeros((L, F, DISK_POINT_NODES), np.int64)
-    dw = np.zeros((L, F, DISK_POINT_NODES))
+    n = len(robot.legs)
+    rot, trans = np.zeros((n, 3, 3)), np.zeros((n, 3))
+    channel = np.zeros(n, np.int64)
+    dn = np.zeros((n, F, DISK_POINT_NODES), np.int64)
+    dw = np.zeros((n, F, DISK_POINT_NODES))
     for j, leg in enumerate(robot.legs):
         rb = robot.reduced[leg.body]
-        mask[j], rot[j], channel[j] = True, rb.rotation, leg.channel
+        rot[j], channel[j] = rb.rotation, leg.channel
         trans[j] = (rb.body.mesh.points - rb.part.mesh.points @ rb.rotation.T).mean(axis=0)
         refs = [a.b for a in robot.model.attachments if a.a.body == leg.body]
         for a, ref in enumerate(refs):
@@ -250,10 +255,34 @@ def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
                 raise ValueError("the JAX engine needs every attachment to tie a leg to the disk")
             dn[j, a, :len(ref.nodes)] = ref.nodes
             dw[j, a, :len(ref.nodes)] = ref.weights
+    return rot, trans, channel, dn, dw
+
+
+def attachment_gram(nodes: np.ndarray, weights: np.ndarray, inverse: np.ndarray,
+                    cols: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """``E_p^T A_0^-1 E_q`` ``(P, Q, 3, 3)`` of disk points ``p`` (``nodes``, ``weights``
+    ``(P, 4)``) and ``q`` (``cols``, default the same points): the disk's share of the
+    attachment blocks of the Delassus operator, body frame, 1/kg (mm/s per mN s of impulse).
+
+    Args:
+        inverse: the disk's ``A_0^-1`` ``(3n, 3n)``, 1/kg (:func:`disk_inverse`).
+    """
+    cn, cw = (nodes, weights) if cols is None else cols
     n = inverse.shape[0] // 3
     G = inverse.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
-    nodes, w = dn.reshape(-1, DISK_POINT_NODES), dw.reshape(-1, DISK_POINT_NODES)
-    gram = np.einsum("pi,qj,piqjab->pqab", w, w, G[nodes[:, :, None, None], nodes[None, None, :, :]])
+    return np.einsum("pi,qj,piqjab->pqab", weights, cw, G[nodes[:, :, None, None], cn[None, None, :, :]])
+
+
+def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
+    """One robot's :class:`RobotData` with ``n_slots`` leg slots (the first ``len(robot.legs)`` used;
+    the others masked: identity rotation, zero translation, channel, nodes and weights)."""
+    rows = leg_rows(robot)
+    L, n = n_slots, len(robot.legs)
+    mask = np.arange(L) < n
+    rot = np.tile(np.eye(3), (L, 1, 1))
+    rot[:n] = rows[0]
+    trans, channel, dn, dw = (np.concatenate([a, np.zeros((L - n,) + a.shape[1:], a.dtype)]) for a in rows[1:])
+    gram = attachment_gram(dn.reshape(-1, DISK_POINT_NODES), dw.reshape(-1, DISK_POINT_NODES), inverse)
     return RobotData(mask, rot, trans, channel, dn, dw, gram)
 
 

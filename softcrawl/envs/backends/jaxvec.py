@@ -10,8 +10,11 @@ design lists. A vectorised step is one compiled call for all envs
 (:func:`softcrawl.jaxsim.rig.make_action_rollout`: every live env holds its action for its
 steps, through its own regulators and pressure warp). A reset writes the reset envs' rows
 (robot data, settled state, rig) into the batch by index; the robot rows and settled states
-are cached per design (LRU), and the designs not cached yet are built and settled together in
-one call. No CPU solver is built or stepped.
+are kept per design (LRU). The rows of the designs not kept yet are gathered from the space's
+design table (:class:`~softcrawl.jaxsim.tables.DesignTable`, built once from the robots of two
+or so designs), their rested states read from the machine's settled-state cache
+(:class:`~softcrawl.jaxsim.tables.SettledStates`) or settled together in one call. No CPU solver
+is built or stepped.
 
 The transitions have the format and meaning of the CPU backends' (:mod:`softcrawl.envs.crawler`):
 an env whose state becomes invalid (inverted elements, ``state.bad > 0``, or non-finite values)
@@ -42,10 +45,10 @@ from softcrawl.envs.backends.jaxcheck import check_jax_task, check_precision, ch
 from softcrawl.envs.backends.serial import SerialBackend
 from softcrawl.envs.crawler import CrawlerEnv
 from softcrawl.fem.solver import SimulationDiverged
-from softcrawl.jaxsim.batch import make_batch_settle, padded_size, put_rows, robot_rows, stack_padded, take
-from softcrawl.jaxsim.engine import make_settle, rest_state
-from softcrawl.jaxsim.model import build_model, select_robots
+from softcrawl.jaxsim.batch import padded_size, put_rows, stack_padded, take
+from softcrawl.jaxsim.engine import rest_state
 from softcrawl.jaxsim.rig import Rig, make_action_rollout
+from softcrawl.jaxsim.tables import SettledStates, build_table
 from softcrawl.robot.episode import MM_PER_CM, SettledState
 
 #: Memory for the per-design cache of robot rows and settled states, MB (default).
@@ -163,8 +166,9 @@ class JaxBackend(SerialBackend):
         n = self.num_envs
         lists = {id(env.designs): env.designs for env in envs}.values()  # envs share their lists
         slots = max(sum(v > 0 for v in d) for designs in lists for d in designs)
-        shared = build_model([first.robot_factory(first.designs[0])], n_slots=slots, calibration=first.calibration)
-        self._model = select_robots(shared, np.zeros(n, np.int32))
+        self._table = build_table(first.space, factory=first.robot_factory, n_slots=slots,
+                                  calibration=first.calibration)
+        self._model = self._table.model([first.designs[0]] * n)
         self._dtype = np.dtype(self._model.disk.rest.dtype)
         self._state = rest_state(self._model)
         self._n_reg = first.space.n_regulators
@@ -182,9 +186,8 @@ class JaxBackend(SerialBackend):
             return state, diverged, point, state.pressure, state.t
 
         self._advance = advance
-        hold, cap = first.settling.steps(self._dt)
-        self._cap = cap
-        self._settle_rows = make_batch_settle(make_settle(first.settling.rest_speed, hold, cap))
+        self._settled = SettledStates(self._table, first.settling)
+        self._cap = self._settled.rule[2]
         self._cache: OrderedDict = OrderedDict()  # design -> _Design, LRU
         self._cache_mb = float(cache_mb)
         self._pending = None
@@ -203,20 +206,17 @@ class JaxBackend(SerialBackend):
 
     # -- designs ------------------------------------------------------------------------
     def _settle_designs(self, designs: list) -> list[_Design]:
-        """Build and settle the robots of ``designs`` (distinct) in one call; their cache entries."""
-        factory = self.envs[0].robot_factory
-        rows = [robot_rows(self._model, factory(d)) for d in designs]
-        size = padded_size(len(rows), self.num_envs)
-        model = dataclasses.replace(self._model, robot=stack_padded(rows, size))
-        state, steps, speed, ok = jax.device_get(self._settle_rows(model))
+        """The cache entries of ``designs`` (distinct): their rows gathered from the design
+        table, their rested states read from the settled-state cache or settled together."""
+        rows = self._table.rows(designs)
         node = self._model.disk.reward_node
         out = []
-        for j, r in enumerate(rows):
-            s = take(state, j)
+        for j, rested in enumerate(self._settled.get(designs, self._table.n_slots, batch=self.num_envs)):
+            r, s = take(rows, j), rested.state
             settled = None
-            if ok[j]:
-                k = int(steps[j])
-                settled = SettledState(None, k, k * self._dt, float(speed[j]), k < self._cap)
+            if rested.ok:
+                k = rested.steps
+                settled = SettledState(None, k, k * self._dt, rested.speed, k < self._cap)
             out.append(_Design(r, s, settled, np.stack([s.x[node], s.v[node]]), _nbytes(r) + _nbytes(s)))
         return out
 
