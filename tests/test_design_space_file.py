@@ -6,8 +6,14 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
+import os
 import pickle
 import re
+import resource
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +21,7 @@ import pytest
 
 from softcrawl import cli
 from softcrawl.design import space as default
+from softcrawl.design.resolve import resolve_space
 from softcrawl.envs.crawler import BuildRobot, CrawlerEnv
 from softcrawl.design.spacefile import (
     InvalidDesignError,
@@ -150,7 +157,7 @@ def test_mirror_of_an_asymmetric_slot_set_is_refused(tmp_path):
 MALFORMED = [
     ("count = 8\n", "count = 8\ncolour = 1\n", r"slots\.colour: unknown key"),
     ('name = "paper"', 'name = "paper"\nextra = 1', r"extra: unknown key"),
-    ("regulators = 3", "regulators = 0", r"design\.regulators: must be >= 1"),
+    ("regulators = 3", "regulators = 0", r"design\.regulators: must lie in \[1, 16\], got 0"),
     ("regulators = 3", "regulators = 2.5", r"design\.regulators: must be an integer"),
     ("min_legs = 3", "min_legs = 7", r"design\.min_legs: 7 is more than max_legs = 6"),
     ("max_legs = 6", "max_legs = 9", r"design\.max_legs: 9 is more than the 8 slots"),
@@ -162,7 +169,7 @@ MALFORMED = [
     ("first_angle_deg = 22.5", "angles_deg = [0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 45.0]",
      r"slots\.angles_deg: slots 1 and 7 have the same angle 45"),
     ("first_angle_deg = 22.5", "first_angle_deg = 22.5\nangles_deg = []", r"slots: give exactly one of"),
-    ("mass_kg = 0.075", "mass_kg = -1.0", r"body\.mass_kg: must lie in \(0, inf\)"),
+    ("mass_kg = 0.075", "mass_kg = -1.0", r"body\.mass_kg: must lie in \[1e-06, 100\], got -1"),
     ("height_mm = 18.0\n", "", r"body\.height_mm: missing"),
     ('material = "printed_polymer"', 'material = "steel"', r"body\.material: unknown material 'steel'"),
     ('material = "printed_polymer"', "material = { youngs_modulus_kpa = 5000.0, poisson_ratio = 0.5 }",
@@ -174,8 +181,8 @@ MALFORMED = [
     ('material = "dragonskin30"', "material = { youngs_modulus_kpa = 1160.0, poisson_ratio = 0.2, "
      "density_kg_per_m3 = 1080.0 }", r"actuator\.mass_kg: twice: give either it or the material's density"),
     ('material = "dragonskin30"', "material = { youngs_modulus_kpa = 1160.0, poisson_ratio = 0.2, "
-     "density_kg_per_m3 = 0.0 }", r"actuator\.material\.density_kg_per_m3: must lie in \(0, inf\)"),
-    ("n_chambers = 9", "n_chambers = 0", r"actuator\.pneunet\.n_chambers: must be >= 1"),
+     "density_kg_per_m3 = 0.0 }", r"actuator\.material\.density_kg_per_m3: must lie in \[1, 25000\], got 0"),
+    ("n_chambers = 9", "n_chambers = 0", r"actuator\.pneunet\.n_chambers: must lie in \[1, 100\], got 0$"),
     ("wall_thickness_mm = 3.0", "wall_thickness_mm = 4.0",
      r"actuator\.pneunet: chambers must have positive size \(wall_thickness too large\)$"),
     ("base_length_mm = 115.0", "base_length_mm = 100.0",
@@ -193,7 +200,47 @@ MALFORMED = [
     ("[slots]", "[slot]", r"slot: unknown key"),
     ("count = 8", "count = 8 8", r"TOML"),
     ("regulators = 3", "regulators = 7", r"design: 4422642 raw designs, more than the 2000000"),
-    ("mass_kg = 0.075", "mass_kg = nan", r"body\.mass_kg: must lie in \(0, inf\), got nan"),
+    ("mass_kg = 0.075", "mass_kg = nan", r"body\.mass_kg: must lie in \[1e-06, 100\], got nan"),
+    # bounds of every count and dimension (the module docstring of softcrawl.design.spacefile)
+    ("regulators = 3", "regulators = 17", r"design\.regulators: must lie in \[1, 16\], got 17$"),
+    ("count = 8", "count = 129", r"slots\.count: must lie in \[1, 128\], got 129$"),
+    ("count = 8", "count = 128", rf"design: {sum(math.comb(128, k) * 3**k for k in range(3, 7))} raw designs, more "
+     r"than the 125000 of 128 slots"),  # counted, not enumerated
+    ("bottom_radius_mm = 50.0", "bottom_radius_mm = 1e300",
+     r"body\.bottom_radius_mm: must lie in \[0\.1, 1000\] mm, got 1e\+300$"),
+    ("height_mm = 18.0", "height_mm = 0.01", r"body\.height_mm: must lie in \[0\.1, 1000\] mm, got 0\.01$"),
+    ("mesh_size_mm = 10.0", "mesh_size_mm = 1e-9", r"body\.mesh_size_mm: must lie in \[1, 100\] mm, got 1e-09$"),
+    ("mesh_size_mm = 6.0", "mesh_size_mm = 1e-9", r"actuator\.mesh_size_mm: must lie in \[1, 100\] mm, got 1e-09$"),
+    ("mesh_size_mm = 6.0", "mesh_size_mm = 1e3", r"actuator\.mesh_size_mm: must lie in \[1, 100\] mm, got 1000$"),
+    ("bottom_radius_mm = 50.0\ntop_radius_mm = 54.5\nheight_mm = 18.0\nmesh_size_mm = 10.0",
+     "bottom_radius_mm = 500.0\ntop_radius_mm = 500.0\nheight_mm = 18.0\nmesh_size_mm = 1.0",
+     r"body: mesh_size 1 mm is too fine for a part of 1000 x 1000 x 18 mm: 1\.8e\+07 cells .* at least 3\.31 mm$"),
+    ("base_length_mm = 115.0", "base_length_mm = 1e300",
+     r"actuator\.pneunet\.base_length_mm: must lie in \[0\.1, 1000\] mm, got 1e\+300$"),
+    ("n_chambers = 9", "n_chambers = 1000", r"actuator\.pneunet\.n_chambers: must lie in \[1, 100\], got 1000$"),
+    ("mass_kg = 0.105", "mass_kg = 1e300", r"actuator\.mass_kg: must lie in \[1e-06, 100\], got 1e\+300$"),
+    ("paper_thickness_mm = 1.0", "paper_thickness_mm = 1e300",
+     r"actuator\.paper_thickness_mm: must lie in \[0\.01, 100\], got 1e\+300$"),
+    ('material = "printed_polymer"', "material = { youngs_modulus_kpa = 1e300, poisson_ratio = 0.3, "
+     "density_kg_per_m3 = 1000.0 }", r"body\.material\.youngs_modulus_kpa: must lie in \[1, 1e\+09\]"),
+    # names are printed and name folders: printable, one line, no path
+    ('name = "paper"', 'name = "\\u001b[31mred"', r"name: '\\x1b\[31mred' is not a name \(1 to 64 characters"),
+    ('name = "paper"', 'name = "abc\\u202Edef"', r"name: 'abc\\u202edef' is not a name"),
+    ('name = "paper"', 'name = "a\\u0000b"', r"name: 'a\\x00b' is not a name"),
+    ('name = "paper"', 'name = "../../etc"', r"name: '\.\./\.\./etc' is not a name"),
+    ('name = "paper"', 'name = "two\\nlines"', r"name: 'two\\nlines' is not a name"),
+    ('name = "paper"', f'name = "{"x" * 65}"', r"name: 'x{65}' is not a name"),
+    ('name = "paper"', 'name = ""', r"name: '' is not a name"),
+    ('reduction = "softcrawl:pneunet_6mm.npz"', 'reduction = "softcrawl:../../x.npz"',
+     r"actuator\.reduction: 'softcrawl:\.\./\.\./x\.npz': a shipped reduction is a file name"),
+    ('reduction = "softcrawl:pneunet_6mm.npz"', 'reduction = "leg.txt"',
+     r"actuator\.reduction: 'leg\.txt' is not a \.npz reduction file \(`softcrawl reduce build` writes one\)$"),
+    # what a file holds is shown escaped and short: a key or a value of control characters, a huge value
+    ("count = 8\n", 'count = 8\n"\\u001b[2J" = 1\n', r"slots\.'\\x1b\[2J': unknown key"),
+    ("mirror_x = false", f'mirror_x = "{"y" * 100_000}"',
+     r"design\.mirror_x: must be true or false, got 'y{76}\.\.\.$"),
+    ("first_angle_deg = 22.5", f"angles_deg = [{', '.join(['1.0'] * 100_000)}]",
+     r"slots\.angles_deg: must be a list of count = 8 angles, got 100000 of them$"),
 ]
 
 
@@ -206,7 +253,7 @@ def test_malformed_file_one_line_naming_file_and_key(tmp_path, old, new, message
     with pytest.raises(SpaceFileError) as info:
         load_space(path)
     msg = str(info.value)
-    assert "\n" not in msg and msg.startswith(str(path)), msg
+    assert "\n" not in msg and msg.startswith(str(path)) and msg.isprintable() and len(msg) < len(str(path)) + 400, msg
     assert re.search(message, msg), msg
 
 
@@ -217,6 +264,128 @@ def test_not_a_regular_file_and_missing_file(tmp_path):
         load_space(tmp_path / "none.toml")
     with pytest.raises(FileNotFoundError, match="shipped: hex6, paper"):
         shipped_space_path("octo")
+
+
+def test_a_device_or_a_fifo_as_a_space_file_is_not_a_regular_file(tmp_path):
+    """``--space /dev/zero`` or a FIFO: "not a regular file" (it was "no such file"), one
+    line, without reading it."""
+    fifo = tmp_path / "pipe.toml"
+    os.mkfifo(fifo)
+    for path in (Path("/dev/zero"), fifo, tmp_path):
+        with pytest.raises(SpaceFileError, match=r"not a regular file") as info:
+            resolve_space(str(path))
+        assert str(info.value).startswith(str(path)) and "\n" not in str(info.value)
+
+
+def test_a_space_without_a_name_takes_its_files_name(tmp_path):
+    path = tmp_path / "my space-2.toml"
+    path.write_text(PAPER_TOML.read_text().replace('name = "paper"\n', ""))
+    space = load_space(path)
+    assert space.name == "my space-2" and space == dataclasses.replace(default.DEFAULT_SPACE, name="my space-2")
+    bad = tmp_path / "-x\u202e.toml"
+    bad.write_text(path.read_text())
+    with pytest.raises(SpaceFileError, match=r"name: missing, and the file's name '-x\\u202e' is not a name .*; "
+                                             r"give name = \"\.\.\.\"$"):
+        load_space(bad)
+
+
+def test_a_reduction_that_is_not_a_npz_archive_is_one_line(tmp_path):
+    """A file named .npz that is not a zip archive: refused when the space is read, in one line
+    (numpy's advice to load it "unsafely" with allow_pickle never shows)."""
+    (tmp_path / "leg.npz").write_text("not a reduction")
+    path = tmp_path / "s.toml"
+    path.write_text(PAPER_TOML.read_text().replace('"softcrawl:pneunet_6mm.npz"', '"leg.npz"'))
+    with pytest.raises(SpaceFileError, match=r"actuator\.reduction: '.*leg\.npz' is not a reduction file \(a \.npz is "
+                                             r"a zip archive; `softcrawl reduce build` writes one\)$") as info:
+        load_space(path)
+    assert "pickle" not in str(info.value)
+    (tmp_path / "leg.npz").unlink()
+    (tmp_path / "leg.npz").mkdir()
+    with pytest.raises(SpaceFileError, match=r"actuator\.reduction: '.*leg\.npz': not a regular file$"):
+        load_space(path)
+
+
+def test_a_reduction_is_compared_by_its_bytes_and_its_path_made_absolute(tmp_path, monkeypatch):
+    """Two spaces naming the same reduction bytes at other paths are the same space; other
+    bytes are another space. A relative path is taken from the space file's folder, whatever
+    the working folder."""
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        shutil.copy(default_reduction_path(), tmp_path / folder / "leg.npz")
+        (tmp_path / folder / "s.toml").write_text(PAPER_TOML.read_text().replace('"softcrawl:pneunet_6mm.npz"',
+                                                                                 '"leg.npz"'))
+    monkeypatch.chdir(tmp_path / "a")
+    a = load_space("s.toml")
+    monkeypatch.chdir(tmp_path)
+    b = load_space(tmp_path / "b" / "s.toml")
+    assert a.reduction == str(tmp_path / "a" / "leg.npz") and a == b and a != default.DEFAULT_SPACE
+    assert a.reduction_key == "sha256:" + SHIPPED_SHA256 and default.DEFAULT_SPACE.reduction_key == \
+        "softcrawl:pneunet_6mm.npz"
+    (tmp_path / "b" / "leg.npz").write_bytes(default_reduction_path().read_bytes() + b"\0")
+    assert load_space(tmp_path / "b" / "s.toml") != a
+
+
+# ---------------------------------------------------------------------- bounds before any work
+def test_enumeration_by_leg_count_is_the_brute_force_one(tmp_path):
+    """Designs enumerated by leg count (slot sets, then their regulators) are those of all
+    slot-value combinations, in the same (lexicographic) order: design indices are kept."""
+    for space in (default.DEFAULT_SPACE, load_space(HEX6_TOML), load_space(_small(tmp_path, mirror=True))):
+        s, r = space.n_slots, space.n_regulators
+        assert space.raw_designs == tuple(d for d in itertools.product(range(r + 1), repeat=s)
+                                          if space.min_legs <= s - d.count(0) <= space.max_legs)
+
+
+@pytest.mark.parametrize("count, regulators, legs, expect", [
+    (100, 2, 1, "raw designs:       200"),  # it enumerated the 3^100 slot-value combinations: a hang
+    (32, 9, 1, "raw designs:       288"),  # 10^32 combinations
+    (1_000_000_000, 2, 1, r"slots\.count: must lie in \[1, 128\], got 1000000000"),  # it built 1e9 angles first
+    (128, 2, 64, r"design: \d+ raw designs, more than the 125000 of 128 slots that can be enumerated"),
+])
+def test_designs_count_within_a_time_and_a_memory_limit(tmp_path, count, regulators, legs, expect):
+    """``softcrawl designs count`` in a process of at most 1 GiB of address space, for 60 s:
+    a space of many slots is counted at once (its designs enumerated by leg count), or refused
+    in one line before anything is allocated (no MemoryError traceback, no OOM kill, no hang)."""
+    path = _space_of(tmp_path, count, regulators, legs, legs)
+
+    def limit_memory():
+        resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))
+
+    done = subprocess.run([sys.executable, "-m", "softcrawl.cli", "designs", "count", "--space", str(path)],
+                          capture_output=True, text=True, timeout=60, preexec_fn=limit_memory,
+                          env={**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
+    if expect.startswith("raw designs"):
+        assert done.returncode == 0 and expect in done.stdout, done.stderr
+    else:
+        err = done.stderr.strip()
+        assert done.returncode == 2 and len(err.splitlines()) == 1 and re.search(expect, err), err
+
+
+def _space_of(tmp_path: Path, count: int, regulators: int, min_legs: int, max_legs: int) -> Path:
+    """hex6 with ``count`` slots, ``regulators`` and ``min_legs..max_legs`` legs, no mirror."""
+    text = HEX6_TOML.read_text().replace("count = 6", f"count = {count}")
+    text = text.replace("regulators = 2\nmin_legs = 2\nmax_legs = 4\nmirror_x = true",
+                        f"regulators = {regulators}\nmin_legs = {min_legs}\nmax_legs = {max_legs}\nmirror_x = false")
+    path = tmp_path / f"s{count}x{regulators}.toml"
+    path.write_text(text)
+    return path
+
+
+def test_part_dimensions_and_mesh_sizes_are_bounded():
+    """A mesh size far below a millimetre gave gmsh an edge node count past a C int: a coarse
+    mesh without an error (1e-9 mm: the disk had 37 nodes); a huge dimension an OpenCASCADE
+    exception. Both are refused in one line when the part is described, before gmsh runs."""
+    for bad, message in ((dict(mesh_size=1e-9), r"^mesh_size must lie in \[1, 100\] mm, got 1e-09$"),
+                         (dict(bottom_radius=1e300), r"^bottom_radius must lie in \[0\.1, 1000\] mm, got 1e\+300$"),
+                         (dict(height=math.nan), r"^height must lie in"),
+                         (dict(bottom_radius=500.0, mesh_size=1.0), r"^mesh_size 1 mm is too fine for a part of 1000")):
+        with pytest.raises(ValueError, match=message):
+            DiskParams(**bad)
+    for bad, message in ((dict(n_chambers=101), r"^n_chambers must lie in \[1, 100\], got 101$"),
+                         (dict(tooth_gap=math.inf), r"^tooth_gap must lie in \[0\.1, 1000\] mm, got inf$"),
+                         (dict(mesh_size=0.5), r"^mesh_size must lie in \[1, 100\] mm, got 0\.5$")):
+        with pytest.raises(ValueError, match=message):
+            PneuNetParams(**bad)
+    assert DiskParams(mesh_size=1.0).mesh_size == 1.0 and PneuNetParams(mesh_size=100).mesh_size == 100.0
 
 
 # ---------------------------------------------------------------------- robots of a space
@@ -365,3 +534,15 @@ def test_cli_designs_bad_space_one_line_writes_nothing(designs_cli, capsys, tmp_
     assert captured.out == "" and len(captured.err.strip().splitlines()) == 1
     assert "design.max_legs" in captured.err and str(bad) in captured.err
     assert sorted(tmp_path.iterdir()) == before
+
+
+def test_cli_designs_never_prints_a_raw_control_character(designs_cli, capsys, tmp_path):
+    """A name of escape sequences, a right-to-left override or a NUL is refused, and the
+    refusal shows it escaped: nothing raw reaches the terminal."""
+    for name in ("\\u001b]0;owned\\u0007", "abc\\u202Etxt.exe", "a\\u0000b"):
+        path = tmp_path / "evil.toml"
+        path.write_text(PAPER_TOML.read_text().replace('name = "paper"', f'name = "{name}"'))
+        assert designs_cli(["designs", "count", "--space", str(path)]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == "" and "is not a name" in captured.err
+        assert captured.err.isprintable() or captured.err.rstrip("\n").isprintable(), captured.err

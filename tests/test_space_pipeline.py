@@ -3,7 +3,10 @@ run's own ``space.toml`` and its checksum, resume, evaluate, report, a tampered 
 space file, older runs read as the paper's space, deploy's regulator count.
 
 The space of these tests is the paper's PneuNet (so the shipped reduction fits) on another slot
-layout: 6 slots at 30 + 60 i degrees, 3 regulators, exactly 3 legs, mirror symmetry about x.
+layout: 6 slots at 30 + 60 i degrees, 3 regulators, exactly 3 legs, mirror symmetry about x. Its
+file ``hex3.toml`` gives no ``name`` (the space is ``hex3``) and names its reduction by a path
+relative to its folder (``red/leg.npz``, a copy of the shipped one), as the docs allow: the run
+and the ground truth keep the same space, name and reduction.
 """
 
 import dataclasses
@@ -32,10 +35,19 @@ def hex3_text() -> str:
     return text
 
 
+def unnamed_text() -> str:
+    """:func:`hex3_text` without its name, naming its reduction ``red/leg.npz``."""
+    return hex3_text().replace('name = "hex3"\n', "").replace('"softcrawl:pneunet_6mm.npz"', '"red/leg.npz"')
+
+
 @pytest.fixture(scope="module")
 def space_file(tmp_path_factory) -> Path:
+    from softcrawl.reduction.data import default_reduction_path
+
     path = tmp_path_factory.mktemp("space") / "hex3.toml"
-    path.write_text(hex3_text(), encoding="utf-8")
+    path.write_text(unnamed_text(), encoding="utf-8")
+    (path.parent / "red").mkdir()
+    shutil.copy(default_reduction_path(), path.parent / "red" / "leg.npz")
     return path
 
 
@@ -83,14 +95,16 @@ def test_robot_settings_of_another_space_take_its_part_values(tmp_path):
 
 def test_a_run_keeps_its_space_file_and_reads_it_back(hex3_run, space_file, tmp_path):
     run = Run(hex3_run)
-    data = space_file.read_bytes()
+    data = b'name = "hex3"\n' + space_file.read_bytes()  # the copy records the space's name
     assert run.space_path.read_bytes() == data
+    assert (hex3_run / "red" / "leg.npz").read_bytes() == (space_file.parent / "red" / "leg.npz").read_bytes()
     meta = json.loads(run.config_path.read_text())
     assert meta["space_sha256"] == hashlib.sha256(data).hexdigest()
     assert meta["config"]["env"]["space"] == str(space_file)
     assert run.read_config().env.space == str(run.space_path)
     space = run.design_space()
-    assert space == resolve_space(space_file) and space.n_slots == 6
+    assert space == resolve_space(space_file) and space.n_slots == 6 and space.name == "hex3"
+    assert space.reduction == str(hex3_run / "red" / "leg.npz")
     rows = run.read_episodes()
     assert len(rows["design"]) == 4 and all(space.canonicalize(d) == d and len(d) == 6 for d in rows["design"])
     # the run does not change when the file it was started from does
@@ -146,7 +160,7 @@ def test_a_tampered_space_file_is_refused(hex3_run, tmp_path):
 
     copy = tmp_path / "run"
     shutil.copytree(hex3_run, copy)
-    (copy / "space.toml").write_text(hex3_text().replace("max_legs = 3", "max_legs = 4"), encoding="utf-8")
+    (copy / "space.toml").write_text(unnamed_text().replace("max_legs = 3", "max_legs = 4"), encoding="utf-8")
     for call in (lambda: Run(copy).read_config(), lambda: evaluate_policy(copy, (1, 1, 1, 0, 0, 0)),
                  lambda: write_report(copy, simulate=False)):
         with pytest.raises(ValueError, match=r"space.toml: sha256 .* \(the design space was changed after") as exc:
@@ -230,8 +244,9 @@ def test_a_ground_truth_of_the_space_keeps_it_and_regret_compares_like_with_like
     cfg = GroundTruthConfig(baseline_phases=(), space=str(space_file))
     run_groundtruth(designs, gt, cfg, executor="serial", task=fake_task, progress=False)
     meta = json.loads((gt / "config.json").read_text())
-    assert (gt / "space.toml").read_bytes() == space_file.read_bytes()
-    assert meta["space_sha256"] == hashlib.sha256(space_file.read_bytes()).hexdigest()
+    copy = b'name = "hex3"\n' + space_file.read_bytes()
+    assert (gt / "space.toml").read_bytes() == copy and (gt / "red" / "leg.npz").is_file()
+    assert meta["space_sha256"] == hashlib.sha256(copy).hexdigest()
     assert not (gt / "references.json").exists()
     saved, results, _ = load_groundtruth(gt)
     assert saved.design_space() == space and set(results) == set(designs)
@@ -239,16 +254,19 @@ def test_a_ground_truth_of_the_space_keeps_it_and_regret_compares_like_with_like
     r = compute_regret(hex3_run, gt, policy=False)
     assert r["placement"]["of"] == len(designs) and len(r["choice"]["design"]) == 6
     paper_gt = make_folder(tmp_path / "paper_gt")
-    with pytest.raises(ValueError, match="of different design spaces"):
+    with pytest.raises(ValueError, match=r"\(design space 'hex3'\) and the ground truth .* \(design space 'paper'\) "
+                                         "are of different design spaces"):
         compute_regret(hex3_run, paper_gt, policy=False)
-    (gt / "space.toml").write_text(hex3_text() + "# changed\n", encoding="utf-8")
+    (gt / "space.toml").write_text(unnamed_text() + "# changed\n", encoding="utf-8")
     with pytest.raises(ValueError, match=r"space.toml: sha256 .* \(the design space was changed after"):
         read_config(gt)
 
 
 def test_a_space_copy_takes_its_relative_reduction_along(tmp_path):
     """A space naming its reduction by a relative path: the folder's copy reads the same
-    reduction (copied below the folder, byte for byte); a path out of the space's folder is refused."""
+    reduction (copied below the folder, byte for byte) and is the same space; a path out of the
+    space's folder is refused; a reduction changed after the space was read is refused before
+    anything is written."""
     from softcrawl.design.resolve import write_space_copy
     from softcrawl.design.spacefile import SpaceFileError
     from softcrawl.reduction.data import default_reduction_path
@@ -260,15 +278,35 @@ def test_a_space_copy_takes_its_relative_reduction_along(tmp_path):
     folder = tmp_path / "run"
     folder.mkdir()
     sha = write_space_copy(folder, src / "s.toml")
-    assert sha == hashlib.sha256((src / "s.toml").read_bytes()).hexdigest()
+    assert sha == hashlib.sha256((src / "s.toml").read_bytes()).hexdigest()  # a named file: copied as it is
     copy, original = resolve_space(folder / "space.toml"), resolve_space(src / "s.toml")
-    assert copy.reduction == str(folder / "red" / "leg.npz")
-    assert dataclasses.replace(copy, reduction=original.reduction) == original
+    assert copy.reduction == str(folder / "red" / "leg.npz") and copy == original
     assert (folder / "red" / "leg.npz").read_bytes() == default_reduction_path().read_bytes()
-    (tmp_path / "up.npz").write_bytes(b"x")
+    (src / "red" / "leg.npz").write_bytes(b"PK\x03\x04 another reduction")  # after the space was read
+    other = tmp_path / "other"
+    other.mkdir()
+    with pytest.raises(SpaceFileError, match=r"leg\.npz: the reduction file changed while it was read"):
+        write_space_copy(other, src / "s.toml")
+    assert list(other.iterdir()) == []
+    (tmp_path / "up.npz").write_bytes(b"PK\x03\x04")
     (src / "t.toml").write_text(hex3_text().replace('"softcrawl:pneunet_6mm.npz"', '"../up.npz"'), encoding="utf-8")
     with pytest.raises(SpaceFileError, match="leaves the space file's folder"):
-        write_space_copy(tmp_path / "other", src / "t.toml")
+        write_space_copy(other, src / "t.toml")
     with pytest.raises(ValueError, match="env.space: .*t.toml: actuator.reduction: '../up.npz' leaves"):
         override(preset("smoke"), [f"env.space={json.dumps(str(src / 't.toml'))}"])  # refused before any run
-    assert not (tmp_path / "other").exists()
+    assert list(other.iterdir()) == []
+
+
+def test_a_space_file_without_a_name_keeps_it_in_a_runs_copy(tmp_path):
+    """The copy of a file without ``name`` records the file's name (it would be ``space``, the
+    copy's), so that the run's space is the file's; a byte-order mark is dropped with it."""
+    from softcrawl.design.resolve import write_space_copy
+
+    path = tmp_path / "crab.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + hex3_text().replace('name = "hex3"\n', "").encode())
+    run = Run(tmp_path / "run")
+    cfg = override(preset("smoke"), [f"env.space={json.dumps(str(path))}"])
+    run.write_config(cfg)
+    assert run.space_path.read_text(encoding="utf-8").startswith('name = "crab"\n# The paper')
+    assert run.design_space() == cfg.env.design_space() and run.design_space().name == "crab"
+    assert write_space_copy(tmp_path, run.space_path) == json.loads(run.config_path.read_text())["space_sha256"]

@@ -9,15 +9,18 @@ space equals the paper's (every compared field of :class:`DesignSpace`) resolves
 shared and its robots are the paper's, bit for bit.
 
 A co-design run or a ground-truth folder keeps the file it was started with as ``space.toml``
-(:func:`write_space_copy`, with a reduction the file names by a relative path) and its SHA-256 in
-its ``config.json``; its readers use that copy, checked first (:func:`check_space_copy`).
+(:func:`write_space_copy`, with a reduction the file names by a relative path, and the file's
+name as the space's ``name`` if it gives none) and its SHA-256 in its ``config.json``; its
+readers use that copy, checked first (:func:`check_space_copy`). The copy is the same space as
+the file (:class:`DesignSpace` equality: the same name, and a reduction compared by its bytes).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import json
 import os
-import shutil
 import tempfile
 import tomllib
 from pathlib import Path
@@ -48,7 +51,8 @@ def space_path(value: str | os.PathLike) -> Path:
     the path itself.
 
     Raises:
-        SpaceFileError: (a ValueError, one line) an unknown shipped name, or no such file.
+        SpaceFileError: (a ValueError, one line) an unknown shipped name, no such file, or not
+            a regular file (a folder, a device, a FIFO).
     """
     text = os.fspath(value)
     if not text:
@@ -62,7 +66,8 @@ def space_path(value: str | os.PathLike) -> Path:
         return path
     path = Path(text)
     if not path.is_file():
-        raise SpaceFileError(f"{path}: no such design-space file")
+        raise SpaceFileError(f"{path}: " + ("not a regular file (a design-space file is a TOML file)" if path.exists()
+                                            else "no such design-space file"))
     return path
 
 
@@ -122,7 +127,7 @@ def _relative_reduction(data: bytes, space: DesignSpace) -> str | None:
     Raises:
         SpaceFileError: the path leaves the space file's folder (``..``).
     """
-    ref = tomllib.loads(data.decode("utf-8")).get("actuator", {}).get("reduction")
+    ref = tomllib.loads(data.decode("utf-8-sig")).get("actuator", {}).get("reduction")
     if not isinstance(ref, str) or ref.startswith(SHIPPED_PREFIX) or Path(ref).is_absolute():
         return None
     if ".." in Path(ref).parts:
@@ -137,26 +142,49 @@ SPACE_COPY = "space.toml"
 
 def write_space_copy(folder: str | os.PathLike, value: str | os.PathLike) -> str:
     """Copy the file a ``--space`` value names into ``folder`` as :data:`SPACE_COPY`
-    (atomically; the bytes :func:`resolve_space` read) and return its SHA-256 (hex), which the
+    (atomically; the bytes :func:`resolve_space` read, after a line ``name = "<the file's
+    name>"`` if the file gives no ``name``) and return the copy's SHA-256 (hex), which the
     folder's ``config.json`` records for :func:`check_space_copy`. A reduction the file names
     by a relative path is copied too, to the same path below ``folder``, so that the copy
-    reads as the original did (``softcrawl:`` names and absolute paths need no copy).
+    reads as the original did (``softcrawl:`` names and absolute paths need no copy). The copy
+    is the same space as the file (:class:`DesignSpace` equality).
+
+    Args:
+        folder: the run or ground-truth folder (it must exist).
+        value: the ``--space`` value.
 
     Raises:
-        SpaceFileError: as :func:`space_file`. OSError: the folder cannot be written.
+        SpaceFileError: as :func:`space_file`, or the reduction file changed while it was read
+            (nothing written then). OSError: the folder cannot be written.
     """
     data, space = space_file(value)
-    folder = Path(folder)
+    text = data.decode("utf-8-sig")  # a space file is UTF-8 TOML (load_toml), a byte-order mark dropped with it
+    if "name" not in tomllib.loads(text):
+        text = f"name = {json.dumps(space.name)}\n" + text  # a name is a TOML basic string (NAME_PATTERN)
     ref = _relative_reduction(data, space)
     if ref is not None:
-        target = folder / ref
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-        os.close(fd)
-        shutil.copyfile(space.reduction, tmp)
-        os.replace(tmp, target)
-    atomic_write_text(folder / SPACE_COPY, data.decode("utf-8"))  # a space file is UTF-8 TOML (load_toml)
-    return hashlib.sha256(data).hexdigest()
+        reduction = read_bytes(space.reduction)
+        if f"sha256:{hashlib.sha256(reduction).hexdigest()}" != space.reduction_key:
+            raise SpaceFileError(f"{space.reduction}: the reduction file changed while it was read; run the command "
+                                 "again")
+        _write_bytes(Path(folder) / ref, reduction)
+    atomic_write_text(Path(folder) / SPACE_COPY, text)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    """Replace ``path`` by a file holding ``data``, atomically (a temporary file renamed over
+    it; its folder created). OSError: it cannot be written."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 def check_space_copy(folder: str | os.PathLike, sha256: object) -> Path:

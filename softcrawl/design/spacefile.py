@@ -12,7 +12,7 @@ relabelling by order of first appearance (slot 0 first).
 File layout (every key checked; unknown keys are refused; lengths mm, masses kg, angles
 degrees about +z from +x, Young's moduli kPa)::
 
-    name = "paper"                     # optional: a label
+    name = "paper"                     # optional (default: the file's name without .toml): a label
     description = "..."                # optional
     [body]                             # the central disk, a cone frustum on the z axis
     bottom_radius_mm = 50.0
@@ -36,14 +36,28 @@ degrees about +z from +x, Young's moduli kPa)::
     material = "dragonskin30"
     paper_material = "paper"
     paper_thickness_mm = 1.0
-    reduction = "softcrawl:pneunet_6mm.npz"   # optional; a path relative to this file, or softcrawl:NAME
-                                              # for one shipped in softcrawl/reduction/data
+    reduction = "softcrawl:pneunet_6mm.npz"   # optional; a .npz file: a path relative to this file's
+                                              # folder, or softcrawl:NAME for one shipped in
+                                              # softcrawl/reduction/data
     reduction_sha256 = "<64 hex digits>"      # optional (needs reduction): the file's SHA-256, 64 hex
                                               # digits; a reduction file with another is refused on loading
     [actuator.pneunet]                 # every PneuNetParams dimension except mesh_size, with _mm
     n_chambers = 9
     base_length_mm = 115.0
     ...
+
+Bounds (both included; a value outside is refused in one line naming the file and the key,
+before anything is built or enumerated): ``name`` 1 to :data:`MAX_NAME_LENGTH` characters,
+letters, digits, ``_ . + -`` and inner spaces, starting with a letter or a digit (a name is
+printed and is a folder's name); ``slots.count`` 1 to :data:`MAX_SLOTS`; ``design.regulators``
+1 to :data:`MAX_REGULATORS`; at most :data:`MAX_RAW_DESIGNS` raw designs and at most
+:data:`MAX_DESIGN_SLOTS` / ``count`` (counted, not enumerated); masses
+:data:`MASS_BOUNDS_KG`; Young's moduli :data:`YOUNGS_BOUNDS_KPA`; Poisson's ratios (-1, 0.5);
+densities :data:`DENSITY_BOUNDS`; the paper's thickness :data:`PAPER_THICKNESS_BOUNDS_MM`;
+``n_chambers`` 1 to :data:`softcrawl.geometry.pneunet.MAX_CHAMBERS`; every other length
+:data:`softcrawl.geometry.primitives.LENGTH_BOUNDS_MM`, mesh sizes
+:data:`softcrawl.geometry.primitives.MESH_SIZE_BOUNDS_MM` and not finer than
+:func:`softcrawl.geometry.primitives.check_mesh_cells` allows for the part.
 
 The design algebra of the paper's space (the shipped ``paper.toml``) is what
 :mod:`softcrawl.design.space` exposes as module functions.
@@ -54,6 +68,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import math
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from functools import cached_property
@@ -69,8 +84,27 @@ SPACES_DIR = Path(__file__).with_name("spaces")
 SHIPPED_PREFIX = "softcrawl:"
 #: Materials known by name (their constants: :mod:`softcrawl.fem.materials`).
 KNOWN_MATERIALS = ("dragonskin30", "paper", "printed_polymer")
-#: Largest raw design count a space may have (its designs are enumerated in memory).
+#: Most slots of a space (128 legs 32 mm wide fit around a disk of the largest radius, 1 m).
+MAX_SLOTS = 128
+#: Most regulators of a space.
+MAX_REGULATORS = 16
+#: Most raw designs of a space: its designs are enumerated in memory, as tuples (2,000,000
+#: designs of 8 slots: about 0.3 GB and 6 s with the canonical ones).
 MAX_RAW_DESIGNS = 2_000_000
+#: Most raw designs times slots of a space (a space of more than 8 slots has fewer designs).
+MAX_DESIGN_SLOTS = 16_000_000
+#: Longest name of a space (characters).
+MAX_NAME_LENGTH = 64
+#: A space's name: letters, digits, ``_ . + -`` and inner spaces, starting with a letter or a digit.
+NAME_PATTERN = re.compile(r"[^\W_](?:[\w.+ -]*[\w.+-])?")
+#: Bounds of a part's mass, kg (a milligram to 100 kg; the paper's leg 0.105, its disk 0.075).
+MASS_BOUNDS_KG = (1e-6, 100.0)
+#: Bounds of a Young's modulus, kPa (a soft gel's 1 kPa to a TPa, above steel's 2e8 kPa).
+YOUNGS_BOUNDS_KPA = (1.0, 1e9)
+#: Bounds of a density, kg/m^3 (a foam's 1 to osmium's 22,590).
+DENSITY_BOUNDS = (1.0, 25_000.0)
+#: Bounds of the paper layer's thickness, mm (the paper's 1 mm layer; printer paper is 0.1 mm).
+PAPER_THICKNESS_BOUNDS_MM = (0.01, 100.0)
 #: Angles closer than this (degrees) are the same slot.
 ANGLE_TOL_DEG = 1e-6
 
@@ -143,10 +177,13 @@ class DesignSpace:
         disk: the body (``params``: bottom_radius, top_radius, height).
         leg: the actuator (``params``: ``n_chambers`` and :data:`PNEUNET_KEYS`).
         paper_material, paper_thickness: the leg's strain-limiting layer (mm).
-        reduction: the actuator's reduction file (resolved path) or None.
+        reduction: the actuator's reduction file (an absolute path) or None; not compared: a
+            folder's copy of the file is the same reduction (``reduction_key``).
         reduction_sha256: the SHA-256 (64 lower-case hex digits) the reduction file must have,
             or None (not checked).
         name: a label. source: the file read (not compared). sha256: its checksum (not compared).
+        reduction_key: what the spaces' reductions are compared by: ``"softcrawl:NAME"`` for a
+            shipped one, else ``"sha256:"`` and the SHA-256 of the file's bytes; None without one.
 
     Raises:
         ValueError: on construction, for counts that do not fit (no slot, no regulator, legs
@@ -163,11 +200,12 @@ class DesignSpace:
     paper_material: Material
     paper_thickness: float
     mirror_x: bool = False
-    reduction: str | None = None
+    reduction: str | None = field(default=None, compare=False)
     name: str = ""
     source: str = field(default="", compare=False)
     sha256: str = field(default="", compare=False)
     reduction_sha256: str | None = None
+    reduction_key: str | None = None
 
     def __post_init__(self) -> None:
         s = self.n_slots
@@ -273,10 +311,20 @@ class DesignSpace:
 
     @cached_property
     def raw_designs(self) -> tuple[Design, ...]:
-        """All valid designs, lexicographically sorted."""
+        """All valid designs, lexicographically sorted: for each leg count its slot sets, then
+        their regulators, so the work is proportional to the number of designs (not to the
+        ``(R + 1)^S`` slot-value combinations)."""
         s, r = self.n_slots, self.n_regulators
-        return tuple(d for d in itertools.product(range(r + 1), repeat=s)
-                     if self.min_legs <= s - d.count(0) <= self.max_legs)
+        designs = []
+        for k in range(self.min_legs, self.max_legs + 1):
+            for slots in itertools.combinations(range(s), k):
+                for values in itertools.product(range(1, r + 1), repeat=k):
+                    d = [0] * s
+                    for slot, v in zip(slots, values):
+                        d[slot] = v
+                    designs.append(tuple(d))
+        designs.sort()
+        return tuple(designs)
 
     @cached_property
     def canonical_designs(self) -> tuple[Design, ...]:
@@ -388,6 +436,13 @@ def _relabel(d: Design) -> Design:
     return tuple(relabel[v] for v in d)
 
 
+def _shown(value: object, limit: int = 80) -> str:
+    """``value`` for an error line: its ``repr`` (control and format characters escaped, so
+    nothing from a file reaches the terminal raw), cut to ``limit`` characters."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def _raw_count(s: int, r: int, lo: int, hi: int) -> int:
     return sum(math.comb(s, k) * r**k for k in range(lo, hi + 1))
 
@@ -446,34 +501,56 @@ class _Reader:
     def known(self, tbl: dict, where: str, allowed: Sequence[str]) -> None:
         for k in tbl:
             if k not in allowed:
-                raise self.fail(f"{where}.{k}" if where else k, f"unknown key (allowed: {', '.join(allowed)})")
+                shown = k if re.fullmatch(r"[A-Za-z0-9_-]{1,40}", k) else _shown(k)  # a bare TOML key as it is
+                raise self.fail(f"{where}.{shown}" if where else shown, f"unknown key (allowed: {', '.join(allowed)})")
+
+    def real(self, tbl: dict, key: str, where: str) -> float:
+        """A number (an int or a float, not a bool), as a float; its range not checked."""
+        v = self.value(tbl, key, where)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise self.fail(f"{where}.{key}", f"must be a number, got {_shown(v)}")
+        return float(v)
 
     def number(self, tbl: dict, key: str, where: str, lo: float = 0.0, hi: float = math.inf,
                lo_open: bool = True, hi_open: bool = False) -> float:
-        v = self.value(tbl, key, where)
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise self.fail(f"{where}.{key}", f"must be a number, got {v!r}")
-        v = float(v)
+        v = self.real(tbl, key, where)
         ok = (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi) and math.isfinite(v)
         if not ok:
             interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open or hi == math.inf else ']'}"
             raise self.fail(f"{where}.{key}", f"must lie in {interval}, got {v:g}")
         return v
 
-    def integer(self, tbl: dict, key: str, where: str, lo: int) -> int:
+    def integer(self, tbl: dict, key: str, where: str, lo: int | None, hi: int | None = None) -> int:
+        """An integer within ``[lo, hi]`` (``hi`` None: at least ``lo``; both None: any)."""
         v = self.value(tbl, key, where)
         if isinstance(v, bool) or not isinstance(v, int):
-            raise self.fail(f"{where}.{key}", f"must be an integer, got {v!r}")
-        if v < lo:
+            raise self.fail(f"{where}.{key}", f"must be an integer, got {_shown(v)}")
+        if lo is not None and hi is None and v < lo:
             raise self.fail(f"{where}.{key}", f"must be >= {lo}, got {v}")
+        if hi is not None and not lo <= v <= hi:
+            raise self.fail(f"{where}.{key}", f"must lie in [{lo}, {hi}], got {v}")
         return v
+
+    def name(self, doc: dict) -> str:
+        """``name``, or the file's name without its suffix; either must match
+        :data:`NAME_PATTERN` in at most :data:`MAX_NAME_LENGTH` characters (printable, one
+        line, a folder's name)."""
+        name = self.text(doc, "name", "")
+        given = name is not None
+        name = name if given else self.path.stem
+        if len(name) > MAX_NAME_LENGTH or not NAME_PATTERN.fullmatch(name):
+            rule = (f"1 to {MAX_NAME_LENGTH} characters: letters, digits, '_', '.', '+', '-' and inner spaces, "
+                    "starting with a letter or a digit")
+            raise self.fail("name", f"{_shown(name)} is not a name ({rule})" if given else
+                            f"missing, and the file's name {_shown(name)} is not a name ({rule}); give name = \"...\"")
+        return name
 
     def text(self, tbl: dict, key: str, where: str, default: str | None = None) -> str | None:
         if key not in tbl:
             return default
         v = tbl[key]
         if not isinstance(v, str):
-            raise self.fail(f"{where}.{key}" if where else key, f"must be a string, got {v!r}")
+            raise self.fail(f"{where}.{key}" if where else key, f"must be a string, got {_shown(v)}")
         return v
 
     def value(self, tbl: dict, key: str, where: str):
@@ -482,18 +559,21 @@ class _Reader:
         return tbl[key]
 
     def material(self, tbl: dict, key: str, where: str) -> Material:
+        """A known material's name, or a table of its constants within :data:`YOUNGS_BOUNDS_KPA`,
+        (-1, 0.5) and :data:`DENSITY_BOUNDS`."""
         v = self.value(tbl, key, where)
         name = f"{where}.{key}"
         if isinstance(v, str):
             if v not in KNOWN_MATERIALS:
-                raise self.fail(name, f"unknown material {v!r} (known: {', '.join(KNOWN_MATERIALS)}; or give "
+                raise self.fail(name, f"unknown material {_shown(v)} (known: {', '.join(KNOWN_MATERIALS)}; or give "
                                       f"{{ youngs_modulus_kpa = ..., poisson_ratio = ... }})")
             return Material(v)
         if not isinstance(v, dict):
-            raise self.fail(name, f"must be a material name or a table, got {v!r}")
+            raise self.fail(name, f"must be a material name or a table, got {_shown(v)}")
         self.known(v, name, _MATERIAL_KEYS)
-        density = self.number(v, "density_kg_per_m3", name) if "density_kg_per_m3" in v else None
-        return Material("", self.number(v, "youngs_modulus_kpa", name),
+        density = self.number(v, "density_kg_per_m3", name, *DENSITY_BOUNDS, lo_open=False) \
+            if "density_kg_per_m3" in v else None
+        return Material("", self.number(v, "youngs_modulus_kpa", name, *YOUNGS_BOUNDS_KPA, lo_open=False),
                         self.number(v, "poisson_ratio", name, -1.0, 0.5, hi_open=True), density)
 
     def part(self, tbl: dict, where: str, params: tuple, mesh_size: float) -> Part:
@@ -504,16 +584,18 @@ class _Reader:
             why = "give it or the material's density_kg_per_m3" if not has_density else \
                 "give either it or the material's density_kg_per_m3, not both"
             raise self.fail(f"{where}.mass_kg", f"{'missing' if not has_density else 'twice'}: {why}")
-        return Part(params, mesh_size, None if has_density else self.number(tbl, "mass_kg", where), material)
+        mass = None if has_density else self.number(tbl, "mass_kg", where, *MASS_BOUNDS_KG, lo_open=False)
+        return Part(params, mesh_size, mass, material)
 
     def dims(self, tbl: dict, where: str, dims: Sequence[str], ints: Sequence[str] = ()) -> tuple:
-        """``(name, value)`` pairs of a part's integer counts and its dimensions ``<name>_mm``."""
-        params = tuple((k, self.integer(tbl, k, where, 1)) for k in ints)
-        params += tuple((k, self.number(tbl, f"{k}_mm", where)) for k in dims)
+        """``(name, value)`` pairs of a part's integer counts and its dimensions ``<name>_mm``
+        (their bounds are the geometry's: :meth:`geometry`)."""
+        params = tuple((k, self.integer(tbl, k, where, None)) for k in ints)
+        params += tuple((k, self.real(tbl, f"{k}_mm", where)) for k in dims)
         return params
 
     def slot_angles(self, tbl: dict) -> tuple[float, ...]:
-        count = self.integer(tbl, "count", "slots", 1)
+        count = self.integer(tbl, "count", "slots", 1, MAX_SLOTS)  # bounded before the angles are built
         if ("angles_deg" in tbl) == ("first_angle_deg" in tbl):
             raise self.fail("slots", "give exactly one of first_angle_deg (equally spaced) and angles_deg")
         if "first_angle_deg" in tbl:
@@ -521,7 +603,8 @@ class _Reader:
             return tuple((first + 360.0 / count * i) % 360.0 for i in range(count))
         angles = tbl["angles_deg"]
         if not isinstance(angles, list) or len(angles) != count:
-            raise self.fail("slots.angles_deg", f"must be a list of count = {count} angles, got {angles!r}")
+            got = f"{len(angles)} of them" if isinstance(angles, list) else _shown(angles)
+            raise self.fail("slots.angles_deg", f"must be a list of count = {count} angles, got {got}")
         box = {f"[{i}]": a for i, a in enumerate(angles)}
         out = tuple(self.number(box, f"[{i}]", "slots.angles_deg", 0.0, 360.0, lo_open=False, hi_open=True)
                     for i in range(count))
@@ -532,18 +615,58 @@ class _Reader:
             raise self.fail("slots.angles_deg", f"slots {i} and {j} have the same angle {out[i]:g}")
         return out
 
-    def reduction(self, tbl: dict) -> str | None:
+    def reduction(self, tbl: dict) -> tuple[str | None, str | None]:
+        """``(path, key)`` of the reduction (:attr:`DesignSpace.reduction`,
+        :attr:`DesignSpace.reduction_key`), ``(None, None)`` without one. A file's path is
+        taken relative to the space file's folder and made absolute; the file must be a
+        regular file and a ``.npz`` (a zip archive); its bytes give the key."""
         ref = self.text(tbl, "reduction", "actuator")
         if ref is None:
-            return None
+            return None, None
+        if not ref.endswith(".npz"):
+            raise self.fail("actuator.reduction", f"{_shown(ref)} is not a .npz reduction file (`softcrawl reduce "
+                                                  "build` writes one)")
         if ref.startswith(SHIPPED_PREFIX):  # checked when loaded: a missing one must not stop the import
             from softcrawl.reduction.data import default_reduction_path
 
-            return str(default_reduction_path().parent / ref[len(SHIPPED_PREFIX):])
-        path = self.path.parent / ref
-        if not path.is_file():
-            raise self.fail("actuator.reduction", f"no such file {path}")
-        return str(path)
+            name = ref[len(SHIPPED_PREFIX):]
+            if Path(name).name != name:
+                raise self.fail("actuator.reduction", f"{_shown(ref)}: a shipped reduction is a file name, without a "
+                                                      "folder")
+            return str(default_reduction_path().parent / name), ref
+        path = (self.path.parent / ref).absolute()
+        try:
+            data = read_bytes(path)
+        except FileNotFoundError:
+            raise self.fail("actuator.reduction", f"no such file {_shown(str(path), 300)}") from None
+        except (OSError, ValueError) as exc:  # safeio's message: "<path>: <why>"
+            why = " ".join(str(exc).removeprefix(f"{path}: ").split())
+            raise self.fail("actuator.reduction", f"{_shown(str(path), 300)}: {why}") from None
+        if not data.startswith((b"PK\x03\x04", b"PK\x05\x06")):
+            raise self.fail("actuator.reduction", f"{_shown(str(path), 300)} is not a reduction file (a .npz is a zip "
+                                                  "archive; `softcrawl reduce build` writes one)")
+        return str(path), "sha256:" + hashlib.sha256(data).hexdigest()
+
+    def geometry(self, disk: Part, leg: Part) -> None:
+        """The parts' dimensions and mesh sizes as the geometry takes them
+        (``softcrawl.geometry.disk.DiskParams``, ``softcrawl.geometry.pneunet.PneuNetParams``:
+        bounds, a mesh not too fine, PneuNet dimensions that fit; imports gmsh); an error names
+        the key of a field out of its bounds."""
+        from softcrawl.geometry.disk import DiskParams
+        from softcrawl.geometry.pneunet import PneuNetParams
+
+        for cls, part, where, mesh_where in ((DiskParams, disk, "body", "body"),
+                                             (PneuNetParams, leg, "actuator.pneunet", "actuator")):
+            try:
+                cls(**dict(part.params), mesh_size=part.mesh_size)
+            except ValueError as exc:
+                msg = str(exc).split(f": {cls.__name__}(")[0]
+                field_name, _, rest = msg.partition(" must lie in ")
+                if not rest:
+                    raise self.fail(where, msg) from None
+                key = (f"{mesh_where}.mesh_size_mm" if field_name == "mesh_size" else
+                       f"{where}.{field_name}" + ("" if field_name == "n_chambers" else "_mm"))
+                raise self.fail(key, f"must lie in {rest}") from None
 
     def reduction_sha256(self, tbl: dict) -> str | None:
         """``reduction_sha256`` lower-cased: 64 hex digits, and only beside ``reduction``."""
@@ -553,7 +676,7 @@ class _Reader:
         if "reduction" not in tbl:
             raise self.fail("actuator.reduction_sha256", "given without a reduction")
         if len(digest) != _SHA256_DIGITS or any(c not in "0123456789abcdefABCDEF" for c in digest):
-            raise self.fail("actuator.reduction_sha256", f"must be {_SHA256_DIGITS} hex digits, got {digest!r}")
+            raise self.fail("actuator.reduction_sha256", f"must be {_SHA256_DIGITS} hex digits, got {_shown(digest)}")
         return digest.lower()
 
 
@@ -562,8 +685,10 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
 
     Args:
         path: the TOML file.
-        check_geometry: also check that the PneuNet dimensions fit together
-            (``softcrawl.geometry.pneunet.PneuNetParams``; imports gmsh).
+        check_geometry: also check the parts' dimensions and mesh sizes as the geometry takes
+            them: bounds, a mesh not too fine, PneuNet dimensions that fit together
+            (``softcrawl.geometry.disk.DiskParams``, ``softcrawl.geometry.pneunet.PneuNetParams``;
+            imports gmsh).
 
     Returns:
         The :class:`DesignSpace` (``source`` = the path, ``sha256`` = the file's checksum).
@@ -573,7 +698,7 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
         SpaceFileError: (a ValueError) one line naming the file and the key: not a regular
             file or not TOML, an unknown or missing key, a wrong type, a value out of range, or
             an inconsistent space (legs and slots, an asymmetric slot set with ``mirror_x``,
-            more than :data:`MAX_RAW_DESIGNS` designs, PneuNet dimensions that do not fit).
+            too many designs to enumerate, part dimensions that do not fit).
     """
     path = Path(path)
     try:
@@ -583,7 +708,7 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
         raise SpaceFileError(" ".join(str(exc).split())) from None
     r = _Reader(path)
     r.known(doc, "", _TOP_KEYS)
-    name = r.text(doc, "name", "", default=path.stem)
+    name = r.name(doc)
     r.text(doc, "description", "")
     body = r.table(doc, "body", "", _BODY_KEYS)
     slots = r.table(doc, "slots", "", _SLOTS_KEYS)
@@ -592,7 +717,7 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
     pneu = r.table(act, "pneunet", "actuator", _PNEUNET_KEYS)
 
     angles = r.slot_angles(slots)
-    regulators = r.integer(design, "regulators", "design", 1)
+    regulators = r.integer(design, "regulators", "design", 1, MAX_REGULATORS)
     min_legs = r.integer(design, "min_legs", "design", 1)
     max_legs = r.integer(design, "max_legs", "design", 1)
     if min_legs > max_legs:
@@ -601,31 +726,28 @@ def load_space(path: str | Path, check_geometry: bool = True) -> DesignSpace:
         raise r.fail("design.max_legs", f"{max_legs} is more than the {len(angles)} slots")
     mirror = design.get("mirror_x", False)
     if not isinstance(mirror, bool):
-        raise r.fail("design.mirror_x", f"must be true or false, got {mirror!r}")
-    n_raw = _raw_count(len(angles), regulators, min_legs, max_legs)
-    if n_raw > MAX_RAW_DESIGNS:
-        raise r.fail("design", f"{n_raw} raw designs, more than the {MAX_RAW_DESIGNS} that can be enumerated")
+        raise r.fail("design.mirror_x", f"must be true or false, got {_shown(mirror)}")
+    n_raw = _raw_count(len(angles), regulators, min_legs, max_legs)  # counted, not enumerated
+    most = min(MAX_RAW_DESIGNS, MAX_DESIGN_SLOTS // len(angles))
+    if n_raw > most:
+        raise r.fail("design", f"{n_raw} raw designs, more than the {most} of {len(angles)} slots that can be "
+                               "enumerated")
 
-    disk = r.part(body, "body", r.dims(body, "body", DISK_KEYS), r.number(body, "mesh_size_mm", "body"))
+    disk = r.part(body, "body", r.dims(body, "body", DISK_KEYS), r.real(body, "mesh_size_mm", "body"))
     leg = r.part(act, "actuator", r.dims(pneu, "actuator.pneunet", PNEUNET_KEYS, ints=("n_chambers",)),
-                 r.number(act, "mesh_size_mm", "actuator"))
+                 r.real(act, "mesh_size_mm", "actuator"))
     paper = r.material(act, "paper_material", "actuator")
-    paper_thickness = r.number(act, "paper_thickness_mm", "actuator")
-    reduction = r.reduction(act)
+    paper_thickness = r.number(act, "paper_thickness_mm", "actuator", *PAPER_THICKNESS_BOUNDS_MM, lo_open=False)
+    if check_geometry:
+        r.geometry(disk, leg)
+    reduction, reduction_key = r.reduction(act)
     reduction_sha256 = r.reduction_sha256(act)
     try:
         space = DesignSpace(angles, regulators, min_legs, max_legs, disk, leg, paper, paper_thickness, mirror,
-                            reduction, name, str(path), hashlib.sha256(data).hexdigest(), reduction_sha256)
+                            reduction, name, str(path), hashlib.sha256(data).hexdigest(), reduction_sha256,
+                            reduction_key)
     except ValueError as exc:  # the counts are checked above: the mirror image of an asymmetric slot set
         raise r.fail("design.mirror_x", str(exc)) from None
-    if check_geometry:
-        from softcrawl.geometry.pneunet import PneuNetParams
-
-        try:
-            PneuNetParams(**dict(leg.params), mesh_size=leg.mesh_size)
-        except ValueError as exc:
-            msg = str(exc).split(": PneuNetParams(")[0]
-            raise r.fail("actuator.pneunet", msg) from None
     return space
 
 

@@ -10,7 +10,7 @@ import gmsh
 
 from softcrawl.geometry.io import cached_mesh
 from softcrawl.geometry.mesh import MeshError, TetMesh, boundary_triangles
-from softcrawl.geometry.primitives import boundary_nodes, check_positive_fields, nodes_at, occ_tet_mesh
+from softcrawl.geometry.primitives import boundary_nodes, check_mesh_cells, check_part_fields, nodes_at, occ_tet_mesh
 
 
 @dataclass(frozen=True)
@@ -19,7 +19,10 @@ class DiskParams:
     ``z = height`` (radius ``top_radius``), centred on the z axis.
 
     Raises:
-        ValueError: on construction, if any value is not positive.
+        ValueError: on construction, one line: a length outside
+            :data:`~softcrawl.geometry.primitives.LENGTH_BOUNDS_MM`, a mesh size outside
+            :data:`~softcrawl.geometry.primitives.MESH_SIZE_BOUNDS_MM`, or one too fine for the
+            disk (:func:`~softcrawl.geometry.primitives.check_mesh_cells`).
     """
 
     bottom_radius: float = 50.0
@@ -28,7 +31,9 @@ class DiskParams:
     mesh_size: float = 10.0
 
     def __post_init__(self) -> None:
-        check_positive_fields(self)
+        check_part_fields(self)
+        diameter = 2 * max(self.bottom_radius, self.top_radius)
+        check_mesh_cells((diameter, diameter, self.height), self.mesh_size)
 
 
 def _build_occ(p: DiskParams) -> None:

@@ -23,12 +23,17 @@ from softcrawl.geometry.io import cached_mesh
 from softcrawl.geometry.mesh import MeshError, TetMesh, boundary_triangles
 from softcrawl.geometry.primitives import (
     boundary_nodes,
-    check_positive_fields,
+    check_mesh_cells,
+    check_part_fields,
     geom_tol,
     nodes_at,
     nodes_on_plane,
     occ_tet_mesh,
 )
+
+
+#: Most chambers of a PneuNet (the paper's has 9).
+MAX_CHAMBERS = 100
 
 
 @dataclass(frozen=True)
@@ -54,8 +59,12 @@ class PneuNetParams:
 
     Raises:
         TypeError: on construction, if ``n_chambers`` is not an integer.
-        ValueError: on construction, for non-positive sizes or dimensions that do not fit
-            (chambers wider than their teeth, a channel that does not fit in the block, ...).
+        ValueError: on construction, one line: ``n_chambers`` outside ``1..``:data:`MAX_CHAMBERS`,
+            a length outside :data:`~softcrawl.geometry.primitives.LENGTH_BOUNDS_MM`, a mesh
+            size outside :data:`~softcrawl.geometry.primitives.MESH_SIZE_BOUNDS_MM` or too fine
+            for the leg (:func:`~softcrawl.geometry.primitives.check_mesh_cells`), or dimensions
+            that do not fit (chambers wider than their teeth, a channel that does not fit in the
+            block, ...).
     """
 
     n_chambers: int = 9
@@ -74,7 +83,7 @@ class PneuNetParams:
     mesh_size: float = 4.0
 
     def __post_init__(self) -> None:
-        check_positive_fields(self, int_fields=("n_chambers",))
+        check_part_fields(self, {"n_chambers": (1, MAX_CHAMBERS)})
         checks = {
             "chambers must have positive size (wall_thickness too large)": min(self.chamber_size) > 0,
             "base must be at least as long and wide as the block": self.base_length >= self.block_length
@@ -86,6 +95,8 @@ class PneuNetParams:
         for message, ok in checks.items():
             if not ok:
                 raise ValueError(f"{message}: {self}")
+        height = self.base_thickness + self.block_height + self.tooth_height
+        check_mesh_cells((self.base_length, self.base_width, height), self.mesh_size)  # the base is the widest
 
     @property
     def pitch(self) -> float:

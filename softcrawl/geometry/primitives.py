@@ -6,6 +6,7 @@ Units are mm.
 
 from __future__ import annotations
 
+import math
 import operator
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -21,22 +22,67 @@ from softcrawl.geometry.mesh import MeshError, TetMesh, boundary_triangles, tet_
 GEOM_RTOL = 1e-6
 
 
-def check_positive_fields(params: object, int_fields: Sequence[str] = ()) -> None:
-    """Canonicalise a frozen dataclass of sizes in place and check every field is positive.
+#: Bounds of a part's lengths (every dimension of a disk or a PneuNet but its mesh size), mm,
+#: both included: a tenth of a millimetre (a printer's resolution) to a metre.
+LENGTH_BOUNDS_MM = (0.1, 1000.0)
+#: Bounds of a part's mesh size (the largest tetrahedron edge), mm, both included. At 1 mm the
+#: paper's disk already has 701,709 tetrahedra. Far below, gmsh's node count of an edge,
+#: ``(int)(a + 1.99)`` with ``a`` about length / size (``meshGEdge.cpp``, ``meshGEdgeProcessing``),
+#: overflows a C int and the edge falls back to gmsh's minimum of segments: a coarse mesh without
+#: an error (1e-9 mm gave the disk 37 nodes, 25 mm gives it 127).
+MESH_SIZE_BOUNDS_MM = (1.0, 100.0)
+#: Most mesh cells of a part: its bounding box's volume over the mesh size cubed. gmsh makes about
+#: 3.3 tetrahedra of a cell (the paper's disk at 1 mm: 213,858 cells, 701,709 tetrahedra).
+MAX_MESH_CELLS = 500_000
 
-    Fields named in ``int_fields`` become ``int``, all others ``float``, so equal parameter
-    sets serialise (and hash, for the mesh cache) identically.
+
+def check_part_fields(params: object, int_bounds: dict[str, tuple[int, int]] | None = None) -> None:
+    """Canonicalise a frozen dataclass of part sizes in place and check every field's bounds:
+    ``mesh_size`` within :data:`MESH_SIZE_BOUNDS_MM`, an integer field within its
+    ``int_bounds``, every other field (a length, mm) within :data:`LENGTH_BOUNDS_MM`.
+
+    Integer fields become ``int``, all others ``float``, so equal parameter sets serialise (and
+    hash, for the mesh cache) identically.
+
+    Args:
+        params: the dataclass (``DiskParams``, ``PneuNetParams``).
+        int_bounds: ``field name -> (low, high)`` of its integer fields, both included.
 
     Raises:
-        TypeError: if an ``int_fields`` value is not an integer.
-        ValueError: if a value is not positive.
+        TypeError: if an integer field's value is not an integer.
+        ValueError: one line naming the field, its bounds and the value, for a value out of
+            them (NaN and infinities too).
     """
+    int_bounds = int_bounds or {}
     for f in fields(params):
         value = getattr(params, f.name)
-        canonical = operator.index(value) if f.name in int_fields else float(value)
-        if not canonical > 0:
-            raise ValueError(f"{f.name} must be positive, got {value!r}")
+        if f.name in int_bounds:
+            canonical, (lo, hi), unit = operator.index(value), int_bounds[f.name], ""
+        else:
+            canonical = float(value)
+            (lo, hi), unit = MESH_SIZE_BOUNDS_MM if f.name == "mesh_size" else LENGTH_BOUNDS_MM, " mm"
+        if not lo <= canonical <= hi:
+            raise ValueError(f"{f.name} must lie in [{lo:g}, {hi:g}]{unit}, got {canonical:g}")
         object.__setattr__(params, f.name, canonical)
+
+
+def check_mesh_cells(extent: Sequence[float], mesh_size: float) -> None:
+    """Refuse a mesh size too fine for a part: more than :data:`MAX_MESH_CELLS` cells.
+
+    Args:
+        extent: ``(3,)`` the part's bounding box, mm.
+        mesh_size: the mesh size, mm.
+
+    Raises:
+        ValueError: one line with the cell count and the smallest mesh size the part takes.
+    """
+    volume = float(np.prod(extent))
+    cells = volume / mesh_size**3
+    if cells > MAX_MESH_CELLS:
+        finest = (volume / MAX_MESH_CELLS) ** (1 / 3)
+        raise ValueError(f"mesh_size {mesh_size:g} mm is too fine for a part of {' x '.join(f'{v:g}' for v in extent)} "
+                         f"mm: {cells:.3g} cells (bounding box / mesh_size^3), more than {MAX_MESH_CELLS}; give a "
+                         f"mesh_size of at least {math.ceil(finest * 100) / 100:g} mm")
 
 
 def orient_tets(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
