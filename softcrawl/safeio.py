@@ -14,15 +14,23 @@ Results are written with :func:`atomic_write_text` (a temporary file in the same
 and ``fsync``-ed, then renamed over the target): a reader never sees half a file, and an
 interrupted write leaves the old file whole. A symlink at the target is replaced by the new
 file, never written through.
+
+A folder that a command writes (a training run, a ground truth, an output folder) is held with
+:func:`folder_lock`: one writer at a time, the others refused at once with one line naming the
+holder (process, host, command).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import socket
 import stat
+import sys
 import tempfile
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 #: Default size limit of a file read by softcrawl (bytes). Run configs, calibrations and rig
@@ -184,3 +192,69 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
         except OSError:
             pass
         raise
+
+
+class FolderLockedError(ValueError):
+    """Another process holds the lock of a folder (:func:`folder_lock`); the message names it."""
+
+
+def _holder(fd: int) -> str:
+    """The holder recorded in an open lock file (what :func:`folder_lock` writes): ``process
+    PID on HOST (COMMAND)``, or what of it is there (a bare pid, as earlier versions wrote)."""
+    text = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip()
+    try:
+        info = json.loads(text)
+    except ValueError:
+        info = None
+    if not isinstance(info, dict):
+        info = {"pid": text.split()[0] if text.split() else ""}
+    pid, host, command = (" ".join(str(info.get(k, "")).split())[:200] for k in ("pid", "host", "command"))
+    return f"process {pid or '?'}" + (f" on {host}" if host else "") + (f" ({command})" if command else "")
+
+
+@contextlib.contextmanager
+def folder_lock(lock: str | os.PathLike, what: str | os.PathLike) -> Iterator[None]:
+    """Hold the exclusive advisory lock (``fcntl.flock``) of the lock file ``lock`` (created if
+    missing, in a folder that must exist) while the body runs, for the folder ``what`` names.
+
+    The file records the holder (``{"pid", "host", "command"}``) and is removed when the body
+    ends. The kernel releases the lock of a process that dies, so a killed holder leaves at
+    most a file that the next run locks as if it were new (a file removed by its holder while
+    being opened is opened again). Not re-entrant: a second lock of the same file in the same
+    process is refused like any other.
+
+    Raises:
+        FolderLockedError: another process (or another lock in this one) holds it; nothing
+            was written.
+        OSError: the lock file cannot be created (a read-only or missing folder), or is a
+            symbolic link.
+    """
+    import fcntl
+
+    lock = Path(lock)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            os.close(fd)
+            raise FolderLockedError(f"{what} is being written by another softcrawl command: {holder}; wait for it "
+                                    f"to finish (or stop it), or use another folder (lock file {lock})") from None
+        try:
+            same = os.stat(lock, follow_symlinks=False).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # its holder removed it as we opened it: open the new one
+    try:
+        command = " ".join(Path(a).name if i < 2 and os.sep in a else a for i, a in enumerate(sys.orig_argv))
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "command": command}) +
+                       "\n").encode(), 0)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock)  # while still held: a process waiting on this file opens the new one
+        os.close(fd)  # releases the lock

@@ -28,8 +28,20 @@ def row(of, **changes) -> str:
     return json.dumps({**fake_task(of, None), **changes})
 
 
+#: The settings of the folders of :func:`make_folder`.
+SETTINGS = GroundTruthConfig(baseline_phases=())
+
+
 def make_folder(path: Path, designs=DESIGNS, task=fake_task) -> Path:
     """A finished ground truth of ``designs`` in ``path`` (no references)."""
-    run_groundtruth(designs, path, GroundTruthConfig(baseline_phases=()), executor="serial", task=task,
-                    progress=False, refs=False)
+    run_groundtruth(designs, path, SETTINGS, executor="serial", task=task, progress=False, refs=False)
+    return path
+
+
+def killed_folder(path: Path, designs, done: int) -> Path:
+    """A ground truth of ``designs`` in ``path`` whose run was killed after its first ``done``
+    designs (their rows only)."""
+    make_folder(path, designs)
+    rows = (path / "results.jsonl").read_text().splitlines(keepends=True)
+    (path / "results.jsonl").write_text("".join(rows[:done]))
     return path

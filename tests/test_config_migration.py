@@ -129,3 +129,30 @@ def test_a_turning_task_saved_before_venting_reads_as_unvented():
     assert parse_task(read_settings("train", new)["env"]["task"]).vent_s == 5.0
     old_forward = {"config_version": 4, "config": {**cfg, "env": {**cfg["env"], "task": "forward"}}}
     assert read_settings("train", old_forward)["env"]["task"] == "forward"
+
+
+# -- issue 49, defect 7: a config.json without config_version is format 1 only if format 1 wrote it --
+def test_a_later_format_without_config_version_is_refused_not_guessed(tmp_path, capsys):
+    """The probe: a turning run's config.json without ``config_version`` read as format 1 became
+    ``vent_s = 0``; a hex6 run became the paper's space and refused its own designs."""
+    turning = override(preset("smoke"), ['env.task="turning"', 'env.space="hex6"', "env.legs=[2]"]).to_dict()
+    for doc, words in (({"version": "0.3.0", "config": turning}, ["env.space", "env.task", "sac.learner"]),
+                       ({"config": {"duration": 20.0, "task": "turning", "space": "hex6"}}, ["space", "task"]),
+                       ({"config": json.loads((DATA / "run_config_v1.json").read_text())["config"],
+                         "space_sha256": "0" * 64}, ["space_sha256"])):
+        kind = "train" if "n_envs" in doc["config"] else "groundtruth"
+        with pytest.raises(ValueError, match="no config_version") as err:
+            read_settings(kind, doc)
+        assert all(w in str(err.value) for w in words) and "\n" not in str(err.value), str(err.value)
+    (tmp_path / "config.json").write_text(json.dumps({"version": "0.3.0", "config": turning}))
+    with pytest.raises(ValueError, match=f"{tmp_path / 'config.json'}: no config_version"):
+        Run(tmp_path).read_config()
+    assert cli_main(["train", "--resume", "--out", str(tmp_path), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "no config_version" in err and err.count("\n") == 1 and sorted(p.name for p in tmp_path.iterdir()) == [
+        "config.json"]
+    (tmp_path / "config.json").write_text(json.dumps({"config": {"duration": 20.0, "task": "turning"}}))
+    with pytest.raises(ValueError, match="no config_version"):
+        read_config(tmp_path)  # a ground truth's reader too
+    for name, kind in (("run_config_v1.json", "train"), ("groundtruth_config_v1.json", "groundtruth")):
+        read_settings(kind, json.loads((DATA / name).read_text()))  # format 1 as it was written still reads

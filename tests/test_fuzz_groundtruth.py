@@ -24,12 +24,15 @@ from softcrawl.codesign.groundtruth import (
     DesignResult,
     GroundTruthConfig,
     PeriodicGait,
+    design_set_spec,
     gt_robot,
     read_config,
     read_results,
     run_groundtruth,
     write_outputs,
 )
+from softcrawl.codesign.migrate import CONFIG_VERSION
+from softcrawl.design.resolve import write_space_copy
 from softcrawl.design.space import PAPER_BEST_DESIGN, canonicalize
 from softcrawl.safeio import loads_json
 
@@ -85,7 +88,9 @@ def _folder(root: Path, lines: list[str]) -> Path:
     gt = root / "gt"
     gt.mkdir()
     cfg = GroundTruthConfig(baseline_phases=(), robot=gt_robot(dt=0.02))
-    (gt / "config.json").write_text(json.dumps({"config": cfg.to_dict()}))
+    sha = write_space_copy(gt, cfg.space)
+    (gt / "config.json").write_text(json.dumps({"config": cfg.to_dict(), "config_version": CONFIG_VERSION,
+                                                "space_sha256": sha, "designs": design_set_spec(POOL)}))
     (gt / "results.jsonl").write_text("".join(ln + "\n" for ln in lines))
     return gt
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from groundtruth_helpers import DESIGNS, fake_task, make_folder, reward, row
+from groundtruth_helpers import DESIGNS, SETTINGS, fake_task, killed_folder, make_folder, reward, row
 from softcrawl.cli import main as cli_main
 from softcrawl.codesign import groundtruth_regret as rg
 from softcrawl.codesign.config import override, preset
@@ -73,10 +73,10 @@ def test_4_readers_leave_every_line_in_place(tmp_path, monkeypatch, capsys):
     assert f"{res}, line 7" in err and f"{res}, line 8" in err and "line 6" not in err  # an extra key is tolerated
     write_outputs(gt)
     assert res.read_bytes() == before
-    # a resume recomputes the design of the bad row, appends, and keeps every byte that was there
+    # the same run with the design of the bad row computes it, appends, and keeps every byte that was there
     calls = []
-    run_groundtruth(DESIGNS + [(1, 0, 0, 2, 2, 0, 0, 0)], gt, None, executor="serial", progress=False, refs=False,
-                    task=lambda d, c: calls.append(d) or fake_task(d, c))
+    run_groundtruth(DESIGNS + [(1, 0, 0, 2, 2, 0, 0, 0)], gt, SETTINGS, executor="serial", progress=False,
+                    refs=False, task=lambda d, c: calls.append(d) or fake_task(d, c))
     assert calls == [(1, 0, 0, 2, 2, 0, 0, 0)]
     assert res.read_bytes().startswith(before) and len(res.read_text().splitlines()) == 9
     assert len(read_results(gt)[0]) == 6
@@ -91,7 +91,7 @@ def test_4_a_symlinked_results_file_is_refused_and_its_target_kept(tmp_path, mon
     assert _regret_cli(monkeypatch, gt, BEST) == 2
     _one_line_error(capsys, "symbolic link")
     with pytest.raises(UnsafeFileError, match="symbolic link"):
-        run_groundtruth(DESIGNS + [(1, 0, 0, 2, 2, 0, 0, 0)], gt, None, executor="serial", progress=False,
+        run_groundtruth(DESIGNS + [(1, 0, 0, 2, 2, 0, 0, 0)], gt, SETTINGS, executor="serial", progress=False,
                         refs=False, task=fake_task)
     assert target.read_bytes() == kept
 
@@ -167,7 +167,7 @@ def test_6_regret_ranks_only_valid_rows_and_writes_no_nan(bad, tmp_path, monkeyp
     ({"per_cycle": {"x": 1.0}}, ["per_cycle"]),
 ])
 def test_7_a_malformed_row_names_file_line_and_design_and_resume_goes_on(change, words, tmp_path, capsys):
-    gt = make_folder(tmp_path / "gt", DESIGNS[:2])
+    gt = killed_folder(tmp_path / "gt", DESIGNS[:3], done=2)
     with open(gt / "results.jsonl", "a") as f:
         f.write(row(DESIGNS[2], **change) + "\n")
     good, bad = read_results(gt)
@@ -181,7 +181,7 @@ def test_7_a_malformed_row_names_file_line_and_design_and_resume_goes_on(change,
 
 
 def test_7_the_cli_resume_names_bad_rows_and_recomputes_their_designs(tmp_path, capsys):
-    gt = make_folder(tmp_path / "gt", DESIGNS[:2])
+    gt = killed_folder(tmp_path / "gt", DESIGNS[:3], done=2)
     with open(gt / "results.jsonl", "a") as f:
         f.write(row(DESIGNS[2], reward_cm="12") + "\n")
     designs = ";".join(",".join(map(str, d)) for d in DESIGNS[:3])
@@ -231,8 +231,8 @@ def test_7_a_bad_references_file_is_a_note_and_recomputed(tmp_path, monkeypatch,
     (["--dt", "1e308"], ["dt"]),
     (["--duration", "1e9"], ["duration"]),
     (["--hold", "inf"], ["hold"]),
-    (["--evals-per-cycle", "100000000"], ["evals_per_cycle"]),
-    (["--disk-mesh-size", "0.01"], ["disk_mesh_size"]),
+    (["--evals-per-cycle", "100000000"], ["--evals-per-cycle", "100000"]),
+    (["--disk-mesh-size", "0.01"], ["--disk-mesh-size"]),
     (["--cycles", "nan"], ["--cycles"]),
     (["--screen-duration", "nan"], ["--screen-duration"]),
 ])
@@ -344,12 +344,13 @@ def test_18_a_second_run_on_a_folder_being_written_stops_at_once(tmp_path, capsy
         return fake_task(d, c)
 
     make_folder(gt, DESIGNS[:2], task)
-    assert seen[0] == 2 and f"process {os.getpid()}" in seen[1] and "another softcrawl groundtruth" in seen[1]
+    assert seen[0] == 2 and f"process {os.getpid()} on {socket.gethostname()}" in seen[1]
+    assert "another softcrawl command" in seen[1] and "\n" not in seen[1].strip()
     assert len((gt / "results.jsonl").read_text().splitlines()) == 2  # nothing done twice
     with folder_lock(gt), pytest.raises(FolderLockedError):
         make_folder(gt, DESIGNS[:3])
     make_folder(gt, DESIGNS[:3])  # released: the next run goes on
-    assert (gt / LOCK).exists() and len(load_groundtruth(gt)[1]) == 3
+    assert not (gt / LOCK).exists() and len(load_groundtruth(gt)[1]) == 3  # the lock file goes with its run
 
 
 def test_18_a_run_in_another_process_holds_the_folder(tmp_path, capsys):
@@ -367,10 +368,66 @@ def test_18_a_run_in_another_process_holds_the_folder(tmp_path, capsys):
     try:
         assert holder.stdout.readline().strip() == "locked"
         assert cli_main(["groundtruth", "--out", str(gt), "--resume", *GT_CLI]) == 2
-        _one_line_error(capsys, f"process {holder.pid}", "another softcrawl groundtruth")
+        _one_line_error(capsys, f"process {holder.pid}", "another softcrawl command")
     finally:
         holder.kill()
         holder.wait()
     assert len((gt / "results.jsonl").read_text().splitlines()) == 1
     with folder_lock(gt):  # the holder is gone: the lock is free again
         pass
+
+
+# -- issue 49, defect 6: a folder records its design set and --resume continues exactly it -----------
+def test_resume_continues_exactly_the_folders_design_set(tmp_path, capsys):
+    """The probe: resuming a 2-design folder computed 38 of the 280 default designs into it."""
+    gt = tmp_path / "gt"
+    two = ";".join(",".join(map(str, d)) for d in DESIGNS[:2])
+    assert cli_main(["groundtruth", "--out", str(gt), "--designs", two, "--no-progress", "--executor", "serial"]) == 0
+    assert json.loads((gt / "config.json").read_text())["designs"] == two
+    rows = (gt / "results.jsonl").read_text().splitlines(keepends=True)
+    (gt / "results.jsonl").write_text(rows[0])  # killed after its first design
+    capsys.readouterr()
+    assert cli_main(["groundtruth", "--out", str(gt), "--resume", "--no-progress", "--executor", "serial"]) == 0
+    assert "2 of 2 designs done" in capsys.readouterr().out
+    assert set(read_results(gt)[0]) == set(DESIGNS[:2]) and len((gt / "results.jsonl").read_text().splitlines()) == 2
+    for other in ("3", ";".join(",".join(map(str, d)) for d in DESIGNS[:3])):
+        assert cli_main(["groundtruth", "--out", str(gt), "--resume", "--designs", other, "--no-progress"]) == 2
+        _one_line_error(capsys, "--resume continues exactly them", "drop --designs")
+    assert cli_main(["groundtruth", "--out", str(gt), "--resume", "--designs", two, "--no-progress",
+                     "--executor", "serial"]) == 0  # the same set, written otherwise, is the folder's
+    assert cli_main(["groundtruth", "--out", str(gt), "--resume", "--duration", "10"]) == 2
+    _one_line_error(capsys, "saved settings", "drop --duration")
+    assert len((gt / "results.jsonl").read_text().splitlines()) == 2
+
+
+def test_a_folders_set_is_recorded_compactly_and_a_legacy_folder_needs_its_designs(tmp_path):
+    from softcrawl.codesign.groundtruth import design_set_spec, parse_designs, recorded_designs
+
+    for spec in ("3", "3,4", "all", "1,0,0,2,2,0,0,0;1,0,0,2,2,0,0,1"):
+        assert design_set_spec(parse_designs(spec)) == spec
+    gt = make_folder(tmp_path / "gt", DESIGNS[:2])
+    assert recorded_designs(gt) == list(DESIGNS[:2])
+    doc = json.loads((gt / "config.json").read_text())
+    del doc["designs"]  # written before ground truths recorded their set
+    (gt / "config.json").write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="records no design set"):
+        run_groundtruth(None, gt, None, executor="serial", progress=False, refs=False, task=fake_task)
+    run_groundtruth(DESIGNS[:2], gt, None, executor="serial", progress=False, refs=False, task=fake_task)
+
+
+# -- issue 49, defect 10: a refused command writes nothing, so the corrected one is accepted ----------
+def test_a_bad_reduction_is_refused_before_the_folder_is_written(tmp_path, capsys):
+    """The probe: a refused ``groundtruth`` (wrong ``reduction_sha256``) had written config.json
+    and space.toml, and the corrected command was refused as "other settings"."""
+    from softcrawl.design.resolve import resolve_space
+
+    paper = Path(resolve_space("paper").source).read_text()
+    sha = resolve_space("paper").reduction_sha256
+    space, gt = tmp_path / "mine.toml", tmp_path / "gt"
+    space.write_text(paper.replace(sha, "0" * 64))
+    assert cli_main(["groundtruth", "--out", str(gt), "--space", str(space), *GT_CLI]) == 2
+    _one_line_error(capsys, "SHA-256")
+    assert not gt.exists()
+    space.write_text(paper)  # corrected
+    assert cli_main(["groundtruth", "--out", str(gt), "--space", str(space), *GT_CLI]) == 0
+    assert len(read_results(gt)[0]) == 1

@@ -510,3 +510,74 @@ def test_train_task_flag(capsys, tmp_path):
     one_line_error(capsys, main(["train", "--task", '{"name": "heading", "heading_deg": 400}', "--out", str(out)]),
                    "--task: task 'heading': heading_deg")
     assert not out.exists()
+
+
+# -- issue 49, defect 11: a robot that does not come to rest is said, where the user looks ---------------
+
+def test_an_incline_steeper_than_its_friction_is_refused_up_front(tmp_path, capsys):
+    """Coulomb: a robot slides down a slope with tan a > mu for good (the probe's episodes slid
+    at 18 m/s after the 3-s settling cap); such a floor is refused where the task meets the robot."""
+    from helpers import one_line_error
+
+    from softcrawl.cli import main
+    from softcrawl.codesign.groundtruth import GroundTruthConfig, gt_robot
+
+    with pytest.raises(ValueError, match=r"task 'incline': its floor is tilted 40 deg .*friction mu = 0.5"):
+        Incline(angle_deg=40.0, friction=0.5)
+    assert Incline(angle_deg=26.0, friction=0.5).friction == 0.5 and Incline(angle_deg=45.0).friction is None
+    with pytest.raises(ValueError, match="env.task: task 'incline'.*mu = 0.3"):
+        override(preset("smoke"), ['env.task={"name": "incline", "angle_deg": 20}', "env.robot.friction=0.3"])
+    with pytest.raises(ValueError, match="task: task 'incline'"):
+        GroundTruthConfig(task={"name": "incline", "angle_deg": 20}, robot=gt_robot(friction=0.3)).validate()
+    rc = main(["simulate", "--task", '{"name": "incline", "angle_deg": 20}', "--friction", "0.3", "--out",
+               str(tmp_path / "o"), "--no-progress"])
+    one_line_error(capsys, rc, "--task: task 'incline'", "slides down")
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_unsettled_start_is_in_the_envs_info_and_a_line_of_simulate(tmp_path, monkeypatch, capsys):
+    from softcrawl.cli import main
+    import softcrawl.cli.simulate as sim
+    from softcrawl.robot.episode import Settling, run_episode, unsettled_warning
+
+    env = make_env(settling=Settling(max_seconds=0.02), share_robots=False)  # capped before the fall ends
+    _, info = env.reset(options={"design": PAPER_BEST_DESIGN})
+    assert info["at_rest"] is False and "did not come to rest" in unsettled_warning(info)
+    _, _, _, _, info = env.step(ACTIONS[0])
+    assert info["at_rest"] is False
+    assert unsettled_warning({**info, "at_rest": True}) is None and unsettled_warning({}) is None
+    monkeypatch.setattr(sim, "run_episode", lambda *a, **k: run_episode(*a, **k, settling=Settling(max_seconds=0.02)))
+    assert main(["simulate", "--disk-mesh-size", "25", "--duration", "0.02", "--out", str(tmp_path / "o"),
+                 "--no-progress", "--no-animation"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert [line for line in err if "warning" in line] == [
+        f"softcrawl simulate: warning: design 1,0,0,2,2,0,0,1 {unsettled_warning(sim_settled(tmp_path / 'o'))}"]
+
+
+def sim_settled(out) -> dict:
+    """The settling statistics in a ``softcrawl simulate`` output's summary.json."""
+    import json
+
+    return json.loads((out / "summary.json").read_text())["settling"]
+
+
+def test_training_warns_once_per_unsettled_design_and_the_report_says_it(tmp_path, capsys):
+    """Whatever the backend, the env's ``at_rest`` reaches the training loop: one warning line per
+    design (not per episode); the report's best design says it too."""
+    import json
+
+    from softcrawl.codesign.report import write_report
+    from softcrawl.codesign.training import train
+
+    run = tmp_path / "run"
+    train(run, override(preset("smoke"), ["total_steps=120", "checkpoint_every=120", "env.settle_max_seconds=0.02"]),
+          progress=False)
+    designs = {row[1] for row in (r.split(",") for r in (run / "episodes.csv").read_text().splitlines())}
+    episodes = len((run / "episodes.csv").read_text().splitlines())
+    warnings = [line for line in capsys.readouterr().err.splitlines() if "softcrawl train: warning: design" in line]
+    assert episodes > len(designs) and len(warnings) == len(designs), (episodes, designs, warnings)
+    assert all("did not come to rest" in w and "(said once per design)" in w for w in warnings)
+    out = write_report(run, baseline_phases=(), samples=0)
+    summary, numbers = (out / "summary.md").read_text(), json.loads((out / "summary.json").read_text())
+    assert "**Warning**: `" in summary and "did not come to rest" in summary
+    assert numbers["best_design"]["settled"]["at_rest"] is False

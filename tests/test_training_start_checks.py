@@ -5,6 +5,7 @@ and options that would be ignored are errors."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -118,3 +119,61 @@ def test_ignored_options_are_errors(trained, tmp_path, monkeypatch, capsys):
     one_line_error(capsys, rc, "--reduction")
     with pytest.raises(ValueError, match="env.reduction"):
         override(preset("smoke"), ['env.model="full"', 'env.reduction="x.npz"'])
+
+
+# -- issue 49, defect 12: two settings of one thing are refused, naming both ---------------------------
+@pytest.mark.parametrize("argv, words", [
+    (["--task", "turning", "--set", 'env.task="forward"'], ["--task", "env.task", "give one"]),
+    (["--workers", "2", "--set", "n_workers=1"], ["--workers", "n_workers"]),
+    (["--seed", "3", "--set", "seed=1"], ["--seed", "seed=1"]),
+    (["--space", "hex6", "--set", 'env.space="paper"'], ["--space", "env.space"]),
+    (["--set", "seed=1", "--set", "seed=2"], ["'seed=1'", "'seed=2'", "twice"]),
+    (["--set", "env.dt=0.01", "--set", "env.robot.dt=0.02"], ["env.dt=0.01", "env.robot.dt=0.02", "twice"]),
+])
+def test_an_option_and_a_set_of_the_same_setting_are_refused(argv, words, tmp_path, capsys):
+    """The probe: ``--task turning`` silently beat ``--set env.task=...``."""
+    one_line_error(capsys, main(["train", "--preset", "smoke", "--out", str(tmp_path / "r"), *argv]), *words)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_resumed_runs_placement_is_given_once(trained, capsys):
+    before = file_tree(trained)
+    one_line_error(capsys, main(["train", "--resume", "--out", str(trained), "--workers", "2", "--set", "n_workers=1"]),
+                   "--workers", "n_workers")
+    assert file_tree(trained) == before
+
+
+def test_a_floor_friction_given_twice_and_ignored_gait_options_are_refused(tmp_path, monkeypatch, capsys):
+    """The probe: ``simulate --friction 0.5`` silently lost to the task's ``"friction": 2.0``."""
+    import softcrawl.cli.simulate as sim
+
+    monkeypatch.setattr(sim, "build_robot", lambda *a, **k: pytest.fail("model built"))
+    rc = main(["simulate", "--task", '{"name": "incline", "angle_deg": 10, "friction": 2.0}', "--friction", "0.5",
+               "--out", str(tmp_path / "o"), "--no-progress"])
+    one_line_error(capsys, rc, "--friction 0.5", "the task's friction 2", "give one")
+    from softcrawl.hardware.config import example_rig_path
+
+    (tmp_path / "a.csv").write_text("10,20,30\n")
+    rig = str(example_rig_path())
+    for argv, words in ((["sim", "--actions", str(tmp_path / "a.csv"), "--n-actions", "5"], ["--n-actions", "--actions"]),
+                        (["sim", "--gait", "paper-best", "--phase", "90"], ["--phase", "paper-best"]),
+                        (["sim", "--actions", str(tmp_path / "a.csv"), "--phase", "90"], ["--phase", "--actions"]),
+                        ([rig, "--jitter", "0.01", "--seed", "3"], ["--seed, --jitter", "--rig sim"])):
+        one_line_error(capsys, main(["deploy", "--rig", *argv, "--out", str(tmp_path / "d"), "--no-progress"]), *words)
+    assert not (tmp_path / "o").exists() and not (tmp_path / "d").exists()
+
+
+def test_a_refused_train_leaves_no_folder_for_the_corrected_command(tmp_path, capsys):
+    """Issue 49, defect 10 (checked for train as for groundtruth): a space whose reduction has
+    another SHA-256 is refused before anything is written."""
+    from softcrawl.cli.train import _check_out
+    from softcrawl.design.resolve import resolve_space
+
+    paper = resolve_space("paper")
+    text = Path(paper.source).read_text()
+    (tmp_path / "mine.toml").write_text(text.replace(paper.reduction_sha256, "0" * 64))
+    rc = main(["train", "--preset", "smoke", "--space", str(tmp_path / "mine.toml"), "--out", str(tmp_path / "r")])
+    one_line_error(capsys, rc, "SHA-256")
+    assert not (tmp_path / "r").exists()
+    (tmp_path / "mine.toml").write_text(text)
+    _check_out(str(tmp_path / "r"))  # the corrected command is accepted

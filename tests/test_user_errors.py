@@ -3,6 +3,8 @@ and line; damaged optional files are left out with a note."""
 
 from __future__ import annotations
 
+import argparse
+
 import pytest
 
 from softcrawl.cli import main
@@ -88,3 +90,54 @@ def test_damaged_snapshot_is_left_out_of_the_report(run, capsys):
     assert main(["report", str(run), "--no-simulate"]) == 0
     assert "t-0000000040.npz: not a design-distribution snapshot" in capsys.readouterr().err
     assert (run / "report" / "reward_histogram.png").exists()
+
+
+# -- issue 49, defect 5: every count has an upper bound -------------------------------------------------
+def _options():
+    """``(command words, option string, action)`` of every option of every command."""
+    from softcrawl.cli import build_parser
+
+    todo, out = [((), build_parser())], []
+    while todo:
+        words, parser = todo.pop()
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                todo += [((*words, name), sub) for name, sub in action.choices.items()]
+            elif action.option_strings:
+                out.append((words, action.option_strings[-1], action))
+    return out
+
+
+def test_every_numeric_option_of_every_command_is_bounded(capsys):
+    """Each ``int`` or ``float`` option has bounds (:func:`softcrawl.cli.bounded`), and a value far
+    beyond them is one usage line naming the option, before the command does anything (the
+    required arguments are not even looked at)."""
+    from softcrawl.cli import _Bounded
+
+    numeric = [(w, o, a) for w, o, a in _options() if a.type in (int, float)]
+    assert len(numeric) > 60 and {w[0] for w, _, _ in numeric} >= {"evaluate", "report", "deploy", "groundtruth",
+                                                                    "train", "simulate", "sweep-phase", "reduce"}
+    assert [f"{' '.join(w)} {o}" for w, o, a in numeric if not isinstance(a, _Bounded)] == []
+    for words, option, action in numeric:
+        huge = "1e300" if action.type is float else str(10**30)
+        assert main([*words, option, huge]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"{option} must be" in err and "\n" not in err, err
+
+
+@pytest.mark.parametrize("argv", [
+    ["evaluate", "RUN", "--design", "1,0,0,2,2,0,0,0", "--samples", "1000000000"],
+    ["report", "RUN", "--samples", "1000000000"],
+    ["deploy", "--rig", "sim", "--run", "RUN", "--design", "1,0,0,2,2,0,0,0", "--samples", "1000000000"],
+    ["deploy", "--rig", "sim", "--gait", "sine", "--n-actions", "1000000000"],
+    ["groundtruth", "--evals-per-cycle", "1000000000"],
+    ["groundtruth", "--workers", "1000000000"],
+    ["train", "--n-envs", "1000000000"],
+    ["sweep-phase", "--workers", "1000000000"],
+])
+def test_the_probes_huge_counts_are_refused_at_once(argv, tmp_path, capsys):
+    """The tester's commands: ``--samples 1000000000`` ran silently; ``deploy --n-actions
+    1000000000`` grew memory by 45 MB/s before the rig was touched."""
+    rc = main([a.replace("RUN", str(tmp_path / "run")) for a in argv] + ["--out", str(tmp_path / "o")])
+    one_line_error(capsys, rc, argv[-2], "1000000000")
+    assert list(tmp_path.iterdir()) == []

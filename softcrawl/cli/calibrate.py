@@ -12,16 +12,18 @@ cached in ``$SOFTCRAWL_CACHE_DIR/bend_curves``); an affine least-squares fit
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
+
+from softcrawl.cli import bounded
+
+#: ArUco ids of the markers' dictionary, ``DICT_4X4_50`` (:mod:`softcrawl.hardware.aruco`).
+ARUCO_IDS = (0, 49)
 
 
 def _run(args: argparse.Namespace) -> int:
     from softcrawl.hardware.calibration import (BendCurve, BendModel, calibrate, check_measurements, plot_calibration,
                                                 read_bends_csv, write_calibration)
 
-    if not (math.isfinite(args.mesh_size) and 3.0 <= args.mesh_size <= 20.0):
-        raise ValueError(f"--mesh-size must be in [3, 20] mm, got {args.mesh_size}")
     if Path(args.bends).is_dir():  # photos with ArUco markers
         from softcrawl.hardware.aruco import bends_from_photos
 
@@ -58,10 +60,13 @@ def register(subparsers) -> None:
                    help="CSV with header real_kpa,tip_angle_deg (or tip_deflection_mm), or a folder of side-on "
                         "photos named <kPa>kpa*.jpg with ArUco markers (DICT_4X4_50) on the clamp and the tip "
                         "(needs softcrawl[vision])")
-    p.add_argument("--base-id", type=int, default=0, help="photos: ArUco id of the clamp marker (default 0)")
-    p.add_argument("--tip-id", type=int, default=1, help="photos: ArUco id of the tip marker (default 1)")
+    p.add_argument("--base-id", type=int, default=0, **bounded(*ARUCO_IDS),
+                   help="photos: ArUco id of the clamp marker (default 0)")
+    p.add_argument("--tip-id", type=int, default=1, **bounded(*ARUCO_IDS),
+                   help="photos: ArUco id of the tip marker (default 1)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--mesh-size", type=float, default=8.0, help="leg mesh size of the bend model, mm (default 8)")
+    p.add_argument("--mesh-size", type=float, default=8.0, **bounded(3.0, 20.0, "mm"),
+                   help="leg mesh size of the bend model, mm (default 8)")
     p.add_argument("--no-cache", action="store_true", help="do not read or write the bend cache")
     p.add_argument("--overwrite", action="store_true", help="replace an existing calibration.json in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import argparse
 
+from softcrawl.cli import bounded
+from softcrawl.cli.calibrate import ARUCO_IDS
+
 
 def _run(args: argparse.Namespace) -> int:
     from softcrawl.hardware.compare import compare
@@ -39,9 +42,11 @@ def register(subparsers) -> None:
     p.add_argument("--tracked", nargs="+", metavar="TRACK.csv|VIDEO", default=None,
                    help="one t_s,x_mm CSV or video (one ArUco marker on the disk, camera above, crawl along the "
                         "image's +x; needs softcrawl[vision]) per REAL_LOG, same order")
-    p.add_argument("--marker-id", type=int, default=0, help="videos: ArUco id of the disk marker (default 0)")
-    p.add_argument("--marker-mm", type=float, default=30.0, help="videos: side of the disk marker, mm (default 30)")
-    p.add_argument("--time-scale", type=float, default=None,
+    p.add_argument("--marker-id", type=int, default=0, **bounded(*ARUCO_IDS),
+                   help="videos: ArUco id of the disk marker (default 0)")
+    p.add_argument("--marker-mm", type=float, default=30.0, **bounded(0.0, 1000.0, "mm", open_low=True),
+                   help="videos: side of the disk marker, mm (default 30)")
+    p.add_argument("--time-scale", type=float, default=None, **bounded(0.0, 100.0, open_low=True),
                    help="stretch simulated time by this factor (default: 1, or the rig period / the policy's "
                         "action hold when a deploy log ran a policy trained with another hold)")
     p.add_argument("--out", required=True, help="output folder (new, or with --overwrite one softcrawl wrote)")

@@ -9,7 +9,9 @@ Examples::
 Writes ``log.csv`` (>= 10 Hz samples: commanded kPa, set V, measured V, sensed kPa, overrun
 flags, events) and ``summary.json`` into ``--out``. The gait is range-checked (0-90 kPa and
 the rig's limit) before the rig is touched. SIGINT, SIGTERM, SIGHUP and SIGQUIT stop the run
-through the fail-safe (:mod:`softcrawl.hardware.deploy`).
+through the fail-safe (:mod:`softcrawl.hardware.deploy`). An option that would be ignored is
+refused (``--n-actions`` or ``--phase`` beside ``--run`` or ``--actions``, ``--phase`` with
+``--gait paper-best``, ``--seed``, ``--jitter`` or ``--sim-config`` with a real rig).
 
 Exit codes: 0 completed (vented, outputs confirmed off); 1 the run stopped early or its log or
 summary could not be written, and the rig is safe: the fail-safe vented it and read the outputs
@@ -21,13 +23,19 @@ still be pressurising the lines: switch it off by hand).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
 import numpy as np
 
+from softcrawl.cli import SEED_BOUNDS, bounded
+
 GAITS = ("sine", "paper-best")
 EXIT_COMPLETED, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_UNCONFIRMED = 0, 1, 2, 3
+#: Most actions of a built-in gait (``--n-actions``): over a day of 1 s actions.
+MAX_ACTIONS = 100_000
+#: Defaults of the built-in gaits' ``--n-actions`` and ``--phase`` (degrees), and of the
+#: simulated rig's ``--seed`` and ``--jitter`` (s).
+N_ACTIONS, PHASE_DEG, SIM_SEED, SIM_JITTER_S = 20, 110.0, 0, 0.002
 
 
 def exit_code(res) -> int:
@@ -66,15 +74,20 @@ def policy_actions(run: str, design: str, checkpoint: str | None = None, samples
 def gait_actions(args: argparse.Namespace, n_regulators: int):
     """``(actions (n, R) kPa, description)`` from --run / --actions / --gait; ``--actions`` is
     read with ``n_regulators`` columns (the rig's regulators: a file of another width is one
-    ValueError line naming the file and its line, before anything moves)."""
-    n = args.n_actions
-    if n < 1:
-        raise ValueError(f"--n-actions must be >= 1, got {n}")
+    ValueError line naming the file and its line, before anything moves). ``--n-actions`` and
+    ``--phase`` shape the built-in gaits only: with ``--run`` or ``--actions`` they are refused,
+    as ``--design``, ``--checkpoint`` and ``--samples`` are without ``--run``."""
+    builtin = args.run is None and args.actions is None
+    for flag, value in (("--n-actions", args.n_actions), ("--phase", args.phase)):
+        if value is not None and not builtin:
+            raise ValueError(f"{flag} shapes a built-in gait (--gait); it goes without "
+                             f"{'--run' if args.run is not None else '--actions'}")
+    if args.phase is not None and args.gait != "sine":
+        raise ValueError(f"--phase is the sine gait's lag; --gait {args.gait} has none")
+    n = N_ACTIONS if args.n_actions is None else args.n_actions
     if args.run is not None:
         if args.design is None:
             raise ValueError("--run needs --design")
-        if args.samples is not None and args.samples < 0:
-            raise ValueError(f"--samples must be >= 0, got {args.samples}")
         return policy_actions(args.run, args.design, args.checkpoint, args.samples)
     if args.design is not None or args.checkpoint is not None or args.samples is not None:
         raise ValueError("--design, --checkpoint and --samples go with --run")
@@ -86,8 +99,9 @@ def gait_actions(args: argparse.Namespace, n_regulators: int):
     from softcrawl.gaits import SineGait, paper_best_gait
 
     if args.gait == "sine":
-        g = SineGait(phase_deg=args.phase)
-        return np.array([g.pressure_at(float(k)) for k in range(n)]), {"source": "sine", "phase_deg": args.phase}
+        phase = PHASE_DEG if args.phase is None else args.phase
+        g = SineGait(phase_deg=phase)
+        return np.array([g.pressure_at(float(k)) for k in range(n)]), {"source": "sine", "phase_deg": phase}
     return paper_best_gait(n_actions=n).actions, {"source": "paper-best"}
 
 
@@ -97,9 +111,12 @@ def _run(args: argparse.Namespace) -> int:
     from softcrawl.hardware.errors import RigError
 
     sim = args.rig == "sim"
+    if not sim:
+        given = [f for f, v in (("--sim-config", args.sim_config), ("--seed", args.seed), ("--jitter", args.jitter))
+                 if v is not None]
+        if given:
+            raise ValueError(f"{', '.join(given)} set the simulated rig (--rig sim), not {args.rig}")
     cfg = load_rig_config(args.sim_config or example_rig_path()) if sim else load_rig_config(args.rig)
-    if not (math.isfinite(args.jitter) and args.jitter >= 0):
-        raise ValueError(f"--jitter must be >= 0 s, got {args.jitter}")
     calibration = None
     if args.calibration is not None:
         from softcrawl.hardware.calibration import load_calibration
@@ -118,7 +135,8 @@ def _run(args: argparse.Namespace) -> int:
     if sim:
         from softcrawl.hardware.simrig import SimRig
 
-        rig = SimRig(cfg, seed=args.seed, jitter_s=args.jitter).rig
+        rig = SimRig(cfg, seed=SIM_SEED if args.seed is None else args.seed,
+                     jitter_s=SIM_JITTER_S if args.jitter is None else args.jitter).rig
     else:
         from softcrawl.hardware.rig import open_rig
 
@@ -149,6 +167,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     """Add the ``deploy`` subcommand to ``subparsers``."""
+    from softcrawl.codesign.evaluation import MAX_SAMPLES
     p = subparsers.add_parser("deploy", help="run a gait on a real or simulated rig (fail-safe)",
                               description="Run a gait (a trained run's policy for a design, an action CSV, or a "
                               "built-in gait) on a rig at one action per control period; log at >= 10 Hz to "
@@ -165,16 +184,20 @@ def register(subparsers) -> None:
     p.add_argument("--design", default=None, help="with --run: comma-separated slot values (8 in the paper's space; "
                    "as many as the run's space has slots)")
     p.add_argument("--checkpoint", default=None, help="with --run: checkpoint folder (default: the latest)")
-    p.add_argument("--samples", type=int, default=None, metavar="K",
+    p.add_argument("--samples", type=int, default=None, metavar="K", **bounded(0, MAX_SAMPLES),
                    help="with --run: episodes sampled from the stochastic policy; the gait is the best of them and "
-                   "the deterministic one, as the report's (default 11; 0: the deterministic one)")
-    p.add_argument("--phase", type=float, default=110.0, help="sine gait: lag of regulator 2, degrees")
-    p.add_argument("--n-actions", type=int, default=20, help="built-in gaits: number of actions (default 20)")
+                   f"the deterministic one, as the report's (default 11; 0: the deterministic one; at most {MAX_SAMPLES})")
+    p.add_argument("--phase", type=float, default=None, **bounded(-360.0, 360.0, "deg"),
+                   help=f"sine gait: lag of regulator 2, degrees (default {PHASE_DEG:g})")
+    p.add_argument("--n-actions", type=int, default=None, **bounded(1, MAX_ACTIONS),
+                   help=f"built-in gaits: number of actions (default {N_ACTIONS}, at most {MAX_ACTIONS})")
     p.add_argument("--calibration", metavar="FILE.json", default=None,
                    help="pressure calibration from `softcrawl calibrate` (recorded with the log: the sim "
                         "pressures the commands correspond to)")
     p.add_argument("--out", required=True, help="output folder for log.csv and summary.json")
-    p.add_argument("--seed", type=int, default=0, help="simulated rig: noise and jitter seed")
-    p.add_argument("--jitter", type=float, default=0.002, help="simulated rig: mean sleep jitter, s")
+    p.add_argument("--seed", type=int, default=None, **bounded(*SEED_BOUNDS),
+                   help=f"simulated rig: noise and jitter seed (default {SIM_SEED})")
+    p.add_argument("--jitter", type=float, default=None, **bounded(0.0, 1.0, "s"),
+                   help=f"simulated rig: mean sleep jitter, s (default {SIM_JITTER_S:g})")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_run)

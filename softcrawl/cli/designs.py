@@ -7,10 +7,11 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 
+from softcrawl.cli import bounded
 from softcrawl.design.picture import design_ascii, plot_design
 from softcrawl.design.resolve import resolve_space
 from softcrawl.design.space import DEFAULT_SPACE
-from softcrawl.design.spacefile import DesignSpace
+from softcrawl.design.spacefile import MAX_RAW_DESIGNS, DesignSpace
 
 
 def _fmt(d) -> str:
@@ -42,8 +43,6 @@ def _list(args: argparse.Namespace) -> int:
     space = _space(args)
     if args.legs is not None and not space.min_legs <= args.legs <= space.max_legs:
         raise ValueError(f"--legs must be in {space.min_legs}..{space.max_legs}, got {args.legs}")
-    if args.limit is not None and args.limit < 0:
-        raise ValueError(f"--limit must be >= 0, got {args.limit}")
     shown = 0
     for i, d in enumerate(space.canonical_designs):
         if args.limit is not None and shown >= args.limit:
@@ -86,8 +85,9 @@ def register(subparsers) -> None:
     a.set_defaults(func=_count)
 
     a = actions.add_parser("list", parents=[common], help="canonical designs with their indices")
-    a.add_argument("--legs", type=int, default=None, help="only designs with this many legs")
-    a.add_argument("--limit", type=int, default=None, help="print at most N designs")
+    a.add_argument("--legs", type=int, default=None, **bounded(1, MAX_RAW_DESIGNS),
+                   help="only designs with this many legs (within the space's)")
+    a.add_argument("--limit", type=int, default=None, **bounded(0, MAX_RAW_DESIGNS), help="print at most N designs")
     a.set_defaults(func=_list)
 
     a = actions.add_parser("show", parents=[common],

@@ -2,15 +2,21 @@
 (:mod:`softcrawl.codesign.groundtruth`), in parallel and resumable: re-running the same command
 (or ``--resume``) continues a killed run and never recomputes a finished design. Writes
 ``results.jsonl`` (per design, as they finish), ``groundtruth.csv``, ``ranked.png``,
-``references.json`` and ``summary.json``. Every setting is checked before any design is computed;
-``--out`` must be new, empty or a ground truth, and is locked while the run writes it."""
+``references.json`` and ``summary.json``. ``config.json`` records the settings and the design set:
+``--resume`` (and the same command without ``--designs``) continues exactly that set, and refuses
+setting options and another ``--designs``. Every setting is checked, and the reduction file
+loaded, before anything is written; ``--out`` must be new, empty or a ground truth, and is locked
+while the run writes it (a second run on it is refused, naming the holder)."""
 
 from __future__ import annotations
 
 import argparse
 import math
 
+from softcrawl.cli import MAX_WORKERS, SEED_BOUNDS, bounded
 from softcrawl.cli.train import check_ray_address
+from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS
+from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_JAX_BATCH
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.tasks.registry import task_spec
 
@@ -37,56 +43,74 @@ def _phases(text: str) -> tuple[float, ...]:
         raise ValueError(f"--baseline-phases: {exc}") from None
 
 
-def _run(args: argparse.Namespace) -> int:
-    from pathlib import Path
+#: The options that set a :class:`~softcrawl.codesign.groundtruth.GroundTruthConfig` setting
+#: (their ``args`` names): the saved ones of a folder, so ``--resume`` takes none of them.
+SETTINGS = ("space", "task", "duration", "screen_duration", "hold", "cycles", "evals_per_cycle", "finalists", "seed",
+            "leg_mesh_size", "disk_mesh_size", "dt", "reduction", "rid_dtype", "baseline_phases", "engine",
+            "jax_batch")
 
-    from softcrawl.codesign.groundtruth import (
-        EXECUTORS,
-        GroundTruthConfig,
-        check_folder,
-        gt_robot,
-        parse_designs,
-        run_groundtruth,
-    )
 
-    if args.executor not in EXECUTORS:
-        raise ValueError(f"--executor must be one of {EXECUTORS}")
-    if args.workers is not None and args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
-    from softcrawl.codesign.groundtruth.store import folder_space
-    from softcrawl.design.resolve import resolve_space
+def _config(args: argparse.Namespace):
+    """The :class:`GroundTruthConfig` of the options (a default for each one not given), validated."""
+    from softcrawl.codesign.groundtruth import GroundTruthConfig, gt_robot
 
-    if args.resume and args.space is not None:
-        raise ValueError("--resume uses the folder's own design space (its space.toml); drop --space")
-    if args.resume and args.task is not None:
-        raise ValueError("--resume uses the folder's own task (its config.json); drop --task")
-    task = task_spec(args.task, "--task") if args.task is not None else "forward"
-    space = resolve_space(args.space or "paper") if not args.resume else None
-    if space is not None:
-        designs = parse_designs(args.designs, space)
-    check_folder(args.out)
-    if args.resume:
-        if not (Path(args.out) / "config.json").exists():
-            raise ValueError(f"--resume: {args.out} is not a ground-truth folder (no config.json)")
-        designs = parse_designs(args.designs, folder_space(args.out))
-        cfg = None
-    else:
+    default = GroundTruthConfig()
+
+    def given(name, value):
+        return getattr(default, name) if value is None else value
+
+    screen = default.screen_duration
+    if args.screen_duration is not None:
         screen = None
         if args.screen_duration.strip().lower() != "none":
             screen = _floats(args.screen_duration, "--screen-duration")
             if len(screen) != 1:
                 raise ValueError(f"--screen-duration must be a number of seconds or none, got {args.screen_duration!r}")
             screen = screen[0]
+    cycles = default.cycles
+    if args.cycles is not None:
         cycles = _floats(args.cycles, "--cycles")
         if any(c != int(c) for c in cycles):
             raise ValueError(f"--cycles must be integers, got {args.cycles!r}")
-        cfg = GroundTruthConfig(duration=args.duration, screen_duration=screen, hold=args.hold,
-                                cycles=tuple(int(c) for c in cycles), evals_per_cycle=args.evals_per_cycle,
-                                finalists=args.finalists, seed=args.seed,
-                                robot=gt_robot(leg_mesh_size=args.leg_mesh_size, disk_mesh_size=args.disk_mesh_size,
-                                               reduction=args.reduction, rid_dtype=args.rid_dtype, dt=args.dt),
-                                baseline_phases=_phases(args.baseline_phases), engine=args.engine,
-                                jax_batch=args.jax_batch, space=args.space or "paper", task=task).validate()
+        cycles = tuple(int(c) for c in cycles)
+    return GroundTruthConfig(
+        duration=given("duration", args.duration), screen_duration=screen, hold=given("hold", args.hold),
+        cycles=cycles, evals_per_cycle=given("evals_per_cycle", args.evals_per_cycle),
+        finalists=given("finalists", args.finalists), seed=given("seed", args.seed),
+        robot=gt_robot(leg_mesh_size=args.leg_mesh_size, disk_mesh_size=args.disk_mesh_size, reduction=args.reduction,
+                       rid_dtype=args.rid_dtype, dt=args.dt),
+        baseline_phases=default.baseline_phases if args.baseline_phases is None else _phases(args.baseline_phases),
+        engine=given("engine", args.engine), jax_batch=given("jax_batch", args.jax_batch),
+        space=args.space or default.space,
+        task=task_spec(args.task, "--task") if args.task is not None else default.task).validate()
+
+
+def _run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from softcrawl.codesign.groundtruth import EXECUTORS, check_folder, parse_designs, run_groundtruth
+    from softcrawl.codesign.groundtruth.store import folder_space
+
+    if args.executor not in EXECUTORS:
+        raise ValueError(f"--executor must be one of {EXECUTORS}")
+    if args.resume:
+        given = [f"--{name.replace('_', '-')}" for name in SETTINGS if getattr(args, name) is not None]
+        if given:
+            raise ValueError(f"--resume continues with the folder's saved settings (its config.json, space.toml) and "
+                             f"design set; drop {', '.join(given)}")
+        check_folder(args.out)
+        if not (Path(args.out) / "config.json").exists():
+            raise ValueError(f"--resume: {args.out} is not a ground-truth folder (no config.json)")
+        cfg = None
+        space = folder_space(args.out)
+    else:
+        cfg = _config(args)
+        space = cfg.design_space()
+        check_folder(args.out)
+    existing = (Path(args.out) / "config.json").exists()
+    # no --designs: the folder's recorded set (resumed, or the same command again), "3" for a new one
+    spec = args.designs if args.designs is not None else None if existing else "3"
+    designs = None if spec is None else parse_designs(spec, space)
     check_ray_address(args.executor, args.ray_address)
     s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
                         progress=not args.no_progress, ray_address=args.ray_address)
@@ -119,9 +143,11 @@ def register(subparsers) -> None:
         description="Optimize a periodic open-loop gait per design with CMA-ES on the reduced model and rank "
         "the designs. Resumable: run the same command again (or with --resume) to continue.")
     p.add_argument("--out", required=True, help="ground-truth folder (created, or continued)")
-    p.add_argument("--designs", default="3", help='"3" (the 280 three-legged designs, default), leg counts '
-                   'like "3,4", "all" (6,972), or designs separated by ";" e.g. "1,0,0,2,2,0,0,0;1,0,0,2,2,0,0,1"')
-    p.add_argument("--resume", action="store_true", help="continue with the folder's saved settings")
+    p.add_argument("--designs", default=None, help='"3" (the 280 three-legged designs, the default of a new folder; an '
+                   'existing one: the set it records), leg counts like "3,4", "all" (6,972), or designs separated by '
+                   '";" e.g. "1,0,0,2,2,0,0,0;1,0,0,2,2,0,0,1"; with --resume only the folder\'s own set')
+    p.add_argument("--resume", action="store_true",
+                   help="continue with the folder's saved settings and design set (no setting options)")
     p.add_argument("--space", default=None, metavar="NAME|PATH",
                    help="design space: a shipped one (paper, the default; hex6) or a space file (TOML); the folder "
                         "keeps a copy as space.toml (the expert-baseline references are the paper space's only)")
@@ -131,27 +157,36 @@ def register(subparsers) -> None:
                         "'{\"name\": \"heading\", \"heading_deg\": 90}'; rewards are in the task's unit "
                         "(cm, or deg for turning); references: the forward task's, or turning's hand-made baseline "
                         "(--baseline-phases its lags)")
-    p.add_argument("--workers", type=int, default=None, help="processes (or Ray CPUs); default: all cores")
+    p.add_argument("--workers", type=int, default=None, **bounded(1, MAX_WORKERS),
+                   help="processes (or Ray CPUs); default: all cores")
     p.add_argument("--executor", default="process", help="process (default), serial or ray")
     p.add_argument("--ray-address", default=None, help="existing Ray cluster (default: start a local Ray)")
-    p.add_argument("--duration", type=float, default=20.0, help="full episode, s (default 20)")
-    p.add_argument("--screen-duration", default="6", help="search episode, s, or none (default 6)")
-    p.add_argument("--hold", type=float, default=1.0, help="seconds per action / knot (default 1)")
-    p.add_argument("--cycles", default="2,3,4,5", help="pattern lengths searched (default 2,3,4,5)")
-    p.add_argument("--evals-per-cycle", type=int, default=36, help="CMA-ES episodes per cycle length")
-    p.add_argument("--finalists", type=int, default=2, help="candidates re-run at full length")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--leg-mesh-size", type=float, default=6.0, help="mm (the reduction's)")
-    p.add_argument("--disk-mesh-size", type=float, default=10.0, help="mm (10: paper preset, 25: demo)")
-    p.add_argument("--dt", type=float, default=None, help="time step, s (default: the robot's default)")
+    p.add_argument("--duration", type=float, default=None, **bounded(0.0, MAX_EPISODE_S, "s", open_low=True),
+                   help="full episode, s (default 20)")
+    p.add_argument("--screen-duration", default=None, help="search episode, s, or none (default 6)")
+    p.add_argument("--hold", type=float, default=None, **bounded(0.0, MAX_HOLD_S, "s", open_low=True),
+                   help="seconds per action / knot (default 1)")
+    p.add_argument("--cycles", default=None, help="distinct pattern lengths searched (default 2,3,4,5)")
+    p.add_argument("--evals-per-cycle", type=int, default=None, **bounded(1, MAX_EVALS),
+                   help="CMA-ES episodes per cycle length (default 36)")
+    p.add_argument("--finalists", type=int, default=None, **bounded(1, MAX_FINALISTS),
+                   help="candidates re-run at full length (default 2)")
+    p.add_argument("--seed", type=int, default=None, **bounded(*SEED_BOUNDS), help="CMA-ES seed (default 0)")
+    p.add_argument("--leg-mesh-size", type=float, default=None, **bounded(*SIM_BOUNDS["leg_mesh_size"]),
+                   help="mm (the reduction's; default 6)")
+    p.add_argument("--disk-mesh-size", type=float, default=None, **bounded(*SIM_BOUNDS["disk_mesh_size"]),
+                   help="mm (10: paper preset, the default; 25: demo)")
+    p.add_argument("--dt", type=float, default=None, **bounded(*SIM_BOUNDS["dt"]),
+                   help="time step, s (default: the robot's default)")
     p.add_argument("--reduction", default=None, help="reduction file (default: shipped)")
-    p.add_argument("--rid-dtype", choices=RID_DTYPES, default="float32",
+    p.add_argument("--rid-dtype", choices=RID_DTYPES, default=None,
                    help="precision of the reduced legs' RID products (default float32, validated)")
-    p.add_argument("--baseline-phases", default="0:180:10",
-                   help="expert-baseline lags swept, START:STOP:STEP or a list, degrees, or none")
-    p.add_argument("--engine", choices=("cpu", "jax"), default="cpu",
+    p.add_argument("--baseline-phases", default=None,
+                   help="expert-baseline lags swept, START:STOP:STEP or a list, degrees, or none (default 0:180:10)")
+    p.add_argument("--engine", choices=("cpu", "jax"), default=None,
                    help="cpu (default: one design per worker) or jax (every design's episode of a search round "
                         "in one batch on JAX's default device, CPU or GPU; --rid-dtype is its precision)")
-    p.add_argument("--jax-batch", type=int, default=1024, help="largest JAX batch, a power of two (default 1024)")
+    p.add_argument("--jax-batch", type=int, default=None, **bounded(1, MAX_JAX_BATCH),
+                   help="largest JAX batch, a power of two (default 1024)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run)

@@ -24,6 +24,8 @@ import dataclasses
 import json
 from pathlib import Path
 
+from softcrawl.cli import MAX_WORKERS, bounded
+from softcrawl.codesign.config import SIM_BOUNDS, TRAIN_BOUNDS
 from softcrawl.design.space import DEFAULT_SPACE
 from softcrawl.design.resolve import resolve_space
 from softcrawl.design.spacefile import DesignSpace
@@ -38,6 +40,11 @@ from softcrawl.robot.output import jsonable
 #: The 3 x 3 grid of the paper's appendix around its chosen (tol_modes, tol_gie).
 GRID_TOL_MODES = (0.01, 0.0032, 0.001)
 GRID_TOL_GIE = (0.01, 0.003, 0.001)
+#: Most full-order training scenes of each kind (``--designs``, ``--gait-designs``: minutes each)
+#: and perturbed runs per validation scene (``--ensemble``).
+MAX_SCENES, MAX_ENSEMBLE = 1000, 100
+#: A tolerance (``--tol-modes``, ``--tol-gie``, ``--disk-tol-modes``): a fraction in (0, 1].
+TOLERANCE = bounded(0.0, 1.0, open_low=True)
 
 
 def _settings(args: argparse.Namespace, **kw) -> BuildSettings:
@@ -217,10 +224,11 @@ def register(subparsers) -> None:
     common.add_argument("--workdir", default=None,
                         help="full-order runs, reused (default runs/reduce; runs/reduce/<space name> for a space "
                              "other than the paper's)")
-    common.add_argument("--mesh-size", type=float, default=None,
+    common.add_argument("--mesh-size", type=float, default=None, **bounded(*SIM_BOUNDS["leg_mesh_size"]),
                         help="leg mesh size, mm (default: the space's, 6 for the paper's)")
-    common.add_argument("--designs", type=int, default=BuildSettings.n_designs, help="training designs")
-    common.add_argument("--gait-designs", type=int, default=BuildSettings.gait_designs,
+    common.add_argument("--designs", type=int, default=BuildSettings.n_designs, **bounded(1, MAX_SCENES),
+                        help="training designs")
+    common.add_argument("--gait-designs", type=int, default=BuildSettings.gait_designs, **bounded(0, MAX_SCENES),
                         help=f"crawling training scenes (sine gaits) besides the Gray-code walks (default "
                              f"{BuildSettings.gait_designs}; 0: the paper's training set)")
     common.add_argument("--rigid-modes", choices=("translations", "rigid"), default=BuildSettings.rigid,
@@ -228,30 +236,33 @@ def register(subparsers) -> None:
     common.add_argument("--reduce-disk", action="store_true",
                         help="reduce the disk too by POD + ECSW (default: no disk part, the disk is then set by "
                              "--reduced-disk; see BuildSettings.disk for why)")
-    common.add_argument("--disk-tol-modes", type=float, default=BuildSettings.disk_tol_modes,
+    common.add_argument("--disk-tol-modes", type=float, default=BuildSettings.disk_tol_modes, **TOLERANCE,
                         help="POD tail-energy tolerance of the disk (after its 6 rigid modes)")
     common.add_argument("--reduced-disk", choices=REDUCED_DISKS, default=RobotConfig.reduced_disk,
                         help="the reduced robot's disk when the reduction has no disk part "
                              "(see RobotConfig.reduced_disk)")
-    common.add_argument("--workers", type=int, default=None, help="processes (default: CPU count)")
+    common.add_argument("--workers", type=int, default=None, **bounded(1, MAX_WORKERS),
+                        help="processes (default: CPU count)")
     common.add_argument("--no-progress", action="store_true")
     b = sub.add_parser("build", parents=[common], help="snapshots -> POD -> Galerkin runs -> ECSW; writes --out")
     b.add_argument("--out", required=True, help="reduction file to write (.npz)")
-    b.add_argument("--tol-modes", type=float, default=BuildSettings.tol_modes, help="POD tail-energy tolerance")
-    b.add_argument("--tol-gie", type=float, default=BuildSettings.tol_gie, help="ECSW relative residual tolerance")
+    b.add_argument("--tol-modes", type=float, default=BuildSettings.tol_modes, **TOLERANCE,
+                   help="POD tail-energy tolerance")
+    b.add_argument("--tol-gie", type=float, default=BuildSettings.tol_gie, **TOLERANCE,
+                   help="ECSW relative residual tolerance")
     b.set_defaults(func=_build)
     v = sub.add_parser("validate", parents=[common], help="compare with the full model on 4 held-out scenes")
     v.add_argument("--reduction", default=None,
                    help="reduction file (default: the space's [actuator] reduction; the shipped one for the paper's)")
     v.add_argument("--out", default="runs/reduce/validation", help="report directory")
     v.add_argument("--grid", action="store_true", help="3 x 3 grid over (tol_modes, tol_gie) with a plot")
-    v.add_argument("--ensemble", type=int, default=None,
+    v.add_argument("--ensemble", type=int, default=None, **bounded(0, MAX_ENSEMBLE),
                    help="perturbed exact full-order runs per scene (the chaos floor and reward spread) and as "
                         "many perturbed reduced runs (the reduced model's own spread); 0: none (default 3 with "
                         "--engine cpu, 0 with jax, which has none)")
-    v.add_argument("--perturbation", type=float, default=1e-6,
+    v.add_argument("--perturbation", type=float, default=1e-6, **bounded(0.0, 1.0, "mm", open_low=True),
                    help="initial node noise of those runs, mm (default 1e-6)")
-    v.add_argument("--dt", type=float, default=None,
+    v.add_argument("--dt", type=float, default=None, **bounded(*SIM_BOUNDS["dt"]),
                    help="the reduced model's time step, s (default: the reference 0.01; must divide or be a "
                         "multiple of the 0.02 s frame spacing); the full-order references stay exact at 0.01 s")
     v.add_argument("--rid-dtype", choices=RID_DTYPES, default="float64",
@@ -261,8 +272,10 @@ def register(subparsers) -> None:
                    help="the reduced runs' engine: cpu (the reduced solver) or jax (softcrawl.jaxsim: its "
                         "contact settings, --contact-max-iterations unused; wall times include compiling)")
     v.add_argument("--contact-max-iterations", type=int, default=RobotConfig.contact_max_iterations,
+                   **bounded(*TRAIN_BOUNDS["env.robot.contact_max_iterations"]),
                    help="the reduced model's Gauss-Seidel sweep limit per chunk (default: the reference 250)")
     v.add_argument("--leg-collision-spacing", type=float, default=0.0,
+                   **bounded(*TRAIN_BOUNDS["env.robot.leg_collision_spacing"]),
                    help="the reduced model's leg contact points, mm apart (default 0: every surface node, "
                         "the reference; see RobotConfig.leg_collision_spacing)")
     v.set_defaults(func=_validate)

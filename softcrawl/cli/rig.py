@@ -18,6 +18,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from softcrawl.cli import bounded
+
 
 def _check(args: argparse.Namespace) -> int:
     import numpy as np
@@ -126,7 +128,8 @@ def register(subparsers) -> None:
     f = sub.add_parser("fit", help="fit the regulator model to recorded logs (AuRo 2023 format) and report "
                                    "its error on held-out logs")
     f.add_argument("logs", metavar="LOG_DIR", help="folder searched for logs-*.csv")
-    f.add_argument("--hold-out-every", type=int, default=4, help="hold out every k-th log, sorted by path (default 4)")
+    f.add_argument("--hold-out-every", type=int, default=4, **bounded(2, 1000),
+                   help="hold out every k-th log, sorted by path (default 4)")
     f.add_argument("--out", metavar="FILE.json", default=None, help="also write the fit and errors as JSON")
     f.set_defaults(func=_fit)
     e = sub.add_parser("example", help="print the example rig.toml")

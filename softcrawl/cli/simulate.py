@@ -13,6 +13,10 @@ for a task other than ``forward``, its return in its unit, summed over the recor
 (``{"task": settings, "unit": "cm" | "deg", "return_<unit>": float, "frames_every": K}``).
 A task scored at rest (``turning``: :attr:`softcrawl.tasks.Task.vent_seconds`) has the episode
 go on that long after ``--duration`` with every regulator vented, and its outputs show it.
+The floor's friction is ``--friction`` or the task's ``friction`` (both given: refused); a
+floor the robot cannot stand still on is refused (:meth:`softcrawl.tasks.Task.check_floor`),
+and a robot still moving when its settling ends is a warning line
+(:func:`softcrawl.robot.episode.unsettled_warning`).
 
 Inputs are validated (space, design, gait, action file of the space's regulators, output path,
 and with ``--video`` that pyvista can render off-screen) before the model is built;
@@ -28,6 +32,8 @@ import math
 import sys
 from pathlib import Path
 
+from softcrawl.cli import bounded
+from softcrawl.codesign.config import SIM_BOUNDS
 from softcrawl.design.resolve import PAPER_SPACE, resolve_space
 from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE
 from softcrawl.design.spacefile import InvalidDesignError
@@ -35,21 +41,32 @@ from softcrawl.gaits import paper_best_gait, read_actions_csv
 from softcrawl.robot.actuation import PressureCalibration
 from softcrawl.robot.animation import FPS, MAX_FRAMES
 from softcrawl.robot.assembly import MODELS, REDUCED_DISKS, RobotConfig, build_robot
-from softcrawl.robot.episode import run_episode
+from softcrawl.robot.episode import run_episode, unsettled_warning
 from softcrawl.robot.output import check_output_path, write_results
 from softcrawl.robot.sweep import baseline_gait
+from softcrawl.tasks.base import FRICTION_BOUNDS
 from softcrawl.tasks.registry import DEFAULT_TASK, parse_task, task_spec
 
 GAITS = ("sine", "paper-best")
 #: Longest episode ``simulate`` and ``sweep-phase`` accept, s (1 h of robot time; the paper's are 20 s).
 MAX_DURATION_S = 3600.0
+#: ParaView frames every this many steps by default (``--frames-every``), and its bound.
+FRAMES_EVERY, MAX_FRAMES_EVERY = 10, 10**7
+#: Bound of ``--refactor-every`` (steps), as the training config's ``env.robot.refactor_every``.
+MAX_REFACTOR_EVERY = 10**6
 
 
-def check_duration(duration: float) -> float:
-    """``--duration`` in (0, :data:`MAX_DURATION_S`] s, else ValueError (before any model is built)."""
-    if not (math.isfinite(duration) and 0 < duration <= MAX_DURATION_S):
-        raise ValueError(f"--duration must be > 0 and <= {MAX_DURATION_S:g} s, got {duration:g}")
-    return duration
+def add_robot_arguments(p: argparse.ArgumentParser) -> None:
+    """``--duration``, ``--mesh-size`` and ``--refactor-every`` (shared with ``sweep-phase``),
+    each bounded (:func:`softcrawl.cli.bounded`)."""
+    p.add_argument("--duration", type=float, default=20.0, **bounded(0.0, MAX_DURATION_S, "s", open_low=True),
+                   help=f"episode length, s (default 20, at most {MAX_DURATION_S:g})")
+    p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size, **bounded(*SIM_BOUNDS["leg_mesh_size"]),
+                   help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")
+    p.add_argument("--refactor-every", type=int, default=RobotConfig.refactor_every, **bounded(1, MAX_REFACTOR_EVERY),
+                   help="reuse each full-order body's factorization for this many steps (1 = exact; 5 is about "
+                        "1.7x faster and lags the contact compliance; default: 1 for the full model, "
+                        "5 for the reduced model's corotational disk)")
 
 
 def _gait(args: argparse.Namespace, n_regulators: int):
@@ -90,13 +107,18 @@ def _run(args: argparse.Namespace) -> int:
 
     space = resolve_space(args.space)
     task = parse_task(task_spec(args.task, "--task"))
+    if args.friction is not None and task.friction is not None:
+        raise ValueError(f"--friction {args.friction:g} and the task's friction {task.friction:g} both set the floor's "
+                         "friction; give one")
     design = space_design(space, args.design)
-    check_duration(args.duration)
-    if args.frames_every < 1:
-        raise ValueError(f"--frames-every must be >= 1, got {args.frames_every}")
+    friction = RobotConfig.friction if args.friction is None else args.friction
     config = space_robot(RobotConfig(leg_mesh_size=args.mesh_size, disk_mesh_size=args.disk_mesh_size,
-                                     friction=args.friction, dt=args.dt, refactor_every=args.refactor_every,
+                                     friction=friction, dt=args.dt, refactor_every=args.refactor_every,
                                      **model_fields(args)), space)
+    try:
+        task.check_floor(config.friction)
+    except ValueError as exc:
+        raise ValueError(f"--task: {exc}") from None
     gait = _gait(args, space.n_regulators)
     check_output_path(args.out, args.overwrite)
     if args.video:
@@ -122,6 +144,9 @@ def _run(args: argparse.Namespace) -> int:
 
     out = write_results(args.out, robot, gait, result, calibration, overwrite=args.overwrite, video=args.video,
                         animation=args.animation is not False, extra=extra)
+    warning = unsettled_warning(result.settled)
+    if warning:
+        print(f"softcrawl simulate: warning: design {','.join(map(str, design))} {warning}", file=sys.stderr)
     print(f"{what}reward {result.reward_cm:+.3f} cm after {result.sim_seconds:g} s "
           f"({result.steps} steps, {result.wall_seconds:.1f} s wall, {result.real_time_factor:.3f}x real time); "
           f"wrote {out}")
@@ -189,27 +214,24 @@ def register(subparsers) -> None:
     p.add_argument("--gait", choices=GAITS, default="sine",
                    help="sine: the expert baseline (45 - 45 cos(2 pi t / 4 s), rear lags by --phase; regulators 3..R "
                    "off on a space of R != 3); paper-best: the paper's learned 3 s cycle (3 regulators)")
-    p.add_argument("--phase", type=float, default=110.0, help="sine gait: lag of regulator 2, degrees (default 110)")
+    p.add_argument("--phase", type=float, default=110.0, **bounded(-360.0, 360.0, "deg"),
+                   help="sine gait: lag of regulator 2, degrees (default 110)")
     p.add_argument("--actions", metavar="FILE.csv", default=None,
                    help="action sequence p1,...,pR, one column per regulator of the space (real kPa, one row per "
                    "1 s); overrides --gait")
-    p.add_argument("--duration", type=float, default=20.0,
-                   help=f"episode length, s (default 20, at most {MAX_DURATION_S:g})")
     p.add_argument("--out", required=True, help="output directory (must not exist unless --overwrite)")
     add_model_arguments(p)
-    p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size,
-                   help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")
+    add_robot_arguments(p)
     p.add_argument("--disk-mesh-size", type=float, default=RobotConfig.disk_mesh_size,
+                   **bounded(*SIM_BOUNDS["disk_mesh_size"]),
                    help=f"disk mesh size, mm (default {RobotConfig.disk_mesh_size:g}; the demo preset uses 25)")
-    p.add_argument("--friction", type=float, default=RobotConfig.friction,
-                   help=f"floor friction coefficient (default {RobotConfig.friction:g})")
-    p.add_argument("--dt", type=float, default=RobotConfig.dt, help=f"time step, s (default {RobotConfig.dt:g})")
-    p.add_argument("--refactor-every", type=int, default=RobotConfig.refactor_every,
-                   help="reuse each full-order body's factorization for this many steps (1 = exact; 5 is about "
-                        "1.7x faster and lags the contact compliance; default: 1 for the full model, "
-                        "5 for the reduced model's corotational disk)")
-    p.add_argument("--frames-every", type=int, default=10, metavar="K",
-                   help="write a ParaView frame every K steps (default 10)")
+    p.add_argument("--friction", type=float, default=None, **bounded(*FRICTION_BOUNDS),
+                   help=f"floor friction coefficient (default {RobotConfig.friction:g}, or the task's friction; not "
+                        "both)")
+    p.add_argument("--dt", type=float, default=RobotConfig.dt, **bounded(*SIM_BOUNDS["dt"]),
+                   help=f"time step, s (default {RobotConfig.dt:g})")
+    p.add_argument("--frames-every", type=int, default=FRAMES_EVERY, metavar="K", **bounded(1, MAX_FRAMES_EVERY),
+                   help=f"write a ParaView frame every K steps (default {FRAMES_EVERY})")
     add_animation_argument(p)
     p.add_argument("--video", action="store_true",
                    help="also render crawl.mp4 off-screen (one frame per --frames-every steps, 25 fps; "

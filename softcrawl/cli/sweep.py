@@ -18,8 +18,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from softcrawl.cli.simulate import (
-    MAX_DURATION_S, add_model_arguments, add_space_argument, check_duration, model_fields, space_design)
+from softcrawl.cli import MAX_WORKERS, bounded
+from softcrawl.cli.simulate import add_model_arguments, add_robot_arguments, add_space_argument, model_fields, space_design
 from softcrawl.design.resolve import resolve_space
 from softcrawl.robot.assembly import RobotConfig
 from softcrawl.robot.sweep import format_table, parse_phases, run_sweep
@@ -30,7 +30,6 @@ def _run(args: argparse.Namespace) -> int:
 
     space = resolve_space(args.space)
     design = space_design(space, args.design)
-    check_duration(args.duration)
     fields = model_fields(args)
     config = space_robot(RobotConfig(leg_mesh_size=args.mesh_size, refactor_every=args.refactor_every, **fields),
                          space)
@@ -60,19 +59,13 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, help="output directory (must not exist unless --overwrite)")
     p.add_argument("--phases", default="0:180:10",
                    help="phase lags, degrees: start:stop:step (stop included) or a comma list (default 0:180:10)")
-    p.add_argument("--duration", type=float, default=20.0,
-                   help=f"episode length, s (default 20, at most {MAX_DURATION_S:g})")
     add_space_argument(p)
     p.add_argument("--design", default=None,
                    help="comma-separated slot values, one per slot of the space, 0 or a regulator (default, paper's "
                    'space only: the baseline "1,0,0,2,2,0,0,1")')
     add_model_arguments(p)
-    p.add_argument("--mesh-size", type=float, default=RobotConfig.leg_mesh_size,
-                   help=f"leg mesh size, mm (default {RobotConfig.leg_mesh_size:g})")
-    p.add_argument("--refactor-every", type=int, default=RobotConfig.refactor_every,
-                   help="reuse each full-order body's factorization for this many steps (1 = exact; default: 1 for "
-                        "the full model, 5 for the reduced model's corotational disk)")
-    p.add_argument("--workers", type=int, default=None,
+    add_robot_arguments(p)
+    p.add_argument("--workers", type=int, default=None, **bounded(1, MAX_WORKERS),
                    help="worker processes, one BLAS thread each (default: number of CPUs; 1 = in this process)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -10,7 +10,10 @@ Examples::
 
 Writes the run folder described in :mod:`softcrawl.codesign.run` (:mod:`softcrawl.codesign.training`)
 and, at the end, its report (:mod:`softcrawl.codesign.report`; :func:`train_and_report`). Ctrl-C
-stops the run; ``--resume`` continues it from its last checkpoint.
+stops the run; ``--resume`` continues it from its last checkpoint. The run is locked while it
+trains (a second ``train`` or ``report`` on it is refused, naming the holder). An option and a
+``--set`` of the same setting (``--task`` and ``--set env.task=...``) are refused, as is a
+setting ``--set`` twice.
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ import os
 import sys
 from pathlib import Path
 
-from softcrawl.codesign.config import BACKENDS, PLACEMENT_KEYS, PRESETS, TrainConfig, override, preset
+from softcrawl.cli import bounded
+from softcrawl.codesign.config import BACKENDS, PLACEMENT_KEYS, PRESETS, TRAIN_BOUNDS, TrainConfig, override, preset
 from softcrawl.robot.output import check_output_path
 from softcrawl.tasks.registry import task_spec
 
@@ -69,12 +73,15 @@ def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, res
 
 
 def _check_out(out: str) -> None:
-    """``--out`` of a new run: a new folder that can be created, or an empty writable one."""
+    """``--out`` of a new run: a new folder that can be created, or an empty writable one (a
+    lock file left by a killed command aside, :meth:`~softcrawl.codesign.run.Run.is_new`)."""
+    from softcrawl.codesign.run import Run
+
     p = Path(out)
     if p.exists() or p.is_symlink():
         if not p.is_dir() or p.is_symlink():
             raise ValueError(f"{p} exists and is not a directory")
-        if any(p.iterdir()):
+        if not Run(p).is_new():
             raise ValueError(f"run directory {p} exists and is not empty (use --resume or another --out)")
         if not os.access(p, os.W_OK | os.X_OK):
             raise ValueError(f"run directory {p} is not writable")
@@ -91,7 +98,21 @@ def check_ray_address(backend: str, address: str | None) -> None:
         check_address(address, connect_timeout())
 
 
+#: The options of ``train`` that set a config setting (``--set`` key: option).
+OPTION_KEYS = {"total_steps": "--total-steps", "n_envs": "--n-envs", "backend": "--backend", "n_workers": "--workers",
+               "seed": "--seed", "env.task": "--task", "env.space": "--space"}
+
+
+def _check_conflicts(args: argparse.Namespace) -> None:
+    """Refuse an option given together with a ``--set`` of its setting (one line naming both)."""
+    sets = {a.split("=", 1)[0].strip(): a for a in args.set or []}
+    for key, flag in OPTION_KEYS.items():
+        if getattr(args, flag[2:].replace("-", "_")) is not None and key in sets:
+            raise ValueError(f"{flag} and --set {sets[key]!r} both set {key}; give one")
+
+
 def _run(args: argparse.Namespace) -> int:
+    _check_conflicts(args)
     if args.resume:
         if any(v is not None for v in (args.total_steps, args.n_envs, args.backend, args.seed, args.preset,
                                        args.space, args.task)):
@@ -138,11 +159,13 @@ def register(subparsers) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its last checkpoint, with its saved settings; only where "
                         "it runs may change: --workers, --set sac.device=...")
-    p.add_argument("--total-steps", type=int, default=None, help="environment transitions in total")
-    p.add_argument("--n-envs", type=int, default=None, help="parallel environments")
+    p.add_argument("--total-steps", type=int, default=None, **bounded(*TRAIN_BOUNDS["total_steps"]),
+                   help="environment transitions in total")
+    p.add_argument("--n-envs", type=int, default=None, **bounded(*TRAIN_BOUNDS["n_envs"]), help="parallel environments")
     p.add_argument("--backend", choices=BACKENDS, default=None, help="where envs run")
-    p.add_argument("--workers", type=int, default=None, help="worker processes of the subprocess backend (0: cores)")
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--workers", type=int, default=None, **bounded(*TRAIN_BOUNDS["n_workers"]),
+                   help="worker processes of the subprocess backend (0: cores)")
+    p.add_argument("--seed", type=int, default=None, **bounded(*TRAIN_BOUNDS["seed"]))
     p.add_argument("--space", default=None, metavar="NAME|PATH",
                    help="design space: a shipped one (paper, the default; hex6) or a space file (TOML); "
                         "the run keeps a copy as space.toml")

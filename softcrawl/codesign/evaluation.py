@@ -25,6 +25,11 @@ from softcrawl.tasks import Task, parse_task
 #: where a design's gait is chosen: with the deterministic episode, 12 candidate open-loop gaits,
 #: as many as the phase lags the expert baselines are swept over (``softcrawl report``).
 GAIT_SAMPLES = 11
+#: Most episodes one evaluation runs: deterministic ones (``episodes``, ``softcrawl evaluate
+#: --episodes`` and ``--randomize``) and sampled ones (``samples``, ``--samples`` of
+#: ``evaluate``, ``report`` and ``deploy --run``) each; 10,000 episodes of the paper's 20 s are
+#: hours of simulation.
+MAX_EPISODES = MAX_SAMPLES = 10_000
 
 
 def load_run_config(run: str | Path) -> TrainConfig:
@@ -171,8 +176,9 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
 
     Raises:
         ValueError: not a training run, no complete checkpoint, a damaged or crafted one,
-            ``episodes < 1``, ``samples < 0``, ``samples`` with ``randomize``, ranges the run's
-            action timing cannot take.
+            ``episodes`` outside 1..:data:`MAX_EPISODES`, ``samples`` outside
+            0..:data:`MAX_SAMPLES`, ``samples`` with ``randomize``, ranges the run's action
+            timing cannot take.
         InvalidDesignError: an invalid design.
     """
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -181,12 +187,12 @@ def evaluate_policy(run: str | Path, design, episodes: int = 1,
     from softcrawl.codesign.sac import make_sac
     from softcrawl.envs import action_to_kpa
 
+    if not 1 <= episodes <= MAX_EPISODES:
+        raise ValueError(f"episodes must be 1 to {MAX_EPISODES}, got {episodes}")
+    if not 0 <= samples <= MAX_SAMPLES or (samples and randomize is not None):
+        raise ValueError(f"samples must be 0 to {MAX_SAMPLES} and nominal (no randomize), got {samples}")
     r = Run(run)
     cfg = r.read_config()
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    if samples < 0 or (samples and randomize is not None):
-        raise ValueError(f"samples must be >= 0 and nominal (no randomize), got {samples}")
     design = cfg.env.design_space().canonicalize(design)
     if checkpoint is None:
         ck = r.require_checkpoint()

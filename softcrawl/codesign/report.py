@@ -21,7 +21,9 @@ is read through :class:`softcrawl.codesign.run.Run`):
   shows it crawling, :mod:`softcrawl.robot.animation`; ``trajectory.png`` shows commanded vs
   applied pressures and x(t); ParaView frames; ``summary.json``), and what
   the gait does (:func:`gait_analysis`: its cycle, if any, and the +x distance of each quarter of
-  the episode: a crawler moves in every quarter, a push does not);
+  the episode: a crawler moves in every quarter, a push does not); a warning when its robot did
+  not come to rest before the episode (:func:`softcrawl.robot.episode.unsettled_warning`: on a
+  floor tilted more than its friction holds it slides, and its return is that slide);
 * ``summary.json``: the numbers of ``summary.md`` (steps, wall time, top designs, the best
   design's policy reward, actions and gait analysis, the baseline's best phase and reward);
 * "Expert baseline", the task's (:attr:`softcrawl.tasks.Task.baseline`): for ``forward``, the
@@ -302,6 +304,7 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
     ``out/best_design``; Markdown lines and the numbers for ``summary.json`` (returns in the
     unit of ``task``, default ``forward``'s cm)."""
     from softcrawl.codesign.evaluation import evaluate_policy
+    from softcrawl.robot.episode import unsettled_warning
     from softcrawl.robot.output import write_results
     from softcrawl.tasks.base import VENT_SECONDS, return_series, vented_return
 
@@ -322,12 +325,16 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
     numbers = {"design": name, f"policy_{unit}": float(ev.returns_cm[0]), "resimulated_cm": float(result.reward_cm),
                "diverged": bool(result.diverged), "gait": g, "gait_source": ev.gait_source,
                f"gait_{unit}": ev.gait_return, f"sampled_{unit}": [float(v) for v in ev.sampled_returns],
-               "actions_kpa": np.round(np.asarray(ev.gait_actions_kpa, float), 2).tolist()}
+               "actions_kpa": np.round(np.asarray(ev.gait_actions_kpa, float), 2).tolist(), "settled": result.settled}
+    warning = unsettled_warning(result.settled)
+    if warning:
+        note(f"warning: the best design {name} {warning}")
     if task.name != "forward":
         numbers[f"resimulated_{unit}"] = rerun
     held, kept, _ = vented_return(task, robot, ev.gait(), seconds, ev.config.env.settling(), ev.env.calibration)
     numbers |= {f"held_at_end_{unit}": held, f"kept_after_venting_{unit}": kept}
     return ["", "## Best design's gait", "",
+            *([f"**Warning**: `{name}` {warning}.", ""] if warning else []),
             f"`{name}` with the trained policy (deterministic): {ev.returns_cm[0]:+.3f} {unit} per episode.",
             *_sampled_lines(ev, unit), "",
             (f"The gait below ({ev.gait_source}): {ev.gait_return:+.3f} {unit} "
@@ -380,25 +387,30 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         samples: episodes sampled from the stochastic policy on the best design; its gait is
             the best of them and the deterministic one (0: the deterministic one).
 
+    The run is locked while the report is written (:meth:`Run.lock`): not while it trains.
+
     Raises:
         ValueError: ``run`` is not a training run with at least one complete checkpoint, a
             run file is malformed, ``report`` is a link, or ``baseline`` is not a sweep output;
             and what an ``extra`` section raises.
+        FolderLockedError: another command is writing the run (a training, another report).
     """
     r = Run(run)
-    meta = r.read_meta()
-    sweep = _load_sweep(baseline) if baseline is not None else None
-    top = top_designs(r.path, k)
-    ckpt = r.require_checkpoint()
-    state = r.read_checkpoint_state(ckpt)["sampler"]
-    staged = r.report_staging()
-    try:
-        _write_report(r, staged, meta, top, state, ckpt, sweep, baseline_phases, simulate, workers, extra or {},
-                      samples)
-        return r.install_report(staged)
-    except BaseException:
-        shutil.rmtree(staged, ignore_errors=True)
-        raise
+    r.read_meta()  # a training run, before its lock is taken
+    with r.lock():
+        meta = r.read_meta()
+        sweep = _load_sweep(baseline) if baseline is not None else None
+        top = top_designs(r.path, k)
+        ckpt = r.require_checkpoint()
+        state = r.read_checkpoint_state(ckpt)["sampler"]
+        staged = r.report_staging()
+        try:
+            _write_report(r, staged, meta, top, state, ckpt, sweep, baseline_phases, simulate, workers, extra or {},
+                          samples)
+            return r.install_report(staged)
+        except BaseException:
+            shutil.rmtree(staged, ignore_errors=True)
+            raise
 
 
 def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: Path, sweep, baseline_phases,

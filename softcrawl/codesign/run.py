@@ -4,6 +4,9 @@ Training writes through :class:`Run`; evaluation, the report, regret and deploy 
 it; nothing else builds a run's paths by hand. Layout::
 
     RUN/
+    ├── .run.lock                  held by the command writing the run (train, train --resume, report;
+    │                              Run.lock: a second one is refused, naming the holder); removed when
+    │                              it ends, left unlocked by a killed one
     ├── config.json                {"version": softcrawl version, "config_version": format,
     │                              "space_sha256": space.toml's SHA-256, "config": TrainConfig.to_dict()}
     │                              (written once the run has started: config valid, envs built; an
@@ -65,11 +68,14 @@ from softcrawl.codesign.notes import note
 from softcrawl.design.resolve import SPACE_COPY, check_space_copy, resolve_space, write_space_copy
 from softcrawl.design.space import DEFAULT_SPACE
 from softcrawl.design.spacefile import DesignSpace
-from softcrawl.safeio import atomic_write_text, load_json
+from softcrawl.safeio import atomic_write_text, folder_lock, load_json
 
 #: Names other modules import from here (the checkpoint helpers live in
 #: :mod:`softcrawl.codesign.checkpoints`, the notes in :mod:`softcrawl.codesign.notes`).
 __all__ = ["NoSpaceError", "Run", "_sha256", "is_no_space", "latest_checkpoint", "note"]
+
+#: The lock file of a run folder (:meth:`Run.lock`).
+RUN_LOCK = ".run.lock"
 
 
 class Run(RunCheckpoints):
@@ -93,6 +99,7 @@ class Run(RunCheckpoints):
     logs_dir = property(lambda self: self.path / "logs")
     checkpoints_dir = property(lambda self: self.path / "checkpoints")
     report_dir = property(lambda self: self.path / "report")
+    lock_path = property(lambda self: self.path / RUN_LOCK)
 
     def _inside(self, p: Path) -> bool:
         """``p`` is a real (non-symlink) entry whose resolved path is inside the run."""
@@ -105,6 +112,21 @@ class Run(RunCheckpoints):
     def exists(self) -> bool:
         """The folder holds a ``config.json`` (a started run)."""
         return self.config_path.is_file()
+
+    def is_new(self) -> bool:
+        """No folder yet, or an empty one (a lock file left by a killed command aside)."""
+        return not self.path.exists() or (self.path.is_dir() and not self.path.is_symlink()
+                                          and all(p.name == RUN_LOCK for p in self.path.iterdir()))
+
+    def lock(self):
+        """A context manager holding the run's lock (:data:`RUN_LOCK`,
+        :func:`softcrawl.safeio.folder_lock`) while a command writes the run; the folder must
+        exist.
+
+        Raises:
+            FolderLockedError: another command is writing the run (the message names it).
+        """
+        return folder_lock(self.lock_path, self.path)
 
     def check_links(self) -> None:
         """Refuse a run whose own files or folders (config, logs, snapshots, checkpoints,
@@ -172,18 +194,15 @@ class Run(RunCheckpoints):
         return resolve_space(self.read_config().env.space) if self.exists() else DEFAULT_SPACE
 
     def write_config(self, cfg: TrainConfig) -> None:
-        """Write ``space.toml`` (the bytes of the file ``cfg.env.space`` names) and then
-        ``config.json`` with its SHA-256, atomically (creates the folder).
+        """Write ``space.toml`` (the file ``cfg.env.space`` names, the same space:
+        :func:`~softcrawl.design.resolve.write_space_copy`) and then ``config.json`` with its
+        SHA-256, atomically (creates the folder).
 
         Raises:
-            SpaceFileError: (a ValueError) the space file cannot be read, or changed since the
-                config was checked.
+            SpaceFileError: (a ValueError) the space file cannot be read.
         """
         self.path.mkdir(parents=True, exist_ok=True)
-        sha = write_space_copy(self.path, cfg.env.space)
-        if resolve_space(self.space_path) != cfg.env.design_space():
-            raise ValueError(f"{cfg.env.space}: the design space changed since the config was checked; "
-                             "start the run again")
+        sha = write_space_copy(self.path, cfg.env.space)  # the same space as the file's
         atomic_write_text(self.config_path, json.dumps({"version": __version__, "config_version": CONFIG_VERSION,
                                                         "space_sha256": sha, "config": cfg.to_dict()}, indent=2))
 

@@ -7,7 +7,9 @@ the gait's command (real kPa, checked against [0, 90]) goes through the rate-lim
 starts from the robot *at rest* on the floor: :func:`settle` steps it at zero pressure until
 every node is slower than :attr:`Settling.rest_speed` for :attr:`Settling.hold_seconds`
 (at most :attr:`Settling.max_seconds`; a robot that is still moving then is reported, not
-hidden: :attr:`SettledState.at_rest` is False). Settling does not count towards the episode
+hidden: :attr:`SettledState.at_rest` is False, and :func:`unsettled_warning` is the line the
+commands print about it: a robot on an incline steeper than its floor's friction allows never
+comes to rest and slides through its episode). Settling does not count towards the episode
 time; the reward is the +x displacement of the disk's top-centre point (cm) from the rested
 pose to the end of the episode. The settled state depends on the robot only, so callers that
 run many episodes of one design keep it (:class:`Episode` takes a cached
@@ -100,6 +102,19 @@ class SettledState:
         """The statistics (no state) for logs and summaries."""
         return {"settle_steps": self.steps, "settle_seconds": self.seconds,
                 "rest_speed_mm_s": self.rest_speed, "at_rest": self.at_rest}
+
+
+def unsettled_warning(settled: dict) -> str | None:
+    """One line on a robot that did not come to rest before its episode, from its settling
+    statistics (:meth:`SettledState.as_dict`: an env's ``info``, an :class:`EpisodeResult`'s
+    ``settled``); None if it came to rest (or the statistics are missing: settling diverged).
+    The episode started anyway, from a moving robot: on an incline steeper than the floor's
+    friction allows (tan a > mu) the robot slides for good, and its return is mostly that slide."""
+    if not settled or settled.get("at_rest", True):
+        return None
+    return (f"did not come to rest before its episode (still moving at {settled['rest_speed_mm_s']:.3g} mm/s after "
+            f"the {settled['settle_seconds']:g} s settling cap): its return counts that motion; on a floor tilted "
+            "more than its friction holds (tan a > mu) it slides for good")
 
 
 def settle(robot: Robot, settling: Settling = Settling(), solver=None, state: State | None = None,

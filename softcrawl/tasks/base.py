@@ -14,7 +14,8 @@ rebuilds it). What every task defines (docs/tasks.md):
   every task's episode (:mod:`softcrawl.envs.crawler`);
 * the floor: :attr:`Task.friction` (Coulomb mu; None: the robot config's, 1.2 by default) and
   :meth:`Task.gravity` (mm/s^2; None: the model's ``(0, 0, -9800)``), applied to every robot
-  the env builds (:meth:`Task.robots`);
+  the env builds (:meth:`Task.robots`); a floor the robot cannot stand still on (tilted more
+  than its friction holds) is refused (:meth:`Task.check_floor`);
 * :attr:`Task.observes_state`: whether its policy needs the robot-state summary in its
   observation (none of the shipped tasks does: open-loop observations, codesign.md);
 * :attr:`Task.baseline`: the expert baseline it has (``"sine"``: the paper's sine gait on the
@@ -103,6 +104,28 @@ class Task:
     def gravity(self) -> tuple[float, float, float] | None:
         """Gravity of the task's world, ``(3,)`` mm/s^2 (None: the model's own)."""
         return None
+
+    def check_floor(self, friction: float | None = None) -> None:
+        """Refuse a floor no robot can stand still on: gravity (:meth:`gravity`) tilted from the
+        floor's normal (-z) by an angle ``a`` with ``tan a > mu``, ``mu`` this task's
+        :attr:`friction`, else ``friction`` (the robot's; None: unknown, not checked). By
+        Coulomb's law a body on such a slope slides for good (docs/tasks.md, "incline"): the
+        robot would never come to rest before an episode, and every return would score the
+        slide.
+
+        Raises:
+            ValueError: such a floor (one line naming the task, its tilt and the friction).
+        """
+        g, mu = self.gravity(), self.friction if self.friction is not None else friction
+        if g is None or mu is None:
+            return
+        along, normal = math.hypot(g[0], g[1]), -g[2]
+        if along > mu * normal * (1 + 1e-12):
+            tilt = math.degrees(math.atan2(along, normal))
+            raise ValueError(f"task {self.name!r}: its floor is tilted {tilt:.4g} deg (tan {along / normal:.3g}), "
+                             f"steeper than the friction mu = {mu:g} holds (atan mu = {math.degrees(math.atan(mu)):.4g} "
+                             "deg): a robot on it slides down for good and never comes to rest; lower the tilt or "
+                             "raise the friction")
 
     def robots(self, factory: Callable) -> Callable:
         """``factory`` (``design -> Robot``) whose robots stand on this task's floor: the same

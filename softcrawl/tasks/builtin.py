@@ -197,6 +197,11 @@ class Incline(Task):
     ``g = 9800 (-sin a, 0, -cos a)`` mm/s^2. The reward is the uphill displacement of the disk's
     top centre (its +x displacement, as :class:`Forward`), cm.
 
+    A robot holds on the incline only if ``tan a <= mu`` (Coulomb): an incline steeper than
+    the task's ``friction`` is refused here, one steeper than the robot's friction where the
+    task meets the robot (:meth:`Task.check_floor`: the training and ground-truth configs,
+    ``softcrawl simulate``).
+
     Attributes:
         angle_deg: the incline ``a``, degrees in [0, 45] (0: a flat floor, :class:`Forward`).
     """
@@ -209,6 +214,7 @@ class Incline(Task):
     def __post_init__(self) -> None:
         super().__post_init__()
         object.__setattr__(self, "angle_deg", check_number(self.name, "angle_deg", self.angle_deg, 0.0, 45.0, "deg"))
+        self.check_floor()
 
     def gravity(self) -> tuple[float, float, float]:
         """``(-g sin a, 0, -g cos a)`` mm/s^2."""

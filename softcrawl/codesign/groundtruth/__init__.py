@@ -22,7 +22,8 @@ pair per design, 0.43 / 0.75 / 0.79 within a design, hence 6 s and full-length f
 diverged episode scores :data:`DIVERGED_CM`.
 
 **Runs** (:func:`run_groundtruth`, ``softcrawl groundtruth``): a folder with ``config.json``
-(the :class:`GroundTruthConfig`), ``results.jsonl`` (one line per finished design, appended and
+(the :class:`GroundTruthConfig` and the design set, :func:`design_set_spec`: ``--resume``
+continues exactly that set), ``results.jsonl`` (one line per finished design, appended and
 fsynced as each finishes: a killed run continues where it stopped and never recomputes a
 finished design; :mod:`~softcrawl.codesign.groundtruth.store`), ``references.json`` (expert
 baseline phase sweep, paper gait on the paper's design), and at the end ``groundtruth.csv``
@@ -36,7 +37,15 @@ Modules, each importing only those before it: ``config`` → ``result`` → ``se
 ``optimize`` → ``store`` → ``outputs`` → ``runner``.
 """
 
-from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE, GroundTruthConfig, gt_robot
+from softcrawl.codesign.groundtruth.config import (
+    MAX_EVALS,
+    MAX_FINALISTS,
+    MAX_POPSIZE,
+    GroundTruthConfig,
+    design_set_spec,
+    gt_robot,
+    parse_designs,
+)
 from softcrawl.codesign.groundtruth.optimize import (
     DesignEvaluator,
     SerialEvaluateMany,
@@ -50,7 +59,6 @@ from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
 from softcrawl.codesign.groundtruth.runner import (
     EXECUTORS,
     PAPER_L1_CM,
-    parse_designs,
     references,
     run_groundtruth,
 )
@@ -69,18 +77,18 @@ from softcrawl.codesign.groundtruth.search import (
 from softcrawl.codesign.groundtruth.store import (
     LOCK,
     RESULTS,
-    FolderLockedError,
     check_folder,
     folder_lock,
     folder_task,
     load_groundtruth,
-    folder_task,
     load_results,
     read_config,
     read_references,
     read_results,
+    recorded_designs,
 )
 from softcrawl.gaits.periodic import MAX_KNOTS, WAVEFORMS, PeriodicGait
+from softcrawl.safeio import FolderLockedError
 
 __all__ = [
     "DIVERGED_CM",
@@ -104,6 +112,7 @@ __all__ = [
     "cma_maximize",
     "cma_search",
     "design_search",
+    "design_set_spec",
     "design_seed",
     "drive",
     "episode_return",
@@ -118,6 +127,7 @@ __all__ = [
     "read_config",
     "read_references",
     "read_results",
+    "recorded_designs",
     "references",
     "run_groundtruth",
     "screening_agreement",

@@ -1,12 +1,15 @@
-"""Settings of a ground-truth run (:class:`GroundTruthConfig`, saved as its ``config.json``)."""
+"""Settings of a ground-truth run (:class:`GroundTruthConfig`, saved as its ``config.json``) and its
+design set (:func:`parse_designs`, recorded beside them as :func:`design_set_spec`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 from dataclasses import dataclass, field
 
 from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS, build_config, check_bounds, space_robot
 from softcrawl.design.resolve import PAPER_SPACE, resolve_space
+from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import MAX_KNOTS
 from softcrawl.robot.assembly import RobotConfig
@@ -35,12 +38,12 @@ class GroundTruthConfig:
             where :func:`~softcrawl.codesign.groundtruth.optimize.screening_agreement` shows short
             episodes rank like full ones.
         hold: seconds per knot (= per action).
-        cycles: pattern lengths ``L`` searched (one CMA-ES run each, 1..8).
+        cycles: distinct pattern lengths ``L`` searched (one CMA-ES run each, 1..8).
         evals_per_cycle: episodes per CMA-ES run.
         popsize: CMA-ES population (None: cma's default ``4 + 3 ln n``).
         sigma0: initial CMA-ES step, as a fraction of 90 kPa.
         finalists: best distinct candidates re-run with ``duration`` (step and smooth each).
-        seed: CMA-ES seed (design-specific seeds are derived from it).
+        seed: CMA-ES seed, 0..2**32 - 1 (design-specific seeds are derived from it).
         robot: the simulated robot (:class:`softcrawl.robot.RobotConfig`; default
             :func:`gt_robot`: the reduced model with the shipped reduction, RID products in
             float32, validated like the training presets' model, ``docs/results.md``; every
@@ -103,6 +106,7 @@ class GroundTruthConfig:
             raise ValueError(f"space: {exc}") from None
         try:
             task = self.task_spec()
+            task.check_floor(self.robot.friction)
         except ValueError as exc:
             raise ValueError(f"task: {exc}") from None
         for name, (low, high, unit) in SIM_BOUNDS.items():
@@ -112,8 +116,10 @@ class GroundTruthConfig:
             check_bounds(name, getattr(self, name), 0, high, unit, open_low=True)
         if self.screen_duration is not None and not (0 < self.screen_duration <= self.duration):
             raise ValueError(f"screen_duration must be in (0, duration], got {self.screen_duration!r}")
-        if not self.cycles or any(int(c) != c or not 1 <= c <= MAX_KNOTS for c in self.cycles):
-            raise ValueError(f"cycles must be pattern lengths in 1..{MAX_KNOTS}, got {self.cycles!r}")
+        if not self.cycles or any(int(c) != c or not 1 <= c <= MAX_KNOTS for c in self.cycles) \
+                or len(set(self.cycles)) != len(self.cycles):
+            raise ValueError(f"cycles must be distinct pattern lengths in 1..{MAX_KNOTS}, got {self.cycles!r}")
+        check_bounds("seed", self.seed, 0, 2**32 - 1)
         for name, low, high in (("evals_per_cycle", 1, MAX_EVALS), ("finalists", 1, MAX_FINALISTS),
                                 ("popsize", 2, MAX_POPSIZE)):
             v = getattr(self, name)
@@ -139,6 +145,32 @@ class GroundTruthConfig:
             check_bounds("baseline_phases", ph, -360, 360, "deg")
         return self
 
+    def check_engine(self) -> None:
+        """Check now what the searches would find out later, in a worker: the reduced model's
+        reduction file (``robot.reduction``, else the space's; it must match the robot, the
+        space's parts and, being the space's own, its ``reduction_sha256``:
+        :func:`softcrawl.reduction.artifact.load_reduction`, the checks
+        :func:`softcrawl.robot.build_robot` makes) and, for ``engine="jax"``, that JAX imports.
+
+        Raises:
+            ValueError: no reduction for the reduced model, or JAX missing (one line each);
+                ReductionFileError, ReductionMismatchError (ValueErrors): a bad reduction file.
+        """
+        if self.engine == "jax" and importlib.util.find_spec("jax") is None:
+            raise ValueError('engine "jax" needs JAX: pip install "softcrawl[jax]" (or "softcrawl[gpu]")')
+        config, space = self.robot_config(), self.design_space()
+        if config.model != "reduced":
+            return
+        from softcrawl.reduction.artifact import load_reduction
+
+        path = config.reduction or space.reduction
+        if path is None:
+            raise ValueError(f"the design space {space.name!r} names no reduction ([actuator] reduction) and "
+                             "--reduction none: the reduced model needs one (softcrawl reduce build)")
+        load_reduction(path, expect=dataclasses.asdict(config),
+                       part=space.part_record(config.leg_mesh_size, config.disk_mesh_size),
+                       sha256=space.reduction_sha256 if str(path) == space.reduction else None)
+
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["cycles"], d["baseline_phases"] = list(self.cycles), list(self.baseline_phases)
@@ -156,3 +188,55 @@ class GroundTruthConfig:
                 setting out of bounds.
         """
         return build_config(cls, d).validate()
+
+
+def parse_designs(spec: str, space: DesignSpace = DEFAULT_SPACE) -> list[Design]:
+    """Design set of ``space`` (default the paper's) from text: ``"3"`` (all canonical designs
+    with 3 legs; ``"3,4"`` ...), ``"all"`` (6,972 in the paper's space), or designs separated by
+    ``;`` (``"1,0,0,2,2,0,0,0; 1,0,0,2,2,0,0,1"``), canonicalised.
+
+    Raises:
+        ValueError / InvalidDesignError: an unreadable set, leg counts outside the space's.
+    """
+    spec = spec.strip()
+    if spec == "all":
+        return list(space.canonical_designs)
+    if ";" not in spec and all(p.strip().isdigit() and len(p.strip()) == 1 for p in spec.split(",")) \
+            and len(spec.split(",")) < space.n_slots:
+        legs = {int(p) for p in spec.split(",")}
+        if not legs <= set(range(space.min_legs, space.max_legs + 1)):
+            raise ValueError(f"leg counts must be in {space.min_legs}..{space.max_legs}, got {sorted(legs)}")
+        return [d for d in space.canonical_designs if sum(v > 0 for v in d) in legs]
+    out, seen = [], set()
+    for part in spec.split(";"):
+        if part.strip():
+            d = space.canonicalize(part)
+            if d not in seen:
+                seen.add(d)
+                out.append(d)
+    if not out:
+        raise ValueError("empty design set")
+    return out
+
+
+def design_set_spec(designs, space: DesignSpace = DEFAULT_SPACE) -> str:
+    """The text :func:`parse_designs` reads back as the set of the canonical ``designs`` of
+    ``space``: ``"all"``, leg counts (``"3"``, ``"3,4"``) when they are every design of those
+    counts, else the designs separated by ``;`` in their order (a ground truth's
+    ``config.json`` records its design set so: :mod:`softcrawl.codesign.groundtruth.store`).
+
+    Raises:
+        ValueError: an empty set.
+    """
+    designs = list(dict.fromkeys(designs))
+    if not designs:
+        raise ValueError("empty design set")
+    if set(designs) == set(space.canonical_designs):
+        return "all"
+    legs = ",".join(map(str, sorted({sum(v > 0 for v in d) for d in designs})))
+    try:
+        if set(parse_designs(legs, space)) == set(designs):
+            return legs
+    except ValueError:  # not a leg-count set of this space (too many counts, two-digit ones)
+        pass
+    return ";".join(",".join(map(str, d)) for d in designs)

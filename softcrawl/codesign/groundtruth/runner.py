@@ -5,6 +5,7 @@ appended to ``results.jsonl`` as its design finishes; then the references and th
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -12,7 +13,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from softcrawl.codesign.groundtruth.config import GroundTruthConfig
+from softcrawl.codesign.groundtruth.config import GroundTruthConfig, design_set_spec
 from softcrawl.codesign.groundtruth.optimize import DesignEvaluator, optimize_design
 from softcrawl.codesign.groundtruth.outputs import write_outputs
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
@@ -22,51 +23,22 @@ from softcrawl.codesign.groundtruth.store import (
     _append,
     check_folder,
     folder_lock,
-    folder_space,
     load_results,
     read_config,
     read_references,
+    recorded_designs,
 )
 from softcrawl.codesign.migrate import CONFIG_VERSION
 from softcrawl.design.resolve import write_space_copy
 from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE, PAPER_BEST_DESIGN, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.gaits.periodic import PeriodicGait
-from softcrawl.safeio import atomic_write_text
+from softcrawl.safeio import atomic_write_text, load_json
 from softcrawl.tasks import Forward
 
 EXECUTORS = ("process", "serial", "ray")
 #: Paper's reward of its best design L1 with its learned gait (codesign.md), cm per 20 s.
 PAPER_L1_CM = 10.0
-
-
-def parse_designs(spec: str, space: DesignSpace = DEFAULT_SPACE) -> list[Design]:
-    """Design set of ``space`` (default the paper's) from text: ``"3"`` (all canonical designs
-    with 3 legs; ``"3,4"`` ...), ``"all"`` (6,972 in the paper's space), or designs separated by
-    ``;`` (``"1,0,0,2,2,0,0,0; 1,0,0,2,2,0,0,1"``), canonicalised.
-
-    Raises:
-        ValueError / InvalidDesignError: an unreadable set, leg counts outside the space's.
-    """
-    spec = spec.strip()
-    if spec == "all":
-        return list(space.canonical_designs)
-    if ";" not in spec and all(p.strip().isdigit() and len(p.strip()) == 1 for p in spec.split(",")) \
-            and len(spec.split(",")) < space.n_slots:
-        legs = {int(p) for p in spec.split(",")}
-        if not legs <= set(range(space.min_legs, space.max_legs + 1)):
-            raise ValueError(f"leg counts must be in {space.min_legs}..{space.max_legs}, got {sorted(legs)}")
-        return [d for d in space.canonical_designs if sum(v > 0 for v in d) in legs]
-    out, seen = [], set()
-    for part in spec.split(";"):
-        if part.strip():
-            d = space.canonicalize(part)
-            if d not in seen:
-                seen.add(d)
-                out.append(d)
-    if not out:
-        raise ValueError("empty design set")
-    return out
 
 
 def _task(design: Design, cfg_dict: dict) -> dict:
@@ -141,20 +113,26 @@ def references(cfg: GroundTruthConfig, progress: bool = False) -> dict:
     return out
 
 
-def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConfig | None = None,
+def run_groundtruth(designs: Sequence | None, out_dir: str | Path, cfg: GroundTruthConfig | None = None,
                     workers: int | None = None, executor: str = "process", progress: bool = True,
                     task: Callable[[Design, dict], dict] = _task, ray_address: str | None = None,
                     refs: bool = True, evaluate_many: EvaluateMany | None = None) -> dict:
     """Ground truth of ``designs`` into ``out_dir`` (see the module docstring); resumable.
 
-    Everything is checked before any design is computed: the folder (:func:`check_folder`),
-    the settings, the designs. The folder is locked while the run writes it
-    (:func:`folder_lock`): a second run on it stops at once.
+    Everything is checked before anything is written: the folder (:func:`check_folder`), the
+    settings, the designs, the reduction file and the engine
+    (:meth:`GroundTruthConfig.check_engine`); a refused run leaves no folder behind (or the
+    empty one it was given). The folder is locked while the run writes it (:func:`folder_lock`):
+    a second run on it stops at once. ``config.json`` records the settings and the design set
+    (:func:`~softcrawl.codesign.groundtruth.config.design_set_spec`, key ``"designs"``).
 
     Args:
-        designs: designs (canonicalised; duplicates dropped).
+        designs: designs (canonicalised; duplicates dropped); None: the set the folder records.
         out_dir: run folder (created; an existing one must hold the same config).
-        cfg: settings (default :class:`GroundTruthConfig`; None on an existing folder: its own).
+        cfg: settings (default :class:`GroundTruthConfig`; None on an existing folder: its own,
+            and then its recorded design set: ``designs``, if given, must be that set).
+            A run with settings on an existing folder (the same command again) computes
+            ``designs`` and records them as the folder's set.
         workers: processes (``executor="process"``; default: CPU count) or Ray CPUs.
         executor: ``"process"`` (pool), ``"serial"`` (in-process) or ``"ray"`` (Ray tasks, local
             Ray unless ``ray_address``).
@@ -171,40 +149,89 @@ def run_groundtruth(designs: Sequence, out_dir: str | Path, cfg: GroundTruthConf
 
     Raises:
         ValueError: config mismatch with an existing folder, unknown executor, empty design set,
-            settings out of bounds, a folder another command wrote (:func:`check_folder`).
+            no design set (none given, none recorded), a resumed folder given another design
+            set, settings out of bounds, a bad reduction file, a folder another command wrote
+            (:func:`check_folder`).
         FolderLockedError: another run is writing the folder.
     """
     if executor not in EXECUTORS:
         raise ValueError(f"executor must be one of {EXECUTORS}, got {executor!r}")
     out = check_folder(out_dir)
-    if cfg is not None:
-        cfg.validate()
-    space = cfg.design_space() if cfg is not None else folder_space(out)
-    designs = list(dict.fromkeys(space.canonicalize(d) for d in designs))
-    if not designs:
+    existing = (out / "config.json").exists()
+    resume = cfg is None and existing
+    check = (cfg or GroundTruthConfig()).validate() if not resume else read_config(out)
+    designs = None if designs is None else list(dict.fromkeys(check.design_space().canonicalize(d) for d in designs))
+    if designs is not None and not designs:
         raise ValueError("empty design set")
+    if designs is None and not existing:
+        raise ValueError(f"{out} is a new ground truth: give its designs")
+    if evaluate_many is None:
+        check.check_engine()  # a bad reduction file fails here, not in a worker after the folder is written
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    with folder_lock(out):
-        cfg_path = out / "config.json"
-        if cfg_path.exists():
-            saved = read_config(out)
-            given = None if cfg is None else cfg.to_dict() | (  # the folder keeps its space as its own file
-                {"space": saved.space} if cfg.design_space() == saved.design_space() else {})
-            if given is not None and given != saved.to_dict():
-                diff = {k: (v, given[k]) for k, v in saved.to_dict().items() if given[k] != v}
-                raise ValueError(f"{out} holds a ground truth with other settings (saved vs given: {diff}); "
-                                 "use another folder")
-            cfg = saved
-        else:
-            cfg = (cfg or GroundTruthConfig()).validate()
-            from softcrawl import __version__
+    try:
+        with folder_lock(out):
+            cfg, designs = _settle_folder(out, cfg, designs, resume)
+            return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs, evaluate_many)
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # only if still empty
+        raise
 
-            sha = write_space_copy(out, cfg.space)  # before config.json, which marks the folder a ground truth
-            saved = {"config": cfg.to_dict(), "config_version": CONFIG_VERSION, "space_sha256": sha,
-                     "softcrawl": __version__}
-            atomic_write_text(cfg_path, json.dumps(saved, indent=2) + "\n")
-            cfg = read_config(out)  # its space: the folder's copy
-        return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs, evaluate_many)
+
+def _settle_folder(out: Path, cfg: GroundTruthConfig | None, designs: list | None,
+                   resume: bool) -> tuple[GroundTruthConfig, list]:
+    """The locked folder's settings and design set (:func:`run_groundtruth`): a new folder gets
+    ``space.toml`` and then ``config.json`` (``cfg``, ``designs``); an existing one's settings
+    must be ``cfg`` (None: its own), its recorded set ``designs`` on ``resume`` (None: the
+    recorded set), and a run with settings records ``designs`` as its set. Returns ``(the
+    folder's config, the designs)``.
+
+    Raises:
+        ValueError: other settings, or another design set on ``resume``, or no set at all.
+    """
+    cfg_path = out / "config.json"
+    if not cfg_path.exists():
+        cfg = (cfg or GroundTruthConfig()).validate()
+        sha = write_space_copy(out, cfg.space)  # before config.json, which marks the folder a ground truth
+        from softcrawl import __version__
+
+        _write_config(out, {"config": cfg.to_dict(), "config_version": CONFIG_VERSION, "space_sha256": sha,
+                            "designs": design_set_spec(designs, cfg.design_space()), "softcrawl": __version__})
+        return read_config(out), designs  # its space: the folder's copy
+    saved = read_config(out)
+    given = None if cfg is None else cfg.to_dict() | (  # the folder keeps its space as its own file
+        {"space": saved.space} if cfg.design_space() == saved.design_space() else {})
+    if given is not None and given != saved.to_dict():
+        diff = {k: (v, given[k]) for k, v in saved.to_dict().items() if given[k] != v}
+        raise ValueError(f"{out} holds a ground truth with other settings (saved vs given: {diff}); "
+                         "use another folder")
+    recorded, space = recorded_designs(out), saved.design_space()
+    if designs is None:
+        if recorded is None:
+            raise ValueError(f"{out} records no design set (written before ground truths recorded theirs): give "
+                             "its --designs")
+        return saved, recorded
+    if resume and recorded is not None and set(designs) != set(recorded):
+        raise ValueError(f"{out} is the ground truth of the designs {_shown(recorded, space)}; --resume continues "
+                         f"exactly them, not {_shown(designs, space)}: drop --designs, or run those in another "
+                         "folder")
+    if not resume and (recorded is None or set(designs) != set(recorded)):
+        doc = load_json(out / "config.json")
+        _write_config(out, {**doc, "designs": design_set_spec(designs, space)})
+    return saved, designs
+
+
+def _shown(designs: list, space: DesignSpace) -> str:
+    """A design set for a message: its :func:`design_set_spec` (cut short) and its size."""
+    spec = design_set_spec(designs, space)
+    return f"{spec[:60]!r}{'...' if len(spec) > 60 else ''} ({len(designs)})"
+
+
+def _write_config(out: Path, doc: dict) -> None:
+    """Write ``doc`` as a ground truth's ``config.json`` (atomically)."""
+    atomic_write_text(out / "config.json", json.dumps(doc, indent=2) + "\n")
 
 
 def jax_evaluate_many(cfg: GroundTruthConfig) -> EvaluateMany:

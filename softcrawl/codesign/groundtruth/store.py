@@ -1,5 +1,5 @@
 """A ground-truth folder on disk: ``results.jsonl`` (read, validated, appended), the settings
-in ``config.json``, ``references.json``, the check of a folder before a run writes it
+and the design set in ``config.json``, ``references.json``, the check of a folder before a run writes it
 (:func:`check_folder`) and its lock (:func:`folder_lock`).
 
 ``results.jsonl`` is only ever appended to, never rewritten, and never through a symbolic link.
@@ -11,13 +11,12 @@ line and left in place, and a resumed run computes its design again.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import stat
 from pathlib import Path
 
-from softcrawl.codesign.groundtruth.config import GroundTruthConfig
+from softcrawl.codesign.groundtruth.config import GroundTruthConfig, parse_designs
 from softcrawl.codesign.groundtruth.result import DesignResult, _finite
 from softcrawl.codesign.migrate import SPACE_VERSION, config_version, read_settings
 from softcrawl.codesign.run import note
@@ -25,6 +24,7 @@ from softcrawl.design.resolve import check_space_copy
 from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.safeio import UnsafeFileError, load_json, loads_json, read_text
+from softcrawl.safeio import folder_lock as safe_folder_lock
 from softcrawl.tasks import DEFAULT_TASK, Task, parse_task
 
 RESULTS = "results.jsonl"
@@ -110,12 +110,8 @@ def _append(path: Path, result: DesignResult, unit: str = "cm") -> None:
         os.close(fd)
 
 
-#: Lock file of a ground-truth folder: held (``fcntl.flock``) by the run writing it.
+#: Lock file of a ground-truth folder: held by the run writing it (:func:`folder_lock`).
 LOCK = ".groundtruth.lock"
-
-
-class FolderLockedError(ValueError):
-    """Another process is writing this ground-truth folder."""
 
 
 def read_config(out_dir: str | Path) -> GroundTruthConfig:
@@ -138,6 +134,30 @@ def read_config(out_dir: str | Path) -> GroundTruthConfig:
         return GroundTruthConfig.from_dict(settings)
     except ValueError as exc:
         raise ValueError(f"{path}: not a ground truth's settings ({exc})") from None
+
+
+def recorded_designs(out_dir: str | Path) -> list[Design] | None:
+    """The design set a ground-truth folder's ``config.json`` records (its ``"designs"``,
+    :func:`~softcrawl.codesign.groundtruth.config.design_set_spec`, in the folder's space); None
+    for a folder written before ground truths recorded theirs.
+
+    Raises:
+        FileNotFoundError: no ``config.json``.
+        ValueError: a record that is not a design set of the folder's space (names the file),
+            or as :func:`read_config`.
+    """
+    path = Path(out_dir) / "config.json"
+    doc = load_json(path)
+    spec = doc.get("designs") if isinstance(doc, dict) else None
+    if spec is None:
+        return None
+    space = folder_space(out_dir)
+    try:
+        if not isinstance(spec, str):
+            raise ValueError(f"designs must be text, got {spec!r}")
+        return parse_designs(spec, space)
+    except ValueError as exc:
+        raise ValueError(f"{path}: not a ground truth's design set ({exc})") from None
 
 
 def check_folder(out_dir: str | Path) -> Path:
@@ -171,28 +191,14 @@ def check_folder(out_dir: str | Path) -> Path:
     return out
 
 
-@contextlib.contextmanager
 def folder_lock(out: Path):
-    """Hold the advisory lock :data:`LOCK` of the folder ``out`` (it holds the holder's pid).
+    """The lock of the ground-truth folder ``out`` (:data:`LOCK`,
+    :func:`softcrawl.safeio.folder_lock`: it names its holder, and dies with it).
 
     Raises:
         FolderLockedError: another process holds it.
     """
-    import fcntl
-
-    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            pid = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
-            raise FolderLockedError(f"{out} is being written by another softcrawl groundtruth (process {pid}); "
-                                    "wait for it to finish or use another --out") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
+    return safe_folder_lock(Path(out) / LOCK, out)
 
 
 def read_references(out_dir: str | Path) -> dict | None:
