@@ -49,6 +49,23 @@ share of all CPU seconds used.
 ``--learner-cost`` also runs the same without any update: the learner's share of the wall time is
 ``1 - wall(no updates) / wall(updates)``, and the ``paper`` preset is projected from the
 simulation-only rate and the learner's rate (overlapped: the larger of the two; serial: their sum).
+
+The two training loops on the JAX backend (``softcrawl train`` itself, ``backend="jax"`` on JAX's
+default device, the learner's ``sac.device`` as set): episode-at-once (``rollout="episode"``: every
+env's whole episode in one compiled call, replay buffer and updates on the learner's device) and
+per-action (``rollout="action"``: SB3's loop), one after the other in this process, same seed, at
+each of ``--jax-envs`` env counts, ``--episodes`` rounds of one episode per env each, learning from
+the second round on (``--set backend=...`` times another backend the same way):
+  python benchmarks/train_throughput.py --jax-loops [--jax-envs 96,1024] [--episodes 2] [--preset paper]
+       [--set KEY=VALUE]
+Each run reports its end-to-end transitions/s (``transitions_per_s``: all transitions over the
+call's wall time, start-up, settling and compilation included) and ``steady_transitions_per_s``
+(the transitions after the first round over the wall time since its end: updates included),
+robot steps per second, the learner's wall seconds and its updates; ``episode_over_action`` is the
+ratio of the two loops' steady rates. On a CPU the JAX engine makes a few dozen robot steps per
+second, so shrink the episode there (this machine's figures in benchmarks/RESULTS.md):
+  python benchmarks/train_throughput.py --jax-loops --preset crawl --set env.n_actions=2 \
+       env.steps_per_action=1 env.settle_max_seconds=0.04
 """
 
 from __future__ import annotations
@@ -227,6 +244,59 @@ def end_to_end(args, batched: bool = True, updates: bool = True, learner: str = 
             "learner_process_cpu_s": learner_cpu, "learner_cpu_share": learner_cpu / (learner_cpu + memory.cpu_s)}
 
 
+def jax_loops(args) -> dict:
+    """Transitions/s of both training loops on the JAX backend at each of ``args.jax_envs`` env
+    counts (module docstring): ``"episode/N"`` and ``"action/N"`` runs and
+    ``"episode_over_action/N"``, the ratio of their steady rates."""
+    import tempfile
+
+    import softcrawl.codesign.training as training
+    from softcrawl.codesign.config import override
+
+    stamps: list[tuple[float, int]] = []
+    on_step = training.CodesignCallback._on_step
+
+    def stamped(callback):
+        stamps.append((time.perf_counter(), callback.num_timesteps))
+        return on_step(callback)
+
+    training.CodesignCallback._on_step = stamped
+    out = {}
+    try:
+        for n in args.jax_envs:
+            for rollout in ("action", "episode"):
+                cfg = override(override(preset(args.preset), ['backend="jax"']),
+                               [f"n_envs={n}", f'rollout="{rollout}"', *(args.set or [])])
+                per_round = n * cfg.env.n_actions
+                total = per_round * args.episodes
+                cfg = override(cfg, [f"total_steps={total}", f"sac.learning_starts={per_round}",
+                                     f"checkpoint_every={10 * total}", f"snapshot_every={per_round}"])
+                stamps.clear()
+                with tempfile.TemporaryDirectory() as tmp:
+                    res = training.train(f"{tmp}/run", cfg, progress=False)
+                t1 = max(t for t, steps in stamps if steps <= per_round)
+                steady = (res.steps - per_round) / (stamps[-1][0] - t1) if res.steps > per_round else None
+                out[f"{rollout}/{n}"] = {
+                    "rollout": rollout, "n_envs": n, "transitions": res.steps, "wall_s": res.wall_seconds,
+                    "transitions_per_s": res.steps / res.wall_seconds, "steady_transitions_per_s": steady,
+                    "robot_steps_per_s": res.steps * cfg.env.steps_per_action / res.wall_seconds,
+                    "updates": res.updates, "learner_s": res.learner_seconds, "n_actions": cfg.env.n_actions,
+                    "steps_per_action": cfg.env.steps_per_action, "preset": args.preset, "set": args.set or [],
+                    "device": _jax_device()}
+            a, e = out[f"action/{n}"]["steady_transitions_per_s"], out[f"episode/{n}"]["steady_transitions_per_s"]
+            out[f"episode_over_action/{n}"] = e / a if a and e else None
+    finally:
+        training.CodesignCallback._on_step = on_step
+    return out
+
+
+def _jax_device() -> str:
+    import jax
+
+    d = jax.devices()[0]
+    return f"{d.platform}:{d.id} ({d.device_kind})"
+
+
 def project(run: dict, updates_per_s: float, cores: int) -> dict:
     """Projected hours of the ``paper`` preset (1M transitions, one update per transition) from
     an end-to-end run without updates (simulation only, all cores) and the learner's rate: the
@@ -319,6 +389,11 @@ def main() -> None:
     p.add_argument("--preset", default="paper", help="end to end: the preset to time (default paper)")
     p.add_argument("--set", action="append", help="end to end: extra section.field=value settings")
     p.add_argument("--no-overlap", action="store_true", help="end to end: updates after each step, not overlapped")
+    p.add_argument("--jax-loops", action="store_true",
+                   help="time both training loops (episode-at-once, per-action) on the JAX backend")
+    p.add_argument("--jax-envs", type=lambda v: [int(x) for x in v.split(",")], default=[96, 1024],
+                   help="--jax-loops: env counts, comma-separated (default 96,1024)")
+    p.add_argument("--episodes", type=int, default=2, help="--jax-loops: rounds of one episode per env")
     p.add_argument("--learner-cost", action="store_true",
                    help="end to end: also run without updates; report the learner's share of the wall time "
                         "and the paper preset's projection")
@@ -329,10 +404,13 @@ def main() -> None:
     from softcrawl.codesign.sac import learner_module
 
     for name in ("sbx", "torch"):
-        learner_module(name).configure_threads(1 if args.end_to_end else args.threads)
+        learner_module(name).configure_threads(1 if args.end_to_end or args.jax_loops else args.threads)
     learners = ("torch", "sbx") if args.learner == "both" else (args.learner,)
     head = {"machine": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__, "jax": jax.__version__,
-            "threads": 1 if args.end_to_end else args.threads}
+            "threads": 1 if args.end_to_end or args.jax_loops else args.threads}
+    if args.jax_loops:
+        print(json.dumps({**head, "runs": jax_loops(args)}, indent=2))
+        return
     if args.end_to_end:
         modes = ("serial", "batched") if args.stepping == "both" else (args.stepping,)
         runs = {f"{mode}/{k}": end_to_end(args, mode == "batched", learner=k) for mode in modes for k in learners}

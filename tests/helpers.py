@@ -21,7 +21,7 @@ def restored_learner(run):
     sampler = make_sampler(cfg)
     venv = make_vec_env(cfg, sampler)
     try:
-        model = make_sac(venv, cfg.sac, seed=cfg.seed)
+        model = make_sac(venv, cfg.sac, seed=cfg.seed, rollout=cfg.rollout)
         r.load_checkpoint(r.latest_checkpoint(), model, sampler)
     finally:
         venv.close()

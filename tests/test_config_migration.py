@@ -30,7 +30,8 @@ def test_a_format_1_run_reads_back_as_the_preset_it_was_trained_with(tmp_path):
     shutil.copy(DATA / "run_config_v1.json", tmp_path / "config.json")
     cfg = Run(tmp_path).read_config()
     assert cfg.sac.learner == "torch" and preset("smoke").sac.learner == "sbx"
-    assert cfg == override(preset("smoke"), ['sac.learner="torch"'])
+    assert cfg == override(preset("smoke"), ['sac.learner="torch"', 'rollout="action"', "shortlist=1", 'jax_solver="pgs"',
+                                               "jax_iterations=100"])
     assert robot_factory(cfg).config == RobotConfig(
         leg_mesh_size=6.0, disk_mesh_size=25, refactor_every=None, rid_dtype="float32", dt=0.01, model="reduced",
         reduction=None, contact_max_iterations=100, leg_collision_spacing=0.0)
@@ -136,7 +137,7 @@ def test_a_later_format_without_config_version_is_refused_not_guessed(tmp_path, 
     """The probe: a turning run's config.json without ``config_version`` read as format 1 became
     ``vent_s = 0``; a hex6 run became the paper's space and refused its own designs."""
     turning = override(preset("smoke"), ['env.task="turning"', 'env.space="hex6"', "env.legs=[2]"]).to_dict()
-    for doc, words in (({"version": "0.3.0", "config": turning}, ["env.space", "env.task", "sac.learner"]),
+    for doc, words in (({"version": "0.3.0", "config": turning}, ["env.space", "env.task", "jax_solver"]),
                        ({"config": {"duration": 20.0, "task": "turning", "space": "hex6"}}, ["space", "task"]),
                        ({"config": json.loads((DATA / "run_config_v1.json").read_text())["config"],
                          "space_sha256": "0" * 64}, ["space_sha256"])):

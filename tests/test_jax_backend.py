@@ -42,6 +42,25 @@ def backend():
     b.close()
 
 
+def test_the_backend_runs_the_configured_contact_solve():
+    """Issue 50: every JAX path honours the run's contact solve: ``jax_solver`` and
+    ``jax_iterations``, and for Gauss-Seidel without a count the robots'
+    ``contact_max_iterations`` (the backend used 100 sweeps whatever the config said)."""
+    from softcrawl.codesign.factory import env_fn, jax_options
+    from softcrawl.envs.backends import make_backend
+    from softcrawl.jaxsim.contact import DEFAULT_ITERATIONS
+
+    for sets, want in ((['jax_solver="pgs"', "env.robot.contact_max_iterations=7"], ("pgs", 7)),
+                       (['jax_solver="pgs"', "jax_iterations=30"], ("pgs", 30)),
+                       (["jax_iterations=20"], ("apgd", 20)), ([], ("apgd", DEFAULT_ITERATIONS["apgd"]))):
+        cfg = config(*sets)
+        b = make_backend("jax", [env_fn(cfg)], jax=jax_options(cfg))
+        try:
+            assert (b.settings.solver, b.settings.iterations) == want, sets
+        finally:
+            b.close()
+
+
 def episode(b, designs, seeds=(0, 1), actions=ACTIONS, reset_at=None):
     """Transitions ``[(obs, reward, terminated, truncated, info)] * N`` per action of backend
     ``b`` from a reset of all envs; ``reset_at=(k, i, design)`` resets env ``i`` alone before

@@ -251,7 +251,7 @@ def test_stale_keys_are_not_used(table, settled, tmp_path, monkeypatch):
     key = cache.key(4)
     assert len({key, cache.key(5), states(table, folder, max_seconds=0.04).key(4)}) == 3
     swept = dataclasses.replace(table, parts=dataclasses.replace(
-        table.parts, settings=dataclasses.replace(table.parts.settings, sweeps=99)))
+        table.parts, settings=dataclasses.replace(table.parts.settings, iterations=99)))
     single = dataclasses.replace(table, parts=jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), table.parts))
     assert states(swept, folder).key(4) != key and states(single, folder).key(4) != key
     monkeypatch.setattr(engine, "ENGINE_VERSION", engine.ENGINE_VERSION + 1)

@@ -236,8 +236,7 @@ def test_build_model_refuses_what_the_engine_cannot_step(robot):
 
 def test_float32_products_are_not_lowered_to_tensorfloat32(robot):
     """Regression: on a GPU the default precision of float32 matrix products is TF32 (10-bit
-    mantissa), which inverts elements of every robot of ``benchmarks/gpu_step.py`` on a GPU;
-    the step's products ask for full precision (``precision = HIGHEST`` in the lowered program,
+    mantissa), which inverted elements of every robot of the GPU benchmark; the step's products ask for full precision (``precision = HIGHEST`` in the lowered program,
     which a CPU ignores and a GPU obeys)."""
     import re
 

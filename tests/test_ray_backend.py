@@ -161,3 +161,27 @@ def test_train_smoke_run_on_ray(tmp_path, capsys):
     assert (out / "checkpoints" / "latest").read_text().strip() == "step-0000000160"
     rc = main(["train", "--preset", "smoke", "--ray-address", "127.0.0.1:6379", "--out", str(tmp_path / "x")])
     assert rc == 2 and "only by backend" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_whole_episodes_on_ray_equal_stepping_and_survive_a_killed_actor(reference):
+    """:meth:`RayBackend.run_episodes` (one call per actor and episode) gives the serial
+    backend's per-action transitions; an actor killed before the call is restarted, its envs
+    reset to their designs, and the call re-issued with the same results."""
+    backend = RayBackend([ENV] * 4, n_actors=2, max_restarts=2)
+    serial = SerialBackend([ENV] * 4)
+    try:
+        designs = [PAPER_BEST_DESIGN, BASELINE_DESIGN] * 2
+        for b in (backend, serial):
+            b.reset(range(4), designs, [0, 1, 2, 3])
+        want = [serial.step(ACTIONS[k]) for k in range(3)]
+        os.kill(backend.actor_pids()[0], signal.SIGKILL)
+        got = backend.run_episodes(ACTIONS[:3].swapaxes(0, 1))
+        assert backend.restarts == 1 and [len(e) for e in got] == [3] * 4
+        for i in range(4):
+            for k in range(3):
+                np.testing.assert_array_equal(got[i][k][0], want[k][i][0])
+                assert got[i][k][1:4] == want[k][i][1:4]
+    finally:
+        backend.close()
+        serial.close()

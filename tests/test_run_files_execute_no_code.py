@@ -38,6 +38,9 @@ def test_crafted_model_pt_of_the_torch_learner_is_refused(run, tmp_path, capsys)
     from softcrawl.codesign.checkpoints import _sha256, checkpoint_files
 
     marker = tmp_path / "pwned"
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["config"]["rollout"] = "action"  # the torch learner's loop
+    (run / "config.json").write_text(json.dumps(cfg))
     for ck in (run / "checkpoints").glob("step-*"):
         (ck / "learner.msgpack").unlink()
         with open(ck / "model.pt", "wb") as f:

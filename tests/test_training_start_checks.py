@@ -74,14 +74,14 @@ def test_a_gpu_torch_cannot_use_fails_before_the_run_starts(tmp_path, monkeypatc
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ValueError, match="sac.device='cuda:1'.*no CUDA GPU"):
-        train(tmp_path / "run", override(preset("smoke"), ['sac.device="gpu:1"', 'sac.learner="torch"']),
-              progress=False)
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="gpu:1"', 'sac.learner="torch"',
+                                                           'rollout="action"']), progress=False)
     assert not (tmp_path / "run").exists()
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     with pytest.raises(ValueError, match="sees 1 CUDA GPU"):
-        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"', 'sac.learner="torch"']),
-              progress=False)
+        train(tmp_path / "run", override(preset("smoke"), ['sac.device="cuda:1"', 'sac.learner="torch"',
+                                                           'rollout="action"']), progress=False)
     assert not (tmp_path / "run").exists()
 
 

@@ -3,6 +3,7 @@
 Examples::
 
     softcrawl deploy --rig sim --run runs/smoke --design 1,0,0,2,2,0,0,0 --out deploy/sim1
+    softcrawl deploy --rig sim --run runs/demo --out deploy/sim2      # the run's own design
     softcrawl deploy --rig rig.toml --actions gait.csv --out deploy/real1
     softcrawl deploy --rig rig.toml --gait sine --phase 110 --out deploy/baseline1
 
@@ -55,14 +56,27 @@ def _say(text: str, err: bool = False) -> None:
         pass
 
 
-def policy_actions(run: str, design: str, checkpoint: str | None = None, samples: int | None = None):
-    """The trained run's gait for ``design``, ``(n, R)`` real kPa (``R``: the regulators of the
-    run's space), and a description dict: the best of its deterministic actions and ``samples``
-    episodes sampled from the policy (default
+def policy_actions(run: str, design: str | None, checkpoint: str | None = None, samples: int | None = None):
+    """The trained run's gait for ``design`` (None: the run's design, the best gait of its final
+    shortlist or without one its most probable design,
+    :func:`softcrawl.codesign.shortlist.run_design`), ``(n, R)`` real kPa (``R``: the
+    regulators of the run's space), and a description dict: the best of its deterministic
+    actions and ``samples`` episodes sampled from the policy (default
     :data:`~softcrawl.codesign.evaluation.GAIT_SAMPLES`: the report's gait). The one place that
-    calls the co-design evaluation API."""
+    calls the co-design evaluation API.
+
+    Raises:
+        ValueError: ``checkpoint`` without ``design`` (the run's design is its last
+            checkpoint's), and as :func:`~softcrawl.codesign.evaluation.evaluate_policy`.
+    """
     from softcrawl.codesign.evaluation import GAIT_SAMPLES, evaluate_policy
 
+    if design is None:
+        if checkpoint is not None:
+            raise ValueError("--checkpoint needs --design: the run's own design is its last checkpoint's")
+        from softcrawl.codesign.shortlist import run_design
+
+        design = run_design(run)["design"]
     ev = evaluate_policy(run, design, episodes=1, checkpoint=checkpoint,
                          samples=GAIT_SAMPLES if samples is None else samples)
     hold = ev.config.env.steps_per_action * ev.config.env.robot.dt
@@ -86,8 +100,6 @@ def gait_actions(args: argparse.Namespace, n_regulators: int):
         raise ValueError(f"--phase is the sine gait's lag; --gait {args.gait} has none")
     n = N_ACTIONS if args.n_actions is None else args.n_actions
     if args.run is not None:
-        if args.design is None:
-            raise ValueError("--run needs --design")
         return policy_actions(args.run, args.design, args.checkpoint, args.samples)
     if args.design is not None or args.checkpoint is not None or args.samples is not None:
         raise ValueError("--design, --checkpoint and --samples go with --run")
@@ -177,12 +189,13 @@ def register(subparsers) -> None:
     p.add_argument("--sim-config", metavar="RIG.toml", default=None,
                    help="with --rig sim: the rig description to simulate (default: the shipped example)")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--run", default=None, help="trained co-design run: deploy its policy for --design")
+    src.add_argument("--run", default=None, help="trained co-design run: deploy its policy for --design (default: "
+                     "the run's design, the best gait of its final shortlist)")
     src.add_argument("--actions", metavar="FILE.csv", default=None,
                      help="action CSV p1,...,pR, one column per regulator of the rig (real kPa per action)")
     src.add_argument("--gait", choices=GAITS, default="sine", help="built-in gait (default sine)")
     p.add_argument("--design", default=None, help="with --run: comma-separated slot values (8 in the paper's space; "
-                   "as many as the run's space has slots)")
+                   "as many as the run's space has slots; default: the run's design)")
     p.add_argument("--checkpoint", default=None, help="with --run: checkpoint folder (default: the latest)")
     p.add_argument("--samples", type=int, default=None, metavar="K", **bounded(0, MAX_SAMPLES),
                    help="with --run: episodes sampled from the stochastic policy; the gait is the best of them and "

@@ -1,4 +1,5 @@
-"""``softcrawl evaluate RUN --design D``: re-simulate a design with the trained policy's gait
+"""``softcrawl evaluate RUN [--design D]``: re-simulate a design (default: the run's design,
+:func:`softcrawl.codesign.shortlist.run_design`) with the trained policy's gait
 (the best of its deterministic actions and ``--samples`` episodes sampled from it,
 :attr:`softcrawl.codesign.evaluation.PolicyEvaluation.chosen`) and write the outputs of
 ``softcrawl simulate`` plus ``evaluation.json`` (the run's task and its unit, returns of the
@@ -52,6 +53,20 @@ def _randomize_ranges(run, sets):
     return override(load_run_config(run), list(sets)).env.randomize
 
 
+def _design(args: argparse.Namespace):
+    """``--design``, or the run's design (its shortlist's choice; without one the most probable,
+    :func:`softcrawl.codesign.shortlist.run_design`), said in one line."""
+    if args.design is not None:
+        return args.design
+    from softcrawl.codesign.shortlist import run_design
+
+    d = run_design(args.run)
+    print(f"softcrawl evaluate: design {','.join(map(str, d['design']))}: the run's design "
+          f"({'the best gait of its shortlist' if d['source'] == 'shortlist' else 'the most probable'})",
+          file=sys.stderr)
+    return d["design"]
+
+
 def _run_randomized(args: argparse.Namespace) -> int:
     from softcrawl.codesign.randomization import evaluate_randomized, write_randomized
     from softcrawl.robot.output import check_output_path
@@ -65,7 +80,7 @@ def _run_randomized(args: argparse.Namespace) -> int:
         raise ValueError("--randomize N writes no trajectory; drop --frames-every")
     ranges = _randomize_ranges(args.run, args.set or [])
     with output_lock(args.out):
-        res = evaluate_randomized(args.run, args.design, args.randomize, ranges, seed=args.seed or 0)
+        res = evaluate_randomized(args.run, _design(args), args.randomize, ranges, seed=args.seed or 0)
         out = write_randomized(args.out, res, overwrite=args.overwrite)
     st, u = res.stats(), res.unit
     print(f"design {','.join(map(str, res.design))}: {st['n']} randomized episodes, return {st[f'mean_{u}']:+.3f} "
@@ -101,7 +116,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from softcrawl.robot.episode import unsettled_warning
     from softcrawl.robot.output import write_results
 
-    ev = evaluate_policy(args.run, args.design, args.episodes, samples=args.samples)
+    ev = evaluate_policy(args.run, _design(args), args.episodes, samples=args.samples)
     gait, robot = ev.gait(), ev.env.episode.robot
     result = ev.resimulate(record_every=args.frames_every, progress=not args.no_progress)
     task, u = ev.task, ev.unit
@@ -147,8 +162,9 @@ def register(subparsers) -> None:
                               "of them); write the gait's `softcrawl simulate` outputs plus evaluation.json and "
                               "actions.csv into --out.")
     p.add_argument("run", help="training run directory")
-    p.add_argument("--design", required=True, help="comma-separated slot values, one per slot of the run's design "
-                   'space (the paper\'s: 8), e.g. "1,0,0,2,2,0,0,0"')
+    p.add_argument("--design", default=None, help="comma-separated slot values, one per slot of the run's design "
+                   'space (the paper\'s: 8), e.g. "1,0,0,2,2,0,0,0" (default: the run\'s design, the best gait of '
+                   "its final shortlist; a run without one: its most probable design)")
     p.add_argument("--episodes", type=int, default=None, **bounded(1, MAX_EPISODES),
                    help=f"deterministic episodes to run (default 1, at most {MAX_EPISODES})")
     p.add_argument("--samples", type=int, default=None, metavar="K", **bounded(0, MAX_SAMPLES),

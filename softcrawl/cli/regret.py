@@ -22,9 +22,10 @@ def _run(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     """Add the ``regret`` subcommand to ``subparsers``."""
     p = subparsers.add_parser("regret", help="rank and regret of a run's chosen design in a ground truth",
-                              description="Place a training run's chosen design (most probable in its final "
-                              "design distribution) in a ground truth: rank, percentile, regret (cm), and the "
-                              "learned policy's reward next to the ground-truth gait's.")
+                              description="Place a training run's chosen design (the best gait of its final "
+                              "shortlist; a run without one: the most probable in its final design distribution) in "
+                              "a ground truth: rank, percentile, regret (cm), and the learned policy's reward next to "
+                              "the ground-truth gait's.")
     p.add_argument("run", help="training run directory")
     p.add_argument("--groundtruth", required=True, metavar="GT", help="ground-truth folder (softcrawl groundtruth)")
     p.add_argument("--no-policy", action="store_true", help="skip the learned policy's episode")

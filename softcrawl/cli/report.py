@@ -1,8 +1,10 @@
-"""``softcrawl report RUN``: write RUN/report/ (top designs with pictures, reward histogram
-weighted by the design distribution, the best design's gait re-simulated with the policy, the
-expert baseline at its best phase, with ``--groundtruth GT`` the regret against a ground truth,
-Markdown summary; :mod:`softcrawl.codesign.report`). The run is locked while the report is
-written: refused while the run trains or another report writes it."""
+"""``softcrawl report RUN``: write RUN/report/ (top designs with pictures, the run's shortlist,
+the reward histogram weighted by the design distribution over training with its mode switches,
+the paper's designs placed in the run, the run's design's gait re-simulated with the policy,
+the expert baseline at its best phase, with ``--groundtruth GT`` the regret against a ground
+truth and the paper's designs placed in it, Markdown summary; :mod:`softcrawl.codesign.report`).
+The run is locked while the report is written: refused while the run trains or another report
+writes it."""
 
 from __future__ import annotations
 
@@ -29,7 +31,8 @@ def _run(args: argparse.Namespace) -> int:
         extra["regret"] = partial(regret_section, args.run, args.groundtruth, policy=not args.no_simulate)
     args.samples = GAIT_SAMPLES if args.samples is None else args.samples
     out = write_report(args.run, k=args.top, baseline=args.baseline, baseline_phases=phases,
-                       simulate=not args.no_simulate, workers=args.workers, extra=extra, samples=args.samples)
+                       simulate=not args.no_simulate, workers=args.workers, extra=extra, samples=args.samples,
+                       shortlist=args.shortlist, groundtruth=args.groundtruth)
     print((out / "summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out}")
     return 0
@@ -38,11 +41,15 @@ def _run(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     """Add the ``report`` subcommand to ``subparsers``."""
     from softcrawl.codesign.evaluation import MAX_SAMPLES
+    from softcrawl.codesign.shortlist import MAX_SHORTLIST
+
     p = subparsers.add_parser("report", help="report of a co-design training run",
-                              description="Write RUN/report/: top designs (scores, pictures), the reward histogram "
-                              "weighted by the design distribution with the best so far, the best design's gait "
-                              "(trained policy, re-simulated), the expert baseline swept over phases with the run's "
-                              "settings and re-simulated at its best phase, and summary.md.")
+                              description="Write RUN/report/: top designs (scores, pictures), the run's shortlist "
+                              "(its most promising designs tried with the policy's gaits; the best is the run's "
+                              "design), the reward histogram weighted by the design distribution over training with "
+                              "the best so far and the mode switches, the paper's designs L1-L5 placed in the run, the "
+                              "run's design's gait (trained policy, re-simulated), the expert baseline swept over "
+                              "phases with the run's settings and re-simulated at its best phase, and summary.md.")
     p.add_argument("run", help="training run directory (softcrawl train --out)")
     p.add_argument("--top", type=int, default=5, **bounded(1, MAX_TOP), help="number of top designs (default 5)")
     p.add_argument("--baseline", default=None, metavar="SWEEP",
@@ -55,7 +62,11 @@ def register(subparsers) -> None:
                    help="processes of the baseline sweep (default: cores)")
     p.add_argument("--groundtruth", default=None, metavar="GT",
                    help="a softcrawl groundtruth folder: add where the run's chosen design ranks in it and its "
-                   "regret (as softcrawl regret)")
+                   "regret (as softcrawl regret), and place the paper's designs in it")
+    p.add_argument("--shortlist", type=int, default=None, metavar="K", **bounded(1, MAX_SHORTLIST),
+                   help="compute the run's shortlist anew with K candidates and write it to the run (its design "
+                   "may change; default: the run's own shortlist, computed with its `shortlist` setting if it has "
+                   "none)")
     p.add_argument("--samples", type=int, default=None, metavar="K", **bounded(0, MAX_SAMPLES),
                    help="episodes sampled from the stochastic policy on the best design; its gait is the best of "
                    "them and the deterministic one (default 11: with it, as many candidate gaits as the baseline's "

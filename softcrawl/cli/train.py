@@ -9,7 +9,10 @@ Examples::
     softcrawl train --preset demo --space hex6 --set env.robot.model=\"full\" --out runs/hex6
 
 Writes the run folder described in :mod:`softcrawl.codesign.run` (:mod:`softcrawl.codesign.training`)
-and, at the end, its report (:mod:`softcrawl.codesign.report`; :func:`train_and_report`). Ctrl-C
+and, at the end, its shortlist (the run's design, :mod:`softcrawl.codesign.shortlist`) and its
+report (:mod:`softcrawl.codesign.report`; :func:`train_and_report`). The ``paper`` preset runs its
+envs on the JAX backend when JAX sees a GPU (:func:`paper_backend`; one line says so), unless a
+backend is given. Ctrl-C
 stops the run; ``--resume`` continues it from its last checkpoint. The run is locked while it
 trains (a second ``train`` or ``report`` on it is refused, naming the holder). An option and a
 ``--set`` of the same setting (``--task`` and ``--set env.task=...``) are refused, as is a
@@ -34,15 +37,18 @@ def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, res
                      progress: bool = True, report: bool = True, ray_address: str | None = None,
                      placement: list[str] | None = None):
     """What ``softcrawl train`` does: :func:`softcrawl.codesign.training.train` (arguments as
-    there), then, with ``report``, :func:`softcrawl.codesign.report.write_report` of the run.
-    Returns the :class:`TrainResult`.
+    there), then, with ``report``, :func:`softcrawl.codesign.report.write_report` of the run,
+    which makes its shortlist (:mod:`softcrawl.codesign.shortlist`: the run's design; kept if the
+    run has one of its last checkpoint), else the shortlist alone
+    (:func:`~softcrawl.codesign.shortlist.make_shortlist`). Returns the :class:`TrainResult`.
 
     Raises:
         NoSpaceError: the disk filled up (or turned read-only) while training: the message
             names the run's last complete checkpoint (and a rescued one, if any) and how to
             continue.
-        ValueError: as :func:`~softcrawl.codesign.training.train`; or the report failed after
-            a finished training (the message says so and how to write the report later).
+        ValueError: as :func:`~softcrawl.codesign.training.train`; or the shortlist or the
+            report failed after a finished training (the message says so and how to write them
+            later).
     """
     from softcrawl.codesign.report import write_report
     from softcrawl.codesign.run import NoSpaceError, Run, is_no_space
@@ -62,14 +68,51 @@ def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, res
         kept = f"the run keeps its checkpoint {ck.name}" if ck is not None else "the run has no complete checkpoint"
         raise NoSpaceError(f"{what}; {kept}; free some space, then continue with: softcrawl train --resume "
                            f"--out {run.path}") from None
-    if report:
-        try:
-            write_report(res.run_dir)
-        except (ValueError, OSError) as exc:
-            msg = " ".join(str(exc).split()) or type(exc).__name__
-            raise ValueError(f"training finished ({res.steps} steps, run in {res.run_dir}) but the report failed: "
-                             f"{msg}; write it later with: softcrawl report {res.run_dir}") from None
+    from softcrawl.codesign.shortlist import make_shortlist
+
+    # the report makes the shortlist (and re-simulates its choice from the shortlist's evaluation)
+    what, step = (("report", lambda: write_report(res.run_dir)) if report else
+                  ("shortlist", lambda: make_shortlist(res.run_dir, progress=progress)))
+    try:
+        step()
+    except (ValueError, OSError) as exc:
+        msg = " ".join(str(exc).split()) or type(exc).__name__
+        raise ValueError(f"training finished ({res.steps} steps, run in {res.run_dir}) but the {what} failed: "
+                         f"{msg}; write it later with: softcrawl report {res.run_dir}") from None
     return res
+
+
+def paper_backend(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` (the ``paper`` preset, no backend given) on the JAX backend when JAX sees a GPU
+    and its settings run there, said in one line on stderr; else ``cfg`` as it is (with a line
+    saying why when a GPU is seen but the settings cannot run on JAX, e.g. the ``turning`` task).
+    The learner's threads are set first (:func:`softcrawl.codesign.sac.prepare_learner`: JAX
+    reads them once, when it starts).
+
+    Raises:
+        ValueError: as :func:`~softcrawl.codesign.sac.prepare_learner` (a ``sac.device`` the
+            learner cannot use).
+    """
+    from softcrawl.codesign.sac import prepare_learner
+
+    prepare_learner(cfg.sac)
+    import jax
+
+    try:
+        gpus = [d for d in jax.devices() if d.platform == "gpu"]
+    except RuntimeError:  # no backend JAX can start
+        gpus = []
+    if not gpus:
+        return cfg
+    try:
+        on_jax = override(cfg, ['backend="jax"'])
+    except ValueError as exc:
+        print(f"softcrawl train: JAX sees a GPU, but these settings do not run on the JAX backend ({exc}); keeping "
+              f"backend {cfg.backend!r}", file=sys.stderr)
+        return cfg
+    print(f"softcrawl train: JAX sees {len(gpus)} GPU(s) ({gpus[0].device_kind}): the paper preset runs its "
+          f"{cfg.n_envs} envs on the JAX backend there (--backend chooses another)", file=sys.stderr)
+    return on_jax
 
 
 def _check_out(out: str) -> None:
@@ -133,6 +176,8 @@ def _run(args: argparse.Namespace) -> int:
         if args.space is not None:
             sets.append(f"env.space={json.dumps(args.space)}")
         cfg = override(preset(args.preset or "demo"), sets)
+        if args.preset == "paper" and "backend" not in {a.split("=", 1)[0].strip() for a in sets}:
+            cfg = paper_backend(cfg)
         _check_out(args.out)
         check_ray_address(cfg.backend, args.ray_address)
         res = train_and_report(args.out, cfg, progress=not args.no_progress, ray_address=args.ray_address)
@@ -162,7 +207,9 @@ def register(subparsers) -> None:
     p.add_argument("--total-steps", type=int, default=None, **bounded(*TRAIN_BOUNDS["total_steps"]),
                    help="environment transitions in total")
     p.add_argument("--n-envs", type=int, default=None, **bounded(*TRAIN_BOUNDS["n_envs"]), help="parallel environments")
-    p.add_argument("--backend", choices=BACKENDS, default=None, help="where envs run")
+    p.add_argument("--backend", choices=BACKENDS, default=None,
+                   help="where envs run (default: the preset's; the paper preset's is jax when JAX sees a GPU, "
+                   "else subprocess)")
     p.add_argument("--workers", type=int, default=None, **bounded(*TRAIN_BOUNDS["n_workers"]),
                    help="worker processes of the subprocess backend (0: cores)")
     p.add_argument("--seed", type=int, default=None, **bounded(*TRAIN_BOUNDS["seed"]))

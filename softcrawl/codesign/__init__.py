@@ -10,8 +10,10 @@ graph is acyclic): :mod:`~softcrawl.codesign.config` → :mod:`~softcrawl.codesi
 checkpoints) → :mod:`~softcrawl.codesign.run` (the run folder: layout, settings, logs; the only
 module that builds a run's paths) and :mod:`~softcrawl.codesign.factory` (envs, robots, sampler of a config)
 → :mod:`~softcrawl.codesign.training` (writes runs) and :mod:`~softcrawl.codesign.evaluation` →
-:mod:`~softcrawl.codesign.report` (reads runs). Training does not import the report: ``softcrawl
-train`` writes it afterwards (:func:`softcrawl.cli.train.train_and_report`). A saved
+:mod:`~softcrawl.codesign.shortlist` (the run's design) → :mod:`~softcrawl.codesign.report` (reads
+runs; its training section :mod:`~softcrawl.codesign.report_training`). Training does not import
+the report: ``softcrawl train`` writes it, and the shortlist, afterwards
+(:func:`softcrawl.cli.train.train_and_report`). A saved
 ``config.json`` of an older format is read through :mod:`~softcrawl.codesign.migrate`; the ground
 truth of the design space is the package :mod:`~softcrawl.codesign.groundtruth`.
 

@@ -31,7 +31,11 @@ env.robot.contact_max_iterations=250`` restores the reference step):
   designs), 8 envs in 2 workers, 8K transitions (400 episodes), one update per 2 transitions
   (batch 128).
 * ``smoke``: CI, < 1 min: the reduced model at 0.01 s, 2 envs in-process, 2 steps per action,
-  160 transitions.
+  160 transitions, a shortlist of 2 designs.
+
+Every preset but ``smoke`` ends with a shortlist of 4 designs (``shortlist``,
+:mod:`softcrawl.codesign.shortlist`; docs/codesign.md, "The run's design": what 4 catches in the
+logged runs, and its cost).
 
 The robot's settings are one :class:`softcrawl.robot.RobotConfig`, ``env.robot``; ``--set
 env.FIELD=VALUE`` of a robot field (``env.dt``, ``env.leg_mesh_size``, ...) sets
@@ -78,6 +82,7 @@ MAX_HOLD_S, MAX_EPISODE_S = 60.0, 3600.0
 TRAIN_BOUNDS: dict[str, tuple[float, float, str]] = {
     "n_envs": (1, 4096, ""), "total_steps": (1, 10**10, ""), "n_workers": (0, 1024, ""), "seed": (0, 2**32 - 1, ""),
     "checkpoint_every": (1, 10**10, ""), "snapshot_every": (1, 10**10, ""), "keep_checkpoints": (2, 1000, ""),
+    "shortlist": (1, 100, ""), "jax_iterations": (0, 10_000, ""),
     "env.steps_per_action": (1, 10_000, ""), "env.n_actions": (1, 10_000, ""),
     "env.robot.contact_max_iterations": (1, 100_000, ""), "env.robot.leg_collision_spacing": (0.0, 100.0, "mm"),
     "env.max_cached_robots": (1, 10_000, ""), "env.settle_max_seconds": (0.0, 60.0, "s"),
@@ -104,6 +109,10 @@ TIMEOUTS = ("bootstrap", "terminal")
 PART_FIELDS = ("leg_mesh_size", "disk_mesh_size", "leg_mass", "disk_mass")
 #: The SAC learners (:mod:`softcrawl.codesign.sac`): SBX's on JAX, stable-baselines3's on torch.
 LEARNERS = ("sbx", "torch")
+#: How transitions are collected (:attr:`TrainConfig.rollout`).
+ROLLOUTS = ("episode", "action")
+#: Contact solvers of the JAX backend (:data:`softcrawl.jaxsim.contact.DEFAULT_ITERATIONS`).
+JAX_SOLVERS = ("apgd", "pgs")
 
 
 def space_robot(robot: RobotConfig, space: DesignSpace) -> RobotConfig:
@@ -259,7 +268,18 @@ class TrainConfig:
     ``backend``: where the envs run (:data:`BACKENDS`; ``"jax"``: all of them one batch of the
     JAX engine on JAX's default device, the reduced robot only and the rig quantities of
     ``env.randomize`` only, :mod:`softcrawl.envs.backends.jaxvec`). ``jax_precision``: that
-    backend's floats, ``"float64"`` (the validated engine) or ``"float32"``."""
+    backend's floats, ``"float64"``, ``"float32"`` or ``"auto"`` (float32 where JAX has a GPU, else
+    float64: :func:`~softcrawl.envs.backends.jaxcheck.resolve_precision`). ``jax_solver``,
+    ``jax_iterations``: that backend's contact solve, ``"apgd"`` (the default) or ``"pgs"``
+    (:func:`softcrawl.jaxsim.contact.solve_contacts`), and its iterations per step (0: the
+    solver's default, for ``"pgs"`` ``env.robot.contact_max_iterations`` sweeps). ``rollout``:
+    ``"episode"`` (every env's whole episode at once from actions drawn at its start, replay
+    buffer and updates on the learner's device, :mod:`softcrawl.codesign.episodic`; open-loop
+    policies and the ``sbx`` learner only) or ``"action"`` (stable-baselines3's loop, one
+    vectorised step at a time; what a policy that observes the robot's state needs). ``shortlist``:
+    how many of the most promising designs are tried with the trained policy's gaits when
+    training ends, the run's design the best of them (:mod:`softcrawl.codesign.shortlist`; 1: the
+    most probable design, what runs of config format < 7 chose)."""
 
     preset: str = "paper"
     n_envs: int = 96
@@ -267,10 +287,14 @@ class TrainConfig:
     seed: int = 0
     backend: str = "subprocess"
     n_workers: int = 0  # 0: one per CPU core
-    jax_precision: str = "float64"
+    jax_precision: str = "auto"
+    jax_solver: str = "apgd"
+    jax_iterations: int = 0
     checkpoint_every: int = 50_000
     snapshot_every: int = 20_000
     keep_checkpoints: int = 2
+    rollout: str = "episode"
+    shortlist: int = 4
     env: EnvConfig = field(default_factory=EnvConfig)
     sac: SACConfig = field(default_factory=SACConfig)
     design: DesignConfig = field(default_factory=DesignConfig)
@@ -324,6 +348,7 @@ class TrainConfig:
         check_precision(self.jax_precision)
         try:
             task = parse_task(self.env.task)
+            task.check_floor(robot.friction)
         except ValueError as exc:
             raise ValueError(f"env.task: {exc}") from None
         if self.backend == "jax":
@@ -336,6 +361,17 @@ class TrainConfig:
             raise ValueError(f"sac.learner must be one of {LEARNERS}, got {self.sac.learner!r}")
         if self.sac.timeout not in TIMEOUTS:
             raise ValueError(f"sac.timeout must be one of {TIMEOUTS}, got {self.sac.timeout!r}")
+        if self.jax_solver not in JAX_SOLVERS:
+            raise ValueError(f"jax_solver must be one of {JAX_SOLVERS}, got {self.jax_solver!r}")
+        if self.rollout not in ROLLOUTS:
+            raise ValueError(f"rollout must be one of {ROLLOUTS}, got {self.rollout!r}")
+        if self.rollout == "episode":
+            why = ("env.observe_state is set" if self.env.observe_state else
+                   f"task {task.name!r} observes the robot's state" if task.observes_state else
+                   f"sac.learner is {self.sac.learner!r}" if self.sac.learner != "sbx" else None)
+            if why:
+                raise ValueError(f'rollout "episode" draws each episode\'s actions at its start, for an open-loop '
+                                 f'policy on the "sbx" learner, but {why}: use rollout="action"')
         try:
             space = self.env.design_space()
         except ValueError as exc:
@@ -541,7 +577,7 @@ def preset(name: str) -> TrainConfig:
     if name == "smoke":
         return TrainConfig(
             preset="smoke", n_envs=2, total_steps=160, backend="serial", n_workers=1,
-            checkpoint_every=80, snapshot_every=40,
+            checkpoint_every=80, snapshot_every=40, shortlist=2,
             env=_coarse_env(dt=0.01, steps_per_action=2, n_actions=20),
             sac=SACConfig(buffer_size=1_000, batch_size=32, learning_starts=40),
         ).validate()
@@ -578,11 +614,15 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
     field of :class:`softcrawl.robot.RobotConfig` (``env.dt``, ``env.leg_mesh_size``, ...) sets
     ``env.robot.FIELD`` (an error names both).
 
+    A setting given twice (``seed=1`` and ``seed=2``; ``env.dt`` and ``env.robot.dt``) is
+    refused rather than the last one taken.
+
     Raises:
-        ValueError: a malformed string, an unknown field, a value of the wrong type for its
-            field (named), or a setting :meth:`TrainConfig.validate` refuses.
+        ValueError: a malformed string, an unknown field, a setting given twice (both named), a
+            value of the wrong type for its field (named), or a setting
+            :meth:`TrainConfig.validate` refuses.
     """
-    d, aliases = cfg.to_dict(), {}
+    d, aliases, given = cfg.to_dict(), {}, {}
     for a in assignments:
         if "=" not in a:
             raise ValueError(f"override must look like section.field=value, got {a!r}")
@@ -595,6 +635,9 @@ def override(cfg: TrainConfig, assignments: list[str]) -> TrainConfig:
         if len(parts) == 2 and parts[0] == "env" and parts[1] in _ROBOT_FIELDS and parts[1] not in d["env"]:
             parts = ["env", "robot", parts[1]]
             aliases[".".join(parts)] = key.strip()
+        if ".".join(parts) in given:
+            raise ValueError(f"{given['.'.join(parts)]!r} and {a!r} set {'.'.join(parts)} twice; give it once")
+        given[".".join(parts)] = a
         target, kind = d, TrainConfig
         for p in parts[:-1]:
             if p not in target or not isinstance(target[p], dict):

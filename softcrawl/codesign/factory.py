@@ -34,12 +34,17 @@ def env_fn(cfg: TrainConfig):
                    space=e.design_space(), task=e.task)
 
 
+def jax_options(cfg: TrainConfig) -> dict:
+    """The JAX backend's options of ``cfg`` (:class:`softcrawl.envs.backends.jaxvec.JaxBackend`)."""
+    return {"precision": cfg.jax_precision, "solver": cfg.jax_solver, "iterations": cfg.jax_iterations or None}
+
+
 def make_vec_env(cfg: TrainConfig, sampler, ray_address: str | None = None) -> DesignVecEnv:
     """The vectorised env of ``cfg`` (``cfg.backend``: serial, subprocess, ray on the cluster
-    at ``ray_address`` or a local one, or jax in ``cfg.jax_precision``,
+    at ``ray_address`` or a local one, or jax with :func:`jax_options`,
     :func:`softcrawl.envs.backends.make_backend`) with ``sampler``, seeded with ``cfg.seed``."""
     venv = DesignVecEnv(make_backend(cfg.backend, [env_fn(cfg)] * cfg.n_envs, n_workers=cfg.n_workers or None,
-                                     ray_address=ray_address, precision=cfg.jax_precision), sampler)
+                                     ray_address=ray_address, jax=jax_options(cfg)), sampler)
     venv.seed(cfg.seed)
     return venv
 

@@ -1,7 +1,8 @@
 """Regret of a co-design run against the ground truth (``softcrawl regret``).
 
-The run's *chosen design* is the most probable design of its final design distribution (ties:
-the higher latest return); it is placed in a ground truth
+The run's *chosen design* is its design (:func:`softcrawl.codesign.shortlist.run_design`: the
+best gait of its final shortlist, or for a run without one the most probable design of its final
+design distribution, ties to the higher latest return); it is placed in a ground truth
 (:mod:`softcrawl.codesign.groundtruth`): its true rank and percentile among the ground truth's
 designs, its regret (best ground-truth reward − its ground-truth reward per episode of the
 ground truth), and its learned policy's reward next to its ground-truth gait's. The run and the
@@ -14,7 +15,7 @@ The rewards are only comparable when the run and the ground truth simulate the s
 :func:`compute_regret` lists every setting that differs (``settings_differ``) and the Markdown
 says so.
 
-All calls into the training-run code (:mod:`softcrawl.codesign.report`,
+All calls into the training-run code (:mod:`softcrawl.codesign.shortlist`,
 :mod:`softcrawl.codesign.evaluation`) are in :func:`run_choice` and :func:`policy_reward`; the run
 folder is read only through :class:`softcrawl.codesign.run.Run` (:func:`run_settings`).
 """
@@ -31,20 +32,16 @@ from softcrawl.tasks import DEFAULT_TASK
 
 # -- the one place that reads a training run -----------------------------------------------------
 def run_choice(run: str | Path) -> dict:
-    """The run's chosen design: ``{"design", "prob", "latest_cm", "episodes"}``, the most probable
-    design of the latest checkpoint's design distribution (ties: higher latest return).
+    """The run's chosen design (:func:`softcrawl.codesign.shortlist.run_design`): ``{"design",
+    "source", "prob", "latest_cm", "episodes"}`` and ``"shortlist"`` (its shortlist, if it
+    has one).
 
     Raises:
-        ValueError: not a training run / no checkpoint.
+        ValueError: not a training run / no checkpoint / nothing tried / a malformed shortlist.
     """
-    from softcrawl.codesign.report import top_designs
+    from softcrawl.codesign.shortlist import run_design
 
-    rows = top_designs(run, k=10**6)
-    if not rows:
-        raise ValueError(f"{run}: no design has been tried yet")
-    best = max(rows, key=lambda r: (r["prob"], r["latest_cm"]))
-    return {"design": tuple(best["design"]), "prob": best["prob"], "latest_cm": best["latest_cm"],
-            "episodes": best["episodes"]}
+    return run_design(run)
 
 
 def policy_reward(run: str | Path, design) -> dict:
@@ -52,10 +49,21 @@ def policy_reward(run: str | Path, design) -> dict:
     deterministic policy and :data:`~softcrawl.codesign.evaluation.GAIT_SAMPLES` episodes
     sampled from it, as the report's, :attr:`~softcrawl.codesign.evaluation.PolicyEvaluation.chosen`):
     ``{"reward_<unit>", "diverged", "gait_source", "actions_kpa", "episode_seconds", "hold_s"}``,
-    its return in the unit of the run's task (``reward_cm`` for ``forward``)."""
+    its return in the unit of the run's task (``reward_cm`` for ``forward``). Read from the
+    run's shortlist (:func:`softcrawl.codesign.shortlist.read_shortlist`) when it evaluated
+    ``design`` with as many samples, else simulated."""
     from softcrawl.codesign.evaluation import GAIT_SAMPLES, episode_seconds, evaluate_policy
+    from softcrawl.codesign.run import Run
+    from softcrawl.codesign.shortlist import read_shortlist
     from softcrawl.tasks import parse_task
 
+    shortlist = read_shortlist(run)
+    done = [c for c in (shortlist or {}).get("candidates", []) if tuple(c["design"]) == tuple(design)]
+    if done and shortlist["samples"] == GAIT_SAMPLES:
+        cfg, u, c = Run(run).read_config(), shortlist["unit"], done[0]
+        return {f"reward_{u}": c[f"gait_{u}"], "diverged": bool(c["gait_diverged"]),
+                "gait_source": c.get("gait_source", "?"), "actions_kpa": c.get("actions_kpa"),
+                "episode_seconds": episode_seconds(cfg), "hold_s": cfg.env.robot.dt * cfg.env.steps_per_action}
     ev = evaluate_policy(run, design, episodes=1, samples=GAIT_SAMPLES)
     e = ev.config.env
     diverged = ev.diverged[0] if ev.chosen is None else ev.sampled_diverged[ev.chosen]
@@ -158,8 +166,8 @@ def compute_regret(run: str | Path, gt_dir: str | Path, policy: bool = True) -> 
 
     Returns:
         dict: ``run``, ``groundtruth``, ``task`` (its settings and ``unit``; left out for
-        ``forward``, the paper's), ``choice``
-        (:func:`run_choice`), ``placement`` (:func:`place_design`), ``policy``
+        ``forward``, the paper's), ``choice`` (:func:`run_choice`, its shortlist's candidates
+        as ``candidates``), ``placement`` (:func:`place_design`), ``policy``
         (:func:`policy_reward` or None), ``settings_differ`` (``{key: [run, ground truth]}``);
         a number that is not finite (a diverged policy episode's reward) is None.
 
@@ -184,7 +192,10 @@ def compute_regret(run: str | Path, gt_dir: str | Path, policy: bool = True) -> 
     pol = policy_reward(run, choice["design"]) if policy else None
     from softcrawl.robot.output import jsonable  # JSON has no NaN: a number that is not finite is None
 
+    sl = choice.pop("shortlist", None)
     choice = {**choice, "design": list(choice["design"])}
+    if sl is not None:
+        choice["candidates"] = [",".join(map(str, c["design"])) for c in sl["candidates"]]
     about = {} if task.name == DEFAULT_TASK else {"task": {**task.settings(), "unit": task.unit}}
     return jsonable({"run": str(run), "groundtruth": str(gt_dir), **about, "choice": choice, "placement": placement,
                      "policy": pol, "settings_differ": differ})
@@ -200,7 +211,7 @@ def regret_markdown(r: dict) -> list[str]:
     lines = ["## Regret against the ground truth", "",
              f"Ground truth: `{r['groundtruth']}` ({p['of']} designs, best open-loop gait each{task}).", "",
              "| | |", "|---|---|",
-             f"| chosen design (most probable, p = {c['prob']:.3f}) | `{d}` |",
+             f"| chosen design ({_why(c)}, p = {c['prob']:.3f}) | `{d}` |",
              f"| true rank | {p['rank']} of {p['of']} (percentile {p['percentile']:.1f}) |",
              f"| its ground-truth reward | {p[f'reward_{u}']:+.2f} {u} "
              f"({PeriodicGait.from_dict(p['gait']).describe()} kPa) |",
@@ -219,6 +230,14 @@ def regret_markdown(r: dict) -> list[str]:
                   "say how good the chosen design is under the ground truth's episodes; the policy's reward "
                   "is under the run's.", ""]
     return lines
+
+
+def _why(choice: dict) -> str:
+    """How the run's design was chosen, for the regret table (a dict of :func:`compute_regret`
+    saved before the shortlist existed has no ``source``: the most probable)."""
+    if choice.get("source") == "shortlist":
+        return f"the best gait of {len(choice.get('candidates', []))} shortlisted"
+    return "most probable"
 
 
 def regret_section(run: str | Path, gt_dir: str | Path, policy: bool = True) -> tuple[list[str], dict]:

@@ -1,6 +1,9 @@
 """Versioned migration of saved settings: a training run's and a ground truth's ``config.json``.
 
-A ``config.json`` holds its format in ``config_version`` (absent: version 1); :func:`migrate`
+A ``config.json`` holds its format in ``config_version``; one without it is read as version 1
+only if it holds nothing version 1 did not (:func:`check_version_1`: the keys of the documents
+and settings every softcrawl of that format wrote), else it is refused, never guessed (a later
+format's settings read as version 1 would be migrated into another run). :func:`migrate`
 brings its settings object to :data:`CONFIG_VERSION` one step at a time, a function per step,
 so every older folder is read by the current code. The steps work on plain JSON objects (no
 validation: the config classes' ``from_dict`` does that) and hold the values that reproduce
@@ -15,12 +18,19 @@ run of this format keeps its space file as ``space.toml`` (:mod:`softcrawl.codes
 Version 5: the ``turning`` task's ``vent_s`` (a training run's ``env.task``, a ground truth's
 ``task``): folders of the older formats scored a turn while the last action's pressure held,
 ``vent_s = 0``.
+Version 6: a training run's ``rollout`` (runs of the older formats stepped one action at a time,
+``"action"``).
+Version 7: a training run's ``shortlist`` (runs of the older formats took the most probable design
+as theirs: a shortlist of 1, :mod:`softcrawl.codesign.shortlist`).
+Version 8: a training run's ``jax_solver`` and ``jax_iterations`` (the JAX backend's contact solve:
+runs of the older formats ran 100 Gauss-Seidel sweeps, ``"pgs"`` and 100) and ``jax_precision``
+``"auto"`` (older runs saved theirs).
 """
 
 from __future__ import annotations
 
 #: Current format of the saved settings.
-CONFIG_VERSION = 5
+CONFIG_VERSION = 8
 #: The first format whose training runs keep their design space as ``space.toml``.
 SPACE_VERSION = 4
 
@@ -103,9 +113,73 @@ def _groundtruth_v4_to_v5(config: dict) -> dict:
     return {**config, "task": _turning_unvented(config["task"])} if "task" in config else config
 
 
+def _train_v5_to_v6(config: dict) -> dict:
+    return {**config, "rollout": "action"}
+
+
+def _train_v6_to_v7(config: dict) -> dict:
+    return {**config, "shortlist": 1}
+
+
+def _train_v7_to_v8(config: dict) -> dict:
+    return {**config, "jax_solver": "pgs", "jax_iterations": 100}
+
+
+#: The keys version 1 had, per kind: of the document (``config.json``), of its settings
+#: (``"config"``) and of their sub-objects (dotted paths), from every softcrawl that wrote it
+#: (the union of their fields: later ones added some, e.g. ``env.contact_max_iterations``;
+#: earlier ones had ``env.settle_steps`` and ``env.tangent_every``).
+_V1_KEYS = {
+    "train": {
+        "": {"version", "config"},
+        "config": {"preset", "n_envs", "total_steps", "seed", "backend", "n_workers", "checkpoint_every",
+                   "snapshot_every", "keep_checkpoints", "env", "sac", "design"},
+        "config.env": {"model", "reduction", "leg_mesh_size", "disk_mesh_size", "refactor_every", "rid_dtype", "dt",
+                       "steps_per_action", "contact_max_iterations", "leg_collision_spacing", "n_actions",
+                       "observe_state", "settle_speed", "settle_hold", "settle_max_seconds", "settle_steps",
+                       "tangent_every", "legs", "max_cached_robots", "randomize"},
+        "config.env.randomize": {"friction", "youngs_scale", "mass_scale", "pressure_gain", "pressure_offset",
+                                 "tau_inflate", "tau_vent", "control_period"},
+        "config.sac": {"policy_lr", "q_lr", "buffer_size", "batch_size", "gamma", "tau", "learning_starts",
+                       "utd_ratio", "net_arch", "target_entropy", "timeout", "overlap", "threads", "device"},
+        "config.design": {"t0_fraction", "t1_fraction", "h_end", "untried", "beta_max"},
+    },
+    "groundtruth": {
+        "": {"softcrawl", "config"},
+        "config": {"duration", "screen_duration", "hold", "cycles", "evals_per_cycle", "popsize", "sigma0",
+                   "finalists", "seed", "leg_mesh_size", "disk_mesh_size", "dt", "reduction", "baseline_phases",
+                   "rid_dtype"},
+    },
+}
+
+
+def check_version_1(kind: str, doc: dict) -> None:
+    """Refuse a ``config.json`` document without ``config_version`` that holds a key version 1
+    of ``kind`` never had (:data:`_V1_KEYS`): it was written in a later format (its
+    ``config_version`` lost), and reading it as version 1 would migrate it into another run
+    (a turning run unvented, a hex6 run in the paper's space).
+
+    Raises:
+        ValueError: one line naming the keys.
+    """
+    extra = []
+    for path, allowed in _V1_KEYS[kind].items():
+        obj = doc
+        for part in path.split(".") if path else ():
+            obj = obj.get(part) if isinstance(obj, dict) else None
+        if isinstance(obj, dict):
+            extra += [f"{path}.{k}".lstrip(".").removeprefix("config.") for k in obj if k not in allowed]
+    if extra:
+        raise ValueError(f"no config_version, and settings format 1 never had ({', '.join(sorted(extra)[:6])}"
+                         f"{', ...' if len(extra) > 6 else ''}): written by a later softcrawl and its config_version "
+                         "lost; refusing to guess its format (restore config_version)")
+
+
 #: ``kind -> [step from version 1 to 2, from 2 to 3, ...]``.
-STEPS = {"train": [_train_v1_to_v2, _train_v2_to_v3, _train_v3_to_v4, _train_v4_to_v5],
-         "groundtruth": [_groundtruth_v1_to_v2, _unchanged, _groundtruth_v3_to_v4, _groundtruth_v4_to_v5]}
+STEPS = {"train": [_train_v1_to_v2, _train_v2_to_v3, _train_v3_to_v4, _train_v4_to_v5, _train_v5_to_v6,
+                   _train_v6_to_v7, _train_v7_to_v8],
+         "groundtruth": [_groundtruth_v1_to_v2, _unchanged, _groundtruth_v3_to_v4, _groundtruth_v4_to_v5, _unchanged,
+                         _unchanged, _unchanged]}
 
 
 def config_version(doc: dict) -> int:
@@ -141,9 +215,12 @@ def read_settings(kind: str, doc) -> dict:
     """The settings object of a ``config.json`` document (``doc["config"]``) in the current format.
 
     Raises:
-        ValueError: ``doc`` is not an object with a ``config`` object, or its ``config_version``
-            is not one this softcrawl reads.
+        ValueError: ``doc`` is not an object with a ``config`` object, its ``config_version``
+            is not one this softcrawl reads, or it has none and is not version 1
+            (:func:`check_version_1`).
     """
     if not isinstance(doc, dict) or not isinstance(doc.get("config"), dict):
         raise ValueError('no "config" object')
+    if kind in _V1_KEYS and "config_version" not in doc:
+        check_version_1(kind, doc)
     return migrate(kind, doc["config"], config_version(doc))

@@ -5,18 +5,24 @@ failed report leaves the previous one; a ``report`` that links out of the run is
 is read through :class:`softcrawl.codesign.run.Run`):
 
 * ``summary.md``: run settings, the task (:mod:`softcrawl.tasks`: its name, settings, reward
-  and unit, ``U``: cm or deg), steps, episodes, best return, final entropy/beta, and the
-  top-k table (design, latest return R (``U``; the score in the Gibbs weights), probability,
-  episodes, mean and best return, picture); every return is in the task's unit and every
-  column that holds one says it (``R (deg)``, ``latest_deg``);
+  and unit, ``U``: cm or deg), steps, episodes, best return, the run's design, final
+  entropy/beta, and the top-k table (design, latest return R (``U``; the score in the Gibbs
+  weights), probability, episodes, mean and best return, picture); every return is in the
+  task's unit and every column that holds one says it (``R (deg)``, ``latest_deg``);
 * ``top-<i>.png``: pictures of the top-k designs in the run's design space (its slots and
   regulators; :func:`softcrawl.design.picture.plot_design`);
-* ``reward_histogram.png``: over training (x: steps), the distribution of the designs'
-  latest returns (y, ``U``) weighted by the design distribution p (tried designs only, weights
-  renormalised), from the ``snapshots/``, with the best return so far as a line (paper figure);
-* ``returns.png``: episode returns over training with a running mean;
+* "Shortlist" (:func:`shortlist_section`): the run's shortlist (:mod:`softcrawl.codesign.shortlist`;
+  computed here and written to the run if it has none of its last checkpoint), each
+  candidate's returns (deterministic, the samples' mean ± sd, the chosen gait) and which is the
+  run's design; ``shortlist.png``, each candidate's picture and gait;
+* "Training" (:mod:`softcrawl.codesign.report_training`): what the paper's reward-histogram
+  figure shows: ``reward_histogram.png`` (the designs' latest returns weighted by the design
+  distribution over training, the best so far, the mode switches), the same at points of
+  training (``reward_histogram_points.png``, a table), the mode switches (a table,
+  ``mode_switches.png``), ``returns.png``; and the paper's designs L1-L5 placed in the run (and
+  in a ground truth, ``groundtruth``);
 * ``top_designs.csv``: the top-k table;
-* ``best_design/``: the top design re-simulated with the trained policy (deterministic actions,
+* ``best_design/``: the run's design re-simulated with the trained policy (its gait,
   :mod:`softcrawl.codesign.evaluation`): the outputs of ``softcrawl simulate`` (``crawl.gif``
   shows it crawling, :mod:`softcrawl.robot.animation`; ``trajectory.png`` shows commanded vs
   applied pressures and x(t); ParaView frames; ``summary.json``), and what
@@ -43,7 +49,8 @@ is read through :class:`softcrawl.codesign.run.Run`):
   (:mod:`softcrawl.codesign.groundtruth_regret`; ``summary.json`` key ``regret``).
 
 Top-k ranking: designs that were tried, by their latest return ``R`` (the quantity the
-distribution concentrates on), ties broken by design order.
+distribution concentrates on), ties broken by design order. The run's design is its
+shortlist's choice, or without a shortlist the most probable design.
 """
 
 from __future__ import annotations
@@ -59,8 +66,9 @@ import numpy as np
 from softcrawl.codesign.config import TrainConfig
 from softcrawl.codesign.evaluation import GAIT_SAMPLES, episode_seconds
 from softcrawl.codesign.run import Run, note
+from softcrawl.codesign.shortlist import by_latest, design_rows
 from softcrawl.design.baseline import sine_baseline_design
-from softcrawl.design.picture import plot_design
+from softcrawl.design.picture import plot_design, regulator_colour
 from softcrawl.design.space import BASELINE_DESIGN, DEFAULT_SPACE
 from softcrawl.tasks import Task, parse_task
 
@@ -76,86 +84,20 @@ def load_final_sampler_state(run: str | Path) -> dict | None:
     return None if ck is None else r.read_checkpoint_state(ck)["sampler"]
 
 
+#: The keys of a :func:`top_designs` row.
+TOP_KEYS = ("design", "latest_cm", "prob", "episodes", "mean_cm", "best_cm")
+
+
 def top_designs(run: str | Path, k: int = 5) -> list[dict]:
-    """Top-k tried designs of a run (see the module docstring) as dicts with keys ``design``,
-    ``latest_cm``, ``prob``, ``episodes``, ``mean_cm``, ``best_cm``."""
-    r = Run(run)
-    state = r.read_checkpoint_state(r.require_checkpoint())["sampler"]
-    from softcrawl.codesign.distribution import GibbsDesignDistribution
-
-    dist = GibbsDesignDistribution(state["distribution"]["designs"], space=r.design_space())
-    dist.load_state_dict(state["distribution"])
-    p = dist.probs()
-    ep = r.read_episodes()
-    tried = np.flatnonzero(dist.tried)
-    order = tried[np.lexsort((tried, -dist.returns[tried]))][:k]
-    rows = []
-    for i in order:
-        d = dist.designs[i]
-        mine = np.array([r for dd, r in zip(ep["design"], ep["r"]) if dd == d])
-        rows.append({"design": d, "latest_cm": float(dist.returns[i]), "prob": float(p[i]), "episodes": len(mine),
-                     "mean_cm": float(mine.mean()) if len(mine) else float("nan"),
-                     "best_cm": float(mine.max()) if len(mine) else float("nan")})
-    return rows
+    """Top-k tried designs of a run (see the module docstring) as dicts with keys
+    :data:`TOP_KEYS` (:func:`softcrawl.codesign.shortlist.design_rows`)."""
+    return _top(design_rows(run), k)
 
 
-def _histogram_figure(run: Run, ep: dict, path: Path, unit: str = "cm") -> bool:
-    from matplotlib.figure import Figure
-
-    snaps = run.snapshots()
-    if not snaps:
-        return False
-    data = []
-    for s in snaps:
-        try:
-            data.append(run.read_snapshot(s))
-        except ValueError as exc:
-            note(f"{exc}; left out of the reward histogram")
-    if not data:
-        return False
-    ts = np.array([int(d["t"]) for d in data])
-    allr = np.concatenate([d["scores"][d["tried"]] for d in data] + [ep["r"]] if len(ep["r"]) else
-                          [d["scores"][d["tried"]] for d in data])
-    if allr.size == 0:
-        return False
-    lo, hi = float(allr.min()), float(allr.max())
-    if hi <= lo:
-        hi = lo + 1e-3
-    edges = np.linspace(lo, hi, 41)
-    img = np.zeros((len(edges) - 1, len(data)))
-    for j, d in enumerate(data):
-        w = d["p"][d["tried"]].astype(float)
-        if w.sum() > 0:
-            img[:, j] = np.histogram(d["scores"][d["tried"]], bins=edges, weights=w / w.sum())[0]
-    fig = Figure(figsize=(7, 4))
-    ax = fig.add_subplot()
-    x_edges = np.concatenate([[0], ts]) if len(ts) else np.array([0, 1])
-    mesh = ax.pcolormesh(x_edges, edges, img, cmap="viridis", shading="flat")
-    fig.colorbar(mesh, ax=ax, label="probability mass (design distribution)")
-    if len(ep["r"]):
-        ax.step(ep["t"], np.maximum.accumulate(ep["r"]), where="post", color="tab:red", label="best so far")
-        ax.legend(loc="lower right")
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel(f"latest return R ({unit} per episode)")
-    ax.set_title("Returns weighted by the design distribution")
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    return True
-
-
-def _returns_figure(ep: dict, path: Path, unit: str = "cm") -> None:
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(7, 3.5))
-    ax = fig.add_subplot()
-    if len(ep["r"]):
-        ax.plot(ep["t"], ep["r"], ".", ms=3, alpha=0.4, label="episode return")
-        w = max(1, len(ep["r"]) // 20)
-        run_mean = np.convolve(ep["r"], np.ones(w) / w, mode="valid")
-        ax.plot(ep["t"][w - 1:], run_mean, color="k", label=f"running mean ({w})")
-        ax.legend()
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel(f"return ({unit})")
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+def _top(rows: list[dict], k: int) -> list[dict]:
+    """The first ``k`` of :func:`~softcrawl.codesign.shortlist.design_rows`'s ``rows`` by latest
+    return, with the keys :data:`TOP_KEYS`."""
+    return [{key: row[key] for key in TOP_KEYS} for row in by_latest(rows)[:k]]
 
 
 def _load_sweep(sweep: str | Path) -> tuple[Path, dict]:
@@ -298,18 +240,18 @@ def _sampled_lines(ev, unit: str) -> list[str]:
 
 
 def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
-                         task: Task | None = None, samples: int = 0) -> tuple[list[str], dict]:
+                         task: Task | None = None, samples: int = 0, ev=None) -> tuple[list[str], dict]:
     """Re-simulate ``design``'s gait (the best of the run's deterministic policy and ``samples``
-    episodes sampled from it, :func:`softcrawl.codesign.evaluation.evaluate_policy`) into
-    ``out/best_design``; Markdown lines and the numbers for ``summary.json`` (returns in the
-    unit of ``task``, default ``forward``'s cm)."""
+    episodes sampled from it, :func:`softcrawl.codesign.evaluation.evaluate_policy`; ``ev``: that
+    evaluation if already made) into ``out/best_design``; Markdown lines and the numbers for
+    ``summary.json`` (returns in the unit of ``task``, default ``forward``'s cm)."""
     from softcrawl.codesign.evaluation import evaluate_policy
     from softcrawl.robot.episode import unsettled_warning
     from softcrawl.robot.output import write_results
     from softcrawl.tasks.base import VENT_SECONDS, return_series, vented_return
 
     task = task if task is not None else parse_task("forward")
-    ev = evaluate_policy(run, design, checkpoint=checkpoint, samples=samples)
+    ev = evaluate_policy(run, design, checkpoint=checkpoint, samples=samples) if ev is None else ev
     result = ev.resimulate(record_every=10)
     robot = ev.env.episode.robot
     write_results(out / "best_design", robot, ev.gait(), result, ev.env.calibration, overwrite=True,
@@ -365,10 +307,75 @@ def _baseline_best(cfg: TrainConfig, out: Path, data: dict) -> list[str]:
     return ["", "![baseline at its best phase](baseline_best/trajectory.png)"]
 
 
+def shortlist_section(sl: dict | None, out: Path, space) -> list[str]:
+    """The report's "Shortlist" section of a :func:`softcrawl.codesign.shortlist.read_shortlist`
+    dict (None: a line saying the run's design is the most probable one), with
+    ``shortlist.png`` (each candidate's picture and gait)."""
+    lines = ["", "## Shortlist", ""]
+    if sl is None:
+        return lines + ["None: this run has no shortlist of its last checkpoint and the report did not simulate "
+                        "(--no-simulate); the run's design is the most probable one."]
+    u, cands = sl["unit"], sl["candidates"]
+    per = sl["wall_seconds"] / len(cands)
+    lines += [(f"The run's design is the best of its {len(cands)} most promising designs (taken in turn by final "
+               "probability p, best episode return and mean of the last episodes: their ranks p / best / recent), "
+               f"each tried with the trained policy's gaits: the deterministic episode and {sl['samples']} sampled "
+               f"ones, the best of them its gait (checkpoint `{sl['checkpoint']}`; {sl['wall_seconds']:.0f} s, "
+               f"{per:.0f} s per candidate)."), "",
+              f"| # | design | ranks p / best / recent | p | R ({u}) | best ({u}) | deterministic ({u}) | "
+              f"samples ({u}) | gait ({u}) | |", "|---|---|---|---|---|---|---|---|---|---|"]
+
+    def num(v, fmt="+.3f"):
+        return "-" if v is None else format(v, fmt)
+
+    for i, c in enumerate(cands):
+        ranks = " / ".join("-" if c.get(key) is None else str(c[key]) for key in
+                           ("rank_probability", "rank_best", "rank_recent"))
+        ok = [v for v, bad in zip(c.get(f"sampled_{u}", []), c.get("sampled_diverged", [])) if not bad and v is not None]
+        samples = f"{np.mean(ok):+.3f} ± {np.std(ok):.3f} ({len(ok)})" if ok else "-"
+        det = num(c.get(f"deterministic_{u}")) + (" diverged" if c.get("deterministic_diverged") else "")
+        gait = f"{num(c[f'gait_{u}'])} ({c.get('gait_source', '?')}{', diverged' if c['gait_diverged'] else ''})"
+        lines.append(f"| {i + 1} | `{','.join(map(str, c['design']))}` | {ranks} | {num(c.get('prob'), '.3g')} | "
+                     f"{num(c.get(f'latest_{u}'))} | {num(c.get(f'best_{u}'))} | {det} | {samples} | {gait} | "
+                     f"{'**chosen**' if i == sl['chosen'] else ''} |")
+    if sl["all_diverged"]:
+        lines += ["", "Every candidate's gait diverged: the run's design is the most probable one."]
+    _shortlist_figure(sl, out / "shortlist.png", space)
+    return lines + ["", "![the shortlist's designs and their gaits](shortlist.png)"]
+
+
+def _shortlist_figure(sl: dict, path: Path, space) -> None:
+    """One row per candidate: its picture, and its gait's commanded kPa per regulator over the
+    episode's actions."""
+    from matplotlib.figure import Figure
+
+    cands, u = sl["candidates"], sl["unit"]
+    fig = Figure(figsize=(8, 2.6 * len(cands)))
+    axes = fig.subplots(len(cands), 2, squeeze=False, gridspec_kw={"width_ratios": [1, 2.2], "hspace": 0.45})
+    for i, (c, (pic, gait)) in enumerate(zip(cands, axes)):
+        plot_design(c["design"], ax=pic, space=space)
+        if pic.get_legend() is not None:  # the gait's legend names the regulators, in the same colours
+            pic.get_legend().remove()
+        pic.set_title(f"#{i + 1} {','.join(map(str, c['design']))}{' (chosen)' if i == sl['chosen'] else ''}",
+                      fontsize=9)
+        a = np.asarray(c.get("actions_kpa") or np.zeros((0, 0)), float)
+        for j in range(a.shape[1] if a.ndim == 2 else 0):
+            gait.stairs(a[:, j], np.arange(len(a) + 1), color=regulator_colour(j + 1), label=f"regulator {j + 1}")
+        ret = c[f"gait_{u}"]
+        gait.set_title(f"gait ({c.get('gait_source', '?')}): {'-' if ret is None else format(ret, '+.3f')} {u}",
+                       fontsize=9)
+        gait.set_ylim(-5, 95)
+        gait.set_ylabel("commanded kPa")
+        gait.legend(fontsize=7, loc="upper right")
+    axes[-1][1].set_xlabel("action (each held for the run's hold time)")
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+
+
 def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None,
                  baseline_phases=BASELINE_PHASES, simulate: bool = True, workers: int | None = None,
                  extra: dict[str, Callable[[], tuple[list[str], dict]]] | None = None,
-                 samples: int = GAIT_SAMPLES) -> Path:
+                 samples: int = GAIT_SAMPLES, shortlist: int | None = None,
+                 groundtruth: str | Path | None = None) -> Path:
     """Write ``run/report/`` (module docstring) and return its path.
 
     Args:
@@ -377,45 +384,80 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         baseline: a ``softcrawl sweep-phase`` output directory or its ``sweep.json``; None
             sweeps the baseline over ``baseline_phases`` with the run's settings (if ``simulate``).
         baseline_phases: degrees; empty: no baseline section unless ``baseline`` is given.
-        simulate: re-simulate the best design (and run the baseline sweep); False writes only
-            what the logs hold.
+        simulate: re-simulate the run's design (and run the baseline sweep, and a missing
+            shortlist); False writes only what the run's files hold.
         workers: processes of the baseline sweep (None: the CPU count).
         extra: more sections, ``summary.json`` key -> a callable giving ``(Markdown lines,
             numbers)``, appended in order (``softcrawl report --groundtruth``: the regret against
             a ground truth, :func:`softcrawl.codesign.groundtruth_regret.regret_section`, which
             reads the run itself and so is passed in rather than imported here).
-        samples: episodes sampled from the stochastic policy on the best design; its gait is
-            the best of them and the deterministic one (0: the deterministic one).
+        samples: episodes sampled from the stochastic policy on the run's design (and on each
+            candidate of a shortlist computed here); its gait is the best of them and the
+            deterministic one (0: the deterministic one).
+        shortlist: compute the run's shortlist anew with this many candidates (and write it,
+            :mod:`softcrawl.codesign.shortlist`); None: the run's own, computed with its
+            ``shortlist`` setting if it has none of its last checkpoint (and ``simulate``).
+        groundtruth: a ``softcrawl groundtruth`` folder to place the paper's designs in
+            (:func:`~softcrawl.codesign.report_training.paper_designs_section`).
 
     The run is locked while the report is written (:meth:`Run.lock`): not while it trains.
 
     Raises:
         ValueError: ``run`` is not a training run with at least one complete checkpoint, a
-            run file is malformed, ``report`` is a link, or ``baseline`` is not a sweep output;
-            and what an ``extra`` section raises.
+            run file is malformed, ``report`` is a link, ``baseline`` is not a sweep output,
+            ``shortlist`` without ``simulate`` or out of range, ``groundtruth`` is not a ground
+            truth; and what an ``extra`` section raises.
         FolderLockedError: another command is writing the run (a training, another report).
     """
+    from softcrawl.codesign.shortlist import MAX_SHORTLIST
+
+    if shortlist is not None and not 1 <= shortlist <= MAX_SHORTLIST:
+        raise ValueError(f"a shortlist has 1 to {MAX_SHORTLIST} designs, got {shortlist}")
+    if shortlist is not None and not simulate:
+        raise ValueError("a shortlist's designs are evaluated by simulation: --shortlist goes without --no-simulate")
     r = Run(run)
     r.read_meta()  # a training run, before its lock is taken
     with r.lock():
         meta = r.read_meta()
         sweep = _load_sweep(baseline) if baseline is not None else None
-        top = top_designs(r.path, k)
         ckpt = r.require_checkpoint()
+        rows = design_rows(r.path, ckpt)
         state = r.read_checkpoint_state(ckpt)["sampler"]
+        sl, evs = _report_shortlist(r, simulate, shortlist, samples)
         staged = r.report_staging()
         try:
-            _write_report(r, staged, meta, top, state, ckpt, sweep, baseline_phases, simulate, workers, extra or {},
-                          samples)
+            _write_report(r, staged, meta, rows, _top(rows, k), state, ckpt, sweep, baseline_phases, simulate,
+                          workers, extra or {}, samples, sl, evs, groundtruth)
             return r.install_report(staged)
         except BaseException:
             shutil.rmtree(staged, ignore_errors=True)
             raise
 
 
-def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: Path, sweep, baseline_phases,
-                  simulate: bool, workers: int | None, extra: dict, samples: int) -> None:
-    """Everything of :func:`write_report` into ``out`` (the staging folder)."""
+def _report_shortlist(r: Run, simulate: bool, k: int | None, samples: int) -> tuple[dict | None, list | None]:
+    """The shortlist the report shows: the run's (``k`` None or its size), else one computed
+    now and written (``simulate`` only), with its evaluations; ``(None, None)`` without one."""
+    from softcrawl.codesign.shortlist import compute_shortlist, read_shortlist, write_shortlist
+
+    have = read_shortlist(r.path)
+    if have is not None and k in (None, have["k"]):
+        return have, None
+    if not simulate:
+        return None, None
+    data, evs = compute_shortlist(r.path, r.read_config().shortlist if k is None else k, samples, progress=True)
+    write_shortlist(r.path, data)
+    return data, evs
+
+
+def _write_report(r: Run, out: Path, meta: dict, rows: list, top: list, state: dict, ckpt: Path, sweep,
+                  baseline_phases, simulate: bool, workers: int | None, extra: dict, samples: int, sl: dict | None,
+                  evs: list | None, groundtruth) -> None:
+    """Everything of :func:`write_report` into ``out`` (the staging folder); ``rows``: the tried
+    designs (:func:`~softcrawl.codesign.shortlist.design_rows`), ``top`` the first of them,
+    ``sl`` and ``evs`` the shortlist and its evaluations if made here (:func:`_report_shortlist`)."""
+    from softcrawl.codesign.report_training import paper_designs_section, training_section
+    from softcrawl.codesign.shortlist import most_probable
+
     run = r.path
     ep = r.read_episodes()
     run_cfg = r.read_config()
@@ -424,8 +466,6 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         plot_design(row["design"], path=out / f"top-{i}.png", space=space)
     task = parse_task(run_cfg.env.task)
     u = task.unit
-    has_hist = _histogram_figure(r, ep, out / "reward_histogram.png", u)
-    _returns_figure(ep, out / "returns.png", u)
     with open(out / "top_designs.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["rank", "design", f"latest_{u}", "prob", "episodes", f"mean_{u}", f"best_{u}"])
@@ -434,6 +474,10 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
                         row["episodes"], f"{row['mean_cm']:.4f}", f"{row['best_cm']:.4f}"])
     last = state["distribution"]["last"]
     cfg = meta["config"]
+    if sl is not None:
+        chosen, source = tuple(sl["candidates"][sl["chosen"]]["design"]), "shortlist"
+    else:
+        chosen, source = (tuple(most_probable(rows)["design"]) if rows else None), "most probable"
     lines = [
         f"# Co-design run `{run.name}`", "",
         (f"softcrawl {meta['version']}, preset `{cfg['preset']}`: {cfg['n_envs']} envs, "
@@ -444,6 +488,8 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
         f"- design distribution last updated at step {state['timestep']} (the last episode end)",
         f"- task: `{task.label()}`: {task.describe} (returns in {u})",
         f"- best episode return: {ep['r'].max():+.3f} {u}" if len(ep["r"]) else "- no episode finished",
+        *([] if chosen is None else [f"- the run's design: `{','.join(map(str, chosen))}` ("
+                                     f"{'the best gait of its shortlist' if sl else 'the most probable'})"]),
         *([] if space == DEFAULT_SPACE else [
             f"- design space `{space.name}` (the run's `space.toml`): {space.n_slots} slots, "
             f"{space.n_regulators} regulators, legs {', '.join(map(str, run_cfg.env.legs))} "
@@ -457,21 +503,25 @@ def _write_report(r: Run, out: Path, meta: dict, top: list, state: dict, ckpt: P
     for i, row in enumerate(top, 1):
         lines.append(f"| {i} | `{','.join(map(str, row['design']))}` | {row['latest_cm']:+.3f} | {row['prob']:.3g} | "
                      f"{row['episodes']} | {row['mean_cm']:+.3f} | {row['best_cm']:+.3f} | ![](top-{i}.png) |")
-    lines += ["", "## Training", ""]
-    if has_hist:
-        lines.append("![reward histogram weighted by the design distribution](reward_histogram.png)")
-    lines += ["", "![episode returns](returns.png)"]
+    lines += shortlist_section(sl, out, space)
+    more, training = training_section(r, ep, out, u, space, run_cfg.env.designs())
+    lines += more
+    more, paper = paper_designs_section(rows, run_cfg, groundtruth, u)
+    lines += more
     best_cm = float(ep["r"].max()) if len(ep["r"]) else None
     numbers = {"run": run.name, "preset": cfg["preset"], "task": task.settings(), "unit": u,
                "steps": r.checkpoint_steps(ckpt),
                "training_wall_seconds": r.wall_seconds(), "episodes": int(len(ep["r"])),
                f"best_episode_{u}": best_cm, "top_designs": [
-                   {**row, "design": ",".join(map(str, row["design"]))} for row in top]}
+                   {**row, "design": ",".join(map(str, row["design"]))} for row in top],
+               "design": None if chosen is None else {"design": ",".join(map(str, chosen)), "source": source},
+               "shortlist": sl, "training": training, "paper_designs": paper}
     if space != DEFAULT_SPACE:
         numbers["space"] = {"name": space.name, "slots": space.n_slots, "regulators": space.n_regulators,
                             "slot_angles_deg": list(space.slot_angles_deg), "legs": list(run_cfg.env.legs)}
-    if simulate and top:
-        more, numbers["best_design"] = _best_design_section(run, out, top[0]["design"], ckpt, task, samples)
+    if simulate and chosen is not None:
+        ev = None if evs is None else evs[sl["chosen"]]  # the shortlist's evaluation, made with these samples
+        more, numbers["best_design"] = _best_design_section(run, out, chosen, ckpt, task, samples, ev)
         lines += more
     if task.baseline != "sine":  # another task's baseline, or none
         if sweep is not None:

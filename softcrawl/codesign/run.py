@@ -19,6 +19,9 @@ it; nothing else builds a run's paths by hand. Layout::
     ├── sessions.csv               first step, last step, wall seconds, version; one row per train/resume call,
     │                              updated at each of its checkpoints (a killed call keeps its time)
     ├── domain.csv                 domain-randomized runs only: t, design, return, diverged, the draw's values
+    ├── shortlist.json             the run's design: its final shortlist, each candidate's gaits and returns, the
+    │                              chosen one, of one checkpoint (softcrawl.codesign.shortlist; written when
+    │                              training ends, or by the report of a run without one)
     ├── snapshots/t-XXXXXXXXXX.npz p, scores (float32), tried (bool), t of the design distribution
     ├── logs/                      SB3 logger: progress.csv (progress-<k>.csv: earlier calls), TensorBoard events
     ├── checkpoints/
@@ -95,6 +98,7 @@ class Run(RunCheckpoints):
     distribution_csv = property(lambda self: self.path / "distribution.csv")
     sessions_csv = property(lambda self: self.path / "sessions.csv")
     domain_csv = property(lambda self: self.path / "domain.csv")
+    shortlist_json = property(lambda self: self.path / "shortlist.json")
     snapshots_dir = property(lambda self: self.path / "snapshots")
     logs_dir = property(lambda self: self.path / "logs")
     checkpoints_dir = property(lambda self: self.path / "checkpoints")
@@ -137,7 +141,8 @@ class Run(RunCheckpoints):
             ValueError: naming the first such link.
         """
         for p in (self.config_path, self.space_path, self.episodes_csv, self.distribution_csv, self.sessions_csv,
-                  self.domain_csv, self.snapshots_dir, self.logs_dir, self.checkpoints_dir, self.report_dir):
+                  self.domain_csv, self.shortlist_json, self.snapshots_dir, self.logs_dir, self.checkpoints_dir,
+                  self.report_dir):
             if p.is_symlink():
                 raise ValueError(f"{p} is a symbolic link: a run's files must be inside its folder (refusing to "
                                  "read or write through it)")
@@ -222,6 +227,24 @@ class Run(RunCheckpoints):
                 except (IndexError, ValueError):
                     raise ValueError(f"{self.episodes_csv}, line {line}: not an episode row: {row!r}") from None
         return {"t": np.array(t, np.int64), "design": designs, "r": np.array(r), "diverged": np.array(div, bool)}
+
+    def read_distribution(self) -> dict:
+        """``distribution.csv`` as arrays: ``t`` (int64), ``beta`` (1/unit of the returns),
+        ``entropy`` (nats), and ``top``: per row its most probable designs, ``[(design, p),
+        ...]`` (p as logged, 3 significant digits); an unfinished last row is left out.
+        ValueError naming the file and the 1-based line of a bad row."""
+        t, beta, entropy, top = [], [], [], []
+        if self.distribution_csv.exists():
+            for line, row in _csv_rows(self.distribution_csv):
+                try:
+                    t.append(int(row[0]))
+                    beta.append(float(row[1]))
+                    entropy.append(float(row[2]))
+                    top.append([(tuple(int(c) for c in d), float(p))
+                                for d, p in (item.split(":") for item in row[7].split())])
+                except (IndexError, ValueError):
+                    raise ValueError(f"{self.distribution_csv}, line {line}: not a distribution row: {row!r}") from None
+        return {"t": np.array(t, np.int64), "beta": np.array(beta), "entropy": np.array(entropy), "top": top}
 
     def has_history(self) -> bool:
         """Anything logged: episode rows, snapshots or checkpoints."""

@@ -59,10 +59,18 @@ def prepare_learner(cfg: SACConfig) -> None:
     module.check_device(cfg.device)
 
 
-def make_sac(env, cfg: SACConfig, seed: int | None = None):
-    """The ``cfg.learner`` SAC learner for vectorised env ``env`` (its module's ``make_sac``).
+def make_sac(env, cfg: SACConfig, seed: int | None = None, rollout: str = "action"):
+    """The ``cfg.learner`` SAC learner for vectorised env ``env`` (its module's ``make_sac``);
+    with ``rollout="episode"`` (:attr:`TrainConfig.rollout`) the sbx learner that trains on
+    whole episodes with its replay buffer on its device
+    (:func:`softcrawl.codesign.episodic.make_episodic_sac`).
 
     Raises:
-        ValueError: ``cfg.device`` is not a device the learner can use.
+        ValueError: ``cfg.device`` is not a device the learner can use; ``rollout="episode"``
+            with another learner than ``"sbx"``.
     """
+    if rollout == "episode":
+        from softcrawl.codesign.episodic import make_episodic_sac
+
+        return make_episodic_sac(env, cfg, seed)
     return learner_module(cfg.learner).make_sac(env, cfg, seed)

@@ -136,8 +136,9 @@ class CodesignSAC(OverlappedUpdates, SAC):
             return super().predict(observation, state, episode_start, deterministic)
 
 
-def make_sac(env, cfg: SACConfig, seed: int | None = None) -> CodesignSAC:
-    """The SAC learner for a vectorised crawler env.
+def make_sac(env, cfg: SACConfig, seed: int | None = None, cls: type[CodesignSAC] | None = None) -> CodesignSAC:
+    """The SAC learner for a vectorised crawler env (a :class:`CodesignSAC`, or the subclass
+    ``cls``: :class:`softcrawl.codesign.episodic.EpisodicSAC`).
 
     SB3's settings from ``cfg`` (:func:`~softcrawl.codesign.sac_common.sb3_arguments`: update
     ratio, temperature, time limit); the updates of a vectorised step in one compiled call.
@@ -153,7 +154,7 @@ def make_sac(env, cfg: SACConfig, seed: int | None = None) -> CodesignSAC:
     """
     use_compilation_cache()
     device = check_device(cfg.device)
-    model = CodesignSAC(
+    model = (cls or CodesignSAC)(
         "MlpPolicy", env, learning_rate=cfg.policy_lr, qf_learning_rate=cfg.q_lr,
         policy_kwargs={"net_arch": list(cfg.net_arch), "actor_class": Actor, "vector_critic_class": VectorCritic},
         seed=seed, overlap=cfg.overlap, jax_device=device, **sb3_arguments(env, cfg),

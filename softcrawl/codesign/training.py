@@ -9,16 +9,21 @@ next episodes, and a run resumed from it continues as the uninterrupted run did 
 episodes, to the bit, with domain randomization off: the envs' own random draws restart from
 their seeds). From a checkpoint inside episodes, the running episodes are discarded (their
 transitions are in the replay buffer; their returns never reach the design distribution) and
-every env starts a new episode with a freshly sampled design; the counters continue. The report
+every env starts a new episode with a freshly sampled design; the counters continue. A design
+whose robot did not come to rest before its episode (the env's ``info["at_rest"]``, whatever the
+backend) is a warning line on stderr, once per design and call
+(:func:`softcrawl.robot.episode.unsettled_warning`). The report
 is not written here (``softcrawl train`` calls :func:`softcrawl.codesign.report.write_report`
 afterwards).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 import random
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +39,7 @@ from softcrawl.codesign.randomization import DomainLog
 from softcrawl.codesign.run import Run
 from softcrawl.codesign.sac import make_sac, prepare_learner
 from softcrawl.codesign.sampler import GibbsDesignSampler
+from softcrawl.robot.episode import unsettled_warning
 from softcrawl.tasks import parse_task
 
 
@@ -43,8 +49,9 @@ def _design_str(d) -> str:
 
 
 class CodesignCallback(BaseCallback):
-    """Per step: progress bar, episode rows, codesign/* scalars, snapshots; checkpoints at the
-    start of the next rollout, i.e. after the step's gradient updates."""
+    """Per step: progress bar, episode rows, codesign/* scalars, snapshots, a warning for each
+    design whose robot did not come to rest before its episode (once per design); checkpoints at
+    the start of the next rollout, i.e. after the step's gradient updates."""
 
     def __init__(self, cfg: TrainConfig, run: Run, sampler: GibbsDesignSampler, progress: bool, wall_start: float):
         super().__init__()
@@ -56,6 +63,8 @@ class CodesignCallback(BaseCallback):
         self.session_recorded = False
         #: the unit of the returns (the task's: cm, deg) in the codesign/*_return_<unit> scalars
         self.unit = parse_task(cfg.env.task).unit
+        #: the designs warned about: their robot did not come to rest before an episode
+        self.unsettled: set = set()
 
     def record_session(self) -> None:
         """This call's ``sessions.csv`` row, up to the current step (see :meth:`Run.record_session`)."""
@@ -89,6 +98,11 @@ class CodesignCallback(BaseCallback):
             self.best = max(self.best, r)
             self.ep_writer.writerow([t, _design_str(info.get("design")), f"{r:.6g}", int(info.get("diverged", False))])
             self.domain_log.write(t, info)
+            warning = unsettled_warning(info)
+            if warning and info.get("design") not in self.unsettled:
+                self.unsettled.add(info.get("design"))
+                self.bar.write(f"softcrawl train: warning: design {_design_str(info.get('design'))} {warning} "
+                               "(said once per design)", file=sys.stderr)
         if rows:
             up = self.sampler.distribution.last
             top = self.sampler.distribution.top(3)
@@ -178,43 +192,78 @@ def train(run_dir: str | os.PathLike, cfg: TrainConfig | None = None, resume: bo
             (:data:`softcrawl.codesign.config.PLACEMENT_KEYS`: the learner's device, the worker
             processes), applied to the saved config for this session only.
 
-    ``config.json`` is written only after the config is validated, the envs and sampler are
-    built and the reduction file is checked, so a failed start leaves an empty folder that the same command can reuse.
+    The run is locked while this writes it (:meth:`Run.lock`): a second ``train`` or ``report``
+    on it is refused at once. Everything is checked before anything is written: the config,
+    the folder, the Ray address, the reduction file and the learner's device; a new run's
+    folder is created only then, and ``config.json`` written only once the envs and sampler are
+    built, so a failed start leaves no folder (or the empty one it was given) and the same
+    command can be run again.
 
     Raises:
         ValueError: a bad config, ``run_dir`` a file or non-empty for a new run, a missing run,
             a run with history and no complete checkpoint on resume, ``placement`` without
             ``resume`` or with a setting outside ``PLACEMENT_KEYS``.
+        FolderLockedError: another command is writing the run.
         NoSpaceError: a checkpoint could not be written (disk full / read-only).
     """
     run = Run(run_dir)
     if resume:
-        cfg = place(run.read_config(), placement or [])
-        ckpt = _resume_point(run)
-        if ckpt is not None:
-            cfg.sac.learner = run.checkpoint_learner(ckpt)  # the learner that wrote it
-    else:
-        if cfg is None:
-            raise ValueError("a new run needs a config")
-        if placement:
-            raise ValueError("placement applies to a resumed run; a new run takes its settings in cfg")
-        cfg.validate()
-        if run.path.exists() and (not run.path.is_dir() or any(run.path.iterdir())):
-            raise ValueError(f"run directory {run.path} exists and is not an empty folder "
-                             "(use --resume or another --out)")
-        ckpt = None
+        run.read_meta()  # a training run, before its lock is taken
+        with run.lock():
+            cfg = place(run.read_config(), placement or [])
+            ckpt = _resume_point(run)
+            if ckpt is not None:
+                cfg.sac.learner = run.checkpoint_learner(ckpt)  # the learner that wrote it
+            _check_start(cfg, ray_address, resume)
+            return _train(run, cfg, ckpt, resume, progress, ray_address)
+    if cfg is None:
+        raise ValueError("a new run needs a config")
+    if placement:
+        raise ValueError("placement applies to a resumed run; a new run takes its settings in cfg")
+    cfg.validate()
+    _check_new(run)
+    _check_start(cfg, ray_address, resume)
+    created = not run.path.exists()
+    run.path.mkdir(parents=True, exist_ok=True)
+    try:
+        with run.lock():
+            _check_new(run)  # again, locked: another run may have started in it meanwhile
+            return _train(run, cfg, None, resume, progress, ray_address)
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                run.path.rmdir()  # only if still empty: a failed start leaves no folder behind
+        raise
+
+
+def _check_new(run: Run) -> None:
+    """Refuse a new run's folder that exists and is not an empty folder (ValueError)."""
+    if not run.is_new():
+        raise ValueError(f"run directory {run.path} exists and is not an empty folder "
+                         "(use --resume or another --out)")
+
+
+def _check_start(cfg: TrainConfig, ray_address: str | None, resume: bool) -> None:
+    """What must hold before a run's envs are built: the Ray address for Ray only, a new run's
+    reduction file (:func:`~softcrawl.codesign.factory.check_reduction`), the learner's threads
+    and device (:func:`~softcrawl.codesign.sac.prepare_learner`). ValueError if not."""
     if ray_address is not None and cfg.backend != "ray":
         raise ValueError(f"a Ray address is used only by backend \"ray\", not {cfg.backend!r}")
     if not resume:
         check_reduction(cfg)  # a reduction of another part or model: refused before anything is built
     prepare_learner(cfg.sac)  # threads before JAX / torch start; the device before the workers start
+
+
+def _train(run: Run, cfg: TrainConfig, ckpt: Path | None, resume: bool, progress: bool,
+           ray_address: str | None) -> TrainResult:
+    """The body of :func:`train`, its run locked and its settings checked."""
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
     sampler = make_sampler(cfg)
     venv = make_vec_env(cfg, sampler, ray_address)
     wall = time.perf_counter()
     try:
-        model = make_sac(venv, cfg.sac, seed=cfg.seed)
+        model = make_sac(venv, cfg.sac, seed=cfg.seed, rollout=cfg.rollout)
         if not resume:
             run.write_config(cfg)
         if ckpt is not None:

@@ -278,6 +278,12 @@ class CrawlerEnv(gym.Env):
         n = self.nominal_steps_per_action
         return n if self.domain is None else self.domain.action_steps(n, k)
 
+    def episode_steps(self) -> list[int]:
+        """Simulator steps of each of the episode's ``n_actions`` actions (with the control-period
+        dilation of the episode's domain sample), for a driver that simulates a whole episode at
+        once (:meth:`softcrawl.envs.backends.jaxvec.JaxBackend.run_episodes`)."""
+        return [self._steps_of(k) for k in range(self.n_actions)]
+
     def _next_action(self) -> None:
         """Count the action just held (its planned steps: a diverged episode's clock runs on)."""
         self._t_steps += self._action_steps

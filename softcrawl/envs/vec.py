@@ -1,16 +1,35 @@
 """Vectorised crawler rollouts: a stable-baselines3 ``VecEnv`` of N crawlers whose designs are
 drawn at every (auto-)reset by a design sampler living in the learner's process
 (codesign.md, "Each iteration"). The crawlers run in a backend (:mod:`softcrawl.envs.backends`:
-in-process, subprocess workers or Ray actors).
+in-process, subprocess workers, Ray actors or one JAX batch), one action at a time
+(:meth:`DesignVecEnv.step`) or, for open-loop policies, a whole episode of every env at once
+(:meth:`DesignVecEnv.run_episodes`).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
 from softcrawl.design.space import Design
 from softcrawl.envs.backends import EnvBackend
+
+
+@dataclass
+class VecStep:
+    """One vectorised step of :meth:`DesignVecEnv.run_episodes`: ``obs`` ``(N, obs_dim)``,
+    ``rewards`` ``(N,)``, ``dones`` ``(N,)`` and ``infos`` as :meth:`DesignVecEnv.step` returns
+    them; ``live`` ``(N,)``: the envs that took an action at this step; ``ended`` ``(N,)``: the
+    envs whose episode has ended (at this step or before)."""
+
+    obs: np.ndarray
+    rewards: np.ndarray
+    dones: np.ndarray
+    infos: list[dict]
+    live: np.ndarray
+    ended: np.ndarray
 
 
 class DesignVecEnv(VecEnv):
@@ -31,8 +50,9 @@ class DesignVecEnv(VecEnv):
     ``"design"`` and ``"diverged"``).
 
     :attr:`while_stepping` (None, or a zero-argument callable) runs in :meth:`step_wait` while
-    the backend's envs step (they were started by :meth:`step_async`): the learner's gradient
-    updates overlap the simulation (:class:`softcrawl.codesign.sac_common.OverlappedUpdates`).
+    the backend's envs step (they were started by :meth:`step_async`), and in
+    :meth:`run_episodes` while they run their episodes: the learner's gradient updates overlap
+    the simulation (:class:`softcrawl.codesign.sac_common.OverlappedUpdates`).
     """
 
     def __init__(self, backend: EnvBackend, sampler=None):
@@ -95,14 +115,29 @@ class DesignVecEnv(VecEnv):
             self.while_stepping()
         results = self.backend.step_recv()
         self._actions = None
-        self.num_transitions += self.num_envs
-        obs = np.stack([r[0] for r in results])
-        rewards = np.array([r[1] for r in results], dtype=np.float32)
+        obs, rewards, dones, infos, finished = self._record(results)
+        if finished:
+            for i, (o, _) in zip(finished, self._reset_envs(finished)):
+                obs[i] = o
+        return obs, rewards, dones, infos
+
+    def _record(self, results: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict], list[int]]:
+        """One vectorised step's ``(obs, rewards, dones, infos, finished)`` from the envs'
+        transitions ``results`` (None for an env that did not step: zeros, ``{}``): returns and
+        lengths accumulated, the SB3 keys of the finished episodes added to their infos and
+        the episodes reported to the sampler (not reset)."""
+        live = [r for r in results if r is not None]
+        self.num_transitions += len(live)
+        obs = np.zeros((self.num_envs, *live[0][0].shape), live[0][0].dtype)
+        rewards = np.zeros(self.num_envs, np.float32)
         dones = np.zeros(self.num_envs, bool)
-        infos: list[dict] = []
+        infos: list[dict] = [{} for _ in range(self.num_envs)]
         finished = []
-        for i, (o, rew, term, trunc, info) in enumerate(results):
-            info = dict(info)
+        for i, result in enumerate(results):
+            if result is None:
+                continue
+            o, rew, term, trunc, info = result
+            obs[i], rewards[i], info = o, rew, dict(info)
             self._returns[i] += rew
             self._lengths[i] += 1
             if term or trunc:
@@ -112,14 +147,55 @@ class DesignVecEnv(VecEnv):
                 info["episode"] = {"r": float(self._returns[i]), "l": int(self._lengths[i]),
                                    "t": float(info.get("t", 0.0))}
                 finished.append(i)
-            infos.append(info)
-        if finished:
-            if self.sampler is not None:
-                self.sampler.observe([self.designs[i] for i in finished], [self._returns[i] for i in finished],
-                                     [bool(infos[i].get("diverged", False)) for i in finished], self.num_transitions)
-            for i, (o, _) in zip(finished, self._reset_envs(finished)):
-                obs[i] = o
-        return obs, rewards, dones, infos
+            infos[i] = info
+        if finished and self.sampler is not None:
+            self.sampler.observe([self.designs[i] for i in finished], [self._returns[i] for i in finished],
+                                 [bool(infos[i].get("diverged", False)) for i in finished], self.num_transitions)
+        return obs, rewards, dones, infos, finished
+
+    def run_episodes(self, actions: np.ndarray) -> list[VecStep]:
+        """Every env's whole episode at once (open-loop policies), from the episode boundary
+        after a reset: env ``i`` takes ``actions[i, k]`` (``actions`` ``(N, K, R)``, ``K`` the
+        envs' ``n_actions``) until its episode ends, in one call of the backend
+        (:meth:`~softcrawl.envs.backends.base.EnvBackend.run_episodes`: one compiled call on the
+        JAX backend, one message per worker on the subprocess and Ray backends), with
+        :attr:`while_stepping` run while the backend works.
+
+        Returns the episodes' vectorised steps as :meth:`step` returns them for the same
+        actions, exactly: each finished episode reported to the sampler at its step, with the
+        SB3 keys in its info. An env whose episode ended before the last step waits
+        (``live`` False from the next step on: zeros, ``{}``). Once all have ended, every env
+        gets a new design from one ``sampler.sample(N)`` and is reset; the observation row of
+        an env at the step its episode ended, and at every step it waited, is the first
+        observation of its next episode (SB3's auto-reset convention), so the last step's
+        observations are the next episodes' first ones.
+
+        Raises:
+            RuntimeError: an env inside an episode, or an episode not ended by ``K`` actions.
+            ValueError: ``actions`` not ``(N, K, R)``.
+        """
+        if self.starting_designs() is None:
+            raise RuntimeError("run_episodes starts every env's episode: call it right after a reset")
+        actions = np.asarray(actions, dtype=np.float32)
+        if actions.ndim != 3 or actions.shape[0] != self.num_envs or actions.shape[2:] != self.action_space.shape:
+            raise ValueError(f"actions must be (n_envs {self.num_envs}, n_actions, {self.action_space.shape[0]}), "
+                             f"got shape {actions.shape}")
+        self.backend.episodes_send(actions)
+        if self.while_stepping is not None:
+            self.while_stepping()
+        results = self.backend.episodes_recv()
+        if any(not r or not (r[-1][2] or r[-1][3]) for r in results):
+            raise RuntimeError(f"an episode did not end within the {actions.shape[1]} actions given")
+        steps, ended = [], np.zeros(self.num_envs, bool)
+        for k in range(max(len(r) for r in results)):
+            res = [r[k] if k < len(r) else None for r in results]
+            obs, rewards, dones, infos, _ = self._record(res)
+            ended |= dones
+            steps.append(VecStep(obs, rewards, dones, infos, np.array([r is not None for r in res]), ended.copy()))
+        first = np.stack([o for o, _ in self._reset_envs(list(range(self.num_envs)))])
+        for step in steps:
+            step.obs[step.ended] = first[step.ended]
+        return steps
 
     def close(self) -> None:
         self.backend.close()

@@ -5,9 +5,13 @@ with a floating-frame disk, the default reduced robot): POD + ECSW legs placed f
 leg reduction, the disk linear elastic in one floating frame, point attachments, a flat floor
 with Coulomb friction, regulators with the real-to-sim pressure warp. What differs is how the
 work is laid out: fixed shapes so that ``jax.vmap`` runs many robots (of mixed designs) at
-once and ``jax.lax.scan`` runs many steps in one compiled call, and the contact problem is
-solved with a fixed number of projected Gauss-Seidel sweeps over the ``K`` lowest contact
-points instead of the CPU engine's growing contact set and exact active-set polish.
+once and ``jax.lax.scan`` runs many steps in one compiled call; the Delassus operator is
+assembled by blocks (:mod:`~softcrawl.jaxsim.delassus`), and the contact problem over the ``K``
+lowest contact points is solved with a fixed number of unrolled accelerated projected gradient
+iterations, warm-started from the last step (:mod:`~softcrawl.jaxsim.contact`), instead of the CPU
+engine's growing contact set, Gauss-Seidel and exact active-set polish: a step is a short chain
+of dependent operations, what sets its latency on a GPU (:mod:`~softcrawl.jaxsim.cost`,
+``benchmarks/step_cost.py``).
 
 Data layout (Model / State / Control, as NVIDIA Warp and Newton split them):
 
@@ -16,7 +20,7 @@ Data layout (Model / State / Control, as NVIDIA Warp and Newton split them):
   nodes; part frame) and the disk (rest positions, masses, dense ``K_0`` and ``A_0^-1``) are
   shared by all robots; per robot (leading batch axis) each of ``L`` leg slots' rotation,
   translation, regulator channel and mask, and the disk side of its attachments. Scalar
-  settings (dt, damping, floor, ``K``, sweeps) are static.
+  settings (dt, damping, floor, ``K``, the contact solver and its iterations) are static.
 * :class:`~softcrawl.jaxsim.engine.State`: per robot, the legs' modal displacements and velocities
   ``q, qdot`` ``(L, m)`` (part frame), the disk's node positions and velocities ``(n, 3)``, the
   contact points and impulses of the last step (warm start), the regulators' pressures, time.

@@ -11,8 +11,10 @@ A step (physics.md, "Time stepping"; :class:`softcrawl.reduction.solver.ReducedS
    ``W = sum_legs J_l A_l^-1 J_l^T + J_d A_d^-1 J_d^T`` (Duriez et al. 2006, sec. 4; reduction.md)
    is formed from each leg's Cholesky factor and the disk's constant ``A_0^-1`` rotated by its
    frame, the free constraint velocities get the attachments' drift ``(x_a - x_b) / h`` and the
-   contacts' gap ``g / h`` (Signorini, ``g + h u_n >= 0``), and :mod:`softcrawl.jaxsim.contact`
-   solves it (bilateral rows exactly, the Coulomb contacts by projected Gauss-Seidel);
+   contacts' gap ``g / h`` (Signorini, ``g + h u_n >= 0``); it is assembled by blocks and the
+   attachments are eliminated exactly (:mod:`softcrawl.jaxsim.delassus`), and
+   :mod:`softcrawl.jaxsim.contact` solves the Coulomb contacts (accelerated projected gradient
+   by default, or projected Gauss-Seidel: ``settings.solver``);
 4. velocity corrections ``A^-1 J^T lam``, then ``q += h qdot``, ``x += h v``.
 """
 
@@ -27,16 +29,13 @@ import jax.numpy as jnp
 
 from softcrawl.jaxsim import disk as disk_motion
 from softcrawl.jaxsim import legs as leg_motion
-from softcrawl.jaxsim.contact import floor_contacts, solve_constraints
+from softcrawl.jaxsim.contact import solve_contacts
+from softcrawl.jaxsim.delassus import condense, constraint_rows, corrections
 from softcrawl.jaxsim.model import register_pytree
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
-ENGINE_VERSION = 1
-#: Floor contact frame, rows normal, tangent 1, tangent 2 (:mod:`softcrawl.fem.solver`).
-FLOOR_FRAME = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
-#: z given to the collision points of absent legs (mm): never a contact.
-FAR = 1e6
+ENGINE_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -98,105 +97,6 @@ def sim_pressures(model, pressure):
     return jnp.maximum(a * pressure + b, 0.0)
 
 
-def _leg_points(leg, rd, q, qdot):
-    """World positions and velocities ``(L nc, 3)`` of the legs' collision nodes (absent legs far up)."""
-    x = jnp.einsum("lnc,lac->lna", leg.coll_rest[None] + jnp.einsum("nam,lm->lna", leg.coll_basis, q), rd.rotation)
-    x = x + rd.translation[:, None]
-    v = jnp.einsum("lnc,lac->lna", jnp.einsum("nam,lm->lna", leg.coll_basis, qdot), rd.rotation)
-    x = jnp.where(rd.leg_mask[:, None, None], x, jnp.asarray([0.0, 0.0, FAR], x.dtype))
-    return x.reshape(-1, 3), v.reshape(-1, 3)
-
-
-def _disk_gather(inverse, rows_nodes, cols_nodes):
-    """Blocks ``A_0^-1[n_p, n_q]`` ``(..., 3, ..., 3)`` of node index arrays."""
-    r = 3 * rows_nodes[..., None] + jnp.arange(3)
-    c = 3 * cols_nodes[..., None] + jnp.arange(3)
-    return inverse[r.reshape(r.shape + (1,) * c.ndim), c.reshape((1,) * r.ndim + c.shape)]
-
-
-def _attachments(leg, rd, state, v_free, R, h):
-    """Rows of the attachment blocks (leg point minus disk point, block ``l F + a``).
-
-    Returns:
-        ``(J, W, u, nodes, weights)``: ``(L, 3A, m)`` each leg's share of the rows (modal), the
-        disk's share ``(3A, 3A)`` of the Delassus operator, ``(3A,)`` the disk's free velocities
-        plus the drift ``(x_a - x_b) / h`` (mm/s), and the disk points' nodes and weights ``(A, 4)``.
-    """
-    L, m = state.q.shape
-    F = leg.att_rest.shape[0]
-    A = L * F
-    Ja = jnp.einsum("lac,fcm->lfam", rd.rotation, leg.att_basis) * rd.leg_mask[:, None, None, None]
-    J = (jnp.eye(L, dtype=Ja.dtype)[:, :, None, None, None] * Ja[None]).reshape(L, 3 * A, m)
-    x_leg = jnp.einsum("lfc,lac->lfa", leg.att_rest[None] + jnp.einsum("fam,lm->lfa", leg.att_basis, state.q),
-                       rd.rotation) + rd.translation[:, None]
-    nodes, w = rd.disk_nodes.reshape(A, -1), rd.disk_weights.reshape(A, -1)
-    drift = (x_leg.reshape(A, 3) - jnp.einsum("ai,aic->ac", w, state.x[nodes])) * jnp.repeat(rd.leg_mask, F)[:, None]
-    u = (drift / h - jnp.einsum("ai,aic->ac", w, v_free[nodes])).reshape(-1)
-    W = jnp.einsum("ab,pqbc,dc->paqd", R, rd.att_gram, R).reshape(3 * A, 3 * A)
-    return J, W, u, nodes, w
-
-
-def _select_contacts(model, state, v_free, qd_free):
-    """The ``K`` contact points of this step: the disk's and each leg's own lowest predicted
-    gaps, last step's loaded points first (:func:`softcrawl.jaxsim.contact.floor_contacts` on
-    the points with those lowered by :data:`FAR`).
-
-    Each body gets its own rows, so that one body's landing cannot take the others'; loaded
-    points stay, as in the CPU engine's contact set: a leg lying on its paper face has more
-    points at the floor than rows, and a set redrawn every step chatters.
-
-    Returns:
-        ``(idx, active, gap)``: ``(K,)`` point indices (disk collision nodes, then each leg
-        slot's), whether each is a candidate, its current gap (mm).
-    """
-    st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
-    L = state.q.shape[0]
-    nd, nc = dk.collision.shape[0], leg.coll_rest.shape[0]
-    xl, vl = _leg_points(leg, rd, state.q, qd_free)
-    points = jnp.concatenate([state.x[dk.collision], xl])
-    vel = jnp.concatenate([v_free[dk.collision], vl])
-    pts = jnp.where(state.contact_points >= 0, state.contact_points, points.shape[0])
-    loaded = jnp.zeros(points.shape[0], bool).at[pts].max(state.impulses[:, 0] > 0, mode="drop")
-    ranked = points.at[:, 2].add(jnp.where(loaded, -FAR, 0.0))
-    select = partial(floor_contacts, floor_z=st.floor_z, distance=st.contact_distance, dt=st.dt)
-    i_d, a_d, _ = select(ranked[:nd], vel[:nd], K=st.disk_contacts)
-    i_l, a_l, _ = jax.vmap(partial(select, K=st.leg_contacts))(ranked[nd:].reshape(L, nc, 3),
-                                                             vel[nd:].reshape(L, nc, 3))
-    idx = jnp.concatenate([i_d, (i_l + nd + nc * jnp.arange(L)[:, None]).reshape(-1)])
-    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), points[idx, 2] - st.floor_z
-
-
-def _contact_rows(model, idx, gap, v_free, R, att_nodes, att_weights):
-    """Rows of the contact blocks (frame :data:`FLOOR_FRAME`) at points ``idx``.
-
-    Returns:
-        ``(J, W_ac, W_cc, u, disk_node, on_disk)``: ``(L, 3K, m)`` each leg's share (modal),
-        the disk's share of the Delassus operator against the attachments ``(3A, 3K)`` and
-        among the contacts ``(3K, 3K)``, ``(3K,)`` the disk's free velocities plus the gap term
-        ``g / h`` (normal rows), and each contact's disk node and whether it is on the disk.
-    """
-    st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
-    L, m = rd.rotation.shape[0], leg.coll_basis.shape[2]
-    K, A = idx.shape[0], att_nodes.shape[0]
-    nd, nc = dk.collision.shape[0], leg.coll_rest.shape[0]
-    dt = v_free.dtype
-    on_disk = idx < nd
-    wc = on_disk.astype(dt)
-    node = dk.collision[jnp.where(on_disk, idx, 0)]
-    lidx = jnp.where(on_disk, 0, (idx - nd) // nc)
-    lnode = jnp.where(on_disk, 0, (idx - nd) % nc)
-    D = jnp.asarray(FLOOR_FRAME, dt)
-    DR = D @ R
-    Jc = jnp.einsum("ab,kbc,kcm->kam", D, rd.rotation[lidx], leg.coll_basis[lnode]) * (1 - wc)[:, None, None]
-    J = ((lidx[None, :] == jnp.arange(L)[:, None]).astype(dt)[:, :, None, None] * Jc[None]).reshape(L, 3 * K, m)
-    W_cc = jnp.einsum("ab,pbqc,dc->paqd", DR, _disk_gather(dk.inverse, node, node), DR)
-    W_cc = (W_cc * (wc[:, None, None, None] * wc[None, None, :, None])).reshape(3 * K, 3 * K)
-    W_ac = -jnp.einsum("ai,xb,aibkc,dc->axkd", att_weights, R, _disk_gather(dk.inverse, att_nodes, node), DR)
-    W_ac = (W_ac * wc[None, None, :, None]).reshape(3 * A, 3 * K)
-    u = (jnp.einsum("ab,kb->ka", D, v_free[node]) * wc[:, None]).at[:, 0].add(gap / st.dt)
-    return J, W_ac, W_cc, u.reshape(-1), node, wc
-
-
 def physics_step(model, state: State, sim_kpa) -> State:
     """One ``dt`` of one robot at cavity pressures ``sim_kpa`` ``(R,)`` (sim kPa per regulator);
     the regulators are not stepped (module doc, steps 2-4).
@@ -209,49 +109,44 @@ def physics_step(model, state: State, sim_kpa) -> State:
         return _physics_step(model, state, sim_kpa)
 
 
-def _physics_step(model, state: State, sim_kpa) -> State:
+def _constrained(model, state: State, sim_kpa):
+    """Steps 2 and 3 up to the contact solve: the free motion, the constraint rows, the condensed
+    contact problem and its warm start (last step's impulses of the points kept)."""
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
-    h = st.dt
-    dt = state.x.dtype
-    L = state.q.shape[0]
-    K = n_contacts(st, L)
-    # 2. free motion
     qd_free, chol, n_bad = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
         leg, st, state.q, state.qdot, rd.rotation, sim_kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
     v_free, R = disk_motion.free_motion(dk, st, state.x, state.v)
-    # 3. constraints: attachments, then contacts; the legs' share of W through their factors
-    J, W, u, att_nodes, att_w = _attachments(leg, rd, state, v_free, R, h)
-    nb = u.shape[0]
-    warm, active = jnp.zeros(0, dt), jnp.zeros(0, bool)
-    if K:
-        idx, active, gap = _select_contacts(model, state, v_free, qd_free)
-        Jc, W_ac, W_cc, u_c, c_node, on_disk = _contact_rows(model, idx, gap, v_free, R, att_nodes, att_w)
-        J = jnp.concatenate([J, Jc], axis=1)
-        W = jnp.block([[W, W_ac], [W_ac.T, W_cc]])
-        u = jnp.concatenate([u, u_c])
-        warm = ((idx[:, None] == state.contact_points[None, :]).astype(dt) @ state.impulses).reshape(-1)
-    Y = jax.vmap(lambda c, j: jax.scipy.linalg.solve_triangular(c, j.T, lower=True))(chol, J)
-    W = W + jnp.einsum("lmi,lmj->ij", Y, Y)
-    u = u + jnp.einsum("lim,lm->i", J, qd_free)
-    # attachments of distinct nodes: W_bb is positive definite, no least-squares fallback needed
-    lam = solve_constraints(W, u, jnp.repeat(rd.leg_mask, nb // L), jnp.full((K,), st.friction, dt), warm,
-                            active, st.sweeps, least_squares=False)
-    # 4. corrections: legs A_l^-1 J_l^T lam, the disk A_0^-1 of its body-frame impulses
-    dq = jax.vmap(lambda c, j: jax.scipy.linalg.cho_solve((c, True), j.T @ lam))(chol, J)
-    lam_a = lam[:nb].reshape(-1, 3)
-    f_body = jnp.zeros_like(state.x).at[att_nodes.reshape(-1)].add(
-        (-att_w[:, :, None] * (lam_a @ R)[:, None, :]).reshape(-1, 3))
-    if K:
-        lam_c = lam[nb:].reshape(K, 3)
-        f_body = f_body.at[c_node].add(on_disk[:, None] * (lam_c @ (jnp.asarray(FLOOR_FRAME, dt) @ R)))
-    v = v_free + (dk.inverse @ f_body.reshape(-1)).reshape(-1, 3) @ R.T
+    rows = constraint_rows(model, state, v_free, qd_free, R)
+    cond = condense(rows, chol, qd_free)
+    warm = ((rows.points[:, None] == state.contact_points[None, :]).astype(state.x.dtype) @ state.impulses)
+    return qd_free, chol, n_bad, v_free, R, rows, cond, warm.reshape(-1)
+
+
+def contact_problem(model, state: State, sim_kpa):
+    """The contact problem one robot's next step solves at cavity pressures ``sim_kpa`` ``(R,)``
+    (sim kPa), for diagnostics: ``(W (3K, 3K), q (3K,), mu (K,), warm (3K,), active (K,))`` as
+    :func:`softcrawl.jaxsim.contact.solve_contacts` takes them (the attachments eliminated)."""
+    with jax.default_matmul_precision("float32"):
+        *_, rows, cond, warm = _constrained(model, state, sim_kpa)
+    return cond.W, cond.q, jnp.full(rows.active.shape, model.settings.friction, cond.W.dtype), warm, rows.active
+
+
+def _physics_step(model, state: State, sim_kpa) -> State:
+    st, rd = model.settings, model.robot
+    h = st.dt
+    # 2.-3. free motion, constraint rows, the attachments eliminated; the contacts solved
+    qd_free, chol, n_bad, v_free, R, rows, cond, warm = _constrained(model, state, sim_kpa)
+    K = rows.points.shape[0]
+    lam_c = solve_contacts(cond.W, cond.q, jnp.full((K,), st.friction, cond.W.dtype), warm, rows.active, st.solver,
+                           st.iterations)
+    # 4. corrections
+    dq, dv, _ = corrections(model, rows, cond, chol, lam_c, R)
+    v = v_free + dv
     qdot = qd_free + dq
-    new = dataclasses.replace(
+    return dataclasses.replace(
         state, q=state.q + h * qdot, qdot=qdot, x=state.x + h * v, v=v, t=state.t + h,
+        contact_points=rows.points.astype(jnp.int32), impulses=lam_c.reshape(K, 3),
         bad=(state.bad + jnp.sum(n_bad * rd.leg_mask) + (~jnp.all(jnp.isfinite(v)))).astype(state.bad.dtype))
-    if K:
-        new = dataclasses.replace(new, contact_points=idx.astype(jnp.int32), impulses=lam_c)
-    return new
 
 
 def step(model, state: State, control: Control) -> State:

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softcrawl.jaxsim.contact import check_solver
 from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.robot.actuation import PressureCalibration
 
@@ -139,7 +140,9 @@ class Settings:
         dt: s; rayleigh_mass (1/s), rayleigh_stiffness (s); gravity: ``(3,)`` mm/s^2;
         floor: whether there is a floor; floor_z, contact_distance: mm; friction: Coulomb mu;
         disk_contacts, leg_contacts: contact points of the disk and of each leg slot per step
-            (each body's lowest predicted gaps); sweeps: Gauss-Seidel sweeps;
+            (each body's lowest predicted gaps; 0 without a floor);
+        solver: the contact solver, ``"apgd"`` or ``"pgs"``, and iterations: its iterations
+            (:func:`softcrawl.jaxsim.contact.solve_contacts`);
         calibration: ``(a, b)`` of ``sim = max(a real + b, 0)``; rate: regulator slew, kPa/s;
         channels: ``R``, the pressure channels (regulators of the robots' design space; 3 in the
             paper's): the length of every robot's regulator pressures.
@@ -155,7 +158,8 @@ class Settings:
     friction: float
     disk_contacts: int
     leg_contacts: int
-    sweeps: int
+    solver: str
+    iterations: int
     calibration: tuple
     rate: float
     channels: int = 3
@@ -286,8 +290,8 @@ def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
     return RobotData(mask, rot, trans, channel, dn, dw, gram)
 
 
-def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: int = 100, dtype=None,
-                n_slots: int | None = None, floor: bool = True,
+def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: str = "apgd",
+                iterations: int | None = None, dtype=None, n_slots: int | None = None, floor: bool = True,
                 calibration: PressureCalibration = PressureCalibration(), rate_kpa_s: float = 150.0) -> Model:
     """The static model of a batch of reduced robots (stacked per-robot data, leading axis = robot).
 
@@ -297,7 +301,10 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
             regulators of their design space), of any slot angles.
         leg_contacts, disk_contacts: floor contact points kept per leg and for the disk each step
             (each body's lowest predicted gaps).
-        sweeps: Gauss-Seidel sweeps of each contact solve.
+        solver: the contact solver, ``"apgd"`` (accelerated projected gradient, the default) or
+            ``"pgs"`` (projected Gauss-Seidel, the CPU engine's iteration);
+        iterations: its iterations per step (default
+            :data:`softcrawl.jaxsim.contact.DEFAULT_ITERATIONS` of the solver).
         dtype: array precision (default float64 if ``jax_enable_x64`` is on, else float32).
         n_slots: leg slots per robot (default: the most legs of any robot; fewer are masked).
         floor: False leaves the floor out (a robot hanging free).
@@ -306,8 +313,10 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
 
     Raises:
         ValueError: an empty batch, a robot that is not reduced with a floating disk, robots
-            that differ in their leg reduction, disk, attachments or settings, or too few slots.
+            that differ in their leg reduction, disk, attachments or settings, too few slots, an
+            unknown solver or fewer than one iteration.
     """
+    iterations = check_solver(solver, iterations)
     robots = list(robots)
     if not robots:
         raise ValueError("build_model needs at least one robot")
@@ -332,11 +341,12 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, sweeps: 
     stacked = RobotData(*(np.stack([getattr(d, f.name) for d in data]) for f in dataclasses.fields(RobotData)))
     cfg, mdl = first.config, first.model
     cal = calibration
+    floor = bool(floor and mdl.floor is not None)
     settings = Settings(float(cfg.dt), float(mdl.rayleigh_mass), float(mdl.rayleigh_stiffness),
-                        tuple(float(g) for g in mdl.gravity), bool(floor and mdl.floor is not None),
-                        float(mdl.floor.height), float(mdl.floor.contact_distance), float(mdl.floor.friction),
-                        int(disk_contacts), int(leg_contacts), int(sweeps), (float(cal.a), float(cal.b)),
-                        float(rate_kpa_s), int(mdl.n_channels))
+                        tuple(float(g) for g in mdl.gravity), floor, float(mdl.floor.height),
+                        float(mdl.floor.contact_distance), float(mdl.floor.friction),
+                        int(disk_contacts) if floor else 0, int(leg_contacts) if floor else 0, solver, iterations,
+                        (float(cal.a), float(cal.b)), float(rate_kpa_s), int(mdl.n_channels))
     if dtype is None:
         dtype = jnp.asarray(0.0).dtype  # float64 under jax_enable_x64, else float32
 

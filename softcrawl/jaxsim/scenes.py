@@ -48,7 +48,7 @@ def run_scene(robot, animation, record_every: int = 2, duration: float | None = 
         duration: s (default: the animation's).
         precision: the engine's, ``"float32"`` or ``"float64"`` (which needs ``jax_enable_x64``).
         settling: the rest rule before the animation.
-        engine: ``leg_contacts``, ``disk_contacts``, ``sweeps`` of :func:`build_model`.
+        engine: ``leg_contacts``, ``disk_contacts``, ``solver``, ``iterations`` of :func:`build_model`.
 
     Returns:
         A :class:`~softcrawl.reduction.scenes.SceneRecord` (float32 positions); ``diverged``

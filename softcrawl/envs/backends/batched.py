@@ -104,12 +104,18 @@ class BatchedBackend(SerialBackend):
     def step(self, actions) -> list[StepResult]:
         """Step every env with its action ``actions[i]`` ``(R,)``, one per regulator of its
         space (no auto-reset)."""
+        return self.step_envs(range(len(self.envs)), actions)
+
+    def step_envs(self, indices, actions) -> list[StepResult]:
+        """Step envs ``indices`` only (env ``indices[j]`` with ``actions[j]``), their robots in
+        one batch; the others wait (:meth:`~softcrawl.envs.backends.base.EnvBackend.run_episodes`)."""
         envs = self.envs
-        results: list[StepResult | None] = [None] * len(envs)
-        batched = [i for i, env in enumerate(envs) if batchable(env)]
-        for i in sorted(set(range(len(envs))) - set(batched)):
-            results[i] = envs[i].step(actions[i])
-        kpa = {i: envs[i].begin_action(actions[i]) for i in batched}
+        action = dict(zip(indices, actions))
+        results: dict[int, StepResult] = {}
+        batched = [i for i in action if batchable(envs[i])]
+        for i in sorted(set(action) - set(batched)):
+            results[i] = envs[i].step(action[i])
+        kpa = {i: envs[i].begin_action(action[i]) for i in batched}
         errors: dict[int, SimulationDiverged] = {}
         live = [i for i in batched if kpa[i] is not None]
         k = 0
@@ -129,5 +135,5 @@ class BatchedBackend(SerialBackend):
             k += 1
         for i in batched:
             results[i] = envs[i].end_action(errors.get(i))
-        return results
+        return [results[i] for i in action]
 

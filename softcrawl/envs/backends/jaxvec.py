@@ -8,9 +8,10 @@ history, observations, rewards, ``info``; :meth:`CrawlerEnv.begin_reset`/``end_r
 JAX engine (:mod:`softcrawl.jaxsim`) with as many leg slots as the largest design of the envs'
 design lists. A vectorised step is one compiled call for all envs
 (:func:`softcrawl.jaxsim.rig.make_action_rollout`: every live env holds its action for its
-steps, through its own regulators and pressure warp). A reset writes the reset envs' rows
-(robot data, settled state, rig) into the batch by index; the robot rows and settled states
-are kept per design (LRU). The rows of the designs not kept yet are gathered from the space's
+steps, through its own regulators and pressure warp); so is a whole episode of every env
+from its actions (:meth:`JaxBackend.run_episodes`, for open-loop policies). A reset writes the
+reset envs' rows (robot data, settled state, rig) into the batch by index; the robot rows and
+settled states are kept per design (LRU). The rows of the designs not kept yet are gathered from the space's
 design table (:class:`~softcrawl.jaxsim.tables.DesignTable`, built once from the robots of two
 or so designs), their rested states read from the machine's settled-state cache
 (:class:`~softcrawl.jaxsim.tables.SettledStates`) or settled together in one call. No CPU solver
@@ -41,9 +42,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softcrawl.envs.backends.jaxcheck import check_jax_task, check_precision, check_randomized
+from softcrawl.envs.backends.jaxcheck import check_jax_task, check_randomized, resolve_precision
 from softcrawl.envs.backends.serial import SerialBackend
-from softcrawl.envs.crawler import CrawlerEnv
+from softcrawl.envs.crawler import CrawlerEnv, action_to_kpa
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.jaxsim.batch import padded_size, put_rows, stack_padded, take
 from softcrawl.jaxsim.engine import rest_state
@@ -133,8 +134,12 @@ class JaxBackend(SerialBackend):
             reduced robot with the floating-frame disk; all with the same robot factory,
             settling rule, pressure calibration and design space (any slots and regulators whose
             leg has a reduction).
-        precision: ``"float64"`` (the validated one; sets ``jax_enable_x64``) or ``"float32"``
-            (clears it). JAX's setting is process-wide: set here, once, never at import.
+        precision: ``"float64"`` (sets ``jax_enable_x64``), ``"float32"`` (clears it) or
+            ``"auto"`` (float32 on a GPU, float64 elsewhere:
+            :func:`~softcrawl.envs.backends.jaxcheck.resolve_precision`). JAX's setting is
+            process-wide: set here, once, never at import.
+        solver, iterations: the engine's contact solve (:func:`~softcrawl.jaxsim.model.build_model`;
+            for ``"pgs"`` without ``iterations``, the robots' ``contact_max_iterations`` sweeps).
         cache_mb: memory of the per-design cache of robot rows and settled states, MB (at
             least one design per env is kept).
 
@@ -146,8 +151,9 @@ class JaxBackend(SerialBackend):
             floating-frame disk).
     """
 
-    def __init__(self, env_fns, precision: str = "float64", cache_mb: float = CACHE_MB):
-        check_precision(precision)
+    def __init__(self, env_fns, precision: str = "auto", solver: str = "apgd", iterations: int | None = None,
+                 cache_mb: float = CACHE_MB):
+        precision = resolve_precision(precision)
         super().__init__(env_fns)
         envs = self.envs
         first = envs[0]
@@ -166,8 +172,10 @@ class JaxBackend(SerialBackend):
         n = self.num_envs
         lists = {id(env.designs): env.designs for env in envs}.values()  # envs share their lists
         slots = max(sum(v > 0 for v in d) for designs in lists for d in designs)
+        if solver == "pgs" and iterations is None:
+            iterations = first.robot_factory(first.designs[0]).config.contact_max_iterations
         self._table = build_table(first.space, factory=first.robot_factory, n_slots=slots,
-                                  calibration=first.calibration)
+                                  calibration=first.calibration, solver=solver, iterations=iterations)
         self._model = self._table.model([first.designs[0]] * n)
         self._dtype = np.dtype(self._model.disk.rest.dtype)
         self._state = rest_state(self._model)
@@ -186,6 +194,20 @@ class JaxBackend(SerialBackend):
             return state, diverged, point, state.pressure, state.t
 
         self._advance = advance
+
+        @jax.jit
+        def episode(model, rig, state, command, steps):
+            def action(carry, inputs):
+                state, dead = carry
+                state, diverged = rollout(model, rig, state, inputs[0], jnp.where(dead, 0, inputs[1]))
+                point = jnp.stack([state.x[:, node], state.v[:, node]], axis=1)
+                return (state, dead | diverged), (diverged, point, state.pressure, state.t)
+
+            start = (state, jnp.zeros(steps.shape[0], bool))
+            (state, _), outputs = jax.lax.scan(action, start, (command.swapaxes(0, 1), steps.T))
+            return state, outputs
+
+        self._episode = episode
         self._settled = SettledStates(self._table, first.settling)
         self._cap = self._settled.rule[2]
         self._cache: OrderedDict = OrderedDict()  # design -> _Design, LRU
@@ -194,7 +216,13 @@ class JaxBackend(SerialBackend):
         self._episodes: list[JaxEpisode | None] = [None] * n
         device = jax.devices()[0]
         print(f'softcrawl: backend "jax": {n} envs in one batch ({slots} leg slots) on {device.platform}:{device.id} '
-              f"({device.device_kind}), {precision}", file=sys.stderr)
+              f"({device.device_kind}), {precision}, contact solve {solver} x {self._model.settings.iterations}",
+              file=sys.stderr)
+
+    @property
+    def settings(self):
+        """The engine's :class:`~softcrawl.jaxsim.model.Settings` (step, floor, contact solve)."""
+        return self._model.settings
 
     @staticmethod
     def _longest_action(env: CrawlerEnv) -> int:
@@ -297,6 +325,64 @@ class JaxBackend(SerialBackend):
             return steps, None
         self._state, *outputs = self._advance(self._model, self._rig, self._state, command, steps)
         return steps, outputs
+
+    # -- whole episodes (open-loop policies) ------------------------------------------------
+    def run_episodes(self, actions):
+        """Every env's whole episode from its start (all envs just reset) with its actions
+        ``actions[i]`` ``(n_actions, R)``: one compiled call for all envs and the whole episode
+        (``jax.lax.scan`` of :func:`~softcrawl.jaxsim.rig.make_action_rollout` over the actions;
+        an env that diverged waits, as :meth:`step` leaves it), then each env's transitions,
+        those of ``n_actions`` :meth:`step` calls with the same actions (the same
+        :class:`CrawlerEnv` calls on the same per-action outputs), up to the end of its episode.
+
+        Raises:
+            ValueError: ``actions`` not ``(N, n_actions, R)`` finite numbers.
+        """
+        return self._finish_episodes(*self._launch_episodes(actions))
+
+    def episodes_send(self, actions) -> None:
+        """Start :meth:`run_episodes`: the whole episode's rollout is dispatched (JAX runs it
+        asynchronously); :meth:`episodes_recv` waits."""
+        self._pending = self._launch_episodes(actions)
+
+    def episodes_recv(self):
+        pending, self._pending = self._pending, None
+        return self._finish_episodes(*pending)
+
+    def _launch_episodes(self, actions):
+        """Check ``actions``, dispatch the episodes' rollout; returns ``(actions, outputs)``."""
+        actions = np.asarray(actions, dtype=np.float32)
+        n_actions = {env.n_actions for env in self.envs}
+        if (actions.ndim != 3 or len(n_actions) != 1 or actions.shape != (self.num_envs, *n_actions, self._n_reg)
+                or not np.all(np.isfinite(actions))):
+            raise ValueError(f"actions must be ({self.num_envs}, n_actions {sorted(n_actions)}, {self._n_reg}) finite "
+                             f"numbers in [-1, 1], got an array of shape {actions.shape}")
+        steps = np.array([env.episode_steps() if ep is not None and ep.settled is not None else [0] * env.n_actions
+                          for env, ep in zip(self.envs, self._episodes)], np.int32)
+        if steps.max() > self._steps_max:  # pragma: no cover - _longest_action bounds it
+            raise RuntimeError(f"an action of {steps.max()} steps exceeds the compiled {self._steps_max}")
+        command = action_to_kpa(np.clip(actions, -1.0, 1.0)).astype(self._dtype)
+        self._state, outputs = self._episode(self._model, self._rig, self._state, command, steps)
+        return actions, outputs
+
+    def _finish_episodes(self, actions, outputs):
+        """Each env's transitions once the rollout :meth:`_launch_episodes` dispatched is done."""
+        diverged, point, applied, t = jax.device_get(outputs)  # (n_actions, N, ...)
+        results = []
+        for i, env in enumerate(self.envs):
+            out = []
+            for k, a in enumerate(actions[i]):
+                error = None
+                if env.begin_action(a) is not None:
+                    self._episodes[i].update(point[k, i], applied[k, i])
+                    if diverged[k, i]:
+                        error = SimulationDiverged("invalid state (JAX engine: inverted elements or non-finite values)",
+                                                   float(t[k, i]) + self._dt)
+                out.append(env.end_action(error))
+                if out[-1][2] or out[-1][3]:
+                    break
+            results.append(out)
+        return results
 
     def _finish(self, steps, outputs):
         """Each env's transition once the rollout :meth:`_launch` dispatched is done."""

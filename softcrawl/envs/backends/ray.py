@@ -7,7 +7,8 @@ existing cluster is given (``"auto"`` or ``"ray://host:10001"``).
 ``step``, ``get_attr``, ``set_attr``, ``call``, ``close``) with Ray actors each holding a
 contiguous chunk of the envs (like the subprocess backend's workers). **Fault tolerance**:
 actors are created with ``max_restarts``; the driver keeps, per env, the design and actions of
-its current episode and its RNG state after the reset. When an actor dies (``RayActorError``,
+its current episode and its RNG state after the reset (a whole episode's actions, with
+:meth:`RayBackend.run_episodes`). When an actor dies (``RayActorError``,
 or ``ActorUnavailableError`` mid-call), Ray restarts it (fresh envs); the backend then resets
 its envs with the same designs, restores their RNG states, replays the actions of the current
 episodes, and re-issues the failed call. Simulation is deterministic, so the run goes on with
@@ -53,6 +54,9 @@ class _EnvChunk:
 
     def step(self, actions):
         return self.backend.step(actions)
+
+    def run_episodes(self, actions):
+        return self.backend.run_episodes(actions)
 
     def replay(self, designs, rng_states, actions):
         """Reset every env of the chunk with its design, restore its RNG state after that reset
@@ -172,6 +176,18 @@ class RayBackend(ChunkedBackend):
         for i, a in enumerate(actions):
             self._actions[i].append(a.copy())
         return [r for out in outs for r in out]
+
+    def run_episodes(self, actions):
+        """Each actor runs its envs' whole episodes from their actions (one call per actor and
+        episode); a dead actor's envs are reset and the call re-issued (:meth:`_gather`), and
+        each env's actions taken are kept for a later replay."""
+        actions = np.asarray(actions)
+        outs = self._gather(range(len(self._chunks)),
+                            lambda w: self.actors[w].run_episodes.remote(actions[self._chunks[w]]))
+        results = [r for out in outs for r in out]
+        for i, r in enumerate(results):
+            self._actions[i].extend(a.copy() for a in actions[i, :len(r)])
+        return results
 
     def actor_pids(self) -> list[int]:
         """Process ids of the actors (tests kill one)."""

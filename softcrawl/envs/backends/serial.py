@@ -32,6 +32,9 @@ class SerialBackend(EnvBackend):
     def step(self, actions):
         return [env.step(a) for env, a in zip(self.envs, actions)]
 
+    def step_envs(self, indices, actions):
+        return [self.envs[i].step(a) for i, a in zip(indices, actions)]
+
     def get_attr(self, name, indices):
         return [getattr(self.envs[i], name) for i in indices]
 

@@ -3,7 +3,9 @@
 Each worker holds a contiguous chunk of the envs (:class:`~softcrawl.envs.backends.chunked.ChunkedBackend`),
 so 96 envs run on 2 cores with 2 workers; a worker steps its envs' reduced robots as one batch
 (:class:`~softcrawl.envs.backends.batched.BatchedBackend`) or one env after another
-(:class:`~softcrawl.envs.backends.serial.SerialBackend`).
+(:class:`~softcrawl.envs.backends.serial.SerialBackend`), one message per action
+(:meth:`~SubprocessBackend.step`) or per episode (:meth:`~SubprocessBackend.run_episodes`: the
+worker runs its envs' whole episodes from the actions it is sent).
 
 A worker imports only what stepping needs: this package imports neither stable-baselines3 nor
 torch (:mod:`softcrawl.envs.vec` holds the SB3 ``VecEnv``).
@@ -41,6 +43,8 @@ def _worker(remote, parent_remote, payload: bytes, batched: bool = False) -> Non
             try:
                 if cmd == "step":
                     out = backend.step(arg)
+                elif cmd == "episodes":
+                    out = backend.run_episodes(arg)
                 elif cmd == "reset":
                     out = backend.reset(*arg)
                 elif cmd == "spaces":
@@ -131,6 +135,19 @@ class SubprocessBackend(ChunkedBackend):
 
     def step_recv(self):
         return [r for w in range(len(self._chunks)) for r in self._recv(w)]
+
+    def run_episodes(self, actions):
+        self.episodes_send(actions)
+        return self.episodes_recv()
+
+    def episodes_send(self, actions):
+        """Send each worker its envs' actions of the whole episode (one message per worker)."""
+        actions = np.asarray(actions)
+        for w, chunk in enumerate(self._chunks):
+            self.remotes[w].send(("episodes", actions[chunk]))
+
+    def episodes_recv(self):
+        return self.step_recv()
 
     def close(self):
         if self._closed:

@@ -1,0 +1,123 @@
+"""The sequential cost of the JAX vector env's physics step, on any machine, and its speed where a
+GPU is present.
+
+The program measured is the JAX backend's rollout of one action (:func:`softcrawl.jaxsim.rig.make_action_rollout`,
+what :class:`softcrawl.envs.backends.jaxvec.JaxBackend` runs per vectorised step) for a batch of a
+preset's designs with as many leg slots as its largest design, lowered and compiled for JAX's
+default device. Printed as one JSON line (per batch size when timing):
+
+* ``dependent_ops_per_step``: operations executed in sequence per physics step (each loop
+  body's operations times its trips, plus those outside loops; a fusion or a library call
+  counts one: :func:`softcrawl.jaxsim.cost.sequential_cost`), from the compiled rollout of
+  ``--steps`` steps divided by ``--steps``;
+* ``loop_trips_per_step``: loop iterations executed per physics step (the rollout's own loop
+  over steps counts one; XLA on a GPU runs a loop's control on the host, about 10 us a trip);
+* ``mflop_per_robot_step``: XLA's cost analysis of the one-step rollout, per robot (exact when
+  the step has no loop of its own, ``inner_loops`` 0: XLA counts a loop body once);
+* with ``--time`` (the default on a GPU): ``ms_per_step`` and ``robot_steps_per_s`` at each of
+  ``--batches`` (random designs, landed for one action first; ``bad_robots``: robots whose state
+  went invalid).
+
+Usage:
+    python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
+        [--iterations N] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", default="paper", help="the training preset whose robots and designs are stepped")
+    p.add_argument("--precision", choices=("float32", "float64"), default="float32")
+    p.add_argument("--solver", choices=("apgd", "pgs"), default="apgd")
+    p.add_argument("--iterations", type=int, default=None, help="contact solver iterations (default: the solver's)")
+    p.add_argument("--batch", type=int, default=2, help="robots of the compiled program whose cost is read")
+    p.add_argument("--steps", type=int, default=None, help="steps per action (default: the preset's)")
+    p.add_argument("--time", action="store_true", help="also time the step (the default where JAX has a GPU)")
+    p.add_argument("--batches", default="96,1024,16384", help="batch sizes timed")
+    p.add_argument("--calls", type=int, default=5, help="timed calls (one action each) per batch size")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+
+    import jax
+
+    jax.config.update("jax_enable_x64", args.precision == "float64")
+    import jax.numpy as jnp
+    import numpy as np
+
+    from softcrawl.codesign.config import preset
+    from softcrawl.codesign.factory import robot_factory
+    from softcrawl.jaxsim.cost import sequential_cost, xla_flops
+    from softcrawl.jaxsim.engine import rest_state
+    from softcrawl.jaxsim.rig import Rig, make_action_rollout
+    from softcrawl.jaxsim.tables import build_table
+
+    cfg = preset(args.preset)
+    space, designs = cfg.env.design_space(), cfg.env.designs()
+    slots = max(sum(v > 0 for v in d) for d in designs)
+    table = build_table(space, factory=robot_factory(cfg), n_slots=slots, solver=args.solver,
+                        iterations=args.iterations)
+    settings = table.parts.settings
+    steps = args.steps or cfg.env.steps_per_action
+    R = space.n_regulators
+    rng = np.random.default_rng(args.seed)
+    largest = [d for d in designs if sum(v > 0 for v in d) == slots]
+
+    def batch(B, pool):
+        model = table.model([pool[i] for i in rng.integers(len(pool), size=B)])
+        dt = model.disk.rest.dtype
+        rig = Rig(jnp.ones((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt))
+        return model, rig, rest_state(model)
+
+    def lowered(n_steps, model, rig, state):
+        B = state.t.shape[0]
+        return make_action_rollout(n_steps).lower(model, rig, state, jnp.zeros((B, R), state.x.dtype),
+                                                  jnp.full((B,), n_steps, jnp.int32))
+
+    small = batch(args.batch, largest)
+    t0 = time.perf_counter()
+    compiled = lowered(steps, *small).compile()
+    compile_s = time.perf_counter() - t0
+    seq = sequential_cost(compiled.as_text())
+    one = lowered(1, *small).compile()
+    inner = sequential_cost(one.as_text()).loops
+    device = jax.devices()[0]
+    out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),
+           "precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
+           "leg_slots": slots, "contacts": settings.disk_contacts + slots * settings.leg_contacts,
+           "steps_per_action": steps, "compile_s": round(compile_s, 2),
+           "dependent_ops_per_step": seq.ops / steps, "loop_trips_per_step": seq.trips / steps,
+           "mflop_per_robot_step": xla_flops(one) / args.batch / 1e6, "inner_loops": inner,
+           "unknown_trip_loops": seq.unknown_trip_loops, "jax": jax.__version__}
+    print(json.dumps(out), flush=True)
+    if not (args.time or device.platform == "gpu"):
+        return
+    for B in (int(b) for b in args.batches.split(",")):
+        model, rig, state = batch(B, designs)
+        roll = make_action_rollout(steps)
+        dt = state.x.dtype
+        steps_b = jnp.full((B,), steps, jnp.int32)
+        land = jnp.zeros((B, R), dt)
+        go = jnp.tile(jnp.asarray(np.linspace(90.0, 30.0, R), dt), (B, 1))
+        t0 = time.perf_counter()
+        state, _ = jax.block_until_ready(roll(model, rig, state, land, steps_b))
+        first_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for _ in range(args.calls):
+            state, dead = roll(model, rig, state, go, steps_b)
+        jax.block_until_ready(state)
+        wall = time.perf_counter() - t0
+        print(json.dumps({"batch": B, "first_call_s": round(first_s, 2), "ms_per_step": 1e3 * wall / (args.calls * steps),
+                          "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
+                          "device": out["device"], "precision": args.precision, "solver": out["solver"],
+                          "iterations": out["iterations"]}), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,145 @@
+"""The sequential cost of a compiled JAX program, read from its optimized HLO.
+
+On a GPU a batched step's latency is set by how many kernels run one after the other and how
+many loop trips the host drives (XLA runs a ``while`` loop's control on the host: a round trip
+of about 10 µs per trip), not by its FLOPs. Both counts are properties of the compiled program,
+so they can be read on any machine, a CPU included (:func:`sequential_cost`):
+
+* ``ops``: the instructions executed in sequence, each fusion, custom call (a LAPACK, cuSOLVER
+  or cuBLAS routine), copy or other non-trivial instruction counting one (on a GPU each is
+  at least one kernel launch), a ``while`` loop's body and condition counted once per trip, a
+  conditional's largest branch once. Bookkeeping that launches nothing (parameters,
+  constants, tuples, ``get-tuple-element``, bitcasts) counts zero.
+* ``trips``: loop iterations executed, nested loops multiplied.
+
+A CPU and a GPU compile the same program with different fusion decisions, so the counts differ
+between backends by a small factor; the dependency chain (a loop of ``K`` dependent updates
+per sweep, say) is the same. Loops whose trip count XLA does not know statically (a
+``lax.while_loop`` on data) are counted once and reported in ``unknown_trip_loops``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+
+#: Opcodes that launch no kernel.
+FREE_OPCODES = frozenset({"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "after-all",
+                          "partition-id", "replica-id", "opt-barrier", "domain"})
+
+_HEADER = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+)\s*\(.*\)\s*->.*\{\s*$")
+_INSTR = re.compile(r"^\s*(?:ROOT\s+)?%?[\w.\-]+\s*=\s*.*?\s([a-z][\w\-]*)\((.*)$")
+
+
+@dataclass(frozen=True)
+class SequentialCost:
+    """What :func:`sequential_cost` counts (module doc) for one run of a program.
+
+    Attributes:
+        ops: instructions executed in sequence. trips: loop iterations executed.
+        loops: ``while`` loops in the program (statically, nested ones once).
+        unknown_trip_loops: loops of unknown trip count (counted as one trip).
+    """
+
+    ops: int
+    trips: int
+    loops: int
+    unknown_trip_loops: int
+
+
+def _computations(text: str) -> tuple[dict[str, list[str]], str]:
+    """``{name: instruction lines}`` of an HLO module's text, and the entry computation's name."""
+    comps: dict[str, list[str]] = {}
+    entry, name = "", None
+    for line in text.splitlines():
+        if name is None:
+            m = _HEADER.match(line)
+            if m:
+                name = m.group(1)
+                comps[name] = []
+                if line.startswith("ENTRY"):
+                    entry = name
+        elif line.strip() == "}":
+            name = None
+        else:
+            comps[name].append(line)
+    if not entry:
+        raise ValueError("no ENTRY computation in the HLO text")
+    return comps, entry
+
+
+def _attr(line: str, key: str) -> str | None:
+    m = re.search(rf"\b{key}=%?([\w.\-]+)", line)
+    return m.group(1) if m else None
+
+
+def _trip_count(line: str) -> int | None:
+    m = re.search(r'"known_trip_count"\s*:\s*\{\s*"n"\s*:\s*"(\d+)"', line)
+    return int(m.group(1)) if m else None
+
+
+def sequential_cost(hlo_text: str) -> SequentialCost:
+    """The sequential cost (module doc) of an optimized HLO module (``compiled.as_text()``).
+
+    Raises:
+        ValueError: text without an ENTRY computation.
+    """
+    comps, entry = _computations(hlo_text)
+    memo: dict[str, tuple[int, int, int, int]] = {}
+
+    def walk(name: str) -> tuple[int, int, int, int]:
+        if name in memo:
+            return memo[name]
+        ops = trips = loops = unknown = 0
+        for line in comps.get(name, ()):
+            m = _INSTR.match(line)
+            if not m:
+                continue
+            opcode = m.group(1)
+            if opcode in FREE_OPCODES:
+                continue
+            if opcode == "while":
+                n = _trip_count(line)
+                unknown += n is None
+                n = 1 if n is None else n
+                b = walk(_attr(line, "body"))
+                c = walk(_attr(line, "condition"))
+                ops += n * (b[0] + c[0])
+                trips += n * (1 + b[1] + c[1])
+                loops += 1 + b[2] + c[2]
+                unknown += b[3] + c[3]
+            elif opcode == "conditional":
+                branches = re.findall(r"%?([\w.\-]+)", (re.search(r"branch_computations=\{([^}]*)\}", line)
+                                                         or re.search(r"()", "")).group(1))
+                branches += [b for b in (_attr(line, "true_computation"), _attr(line, "false_computation")) if b]
+                costs = [walk(b) for b in branches] or [(0, 0, 0, 0)]
+                ops += 1 + max(c[0] for c in costs)
+                trips += max(c[1] for c in costs)
+                loops += sum(c[2] for c in costs)
+                unknown += sum(c[3] for c in costs)
+            elif opcode == "call":
+                c = walk(_attr(line, "to_apply"))
+                ops, trips, loops, unknown = ops + c[0], trips + c[1], loops + c[2], unknown + c[3]
+            else:
+                ops += 1
+        memo[name] = (ops, trips, loops, unknown)
+        return memo[name]
+
+    return SequentialCost(*walk(entry))
+
+
+def xla_flops(compiled) -> float:
+    """FLOPs of a compiled program by XLA's cost analysis (``compiled.cost_analysis()``); XLA counts
+    a loop body once, whatever its trip count."""
+    ca = compiled.cost_analysis()
+    if isinstance(ca, (list, tuple)):
+        ca = ca[0]
+    return float(ca.get("flops", 0.0))
+
+
+def summary(compiled) -> str:
+    """One JSON line of :func:`sequential_cost` and :func:`xla_flops` of a compiled program."""
+    c = sequential_cost(compiled.as_text())
+    return json.dumps({"ops": c.ops, "trips": c.trips, "loops": c.loops, "unknown_trip_loops": c.unknown_trip_loops,
+                       "flops": xla_flops(compiled)})

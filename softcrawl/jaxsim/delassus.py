@@ -1,0 +1,247 @@
+"""The constraint rows of one robot in JAX and its condensed Delassus operator, assembled by blocks.
+
+A robot's constraints (reduction.md, "Constraints"; :mod:`softcrawl.jaxsim.contact`): ``A = L F``
+attachment points (``F`` per leg slot, equality, leg point minus disk point), then ``K = K_d +
+L K_l`` floor contacts (normal, tangent 1, tangent 2): the disk's ``K_d`` lowest collision
+points, then each leg slot's ``K_l``. The Delassus operator ``W = sum_b J_b A_b^-1 J_b^T``
+(Duriez et al. 2006, sec. 4) has the block structure of who touches what:
+
+* the disk's share involves the attachment rows and the disk's contact rows only, from its
+  constant ``A_0^-1`` rotated by the floating frame (gathered node blocks);
+* leg ``l``'s share involves its own ``3 F`` attachment rows and ``3 K_l`` contact rows only:
+  with the leg's step matrix ``A_l = C_l C_l^T`` (Cholesky) and its ``(3 F + 3 K_l, m)`` rows
+  ``J_l``, it is ``Y_l^T Y_l``, ``Y_l = C_l^-1 J_l^T``. Formed per leg this costs
+  ``L (3F + 3K_l)^2 m`` multiply-adds, against ``(3A + 3K)^2 L m`` for the dense sum.
+
+The attachments are eliminated exactly by a Schur complement (:func:`condense`): ``X = W_bb^-1
+[u_b, W_bc]``, ``W_c = W_cc - W_cb X[:, 1:]``, ``q_c = u_c - W_cb X[:, 0]``, where a leg's
+contact rows of ``W_cb`` are non-zero in its own attachment columns only, so that product too
+is formed by blocks. The contact problem ``(W_c, q_c)`` is then solved by
+:mod:`softcrawl.jaxsim.contact`; :func:`corrections` maps the impulses back to velocities.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.linalg import cho_factor, cho_solve, solve_triangular
+
+from softcrawl.jaxsim.contact import floor_contacts
+from softcrawl.jaxsim.model import register_pytree
+
+#: Floor contact frame, rows normal, tangent 1, tangent 2 (:mod:`softcrawl.fem.solver`).
+FLOOR_FRAME = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+#: z given to the collision points of absent legs (mm): never a contact.
+FAR = 1e6
+
+
+@dataclass(frozen=True)
+class Rows:
+    """One step's constraint rows of one robot (``L`` leg slots of ``m`` modes, ``F`` attachment
+    points each, ``K_d`` disk and ``K_l`` leg contact points each).
+
+    Attributes:
+        leg: ``(L, 3F + 3K_l, m)`` each leg's rows, its attachments first (leg point, world
+            frame), then its contacts (contact frame :data:`FLOOR_FRAME`), modal.
+        disk_aa: ``(3A, 3A)`` the disk's share among the attachment rows (``A = L F``).
+        disk_ad: ``(3A, 3K_d)`` its share between the attachments and its own contacts.
+        disk_dd: ``(3K_d, 3K_d)`` its share among its contacts.
+        u_att: ``(3A,)`` the attachments' free velocities (disk side and drift), mm/s, without
+            the legs' part; u_disk: ``(3K_d,)`` the disk contacts' (with the gap term ``g / h``);
+            gap_leg: ``(L, K_l)`` the leg contacts' gap terms ``g / h``, mm/s.
+        att_nodes, att_weights: ``(A, 4)`` the disk side of each attachment point.
+        points: ``(K,)`` the contacts' point indices (disk collision nodes, then each leg
+            slot's); active: ``(K,)`` whether each is a contact candidate.
+        disk_node: ``(K_d,)`` the disk contacts' nodes.
+        bilateral: ``(3A,)`` the attachment rows of present legs.
+    """
+
+    leg: jax.Array
+    disk_aa: jax.Array
+    disk_ad: jax.Array
+    disk_dd: jax.Array
+    u_att: jax.Array
+    u_disk: jax.Array
+    gap_leg: jax.Array
+    att_nodes: jax.Array
+    att_weights: jax.Array
+    points: jax.Array
+    active: jax.Array
+    disk_node: jax.Array
+    bilateral: jax.Array
+
+
+register_pytree(Rows)
+
+
+def _disk_gather(inverse, rows_nodes, cols_nodes):
+    """Blocks ``A_0^-1[n_p, n_q]`` ``(..., 3, ..., 3)`` of node index arrays."""
+    r = 3 * rows_nodes[..., None] + jnp.arange(3)
+    c = 3 * cols_nodes[..., None] + jnp.arange(3)
+    return inverse[r.reshape(r.shape + (1,) * c.ndim), c.reshape((1,) * r.ndim + c.shape)]
+
+
+def leg_points(leg, rd, q, qdot):
+    """World positions and velocities ``(L, nc, 3)`` of the legs' collision nodes (absent legs
+    :data:`FAR` up)."""
+    x = jnp.einsum("lnc,lac->lna", leg.coll_rest[None] + jnp.einsum("nam,lm->lna", leg.coll_basis, q), rd.rotation)
+    x = x + rd.translation[:, None]
+    v = jnp.einsum("lnc,lac->lna", jnp.einsum("nam,lm->lna", leg.coll_basis, qdot), rd.rotation)
+    return jnp.where(rd.leg_mask[:, None, None], x, jnp.asarray([0.0, 0.0, FAR], x.dtype)), v
+
+
+def select_contacts(model, state, v_free, qd_free):
+    """The contact points of this step: the disk's ``K_d`` and each leg's ``K_l`` lowest predicted
+    gaps, last step's loaded points first (:func:`softcrawl.jaxsim.contact.floor_contacts` on the
+    points with those lowered by :data:`FAR`).
+
+    Each body gets its own rows, so that one body's landing cannot take the others'; loaded
+    points stay, as in the CPU engine's contact set: a leg lying on its paper face has more
+    points at the floor than rows, and a set redrawn every step chatters.
+
+    Returns:
+        ``(idx, active, gap)``: ``(K,)`` point indices (disk collision nodes, then each leg
+        slot's), whether each is a candidate, its current gap (mm).
+    """
+    st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
+    L = state.q.shape[0]
+    nd, nc = dk.collision.shape[0], leg.coll_rest.shape[0]
+    xl, vl = leg_points(leg, rd, state.q, qd_free)
+    points = jnp.concatenate([state.x[dk.collision], xl.reshape(-1, 3)])
+    vel = jnp.concatenate([v_free[dk.collision], vl.reshape(-1, 3)])
+    pts = jnp.where(state.contact_points >= 0, state.contact_points, points.shape[0])
+    loaded = jnp.zeros(points.shape[0], bool).at[pts].max(state.impulses[:, 0] > 0, mode="drop")
+    ranked = points.at[:, 2].add(jnp.where(loaded, -FAR, 0.0))
+    select = partial(floor_contacts, floor_z=st.floor_z, distance=st.contact_distance, dt=st.dt)
+    i_d, a_d, _ = select(ranked[:nd], vel[:nd], K=st.disk_contacts)
+    i_l, a_l, _ = jax.vmap(partial(select, K=st.leg_contacts))(ranked[nd:].reshape(L, nc, 3),
+                                                             vel[nd:].reshape(L, nc, 3))
+    idx = jnp.concatenate([i_d, (i_l + nd + nc * jnp.arange(L)[:, None]).reshape(-1)])
+    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), points[idx, 2] - st.floor_z
+
+
+def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
+    """The attachment and contact rows of this step (module doc) from the free velocities
+    ``v_free`` ``(n, 3)`` (disk, mm/s) and ``qd_free`` ``(L, m)`` (legs, mm/s) and the disk's
+    frame ``R`` ``(3, 3)``."""
+    st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
+    h = st.dt
+    L, m = state.q.shape
+    F = leg.att_rest.shape[0]
+    A = L * F
+    dt = v_free.dtype
+    # attachments: leg point minus disk point
+    J_att = jnp.einsum("lac,fcm->lfam", rd.rotation, leg.att_basis) * rd.leg_mask[:, None, None, None]
+    x_leg = jnp.einsum("lfc,lac->lfa", leg.att_rest[None] + jnp.einsum("fam,lm->lfa", leg.att_basis, state.q),
+                       rd.rotation) + rd.translation[:, None]
+    nodes, w = rd.disk_nodes.reshape(A, -1), rd.disk_weights.reshape(A, -1)
+    drift = (x_leg.reshape(A, 3) - jnp.einsum("ai,aic->ac", w, state.x[nodes])) * jnp.repeat(rd.leg_mask, F)[:, None]
+    u_att = (drift / h - jnp.einsum("ai,aic->ac", w, v_free[nodes])).reshape(-1)
+    disk_aa = jnp.einsum("ab,pqbc,dc->paqd", R, rd.att_gram, R).reshape(3 * A, 3 * A)
+    # contacts: the disk's, then each leg's
+    nd, nc, Kd, Kl = dk.collision.shape[0], leg.coll_rest.shape[0], st.disk_contacts, st.leg_contacts
+    if Kd + Kl:
+        idx, active, gap = select_contacts(model, state, v_free, qd_free)
+    else:  # no floor
+        idx, active, gap = jnp.zeros(0, jnp.int32), jnp.zeros(0, bool), jnp.zeros(0, dt)
+    D = jnp.asarray(FLOOR_FRAME, dt)
+    DR = D @ R
+    node = dk.collision[idx[:Kd]]
+    lnode = (idx[Kd:] - nd).reshape(L, Kl) % nc
+    J_con = jnp.einsum("ab,lbc,lkcm->lkam", D, rd.rotation, leg.coll_basis[lnode]).reshape(L, 3 * Kl, m)
+    disk_dd = jnp.einsum("ab,pbqc,dc->paqd", DR, _disk_gather(dk.inverse, node, node), DR).reshape(3 * Kd, 3 * Kd)
+    disk_ad = -jnp.einsum("ai,xb,aibkc,dc->axkd", w, R, _disk_gather(dk.inverse, nodes, node), DR).reshape(3 * A, 3 * Kd)
+    u_disk = (v_free[node] @ D.T).at[:, 0].add(gap[:Kd] / h).reshape(-1)
+    rows = jnp.concatenate([J_att.reshape(L, 3 * F, m), J_con], axis=1)
+    return Rows(rows, disk_aa, disk_ad, disk_dd, u_att, u_disk, gap[Kd:].reshape(L, Kl) / h, nodes, w, idx,
+                active, node, jnp.repeat(rd.leg_mask, 3 * F))
+
+
+@dataclass(frozen=True)
+class Condensed:
+    """The contact problem of one robot after the attachments' elimination (:func:`condense`).
+
+    Attributes:
+        W: ``(3K, 3K)`` the contacts' Delassus operator (mm/s per mN s); q: ``(3K,)`` their
+            velocities at zero contact impulse, mm/s.
+        X: ``(3A, 3K + 1)`` ``W_bb^-1 [u_b, W_bc]``: the attachment impulses are
+            ``-(X[:, 0] + X[:, 1:] lam_c)``.
+        Y: ``(L, m, 3F + 3K_l)`` each leg's ``C_l^-1 J_l^T`` (velocity corrections).
+    """
+
+    W: jax.Array
+    q: jax.Array
+    X: jax.Array
+    Y: jax.Array
+
+
+register_pytree(Condensed)
+
+
+def condense(rows: Rows, chol, qd_free) -> Condensed:
+    """The condensed contact problem (module doc) of ``rows`` with the legs' step-matrix
+    Cholesky factors ``chol`` ``(L, m, m)`` (lower) and free modal velocities ``qd_free`` ``(L, m)``.
+
+    The attachment block ``W_bb`` is positive definite for attachments of distinct disk nodes;
+    rows of absent legs are identity rows with zero impulse.
+    """
+    L, n_leg, m = rows.leg.shape
+    F3 = rows.u_att.shape[0] // L
+    Y = jax.vmap(lambda c, j: solve_triangular(c, j.T, lower=True))(chol, rows.leg)  # (L, m, n_leg)
+    G = jnp.einsum("lmi,lmj->lij", Y, Y)  # each leg's share, (L, n_leg, n_leg)
+    u_leg = jnp.einsum("lim,lm->li", rows.leg, qd_free)  # legs' part of the free velocities
+    dt = G.dtype
+    # attachments: the disk's dense share plus each leg's diagonal block
+    eye_l = jnp.eye(L, dtype=dt)
+    W_bb = rows.disk_aa + (eye_l[:, None, :, None] * G[:, :F3, None, :F3]).reshape(L * F3, L * F3)
+    m_b = rows.bilateral
+    W_bb = jnp.where(m_b[:, None] & m_b[None, :], W_bb, jnp.eye(L * F3, dtype=dt))
+    u_b = jnp.where(m_b, rows.u_att + u_leg[:, :F3].reshape(-1), 0)
+    # attachments x contacts: the disk's against its contacts, each leg's against its own
+    Kl3 = n_leg - F3
+    W_bl = (eye_l[:, None, :, None] * G[:, :F3, None, F3:]).reshape(L * F3, L * Kl3)
+    W_bc = jnp.where(m_b[:, None], jnp.concatenate([rows.disk_ad, W_bl], axis=1), 0)
+    X = cho_solve(cho_factor(W_bb, lower=True), jnp.concatenate([u_b[:, None], W_bc], axis=1))
+    # W_cb X by blocks: disk contact rows use every attachment, leg contact rows their leg's
+    WX_d = W_bc[:, :rows.disk_dd.shape[0]].T @ X
+    WX_l = jnp.einsum("lbc,lbk->lck", G[:, :F3, F3:] * m_b.reshape(L, F3)[:, :, None],
+                      X.reshape(L, F3, X.shape[1])).reshape(L * Kl3, X.shape[1])
+    WX = jnp.concatenate([WX_d, WX_l])
+    Kd3 = rows.disk_dd.shape[0]
+    W_cc = jnp.zeros((Kd3 + L * Kl3,) * 2, dt).at[:Kd3, :Kd3].set(rows.disk_dd)
+    W_cc = W_cc.at[Kd3:, Kd3:].set((eye_l[:, None, :, None] * G[:, F3:, None, F3:]).reshape(L * Kl3, L * Kl3))
+    u_c = jnp.concatenate([rows.u_disk, (u_leg[:, F3:] + _gap_rows(rows.gap_leg)).reshape(-1)])
+    return Condensed(W_cc - WX[:, 1:], u_c - WX[:, 0], X, Y)
+
+
+def _gap_rows(gap):
+    """``(L, 3K_l)`` the gap terms ``g / h`` ``(L, K_l)`` on the normal rows."""
+    return jnp.stack([gap, jnp.zeros_like(gap), jnp.zeros_like(gap)], axis=-1).reshape(gap.shape[0], -1)
+
+
+def corrections(model, rows: Rows, cond: Condensed, chol, lam_c, R):
+    """Velocity corrections of the impulses: ``(dq (L, m), dv (n, 3))`` for the contact impulses
+    ``lam_c`` ``(3K,)`` (mN s): the attachment impulses by back-substitution, each leg's
+    ``A_l^-1 J_l^T lam_l = C_l^-T Y_l lam_l``, the disk's ``A_0^-1`` of its body-frame impulses.
+
+    Returns:
+        ``(dq, dv, lam_b)``: modal velocity changes (mm/s), disk node velocity changes (mm/s,
+        world frame) and the attachment impulses ``(3A,)``, mN s.
+    """
+    L = rows.leg.shape[0]
+    F3 = rows.u_att.shape[0] // L
+    Kd3 = rows.disk_dd.shape[0]
+    lam_b = -(cond.X[:, 0] + cond.X[:, 1:] @ lam_c)
+    lam_leg = jnp.concatenate([lam_b.reshape(L, F3), lam_c[Kd3:].reshape(L, rows.leg.shape[1] - F3)], axis=1)
+    r = jnp.einsum("lmi,li->lm", cond.Y, lam_leg)
+    dq = jax.vmap(lambda c, v: solve_triangular(c, v, lower=True, trans=1))(chol, r)
+    dk = model.disk
+    dt = lam_c.dtype
+    f_body = jnp.zeros((dk.rest.shape[0], 3), dt).at[rows.att_nodes.reshape(-1)].add(
+        (-rows.att_weights[:, :, None] * (lam_b.reshape(-1, 3) @ R)[:, None, :]).reshape(-1, 3))
+    f_body = f_body.at[rows.disk_node].add(lam_c[:Kd3].reshape(Kd3 // 3, 3) @ (jnp.asarray(FLOOR_FRAME, dt) @ R))
+    dv = (dk.inverse @ f_body.reshape(-1)).reshape(-1, 3) @ R.T
+    return dq, dv, lam_b
