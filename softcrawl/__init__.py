@@ -5,4 +5,4 @@ Pipeline packages: :mod:`softcrawl.geometry` -> :mod:`softcrawl.fem` -> (reducti
 Units throughout: mm, kg, s; force mN; pressure and stress kPa.
 """
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"

@@ -173,7 +173,7 @@ def test_rig_matches_the_cpu_regulators_and_warp():
 
     rng = np.random.default_rng(0)
     cal, dt = PressureCalibration(), 0.02
-    settings = Settings(dt, 0.0, 0.0, (0.0, 0.0, 0.0), True, 0.0, 0.5, 1.0, 0, 0, 1, (cal.a, cal.b), 150.0)
+    settings = Settings(dt, 0.0, 0.0, (0.0, 0.0, 0.0), True, 0.0, 0.5, 1.0, 0, 0, "apgd", 1, (cal.a, cal.b), 150.0)
     rig = Rig(*(jnp.asarray(v) for v in ([0.95, 1.2, 1.0], [-5.0, 2.0, 0.0], [0.0, 0.3, 0.05], [0.5, 0.0, 0.3])))
     bank = LaggedRegulatorBank(3, 150.0, tuple(np.asarray(rig.tau_inflate)), tuple(np.asarray(rig.tau_vent)))
     warp = RegulatorWarp(cal, tuple(np.asarray(rig.gain)), tuple(np.asarray(rig.offset)))

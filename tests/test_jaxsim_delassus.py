@@ -37,6 +37,21 @@ def landed():
     return one, jax.tree_util.tree_map(lambda a: a[0], state), jnp.asarray([150.0, 60.0, 90.0])
 
 
+def _step_rows(landed):
+    """The next step's free motion and constraint rows of the ``landed`` robot at its pressures:
+    ``(model, rows, chol, qd_free, R)`` (:mod:`softcrawl.jaxsim.delassus`)."""
+    from softcrawl.jaxsim import disk as disk_motion
+    from softcrawl.jaxsim import legs as leg_motion
+    from softcrawl.jaxsim.delassus import constraint_rows
+
+    model, state, kpa = landed
+    rd = model.robot
+    qd_free, chol, _ = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
+        model.leg, model.settings, state.q, state.qdot, rd.rotation, kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
+    v_free, R = disk_motion.free_motion(model.disk, model.settings, state.x, state.v)
+    return model, constraint_rows(model, state, v_free, qd_free, R), chol, qd_free, R
+
+
 def _dense(rows, chol, qd_free):
     """The full Delassus operator and free velocities of ``rows``, summed densely: each leg's
     ``J_l A_l^-1 J_l^T`` placed at its attachment and contact rows, plus the disk's blocks."""
@@ -69,17 +84,10 @@ def test_block_assembly_and_elimination_equal_the_dense_schur_complement(landed)
     and back-substitution ``X`` equal :func:`softcrawl.jaxsim.contact.condense` of the densely
     summed Delassus operator to 1e-10 of their scale (float64; measured 1e-13: only the order of
     the sums differs), with contacts active."""
-    from softcrawl.jaxsim import disk as disk_motion
-    from softcrawl.jaxsim import legs as leg_motion
     from softcrawl.jaxsim.contact import condense as dense_condense
-    from softcrawl.jaxsim.delassus import condense, constraint_rows
+    from softcrawl.jaxsim.delassus import condense
 
-    model, state, kpa = landed
-    rd = model.robot
-    qd_free, chol, _ = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
-        model.leg, model.settings, state.q, state.qdot, rd.rotation, kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
-    v_free, R = disk_motion.free_motion(model.disk, model.settings, state.x, state.v)
-    rows = constraint_rows(model, state, v_free, qd_free, R)
+    _, rows, chol, qd_free, _ = _step_rows(landed)
     got = condense(rows, chol, qd_free)
     W, u = _dense(rows, chol, qd_free)
     X, Wc, qc = dense_condense(W, u, rows.bilateral, least_squares=False)
@@ -93,17 +101,11 @@ def test_corrections_give_the_constrained_velocities_the_impulses_ask_for(landed
     """After the step's contact solve, the attachment rows' velocities are those the elimination
     demands: every present leg's attachment points move with the disk (``u_b = 0``, with the
     drift term) to 1e-8 of the velocity scale (float64; measured 1e-12)."""
-    from softcrawl.jaxsim import disk as disk_motion
-    from softcrawl.jaxsim import legs as leg_motion
     from softcrawl.jaxsim.contact import solve_contacts
-    from softcrawl.jaxsim.delassus import condense, constraint_rows, corrections
+    from softcrawl.jaxsim.delassus import condense, corrections
 
-    model, state, kpa = landed
+    model, rows, chol, qd_free, R = _step_rows(landed)
     rd = model.robot
-    qd_free, chol, _ = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
-        model.leg, model.settings, state.q, state.qdot, rd.rotation, kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
-    v_free, R = disk_motion.free_motion(model.disk, model.settings, state.x, state.v)
-    rows = constraint_rows(model, state, v_free, qd_free, R)
     cond = condense(rows, chol, qd_free)
     K = rows.points.shape[0]
     lam_c = solve_contacts(cond.W, cond.q, jnp.full(K, 1.2), jnp.zeros(3 * K), rows.active, "apgd", 48)

@@ -565,13 +565,13 @@ def preset(name: str) -> TrainConfig:
     if name == "crawl":
         return TrainConfig(
             preset="crawl", n_envs=16, total_steps=64_000, backend="subprocess", n_workers=2,
-            checkpoint_every=3_200, snapshot_every=1_600, env=_coarse_env(),
+            checkpoint_every=3_200, snapshot_every=1_600, env=_coarse_env(), rollout="action",
             sac=SACConfig(buffer_size=100_000, batch_size=256, learning_starts=3_200, utd_ratio=0.5),
         ).validate()
     if name == "demo":
         return TrainConfig(
             preset="demo", n_envs=8, total_steps=8_000, backend="subprocess", n_workers=2,
-            checkpoint_every=1_600, snapshot_every=320, env=_coarse_env(),
+            checkpoint_every=1_600, snapshot_every=320, env=_coarse_env(), rollout="action",
             sac=SACConfig(buffer_size=20_000, batch_size=128, learning_starts=800, utd_ratio=0.5),
         ).validate()
     if name == "smoke":

@@ -128,22 +128,24 @@ def project_cone(lam, mu):
     """Euclidean projection of impulses ``(K, 3)`` (normal first) onto the Coulomb cones
     ``|lam_t| <= mu lam_n``: unchanged inside, 0 in the polar cone ``mu |lam_t| <= -lam_n``,
     else ``lam_n' = (lam_n + mu |lam_t|) / (1 + mu^2)``, ``lam_t' = mu lam_n' lam_t / |lam_t|``
-    (the closed-form projection onto a second-order cone, as in Mazhar et al. 2015)."""
-    n, t = lam[:, 0], lam[:, 1:]
-    nt = jnp.sqrt(jnp.sum(t * t, axis=1))
+    (the closed-form projection onto a second-order cone, as in Mazhar et al. 2015). Written
+    with one reciprocal square root per contact and selects only, so that a compiled iteration
+    fuses it into few loops: ``|lam_t| = s r``, ``s = |lam_t|^2``, ``r = 1 / sqrt(s)`` (``s``
+    floored at the dtype's smallest normal number for ``lam_t = 0``)."""
+    n, t1, t2 = lam[:, 0], lam[:, 1], lam[:, 2]
+    s = t1 * t1 + t2 * t2
+    r = lax.rsqrt(jnp.maximum(s, jnp.finfo(lam.dtype).tiny))
+    nt = s * r
     inside = nt <= mu * n
-    polar = mu * nt <= -n
-    ln = (n + mu * nt) / (1 + mu * mu)
-    scale = jnp.where(inside | polar, 0, mu * ln / jnp.where(nt > 0, nt, 1))
-    out = jnp.concatenate([ln[:, None], t * scale[:, None]], axis=1)
-    return jnp.where(inside[:, None], lam, jnp.where(polar[:, None], 0, out))
+    ln = jnp.where(inside, n, jnp.maximum((n + mu * nt) / (1 + mu * mu), 0))
+    scale = jnp.where(inside, 1, mu * ln * r)
+    return jnp.stack([ln, t1 * scale, t2 * scale], axis=1)
 
 
 def _de_saxce(u, mu):
     """Velocities ``(K, 3)`` with De Saxce's normal ``u_n + mu |u_t|``: complementary to the
     impulses in the Coulomb cone exactly when they solve the Coulomb problem."""
-    ut = jnp.sqrt(jnp.sum(u[:, 1:] * u[:, 1:], axis=1))
-    return u.at[:, 0].add(mu * ut)
+    return jnp.stack([u[:, 0] + mu * jnp.sqrt(u[:, 1] ** 2 + u[:, 2] ** 2), u[:, 1], u[:, 2]], axis=1)
 
 
 def gershgorin_bound(W):
@@ -153,22 +155,6 @@ def gershgorin_bound(W):
     Delassus operators of landed robots it is 1.23 to 1.48 times the largest eigenvalue
     (problems recorded from 3- to 6-legged robots)."""
     return jnp.maximum(jnp.max(jnp.sum(jnp.abs(W), axis=1)), jnp.finfo(W.dtype).tiny)
-
-
-def _project_rows(z, mu, tiny):
-    """:func:`project_cone` of ``z`` ``(K, 3)`` written with one reciprocal square root per contact
-    and selects only (so that a compiled iteration fuses it into few loops): ``|z_t| = s r`` with
-    ``s = |z_t|^2``, ``r = 1 / sqrt(s)`` (``tiny``: the dtype's smallest normal number, for
-    ``z_t = 0``); inside the cone ``z``, in the polar cone 0 (the clamped normal part), else the
-    projection onto the boundary, as :func:`project_cone`."""
-    n, t1, t2 = z[:, 0], z[:, 1], z[:, 2]
-    s = t1 * t1 + t2 * t2
-    r = lax.rsqrt(jnp.maximum(s, tiny))
-    nt = s * r
-    inside = nt <= mu * n
-    ln = jnp.where(inside, n, jnp.maximum((n + mu * nt) / (1 + mu * mu), 0))
-    scale = jnp.where(inside, 1, mu * ln * r)
-    return jnp.stack([ln, t1 * scale, t2 * scale], axis=1)
 
 
 def momentum_schedule(n_iter: int) -> tuple[float, ...]:
@@ -220,15 +206,13 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True):
     Ws = s[:, None] * W * s[None, :]
     qs = s * q
     step = 1 / gershgorin_bound(Ws)
-    tiny = jnp.finfo(dtype).tiny
     live = rows.reshape(K, 3)
 
     def proj(z):
-        return jnp.where(live, _project_rows(z, mu, tiny), 0)
+        return jnp.where(live, project_cone(z, mu), 0)
 
     def grad(y):
-        g = (Ws @ y.reshape(-1) + qs).reshape(K, 3)
-        return jnp.stack([g[:, 0] + mu * jnp.sqrt(g[:, 1] ** 2 + g[:, 2] ** 2), g[:, 1], g[:, 2]], axis=1)
+        return _de_saxce((Ws @ y.reshape(-1) + qs).reshape(K, 3), mu)
 
     x0 = proj(jnp.where(rows, lam / jnp.where(rows, s, 1), 0).reshape(K, 3))
     if restart:
