@@ -57,6 +57,7 @@ per-action (``rollout="action"``: SB3's loop), one after the other in this proce
 each of ``--jax-envs`` env counts, ``--episodes`` rounds of one episode per env each, learning from
 the second round on (``--set backend=...`` times another backend the same way):
   python benchmarks/train_throughput.py --jax-loops [--jax-envs 96,1024] [--episodes 2] [--preset paper]
+       [--rollouts action,episode]
        [--set KEY=VALUE]
 Each run reports its end-to-end transitions/s (``transitions_per_s``: all transitions over the
 call's wall time, start-up, settling and compilation included) and ``steady_transitions_per_s``
@@ -264,7 +265,7 @@ def jax_loops(args) -> dict:
     out = {}
     try:
         for n in args.jax_envs:
-            for rollout in ("action", "episode"):
+            for rollout in args.rollouts:
                 cfg = override(override(preset(args.preset), ['backend="jax"']),
                                [f"n_envs={n}", f'rollout="{rollout}"', *(args.set or [])])
                 per_round = n * cfg.env.n_actions
@@ -283,8 +284,9 @@ def jax_loops(args) -> dict:
                     "updates": res.updates, "learner_s": res.learner_seconds, "n_actions": cfg.env.n_actions,
                     "steps_per_action": cfg.env.steps_per_action, "preset": args.preset, "set": args.set or [],
                     "device": _jax_device()}
-            a, e = out[f"action/{n}"]["steady_transitions_per_s"], out[f"episode/{n}"]["steady_transitions_per_s"]
-            out[f"episode_over_action/{n}"] = e / a if a and e else None
+            if len(args.rollouts) == 2:
+                a, e = out[f"action/{n}"]["steady_transitions_per_s"], out[f"episode/{n}"]["steady_transitions_per_s"]
+                out[f"episode_over_action/{n}"] = e / a if a and e else None
     finally:
         training.CodesignCallback._on_step = on_step
     return out
@@ -391,6 +393,8 @@ def main() -> None:
     p.add_argument("--no-overlap", action="store_true", help="end to end: updates after each step, not overlapped")
     p.add_argument("--jax-loops", action="store_true",
                    help="time both training loops (episode-at-once, per-action) on the JAX backend")
+    p.add_argument("--rollouts", type=lambda v: v.split(","), default=["action", "episode"],
+                   help="--jax-loops: the loops timed (action, episode or both, comma-separated)")
     p.add_argument("--jax-envs", type=lambda v: [int(x) for x in v.split(",")], default=[96, 1024],
                    help="--jax-loops: env counts, comma-separated (default 96,1024)")
     p.add_argument("--episodes", type=int, default=2, help="--jax-loops: rounds of one episode per env")

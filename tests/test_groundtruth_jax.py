@@ -1,11 +1,12 @@
-"""``softcrawl groundtruth --engine jax``: the searched episodes on the JAX engine, every design's
-episode of a round in one batch (:func:`softcrawl.codesign.groundtruth.runner.jax_evaluate_many`)."""
+"""``softcrawl groundtruth --engine jax``: the searched episodes on the JAX engine, the round of
+every design in flight in one batch (:func:`softcrawl.codesign.groundtruth.runner.jax_evaluator`)."""
 
 from __future__ import annotations
 
 import json
 import math
 
+import numpy as np
 import pytest
 
 from softcrawl.cli import main as cli_main
@@ -55,3 +56,32 @@ def test_engine_settings_are_checked():
         GroundTruthConfig(engine="jax", robot=gt_robot(model="full")).validate()
     with pytest.raises(ValueError, match="power of two"):
         GroundTruthConfig(engine="jax", jax_batch=48).validate()
+
+
+def test_step_gait_commands_are_pressure_at_of_every_step():
+    """The search's step gaits' schedules, computed for all steps at once, are exactly
+    ``pressure_at(k dt)`` of each step (cycle lengths 1 to 8, holds and steps that do not
+    divide each other, knots at the bounds)."""
+    from softcrawl.codesign.groundtruth import knots_to_gait
+    from softcrawl.jaxsim.episodes import gait_commands
+
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        m, L = int(rng.integers(1, 4)), int(rng.integers(1, 9))
+        x = np.where(rng.random(m * L) < 0.2, rng.integers(0, 2, m * L), rng.random(m * L))
+        gait = knots_to_gait(x, m, L, (1.0, 0.5, 1 / 3, 0.7, 0.02)[trial % 5])
+        for dt in (0.01, 0.02, 0.003):
+            expect = np.array([gait.pressure_at(k * dt) for k in range(700)])
+            np.testing.assert_array_equal(gait_commands(gait, 700, dt), expect)
+
+
+def test_a_finished_designs_state_is_let_go():
+    """``JaxEvaluator.forget`` drops the designs' rested states held in memory (the runner calls it
+    as each design finishes), and ignores a design it does not hold."""
+    from softcrawl.jaxsim.episodes import JaxEvaluator
+
+    ev = JaxEvaluator(gt_robot())
+    held = ev.space.canonicalize((2, 0, 0, 1, 1, 0, 0, 0))
+    ev._designs[held] = object()  # as prepare() leaves a settled design
+    ev.forget([(1, 0, 0, 2, 2, 0, 0, 0), (1, 1, 1, 0, 0, 0, 0, 0)])
+    assert held not in ev._designs

@@ -1,5 +1,6 @@
-"""The per-design search as a coroutine: driven one episode at a time (``optimize_design``) or
-many designs in lockstep (``search_many``), the same results; a small real-model budget keeps
+"""The per-design search as a coroutine of rounds: driven one episode at a time
+(``optimize_design``, ``design_search``) or many designs in lockstep, each call holding the
+round of every design in flight (``search_many``), the same results; a small real-model budget keeps
 the budget of the rows the code wrote before the search became a coroutine, and their best gait
 crawls as far on any CPU, within half the reduced model's error budget."""
 
@@ -18,9 +19,13 @@ from softcrawl.codesign.groundtruth import (
     GroundTruthConfig,
     PeriodicGait,
     SerialEvaluateMany,
+    cma_generations,
+    design_rounds,
     design_search,
+    drive,
     load_results,
     optimize_design,
+    parse_designs,
     run_groundtruth,
     search_many,
 )
@@ -92,44 +97,153 @@ def test_a_diverged_or_non_finite_episode_scores_the_divergence_value():
     assert r.diverged == 3 and r.reward_cm == DIVERGED_CM and r.per_cycle == {2: DIVERGED_CM}
 
 
+def rounds_of(design, cfg) -> list[int]:
+    """The sizes of the rounds of ``design``'s search under ``cfg`` with the fake episodes."""
+    ev, sizes = FakeEvaluator(design), []
+
+    def run(requests):
+        sizes.append(len(requests))
+        return [ev(*r) for r in requests]
+
+    drive(design_rounds(design, cfg), run)
+    return sizes
+
+
+def test_design_rounds_ask_for_a_generation_of_every_cycle_at_once():
+    """The rounds: the seeds of both cycle lengths, then a CMA-ES generation of each run still
+    going, then the 4 finals; the episodes, flattened, are design_search's, one at a time."""
+    ev, asked, sizes = FakeEvaluator(DESIGNS[1]), [], []
+
+    def run(requests):
+        sizes.append(len(requests))
+        asked.extend(requests)
+        return [ev(*r) for r in requests]
+
+    result = drive(design_rounds(DESIGNS[1], CFG), run)
+    # m = 2: 3 seeds per cycle; then 4 of 7 left for L = 2 (dim 4, popsize 8: one truncated
+    # generation) and for L = 3 (dim 6, popsize 9: one truncated generation); then the finals
+    assert sizes == [6, 8, 4] and result.evaluations == 18
+    one = design_search(DESIGNS[1], CFG)
+    request, flat = next(one), []
+    with pytest.raises(StopIteration):
+        while True:
+            flat.append(request)
+            request = one.send(FakeEvaluator(DESIGNS[1])(*request))
+    assert [(g.to_dict(), t) for g, t in flat] == [(g.to_dict(), t) for g, t in asked]
+    with pytest.raises(ValueError, match="1 replies to a round of 6"):
+        search = design_rounds(DESIGNS[1], CFG)
+        next(search)
+        search.send([(1.0, False)])
+
+
+def test_cma_runs_advanced_together_draw_their_own_samples():
+    """Two CMA-ES runs advanced generation by generation in turn give each the points it gives
+    alone (cma's seed option reseeds numpy's global generator, which the runs would share)."""
+    def f(x):
+        return -float(np.sum((x - 0.3) ** 2))
+
+    def alone(seed):
+        return drive(cma_generations(4, 40, seed=seed), lambda xs: [f(x) for x in xs])
+
+    a, b = cma_generations(4, 40, seed=1), cma_generations(4, 40, seed=2)
+    xs = {a: next(a), b: next(b)}
+    got = {}
+    while xs:
+        for run in list(xs):
+            try:
+                xs[run] = run.send([f(x) for x in xs[run]])
+            except StopIteration as stop:
+                got[run] = stop.value
+                del xs[run]
+    for run, seed in ((a, 1), (b, 2)):
+        assert [(x.tolist(), v) for x, v in got[run]] == [(x.tolist(), v) for x, v in alone(seed)]
+
+
 def test_search_many_in_lockstep_equals_one_design_at_a_time():
-    rounds = []
+    """Each call holds the round of every design in flight: as many calls as the longest search
+    has rounds, and each design's result is the one-at-a-time search's."""
+    calls = []
     serial = SerialEvaluateMany(CFG, make=FakeEvaluator)
 
     def evaluate_many(requests):
-        rounds.append([d for d, _, _ in requests])
+        calls.append([d for d, _, _ in requests])
         return serial(requests)
 
     designs = [*DESIGNS[:4], DESIGNS[0]]  # a duplicate is searched once
     got = list(search_many(designs, CFG, evaluate_many))
     assert sorted(r.design for r in got) == sorted(DESIGNS[:4])
-    assert len(rounds) == 18 and all(sorted(r) == sorted(DESIGNS[:4]) for r in rounds)  # one episode per design
+    sizes = {d: rounds_of(d, CFG) for d in DESIGNS[:4]}
+    assert len(calls) == max(map(len, sizes.values())) == 3
+    for k, call in enumerate(calls):  # the designs' k-th rounds, in the designs' order
+        assert call == [d for d in DESIGNS[:4] if k < len(sizes[d]) for _ in range(sizes[d][k])]
     for r in got:
         _same(r, optimize_design(r.design, CFG, evaluator=FakeEvaluator(r.design)))
         assert r.wall_seconds >= 0.0
     assert {d: e.calls for d, e in serial.evaluators.items()} == {d: 18 for d in DESIGNS[:4]}
 
 
-#: Settings under which the fake episodes give designs different numbers of episodes (fewer
-#: distinct finalists for a one-regulator design): ONE finishes after 4 episodes, L1 after 6.
-UNEVEN = GroundTruthConfig(cycles=(1,), evals_per_cycle=3, finalists=4, screen_duration=None, baseline_phases=())
+def test_lockstep_of_the_default_budget_makes_few_large_calls():
+    """8 designs with the default settings (4 cycle lengths x 36 screening episodes, 2
+    finalists): 8 calls of up to 269 episodes (the rounds of 6 to 8 per design), not 148
+    calls of 8."""
+    cfg, calls = GroundTruthConfig(baseline_phases=()), []
+    serial = SerialEvaluateMany(cfg, make=FakeEvaluator)
+    designs = parse_designs("3")[::35]
+
+    def evaluate_many(requests):
+        calls.append(len(requests))
+        return serial(requests)
+
+    got = list(search_many(designs, cfg, evaluate_many))
+    assert len(got) == 8 and sum(calls) == sum(r.evaluations for r in got) == 8 * 148
+    assert len(calls) == 8 and max(calls) == 269
+
+
+def test_search_many_keeps_at_most_in_flight_designs():
+    """``in_flight`` 4 of 8 designs: never more than 4 in a call; the next ones join together
+    once 2 or fewer are left, and every design's result is still the one-at-a-time search's."""
+    serial, calls = SerialEvaluateMany(CFG, make=FakeEvaluator), []
+    designs = parse_designs("3")[::35]
+
+    def evaluate_many(requests):
+        calls.append(list(dict.fromkeys(d for d, _, _ in requests)))
+        return serial(requests)
+
+    got = list(search_many(designs, CFG, evaluate_many, in_flight=4))
+    assert sorted(r.design for r in got) == sorted(designs)
+    assert calls[0] == designs[:4] and all(len(c) <= 4 for c in calls)
+    for before, now in zip(calls, calls[1:]):
+        new = [d for d in now if d not in before]
+        if new:  # newcomers, in the order given, only when half or fewer were left
+            assert len(now) - len(new) <= 2 and new == [d for d in designs if d in new]
+    for r in got:
+        _same(r, optimize_design(r.design, CFG, evaluator=FakeEvaluator(r.design)))
+    with pytest.raises(ValueError, match="in_flight must be a positive integer"):
+        list(search_many(designs, CFG, evaluate_many, in_flight=0))
+
+
+#: Settings under which the fake episodes give designs different numbers of rounds: ONE (one
+#: regulator: 1 seed, then generations of 6) has 6 rounds, L1 (two: 3 seeds, generations of 8) 5.
+UNEVEN = GroundTruthConfig(cycles=(2,), evals_per_cycle=20, finalists=2, screen_duration=None, baseline_phases=())
 ONE, L1 = (1, 1, 1, 0, 0, 0, 0, 0), PAPER_BEST_DESIGN
 
 
 def test_search_many_yields_each_design_as_it_finishes():
-    serial, rounds = SerialEvaluateMany(UNEVEN, make=FakeEvaluator), []
+    serial, calls = SerialEvaluateMany(UNEVEN, make=FakeEvaluator), []
 
     def evaluate_many(requests):
-        rounds.append(len(requests))
+        calls.append(len(requests))
         return serial(requests)
 
+    one, l1 = rounds_of(ONE, UNEVEN), rounds_of(L1, UNEVEN)
+    assert len(one) == 6 and len(l1) == 5
     order = []
-    for r in search_many([L1, ONE], UNEVEN, evaluate_many):
-        assert len(rounds) == r.evaluations  # yielded in the round of its last episode
-        order.append((r.design, r.evaluations))
+    for r in search_many([ONE, L1], UNEVEN, evaluate_many):
+        assert len(calls) == len(rounds_of(r.design, UNEVEN))  # yielded after the call of its last round
+        order.append(r.design)
         _same(r, optimize_design(r.design, UNEVEN, evaluator=FakeEvaluator(r.design)))
-    assert order == [(ONE, 4), (L1, 6)] and rounds == [2, 2, 2, 2, 1, 1]
-    with pytest.raises(ValueError, match="answered 1 of 2"):
+    assert order == [L1, ONE] and calls == [a + b for a, b in zip(one, l1)] + one[5:]
+    with pytest.raises(ValueError, match="answered 1 of"):
         list(search_many([L1, ONE], UNEVEN, lambda requests: serial(requests)[:1]))
 
 
@@ -138,17 +252,17 @@ def test_run_groundtruth_with_a_batched_engine_appends_and_resumes(tmp_path):
 
     def evaluate_many(requests):
         calls.append(len(requests))
-        if len(calls) == 5 and kill["on"]:
-            raise KeyboardInterrupt  # killed after ONE finished, before L1 did
+        if len(calls) == 6 and kill["on"]:
+            raise KeyboardInterrupt  # killed after L1 finished (5 rounds), before ONE did
         return serial(requests)
 
     kill = {"on": True}
     with pytest.raises(KeyboardInterrupt):
         run_groundtruth([L1, ONE], tmp_path, UNEVEN, progress=False, refs=False, evaluate_many=evaluate_many)
-    assert set(load_results(tmp_path)) == {ONE}  # appended as it finished
+    assert set(load_results(tmp_path)) == {L1}  # appended as it finished
     kill["on"], calls[:] = False, []
     s = run_groundtruth([L1, ONE], tmp_path, None, progress=False, refs=False, evaluate_many=evaluate_many)
-    assert calls == [1] * 6 and s["designs"] == 2  # only the unfinished design, searched again
+    assert calls == rounds_of(ONE, UNEVEN) and s["designs"] == 2  # only the unfinished design, searched again
     for d, r in load_results(tmp_path).items():
         _same(r, optimize_design(d, UNEVEN, evaluator=FakeEvaluator(d)))
 

@@ -162,3 +162,25 @@ def test_the_engines_step_has_a_short_dependency_chain():
     assert cost["loop_trips_per_step"] == 1.0 and cost["inner_loops"] == 0
     assert cost["dependent_ops_per_step"] <= 600
     assert cost["mflop_per_robot_step"] <= 50
+
+
+def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
+    """``rid_terms`` with ``Z`` formed (``"rows"``, the CPU's) and without (``"pairs"``, the
+    GPU's: ``G_e`` contracted with the products of the basis rows) on the landed robot's bent,
+    pressed legs: the same sums in another order, so ``K_r`` and ``f_r`` agree to 1e-12 of their
+    largest entries in float64 (each entry sums ~2,000-14,000 products, each rounded to 1.1e-16).
+    A wrong pair factor (the off-diagonal transpose left out) moves ``K_r`` by about half."""
+    from softcrawl.jaxsim import legs as leg_motion
+
+    model, state, _ = landed
+    qdot = state.qdot + jnp.asarray(np.random.default_rng(0).normal(0.0, 5.0, state.qdot.shape))
+    terms = {form: jax.vmap(lambda q, v, form=form: leg_motion.rid_terms(model.leg, q, v, 0.03, form))(state.q, qdot)
+             for form in ("rows", "pairs")}
+    (Kr, fr, nr), (Kp, fp, np_) = terms["rows"], terms["pairs"]
+    assert float(jnp.abs(state.q).max()) > 1.0  # bent: the frames are not the rest frames
+    assert np.abs(np.asarray(Kp - Kr)).max() <= 1e-12 * np.abs(np.asarray(Kr)).max()
+    assert np.abs(np.asarray(Kp - Kp.transpose(0, 2, 1))).max() == 0.0
+    assert np.abs(np.asarray(fp - fr)).max() <= 1e-12 * np.abs(np.asarray(fr)).max()
+    np.testing.assert_array_equal(nr, np_)
+    with pytest.raises(ValueError, match="form"):
+        leg_motion.rid_terms(model.leg, state.q[0], qdot[0], 0.03, "dense")

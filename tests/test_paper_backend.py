@@ -1,5 +1,5 @@
-"""`softcrawl train --preset paper` runs its envs on the JAX backend when JAX sees a GPU (one line
-says so), keeps the subprocess backend otherwise, and a backend given always wins (JAX's devices
+"""`softcrawl train --preset paper` runs its envs on the JAX backend and its learner on the GPU
+when JAX sees a GPU (one line says so; a ``sac.device`` given keeps the learner there), keeps the subprocess backend otherwise, and a backend given always wins (JAX's devices
 faked; the training itself stubbed)."""
 
 from __future__ import annotations
@@ -38,13 +38,20 @@ def started(monkeypatch, tmp_path):
 
 def test_the_paper_preset_takes_the_jax_backend_when_jax_sees_a_gpu(started, capsys):
     assert main(["train", "--preset", "paper", "--out", started.out, "--no-progress"]) == 0
-    assert started.configs[-1].backend == "jax"
+    assert started.configs[-1].backend == "jax" and started.configs[-1].sac.device == "gpu"
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "JAX sees 1 GPU(s) (Fake H100): the paper preset runs its 96 envs on the JAX " \
         "backend" in err
     started.gpu[0] = False
     assert main(["train", "--preset", "paper", "--out", started.out, "--no-progress"]) == 0
-    assert started.configs[-1].backend == "subprocess" and "JAX" not in capsys.readouterr().err
+    assert started.configs[-1].backend == "subprocess" and started.configs[-1].sac.device == "cpu"
+    assert "JAX" not in capsys.readouterr().err
+
+
+def test_a_learner_device_given_keeps_the_learner_where_it_is_told(started, capsys):
+    assert main(["train", "--preset", "paper", "--out", started.out, "--no-progress", "--set", 'sac.device="cpu"']) == 0
+    assert started.configs[-1].backend == "jax" and started.configs[-1].sac.device == "cpu"
+    assert "learns there" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("given", [["--backend", "serial"], ["--set", 'backend="subprocess"']])

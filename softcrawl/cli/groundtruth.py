@@ -2,9 +2,11 @@
 (:mod:`softcrawl.codesign.groundtruth`), in parallel and resumable: re-running the same command
 (or ``--resume``) continues a killed run and never recomputes a finished design. Writes
 ``results.jsonl`` (per design, as they finish), ``groundtruth.csv``, ``ranked.png``,
-``references.json`` and ``summary.json``. ``config.json`` records the settings and the design set:
+``references.json``, ``summary.json`` and ``summary.md``. ``config.json`` records the settings and the design set:
 ``--resume`` (and the same command without ``--designs``) continues exactly that set, and refuses
-setting options and another ``--designs``. Every setting is checked, and the reduction file
+setting options and another ``--designs``. ``--engine jax`` searches ``--in-flight`` designs at
+once in lockstep, each round of all of them in one batched call (``--designs all``: the
+space's every canonical design, 6,972 in the paper's). Every setting is checked, and the reduction file
 loaded, before anything is written; ``--out`` must be new, empty or a ground truth, and is locked
 while the run writes it (a second run on it is refused, naming the holder)."""
 
@@ -16,7 +18,7 @@ import math
 from softcrawl.cli import MAX_WORKERS, SEED_BOUNDS, bounded
 from softcrawl.cli.train import check_ray_address
 from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS
-from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_JAX_BATCH
+from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_IN_FLIGHT, MAX_JAX_BATCH
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.tasks.registry import task_spec
 
@@ -113,7 +115,7 @@ def _run(args: argparse.Namespace) -> int:
     designs = None if spec is None else parse_designs(spec, space)
     check_ray_address(args.executor, args.ray_address)
     s = run_groundtruth(designs, args.out, cfg, workers=args.workers, executor=args.executor,
-                        progress=not args.no_progress, ray_address=args.ray_address)
+                        progress=not args.no_progress, ray_address=args.ray_address, in_flight=args.in_flight)
     best = s["best"][0] if s["best"] else None
     u = s.get("task", {}).get("unit", "cm")  # the summary's rewards are in its task's unit
     print(f"{s['designs']} of {s['requested']} designs done; best {','.join(map(str, best['design']))} "
@@ -129,10 +131,14 @@ def _run(args: argparse.Namespace) -> int:
         b = s["references"]["turning_baseline"]
         print(f"turning baseline ({b['best_phase_deg']:.0f} deg lag): {b['reward_deg']:+.2f} deg; "
               f"{s.get('designs_beating_turning_baseline', 0)} designs beat it")
+    if len(s["by_legs"]) > 1:
+        print("best per leg count: " + "; ".join(
+            f"{legs} legs {','.join(map(str, g['best']['design']))} {g['best'][f'reward_{u}']:+.2f} {u} "
+            f"(rank {g['best']['rank']})" for legs, g in s["by_legs"].items()))
     if s["bad_rows"]:
         print(f"{len(s['bad_rows'])} bad rows of {args.out}/results.jsonl left in place and not used "
               f"(summary.json lists them); first: {s['bad_rows'][0]}")
-    print(f"wrote {args.out}/groundtruth.csv, ranked.png, summary.json")
+    print(f"wrote {args.out}/groundtruth.csv, ranked.png, summary.json, summary.md")
     return 0
 
 
@@ -188,5 +194,8 @@ def register(subparsers) -> None:
                         "in one batch on JAX's default device, CPU or GPU; --rid-dtype is its precision)")
     p.add_argument("--jax-batch", type=int, default=None, **bounded(1, MAX_JAX_BATCH),
                    help="largest JAX batch, a power of two (default 1024)")
+    p.add_argument("--in-flight", type=int, default=None, **bounded(1, MAX_IN_FLIGHT),
+                   help="--engine jax: designs searched at once, each round of all of them in one call (default "
+                        "jax-batch / 16; memory grows with it); not saved, a resumed run may change it")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run)

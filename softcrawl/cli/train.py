@@ -82,9 +82,11 @@ def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, res
     return res
 
 
-def paper_backend(cfg: TrainConfig) -> TrainConfig:
+def paper_backend(cfg: TrainConfig, learner_device: bool = True) -> TrainConfig:
     """``cfg`` (the ``paper`` preset, no backend given) on the JAX backend when JAX sees a GPU
-    and its settings run there, said in one line on stderr; else ``cfg`` as it is (with a line
+    and its settings run there, with its learner there too when ``learner_device`` (no
+    ``sac.device`` given: on an H100 the JAX learner makes 2,574 updates/s against 122 on a CPU
+    thread, and the preset makes 1M), said in one line on stderr; else ``cfg`` as it is (with a line
     saying why when a GPU is seen but the settings cannot run on JAX, e.g. the ``turning`` task).
     The learner's threads are set first (:func:`softcrawl.codesign.sac.prepare_learner`: JAX
     reads them once, when it starts).
@@ -105,13 +107,14 @@ def paper_backend(cfg: TrainConfig) -> TrainConfig:
     if not gpus:
         return cfg
     try:
-        on_jax = override(cfg, ['backend="jax"'])
+        on_jax = override(cfg, ['backend="jax"', *(['sac.device="gpu"'] if learner_device else [])])
     except ValueError as exc:
         print(f"softcrawl train: JAX sees a GPU, but these settings do not run on the JAX backend ({exc}); keeping "
               f"backend {cfg.backend!r}", file=sys.stderr)
         return cfg
     print(f"softcrawl train: JAX sees {len(gpus)} GPU(s) ({gpus[0].device_kind}): the paper preset runs its "
-          f"{cfg.n_envs} envs on the JAX backend there (--backend chooses another)", file=sys.stderr)
+          f"{cfg.n_envs} envs on the JAX backend there{' and learns there' if learner_device else ''} (--backend "
+          f"chooses another backend, --set sac.device=... another learner device)", file=sys.stderr)
     return on_jax
 
 
@@ -176,8 +179,9 @@ def _run(args: argparse.Namespace) -> int:
         if args.space is not None:
             sets.append(f"env.space={json.dumps(args.space)}")
         cfg = override(preset(args.preset or "demo"), sets)
-        if args.preset == "paper" and "backend" not in {a.split("=", 1)[0].strip() for a in sets}:
-            cfg = paper_backend(cfg)
+        given = {a.split("=", 1)[0].strip() for a in sets}
+        if args.preset == "paper" and "backend" not in given:
+            cfg = paper_backend(cfg, learner_device="sac.device" not in given)
         _check_out(args.out)
         check_ray_address(cfg.backend, args.ray_address)
         res = train_and_report(args.out, cfg, progress=not args.no_progress, ray_address=args.ray_address)

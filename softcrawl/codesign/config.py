@@ -294,7 +294,7 @@ class TrainConfig:
     snapshot_every: int = 20_000
     keep_checkpoints: int = 2
     rollout: str = "episode"
-    shortlist: int = 4
+    shortlist: int = 8
     env: EnvConfig = field(default_factory=EnvConfig)
     sac: SACConfig = field(default_factory=SACConfig)
     design: DesignConfig = field(default_factory=DesignConfig)

@@ -19,8 +19,11 @@ F_part``), so the leg's placement enters only its gravity load. The step is
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def _unit(v):
@@ -35,23 +38,38 @@ def element_frames(d):
     return jnp.stack((e1, jnp.cross(n, e1), n), axis=-2)
 
 
-def rid_terms(part, q, qdot, c):
+def rid_terms(part, q, qdot, c, form: str | None = None):
     """The RID terms of one leg.
 
     Args:
         part: :class:`~softcrawl.jaxsim.model.LegPart`.
         q, qdot: ``(m,)`` modal displacement (mm) and velocity (mm/s).
         c: ``h + r_K``, s.
+        form: ``"rows"`` (``Z`` formed, ``K_r = Z^T Z``), ``"pairs"`` (``Z`` never formed: each
+            element's ``G_e = (C~_e F_e)^T (C~_e F_e)`` contracted with the products of its basis
+            rows, :func:`pair_products`) or ``None``: ``"rows"`` on a CPU, ``"pairs"`` elsewhere
+            (``jax.lax.platform_dependent``). The same sums in another order; ``"pairs"`` costs
+            about 3x the multiply-adds but is one large matrix product over all legs of a batch
+            and keeps no ``Z`` (256 KB per leg): 1.65x faster on an H100, 3-4x slower on a CPU
+            (benchmarks/RESULTS.md).
 
     Returns:
         ``(K, f, n_bad)``: ``(m', m')`` ``K_r`` of the strain modes (mN/mm), ``(m',)``
         ``-Z^T (s + c Z qdot')`` (mN) and the number of inverted or degenerate RID elements.
+
+    Raises:
+        ValueError: an unknown ``form``.
     """
+    if form is None:
+        return jax.lax.platform_dependent(part, q, qdot, c, cpu=partial(rid_terms, form="rows"),
+                                          default=partial(rid_terms, form="pairs"))
+    if form not in ("rows", "pairs"):
+        raise ValueError(f"form must be 'rows' or 'pairs', not {form!r}")
     x = part.rid_rest + part.rid_basis @ q
     qs = qdot[part.strain_modes]
     ms = part.strain_modes.shape[0]
     n_bad = jnp.zeros((), jnp.int32)
-    Zs, ss = [], []
+    Zs, ss, K, f = [], [], 0.0, 0.0
     for fam in part.families:
         xe = x[fam.conn]
         d = xe[:, 1:] - xe[:, :1]
@@ -64,10 +82,34 @@ def rid_terms(part, q, qdot, c):
         s = jnp.einsum("eiq,eq->ei", fam.factors, g) - fam.rest_terms
         r = fam.factors.shape[1]
         CR = jnp.einsum("eiap,epc->eiac", fam.factors.reshape(E, r, k1, 3), F).reshape(E, r, -1)
-        Zs.append(jnp.einsum("eiq,eqj->eij", CR, fam.rows).reshape(E * r, ms))
-        ss.append(s.reshape(-1))
-    Z, s = jnp.concatenate(Zs), jnp.concatenate(ss)
-    return symmetric_gram(Z), -Z.T @ (s + c * (Z @ qs)), n_bad
+        if form == "rows":
+            Zs.append(jnp.einsum("eiq,eqj->eij", CR, fam.rows).reshape(E * r, ms))
+            ss.append(s.reshape(-1))
+            continue
+        a, b = np.triu_indices(CR.shape[-1])
+        G = jnp.einsum("eia,eib->eab", CR, CR)[:, a, b]
+        K = K + G.reshape(-1) @ pair_products(fam.rows)
+        w = s + c * jnp.einsum("eiq,eq->ei", CR, jnp.einsum("eqj,j->eq", fam.rows, qs))
+        f = f - jnp.einsum("eq,eqj->j", jnp.einsum("eiq,ei->eq", CR, w), fam.rows)
+    if form == "rows":
+        Z, s = jnp.concatenate(Zs), jnp.concatenate(ss)
+        return symmetric_gram(Z), -Z.T @ (s + c * (Z @ qs)), n_bad
+    i, j = np.triu_indices(ms)
+    upper = jnp.zeros((ms, ms), K.dtype).at[i, j].set(K)
+    return upper + jnp.triu(upper, 1).T, f, n_bad
+
+
+def pair_products(rows):
+    """``(E P, m'(m' + 1)/2)`` the products of one family's basis rows ``rows`` ``(E, n, m')``
+    that take its elements' ``G_e`` (``P = n(n + 1)/2`` entries on and above the diagonal, row
+    major) to the upper triangle of ``K_r = sum_e rows_e^T G_e rows_e``: for ``a <= b``,
+    ``rows_ea (x) rows_eb`` plus, off the diagonal, its transpose (``G_e`` symmetric)."""
+    E, n, ms = rows.shape
+    a, b = np.triu_indices(n)
+    i, j = np.triu_indices(ms)
+    ra, rb = rows[:, a], rows[:, b]
+    T = ra[:, :, i] * rb[:, :, j] + jnp.where((a != b)[None, :, None], ra[:, :, j] * rb[:, :, i], 0.0)
+    return T.reshape(E * len(a), len(i))
 
 
 #: Column blocks of :func:`symmetric_gram`.

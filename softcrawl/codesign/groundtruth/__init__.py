@@ -7,8 +7,10 @@ the reduced model; designs are then ranked by that reward: the return of the run
 (:attr:`GroundTruthConfig.task`, :mod:`softcrawl.tasks`; cm of +x crawl per episode for the
 paper's ``forward``, degrees for ``turning``), on the design space :attr:`GroundTruthConfig.space`.
 
-**Search** (:mod:`~softcrawl.codesign.groundtruth.search`, driven by :func:`optimize_design` or,
-for many designs in lockstep, :func:`search_many`): for each cycle length ``L`` in
+**Search** (:mod:`~softcrawl.codesign.groundtruth.search`, a coroutine asking for episodes in
+rounds, :func:`design_rounds`, driven by :func:`optimize_design` or, for many designs in
+lockstep with each round of every design in flight in one call, :func:`search_many`): for each
+cycle length ``L`` in
 :attr:`GroundTruthConfig.cycles` a CMA-ES run over the knots of the regulators the design uses
 (``m L`` numbers in [0, 90] kPa, step waveform), ``evals_per_cycle`` episodes each, started from
 the best of a few structured gaits evaluated first (one regulator after another then vent, all
@@ -64,12 +66,15 @@ from softcrawl.codesign.groundtruth.runner import (
 )
 from softcrawl.codesign.groundtruth.search import (
     EvaluateMany,
+    cma_generations,
     cma_maximize,
     cma_search,
+    design_rounds,
     design_search,
     design_seed,
     drive,
     knots_to_gait,
+    one_at_a_time,
     search_many,
     seed_knots,
     used_regulators,
@@ -109,8 +114,10 @@ __all__ = [
     "PeriodicGait",
     "SerialEvaluateMany",
     "check_folder",
+    "cma_generations",
     "cma_maximize",
     "cma_search",
+    "design_rounds",
     "design_search",
     "design_set_spec",
     "design_seed",
@@ -128,6 +135,7 @@ __all__ = [
     "read_references",
     "read_results",
     "recorded_designs",
+    "one_at_a_time",
     "references",
     "run_groundtruth",
     "screening_agreement",

@@ -19,6 +19,8 @@ from softcrawl.tasks import DEFAULT_TASK, Task, parse_task
 MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
 #: Engines of the searched episodes (:attr:`GroundTruthConfig.engine`) and the JAX batch's bound.
 ENGINES, MAX_JAX_BATCH = ("cpu", "jax"), 65_536
+#: Most designs a batched engine searches at once (``softcrawl groundtruth --in-flight``).
+MAX_IN_FLIGHT = 100_000
 
 
 def gt_robot(**changes) -> RobotConfig:

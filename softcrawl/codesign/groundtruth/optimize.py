@@ -13,7 +13,7 @@ import numpy as np
 
 from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
-from softcrawl.codesign.groundtruth.search import design_search, drive, knots_to_gait, seed_knots, used_regulators
+from softcrawl.codesign.groundtruth.search import design_rounds, drive, knots_to_gait, seed_knots, used_regulators
 from softcrawl.tasks import DEFAULT_TASK
 
 
@@ -99,8 +99,9 @@ def episode_return(task, robot, gait, duration: float, hold: float, settled=None
 
 
 def optimize_design(design, cfg: GroundTruthConfig, evaluator: Callable | None = None) -> DesignResult:
-    """The best gait of ``design`` in the family: its :func:`design_search` driven by
-    ``evaluator``, one episode after another.
+    """The best gait of ``design`` in the family: its :func:`design_rounds` driven by
+    ``evaluator``, one episode after another (the order of
+    :func:`~softcrawl.codesign.groundtruth.search.design_search`).
 
     Args:
         design: a design (canonicalised first).
@@ -114,10 +115,10 @@ def optimize_design(design, cfg: GroundTruthConfig, evaluator: Callable | None =
     Raises:
         InvalidDesignError: invalid design. ValueError: invalid ``cfg``.
     """
-    search = design_search(design, cfg, cfg.design_space())
+    search = design_rounds(design, cfg, cfg.design_space())
     wall = time.perf_counter()
     ev = evaluator if evaluator is not None else DesignEvaluator(design, cfg)
-    result = drive(search, lambda request: ev(*request))
+    result = drive(search, lambda requests: [ev(*request) for request in requests])
     return dataclasses.replace(result, wall_seconds=time.perf_counter() - wall)
 
 

@@ -1,5 +1,6 @@
 """The tables and figure of a ground-truth folder: ``groundtruth.csv`` (ranked designs),
-``summary.json`` and ``ranked.png``, from the valid rows of its ``results.jsonl``."""
+``summary.json``, ``summary.md`` (its Markdown: top designs, the best of each leg count,
+placements, references, cost) and ``ranked.png``, from the valid rows of its ``results.jsonl``."""
 
 from __future__ import annotations
 
@@ -31,11 +32,13 @@ def _portable(config: dict, out: Path) -> dict:
     return config
 
 def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_seconds: float | None = None) -> dict:
-    """Write ``groundtruth.csv``, ``ranked.png`` and ``summary.json`` (each replaced
-    atomically; rewards keyed ``reward_<unit>`` in the task's unit, and for a task other than
-    ``forward`` the summary's ``task``: its settings and unit) from the valid rows of
+    """Write ``groundtruth.csv``, ``ranked.png``, ``summary.json`` and ``summary.md`` (each
+    replaced atomically; rewards keyed ``reward_<unit>`` in the task's unit, and for a task
+    other than ``forward`` the summary's ``task``: its settings and unit) from the valid rows of
     ``results.jsonl`` (only those in ``designs`` if given; the bad rows, by file and line, in
-    the summary's ``bad_rows``); returns the summary.
+    the summary's ``bad_rows``); returns the summary. Its ``best`` lists the 10 best designs
+    (with rank and legs), ``by_legs`` each leg count's designs, best design (its rank among
+    all) and median reward (:func:`summary_markdown` writes it as Markdown).
 
     Raises:
         ValueError: the folder's ``config.json`` is missing or not a ground truth's.
@@ -74,8 +77,9 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
     summary = {
         "designs": len(rows), "requested": len(designs) if designs is not None else len(rows),
         "config": _portable(cfg.to_dict(), out),
-        "best": [{"design": list(r.design), reward: r.reward_cm, "gait": PeriodicGait.from_dict(r.gait).describe()}
-                 for r in rows[:10]],
+        "best": [{"design": list(r.design), reward: r.reward_cm, "gait": PeriodicGait.from_dict(r.gait).describe(),
+                  "rank": i, "legs": _legs(r.design)} for i, r in enumerate(rows[:10], start=1)],
+        "by_legs": _by_legs(rows, reward),
         reward: {"max": float(rewards.max()) if len(rows) else None,
                       "median": float(np.median(rewards)) if len(rows) else None,
                       "min": float(rewards.min()) if len(rows) else None},
@@ -96,9 +100,80 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
         b = refs["expert_baseline"]["reward_cm"]
         summary["designs_beating_expert_baseline"] = int(np.sum(rewards > b))
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    atomic_write_text(out / "summary.md", summary_markdown(summary, cfg.design_space().name))
     if rows:
         _ranked_plot(rows, refs, out / "ranked.png", cfg, task)
     return summary
+
+
+def _legs(design) -> int:
+    """Legs of a design (its non-zero slots)."""
+    return sum(v > 0 for v in design)
+
+
+def _by_legs(rows: list[DesignResult], reward: str) -> dict[str, dict]:
+    """Per leg count (a text key, ascending) of the ranked ``rows``: ``designs``, ``best`` (design,
+    ``reward``, rank among all rows, gait) and ``median`` reward."""
+    out: dict[str, dict] = {}
+    for legs in sorted({_legs(r.design) for r in rows}):
+        ranks = [i for i, r in enumerate(rows, start=1) if _legs(r.design) == legs]
+        top = rows[ranks[0] - 1]
+        out[str(legs)] = {"designs": len(ranks), "best": {"design": list(top.design), reward: top.reward_cm,
+                                                          "rank": ranks[0],
+                                                          "gait": PeriodicGait.from_dict(top.gait).describe()},
+                          "median": float(np.median([rows[i - 1].reward_cm for i in ranks]))}
+    return out
+
+
+def summary_markdown(summary: dict, space: str = "paper") -> str:
+    """Markdown of a :func:`write_outputs` summary (``summary.md``): the count, the top designs,
+    the best of each leg count, the paper's L1 and the expert's design placed, the references
+    and the cost; rewards in the summary's task's unit. ``space``: the design space's name."""
+    task = summary.get("task", {"name": DEFAULT_TASK, "unit": "cm"})
+    u = task["unit"]
+    reward = f"reward_{u}"
+    cfg = summary["config"]
+    lines = [f"# Ground truth: {summary['designs']} of {summary['requested']} designs", "",
+             f"Design space `{space}`, task `{task['name']}`; each design's best open-loop periodic gait (CMA-ES, "
+             f"cycles {', '.join(map(str, cfg['cycles']))}, {cfg['evals_per_cycle']} episodes each), its reward "
+             f"in {u} per {cfg['duration']:g} s, engine `{cfg.get('engine', 'cpu')}`. Full ranking: "
+             "`groundtruth.csv`.", ""]
+
+    def text(design) -> str:
+        return f"`{','.join(map(str, design))}`"
+
+    if summary["best"]:
+        lines += ["## Top designs", "", f"| rank | design | legs | reward ({u}) | gait (kPa) |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {b['rank']} | {text(b['design'])} | {b['legs']} | {b[reward]:+.2f} | {b['gait']} |"
+                  for b in summary["best"]]
+        lines += ["", "## Best of each leg count", "",
+                  f"| legs | designs | best design | reward ({u}) | its rank | median ({u}) |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {legs} | {g['designs']} | {text(g['best']['design'])} | {g['best'][reward]:+.2f} | "
+                  f"{g['best']['rank']} | {g['median']:+.2f} |" for legs, g in summary["by_legs"].items()]
+        lines.append("")
+    placed = [(name, summary.get(key))
+              for key, name in (("paper_l1", "paper's L1"), ("expert_design", "expert's design"))]
+    if any(p for _, p in placed):
+        lines += ["## Placements", ""]
+        lines += [f"- {name} {text(p['design'])}: rank {p['rank']} of {summary['designs']} "
+                  f"({p[reward]:+.2f} {u}, percentile {p['percentile']:.1f})" for name, p in placed if p]
+        lines.append("")
+    if summary["references"]:
+        lines += ["## References", ""]
+        lines += [f"- {name.replace('_', ' ')}: "
+                  + (f"{text(ref['design'])} " if isinstance(ref.get("design"), list) else "")
+                  + f"{ref[reward]:+.2f} {u}" for name, ref in summary["references"].items()]
+        lines.append("")
+    cost = summary["cost"]
+    lines += ["## Cost", "", f"{cost['evaluations']} episodes, {cost['sim_seconds']:.0f} simulated s, "
+              f"{cost['cpu_seconds']:.0f} s of search time summed over the designs"
+              + (f"; this call {cost['this_call_wall_seconds']:.0f} s of wall time"
+                 if cost["this_call_wall_seconds"] is not None else "") + "."]
+    if summary["bad_rows"]:
+        lines += ["", f"{len(summary['bad_rows'])} bad rows of `results.jsonl` left out (`summary.json` lists them)."]
+    return "\n".join(lines) + "\n"
 
 
 def _ranked_plot(rows: list[DesignResult], refs: dict, path: Path, cfg: GroundTruthConfig, task: Task) -> None:

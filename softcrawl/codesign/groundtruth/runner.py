@@ -1,6 +1,8 @@
 """A ground-truth run (:func:`run_groundtruth`, ``softcrawl groundtruth``): the designs of a set
-computed in a process pool (workers pinned to one BLAS thread), in-process, or as Ray tasks
-(``executor="ray"``; a task whose worker died is retried by Ray, only that design), each row
+computed in a process pool (workers pinned to one BLAS thread), in-process, as Ray tasks
+(``executor="ray"``; a task whose worker died is retried by Ray, only that design), or on a
+batched engine (``engine="jax"``: :func:`jax_evaluator`) in lockstep, a bounded number of
+designs in flight (:func:`~softcrawl.codesign.groundtruth.search.search_many`); each row
 appended to ``results.jsonl`` as its design finishes; then the references and the outputs."""
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from softcrawl.codesign.groundtruth.config import GroundTruthConfig, design_set_spec
+from softcrawl.codesign.config import check_bounds
+from softcrawl.codesign.groundtruth.config import MAX_IN_FLIGHT, GroundTruthConfig, design_set_spec
 from softcrawl.codesign.groundtruth.optimize import DesignEvaluator, optimize_design
 from softcrawl.codesign.groundtruth.outputs import write_outputs
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
@@ -116,7 +119,8 @@ def references(cfg: GroundTruthConfig, progress: bool = False) -> dict:
 def run_groundtruth(designs: Sequence | None, out_dir: str | Path, cfg: GroundTruthConfig | None = None,
                     workers: int | None = None, executor: str = "process", progress: bool = True,
                     task: Callable[[Design, dict], dict] = _task, ray_address: str | None = None,
-                    refs: bool = True, evaluate_many: EvaluateMany | None = None) -> dict:
+                    refs: bool = True, evaluate_many: EvaluateMany | None = None,
+                    in_flight: int | None = None) -> dict:
     """Ground truth of ``designs`` into ``out_dir`` (see the module docstring); resumable.
 
     Everything is checked before anything is written: the folder (:func:`check_folder`), the
@@ -138,17 +142,24 @@ def run_groundtruth(designs: Sequence | None, out_dir: str | Path, cfg: GroundTr
             Ray unless ``ray_address``).
         task: ``(design, cfg dict) -> DesignResult dict`` (tests inject counting fakes).
         refs: compute ``references.json`` (expert baseline sweep, paper gait) if missing.
-        evaluate_many: a batched engine (:data:`~softcrawl.codesign.groundtruth.search.EvaluateMany`):
-            the unfinished designs are searched in lockstep in this process
-            (:func:`~softcrawl.codesign.groundtruth.search.search_many`), each row appended as its
+        evaluate_many: a batched engine (:data:`~softcrawl.codesign.groundtruth.search.EvaluateMany`;
+            ``cfg.engine == "jax"`` gives :func:`jax_evaluator`'s): the unfinished designs are
+            searched in lockstep in this process
+            (:func:`~softcrawl.codesign.groundtruth.search.search_many`), in order of leg count
+            (a batch of one leg count is not padded to another's), each row appended as its
             design finishes; ``executor``, ``workers`` and ``task`` are then not used (the
             references are still computed on the CPU).
+        in_flight: designs searched at once by a batched engine (default
+            :func:`default_in_flight`; it bounds the memory and sets the batch: about 10 to 50
+            episodes per design in flight per call). Not a setting of the folder: a resumed run
+            may take another. A killed run loses at most the designs in flight.
 
     Returns:
         The summary dict (also ``summary.json``).
 
     Raises:
-        ValueError: config mismatch with an existing folder, unknown executor, empty design set,
+        ValueError: config mismatch with an existing folder, unknown executor, ``in_flight`` not
+            in 1..:data:`MAX_IN_FLIGHT` or given to the CPU engine, empty design set,
             no design set (none given, none recorded), a resumed folder given another design
             set, settings out of bounds, a bad reduction file, a folder another command wrote
             (:func:`check_folder`).
@@ -156,10 +167,17 @@ def run_groundtruth(designs: Sequence | None, out_dir: str | Path, cfg: GroundTr
     """
     if executor not in EXECUTORS:
         raise ValueError(f"executor must be one of {EXECUTORS}, got {executor!r}")
+    if in_flight is not None:
+        check_bounds("in_flight", in_flight, 1, MAX_IN_FLIGHT)
+        if isinstance(in_flight, bool) or int(in_flight) != in_flight:
+            raise ValueError(f"in_flight must be an integer, got {in_flight!r}")
     out = check_folder(out_dir)
     existing = (out / "config.json").exists()
     resume = cfg is None and existing
     check = (cfg or GroundTruthConfig()).validate() if not resume else read_config(out)
+    if in_flight is not None and evaluate_many is None and check.engine != "jax":
+        raise ValueError(f'in_flight sets the designs a batched engine searches at once; engine {check.engine!r} '
+                         'searches one design per worker (--workers)')
     designs = None if designs is None else list(dict.fromkeys(check.design_space().canonicalize(d) for d in designs))
     if designs is not None and not designs:
         raise ValueError("empty design set")
@@ -172,7 +190,8 @@ def run_groundtruth(designs: Sequence | None, out_dir: str | Path, cfg: GroundTr
     try:
         with folder_lock(out):
             cfg, designs = _settle_folder(out, cfg, designs, resume)
-            return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs, evaluate_many)
+            return _compute(designs, out, cfg, workers, executor, progress, task, ray_address, refs, evaluate_many,
+                            in_flight)
     except BaseException:
         if created:
             with contextlib.suppress(OSError):
@@ -234,11 +253,11 @@ def _write_config(out: Path, doc: dict) -> None:
     atomic_write_text(out / "config.json", json.dumps(doc, indent=2) + "\n")
 
 
-def jax_evaluate_many(cfg: GroundTruthConfig) -> EvaluateMany:
-    """The batched JAX engine of ``cfg`` (:class:`softcrawl.jaxsim.episodes.JaxEvaluator` of
+def jax_evaluator(cfg: GroundTruthConfig):
+    """The batched JAX engine of ``cfg``: a :class:`softcrawl.jaxsim.episodes.JaxEvaluator` of
     ``cfg``'s design space and robot, on the forward task's floor, in ``cfg.robot.rid_dtype``,
-    batches of at most ``cfg.jax_batch``, diverged episodes scored :data:`DIVERGED_CM`) as an
-    :data:`EvaluateMany`. float64 turns on ``jax_enable_x64`` for the process.
+    batches of at most ``cfg.jax_batch``, diverged episodes scored :data:`DIVERGED_CM`; its
+    ``evaluate`` is an :data:`EvaluateMany`. float64 turns on ``jax_enable_x64`` for the process.
 
     Raises:
         ImportError: JAX is not installed (``pip install "softcrawl[jax]"``).
@@ -255,11 +274,18 @@ def jax_evaluate_many(cfg: GroundTruthConfig) -> EvaluateMany:
     robot = cfg.robot_config() if task.friction is None else dataclasses.replace(cfg.robot_config(),
                                                                                  friction=task.friction)
     return JaxEvaluator(robot, precision=cfg.robot.rid_dtype, max_batch=cfg.jax_batch,
-                        diverged_cm=DIVERGED_CM, space=cfg.design_space()).evaluate
+                        diverged_cm=DIVERGED_CM, space=cfg.design_space())
+
+
+def default_in_flight(cfg: GroundTruthConfig) -> int:
+    """Designs a batched engine searches at once unless told (:func:`run_groundtruth`):
+    ``cfg.jax_batch // 16`` (at least 1), so that a call's screening episodes (a round is 10 to 50
+    episodes per design) fill about one to three batches of ``cfg.jax_batch``."""
+    return max(1, cfg.jax_batch // 16)
 
 
 def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor, progress, task, ray_address,
-             refs, evaluate_many) -> dict:
+             refs, evaluate_many, in_flight) -> dict:
     """The body of :func:`run_groundtruth` once the folder is locked and its settings known."""
     done = load_results(out)
     todo = [d for d in designs if d not in done]
@@ -270,19 +296,33 @@ def _compute(designs: list, out: Path, cfg: GroundTruthConfig, workers, executor
 
     bar = tqdm(total=len(designs), initial=len(designs) - len(todo), desc="ground truth", unit="design",
                disable=not progress, dynamic_ncols=True)
+    forget = None
+    if todo and evaluate_many is None and cfg.engine == "jax":
+        engine = jax_evaluator(cfg)
+        evaluate_many, forget = engine.evaluate, engine.forget
+    post: dict = {}  # the bar's postfix: the last reward; with a batched engine, episodes and their rate
 
     def finish(d_result: dict) -> None:
         r = DesignResult.from_dict(d_result, space=space)  # a worker's dict: DesignResult.to_dict()
         _append(res_path, r, unit)
         done[r.design] = r
+        if forget is not None:
+            forget([r.design])
+        post["last"] = f"{r.reward_cm:+.2f}{unit}"
+        bar.set_postfix(post, refresh=False)
         bar.update()
-        bar.set_postfix(last=f"{r.reward_cm:+.2f}{unit}", refresh=False)
 
-    if todo and evaluate_many is None and cfg.engine == "jax":
-        evaluate_many = jax_evaluate_many(cfg)
+    def counted(requests):
+        replies = evaluate_many(requests)
+        post["episodes"] = post.get("episodes", 0) + len(requests)
+        post["episodes/s"] = f"{post['episodes'] / (time.perf_counter() - wall):.1f}"
+        bar.set_postfix(post)
+        return replies
+
     if todo:
         if evaluate_many is not None:
-            for r in search_many(todo, cfg, evaluate_many, space):
+            todo.sort(key=lambda d: sum(v > 0 for v in d))  # stable: the set's order within a leg count
+            for r in search_many(todo, cfg, counted, space, in_flight or default_in_flight(cfg)):
                 finish(r.to_dict())
         elif executor == "serial":
             for d in todo:

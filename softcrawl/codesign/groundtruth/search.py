@@ -7,14 +7,19 @@ first (:func:`seed_knots`); the ``finalists`` best distinct candidates, and the 
 of each, are then re-run with full ``duration`` episodes (module docstring of
 :mod:`softcrawl.codesign.groundtruth`).
 
-The search of one design is a coroutine (:func:`design_search`) that asks for episodes and is
-told their rewards, so that any engine can run them: one design on the CPU
-(:func:`softcrawl.codesign.groundtruth.optimize.optimize_design`), or many designs in lockstep,
-each round's episodes in one batched call (:func:`search_many`).
+The search of one design is a coroutine that asks for episodes and is told their rewards, so
+that any engine can run them. It asks in rounds (:func:`design_rounds`): every episode it can
+ask for before it needs an answer, i.e. the structured seeds of all cycle lengths, then one
+CMA-ES generation of each cycle length's run (the runs are independent), then all the finals;
+6 to 8 rounds of up to about 50 episodes with the default settings. One design on the CPU runs them one
+after another (:func:`softcrawl.codesign.groundtruth.optimize.optimize_design`); many designs
+advance in lockstep (:func:`search_many`), the round of every design in flight in one batched
+call. :func:`design_search` is the same search asking for one episode at a time.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import math
@@ -78,20 +83,24 @@ def knots_to_gait(x: np.ndarray, m: int, L: int, hold: float, waveform: str = "s
     return PeriodicGait.from_knots(k, hold, waveform)
 
 
-def cma_search(dim: int, budget: int, seeds: Sequence[np.ndarray] = (), x0: float | np.ndarray = 0.5,
-               sigma0: float = 0.3, popsize: int | None = None, seed: int = 0):
-    """CMA-ES (``cma``) maximizing over ``[0, 1]^dim`` as a generator: it yields points
-    ``(dim,)`` and is sent their values; exactly ``budget`` points (the last generation
-    truncated). ``seeds`` (points in [0, 1]^dim) come first (at most ``budget // 2`` of them) and
-    CMA-ES starts at the best one (else at ``x0``). CMA-ES searches ``[-0.15, 1.15]^dim``
-    clipped to ``[0, 1]`` so that the bounds (vent, full pressure) are reached; it restarts
-    around the best point with half the step if it converges early. ``dim == 1`` searches a
-    dummy second coordinate (cma needs 2).
+def cma_generations(dim: int, budget: int, seeds: Sequence[np.ndarray] = (), x0: float | np.ndarray = 0.5,
+                    sigma0: float = 0.3, popsize: int | None = None,
+                    seed: int = 0) -> typing.Generator[list[np.ndarray], list[float], list]:
+    """CMA-ES (``cma``) maximizing over ``[0, 1]^dim`` as a generator of rounds: it yields lists
+    of points ``(dim,)`` (first the seeds, then each generation) and is sent the list of their
+    values; exactly ``budget`` points (the last generation truncated). ``seeds`` (points in
+    [0, 1]^dim) come first (at most ``budget // 2`` of them) and CMA-ES starts at the best one
+    (else at ``x0``). CMA-ES searches ``[-0.15, 1.15]^dim`` clipped to ``[0, 1]`` so that the
+    bounds (vent, full pressure) are reached; it restarts around the best point with half the
+    step if it converges early. ``dim == 1`` searches a dummy second coordinate (cma needs 2).
+    Its samples come from a generator of its own (numpy's ``RandomState`` of ``seed``, the
+    stream cma's ``seed`` option would give numpy's global one): runs advanced together do not
+    change each other's points.
 
     Returns (``StopIteration.value``): the history ``[(x, value), ...]`` in evaluation order.
 
     Raises:
-        ValueError: ``dim < 1`` or ``budget < 1``.
+        ValueError: ``dim < 1`` or ``budget < 1``; a round answered with another number of values.
     """
     import cma
 
@@ -103,38 +112,76 @@ def cma_search(dim: int, budget: int, seeds: Sequence[np.ndarray] = (), x0: floa
         x = np.ravel(np.asarray(x, float))
         return np.r_[x, np.full(n - len(x), 0.5)] if len(x) < n else x
 
+    def ask(points: list[np.ndarray]):
+        """Yield ``points`` (clipped to [0, 1], the first ``dim`` coordinates) and return their values."""
+        values = yield [np.clip(x[:dim], 0.0, 1.0) for x in points]
+        if len(values) != len(points):
+            raise ValueError(f"{len(values)} values sent for {len(points)} points")
+        history.extend((np.clip(x, 0.0, 1.0), float(v)) for x, v in zip(points, values))
+        return [float(v) for v in values]
+
     history: list[tuple[np.ndarray, float]] = []
-    for s in [np.clip(pad(s), 0, 1) for s in seeds][: max(0, budget // 2)]:
-        v = yield s[:dim].copy()
-        history.append((s, float(v)))
+    first = [np.clip(pad(s), 0, 1) for s in seeds][: max(0, budget // 2)]
+    if first:
+        yield from ask(first)
     x0v = max(history, key=lambda h: h[1])[0] if history else (
         np.full(n, x0, float) if np.ndim(x0) == 0 else pad(x0))
     lo, hi = -0.15, 1.15
-    opts = {"bounds": [lo, hi], "seed": int(seed) % (2**31 - 1) + 1, "verbose": -9, "tolfun": 1e-9, "tolx": 1e-6}
-    if popsize is not None:
-        opts["popsize"] = int(popsize)
-    es = cma.CMAEvolutionStrategy(np.clip(x0v, lo + 1e-3, hi - 1e-3), sigma0, opts)
+    rng_seed = int(seed) % (2**31 - 1) + 1
+
+    def options() -> dict:
+        # cma's own seeding reseeds numpy's global generator, which searches advanced together
+        # would share: each run draws from a generator of its own (the same stream)
+        return {"bounds": [lo, hi], "randn": np.random.RandomState(rng_seed).randn, "verbose": -9,
+                "tolfun": 1e-9, "tolx": 1e-6, **({} if popsize is None else {"popsize": int(popsize)})}
+
+    es = cma.CMAEvolutionStrategy(np.clip(x0v, lo + 1e-3, hi - 1e-3), sigma0, options())
     while len(history) < budget:
         xs = es.ask()[: budget - len(history)]
-        vals = []
-        for x in xs:
-            v = yield np.clip(x[:dim], 0.0, 1.0)
-            vals.append(float(v))
-            history.append((np.clip(x, 0.0, 1.0), float(v)))
+        vals = yield from ask(xs)
         if len(xs) < es.popsize:
             break
         es.tell(xs, [-v for v in vals])
         if es.stop() and len(history) < budget:  # converged early: restart around the best
-            opts["seed"] += 1
+            rng_seed += 1
             es = cma.CMAEvolutionStrategy(np.clip(max(history, key=lambda h: h[1])[0], lo + 1e-3, hi - 1e-3),
-                                          sigma0 / 2, opts)
+                                          sigma0 / 2, options())
     return [(x[:dim], v) for x, v in history]
 
 
-def drive(gen, f: Callable[[np.ndarray], float]):
+def one_at_a_time(rounds: typing.Generator[list, list, typing.Any]) -> typing.Generator:
+    """The coroutine ``rounds`` (it yields lists of requests and is sent lists of their
+    answers, in order) asking for one request at a time: it yields each request and is sent
+    its answer; returns what ``rounds`` returns."""
+    try:
+        requests = next(rounds)
+        while True:
+            answers = []
+            for request in requests:
+                answers.append((yield request))
+            requests = rounds.send(answers)
+    except StopIteration as stop:
+        return stop.value
+
+
+def cma_search(dim: int, budget: int, seeds: Sequence[np.ndarray] = (), x0: float | np.ndarray = 0.5,
+               sigma0: float = 0.3, popsize: int | None = None, seed: int = 0):
+    """:func:`cma_generations` asking for one point at a time: it yields points ``(dim,)`` and
+    is sent their values (the same points, in the same order).
+
+    Returns (``StopIteration.value``): the history ``[(x, value), ...]`` in evaluation order.
+
+    Raises:
+        ValueError: ``dim < 1`` or ``budget < 1``.
+    """
+    return one_at_a_time(cma_generations(dim, budget, seeds, x0, sigma0, popsize, seed))
+
+
+def drive(gen, f: Callable):
     """Run a coroutine that yields requests and is sent their answers ``f(request)`` (a
-    :func:`cma_search` with objective ``f``, a :func:`design_search` with an evaluator) to its
-    end; returns its return value."""
+    :func:`cma_search` with objective ``f``, a :func:`design_search` with an evaluator, a
+    :func:`design_rounds` with a function answering a round's list) to its end; returns its
+    return value."""
     try:
         x = next(gen)
         while True:
@@ -171,30 +218,54 @@ Request = tuple[PeriodicGait, float]
 Reply = tuple[float, bool]
 
 
-def design_search(design, cfg: GroundTruthConfig,
-                  space: DesignSpace = DEFAULT_SPACE) -> typing.Generator[Request, Reply, DesignResult]:
-    """The best gait of ``design`` in the family as a coroutine (the search of the module
-    docstring): it yields the episodes it needs, ``(gait, duration)``, one at a time, and is
-    sent each one's ``(reward cm, diverged)``; a diverged episode (or a non-finite reward)
-    scores :data:`DIVERGED_CM`. Exactly ``len(cfg.cycles) * cfg.evals_per_cycle`` search
-    episodes of ``cfg.screen_duration`` s (``cfg.duration`` without screening), then at most
+def design_rounds(design, cfg: GroundTruthConfig,
+                  space: DesignSpace = DEFAULT_SPACE) -> typing.Generator[list[Request], list[Reply], DesignResult]:
+    """The best gait of ``design`` in the family as a coroutine of rounds (the search of the
+    module docstring): it yields lists of the episodes it needs, ``[(gait, duration), ...]``,
+    and is sent each list's ``[(reward cm, diverged), ...]`` in the same order; a diverged
+    episode (or a non-finite reward) scores :data:`DIVERGED_CM`. Its rounds: the seeds of every
+    cycle length (:func:`seed_knots`), then a generation of each cycle length's CMA-ES run
+    still going (:func:`cma_generations`; the runs are independent, each with its own seed),
+    then the finals. Exactly ``len(cfg.cycles) * cfg.evals_per_cycle`` search episodes of
+    ``cfg.screen_duration`` s (``cfg.duration`` without screening), then at most
     ``2 * cfg.finalists`` finals of ``cfg.duration`` s.
 
-    The design and the settings are checked when this is called, before the first request.
+    The design and the settings are checked when this is called, before the first round.
     The gaits command the ``R`` regulators of ``space`` (the design's design space).
 
     Returns (``StopIteration.value``):
         :class:`DesignResult` with ``wall_seconds`` 0 (the driver knows the time it took).
 
     Raises:
-        InvalidDesignError: invalid design. ValueError: invalid ``cfg``.
+        InvalidDesignError: invalid design. ValueError: invalid ``cfg``; a round answered with
+            another number of replies than it asked for.
     """
     cfg.validate()
-    return _search(space.canonicalize(design), cfg, space.n_regulators)
+    return _rounds(space.canonicalize(design), cfg, space.n_regulators)
 
 
-def _search(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Generator[Request, Reply, DesignResult]:
-    """The body of :func:`design_search` (a generator, run only once asked for its first request)."""
+def design_search(design, cfg: GroundTruthConfig,
+                  space: DesignSpace = DEFAULT_SPACE) -> typing.Generator[Request, Reply, DesignResult]:
+    """:func:`design_rounds` asking for one episode at a time (:func:`one_at_a_time`): it
+    yields ``(gait, duration)`` and is sent that episode's ``(reward cm, diverged)``; the same
+    episodes in the same order, the same result. Checked as :func:`design_rounds`, when called.
+
+    Raises:
+        InvalidDesignError: invalid design. ValueError: invalid ``cfg``.
+    """
+    return one_at_a_time(design_rounds(design, cfg, space))
+
+
+def _answered(replies: Sequence[Reply], requests: Sequence) -> Sequence[Reply]:
+    """``replies``, checked to answer every one of ``requests`` (ValueError otherwise)."""
+    if len(replies) != len(requests):
+        raise ValueError(f"{len(replies)} replies to a round of {len(requests)} episodes")
+    return replies
+
+
+def _rounds(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Generator[list[Request], list[Reply],
+                                                                                    DesignResult]:
+    """The body of :func:`design_rounds` (a generator, run only once asked for its first round)."""
     m = max(design)  # canonical labels are 1..m (used_regulators)
     screen = cfg.screen_duration if cfg.screen_duration is not None and cfg.screen_duration < cfg.duration else None
     search_t = screen or cfg.duration
@@ -206,21 +277,32 @@ def _search(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Genera
         n_eval, n_full, sim, n_div = n_eval + 1, n_full + int(duration == cfg.duration), sim + duration, n_div + int(div)
         return DIVERGED_CM if div else r
 
+    # the search: one CMA-ES run per cycle length, all advanced together
+    runs = [cma_generations(m * L, cfg.evals_per_cycle, [s.ravel() for s in seed_knots(m, L)], sigma0=cfg.sigma0,
+                            popsize=cfg.popsize, seed=design_seed(design, cfg.seed) + ci)
+            for ci, L in enumerate(cfg.cycles)]
+    asked = {ci: next(run) for ci, run in enumerate(runs)}  # each unfinished run's points of this round
+    histories: dict[int, list] = {}
+    while asked:
+        current = list(asked.items())
+        requests = [(knots_to_gait(x, m, cfg.cycles[ci], cfg.hold, n_regulators=n_reg), search_t)
+                    for ci, xs in current for x in xs]
+        replies = _answered((yield requests), requests)
+        at = 0
+        for ci, xs in current:
+            values = [score(reply, search_t) for reply in replies[at:at + len(xs)]]
+            at += len(xs)
+            try:
+                asked[ci] = runs[ci].send(values)
+            except StopIteration as stop:
+                del asked[ci]
+                histories[ci] = stop.value
     candidates: list[tuple[float, int, np.ndarray]] = []  # (search reward, L, x)
     per_cycle = {}
     for ci, L in enumerate(cfg.cycles):
-        cma = cma_search(m * L, cfg.evals_per_cycle, [s.ravel() for s in seed_knots(m, L)], sigma0=cfg.sigma0,
-                         popsize=cfg.popsize, seed=design_seed(design, cfg.seed) + ci)
-        try:
-            x = next(cma)
-            while True:
-                gait = knots_to_gait(x, m, L, cfg.hold, n_regulators=n_reg)
-                x = cma.send(score((yield gait, search_t), search_t))
-        except StopIteration as stop:
-            hist = stop.value
-        per_cycle[int(L)] = max(hist, key=lambda h: h[1])[1]
-        candidates += [(v, L, x) for x, v in hist]
-    # finals: the best distinct candidates, step and smooth, with full episodes
+        per_cycle[int(L)] = max(histories[ci], key=lambda h: h[1])[1]
+        candidates += [(v, L, x) for x, v in histories[ci]]
+    # finals: the best distinct candidates, step and smooth, with full episodes, in one round
     candidates.sort(key=lambda c: -c[0])
     finals, seen = [], set()
     for v, L, x in candidates:
@@ -230,16 +312,15 @@ def _search(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Genera
             finals.append((v, L, x))
         if len(finals) >= cfg.finalists:
             break
+    trials = [(v, L, wf, knots_to_gait(x, m, L, cfg.hold, wf, n_reg)) for v, L, x in finals for wf in WAVEFORMS]
+    known = [wf == "step" and screen is None for _, _, wf, _ in trials]  # the search ran it at full length
+    requests = [(gait, cfg.duration) for (*_, gait), k in zip(trials, known) if not k]
+    replies = iter(_answered((yield requests), requests))
     best = None  # (full reward, screen reward, gait, L)
-    for v, L, x in finals:
-        for wf in WAVEFORMS:
-            gait = knots_to_gait(x, m, L, cfg.hold, wf, n_reg)
-            if wf == "step" and screen is None:
-                r = v
-            else:
-                r = score((yield gait, cfg.duration), cfg.duration)
-            if best is None or r > best[0]:
-                best = (r, v if (wf == "step" and screen) else float("nan"), gait, L)
+    for (v, L, wf, gait), k in zip(trials, known):
+        r = v if k else score(next(replies), cfg.duration)
+        if best is None or r > best[0]:
+            best = (r, v if (wf == "step" and screen) else float("nan"), gait, L)
     r, sv, gait, L = best
     return DesignResult(design, float(r), gait.to_dict(), int(L), gait.waveform, n_eval, n_full, sim, 0.0,
                         float(sv), per_cycle, n_div)
@@ -251,44 +332,68 @@ EvaluateMany = Callable[[list[tuple[Design, PeriodicGait, float]]], Sequence[Rep
 
 
 def search_many(designs: Iterable, cfg: GroundTruthConfig, evaluate_many: EvaluateMany,
-                space: DesignSpace = DEFAULT_SPACE) -> Iterator[DesignResult]:
-    """The searches of ``designs`` (:func:`design_search`) advanced in lockstep: each round
-    collects the pending episode of every unfinished design and makes one call
-    ``evaluate_many([(design, gait, duration), ...])`` (any engine: a batched simulator, or
-    :class:`softcrawl.codesign.groundtruth.optimize.SerialEvaluateMany` on the CPU). Each
-    design's result equals :func:`~softcrawl.codesign.groundtruth.optimize.optimize_design`'s
-    with the same episodes' answers.
+                space: DesignSpace = DEFAULT_SPACE, in_flight: int | None = None) -> Iterator[DesignResult]:
+    """The searches of ``designs`` (:func:`design_rounds`) advanced in lockstep: each step
+    collects the round of every design in flight, and makes one call
+    ``evaluate_many([(design, gait, duration), ...])`` of all their episodes (any engine: a
+    batched simulator, or :class:`softcrawl.codesign.groundtruth.optimize.SerialEvaluateMany`
+    on the CPU). Each design's result equals
+    :func:`~softcrawl.codesign.groundtruth.optimize.optimize_design`'s with the same episodes'
+    answers.
+
+    At most ``in_flight`` designs are searched at once (bounded memory, and a batch of about
+    ``in_flight`` times a round's 10 to 50 episodes); the next designs, in the order given, join
+    when half of them or fewer are left, together (so that a batched engine prepares the
+    newcomers in one batch), until none is left.
 
     Args:
         designs: designs of ``space`` (canonicalised; duplicates dropped).
         cfg: settings.
         evaluate_many: see :data:`EvaluateMany`.
         space: the designs' design space (its canonical forms, its regulators).
+        in_flight: most designs searched at once (None: all of them).
 
     Yields:
-        :class:`DesignResult` of each design as it finishes (designs with fewer episodes first);
+        :class:`DesignResult` of each design as it finishes (designs with fewer rounds first);
         ``wall_seconds``: its share of the time spent in ``evaluate_many`` (each call's time
         split evenly among its episodes).
 
     Raises:
-        InvalidDesignError: an invalid design. ValueError: invalid ``cfg``; ``evaluate_many``
-            answered a round with another number of replies than it was asked.
+        InvalidDesignError: an invalid design. ValueError: invalid ``cfg`` or ``in_flight``;
+            ``evaluate_many`` answered a call with another number of replies than it was asked.
+        All but the last are raised before the first call.
     """
-    pending = {}  # design -> [search, its request, wall seconds]
-    for d in dict.fromkeys(space.canonicalize(d) for d in designs):
-        search = design_search(d, cfg, space)
-        pending[d] = [search, next(search), 0.0]
-    while pending:
-        round_ = list(pending.items())
+    cfg.validate()
+    if in_flight is not None and (isinstance(in_flight, bool) or int(in_flight) != in_flight or in_flight < 1):
+        raise ValueError(f"in_flight must be a positive integer or None, got {in_flight!r}")
+    queue = collections.deque(dict.fromkeys(space.canonicalize(d) for d in designs))
+    limit = len(queue) if in_flight is None else int(in_flight)
+    active: dict = {}  # design -> [its rounds, its requests of this step, wall seconds]
+
+    def admit() -> None:
+        while queue and len(active) < limit:
+            d = queue.popleft()
+            rounds = design_rounds(d, cfg, space)
+            active[d] = [rounds, next(rounds), 0.0]
+
+    admit()
+    while active:
+        step = list(active.items())
+        requests = [(d, *request) for d, p in step for request in p[1]]
         t0 = time.perf_counter()
-        replies = list(evaluate_many([(d, *p[1]) for d, p in round_]))
-        if len(replies) != len(round_):
-            raise ValueError(f"evaluate_many answered {len(replies)} of {len(round_)} episodes")
-        share = (time.perf_counter() - t0) / len(round_)
-        for (d, p), reply in zip(round_, replies):
-            p[2] += share
+        replies = list(evaluate_many(requests))
+        if len(replies) != len(requests):
+            raise ValueError(f"evaluate_many answered {len(replies)} of {len(requests)} episodes")
+        share = (time.perf_counter() - t0) / len(requests)
+        at = 0
+        for d, p in step:
+            n = len(p[1])
+            p[2] += share * n
             try:
-                p[1] = p[0].send(reply)
+                p[1] = p[0].send(replies[at:at + n])
             except StopIteration as stop:
-                del pending[d]
+                del active[d]
                 yield dataclasses.replace(stop.value, wall_seconds=p[2])
+            at += n
+        if len(active) <= limit // 2:
+            admit()
