@@ -1,11 +1,13 @@
 """The README's and docs/results.md's figures that are cheap to check: the training presets'
 table and episode, the shipped ground truth of the three-legged designs, the pressure warp, the
-design space's size and the settling of a robot to rest. Figures that take minutes to hours (the
+design space's size, the settling of a robot to rest and the README's `demo` sentence against the
+seeds docs/results.md records. Figures that take minutes to hours (the
 20-s crawls, the reduction's validation, the speed-ups, the co-design runs, the expert baseline's
 phase sweep) are in docs/results.md, each with the command that reproduces it."""
 
 from __future__ import annotations
 
+import csv
 import re
 from pathlib import Path
 
@@ -152,3 +154,22 @@ def test_paper_best_design_crawls_the_documented_20_s_on_the_reduced_model():
     robot = build_robot((1, 0, 0, 2, 2, 0, 0, 0), RobotConfig(model="reduced"))
     res = run_episode(robot, paper_best_gait(n_actions=20), 20.0, record_every=None, progress=False)
     assert not res.diverged and res.reward_cm == pytest.approx(11.8, abs=0.5), res.reward_cm
+
+
+def test_the_readmes_demo_sentence_is_the_median_and_range_of_the_recorded_seeds():
+    """The README states the ``demo`` outcome as the median and range over the seeds recorded in
+    docs/results.md (its table of seeds 0-4 with the shortlist), and the ranks there are the
+    shipped ground truth's for the recorded winners."""
+    results = (ROOT / "docs" / "results.md").read_text()
+    table = results.split("**`demo`, seeds 0–4, with the shortlist**", 1)[1].split("\n\n**", 1)[0]
+    rows = re.findall(r"^\| (\d) \| `([\d,]+)` \| \+([\d.]+) cm \| ([\d.]+)× \| \**(\d+) \(", table, flags=re.M)
+    assert [int(r[0]) for r in rows] == [0, 1, 2, 3, 4]
+    ranks, gaits, ratios = [int(r[4]) for r in rows], [float(r[2]) for r in rows], [float(r[3]) for r in rows]
+    text = " ".join(README.read_text().split())
+    assert (f"ground-truth rank median {int(np.median(ranks))} (range {min(ranks)}–{max(ranks)}) of 280, its gait "
+            f"median +{np.median(gaits):.2f} cm (range +{min(gaits):.2f} to +{max(gaits):.2f}), "
+            f"{min(ratios):.1f}–{max(ratios):.1f}× the expert baseline") in text
+    with open(SHIPPED_GT / "groundtruth.csv", newline="") as f:
+        shipped = {r["design"]: int(r["rank"]) for r in csv.DictReader(f)}
+    for seed, design, *_, rank in rows:
+        assert shipped[design] == int(rank), seed
