@@ -119,19 +119,34 @@ def tiny_env_class():
 
 def update_spy(fns):
     """A serial backend of env factories ``fns`` that counts, in ``during``, the gradient updates
-    of its ``model`` (set it) made while a step is in flight (between send and receive)."""
+    of its ``model`` (set it) made while a step or a round of episodes is in flight (between
+    send and receive)."""
     from softcrawl.envs.backends import SerialBackend
 
     class Spy(SerialBackend):
         model, during, before = None, 0, 0
 
-        def step_send(self, actions):
-            super().step_send(actions)
+        def _mark_sent(self):
             self.before = self.model._n_updates
 
-        def step_recv(self):
+        def _count_received(self):
             self.during += self.model._n_updates - self.before
+
+        def step_send(self, actions):
+            super().step_send(actions)
+            self._mark_sent()
+
+        def step_recv(self):
+            self._count_received()
             return super().step_recv()
+
+        def episodes_send(self, actions):
+            super().episodes_send(actions)
+            self._mark_sent()
+
+        def episodes_recv(self):
+            self._count_received()
+            return super().episodes_recv()
 
     return Spy(fns)
 

@@ -19,7 +19,7 @@ from softcrawl.codesign.sac_jax import make_sac
 from softcrawl.envs.backends import SerialBackend
 from softcrawl.envs.vec import DesignVecEnv
 
-from helpers import tiny_env_class
+from helpers import tiny_env_class, update_spy
 
 
 def _transitions(n: int, rng) -> dict[str, np.ndarray]:
@@ -161,27 +161,13 @@ def test_the_actors_scan_feeds_back_its_actions_as_the_env_builds_its_observatio
         np.testing.assert_array_equal(np.asarray(obs)[:, k], seen[k])
 
 
-class _Spy(SerialBackend):
-    """Counts the updates made while the episodes are in flight (between send and receive)."""
-
-    model, during, before = None, 0, 0
-
-    def episodes_send(self, actions):
-        super().episodes_send(actions)
-        self.before = self.model._n_updates
-
-    def episodes_recv(self):
-        self.during += self.model._n_updates - self.before
-        return super().episodes_recv()
-
-
 @pytest.mark.parametrize("overlap", [False, True])
 def test_the_loop_makes_sb3s_updates_per_round_overlapped_with_the_next_episodes(overlap):
     """2 envs, 3-action episodes, one update per transition after 10 transitions: 40 asked
     for, 7 rounds (42: whole episodes); updates after the vectorised steps at 12, 14, ..., 42:
     2 x 16 = 32, in one compiled call per round; overlapped, all but the last round's run
     while the next round's episodes do (the last ones at ``flush``)."""
-    backend = _Spy([_Open] * 2)
+    backend = update_spy([_Open] * 2)
     model = _open_learner(backend=backend, learning_starts=10, overlap=overlap)
     backend.model = model
     calls = []

@@ -128,10 +128,14 @@ class SubprocessBackend(ChunkedBackend):
         self.step_send(actions)
         return self.step_recv()
 
-    def step_send(self, actions):
+    def _send_chunks(self, cmd: str, actions) -> None:
+        """Send each worker ``(cmd, its envs' rows of actions)``, one message per worker."""
         actions = np.asarray(actions)
         for w, chunk in enumerate(self._chunks):
-            self.remotes[w].send(("step", actions[chunk]))
+            self.remotes[w].send((cmd, actions[chunk]))
+
+    def step_send(self, actions):
+        self._send_chunks("step", actions)
 
     def step_recv(self):
         return [r for w in range(len(self._chunks)) for r in self._recv(w)]
@@ -142,9 +146,7 @@ class SubprocessBackend(ChunkedBackend):
 
     def episodes_send(self, actions):
         """Send each worker its envs' actions of the whole episode (one message per worker)."""
-        actions = np.asarray(actions)
-        for w, chunk in enumerate(self._chunks):
-            self.remotes[w].send(("episodes", actions[chunk]))
+        self._send_chunks("episodes", actions)
 
     def episodes_recv(self):
         return self.step_recv()
