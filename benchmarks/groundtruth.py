@@ -1,4 +1,4 @@
-"""Ground-truth measurements (issue 21): screening rank agreement, the cost of one design, and the
+"""Ground-truth measurements: screening rank agreement, the cost of one design, and the
 rate of a whole-space run on the JAX engine.
 
 ``python benchmarks/groundtruth.py screening --designs 8 --gaits 5 --out screening.json``:

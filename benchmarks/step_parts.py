@@ -10,8 +10,7 @@ device. Prints one JSON line per part:
 * ``solve_contacts``: the contact solve alone (its default solver and iterations).
 
 Each is ``ms`` per call (the mean of ``--calls`` calls after a first, compiling one). The parts
-overlap (a part's time includes the parts inside it). Measured on an H100 and this VM:
-benchmarks/RESULTS.md.
+overlap (a part's time includes the parts inside it). Figures: benchmarks/RESULTS.md.
 
     python benchmarks/step_parts.py [--batch 1024] [--precision float32|float64] [--calls 10]
 """

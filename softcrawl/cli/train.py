@@ -85,8 +85,8 @@ def train_and_report(out: str | os.PathLike, cfg: TrainConfig | None = None, res
 def paper_backend(cfg: TrainConfig, learner_device: bool = True) -> TrainConfig:
     """``cfg`` (the ``paper`` preset, no backend given) on the JAX backend when JAX sees a GPU
     and its settings run there, with its learner there too when ``learner_device`` (no
-    ``sac.device`` given: on an H100 the JAX learner makes 2,574 updates/s against 122 on a CPU
-    thread, and the preset makes 1M), said in one line on stderr; else ``cfg`` as it is (with a line
+    ``sac.device`` given: the preset makes 1M updates, many times faster there; figures in
+    benchmarks/RESULTS.md), said in one line on stderr; else ``cfg`` as it is (with a line
     saying why when a GPU is seen but the settings cannot run on JAX, e.g. the ``turning`` task).
     The learner's threads are set first (:func:`softcrawl.codesign.sac.prepare_learner`: JAX
     reads them once, when it starts).

@@ -50,8 +50,8 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
             rows, :func:`pair_products`) or ``None``: ``"rows"`` on a CPU, ``"pairs"`` elsewhere
             (``jax.lax.platform_dependent``). The same sums in another order; ``"pairs"`` costs
             about 3x the multiply-adds but is one large matrix product over all legs of a batch
-            and keeps no ``Z`` (256 KB per leg): 1.65x faster on an H100, 3-4x slower on a CPU
-            (benchmarks/RESULTS.md).
+            and keeps no ``Z`` (256 KB per leg): faster on a GPU, slower on a CPU (figures in
+            benchmarks/RESULTS.md).
 
     Returns:
         ``(K, f, n_bad)``: ``(m', m')`` ``K_r`` of the strain modes (mN/mm), ``(m',)``
