@@ -71,7 +71,7 @@ def test_run_config_saved_before_a_setting_reads_back_with_its_reference_value()
     d = preset("demo").to_dict()
     del d["sac"]["learner"]  # runs saved before sac.learner (formats 1 and 2) were the torch learner's
     assert TrainConfig.from_dict(read_settings("train", {"config_version": 2, "config": d})).sac.learner == "torch"
-    assert new.sac.learner == "sbx"
+    assert TrainConfig().sac.learner == "sbx" and new.sac.learner == "torch"  # demo: docs/codesign.md
     with pytest.raises(ValueError, match="sac.learner must be one of"):
         override(new, ['sac.learner="tf"'])
 

@@ -29,13 +29,15 @@ env.robot.contact_max_iterations=250`` restores the reference step):
 * ``demo``: the README's first command, 5-12 min on the 2-core VM (its fastest and slowest
   hosts): the same simulation as ``crawl`` (20 s episodes of 1 s actions, 280 three-legged
   designs), 8 envs in 2 workers, 8K transitions (400 episodes), one update per 2 transitions
-  (batch 128).
+  (batch 128), stable-baselines3's torch learner (``sac.learner``; over seeds 0-4 on one host it
+  chose designs of ground-truth rank 8-14 where SBX's chose 3-80, docs/codesign.md, "The
+  ``demo`` preset").
 * ``smoke``: CI, < 1 min: the reduced model at 0.01 s, 2 envs in-process, 2 steps per action,
   160 transitions, a shortlist of 2 designs.
 
-Every preset but ``smoke`` ends with a shortlist of 4 designs (``shortlist``,
-:mod:`softcrawl.codesign.shortlist`; docs/codesign.md, "The run's design": what 4 catches in the
-logged runs, and its cost).
+Every preset but ``smoke`` ends with a shortlist of 8 designs (``shortlist``,
+:mod:`softcrawl.codesign.shortlist`; docs/codesign.md, "The run's design": why 8, and its
+cost).
 
 The robot's settings are one :class:`softcrawl.robot.RobotConfig`, ``env.robot``; ``--set
 env.FIELD=VALUE`` of a robot field (``env.dt``, ``env.leg_mesh_size``, ...) sets
@@ -572,7 +574,7 @@ def preset(name: str) -> TrainConfig:
         return TrainConfig(
             preset="demo", n_envs=8, total_steps=8_000, backend="subprocess", n_workers=2,
             checkpoint_every=1_600, snapshot_every=320, env=_coarse_env(), rollout="action",
-            sac=SACConfig(buffer_size=20_000, batch_size=128, learning_starts=800, utd_ratio=0.5),
+            sac=SACConfig(buffer_size=20_000, batch_size=128, learning_starts=800, utd_ratio=0.5, learner="torch"),
         ).validate()
     if name == "smoke":
         return TrainConfig(
