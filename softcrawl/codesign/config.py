@@ -26,12 +26,11 @@ env.robot.contact_max_iterations=250`` restores the reference step):
   per design), one update per 2 transitions (batch 256), the entropy schedule of the paper
   scaled to the run: 41 min of training for seed 0 on the quiet 2-core VM (25.8 transitions/s;
   the overlapped learner cost 16% of the wall time when measured at 15.9 transitions/s).
-* ``demo``: the README's first command, 5-12 min on the 2-core VM (its fastest and slowest
-  hosts): the same simulation as ``crawl`` (20 s episodes of 1 s actions, 280 three-legged
-  designs), 8 envs in 2 workers, 8K transitions (400 episodes), one update per 2 transitions
-  (batch 128), stable-baselines3's torch learner (``sac.learner``; over seeds 0-4 on one host it
-  chose designs of ground-truth rank 8-14 where SBX's chose 3-80, docs/codesign.md, "The
-  ``demo`` preset").
+* ``demo``: the README's first command (its time on 2 cores: docs/results.md): the same
+  simulation as ``crawl`` (20 s episodes of 1 s actions, 280 three-legged designs), 8 envs in 2
+  workers, 8K transitions (400 episodes), one update per 2 transitions (batch 128),
+  stable-baselines3's torch learner (``sac.learner``; why: docs/codesign.md, "The ``demo``
+  preset: what was tried").
 * ``smoke``: CI, < 1 min: the reduced model at 0.01 s, 2 envs in-process, 2 steps per action,
   160 transitions, a shortlist of 2 designs.
 
