@@ -16,11 +16,17 @@ default device. Printed as one JSON line (per batch size when timing):
   the step has no loop of its own, ``inner_loops`` 0: XLA counts a loop body once);
 * with ``--time`` (the default on a GPU): ``ms_per_step`` and ``robot_steps_per_s`` at each of
   ``--batches`` (random designs, landed for one action first; ``bad_robots``: robots whose state
-  went invalid).
+  went invalid);
+* with ``--profile DIR``: one more call at each timed batch ``B`` under JAX's profiler, its
+  trace in ``DIR/bB`` and, printed as one JSON line, the kernels per step, the device's busy time
+  per step and the kernels that cost most, each with the JAX operation it came from
+  (:func:`softcrawl.jaxsim.cost.kernel_profile`; all of them in ``DIR/bB/kernels.json``, the
+  compiled program in ``DIR/bB/step.hlo.txt``; ``by_scope``: the step's parts).
 
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
         [--iterations N] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
+        [--profile DIR]
 """
 
 from __future__ import annotations
@@ -29,6 +35,10 @@ import argparse
 import json
 import platform
 import time
+from pathlib import Path
+
+#: The named scopes of :func:`softcrawl.jaxsim.engine.physics_step` a profile is summed over.
+SCOPES = ("legs_free_motion", "disk_free_motion", "constraint_rows", "condense", "solve_contacts", "corrections")
 
 
 def main(argv=None) -> None:
@@ -43,6 +53,8 @@ def main(argv=None) -> None:
     p.add_argument("--batches", default="96,1024,16384", help="batch sizes timed")
     p.add_argument("--calls", type=int, default=5, help="timed calls (one action each) per batch size")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-cost", action="store_true", help="time only: skip the small programs' cost analysis")
+    p.add_argument("--profile", default=None, help="trace one more call at each batch into this folder")
     args = p.parse_args(argv)
 
     import jax
@@ -53,7 +65,7 @@ def main(argv=None) -> None:
 
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.jaxsim.cost import sequential_cost, xla_flops
+    from softcrawl.jaxsim.cost import kernel_profile, sequential_cost, xla_flops
     from softcrawl.jaxsim.engine import rest_state
     from softcrawl.jaxsim.rig import Rig, make_action_rollout
     from softcrawl.jaxsim.tables import build_table
@@ -80,32 +92,32 @@ def main(argv=None) -> None:
         return make_action_rollout(n_steps).lower(model, rig, state, jnp.zeros((B, R), state.x.dtype),
                                                   jnp.full((B,), n_steps, jnp.int32))
 
-    small = batch(args.batch, largest)
-    t0 = time.perf_counter()
-    compiled = lowered(steps, *small).compile()
-    compile_s = time.perf_counter() - t0
-    seq = sequential_cost(compiled.as_text())
-    one = lowered(1, *small).compile()
-    inner = sequential_cost(one.as_text()).loops
     device = jax.devices()[0]
     out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),
            "precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
            "leg_slots": slots, "contacts": settings.disk_contacts + slots * settings.leg_contacts,
-           "steps_per_action": steps, "compile_s": round(compile_s, 2),
-           "dependent_ops_per_step": seq.ops / steps, "loop_trips_per_step": seq.trips / steps,
-           "mflop_per_robot_step": xla_flops(one) / args.batch / 1e6, "inner_loops": inner,
-           "unknown_trip_loops": seq.unknown_trip_loops, "jax": jax.__version__}
-    print(json.dumps(out), flush=True)
+           "steps_per_action": steps, "jax": jax.__version__}
+    if not args.no_cost:
+        small = batch(args.batch, largest)
+        t0 = time.perf_counter()
+        compiled = lowered(steps, *small).compile()
+        compile_s = time.perf_counter() - t0
+        seq = sequential_cost(compiled.as_text())
+        one = lowered(1, *small).compile()
+        out.update(compile_s=round(compile_s, 2), dependent_ops_per_step=seq.ops / steps,
+                   loop_trips_per_step=seq.trips / steps, mflop_per_robot_step=xla_flops(one) / args.batch / 1e6,
+                   inner_loops=sequential_cost(one.as_text()).loops, unknown_trip_loops=seq.unknown_trip_loops)
+        print(json.dumps(out), flush=True)
     if not (args.time or device.platform == "gpu"):
         return
     for B in (int(b) for b in args.batches.split(",")):
         model, rig, state = batch(B, designs)
-        roll = make_action_rollout(steps)
         dt = state.x.dtype
         steps_b = jnp.full((B,), steps, jnp.int32)
         land = jnp.zeros((B, R), dt)
         go = jnp.tile(jnp.asarray(np.linspace(90.0, 30.0, R), dt), (B, 1))
         t0 = time.perf_counter()
+        roll = make_action_rollout(steps).lower(model, rig, state, land, steps_b).compile()
         state, _ = jax.block_until_ready(roll(model, rig, state, land, steps_b))
         first_s = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -113,10 +125,19 @@ def main(argv=None) -> None:
             state, dead = roll(model, rig, state, go, steps_b)
         jax.block_until_ready(state)
         wall = time.perf_counter() - t0
-        print(json.dumps({"batch": B, "first_call_s": round(first_s, 2), "ms_per_step": 1e3 * wall / (args.calls * steps),
+        print(json.dumps({"batch": B, "first_call_s": round(first_s, 2),
+                          "dependent_ops_per_step": sequential_cost(roll.as_text()).ops / steps, "ms_per_step": 1e3 * wall / (args.calls * steps),
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
                           "device": out["device"], "precision": args.precision, "solver": out["solver"],
                           "iterations": out["iterations"]}), flush=True)
+        if args.profile:
+            where = Path(args.profile, f"b{B}")
+            with jax.profiler.trace(str(where), create_perfetto_trace=True):
+                jax.block_until_ready(roll(model, rig, state, go, steps_b))
+            hlo = roll.as_text()
+            (where / "step.hlo.txt").write_text(hlo)
+            (where / "kernels.json").write_text(json.dumps(kernel_profile(where, hlo, steps, None, SCOPES)))
+            print(json.dumps({"batch": B, **kernel_profile(where, hlo, steps, 25, SCOPES)}), flush=True)
 
 
 if __name__ == "__main__":

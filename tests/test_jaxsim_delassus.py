@@ -150,6 +150,33 @@ def test_sequential_cost_counts_loop_trips_and_ops():
     assert (u.trips, u.loops) == (0, 0) and 3 <= u.ops <= 12
 
 
+def test_kernel_profile_reads_a_trace_by_scope(tmp_path):
+    """:func:`softcrawl.jaxsim.cost.kernel_profile` of a traced program of two named parts (three
+    calls of it, as three steps): every kernel is placed in its part, the counts are per step,
+    the busy time is within the window and the per-kernel sum; a folder with no trace is refused."""
+    from softcrawl.jaxsim.cost import kernel_profile
+
+    def f(x):
+        with jax.named_scope("first"):
+            y = jnp.sin(x) @ x
+        with jax.named_scope("second"):
+            return jnp.cos(y) @ y
+
+    g = jax.jit(f)
+    x = jnp.ones((64, 64))
+    jax.block_until_ready(g(x))
+    with jax.profiler.trace(str(tmp_path), create_perfetto_trace=True):
+        for _ in range(3):
+            x = jax.block_until_ready(g(x))
+    p = kernel_profile(tmp_path, g.lower(x).compile().as_text(), steps=3, top=None, scopes=("first", "second"))
+    assert p["kernels_per_step"] >= 2 and set(p["by_scope"]) <= {"first", "second"} and len(p["by_scope"]) == 2
+    assert sum(v["kernels"] for v in p["by_scope"].values()) == pytest.approx(p["kernels_per_step"])
+    assert 0 < p["busy_us_per_step"] <= min(p["window_us_per_step"], p["kernel_us_per_step"]) + 1e-9
+    assert all(r["count"] % 3 == 0 for r in p["top"])
+    with pytest.raises(FileNotFoundError):
+        kernel_profile(tmp_path / "none", "", steps=1)
+
+
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and

@@ -181,6 +181,7 @@ class EpisodicSAC(CodesignSAC):
 
     def _round(self, callback, log_interval: int | None) -> bool:
         """One round (module doc, steps 1-5); False if the callback asked to stop."""
+        self._commit_states()
         n = self.env.num_envs
         taken = self.draw_actions(self._last_obs)
         steps = self.env.run_episodes(taken)
@@ -215,6 +216,22 @@ class EpisodicSAC(CodesignSAC):
         if go_on and due:
             self.train(gradient_steps=due, batch_size=self.batch_size)
         return go_on
+
+    def _commit_states(self) -> None:
+        """The networks', optimizers' and temperature's states and the keys as strong-typed
+        arrays committed to :attr:`jax_device`. As SBX makes them (Python scalars: weakly typed,
+        uncommitted), the compiled update and the actor's scan saw other argument types on each
+        of the first rounds and compiled again, several seconds each on a GPU, until every leaf
+        had passed through an update (:func:`device_updates` compiled three times for one
+        number of updates)."""
+        def commit(tree):
+            return jax.tree_util.tree_map(
+                lambda a: jax.device_put(jnp.asarray(a, dtype=jnp.asarray(a).dtype), self.jax_device), tree)
+
+        p = self.policy
+        with self.on_device():
+            p.qf_state, p.actor_state, self.ent_coef_state, self.key, p.noise_key = commit(
+                (p.qf_state, p.actor_state, self.ent_coef_state, self.key, p.noise_key))
 
     def draw_actions(self, first_obs: np.ndarray) -> np.ndarray:
         """Every env's actions ``(N, n_actions, R)`` for the episodes starting at

@@ -143,3 +143,71 @@ def summary(compiled) -> str:
     c = sequential_cost(compiled.as_text())
     return json.dumps({"ops": c.ops, "trips": c.trips, "loops": c.loops, "unknown_trip_loops": c.unknown_trip_loops,
                        "flops": xla_flops(compiled)})
+
+
+def _op_names(hlo_text: str) -> dict[str, str]:
+    """``{instruction name: "JAX op_name @ file:line"}`` from an optimized HLO module's metadata."""
+    out = {}
+    for m in re.finditer(r'^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{([^}]*)\}', hlo_text, re.M):
+        meta = dict(re.findall(r'(\w+)=("[^"]*"|\S+)', m.group(2)))
+        where = meta.get("source_file", '""').strip('"').rsplit("/", 1)[-1]
+        out.setdefault(m.group(1), f'{meta.get("op_name", "").strip(chr(34))} @ {where}:{meta.get("source_line", "")}')
+    return out
+
+
+def kernel_profile(trace_dir, hlo_text: str, steps: int, top: int | None = 25, scopes: tuple[str, ...] = ()) -> dict:
+    """What the device ran in a trace that :func:`jax.profiler.trace` wrote with
+    ``create_perfetto_trace=True`` (its newest ``perfetto_trace.json.gz`` under ``trace_dir``).
+
+    Events that carry an ``hlo_op`` are the program's kernels (on a GPU the device's streams, on a
+    CPU the executor's thunks). Returns a dict: ``kernels_per_step`` (kernel events over
+    ``steps``), ``busy_us_per_step`` (the union of their intervals), ``window_us_per_step`` (first
+    start to last end), ``kernel_us_per_step`` (their summed durations), and ``top``: the ``top``
+    instructions by summed duration with their count, microseconds per step and the JAX
+    ``op_name`` of their HLO instruction in ``hlo_text`` (the compiled program traced); with
+    ``scopes`` (names given to :func:`jax.named_scope`), ``by_scope``: kernels and microseconds
+    per step of the instructions whose ``op_name`` holds each scope (the first that matches;
+    ``"other"`` for none).
+
+    Raises:
+        FileNotFoundError: no trace under ``trace_dir``.
+    """
+    import gzip
+    from pathlib import Path
+
+    traces = sorted(Path(trace_dir).rglob("perfetto_trace.json.gz"), key=lambda p: p.stat().st_mtime)
+    if not traces:
+        raise FileNotFoundError(f"no perfetto_trace.json.gz under {trace_dir}")
+    with gzip.open(traces[-1], "rt") as f:
+        events = json.load(f)["traceEvents"]
+    pname = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
+    kernels = [e for e in events if e.get("ph") == "X" and "hlo_op" in e.get("args", {})
+               and not e["name"].startswith("end: ")]
+    device = [e for e in kernels if not pname.get(e["pid"], "/host").startswith("/host")]
+    kernels = device or kernels
+    if not kernels:
+        return {"kernels_per_step": 0, "busy_us_per_step": 0.0, "window_us_per_step": 0.0,
+                "kernel_us_per_step": 0.0, "top": []}
+    spans = sorted((float(e["ts"]), float(e["ts"]) + float(e["dur"])) for e in kernels)
+    busy, (lo, hi) = 0.0, spans[0]
+    for a, b in spans[1:]:
+        if a > hi:
+            busy, lo = busy + hi - lo, a
+        hi = max(hi, b)
+    busy += hi - lo
+    by_op: dict[str, list[float]] = {}
+    for e in kernels:
+        by_op.setdefault(e["args"]["hlo_op"], []).append(float(e["dur"]))
+    names = _op_names(hlo_text)
+    rows = sorted(by_op.items(), key=lambda kv: -sum(kv[1]))
+    by_scope: dict[str, list[float]] = {}
+    for op, d in rows:
+        key = next((sc for sc in scopes if f"/{sc}/" in names.get(op, "") + "/"), "other")
+        tot = by_scope.setdefault(key, [0.0, 0.0])
+        tot[0], tot[1] = tot[0] + len(d) / steps, tot[1] + sum(d) / steps
+    rows = rows if top is None else rows[:top]
+    return {**({"by_scope": {k: {"kernels": n, "us": us} for k, (n, us) in by_scope.items()}} if scopes else {}),"kernels_per_step": len(kernels) / steps, "busy_us_per_step": busy / steps,
+            "window_us_per_step": (max(b for _, b in spans) - spans[0][0]) / steps,
+            "kernel_us_per_step": sum(float(e["dur"]) for e in kernels) / steps,
+            "top": [{"op": op, "count": len(d), "us_per_step": sum(d) / steps, "op_name": names.get(op, "")}
+                    for op, d in rows]}
