@@ -37,9 +37,6 @@ import platform
 import time
 from pathlib import Path
 
-#: The named scopes of :func:`softcrawl.jaxsim.engine.physics_step` a profile is summed over.
-SCOPES = ("legs_free_motion", "disk_free_motion", "constraint_rows", "condense", "solve_contacts", "corrections")
-
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -66,7 +63,7 @@ def main(argv=None) -> None:
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
     from softcrawl.jaxsim.cost import kernel_profile, sequential_cost, xla_flops
-    from softcrawl.jaxsim.engine import rest_state
+    from softcrawl.jaxsim.engine import STEP_SCOPES, rest_state
     from softcrawl.jaxsim.rig import Rig, make_action_rollout
     from softcrawl.jaxsim.tables import build_table
 
@@ -126,7 +123,8 @@ def main(argv=None) -> None:
         jax.block_until_ready(state)
         wall = time.perf_counter() - t0
         print(json.dumps({"batch": B, "first_call_s": round(first_s, 2),
-                          "dependent_ops_per_step": sequential_cost(roll.as_text()).ops / steps, "ms_per_step": 1e3 * wall / (args.calls * steps),
+                          "dependent_ops_per_step": sequential_cost(roll.as_text()).ops / steps,
+                          "ms_per_step": 1e3 * wall / (args.calls * steps),
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
                           "device": out["device"], "precision": args.precision, "solver": out["solver"],
                           "iterations": out["iterations"]}), flush=True)
@@ -136,8 +134,8 @@ def main(argv=None) -> None:
                 jax.block_until_ready(roll(model, rig, state, go, steps_b))
             hlo = roll.as_text()
             (where / "step.hlo.txt").write_text(hlo)
-            (where / "kernels.json").write_text(json.dumps(kernel_profile(where, hlo, steps, None, SCOPES)))
-            print(json.dumps({"batch": B, **kernel_profile(where, hlo, steps, 25, SCOPES)}), flush=True)
+            (where / "kernels.json").write_text(json.dumps(kernel_profile(where, hlo, steps, None, STEP_SCOPES)))
+            print(json.dumps({"batch": B, **kernel_profile(where, hlo, steps, 25, STEP_SCOPES)}), flush=True)
 
 
 if __name__ == "__main__":

@@ -177,6 +177,16 @@ def test_kernel_profile_reads_a_trace_by_scope(tmp_path):
         kernel_profile(tmp_path / "none", "", steps=1)
 
 
+def test_every_part_of_the_step_is_a_named_scope_of_its_program(landed):
+    """Each name of ``STEP_SCOPES`` (the parts a profile is summed by) names operations of the
+    compiled physics step, so a renamed scope cannot leave a profile's part silently empty."""
+    from softcrawl.jaxsim.engine import STEP_SCOPES, physics_step
+
+    model, state, kpa = landed
+    text = jax.jit(physics_step).lower(model, state, kpa).compile().as_text()
+    assert all(f"/{scope}/" in text for scope in STEP_SCOPES)
+
+
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and

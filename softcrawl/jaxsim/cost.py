@@ -146,12 +146,15 @@ def summary(compiled) -> str:
 
 
 def _op_names(hlo_text: str) -> dict[str, str]:
-    """``{instruction name: "JAX op_name @ file:line"}`` from an optimized HLO module's metadata."""
+    """``{instruction name: its JAX op_name}`` from an optimized HLO module's metadata, with
+    `` @ file:line`` where the metadata has a source file."""
     out = {}
     for m in re.finditer(r'^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{([^}]*)\}', hlo_text, re.M):
-        meta = dict(re.findall(r'(\w+)=("[^"]*"|\S+)', m.group(2)))
-        where = meta.get("source_file", '""').strip('"').rsplit("/", 1)[-1]
-        out.setdefault(m.group(1), f'{meta.get("op_name", "").strip(chr(34))} @ {where}:{meta.get("source_line", "")}')
+        meta = {k: v.strip('"') for k, v in re.findall(r'(\w+)=("[^"]*"|\S+)', m.group(2))}
+        name = meta.get("op_name", "")
+        if meta.get("source_file"):
+            name += f' @ {meta["source_file"].rsplit("/", 1)[-1]}:{meta.get("source_line", "")}'
+        out.setdefault(m.group(1), name)
     return out
 
 
@@ -206,7 +209,8 @@ def kernel_profile(trace_dir, hlo_text: str, steps: int, top: int | None = 25, s
         tot = by_scope.setdefault(key, [0.0, 0.0])
         tot[0], tot[1] = tot[0] + len(d) / steps, tot[1] + sum(d) / steps
     rows = rows if top is None else rows[:top]
-    return {**({"by_scope": {k: {"kernels": n, "us": us} for k, (n, us) in by_scope.items()}} if scopes else {}),"kernels_per_step": len(kernels) / steps, "busy_us_per_step": busy / steps,
+    out = {"by_scope": {k: {"kernels": n, "us": us} for k, (n, us) in by_scope.items()}} if scopes else {}
+    return {**out, "kernels_per_step": len(kernels) / steps, "busy_us_per_step": busy / steps,
             "window_us_per_step": (max(b for _, b in spans) - spans[0][0]) / steps,
             "kernel_us_per_step": sum(float(e["dur"]) for e in kernels) / steps,
             "top": [{"op": op, "count": len(d), "us_per_step": sum(d) / steps, "op_name": names.get(op, "")}

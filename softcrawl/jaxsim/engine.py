@@ -37,6 +37,10 @@ from softcrawl.jaxsim.model import register_pytree
 #: states built by an engine of another version are stale).
 ENGINE_VERSION = 2
 
+#: The parts of :func:`physics_step`, in order, as named scopes of its operations (a profile's
+#: kernels are summed by them: :func:`softcrawl.jaxsim.cost.kernel_profile`).
+STEP_SCOPES = ("legs_free_motion", "disk_free_motion", "constraint_rows", "condense", "solve_contacts", "corrections")
+
 
 @dataclass(frozen=True)
 class State:
