@@ -62,6 +62,10 @@ the second round on (``--set backend=...`` times another backend the same way):
 Each run reports its end-to-end transitions/s (``transitions_per_s``: all transitions over the
 call's wall time, start-up, settling and compilation included) and ``steady_transitions_per_s``
 (the transitions after the first round over the wall time since its end: updates included),
+``round_s`` (the wall seconds from the end of each round's episodes to the end of the next
+round's: one round's updates and the next one's episodes; one that compiled something stands
+out) and ``median_round_transitions_per_s`` (a round's transitions over the median of those:
+the rate of a long run once nothing compiles any more),
 robot steps per second, the learner's wall seconds and its updates; ``episode_over_action`` is the
 ratio of the two loops' steady rates. On a CPU the JAX engine makes a few dozen robot steps per
 second, so shrink the episode there (this machine's figures in benchmarks/RESULTS.md):
@@ -277,9 +281,14 @@ def jax_loops(args) -> dict:
                     res = training.train(f"{tmp}/run", cfg, progress=False)
                 t1 = max(t for t, steps in stamps if steps <= per_round)
                 steady = (res.steps - per_round) / (stamps[-1][0] - t1) if res.steps > per_round else None
+                ends = [max(t for t, steps in stamps if steps <= k * per_round) for k in range(1, args.episodes + 1)
+                        if any(steps <= k * per_round for _, steps in stamps)]
+                rounds = np.diff(ends).tolist()
                 out[f"{rollout}/{n}"] = {
                     "rollout": rollout, "n_envs": n, "transitions": res.steps, "wall_s": res.wall_seconds,
                     "transitions_per_s": res.steps / res.wall_seconds, "steady_transitions_per_s": steady,
+                    "round_s": rounds,
+                    "median_round_transitions_per_s": per_round / float(np.median(rounds)) if rounds else None,
                     "robot_steps_per_s": res.steps * cfg.env.steps_per_action / res.wall_seconds,
                     "updates": res.updates, "learner_s": res.learner_seconds, "n_actions": cfg.env.n_actions,
                     "steps_per_action": cfg.env.steps_per_action, "preset": args.preset, "set": args.set or [],
