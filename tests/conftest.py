@@ -1,7 +1,9 @@
 """Test-session isolation: the suite writes only into temporary folders.
 
 Set before any softcrawl module is imported: a fresh mesh / calibration cache
-(``SOFTCRAWL_CACHE_DIR``, unless the caller set one, as CI does) instead of ``~/.cache``, and a
+(``SOFTCRAWL_CACHE_DIR``, unless the caller set one, as CI does; a folder per test process
+under pytest-xdist, so that no two processes build one entry at once) instead of
+``~/.cache``, and a
 temporary ``HOME`` so gmsh, matplotlib and friends keep their preference files out of the
 user's home; hypothesis keeps its example database and caches in the session folder too
 (not ``.hypothesis/`` in the working directory). SB3 loggers are set by :func:`softcrawl.codesign.sac.make_sac`, so no
@@ -18,6 +20,9 @@ import pytest
 
 _SESSION = tempfile.mkdtemp(prefix="softcrawl-tests-")
 os.environ.setdefault("SOFTCRAWL_CACHE_DIR", os.path.join(_SESSION, "cache"))
+if os.environ.get("PYTEST_XDIST_WORKER"):  # a test process of several: a cache of its own
+    os.environ["SOFTCRAWL_CACHE_DIR"] = os.path.join(os.environ["SOFTCRAWL_CACHE_DIR"],
+                                                     os.environ["PYTEST_XDIST_WORKER"])
 os.environ["HOME"] = os.path.join(_SESSION, "home")
 os.makedirs(os.environ["HOME"], exist_ok=True)
 os.environ.setdefault("MPLCONFIGDIR", os.path.join(_SESSION, "mpl"))
