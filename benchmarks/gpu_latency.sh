@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The JAX engine's step on a GPU machine in one call (issue 50): the `paper` preset's step timed
+# The JAX engine's step on a GPU machine in one call: the `paper` preset's step timed
 # and profiled at 96 robots (and the batches in BATCHES) under XLA's default flags, then timed
 # with CUDA graphs around loops and conditionals, and with no CUDA graphs. Writes the JSON lines
 # and each batch's kernel table (kernels.json) and compiled program under OUTDIR.

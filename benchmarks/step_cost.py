@@ -134,8 +134,9 @@ def main(argv=None) -> None:
                 jax.block_until_ready(roll(model, rig, state, go, steps_b))
             hlo = roll.as_text()
             (where / "step.hlo.txt").write_text(hlo)
-            (where / "kernels.json").write_text(json.dumps(kernel_profile(where, hlo, steps, None, STEP_SCOPES)))
-            print(json.dumps({"batch": B, **kernel_profile(where, hlo, steps, 25, STEP_SCOPES)}), flush=True)
+            prof = kernel_profile(where, hlo, steps, None, STEP_SCOPES)
+            (where / "kernels.json").write_text(json.dumps(prof))
+            print(json.dumps({"batch": B, **prof, "top": prof["top"][:25]}), flush=True)
 
 
 if __name__ == "__main__":

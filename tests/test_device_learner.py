@@ -182,9 +182,9 @@ def test_the_loop_makes_sb3s_updates_per_round_overlapped_with_the_next_episodes
 def test_the_loop_compiles_its_update_once_per_number_of_updates():
     """The rounds of the test above (updates 2, 6, 6, 6, 6, 6 per round) compile the device
     update twice (one per number of updates: a static argument) and the actor's episode scan
-    once. Before the learner's states were committed as strong-typed device arrays, SBX's
-    weakly typed, uncommitted initial states made the update compile again on each of the
-    first rounds (three times for 6 updates), several seconds each on a GPU."""
+    once. Without the learner's states committed as strong-typed device arrays, SBX's weakly
+    typed, uncommitted initial states make the update compile again on the first rounds
+    (three times for 6 updates), several seconds each on a GPU."""
     from softcrawl.codesign.episodic import device_updates
 
     model = _open_learner(learning_starts=10)

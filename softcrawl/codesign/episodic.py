@@ -219,11 +219,10 @@ class EpisodicSAC(CodesignSAC):
 
     def _commit_states(self) -> None:
         """The networks', optimizers' and temperature's states and the keys as strong-typed
-        arrays committed to :attr:`jax_device`. As SBX makes them (Python scalars: weakly typed,
-        uncommitted), the compiled update and the actor's scan saw other argument types on each
-        of the first rounds and compiled again, several seconds each on a GPU, until every leaf
-        had passed through an update (:func:`device_updates` compiled three times for one
-        number of updates)."""
+        arrays committed to :attr:`jax_device`, so that :func:`device_updates` and
+        :func:`episode_actions` see the same argument types every round and compile once. SBX
+        makes some leaves from Python scalars (weakly typed, uncommitted), and an update's
+        outputs would otherwise change those types round after round."""
         def commit(tree):
             return jax.tree_util.tree_map(
                 lambda a: jax.device_put(jnp.asarray(a, dtype=jnp.asarray(a).dtype), self.jax_device), tree)

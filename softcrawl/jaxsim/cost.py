@@ -20,9 +20,11 @@ per sweep, say) is the same. Loops whose trip count XLA does not know statically
 
 from __future__ import annotations
 
+import gzip
 import json
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 #: Opcodes that launch no kernel.
 FREE_OPCODES = frozenset({"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "after-all",
@@ -175,9 +177,6 @@ def kernel_profile(trace_dir, hlo_text: str, steps: int, top: int | None = 25, s
     Raises:
         FileNotFoundError: no trace under ``trace_dir``.
     """
-    import gzip
-    from pathlib import Path
-
     traces = sorted(Path(trace_dir).rglob("perfetto_trace.json.gz"), key=lambda p: p.stat().st_mtime)
     if not traces:
         raise FileNotFoundError(f"no perfetto_trace.json.gz under {trace_dir}")
@@ -189,8 +188,8 @@ def kernel_profile(trace_dir, hlo_text: str, steps: int, top: int | None = 25, s
     device = [e for e in kernels if not pname.get(e["pid"], "/host").startswith("/host")]
     kernels = device or kernels
     if not kernels:
-        return {"kernels_per_step": 0, "busy_us_per_step": 0.0, "window_us_per_step": 0.0,
-                "kernel_us_per_step": 0.0, "top": []}
+        return {**({"by_scope": {}} if scopes else {}), "kernels_per_step": 0, "busy_us_per_step": 0.0,
+                "window_us_per_step": 0.0, "kernel_us_per_step": 0.0, "top": []}
     spans = sorted((float(e["ts"]), float(e["ts"]) + float(e["dur"])) for e in kernels)
     busy, (lo, hi) = 0.0, spans[0]
     for a, b in spans[1:]:
