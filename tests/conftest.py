@@ -5,7 +5,9 @@ Set before any softcrawl module is imported: a fresh mesh / calibration cache
 under pytest-xdist, so that no two processes build one entry at once) instead of
 ``~/.cache``, and a
 temporary ``HOME`` so gmsh, matplotlib and friends keep their preference files out of the
-user's home; hypothesis keeps its example database and caches in the session folder too
+user's home; one BLAS/OpenMP thread per process, as softcrawl's commands run
+(:mod:`softcrawl.cli`; so computations in this process and in worker processes round alike);
+hypothesis keeps its example database and caches in the session folder too
 (not ``.hypothesis/`` in the working directory). SB3 loggers are set by :func:`softcrawl.codesign.sac.make_sac`, so no
 ``/tmp/SB3-*`` folders appear. The session folder is removed at the end.
 """
@@ -23,6 +25,8 @@ os.environ.setdefault("SOFTCRAWL_CACHE_DIR", os.path.join(_SESSION, "cache"))
 if os.environ.get("PYTEST_XDIST_WORKER"):  # a test process of several: a cache of its own
     os.environ["SOFTCRAWL_CACHE_DIR"] = os.path.join(os.environ["SOFTCRAWL_CACHE_DIR"],
                                                      os.environ["PYTEST_XDIST_WORKER"])
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 os.environ["HOME"] = os.path.join(_SESSION, "home")
 os.makedirs(os.environ["HOME"], exist_ok=True)
 os.environ.setdefault("MPLCONFIGDIR", os.path.join(_SESSION, "mpl"))

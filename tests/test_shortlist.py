@@ -185,7 +185,7 @@ def test_a_run_without_a_shortlist_keeps_the_most_probable_design(run, tmp_path,
     (run / "config.json").write_text(json.dumps({**meta, "config_version": 6}))
     assert Run(run).read_config().shortlist == 1
     monkeypatch.setattr(evaluation, "evaluate_policy", _stub(run, {best: (0.5, False, [], [])}))
-    sl, evs = _report_shortlist(Run(run), True, None, 0)
+    sl, evs = _report_shortlist(Run(run), True, None, 0, None)
     assert [tuple(c["design"]) for c in sl["candidates"]] == [best] and len(evs) == 1
     assert read_shortlist(run) == sl
 
@@ -220,3 +220,23 @@ def test_training_ends_with_the_shortlist(run, monkeypatch):
     train_and_report(run, resume=True, progress=False, report=False)
     sl = read_shortlist(run)
     assert sl is not None and sl["k"] == 2 and not (run / "report").exists()  # the smoke preset's
+
+
+def test_the_shortlist_is_the_same_on_worker_processes(run):
+    """Candidates evaluated in two worker processes give this process's shortlist to the bit (the
+    same machine), and their detached evaluations re-simulate the chosen gait once given an env."""
+    from softcrawl.codesign.shortlist import compute_shortlist
+
+    def numbers(data):
+        return {**data, "wall_seconds": None,
+                "candidates": [{**c, "wall_seconds": None} for c in data["candidates"]]}
+
+    here, evs_here = compute_shortlist(run, 2, 1, workers=1)
+    there, evs_there = compute_shortlist(run, 2, 1, workers=2)
+    assert numbers(there) == numbers(here) and len(here["candidates"]) == 2
+    assert all(ev.env is not None for ev in evs_here) and all(ev.env is None for ev in evs_there)
+    i = here["chosen"]
+    a, b = evs_here[i], evs_there[i].with_env()
+    assert b.env is not None and b.with_env() is b
+    assert np.array_equal(b.gait_actions_kpa, a.gait_actions_kpa)
+    assert b.resimulate(record_every=None).reward_cm == a.resimulate(record_every=None).reward_cm

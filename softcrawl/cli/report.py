@@ -59,7 +59,8 @@ def register(subparsers) -> None:
                    help="phase lags of the baseline sweep, degrees: start:stop:step or a comma list (default "
                    "0:330:30); empty: no baseline")
     p.add_argument("--workers", type=int, default=None, **bounded(1, MAX_WORKERS),
-                   help="processes of the baseline sweep (default: cores)")
+                   help="processes of the baseline sweep (default: cores) and of a shortlist made here "
+                   "(default: the run's n_workers)")
     p.add_argument("--groundtruth", default=None, metavar="GT",
                    help="a softcrawl groundtruth folder: add where the run's chosen design ranks in it and its "
                    "regret (as softcrawl regret), and place the paper's designs in it")

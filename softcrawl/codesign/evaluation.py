@@ -9,7 +9,7 @@ the run's episode length (codesign.md, "Expert baseline").
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +65,8 @@ class PolicyEvaluation:
             ``forward``, the paper's task). diverged: per episode.
         actions_kpa: ``(n_actions, R)`` real kPa commanded in the first episode (``R``: the
             space's regulators, 3 in the paper's).
-        env: the :class:`softcrawl.envs.CrawlerEnv` (its robot cached). config: the run's config
+        env: the :class:`softcrawl.envs.CrawlerEnv` (its robot cached; None in a
+            :meth:`detached` one). config: the run's config
             (its ``env.randomize`` the ranges the episodes were drawn from).
         checkpoint: the checkpoint folder the policy came from.
         domains: per episode, its domain draw (:meth:`softcrawl.robot.domain.DomainSample.as_dict`;
@@ -130,6 +131,22 @@ class PolicyEvaluation:
         sampled episode did better) with the run's hold time."""
         e, a = self.config.env, self.gait_actions_kpa
         return ActionSequence(a, hold=action_hold(e.robot.dt, e.steps_per_action, len(a)))
+
+    def detached(self) -> PolicyEvaluation:
+        """This evaluation without its env (picklable: what a worker process sends back)."""
+        return replace(self, env=None)
+
+    def with_env(self) -> PolicyEvaluation:
+        """This evaluation with an env (a :meth:`detached` one gets a new
+        :class:`softcrawl.envs.CrawlerEnv` of its config, reset to its design), as
+        :meth:`resimulate` needs."""
+        if self.env is not None:
+            return self
+        from softcrawl.codesign.factory import env_fn
+
+        env = env_fn(self.config)()
+        env.reset(options={"design": self.design})
+        return replace(self, env=env)
 
     def resimulate(self, record_every: int | None = 10, progress: bool = False) -> EpisodeResult:
         """Re-run :meth:`gait` through :func:`softcrawl.robot.run_episode` (same

@@ -251,7 +251,7 @@ def _best_design_section(run: Path, out: Path, design, checkpoint: Path,
     from softcrawl.tasks.base import VENT_SECONDS, return_series, vented_return
 
     task = task if task is not None else parse_task("forward")
-    ev = evaluate_policy(run, design, checkpoint=checkpoint, samples=samples) if ev is None else ev
+    ev = evaluate_policy(run, design, checkpoint=checkpoint, samples=samples) if ev is None else ev.with_env()
     result = ev.resimulate(record_every=10)
     robot = ev.env.episode.robot
     write_results(out / "best_design", robot, ev.gait(), result, ev.env.calibration, overwrite=True,
@@ -386,7 +386,8 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         baseline_phases: degrees; empty: no baseline section unless ``baseline`` is given.
         simulate: re-simulate the run's design (and run the baseline sweep, and a missing
             shortlist); False writes only what the run's files hold.
-        workers: processes of the baseline sweep (None: the CPU count).
+        workers: processes of the baseline sweep (None: the CPU count) and of a shortlist
+            computed here (None: the run's ``n_workers``).
         extra: more sections, ``summary.json`` key -> a callable giving ``(Markdown lines,
             numbers)``, appended in order (``softcrawl report --groundtruth``: the regret against
             a ground truth, :func:`softcrawl.codesign.groundtruth_regret.regret_section`, which
@@ -423,7 +424,7 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
         ckpt = r.require_checkpoint()
         rows = design_rows(r.path, ckpt)
         state = r.read_checkpoint_state(ckpt)["sampler"]
-        sl, evs = _report_shortlist(r, simulate, shortlist, samples)
+        sl, evs = _report_shortlist(r, simulate, shortlist, samples, workers)
         staged = r.report_staging()
         try:
             _write_report(r, staged, meta, rows, _top(rows, k), state, ckpt, sweep, baseline_phases, simulate,
@@ -434,9 +435,11 @@ def write_report(run: str | Path, k: int = 5, baseline: str | Path | None = None
             raise
 
 
-def _report_shortlist(r: Run, simulate: bool, k: int | None, samples: int) -> tuple[dict | None, list | None]:
+def _report_shortlist(r: Run, simulate: bool, k: int | None, samples: int,
+                      workers: int | None) -> tuple[dict | None, list | None]:
     """The shortlist the report shows: the run's (``k`` None or its size), else one computed
-    now and written (``simulate`` only), with its evaluations; ``(None, None)`` without one."""
+    now on ``workers`` processes and written (``simulate`` only), with its evaluations;
+    ``(None, None)`` without one."""
     from softcrawl.codesign.shortlist import compute_shortlist, read_shortlist, write_shortlist
 
     have = read_shortlist(r.path)
@@ -444,7 +447,8 @@ def _report_shortlist(r: Run, simulate: bool, k: int | None, samples: int) -> tu
         return have, None
     if not simulate:
         return None, None
-    data, evs = compute_shortlist(r.path, r.read_config().shortlist if k is None else k, samples, progress=True)
+    data, evs = compute_shortlist(r.path, r.read_config().shortlist if k is None else k, samples, progress=True,
+                                  workers=workers)
     write_shortlist(r.path, data)
     return data, evs
 

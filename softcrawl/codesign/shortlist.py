@@ -45,14 +45,17 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from softcrawl.codesign.config import TRAIN_BOUNDS
 from softcrawl.codesign.run import Run, note
+from softcrawl.parallel import run_pool
 
 #: Format of ``shortlist.json``.
 SHORTLIST_FORMAT = 1
@@ -179,7 +182,7 @@ def choose(candidates: list[dict], unit: str) -> int | None:
 
 
 def compute_shortlist(run: str | Path, k: int, samples: int, evaluate: Callable | None = None,
-                      progress: bool = False) -> tuple[dict, list]:
+                      progress: bool = False, workers: int | None = None) -> tuple[dict, list]:
     """The shortlist of ``run``'s newest complete checkpoint (module docstring), not written.
 
     Args:
@@ -187,8 +190,15 @@ def compute_shortlist(run: str | Path, k: int, samples: int, evaluate: Callable 
         samples: episodes sampled from the stochastic policy per candidate
             (:func:`~softcrawl.codesign.evaluation.evaluate_policy`'s ``samples``).
         evaluate: ``(run, design, checkpoint=, samples=) -> PolicyEvaluation`` (default
-            :func:`~softcrawl.codesign.evaluation.evaluate_policy`).
-        progress: a line on stderr per candidate evaluated.
+            :func:`~softcrawl.codesign.evaluation.evaluate_policy`), run in this process.
+        progress: a line on stderr per candidate evaluated, as each finishes.
+        workers: processes evaluating the candidates (1: this process; None: the run's
+            ``n_workers``, whose 0 is the CPU count; never more than the candidates). Each candidate's
+            evaluation is a fresh policy and env seeded alike wherever it runs, so the shortlist
+            is the same to the bit for any ``workers`` on one machine; the evaluations of other
+            processes come back without their env (:meth:`PolicyEvaluation.with_env
+            <softcrawl.codesign.evaluation.PolicyEvaluation.with_env>` rebuilds it). A given
+            ``evaluate`` always runs here.
 
     Returns:
         ``(the shortlist.json dict, the candidates' PolicyEvaluations)``.
@@ -201,32 +211,45 @@ def compute_shortlist(run: str | Path, k: int, samples: int, evaluate: Callable 
     from softcrawl.robot.output import jsonable
     from softcrawl.tasks import parse_task
 
-    evaluate = evaluate_policy if evaluate is None else evaluate
     r = Run(run)
     ck = r.require_checkpoint()
     rows = design_rows(r.path, ck)
     if not rows:
         raise ValueError(f"{r.path}: no design has been tried yet; nothing to shortlist")
     cands = rank_candidates(rows, k)
-    unit = parse_task(r.read_config().env.task).unit
-    out, evs, start = [], [], time.perf_counter()
-    for i, c in enumerate(cands, 1):
-        t0 = time.perf_counter()
-        ev = evaluate(r.path, c["design"], checkpoint=ck, samples=samples)
-        wall = time.perf_counter() - t0
+    cfg = r.read_config()
+    unit = parse_task(cfg.env.task).unit
+    evs, walls, start = [None] * len(cands), [0.0] * len(cands), time.perf_counter()
+
+    def finished(result: tuple) -> None:
+        i, ev, wall = result
+        evs[i], walls[i] = ev, wall
         if progress:
-            note(f"shortlist {i}/{len(cands)}: {','.join(map(str, c['design']))}: gait ({ev.gait_source}) "
-                 f"{ev.gait_return:+.3f} {unit} ({wall:.0f} s)")
-        evs.append(ev)
-        out.append({"design": list(c["design"]), **{key: c[key] for _, key in RANKINGS}, "prob": c["prob"],
-                    f"latest_{unit}": c["latest_cm"], f"best_{unit}": c["best_ok_cm"],
-                    f"recent_{unit}": c["recent_cm"], "episodes": c["episodes"], **gait_numbers(ev, unit),
-                    "wall_seconds": round(wall, 2)})
+            done = sum(e is not None for e in evs)
+            note(f"shortlist {done}/{len(cands)}: {','.join(map(str, cands[i]['design']))}: gait "
+                 f"({ev.gait_source}) {ev.gait_return:+.3f} {unit} ({wall:.0f} s)")
+
+    tasks = [(i, r.path, c["design"], ck, samples) for i, c in enumerate(cands)]
+    workers = cfg.n_workers if workers is None else workers
+    workers = 1 if evaluate is not None else max(1, min(workers or os.cpu_count() or 1, len(tasks)))
+    run_pool(partial(_evaluate, evaluate or evaluate_policy, workers > 1), workers, tasks, finished)
+    out = [{"design": list(c["design"]), **{key: c[key] for _, key in RANKINGS}, "prob": c["prob"],
+            f"latest_{unit}": c["latest_cm"], f"best_{unit}": c["best_ok_cm"], f"recent_{unit}": c["recent_cm"],
+            "episodes": c["episodes"], **gait_numbers(ev, unit), "wall_seconds": round(wall, 2)}
+           for c, ev, wall in zip(cands, evs, walls)]
     pick = choose(out, unit)
     data = {"format": SHORTLIST_FORMAT, "checkpoint": ck.name, "steps": r.checkpoint_steps(ck), "k": k,
             "samples": samples, "unit": unit, "chosen": 0 if pick is None else pick, "all_diverged": pick is None,
             "wall_seconds": round(time.perf_counter() - start, 2), "candidates": out}
     return jsonable(data), evs
+
+
+def _evaluate(evaluate: Callable, detach: bool, i: int, run: Path, design, checkpoint: Path, samples: int) -> tuple:
+    """Task of :func:`compute_shortlist`: ``(i, candidate i's PolicyEvaluation, wall s)``, without
+    its env if ``detach`` (to come back from a worker process)."""
+    t0 = time.perf_counter()
+    ev = evaluate(run, design, checkpoint=checkpoint, samples=samples)
+    return i, (ev.detached() if detach else ev), time.perf_counter() - t0
 
 
 def write_shortlist(run: str | Path, data: dict) -> None:
@@ -237,7 +260,7 @@ def write_shortlist(run: str | Path, data: dict) -> None:
 
 
 def make_shortlist(run: str | Path, k: int | None = None, samples: int | None = None, force: bool = False,
-                   progress: bool = True) -> dict:
+                   progress: bool = True, workers: int | None = None) -> dict:
     """The run's shortlist, computed and written (the run locked, :meth:`Run.lock`) unless a
     fresh one with ``k`` candidates is there already (``force``: always). What
     ``softcrawl train`` does when training ends.
@@ -246,6 +269,8 @@ def make_shortlist(run: str | Path, k: int | None = None, samples: int | None = 
         k: candidates (default: the run's ``shortlist`` setting).
         samples: sampled episodes per candidate (default
             :data:`~softcrawl.codesign.evaluation.GAIT_SAMPLES`).
+        workers: processes evaluating the candidates (:func:`compute_shortlist`; None: the run's
+            ``n_workers``).
 
     Raises:
         ValueError: as :func:`compute_shortlist` and :func:`read_shortlist`.
@@ -261,7 +286,7 @@ def make_shortlist(run: str | Path, k: int | None = None, samples: int | None = 
         have = read_shortlist(r.path)
         if have is not None and not force and have["k"] == k and have["samples"] == samples:
             return have
-        data, _ = compute_shortlist(r.path, k, samples, progress=progress)
+        data, _ = compute_shortlist(r.path, k, samples, progress=progress, workers=workers)
         write_shortlist(r.path, data)
         return data
 
