@@ -61,6 +61,7 @@ def test_a_format_1_ground_truth_reads_back_with_its_robot(tmp_path):
     assert cfg.robot == RobotConfig(model="reduced", leg_mesh_size=6.0, disk_mesh_size=25.0, dt=0.02,
                                     reduction=None, rid_dtype="float32")
     assert (cfg.cycles, cfg.evals_per_cycle, cfg.screen_duration) == ((2, 3, 4), 30, 6.0)
+    assert cfg.seeds == "structured" and GroundTruthConfig().seeds == "duty"  # format 9's seeds: older searched those
     old = json.loads((DATA / "groundtruth_config_v1.json").read_text())["config"]
     del old["rid_dtype"]  # written before the setting: computed in float64
     old["dt"] = None  # the robot's default step

@@ -28,6 +28,7 @@ from softcrawl.codesign.groundtruth import (
     parse_designs,
     run_groundtruth,
     search_many,
+    seed_knots,
 )
 from softcrawl.codesign.migrate import read_settings
 from softcrawl.design.space import PAPER_BEST_DESIGN
@@ -76,6 +77,27 @@ def test_design_search_asks_for_the_episodes_optimize_design_runs():
     assert [t for _, t in asked] == [5.0] * 14 + [20.0] * 4  # 2 x 7 screening, 2 finalists x 2 waveforms
     assert result.evaluations == 18 and result.full_evaluations == 4 and result.wall_seconds == 0.0
     _same(result, optimize_design(DESIGNS[0], CFG, evaluator=FakeEvaluator(DESIGNS[0])))
+
+
+def test_duty_seeds_add_the_bang_bang_duty_cycles_to_the_structured_ones():
+    """The one-regulator design ``0,0,0,1,1,1,0,0`` crawls +25.38 cm inflating 2 knots of 3 and
+    the structured seeds of a 3-knot run hold only 1 of 3 (docs/results.md, "Ground truth")."""
+    for m, L in ((1, 2), (1, 3), (1, 4), (2, 3), (3, 4)):
+        old, new = seed_knots(m, L), seed_knots(m, L, "duty")
+        assert all(np.array_equal(a, b) for a, b in zip(old, new))  # the structured ones first, in order
+        assert len({s.tobytes() for s in new}) == len(new) and all(s.shape == (L, m) for s in new)
+        for k in range(1, L):  # every regulator inflated together for k knots
+            together = np.zeros((L, m))
+            together[:k] = 1.0
+            assert any(np.array_equal(s, together) for s in new)
+    assert not any(np.array_equal(s, [[1.0], [1.0], [0.0]]) for s in seed_knots(1, 3))
+    pulse = np.ones((2, 2))
+    pulse[1, 0] = 0.0  # regulator 1 pulses while regulator 2 stays inflated
+    assert any(np.array_equal(s, pulse) for s in seed_knots(2, 2, "duty"))
+    with pytest.raises(ValueError, match="seeds must be one of"):
+        seed_knots(1, 3, "random")
+    with pytest.raises(ValueError, match="seeds must be one of"):
+        GroundTruthConfig(seeds="random").validate()
 
 
 def test_design_search_checks_before_the_first_request():
@@ -224,7 +246,8 @@ def test_search_many_keeps_at_most_in_flight_designs():
 
 #: Settings under which the fake episodes give designs different numbers of rounds: ONE (one
 #: regulator: 1 seed, then generations of 6) has 6 rounds, L1 (two: 3 seeds, generations of 8) 5.
-UNEVEN = GroundTruthConfig(cycles=(2,), evals_per_cycle=20, finalists=2, screen_duration=None, baseline_phases=())
+UNEVEN = GroundTruthConfig(cycles=(2,), evals_per_cycle=20, finalists=2, screen_duration=None, baseline_phases=(),
+                           seeds="structured")
 ONE, L1 = (1, 1, 1, 0, 0, 0, 0, 0), PAPER_BEST_DESIGN
 
 

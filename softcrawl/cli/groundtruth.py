@@ -18,7 +18,7 @@ import math
 from softcrawl.cli import MAX_WORKERS, SEED_BOUNDS, bounded
 from softcrawl.cli.train import check_ray_address
 from softcrawl.codesign.config import MAX_EPISODE_S, MAX_HOLD_S, SIM_BOUNDS
-from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_IN_FLIGHT, MAX_JAX_BATCH
+from softcrawl.codesign.groundtruth.config import MAX_EVALS, MAX_FINALISTS, MAX_IN_FLIGHT, MAX_JAX_BATCH, SEED_KINDS
 from softcrawl.fem.solver import RID_DTYPES
 from softcrawl.tasks.registry import task_spec
 
@@ -48,7 +48,7 @@ def _phases(text: str) -> tuple[float, ...]:
 #: The options that set a :class:`~softcrawl.codesign.groundtruth.GroundTruthConfig` setting
 #: (their ``args`` names): the saved ones of a folder, so ``--resume`` takes none of them.
 SETTINGS = ("space", "task", "duration", "screen_duration", "hold", "cycles", "evals_per_cycle", "finalists", "seed",
-            "leg_mesh_size", "disk_mesh_size", "dt", "reduction", "rid_dtype", "baseline_phases", "engine",
+            "seeds", "leg_mesh_size", "disk_mesh_size", "dt", "reduction", "rid_dtype", "baseline_phases", "engine",
             "jax_batch")
 
 
@@ -78,7 +78,7 @@ def _config(args: argparse.Namespace):
     return GroundTruthConfig(
         duration=given("duration", args.duration), screen_duration=screen, hold=given("hold", args.hold),
         cycles=cycles, evals_per_cycle=given("evals_per_cycle", args.evals_per_cycle),
-        finalists=given("finalists", args.finalists), seed=given("seed", args.seed),
+        finalists=given("finalists", args.finalists), seed=given("seed", args.seed), seeds=given("seeds", args.seeds),
         robot=gt_robot(leg_mesh_size=args.leg_mesh_size, disk_mesh_size=args.disk_mesh_size, reduction=args.reduction,
                        rid_dtype=args.rid_dtype, dt=args.dt),
         baseline_phases=default.baseline_phases if args.baseline_phases is None else _phases(args.baseline_phases),
@@ -178,6 +178,9 @@ def register(subparsers) -> None:
     p.add_argument("--finalists", type=int, default=None, **bounded(1, MAX_FINALISTS),
                    help="candidates re-run at full length (default 2)")
     p.add_argument("--seed", type=int, default=None, **bounded(*SEED_BOUNDS), help="CMA-ES seed (default 0)")
+    p.add_argument("--seeds", default=None, choices=SEED_KINDS,
+                   help="starting gaits of the CMA-ES runs: duty (default: the structured ones and the bang-bang "
+                   "duty cycles) or structured (those of config formats before 9)")
     p.add_argument("--leg-mesh-size", type=float, default=None, **bounded(*SIM_BOUNDS["leg_mesh_size"]),
                    help="mm (the reduction's; default 6)")
     p.add_argument("--disk-mesh-size", type=float, default=None, **bounded(*SIM_BOUNDS["disk_mesh_size"]),

@@ -25,12 +25,14 @@ as theirs: a shortlist of 1, :mod:`softcrawl.codesign.shortlist`).
 Version 8: a training run's ``jax_solver`` and ``jax_iterations`` (the JAX backend's contact solve:
 runs of the older formats ran 100 Gauss-Seidel sweeps, ``"pgs"`` and 100) and ``jax_precision``
 ``"auto"`` (older runs saved theirs).
+Version 9: a ground truth's ``seeds`` (the starting gaits of its CMA-ES runs: folders of the older
+formats searched from the ``"structured"`` ones).
 """
 
 from __future__ import annotations
 
 #: Current format of the saved settings.
-CONFIG_VERSION = 8
+CONFIG_VERSION = 9
 #: The first format whose training runs keep their design space as ``space.toml``.
 SPACE_VERSION = 4
 
@@ -125,6 +127,10 @@ def _train_v7_to_v8(config: dict) -> dict:
     return {**config, "jax_solver": "pgs", "jax_iterations": 100}
 
 
+def _groundtruth_v8_to_v9(config: dict) -> dict:
+    return {**config, "seeds": "structured"}
+
+
 #: The keys version 1 had, per kind: of the document (``config.json``), of its settings
 #: (``"config"``) and of their sub-objects (dotted paths), from every softcrawl that wrote it
 #: (the union of their fields: later ones added some, e.g. ``env.contact_max_iterations``;
@@ -177,9 +183,9 @@ def check_version_1(kind: str, doc: dict) -> None:
 
 #: ``kind -> [step from version 1 to 2, from 2 to 3, ...]``.
 STEPS = {"train": [_train_v1_to_v2, _train_v2_to_v3, _train_v3_to_v4, _train_v4_to_v5, _train_v5_to_v6,
-                   _train_v6_to_v7, _train_v7_to_v8],
+                   _train_v6_to_v7, _train_v7_to_v8, _unchanged],
          "groundtruth": [_groundtruth_v1_to_v2, _unchanged, _groundtruth_v3_to_v4, _groundtruth_v4_to_v5, _unchanged,
-                         _unchanged, _unchanged]}
+                         _unchanged, _unchanged, _groundtruth_v8_to_v9]}
 
 
 def config_version(doc: dict) -> int:

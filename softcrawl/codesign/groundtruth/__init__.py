@@ -14,7 +14,8 @@ cycle length ``L`` in
 :attr:`GroundTruthConfig.cycles` a CMA-ES run over the knots of the regulators the design uses
 (``m L`` numbers in [0, 90] kPa, step waveform), ``evals_per_cycle`` episodes each, started from
 the best of a few structured gaits evaluated first (one regulator after another then vent, all
-together, the expert's sampled sine at lags 90/180/270 deg). Episodes are of
+together, the expert's sampled sine at lags 90/180/270 deg; with :attr:`GroundTruthConfig.seeds`
+``"duty"``, the default, also the bang-bang duty cycles, :func:`seed_knots`). Episodes are of
 ``screen_duration`` s when set (screening: :func:`screening_agreement` measures the Spearman
 rank correlation of short vs full episodes on a sample: 36 (design, gait) pairs on 6
 three-legged designs gave 0.87 / 0.95 / 0.96 for 4 / 6 / 10 s over all pairs, 1.0 for the best

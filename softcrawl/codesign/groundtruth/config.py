@@ -21,6 +21,9 @@ MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
 ENGINES, MAX_JAX_BATCH = ("cpu", "jax"), 65_536
 #: Most designs a batched engine searches at once (``softcrawl groundtruth --in-flight``).
 MAX_IN_FLIGHT = 100_000
+#: Starting-gait families of the CMA-ES runs (:attr:`GroundTruthConfig.seeds`,
+#: :func:`softcrawl.codesign.groundtruth.search.seed_knots`).
+SEED_KINDS = ("structured", "duty")
 
 
 def gt_robot(**changes) -> RobotConfig:
@@ -46,6 +49,10 @@ class GroundTruthConfig:
         sigma0: initial CMA-ES step, as a fraction of 90 kPa.
         finalists: best distinct candidates re-run with ``duration`` (step and smooth each).
         seed: CMA-ES seed, 0..2**32 - 1 (design-specific seeds are derived from it).
+        seeds: the starting gaits of each CMA-ES run (:data:`SEED_KINDS`,
+            :func:`~softcrawl.codesign.groundtruth.search.seed_knots`): ``"duty"`` (default) adds
+            the bang-bang duty cycles to the ``"structured"`` ones, which folders of config
+            formats before 9 searched from.
         robot: the simulated robot (:class:`softcrawl.robot.RobotConfig`; default
             :func:`gt_robot`: the reduced model with the shipped reduction, RID products in
             float32, validated like the training presets' model, ``docs/results.md``; every
@@ -78,6 +85,7 @@ class GroundTruthConfig:
     sigma0: float = 0.3
     finalists: int = 2
     seed: int = 0
+    seeds: str = "duty"
     robot: RobotConfig = field(default_factory=gt_robot)
     baseline_phases: tuple[float, ...] = tuple(range(0, 181, 10))
     engine: str = "cpu"
@@ -122,6 +130,8 @@ class GroundTruthConfig:
                 or len(set(self.cycles)) != len(self.cycles):
             raise ValueError(f"cycles must be distinct pattern lengths in 1..{MAX_KNOTS}, got {self.cycles!r}")
         check_bounds("seed", self.seed, 0, 2**32 - 1)
+        if self.seeds not in SEED_KINDS:
+            raise ValueError(f"seeds must be one of {SEED_KINDS}, got {self.seeds!r}")
         for name, low, high in (("evals_per_cycle", 1, MAX_EVALS), ("finalists", 1, MAX_FINALISTS),
                                 ("popsize", 2, MAX_POPSIZE)):
             v = getattr(self, name)

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from softcrawl.codesign.groundtruth.config import GroundTruthConfig
+from softcrawl.codesign.groundtruth.config import SEED_KINDS, GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
 from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
@@ -46,10 +46,25 @@ def used_regulators(design, space: DesignSpace = DEFAULT_SPACE) -> int:
     return max(space.canonicalize(design))
 
 
-def seed_knots(m: int, L: int) -> list[np.ndarray]:
-    """Structured starting gaits ``(L, m)`` in units of 90 kPa for CMA-ES: each order of the
-    ``m`` regulators inflating one after another then venting (the paper's cycle is one), all
-    together for half the cycle, and for ``L = 4`` the expert's sine samples at lags 90/180/270 deg."""
+def seed_knots(m: int, L: int, kind: str = "structured") -> list[np.ndarray]:
+    """Structured starting gaits ``(L, m)`` in units of 90 kPa for CMA-ES, distinct, in order.
+
+    ``"structured"``: each order of the ``m`` regulators inflating one after another then
+    venting (the paper's cycle is one), all together for half the cycle, and for ``L = 4`` the
+    expert's sine samples at lags 90/180/270 deg. ``"duty"``: those, then the duty cycles of
+    the bang-bang gaits: all regulators inflated together for ``k`` of the ``L`` knots
+    (``k = 1 .. L - 1``), and with ``m >= 2`` each regulator pulsing for ``k`` knots while the
+    others stay inflated. A CMA-ES run of a few dozen episodes started from the structured
+    seeds does not reach every corner of the box: the three-legged design ``0,0,0,1,1,1,0,0``
+    (one regulator) was given +18.13 cm with a 2-knot gait, while inflating two knots of three
+    crawls +25.38 cm (docs/results.md, "Ground truth"). The seeds count against the run's
+    episodes (:func:`cma_generations` evaluates at most half its budget of them, in this order).
+
+    Raises:
+        ValueError: an unknown ``kind``.
+    """
+    if kind not in SEED_KINDS:
+        raise ValueError(f"seeds must be one of {SEED_KINDS}, got {kind!r}")
     seeds = []
     for perm in itertools.permutations(range(m)):
         s = np.zeros((L, m))
@@ -65,6 +80,17 @@ def seed_knots(m: int, L: int) -> list[np.ndarray]:
             s = np.zeros((L, m))
             s[:, 0], s[:, 1] = base, np.roll(base, lag)
             seeds.append(s)
+    if kind == "duty":
+        for k in range(1, L):
+            s = np.zeros((L, m))
+            s[:k] = 1.0
+            seeds.append(s)
+        if m >= 2:
+            for k in range(1, L):
+                for r in range(m):
+                    s = np.ones((L, m))
+                    s[k:, r] = 0.0
+                    seeds.append(s)
     uniq, seen = [], set()
     for s in seeds:
         key = s.round(6).tobytes()
@@ -278,8 +304,8 @@ def _rounds(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Genera
         return DIVERGED_CM if div else r
 
     # the search: one CMA-ES run per cycle length, all advanced together
-    runs = [cma_generations(m * L, cfg.evals_per_cycle, [s.ravel() for s in seed_knots(m, L)], sigma0=cfg.sigma0,
-                            popsize=cfg.popsize, seed=design_seed(design, cfg.seed) + ci)
+    runs = [cma_generations(m * L, cfg.evals_per_cycle, [s.ravel() for s in seed_knots(m, L, cfg.seeds)],
+                            sigma0=cfg.sigma0, popsize=cfg.popsize, seed=design_seed(design, cfg.seed) + ci)
             for ci, L in enumerate(cfg.cycles)]
     asked = {ci: next(run) for ci, run in enumerate(runs)}  # each unfinished run's points of this round
     histories: dict[int, list] = {}
