@@ -246,7 +246,11 @@ def compute_shortlist(run: str | Path, k: int, samples: int, evaluate: Callable 
 
 def _evaluate(evaluate: Callable, detach: bool, i: int, run: Path, design, checkpoint: Path, samples: int) -> tuple:
     """Task of :func:`compute_shortlist`: ``(i, candidate i's PolicyEvaluation, wall s)``, without
-    its env if ``detach`` (to come back from a worker process)."""
+    its env if ``detach`` (in a worker process, to come back from it: there JAX is kept to the
+    CPU, ``JAX_PLATFORMS=cpu`` unless set, where the evaluation computes anyway, so that no worker
+    opens a GPU)."""
+    if detach:
+        os.environ.setdefault("JAX_PLATFORMS", "cpu")
     t0 = time.perf_counter()
     ev = evaluate(run, design, checkpoint=checkpoint, samples=samples)
     return i, (ev.detached() if detach else ev), time.perf_counter() - t0

@@ -55,10 +55,10 @@ def seed_knots(m: int, L: int, kind: str = "structured") -> list[np.ndarray]:
     the bang-bang gaits: all regulators inflated together for ``k`` of the ``L`` knots
     (``k = 1 .. L - 1``), and with ``m >= 2`` each regulator pulsing for ``k`` knots while the
     others stay inflated. A CMA-ES run of a few dozen episodes started from the structured
-    seeds does not reach every corner of the box: the three-legged design ``0,0,0,1,1,1,0,0``
-    (one regulator) was given +18.13 cm with a 2-knot gait, while inflating two knots of three
-    crawls +25.38 cm (docs/results.md, "Ground truth"). The seeds count against the run's
-    episodes (:func:`cma_generations` evaluates at most half its budget of them, in this order).
+    seeds alone does not reach every corner of the box, where the best gaits of one-regulator
+    designs lie (docs/results.md, "Ground truth", measures it). The seeds count against the
+    run's episodes (:func:`cma_generations` evaluates at most half its budget of them, in this
+    order).
 
     Raises:
         ValueError: an unknown ``kind``.
