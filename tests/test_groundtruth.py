@@ -19,6 +19,7 @@ from softcrawl.codesign.groundtruth import (
     load_results,
     optimize_design,
     parse_designs,
+    read_config,
     run_groundtruth,
     spearman,
 )
@@ -200,7 +201,8 @@ def test_cli_real_run_in_two_processes_and_resume(tmp_path, monkeypatch, capsys)
     out = tmp_path / "gt"
     designs = "1,0,0,2,2,0,0,0;1,1,1,0,0,0,0,0"
     assert cli_main(["groundtruth", "--out", str(out), "--designs", designs, "--workers", "2",
-                     "--no-progress", *TINY]) == 0
+                     "--no-progress", "--seeds", "structured", *TINY]) == 0
+    assert read_config(out).seeds == "structured"  # saved, and kept by --resume below
     res = load_results(out)
     assert set(res) == {L1, (1, 1, 1, 0, 0, 0, 0, 0)}
     for r in res.values():  # 2 x 3 screening + (step, smooth) finals
