@@ -43,14 +43,28 @@ def _one_blas_thread() -> Iterator[None]:
                 os.environ[v] = val
 
 
-def _init_worker() -> None:
+def watch_parent(parent_pid: int, interval: float = 2.0) -> None:
+    """In a worker process: a daemon thread that ends this process (exit status 1) once the
+    process ``parent_pid`` is gone, so that a parent killed without its cleanup (SIGKILL,
+    SIGTERM) leaves no worker computing."""
+    def watch():
+        while psutil.pid_exists(parent_pid):
+            time.sleep(interval)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="watch-parent").start()
+
+
+def _init_worker(parent_pid: int) -> None:
     """Worker initializer. Ctrl-C reaches the whole process group, but only the parent acts on
-    it (it stops the workers), so workers ignore SIGINT and print no traceback of their own.
-    tqdm's bars get a thread lock instead of their default multiprocessing lock: that named
-    semaphore is never unlinked in a stopped worker (a "leaked semaphore" warning at exit)."""
+    it (it stops the workers), so workers ignore SIGINT and print no traceback of their own;
+    they end when the parent is gone (:func:`watch_parent`). tqdm's bars get a thread lock
+    instead of their default multiprocessing lock: that named semaphore is never unlinked in a
+    stopped worker (a "leaked semaphore" warning at exit)."""
     from tqdm import tqdm
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    watch_parent(parent_pid)
     tqdm.set_lock(threading.RLock())
 
 
@@ -59,7 +73,8 @@ def run_pool(fn: Callable, workers: int | None, tasks: list[tuple], finished: Ca
     processes (None: the CPU count; never more than there are tasks; 1: in this process, in
     order). On an error or interrupt, results already computed are still passed to
     ``finished``, the workers are stopped and the error is re-raised. The workers ignore
-    SIGINT: Ctrl-C is a ``KeyboardInterrupt`` in the caller only."""
+    SIGINT: Ctrl-C is a ``KeyboardInterrupt`` in the caller only; they end themselves if the
+    caller is killed (:func:`watch_parent`)."""
     workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
     if workers == 1:
         for task in tasks:
@@ -67,7 +82,7 @@ def run_pool(fn: Callable, workers: int | None, tasks: list[tuple], finished: Ca
         return
     with _one_blas_thread():  # the workers are spawned on submit, inside this block
         pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_init_worker)
+                                      initializer=_init_worker, initargs=(os.getpid(),))
         futures = [pool.submit(fn, *task) for task in tasks]
     seen = set()
     try:

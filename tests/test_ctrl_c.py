@@ -84,3 +84,34 @@ def test_ctrl_c_stops_worker_processes_cleanly(tmp_path):
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 130 and err.strip() == "interrupted", err
+
+
+def test_workers_end_when_their_caller_is_killed(tmp_path):
+    """A caller killed without its cleanup (SIGKILL; SIGTERM's default does the same) leaves no
+    worker computing: each ends itself within a few seconds of its parent."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    (tmp_path / "pool.py").write_text(_POOL_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(tmp_path / "pool.py"), str(tmp_path / "started-")],
+                            cwd=tmp_path, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 600  # a guard against a hang only
+        while len(list(tmp_path.glob("started-*"))) < 2 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert len(list(tmp_path.glob("started-*"))) == 2, "workers did not start"
+        workers = [p for p in psutil.Process(proc.pid).children(recursive=True) if "spawn_main" in " ".join(p.cmdline())]
+        assert len(workers) == 2
+        proc.kill()
+        proc.wait(timeout=60)
+        gone, alive = psutil.wait_procs(workers, timeout=30)  # the watchdog looks every 2 s
+        assert not alive, [p.pid for p in alive]
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:  # every process of the group is gone
+            pass

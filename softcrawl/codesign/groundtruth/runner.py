@@ -55,16 +55,9 @@ def _pin_threads(parent_pid: int | None = None) -> None:
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     if parent_pid is not None:
-        import threading
+        from softcrawl.parallel import watch_parent
 
-        import psutil
-
-        def watch():
-            while psutil.pid_exists(parent_pid):
-                time.sleep(2.0)
-            os._exit(1)
-
-        threading.Thread(target=watch, daemon=True).start()
+        watch_parent(parent_pid)
     try:
         from threadpoolctl import threadpool_limits
 
