@@ -6,6 +6,7 @@ crawls as far on any CPU, within half the reduced model's error budget."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from softcrawl.codesign.groundtruth import (
     optimize_design,
     parse_designs,
     run_groundtruth,
+    duty_knots,
     search_many,
     seed_knots,
 )
@@ -36,8 +38,10 @@ from softcrawl.design.space import PAPER_BEST_DESIGN
 pytest.importorskip("cma")
 
 DATA = Path(__file__).parent / "data"
+#: The search's mechanics are tested on the structured search (its episode counts); the duty
+#: search adds episodes to it (test_the_duty_search_asks_the_structured_episodes_and_more).
 CFG = GroundTruthConfig(cycles=(2, 3), evals_per_cycle=7, finalists=2, duration=20.0, screen_duration=5.0,
-                        baseline_phases=())
+                        baseline_phases=(), seeds="structured")
 
 
 class FakeEvaluator:
@@ -79,25 +83,46 @@ def test_design_search_asks_for_the_episodes_optimize_design_runs():
     _same(result, optimize_design(DESIGNS[0], CFG, evaluator=FakeEvaluator(DESIGNS[0])))
 
 
-def test_duty_seeds_add_the_bang_bang_duty_cycles_to_the_structured_ones():
-    """The one-regulator design ``0,0,0,1,1,1,0,0`` crawls +25.38 cm inflating 2 knots of 3 and
-    the structured seeds of a 3-knot run hold only 1 of 3 (docs/results.md, "Ground truth")."""
-    for m, L in ((1, 2), (1, 3), (1, 4), (2, 3), (3, 4)):
-        old, new = seed_knots(m, L), seed_knots(m, L, "duty")
-        assert all(np.array_equal(a, b) for a, b in zip(old, new))  # the structured ones first, in order
-        assert len({s.tobytes() for s in new}) == len(new) and all(s.shape == (L, m) for s in new)
-        for k in range(1, L):  # every regulator inflated together for k knots
+def test_duty_knots_are_the_in_phase_duty_cycles_the_structured_seeds_lack():
+    """The one-regulator design ``0,0,0,1,1,1,0,0`` crawls +24.90 cm inflating 2 knots of 3, and
+    the structured seeds of a 3-knot run hold 1 of 3 (docs/results.md, "Ground truth")."""
+    assert [d[:, 0].tolist() for d in duty_knots(1, 3)] == [[1.0, 1.0, 0.0]]
+    assert duty_knots(1, 2) == []  # 1 of 2 knots is the structured "all together for half"
+    for m, L in ((1, 4), (2, 3), (3, 4), (3, 5)):
+        have = {s.tobytes() for s in seed_knots(m, L)}
+        got = duty_knots(m, L)
+        assert got and all(s.shape == (L, m) and s.tobytes() not in have for s in got)
+        for k in range(1, L):  # every regulator inflated together for k knots: a seed or a duty cycle
             together = np.zeros((L, m))
             together[:k] = 1.0
-            assert any(np.array_equal(s, together) for s in new)
-    assert not any(np.array_equal(s, [[1.0], [1.0], [0.0]]) for s in seed_knots(1, 3))
-    pulse = np.ones((2, 2))
-    pulse[1, 0] = 0.0  # regulator 1 pulses while regulator 2 stays inflated
-    assert any(np.array_equal(s, pulse) for s in seed_knots(2, 2, "duty"))
-    with pytest.raises(ValueError, match="seeds must be one of"):
-        seed_knots(1, 3, "random")
+            assert together.tobytes() in have | {s.tobytes() for s in got}
     with pytest.raises(ValueError, match="seeds must be one of"):
         GroundTruthConfig(seeds="random").validate()
+
+
+@pytest.mark.parametrize("design", [(0, 0, 0, 1, 1, 1, 0, 0), (1, 0, 0, 2, 2, 0, 0, 0), (0, 0, 0, 1, 2, 3, 0, 0)])
+def test_the_duty_search_asks_the_structured_episodes_and_more(design):
+    """The same CMA-ES episodes, in the same rounds, with the duty cycles added to the first
+    round and their best as one more finalist: its reward is never below the structured one's."""
+    duty_cfg = dataclasses.replace(CFG, seeds="duty")
+    asked = {}
+
+    def rounds(cfg):
+        ev, out = FakeEvaluator(design), []
+
+        def answer(requests):
+            out.append([(g.to_dict(), t) for g, t in requests])
+            return [ev(g, t) for g, t in requests]
+        return drive(design_rounds(design, cfg), answer), out
+
+    (old, asked["structured"]), (new, asked["duty"]) = rounds(CFG), rounds(duty_cfg)
+    m = max(design)
+    duty = [(L, d) for L in CFG.cycles for d in duty_knots(m, L)]
+    a, b = asked["structured"], asked["duty"]
+    assert len(a) == len(b) and b[0][:len(a[0])] == a[0] and len(b[0]) == len(a[0]) + len(duty)
+    assert b[1:-1] == a[1:-1] and b[-1][:len(a[-1])] == a[-1] and len(b[-1]) - len(a[-1]) in (0, 2)
+    assert new.reward_cm >= old.reward_cm and new.evaluations == old.evaluations + len(b[0]) - len(a[0]) + \
+        len(b[-1]) - len(a[-1])
 
 
 def test_design_search_checks_before_the_first_request():
@@ -205,9 +230,9 @@ def test_search_many_in_lockstep_equals_one_design_at_a_time():
 
 
 def test_lockstep_of_the_default_budget_makes_few_large_calls():
-    """8 designs with the default settings (4 cycle lengths x 36 screening episodes, 2
-    finalists): 8 calls of up to 269 episodes (the rounds of 6 to 8 per design), not 148
-    calls of 8."""
+    """8 designs with the default settings (4 cycle lengths x 36 screening episodes and 4 to 6
+    duty cycles, 2 finalists and the best duty cycle): 8 calls of up to 269 episodes (the rounds
+    of 6 to 8 per design), not 155 calls of 8."""
     cfg, calls = GroundTruthConfig(baseline_phases=()), []
     serial = SerialEvaluateMany(cfg, make=FakeEvaluator)
     designs = parse_designs("3")[::35]
@@ -217,7 +242,7 @@ def test_lockstep_of_the_default_budget_makes_few_large_calls():
         return serial(requests)
 
     got = list(search_many(designs, cfg, evaluate_many))
-    assert len(got) == 8 and sum(calls) == sum(r.evaluations for r in got) == 8 * 148
+    assert len(got) == 8 and sum(calls) == sum(r.evaluations for r in got) == 1240
     assert len(calls) == 8 and max(calls) == 269
 
 

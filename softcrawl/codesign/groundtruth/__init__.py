@@ -15,7 +15,8 @@ cycle length ``L`` in
 (``m L`` numbers in [0, 90] kPa, step waveform), ``evals_per_cycle`` episodes each, started from
 the best of a few structured gaits evaluated first (one regulator after another then vent, all
 together, the expert's sampled sine at lags 90/180/270 deg; with :attr:`GroundTruthConfig.seeds`
-``"duty"``, the default, also the bang-bang duty cycles, :func:`seed_knots`). Episodes are of
+``"duty"``, the default, the bang-bang duty cycles, :func:`duty_knots`, are screened beside the
+runs and the best of them is a finalist too). Episodes are of
 ``screen_duration`` s when set (screening: :func:`screening_agreement` measures the Spearman
 rank correlation of short vs full episodes on a sample: 36 (design, gait) pairs on 6
 three-legged designs gave 0.87 / 0.95 / 0.96 for 4 / 6 / 10 s over all pairs, 1.0 for the best
@@ -74,6 +75,7 @@ from softcrawl.codesign.groundtruth.search import (
     design_search,
     design_seed,
     drive,
+    duty_knots,
     knots_to_gait,
     one_at_a_time,
     search_many,
@@ -123,6 +125,7 @@ __all__ = [
     "design_set_spec",
     "design_seed",
     "drive",
+    "duty_knots",
     "episode_return",
     "folder_lock",
     "folder_task",

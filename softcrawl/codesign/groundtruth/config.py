@@ -21,8 +21,7 @@ MAX_EVALS, MAX_FINALISTS, MAX_POPSIZE = 100_000, 1000, 10_000
 ENGINES, MAX_JAX_BATCH = ("cpu", "jax"), 65_536
 #: Most designs a batched engine searches at once (``softcrawl groundtruth --in-flight``).
 MAX_IN_FLIGHT = 100_000
-#: Starting-gait families of the CMA-ES runs (:attr:`GroundTruthConfig.seeds`,
-#: :func:`softcrawl.codesign.groundtruth.search.seed_knots`).
+#: The search's starting gaits (:attr:`GroundTruthConfig.seeds`).
 SEED_KINDS = ("structured", "duty")
 
 
@@ -49,10 +48,12 @@ class GroundTruthConfig:
         sigma0: initial CMA-ES step, as a fraction of 90 kPa.
         finalists: best distinct candidates re-run with ``duration`` (step and smooth each).
         seed: CMA-ES seed, 0..2**32 - 1 (design-specific seeds are derived from it).
-        seeds: the starting gaits of each CMA-ES run (:data:`SEED_KINDS`,
-            :func:`~softcrawl.codesign.groundtruth.search.seed_knots`): ``"duty"`` (default) adds
-            the bang-bang duty cycles to the ``"structured"`` ones, which folders of config
-            formats before 9 searched from.
+        seeds: the search's starting gaits (:data:`SEED_KINDS`): ``"structured"``, the CMA-ES
+            runs from :func:`~softcrawl.codesign.groundtruth.search.seed_knots` (what folders of
+            config formats before 9 searched); ``"duty"`` (default), those same runs, and beside
+            them the bang-bang duty cycles
+            (:func:`~softcrawl.codesign.groundtruth.search.duty_knots`) screened and the best of
+            them a finalist too: the same episodes and more, so never a lower reward.
         robot: the simulated robot (:class:`softcrawl.robot.RobotConfig`; default
             :func:`gt_robot`: the reduced model with the shipped reduction, RID products in
             float32, validated like the training presets' model, ``docs/results.md``; every

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from softcrawl.codesign.groundtruth.config import SEED_KINDS, GroundTruthConfig
+from softcrawl.codesign.groundtruth.config import GroundTruthConfig
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
 from softcrawl.design.space import DEFAULT_SPACE, Design
 from softcrawl.design.spacefile import DesignSpace
@@ -46,25 +46,10 @@ def used_regulators(design, space: DesignSpace = DEFAULT_SPACE) -> int:
     return max(space.canonicalize(design))
 
 
-def seed_knots(m: int, L: int, kind: str = "structured") -> list[np.ndarray]:
-    """Structured starting gaits ``(L, m)`` in units of 90 kPa for CMA-ES, distinct, in order.
-
-    ``"structured"``: each order of the ``m`` regulators inflating one after another then
-    venting (the paper's cycle is one), all together for half the cycle, and for ``L = 4`` the
-    expert's sine samples at lags 90/180/270 deg. ``"duty"``: those, then the duty cycles of
-    the bang-bang gaits: all regulators inflated together for ``k`` of the ``L`` knots
-    (``k = 1 .. L - 1``), and with ``m >= 2`` each regulator pulsing for ``k`` knots while the
-    others stay inflated. A CMA-ES run of a few dozen episodes started from the structured
-    seeds alone does not reach every corner of the box, where the best gaits of one-regulator
-    designs lie (docs/results.md, "Ground truth", measures it). The seeds count against the
-    run's episodes (:func:`cma_generations` evaluates at most half its budget of them, in this
-    order).
-
-    Raises:
-        ValueError: an unknown ``kind``.
-    """
-    if kind not in SEED_KINDS:
-        raise ValueError(f"seeds must be one of {SEED_KINDS}, got {kind!r}")
+def seed_knots(m: int, L: int) -> list[np.ndarray]:
+    """Structured starting gaits ``(L, m)`` in units of 90 kPa for CMA-ES: each order of the
+    ``m`` regulators inflating one after another then venting (the paper's cycle is one), all
+    together for half the cycle, and for ``L = 4`` the expert's sine samples at lags 90/180/270 deg."""
     seeds = []
     for perm in itertools.permutations(range(m)):
         s = np.zeros((L, m))
@@ -80,17 +65,28 @@ def seed_knots(m: int, L: int, kind: str = "structured") -> list[np.ndarray]:
             s = np.zeros((L, m))
             s[:, 0], s[:, 1] = base, np.roll(base, lag)
             seeds.append(s)
-    if kind == "duty":
-        for k in range(1, L):
-            s = np.zeros((L, m))
-            s[:k] = 1.0
-            seeds.append(s)
-        if m >= 2:
-            for k in range(1, L):
-                for r in range(m):
-                    s = np.ones((L, m))
-                    s[k:, r] = 0.0
-                    seeds.append(s)
+    return _distinct(seeds)
+
+
+def duty_knots(m: int, L: int) -> list[np.ndarray]:
+    """The bang-bang duty cycles ``(L, m)`` (units of 90 kPa) that :func:`seed_knots` lacks:
+    every regulator inflated together for the first ``k`` of the ``L`` knots, then vented
+    (``k = 1 .. L - 1``). A CMA-ES run of a few dozen episodes started from the structured
+    seeds does not reach every corner of the box, where the best gaits of one-regulator designs
+    lie (docs/results.md, "Ground truth", measures it); the ``"duty"`` search
+    (:attr:`GroundTruthConfig.seeds`) screens these besides its CMA-ES runs."""
+    have = {s.round(6).tobytes() for s in seed_knots(m, L)}
+    out = []
+    for k in range(1, L):
+        s = np.zeros((L, m))
+        s[:k] = 1.0
+        if s.round(6).tobytes() not in have:
+            out.append(s)
+    return out
+
+
+def _distinct(seeds: list[np.ndarray]) -> list[np.ndarray]:
+    """``seeds`` without repeats (to 1e-6), in order."""
     uniq, seen = [], set()
     for s in seeds:
         key = s.round(6).tobytes()
@@ -254,7 +250,10 @@ def design_rounds(design, cfg: GroundTruthConfig,
     still going (:func:`cma_generations`; the runs are independent, each with its own seed),
     then the finals. Exactly ``len(cfg.cycles) * cfg.evals_per_cycle`` search episodes of
     ``cfg.screen_duration`` s (``cfg.duration`` without screening), then at most
-    ``2 * cfg.finalists`` finals of ``cfg.duration`` s.
+    ``2 * cfg.finalists`` finals of ``cfg.duration`` s. The ``"duty"`` search
+    (:attr:`GroundTruthConfig.seeds`) asks for those same episodes and, in the first round, the
+    duty cycles (:func:`duty_knots`) of every cycle length, and its best duty cycle is a
+    finalist too (2 finals more): its reward is never below the ``"structured"`` search's.
 
     The design and the settings are checked when this is called, before the first round.
     The gaits command the ``R`` regulators of ``space`` (the design's design space).
@@ -304,16 +303,22 @@ def _rounds(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Genera
         return DIVERGED_CM if div else r
 
     # the search: one CMA-ES run per cycle length, all advanced together
-    runs = [cma_generations(m * L, cfg.evals_per_cycle, [s.ravel() for s in seed_knots(m, L, cfg.seeds)],
-                            sigma0=cfg.sigma0, popsize=cfg.popsize, seed=design_seed(design, cfg.seed) + ci)
+    runs = [cma_generations(m * L, cfg.evals_per_cycle, [s.ravel() for s in seed_knots(m, L)], sigma0=cfg.sigma0,
+                            popsize=cfg.popsize, seed=design_seed(design, cfg.seed) + ci)
             for ci, L in enumerate(cfg.cycles)]
+    # the "duty" search: the duty cycles screened in the first round, beside (not inside) the runs
+    duty = [(int(L), s.ravel()) for L in cfg.cycles for s in duty_knots(m, L)] if cfg.seeds == "duty" else []
+    duty_scored: list[tuple[float, int, np.ndarray]] = []
     asked = {ci: next(run) for ci, run in enumerate(runs)}  # each unfinished run's points of this round
     histories: dict[int, list] = {}
     while asked:
         current = list(asked.items())
         requests = [(knots_to_gait(x, m, cfg.cycles[ci], cfg.hold, n_regulators=n_reg), search_t)
                     for ci, xs in current for x in xs]
-        replies = _answered((yield requests), requests)
+        extra = [(knots_to_gait(x, m, L, cfg.hold, n_regulators=n_reg), search_t) for L, x in duty]
+        replies = _answered((yield requests + extra), requests + extra)
+        duty_scored += [(score(reply, search_t), L, x) for reply, (L, x) in zip(replies[len(requests):], duty)]
+        duty = []
         at = 0
         for ci, xs in current:
             values = [score(reply, search_t) for reply in replies[at:at + len(xs)]]
@@ -326,9 +331,10 @@ def _rounds(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Genera
     candidates: list[tuple[float, int, np.ndarray]] = []  # (search reward, L, x)
     per_cycle = {}
     for ci, L in enumerate(cfg.cycles):
-        per_cycle[int(L)] = max(histories[ci], key=lambda h: h[1])[1]
+        per_cycle[int(L)] = max([h[1] for h in histories[ci]] + [v for v, Ld, _ in duty_scored if Ld == L])
         candidates += [(v, L, x) for x, v in histories[ci]]
-    # finals: the best distinct candidates, step and smooth, with full episodes, in one round
+    # finals: the best distinct candidates, step and smooth, with full episodes, in one round; then
+    # the best duty cycle (the "duty" search), so that it only adds to what the runs found
     candidates.sort(key=lambda c: -c[0])
     finals, seen = [], set()
     for v, L, x in candidates:
@@ -338,6 +344,10 @@ def _rounds(design: Design, cfg: GroundTruthConfig, n_reg: int) -> typing.Genera
             finals.append((v, L, x))
         if len(finals) >= cfg.finalists:
             break
+    if duty_scored:
+        v, L, x = max(duty_scored, key=lambda c: c[0])  # ties: the first
+        if (L, np.round(x, 4).tobytes()) not in seen:
+            finals.append((v, L, x))
     trials = [(v, L, wf, knots_to_gait(x, m, L, cfg.hold, wf, n_reg)) for v, L, x in finals for wf in WAVEFORMS]
     known = [wf == "step" and screen is None for _, _, wf, _ in trials]  # the search ran it at full length
     requests = [(gait, cfg.duration) for (*_, gait), k in zip(trials, known) if not k]
