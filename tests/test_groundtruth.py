@@ -108,7 +108,8 @@ class FakeEvaluator:
 
 
 def test_optimizer_finds_paper_cycle_and_counts_episodes():
-    cfg = GroundTruthConfig(cycles=(2, 3), evals_per_cycle=12, finalists=2, duration=20.0, screen_duration=5.0)
+    cfg = GroundTruthConfig(cycles=(2, 3), evals_per_cycle=12, finalists=2, duration=20.0, screen_duration=5.0,
+                            seeds="structured")  # the duty search's extra episodes: test_groundtruth_search.py
     ev = FakeEvaluator()
     r = optimize_design(L1, cfg, evaluator=ev)
     assert r.reward_cm == pytest.approx(10.0) and r.cycle == 3 and r.waveform == "step"
@@ -120,7 +121,7 @@ def test_optimizer_finds_paper_cycle_and_counts_episodes():
 
 
 def test_optimizer_without_screening_reuses_step_rewards():
-    cfg = GroundTruthConfig(cycles=(3,), evals_per_cycle=6, finalists=1, screen_duration=None)
+    cfg = GroundTruthConfig(cycles=(3,), evals_per_cycle=6, finalists=1, screen_duration=None, seeds="structured")
     ev = FakeEvaluator()
     r = optimize_design(L1, cfg, evaluator=ev)
     assert ev.calls == [20.0] * 7 and r.full_evaluations == 7  # 6 search + smooth finalist
