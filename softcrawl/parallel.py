@@ -68,6 +68,12 @@ def _init_worker(parent_pid: int) -> None:
     tqdm.set_lock(threading.RLock())
 
 
+def pool_size(workers: int | None, n_tasks: int) -> int:
+    """The processes :func:`run_pool` starts for ``n_tasks`` tasks: ``workers`` (None or 0: the
+    CPU count), never more than the tasks, at least 1 (1: it runs them in the calling process)."""
+    return max(1, min(workers or os.cpu_count() or 1, n_tasks))
+
+
 def run_pool(fn: Callable, workers: int | None, tasks: list[tuple], finished: Callable) -> None:
     """``finished(fn(*task))`` for each task, as tasks complete, on ``workers`` spawned
     processes (None: the CPU count; never more than there are tasks; 1: in this process, in
@@ -75,7 +81,7 @@ def run_pool(fn: Callable, workers: int | None, tasks: list[tuple], finished: Ca
     ``finished``, the workers are stopped and the error is re-raised. The workers ignore
     SIGINT: Ctrl-C is a ``KeyboardInterrupt`` in the caller only; they end themselves if the
     caller is killed (:func:`watch_parent`)."""
-    workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
+    workers = pool_size(workers, len(tasks))
     if workers == 1:
         for task in tasks:
             finished(fn(*task))

@@ -179,8 +179,9 @@ def register(subparsers) -> None:
                    help="candidates re-run at full length (default 2)")
     p.add_argument("--seed", type=int, default=None, **bounded(*SEED_BOUNDS), help="CMA-ES seed (default 0)")
     p.add_argument("--seeds", default=None, choices=SEED_KINDS,
-                   help="starting gaits of the CMA-ES runs: duty (default: the structured ones and the bang-bang "
-                   "duty cycles) or structured (those of config formats before 9)")
+                   help="the search's starting gaits: duty (default: the CMA-ES runs from the structured seeds, "
+                   "and the bang-bang duty cycles screened beside them) or structured (the runs alone, as config "
+                   "formats before 9)")
     p.add_argument("--leg-mesh-size", type=float, default=None, **bounded(*SIM_BOUNDS["leg_mesh_size"]),
                    help="mm (the reduction's; default 6)")
     p.add_argument("--disk-mesh-size", type=float, default=None, **bounded(*SIM_BOUNDS["disk_mesh_size"]),

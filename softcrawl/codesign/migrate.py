@@ -25,8 +25,8 @@ as theirs: a shortlist of 1, :mod:`softcrawl.codesign.shortlist`).
 Version 8: a training run's ``jax_solver`` and ``jax_iterations`` (the JAX backend's contact solve:
 runs of the older formats ran 100 Gauss-Seidel sweeps, ``"pgs"`` and 100) and ``jax_precision``
 ``"auto"`` (older runs saved theirs).
-Version 9: a ground truth's ``seeds`` (the starting gaits of its CMA-ES runs: folders of the older
-formats searched from the ``"structured"`` ones).
+Version 9: a ground truth's ``seeds`` (the search's starting gaits: folders of the older formats
+ran the CMA-ES runs from the ``"structured"`` seeds alone).
 """
 
 from __future__ import annotations

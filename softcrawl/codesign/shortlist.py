@@ -55,7 +55,7 @@ import numpy as np
 
 from softcrawl.codesign.config import TRAIN_BOUNDS
 from softcrawl.codesign.run import Run, note
-from softcrawl.parallel import run_pool
+from softcrawl.parallel import pool_size, run_pool
 
 #: Format of ``shortlist.json``.
 SHORTLIST_FORMAT = 1
@@ -230,8 +230,7 @@ def compute_shortlist(run: str | Path, k: int, samples: int, evaluate: Callable 
                  f"({ev.gait_source}) {ev.gait_return:+.3f} {unit} ({wall:.0f} s)")
 
     tasks = [(i, r.path, c["design"], ck, samples) for i, c in enumerate(cands)]
-    workers = cfg.n_workers if workers is None else workers
-    workers = 1 if evaluate is not None else max(1, min(workers or os.cpu_count() or 1, len(tasks)))
+    workers = 1 if evaluate is not None else pool_size(cfg.n_workers if workers is None else workers, len(tasks))
     run_pool(partial(_evaluate, evaluate or evaluate_policy, workers > 1), workers, tasks, finished)
     out = [{"design": list(c["design"]), **{key: c[key] for _, key in RANKINGS}, "prob": c["prob"],
             f"latest_{unit}": c["latest_cm"], f"best_{unit}": c["best_ok_cm"], f"recent_{unit}": c["recent_cm"],

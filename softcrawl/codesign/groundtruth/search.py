@@ -75,14 +75,11 @@ def duty_knots(m: int, L: int) -> list[np.ndarray]:
     seeds does not reach every corner of the box, where the best gaits of one-regulator designs
     lie (docs/results.md, "Ground truth", measures it); the ``"duty"`` search
     (:attr:`GroundTruthConfig.seeds`) screens these besides its CMA-ES runs."""
-    have = {s.round(6).tobytes() for s in seed_knots(m, L)}
-    out = []
-    for k in range(1, L):
-        s = np.zeros((L, m))
+    seeds = seed_knots(m, L)
+    duty = [np.zeros((L, m)) for _ in range(1, L)]
+    for k, s in enumerate(duty, 1):
         s[:k] = 1.0
-        if s.round(6).tobytes() not in have:
-            out.append(s)
-    return out
+    return _distinct(seeds + duty)[len(seeds):]
 
 
 def _distinct(seeds: list[np.ndarray]) -> list[np.ndarray]:
