@@ -1,11 +1,15 @@
 """`regret` says when the learned gait beats the ground truth's best gait for the chosen design
-(its search missed a gait there, so the rank is a lower bound), and only then."""
+(its search missed a gait there, so the rank is a lower bound), and only then; and when the
+ground truth is unfinished."""
 
 from __future__ import annotations
 
 from types import SimpleNamespace
 
-from softcrawl.codesign.groundtruth_regret import BEATS_MARGIN, policy_beats, regret_markdown
+from groundtruth_helpers import DESIGNS, killed_folder, make_folder
+
+from softcrawl.codesign.groundtruth_regret import BEATS_MARGIN, place_design, policy_beats, regret_markdown
+from softcrawl.codesign.report_training import _groundtruth_placer
 
 
 def _setup(policy_cm, diverged=False):
@@ -39,3 +43,21 @@ def test_within_the_margin_diverged_or_not_finite_says_nothing():
     md = "\n".join(regret_markdown({"groundtruth": "gt", "choice": {"source": "shortlist", "prob": 1.0},
                                     "placement": placement, "policy": pol, "settings_differ": {}}))
     assert "missed a gait" not in md
+
+
+def test_an_unfinished_ground_truth_is_said_with_how_many_designs_are_done(tmp_path):
+    """Regression: ``regret`` against a ground truth still being computed gave "rank 5 of 49"
+    with nothing saying that 231 of its 280 designs were still to come."""
+    part = killed_folder(tmp_path / "part", DESIGNS, 3)
+    p = place_design(DESIGNS[0], part)
+    assert (p["of"], p["requested"]) == (3, 5)
+    md = "\n".join(regret_markdown({"groundtruth": "gt", "choice": {"source": "shortlist", "prob": 1.0},
+                                    "placement": p, "policy": None, "settings_differ": {}}))
+    assert "unfinished: 3 of its 5 designs are done" in md
+    assert _groundtruth_placer(part)[1] == "3 of its 5 designs: unfinished"
+    whole = make_folder(tmp_path / "whole")
+    p = place_design(DESIGNS[0], whole)
+    assert (p["of"], p["requested"]) == (5, 5)
+    md = "\n".join(regret_markdown({"groundtruth": "gt", "choice": {"source": "shortlist", "prob": 1.0},
+                                    "placement": p, "policy": None, "settings_differ": {}}))
+    assert "unfinished" not in md and _groundtruth_placer(whole)[1] == "5 designs"

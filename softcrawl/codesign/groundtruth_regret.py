@@ -132,12 +132,14 @@ def gt_settings(cfg: GroundTruthConfig) -> dict:
 
 def place_design(design, gt_dir: str | Path, results: dict | None = None, unit: str | None = None) -> dict:
     """Rank of ``design`` in a ground truth: ``{"design", "reward_<u>", "rank", "of",
-    "percentile", "best_design", "best_<u>", "regret_<u>", "gait"}``, ``u`` its task's unit
-    (``cm`` for ``forward``, :func:`softcrawl.codesign.groundtruth.store.folder_task`; ``unit``
-    if given) (rank 1 = best; percentile =
-    share of designs it beats or ties, %). Only the ground truth's valid rows count
+    "requested", "percentile", "best_design", "best_<u>", "regret_<u>", "gait"}``, ``u`` its
+    task's unit (``cm`` for ``forward``, :func:`softcrawl.codesign.groundtruth.store.folder_task`;
+    ``unit`` if given) (rank 1 = best, designs of equal reward share a rank; percentile = share
+    of designs it beats or ties, %). Only the ground truth's valid rows count
     (:func:`softcrawl.codesign.groundtruth.read_results`; a bad row is a note naming its file
-    and line).
+    and line): ``of`` of them, among the ``requested`` designs of the folder's recorded set
+    (:func:`~softcrawl.codesign.groundtruth.store.recorded_designs`; None for a folder that
+    records none), more than ``of`` while the ground truth is unfinished.
 
     Args:
         results: the ground truth's results by design, if already read (else read from ``gt_dir``).
@@ -145,7 +147,7 @@ def place_design(design, gt_dir: str | Path, results: dict | None = None, unit: 
     Raises:
         ValueError: ``design`` is not in the ground truth, or the folder is not one.
     """
-    from softcrawl.codesign.groundtruth.store import folder_space, folder_task
+    from softcrawl.codesign.groundtruth.store import folder_space, folder_task, recorded_designs
 
     u = folder_task(gt_dir).unit if unit is None else unit
     res = load_groundtruth(gt_dir)[1] if results is None else results
@@ -156,8 +158,9 @@ def place_design(design, gt_dir: str | Path, results: dict | None = None, unit: 
     mine = res[d].reward_cm
     best = max(res.values(), key=lambda r: (r.reward_cm, tuple(-v for v in r.design)))
     rank = 1 + int(np.sum(rewards > mine))
+    recorded = recorded_designs(gt_dir)
     return {"design": list(d), f"reward_{u}": mine, "rank": rank, "of": len(res),
-            "percentile": 100.0 * float(np.mean(rewards <= mine)), "best_design": list(best.design),
+            "requested": None if recorded is None else len(set(recorded) | set(res)), "percentile": 100.0 * float(np.mean(rewards <= mine)), "best_design": list(best.design),
             f"best_{u}": best.reward_cm, f"regret_{u}": best.reward_cm - mine, "gait": res[d].gait}
 
 
@@ -253,6 +256,9 @@ def regret_markdown(r: dict) -> list[str]:
         lines.append(f"| ground-truth gait on it | {p[f'reward_{u}']:+.2f} {u} |")
     beats = p.get("policy_beats_groundtruth")
     lines.append("")
+    if (p.get("requested") or 0) > p["of"]:
+        lines += [f"The ground truth is unfinished: {p['of']} of its {p['requested']} designs are done, and the "
+                  "rank is among those; the designs still to come can only move it down the table.", ""]
     if beats:
         lines += [f"The learned gait returns {beats[f'margin_{u}']:.2f} {u} more on the chosen design than the "
                   "ground truth's best gait for it: the ground truth's search missed a gait, so its values are "

@@ -315,11 +315,11 @@ def paper_designs_section(rows: list[dict], cfg, groundtruth: str | Path | None 
     if space != DEFAULT_SPACE:
         return lines + [f"The paper's designs are of its own design space; this run's is `{space.name}`."], []
     ranked = by_latest(rows)
-    place, gt_of = _groundtruth_placer(groundtruth)
+    place, gt_size = _groundtruth_placer(groundtruth)
     in_play = set(cfg.env.designs())
     lines += [("The paper's five best learned designs (its Results, in order of decreasing reward), placed among "
                f"this run's {len(ranked)} tried designs by latest return R (as the top table)"
-               + (f" and in the ground truth `{groundtruth}` ({gt_of} designs)." if place else ".")
+               + (f" and in the ground truth `{groundtruth}` ({gt_size})." if place else ".")
                + " Its source names L1's design only; L2-L5 are pictured in a figure it does not hold."), "",
               f"| | design | the paper says | rank here | R ({unit}) | best ({unit}) | p |"
               f"{' ground truth: rank, reward |' if place else ''}",
@@ -351,19 +351,20 @@ def paper_designs_section(rows: list[dict], cfg, groundtruth: str | Path | None 
 
 
 def _groundtruth_placer(groundtruth):
-    """``(place, designs)`` of a ground truth of the paper's space: ``place(design) -> {"rank",
-    "of", "reward", "unit"}`` (None for a design it lacks) and its number of designs; ``(None,
-    0)`` without one, or with one of another space (a note says so)."""
+    """``(place, size)`` of a ground truth of the paper's space: ``place(design) -> {"rank",
+    "of", "reward", "unit"}`` (None for a design it lacks) and its number of designs in words
+    (``"N designs"``, or ``"N of its M designs: unfinished"``); ``(None, "")`` without one, or
+    with one of another space (a note says so)."""
     if groundtruth is None:
-        return None, 0
+        return None, ""
     from softcrawl.codesign.groundtruth import load_groundtruth
-    from softcrawl.codesign.groundtruth.store import folder_space
+    from softcrawl.codesign.groundtruth.store import folder_space, recorded_designs
     from softcrawl.codesign.groundtruth_regret import place_design
 
     if folder_space(groundtruth) != DEFAULT_SPACE:
         note(f"the ground truth {groundtruth} is not of the paper's design space: the paper's designs are not "
              "placed in it")
-        return None, 0
+        return None, ""
     cfg, res, _ = load_groundtruth(groundtruth)
     unit = cfg.task_spec().unit
 
@@ -373,4 +374,6 @@ def _groundtruth_placer(groundtruth):
         p = place_design(design, groundtruth, res, unit)
         return {"rank": p["rank"], "of": p["of"], "reward": p[f"reward_{unit}"], "unit": unit}
 
-    return place, len(res)
+    requested = len(set(recorded_designs(groundtruth) or ()) | set(res))
+    size = f"{len(res)} designs" if requested == len(res) else f"{len(res)} of its {requested} designs: unfinished"
+    return place, size
