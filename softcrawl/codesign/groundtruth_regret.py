@@ -138,8 +138,7 @@ def place_design(design, gt_dir: str | Path, results: dict | None = None, unit: 
     of designs it beats or ties, %). Only the ground truth's valid rows count
     (:func:`softcrawl.codesign.groundtruth.read_results`; a bad row is a note naming its file
     and line): ``of`` of them, among the ``requested`` designs of the folder's recorded set
-    (:func:`~softcrawl.codesign.groundtruth.store.recorded_designs`; None for a folder that
-    records none), more than ``of`` while the ground truth is unfinished.
+    (:func:`requested_designs`), more than ``of`` while the ground truth is unfinished.
 
     Args:
         results: the ground truth's results by design, if already read (else read from ``gt_dir``).
@@ -147,7 +146,7 @@ def place_design(design, gt_dir: str | Path, results: dict | None = None, unit: 
     Raises:
         ValueError: ``design`` is not in the ground truth, or the folder is not one.
     """
-    from softcrawl.codesign.groundtruth.store import folder_space, folder_task, recorded_designs
+    from softcrawl.codesign.groundtruth.store import folder_space, folder_task
 
     u = folder_task(gt_dir).unit if unit is None else unit
     res = load_groundtruth(gt_dir)[1] if results is None else results
@@ -158,10 +157,25 @@ def place_design(design, gt_dir: str | Path, results: dict | None = None, unit: 
     mine = res[d].reward_cm
     best = max(res.values(), key=lambda r: (r.reward_cm, tuple(-v for v in r.design)))
     rank = 1 + int(np.sum(rewards > mine))
-    recorded = recorded_designs(gt_dir)
     return {"design": list(d), f"reward_{u}": mine, "rank": rank, "of": len(res),
-            "requested": None if recorded is None else len(set(recorded) | set(res)), "percentile": 100.0 * float(np.mean(rewards <= mine)), "best_design": list(best.design),
-            f"best_{u}": best.reward_cm, f"regret_{u}": best.reward_cm - mine, "gait": res[d].gait}
+            "requested": requested_designs(gt_dir, res), "percentile": 100.0 * float(np.mean(rewards <= mine)),
+            "best_design": list(best.design), f"best_{u}": best.reward_cm, f"regret_{u}": best.reward_cm - mine,
+            "gait": res[d].gait}
+
+
+def requested_designs(gt_dir: str | Path, results: dict) -> int | None:
+    """How many designs the ground truth ``gt_dir`` is of: its recorded design set
+    (:func:`~softcrawl.codesign.groundtruth.store.recorded_designs`) with its ``results`` (by
+    design), more than ``len(results)`` while it is unfinished; None for a folder that records
+    no set.
+
+    Raises:
+        ValueError: as :func:`~softcrawl.codesign.groundtruth.store.recorded_designs`.
+    """
+    from softcrawl.codesign.groundtruth.store import recorded_designs
+
+    recorded = recorded_designs(gt_dir)
+    return None if recorded is None else len(set(recorded) | set(results))
 
 
 #: Relative margin by which the learned gait's return must exceed the ground truth's for the

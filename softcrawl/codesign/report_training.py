@@ -358,8 +358,8 @@ def _groundtruth_placer(groundtruth):
     if groundtruth is None:
         return None, ""
     from softcrawl.codesign.groundtruth import load_groundtruth
-    from softcrawl.codesign.groundtruth.store import folder_space, recorded_designs
-    from softcrawl.codesign.groundtruth_regret import place_design
+    from softcrawl.codesign.groundtruth.store import folder_space
+    from softcrawl.codesign.groundtruth_regret import place_design, requested_designs
 
     if folder_space(groundtruth) != DEFAULT_SPACE:
         note(f"the ground truth {groundtruth} is not of the paper's design space: the paper's designs are not "
@@ -374,6 +374,6 @@ def _groundtruth_placer(groundtruth):
         p = place_design(design, groundtruth, res, unit)
         return {"rank": p["rank"], "of": p["of"], "reward": p[f"reward_{unit}"], "unit": unit}
 
-    requested = len(set(recorded_designs(groundtruth) or ()) | set(res))
+    requested = requested_designs(groundtruth, res) or len(res)
     size = f"{len(res)} designs" if requested == len(res) else f"{len(res)} of its {requested} designs: unfinished"
     return place, size
