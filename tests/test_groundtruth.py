@@ -16,6 +16,7 @@ from softcrawl.codesign.groundtruth import (
     GroundTruthConfig,
     PeriodicGait,
     cma_maximize,
+    competition_ranks,
     load_results,
     optimize_design,
     parse_designs,
@@ -248,3 +249,26 @@ def test_place_design_unknown(tmp_path):
     gt = make_folder(tmp_path)
     with pytest.raises(ValueError, match="not in the ground truth"):
         rg.place_design((1, 0, 0, 2, 2, 0, 0, 1), gt)
+
+
+def test_tied_designs_share_a_rank_in_every_table(tmp_path):
+    """Regression: ``groundtruth.csv`` numbered tied designs 1, 2, 3... while ``regret`` (and the
+    docs) gave them one rank. Three designs of one reward (as one-regulator gaits on designs that
+    differ only in regulator labels give, to the bit) now share it in the table, the summary's
+    ``best`` and ``place_design``, and the next design's rank skips them."""
+    import csv
+
+    tied = {DESIGNS[1], DESIGNS[2], DESIGNS[3]}
+    gt = make_folder(tmp_path, task=lambda d, c: {**fake_task(d, c), "reward_cm": 5.0 if tuple(d) in tied
+                                                   else 9.0 if tuple(d) == DESIGNS[0] else 1.0})
+    with open(gt / "groundtruth.csv", newline="") as f:
+        table = {r["design"]: int(r["rank"]) for r in csv.DictReader(f)}
+    text = ",".join
+    assert table == {text(map(str, DESIGNS[0])): 1, **{text(map(str, d)): 2 for d in tied},
+                     text(map(str, DESIGNS[4])): 5}
+    summary = json.loads((gt / "summary.json").read_text())
+    assert [b["rank"] for b in summary["best"]] == [1, 2, 2, 2, 5]
+    assert {d: rg.place_design(d, gt)["rank"] for d in DESIGNS} == {tuple(map(int, k.split(","))): v
+                                                                    for k, v in table.items()}
+    with pytest.raises(ValueError, match="sorted best first"):
+        competition_ranks([1.0, 2.0])

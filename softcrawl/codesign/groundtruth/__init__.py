@@ -58,7 +58,7 @@ from softcrawl.codesign.groundtruth.optimize import (
     screening_agreement,
     spearman,
 )
-from softcrawl.codesign.groundtruth.outputs import write_outputs
+from softcrawl.codesign.groundtruth.outputs import competition_ranks, write_outputs
 from softcrawl.codesign.groundtruth.result import DIVERGED_CM, DesignResult
 from softcrawl.codesign.groundtruth.runner import (
     EXECUTORS,
@@ -119,6 +119,7 @@ __all__ = [
     "check_folder",
     "cma_generations",
     "cma_maximize",
+    "competition_ranks",
     "cma_search",
     "design_rounds",
     "design_search",

@@ -53,11 +53,12 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
         keep = {cfg.design_space().canonicalize(d) for d in designs}
         done = {d: r for d, r in done.items() if d in keep}
     rows = sorted(done.values(), key=lambda r: (-r.reward_cm, r.design))
+    ranks = competition_ranks([r.reward_cm for r in rows])
     table = io.StringIO()
     w = csv.writer(table)
     w.writerow(["rank", "design", reward, "cycle", "waveform", "gait_kpa", "evaluations",
                 "full_evaluations", "sim_seconds", "wall_seconds", "diverged"])
-    for i, r in enumerate(rows, start=1):
+    for i, r in zip(ranks, rows):
         g = PeriodicGait.from_dict(r.gait)
         w.writerow([i, ",".join(map(str, r.design)), f"{r.reward_cm:.4f}", r.cycle, r.waveform,
                     json.dumps([[round(v, 2) for v in p] for p in g.patterns]), r.evaluations,
@@ -78,8 +79,8 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
         "designs": len(rows), "requested": len(designs) if designs is not None else len(rows),
         "config": _portable(cfg.to_dict(), out),
         "best": [{"design": list(r.design), reward: r.reward_cm, "gait": PeriodicGait.from_dict(r.gait).describe(),
-                  "rank": i, "legs": _legs(r.design)} for i, r in enumerate(rows[:10], start=1)],
-        "by_legs": _by_legs(rows, reward),
+                  "rank": i, "legs": _legs(r.design)} for i, r in zip(ranks[:10], rows[:10])],
+        "by_legs": _by_legs(rows, ranks, reward),
         reward: {"max": float(rewards.max()) if len(rows) else None,
                       "median": float(np.median(rewards)) if len(rows) else None,
                       "min": float(rewards.min()) if len(rows) else None},
@@ -102,8 +103,22 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
     atomic_write_text(out / "summary.md", summary_markdown(summary, cfg.design_space().name))
     if rows:
-        _ranked_plot(rows, refs, out / "ranked.png", cfg, task)
+        _ranked_plot(rows, ranks, refs, out / "ranked.png", cfg, task)
     return summary
+
+
+def competition_ranks(rewards: Sequence[float]) -> list[int]:
+    """Ranks of ``rewards`` sorted best first (length n): 1 + how many rewards are strictly
+    greater, so designs of equal reward share a rank and the next rank skips ("1224" ranking),
+    as :func:`softcrawl.codesign.groundtruth_regret.place_design` ranks a design.
+
+    Raises:
+        ValueError: ``rewards`` are not sorted best first.
+    """
+    r = np.asarray(rewards, dtype=float)
+    if np.any(r[1:] > r[:-1]):
+        raise ValueError("competition_ranks: rewards must be sorted best first")
+    return [1 + int(np.sum(r > v)) for v in r]
 
 
 def _legs(design) -> int:
@@ -111,17 +126,17 @@ def _legs(design) -> int:
     return sum(v > 0 for v in design)
 
 
-def _by_legs(rows: list[DesignResult], reward: str) -> dict[str, dict]:
-    """Per leg count (a text key, ascending) of the ranked ``rows``: ``designs``, ``best`` (design,
-    ``reward``, rank among all rows, gait) and ``median`` reward."""
+def _by_legs(rows: list[DesignResult], ranks: list[int], reward: str) -> dict[str, dict]:
+    """Per leg count (a text key, ascending) of the ranked ``rows`` (their ``ranks``):
+    ``designs``, ``best`` (design, ``reward``, rank among all rows, gait) and ``median`` reward."""
     out: dict[str, dict] = {}
     for legs in sorted({_legs(r.design) for r in rows}):
-        ranks = [i for i, r in enumerate(rows, start=1) if _legs(r.design) == legs]
-        top = rows[ranks[0] - 1]
-        out[str(legs)] = {"designs": len(ranks), "best": {"design": list(top.design), reward: top.reward_cm,
-                                                          "rank": ranks[0],
-                                                          "gait": PeriodicGait.from_dict(top.gait).describe()},
-                          "median": float(np.median([rows[i - 1].reward_cm for i in ranks]))}
+        mine = [i for i, r in enumerate(rows) if _legs(r.design) == legs]
+        top = rows[mine[0]]
+        out[str(legs)] = {"designs": len(mine), "best": {"design": list(top.design), reward: top.reward_cm,
+                                                         "rank": ranks[mine[0]],
+                                                         "gait": PeriodicGait.from_dict(top.gait).describe()},
+                          "median": float(np.median([rows[i].reward_cm for i in mine]))}
     return out
 
 
@@ -176,7 +191,8 @@ def summary_markdown(summary: dict, space: str = "paper") -> str:
     return "\n".join(lines) + "\n"
 
 
-def _ranked_plot(rows: list[DesignResult], refs: dict, path: Path, cfg: GroundTruthConfig, task: Task) -> None:
+def _ranked_plot(rows: list[DesignResult], ranks: list[int], refs: dict, path: Path, cfg: GroundTruthConfig,
+                 task: Task) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -187,9 +203,9 @@ def _ranked_plot(rows: list[DesignResult], refs: dict, path: Path, cfg: GroundTr
     ax.plot(np.arange(1, len(r) + 1), r, ".-", color="0.4", ms=4, lw=0.8, label="designs (best gait)")
     for i, x in enumerate(rows):
         if x.design == PAPER_BEST_DESIGN:
-            ax.plot(i + 1, x.reward_cm, "o", color="C3", ms=9, label=f"paper L1 1,0,0,2,2,0,0,0 (rank {i + 1})")
+            ax.plot(i + 1, x.reward_cm, "o", color="C3", ms=9, label=f"paper L1 1,0,0,2,2,0,0,0 (rank {ranks[i]})")
         if x.design == BASELINE_DESIGN:
-            ax.plot(i + 1, x.reward_cm, "s", color="C0", ms=8, label=f"expert design (rank {i + 1})")
+            ax.plot(i + 1, x.reward_cm, "s", color="C0", ms=8, label=f"expert design (rank {ranks[i]})")
     if "expert_baseline" in refs:
         b = refs["expert_baseline"]
         ax.axhline(b["reward_cm"], color="C0", ls="--", lw=1,
