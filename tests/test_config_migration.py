@@ -55,7 +55,8 @@ def test_a_format_2_run_reads_back_with_the_torch_learner(tmp_path):
 
 
 def test_a_format_1_ground_truth_reads_back_with_its_robot(tmp_path):
-    """``groundtruth_config_v1.json``: the shipped three-legged ground truth's config.json."""
+    """``groundtruth_config_v1.json``: the config.json of the three-legged ground truth shipped
+    before the duty search (structured seeds)."""
     shutil.copy(DATA / "groundtruth_config_v1.json", tmp_path / "config.json")
     cfg = read_config(tmp_path)
     assert cfg.robot == RobotConfig(model="reduced", leg_mesh_size=6.0, disk_mesh_size=25.0, dt=0.02,

@@ -40,6 +40,7 @@ from softcrawl.tasks.baselines import TURNING_BASELINE_DESIGN, turned_degrees, t
 TINY = ["--cycles", "2", "--evals-per-cycle", "3", "--finalists", "1", "--screen-duration", "0.5",
         "--disk-mesh-size", "25", "--baseline-phases", "none", "--executor", "serial", "--no-progress"]
 SHIPPED = Path(__file__).resolve().parents[1] / "benchmarks" / "groundtruth" / "three-legged"
+DATA = Path(__file__).resolve().parent / "data"
 L1 = (1, 0, 0, 2, 2, 0, 0, 0)
 
 
@@ -163,15 +164,25 @@ def test_regret_refuses_another_task_and_speaks_degrees(tmp_path, monkeypatch, c
         rg.compute_regret("RUN", gt, policy=False)
 
 
-def test_shipped_groundtruth_reads_as_forward_unchanged():
+def test_shipped_groundtruth_reads_as_forward_and_a_format_1_folder_too(tmp_path):
+    """The shipped ground truth records its task (``forward``); a folder written before tasks
+    existed (the former shipped table's ``config.json``, format 1, with rows of today's) reads as
+    ``forward`` in cm, its rows' numbers to the bit."""
     cfg, res, _ = load_groundtruth(SHIPPED)
-    assert "task" not in json.loads((SHIPPED / "config.json").read_text())["config"]
+    assert json.loads((SHIPPED / "config.json").read_text())["config"]["task"] == "forward"
     assert cfg.task_spec() == Forward() and folder_task(SHIPPED).unit == "cm"
-    raw = {tuple(json.loads(line)["design"]): json.loads(line)["reward_cm"]
-           for line in (SHIPPED / "results.jsonl").read_text().splitlines() if line.strip()}
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "config.json").write_text((DATA / "groundtruth_config_v1.json").read_text())
+    lines = (SHIPPED / "results.jsonl").read_text().splitlines(keepends=True)[:5]
+    (old / "results.jsonl").write_text("".join(lines))
+    assert "task" not in json.loads((old / "config.json").read_text())["config"]
+    cfg, res, _ = load_groundtruth(old)
+    assert cfg.task_spec() == Forward() and folder_task(old).unit == "cm"
+    raw = {tuple(json.loads(line)["design"]): json.loads(line)["reward_cm"] for line in lines}
     assert {d: r.reward_cm for d, r in res.items()} == raw  # the file's numbers, to the bit
-    p = rg.place_design(max(raw, key=raw.get), SHIPPED, res)
-    assert p["rank"] == 1 and p["regret_cm"] == 0.0
+    p = rg.place_design(max(raw, key=raw.get), old, res)
+    assert p["rank"] == 1 and p["regret_cm"] == 0.0 and p["of"] == 5
 
 
 def test_a_task_the_jax_engine_cannot_score_is_refused():
