@@ -66,12 +66,13 @@ def write_outputs(out_dir: str | Path, designs: Sequence | None = None, wall_sec
     atomic_write_text(out / "groundtruth.csv", table.getvalue())
     refs = read_references(out) or {}
     rewards = np.array([r.reward_cm for r in rows])
+    rank_of = {r.design: k for r, k in zip(rows, ranks)}
 
     def place(d):
         d = tuple(d)
         if d not in done:
             return None
-        rank = 1 + int(np.sum(rewards > done[d].reward_cm))
+        rank = rank_of[d]
         return {"design": list(d), reward: done[d].reward_cm, "rank": rank,
                 "percentile": 100.0 * (1 - (rank - 1) / len(rows))}
 
@@ -118,7 +119,8 @@ def competition_ranks(rewards: Sequence[float]) -> list[int]:
     r = np.asarray(rewards, dtype=float)
     if np.any(r[1:] > r[:-1]):
         raise ValueError("competition_ranks: rewards must be sorted best first")
-    return [1 + int(np.sum(r > v)) for v in r]
+    # -r ascends, so the leftmost slot of each value counts the rewards strictly greater
+    return (1 + np.searchsorted(-r, -r, side="left")).tolist()
 
 
 def _legs(design) -> int:
