@@ -39,22 +39,31 @@ def landed():
 
 def _step_rows(landed):
     """The next step's free motion and constraint rows of the ``landed`` robot at its pressures:
-    ``(model, rows, chol, qd_free, R)`` (:mod:`softcrawl.jaxsim.delassus`)."""
+    ``(model, rows, inv_chol, qd_free, R)`` (:mod:`softcrawl.jaxsim.delassus`)."""
     from softcrawl.jaxsim import disk as disk_motion
     from softcrawl.jaxsim import legs as leg_motion
     from softcrawl.jaxsim.delassus import constraint_rows
 
     model, state, kpa = landed
     rd = model.robot
-    qd_free, chol, _ = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
+    qd_free, inv_chol, _ = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
         model.leg, model.settings, state.q, state.qdot, rd.rotation, kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
     v_free, R = disk_motion.free_motion(model.disk, model.settings, state.x, state.v)
-    return model, constraint_rows(model, state, v_free, qd_free, R), chol, qd_free, R
+    return model, constraint_rows(model, state, v_free, qd_free, R), inv_chol, qd_free, R
 
 
-def _dense(rows, chol, qd_free):
+def _step_matrix(inv_chol):
+    """A leg's step matrix ``A = C C^T`` from the inverse ``C^-1`` of its Cholesky factor
+    (:func:`softcrawl.jaxsim.legs.free_motion`'s; that it inverts the CPU kernels' factor is
+    tests/test_jaxsim_robot.py's)."""
+    C = np.linalg.inv(np.asarray(inv_chol))
+    return C @ C.T
+
+
+def _dense(rows, inv_chol, qd_free):
     """The full Delassus operator and free velocities of ``rows``, summed densely: each leg's
-    ``J_l A_l^-1 J_l^T`` placed at its attachment and contact rows, plus the disk's blocks."""
+    ``J_l A_l^-1 J_l^T`` placed at its attachment and contact rows (solved with ``A_l``),
+    plus the disk's blocks."""
     L, n_leg, m = rows.leg.shape
     F3 = rows.u_att.shape[0] // L
     Kd3 = rows.disk_dd.shape[0]
@@ -67,7 +76,7 @@ def _dense(rows, chol, qd_free):
     W[nb:nb + Kd3, nb:nb + Kd3] = rows.disk_dd
     u[:nb], u[nb:nb + Kd3] = rows.u_att, rows.u_disk
     for leg in range(L):
-        A = np.asarray(chol[leg]) @ np.asarray(chol[leg]).T
+        A = _step_matrix(inv_chol[leg])
         J = np.asarray(rows.leg[leg])
         idx = np.concatenate([leg * F3 + np.arange(F3), nb + Kd3 + leg * (n_leg - F3) + np.arange(n_leg - F3)])
         W[np.ix_(idx, idx)] += J @ np.linalg.solve(A, J.T)
@@ -87,9 +96,9 @@ def test_block_assembly_and_elimination_equal_the_dense_schur_complement(landed)
     from softcrawl.jaxsim.contact import condense as dense_condense
     from softcrawl.jaxsim.delassus import condense
 
-    _, rows, chol, qd_free, _ = _step_rows(landed)
-    got = condense(rows, chol, qd_free)
-    W, u = _dense(rows, chol, qd_free)
+    _, rows, inv_chol, qd_free, _ = _step_rows(landed)
+    got = condense(rows, inv_chol, qd_free)
+    W, u = _dense(rows, inv_chol, qd_free)
     X, Wc, qc = dense_condense(W, u, rows.bilateral, least_squares=False)
     assert int(rows.active.sum()) > 4
     for a, b in ((got.W, Wc), (got.q, qc), (got.X, X)):
@@ -104,13 +113,13 @@ def test_corrections_give_the_constrained_velocities_the_impulses_ask_for(landed
     from softcrawl.jaxsim.contact import solve_contacts
     from softcrawl.jaxsim.delassus import condense, corrections
 
-    model, rows, chol, qd_free, R = _step_rows(landed)
+    model, rows, inv_chol, qd_free, R = _step_rows(landed)
     rd = model.robot
-    cond = condense(rows, chol, qd_free)
+    cond = condense(rows, inv_chol, qd_free)
     K = rows.points.shape[0]
     lam_c = solve_contacts(cond.W, cond.q, jnp.full(K, 1.2), jnp.zeros(3 * K), rows.active, "apgd", 48)
-    dq, dv, lam_b = corrections(model, rows, cond, chol, lam_c, R)
-    W, u = _dense(rows, chol, qd_free)
+    dq, dv, lam_b = corrections(model, rows, cond, inv_chol, lam_c, R)
+    W, u = _dense(rows, inv_chol, qd_free)
     lam = np.concatenate([lam_b, lam_c])
     nb = lam_b.shape[0]
     u_b = (W @ lam + u)[:nb][np.asarray(rows.bilateral)]
@@ -119,7 +128,7 @@ def test_corrections_give_the_constrained_velocities_the_impulses_ask_for(landed
     F3 = nb // rows.leg.shape[0]
     Kd3, Kl3 = rows.disk_dd.shape[0], rows.leg.shape[1] - F3
     for leg in np.flatnonzero(np.asarray(rd.leg_mask)):
-        A = np.asarray(chol[leg]) @ np.asarray(chol[leg]).T
+        A = _step_matrix(inv_chol[leg])
         lam_l = np.concatenate([lam_b[leg * F3:(leg + 1) * F3], lam_c[Kd3 + leg * Kl3:Kd3 + (leg + 1) * Kl3]])
         want = np.linalg.solve(A, np.asarray(rows.leg[leg]).T @ lam_l)
         assert np.abs(np.asarray(dq[leg]) - want).max() <= 1e-9 * np.abs(want).max()
@@ -187,10 +196,27 @@ def test_every_part_of_the_step_is_a_named_scope_of_its_program(landed):
     assert all(f"/{scope}/" in text for scope in STEP_SCOPES)
 
 
+def test_the_step_solves_two_triangular_systems(landed):
+    """The compiled physics step has two triangular solves, each against the identity: the legs'
+    inverse Cholesky factors (one batched solve) and the attachment block's; every other use of
+    them is a product. On a GPU each triangular solve of small batched matrices is a chain of
+    kernel launches (the H200's profile: 8 per solve, 145 us of the 96-robot step for the two
+    that solved with the attachment block before; benchmarks/RESULTS.md); the step once had
+    six."""
+    import re
+
+    from softcrawl.jaxsim.engine import physics_step
+
+    model, state, kpa = landed
+    text = jax.jit(physics_step).lower(model, state, kpa).compile().as_text()
+    solves = re.findall(r'custom_call_target="[a-z_]*trsm[a-z_]*"|= \S+ triangular-solve\(', text)
+    assert len(solves) == 2
+
+
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and
-    at most 600 operations in sequence per step (measured 535 with JAX 0.10.2; the previous
+    at most 600 operations in sequence per step (measured 544 with JAX 0.10.2; the previous
     engine's 100 Gauss-Seidel sweeps ran 8,101 trips and 184,545 operations per step:
     benchmarks/step_cost.py, benchmarks/RESULTS.md)."""
     out = subprocess.run([sys.executable, "benchmarks/step_cost.py", "--steps", "10"], capture_output=True, text=True,

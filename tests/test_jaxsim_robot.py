@@ -39,8 +39,9 @@ def deformed_legs(robot, seed=0, scale=1.0):
 
 def test_leg_free_motion_matches_the_cpu_kernels(x64, robot):
     """One step of the free motion of 4 deformed, moving, pressurised legs (two regulators):
-    the free modal velocities and the step matrices' Cholesky factors agree with
-    :meth:`ModalGroup.free_motion` to round-off (1e-9 relative; the sums run in another order)."""
+    the free modal velocities agree with :meth:`ModalGroup.free_motion` to round-off (1e-9
+    relative; the sums run in another order), and the inverse factors the step returns invert
+    the CPU kernels' Cholesky factors of the step matrices (``C^-1 C = I`` to 1e-9)."""
     import jax.numpy as jnp
 
     from softcrawl.jaxsim.legs import free_motion
@@ -58,12 +59,14 @@ def test_leg_free_motion_matches_the_cpu_kernels(x64, robot):
     rd = model.robot
     p = jnp.asarray(sim_kpa)[rd.channel[0]]
     step = jax.jit(jax.vmap(free_motion, in_axes=(None, None, 0, 0, 0, 0, 0)), static_argnums=1)
-    qd, chol, bad = step(model.leg, model.settings, jnp.asarray(q), jnp.asarray(qdot), rd.rotation[0], p,
-                         rd.leg_mask[0])
+    qd, inv_chol, bad = step(model.leg, model.settings, jnp.asarray(q), jnp.asarray(qdot), rd.rotation[0], p,
+                             rd.leg_mask[0])
     assert not np.asarray(bad).any()
     dq = np.asarray(qd) - qdot
     np.testing.assert_allclose(dq, ref_qd - qdot, rtol=0, atol=1e-9 * np.abs(ref_qd - qdot).max())
-    np.testing.assert_allclose(np.asarray(chol), ref_chol, rtol=0, atol=1e-9 * np.abs(ref_chol).max())
+    eye = np.broadcast_to(np.eye(ref_chol.shape[-1]), ref_chol.shape)
+    np.testing.assert_allclose(np.asarray(inv_chol) @ ref_chol, eye, rtol=0, atol=1e-9)
+    assert np.all(np.triu(np.asarray(inv_chol), 1) == 0)
 
 
 def cpu_run(robot, n, sim_kpa):

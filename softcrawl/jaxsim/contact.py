@@ -33,7 +33,7 @@ The engine's default is the accelerated gradient, 48 iterations per step, warm-s
 last step's impulses (:data:`DEFAULT_ITERATIONS`). A physics step's latency on a GPU is set by
 its chain of dependent kernels, and a Gauss-Seidel sweep is ``K`` of them: 100 sweeps over 80
 contacts made the previous engine's step 184,545 operations and 8,101 loop trips in sequence;
-the unrolled gradient makes it 535 and one (``benchmarks/step_cost.py``). Per step it solves
+the unrolled gradient makes it under 550 and one (``benchmarks/step_cost.py``). Per step it solves
 less accurately than 100 sweeps (on landed, pressurised robots of the paper's space, median
 penetration velocity 1.2 against 0.10 mm/s, ``benchmarks/contact_accuracy.py``: 0.02 mm per
 step at dt 0.02 s, which the next step's gap term takes back), but the solve continues across

@@ -27,7 +27,7 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import cho_factor, cho_solve, solve_triangular
+from jax.scipy.linalg import solve_triangular
 
 from softcrawl.jaxsim.contact import floor_contacts
 from softcrawl.jaxsim.model import register_pytree
@@ -181,16 +181,19 @@ class Condensed:
 register_pytree(Condensed)
 
 
-def condense(rows: Rows, chol, qd_free) -> Condensed:
-    """The condensed contact problem (module doc) of ``rows`` with the legs' step-matrix
-    Cholesky factors ``chol`` ``(L, m, m)`` (lower) and free modal velocities ``qd_free`` ``(L, m)``.
+def condense(rows: Rows, inv_chol, qd_free) -> Condensed:
+    """The condensed contact problem (module doc) of ``rows`` with the inverses ``inv_chol``
+    ``(L, m, m)`` of the legs' step-matrix Cholesky factors (lower; ``C_l^-1``) and free modal
+    velocities ``qd_free`` ``(L, m)``.
 
     The attachment block ``W_bb`` is positive definite for attachments of distinct disk nodes;
-    rows of absent legs are identity rows with zero impulse.
+    rows of absent legs are identity rows with zero impulse. Its inverse is formed from its
+    Cholesky factor's (:func:`inverse_spd`), so that ``X`` is formed by products, by the blocks
+    of ``W_bc``.
     """
     L, n_leg, m = rows.leg.shape
     F3 = rows.u_att.shape[0] // L
-    Y = jax.vmap(lambda c, j: solve_triangular(c, j.T, lower=True))(chol, rows.leg)  # (L, m, n_leg)
+    Y = jnp.einsum("lmk,lik->lmi", inv_chol, rows.leg)  # C_l^-1 J_l^T, (L, m, n_leg)
     G = jnp.einsum("lmi,lmj->lij", Y, Y)  # each leg's share, (L, n_leg, n_leg)
     u_leg = jnp.einsum("lim,lm->li", rows.leg, qd_free)  # legs' part of the free velocities
     dt = G.dtype
@@ -200,15 +203,17 @@ def condense(rows: Rows, chol, qd_free) -> Condensed:
     m_b = rows.bilateral
     W_bb = jnp.where(m_b[:, None] & m_b[None, :], W_bb, jnp.eye(L * F3, dtype=dt))
     u_b = jnp.where(m_b, rows.u_att + u_leg[:, :F3].reshape(-1), 0)
-    # attachments x contacts: the disk's against its contacts, each leg's against its own
+    # attachments x contacts: the disk's against its contacts (dense), each leg's against its
+    # own (block diagonal), and X = W_bb^-1 [u_b, W_bc] by the same blocks
     Kl3 = n_leg - F3
-    W_bl = (eye_l[:, None, :, None] * G[:, :F3, None, F3:]).reshape(L * F3, L * Kl3)
-    W_bc = jnp.where(m_b[:, None], jnp.concatenate([rows.disk_ad, W_bl], axis=1), 0)
-    X = cho_solve(cho_factor(W_bb, lower=True), jnp.concatenate([u_b[:, None], W_bc], axis=1))
+    W_bd = jnp.where(m_b[:, None], rows.disk_ad, 0)
+    W_bl = G[:, :F3, F3:] * m_b.reshape(L, F3)[:, :, None]  # (L, F3, Kl3)
+    W_inv = inverse_spd(W_bb)
+    X = jnp.concatenate([W_inv @ jnp.concatenate([u_b[:, None], W_bd], axis=1),
+                         jnp.einsum("alb,lbk->alk", W_inv.reshape(L * F3, L, F3), W_bl).reshape(L * F3, -1)], axis=1)
     # W_cb X by blocks: disk contact rows use every attachment, leg contact rows their leg's
-    WX_d = W_bc[:, :rows.disk_dd.shape[0]].T @ X
-    WX_l = jnp.einsum("lbc,lbk->lck", G[:, :F3, F3:] * m_b.reshape(L, F3)[:, :, None],
-                      X.reshape(L, F3, X.shape[1])).reshape(L * Kl3, X.shape[1])
+    WX_d = W_bd.T @ X
+    WX_l = jnp.einsum("lbc,lbk->lck", W_bl, X.reshape(L, F3, X.shape[1])).reshape(L * Kl3, X.shape[1])
     WX = jnp.concatenate([WX_d, WX_l])
     Kd3 = rows.disk_dd.shape[0]
     W_cc = jnp.zeros((Kd3 + L * Kl3,) * 2, dt).at[:Kd3, :Kd3].set(rows.disk_dd)
@@ -217,15 +222,28 @@ def condense(rows: Rows, chol, qd_free) -> Condensed:
     return Condensed(W_cc - WX[:, 1:], u_c - WX[:, 0], X, Y)
 
 
+def inverse_spd(A):
+    """The inverse ``(n, n)`` of a symmetric positive definite ``A`` ``(n, n)``, ``C^-T C^-1`` from
+    its lower Cholesky factor ``C``: one factorisation and one triangular solve (against the
+    identity), then products only (on a GPU a triangular solve of small batched matrices is a
+    chain of kernel launches, a product one: ``benchmarks/RESULTS.md``). Its error
+    is of the order of ``cond(A)`` times the rounding unit, as a solve's. Only the lower triangle
+    of ``A`` is read (as ``jax.scipy.linalg.cho_factor``)."""
+    C = jax.lax.linalg.cholesky(A, symmetrize_input=False)
+    Ci = solve_triangular(C, jnp.eye(A.shape[0], dtype=A.dtype), lower=True)
+    return Ci.T @ Ci
+
+
 def _gap_rows(gap):
     """``(L, 3K_l)`` the gap terms ``g / h`` ``(L, K_l)`` on the normal rows."""
     return jnp.stack([gap, jnp.zeros_like(gap), jnp.zeros_like(gap)], axis=-1).reshape(gap.shape[0], -1)
 
 
-def corrections(model, rows: Rows, cond: Condensed, chol, lam_c, R):
+def corrections(model, rows: Rows, cond: Condensed, inv_chol, lam_c, R):
     """Velocity corrections of the impulses: ``(dq (L, m), dv (n, 3))`` for the contact impulses
     ``lam_c`` ``(3K,)`` (mN s): the attachment impulses by back-substitution, each leg's
-    ``A_l^-1 J_l^T lam_l = C_l^-T Y_l lam_l``, the disk's ``A_0^-1`` of its body-frame impulses.
+    ``A_l^-1 J_l^T lam_l = C_l^-T Y_l lam_l`` (``inv_chol`` as :func:`condense`'s), the disk's
+    ``A_0^-1`` of its body-frame impulses.
 
     Returns:
         ``(dq, dv, lam_b)``: modal velocity changes (mm/s), disk node velocity changes (mm/s,
@@ -237,7 +255,7 @@ def corrections(model, rows: Rows, cond: Condensed, chol, lam_c, R):
     lam_b = -(cond.X[:, 0] + cond.X[:, 1:] @ lam_c)
     lam_leg = jnp.concatenate([lam_b.reshape(L, F3), lam_c[Kd3:].reshape(L, rows.leg.shape[1] - F3)], axis=1)
     r = jnp.einsum("lmi,li->lm", cond.Y, lam_leg)
-    dq = jax.vmap(lambda c, v: solve_triangular(c, v, lower=True, trans=1))(chol, r)
+    dq = jnp.einsum("lkm,lk->lm", inv_chol, r)
     dk = model.disk
     dt = lam_c.dtype
     f_body = jnp.zeros((dk.rest.shape[0], 3), dt).at[rows.att_nodes.reshape(-1)].add(

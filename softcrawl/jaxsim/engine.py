@@ -35,7 +35,7 @@ from softcrawl.jaxsim.model import register_pytree
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
-ENGINE_VERSION = 2
+ENGINE_VERSION = 3
 
 #: The parts of :func:`physics_step`, in order, as named scopes of its operations (a profile's
 #: kernels are summed by them: :func:`softcrawl.jaxsim.cost.kernel_profile`).
@@ -118,16 +118,16 @@ def _constrained(model, state: State, sim_kpa):
     contact problem and its warm start (last step's impulses of the points kept)."""
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
     with jax.named_scope("legs_free_motion"):
-        qd_free, chol, n_bad = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
+        qd_free, inv_chol, n_bad = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
             leg, st, state.q, state.qdot, rd.rotation, sim_kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
     with jax.named_scope("disk_free_motion"):
         v_free, R = disk_motion.free_motion(dk, st, state.x, state.v)
     with jax.named_scope("constraint_rows"):
         rows = constraint_rows(model, state, v_free, qd_free, R)
     with jax.named_scope("condense"):
-        cond = condense(rows, chol, qd_free)
+        cond = condense(rows, inv_chol, qd_free)
         warm = ((rows.points[:, None] == state.contact_points[None, :]).astype(state.x.dtype) @ state.impulses)
-    return qd_free, chol, n_bad, v_free, R, rows, cond, warm.reshape(-1)
+    return qd_free, inv_chol, n_bad, v_free, R, rows, cond, warm.reshape(-1)
 
 
 def contact_problem(model, state: State, sim_kpa):
@@ -143,14 +143,14 @@ def _physics_step(model, state: State, sim_kpa) -> State:
     st, rd = model.settings, model.robot
     h = st.dt
     # 2.-3. free motion, constraint rows, the attachments eliminated; the contacts solved
-    qd_free, chol, n_bad, v_free, R, rows, cond, warm = _constrained(model, state, sim_kpa)
+    qd_free, inv_chol, n_bad, v_free, R, rows, cond, warm = _constrained(model, state, sim_kpa)
     K = rows.points.shape[0]
     with jax.named_scope("solve_contacts"):
         lam_c = solve_contacts(cond.W, cond.q, jnp.full((K,), st.friction, cond.W.dtype), warm, rows.active,
                                st.solver, st.iterations)
     # 4. corrections
     with jax.named_scope("corrections"):
-        dq, dv, _ = corrections(model, rows, cond, chol, lam_c, R)
+        dq, dv, _ = corrections(model, rows, cond, inv_chol, lam_c, R)
     v = v_free + dv
     qdot = qd_free + dq
     return dataclasses.replace(

@@ -113,12 +113,12 @@ def pair_products(rows):
 
 
 #: Column blocks of :func:`symmetric_gram`.
-GRAM_BLOCKS = 3
+GRAM_BLOCKS = 4
 
 
 def symmetric_gram(Z):
     """``Z^T Z`` ``(n, n)`` of ``Z`` ``(r, n)`` from the products of its column blocks on and above
-    the diagonal only (:data:`GRAM_BLOCKS` blocks: 6 of 9 products, two thirds of the dense
+    the diagonal only (:data:`GRAM_BLOCKS` blocks: 10 of 16 products, five eighths of the dense
     product's multiply-adds; the lower blocks are the upper ones transposed)."""
     n = Z.shape[1]
     edges = [round(i * n / GRAM_BLOCKS) for i in range(GRAM_BLOCKS + 1)]
@@ -149,7 +149,11 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
         mask: whether the leg exists (an absent leg gets no load and stays at rest).
 
     Returns:
-        ``(qdot_free (m,), chol (m, m) lower Cholesky factor of the step matrix, n_bad)``.
+        ``(qdot_free (m,), inv_chol (m, m), n_bad)``: ``inv_chol = C^-1``, the inverse of the
+        step matrix's lower Cholesky factor ``A = C C^T`` (lower triangular), so that every later
+        solve with ``A`` is a matrix product (``A^-1 b = C^-T (C^-1 b)``): one triangular solve
+        per leg and step instead of one per use (on a GPU each is a chain of kernel launches,
+        ``benchmarks/RESULTS.md``).
     """
     h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
     Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK)
@@ -160,6 +164,6 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
     load = part.mass_rows.T @ (rotation.T @ g) + cavity_load(part, q, pressure)
     f = (load * mask).at[sm].add(fs)
     A = (1.0 + h * rM) * part.mass + (h * (h + rK)) * K
-    chol = jnp.linalg.cholesky(A)
-    dq = jax.scipy.linalg.cho_solve((chol, True), h * (f - rM * (part.mass @ qdot)))
-    return qdot + dq, chol, n_bad
+    inv_chol = jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(A), jnp.eye(m, dtype=A.dtype), lower=True)
+    dq = inv_chol.T @ (inv_chol @ (h * (f - rM * (part.mass @ qdot))))
+    return qdot + dq, inv_chol, n_bad
