@@ -200,9 +200,7 @@ def test_the_step_solves_two_triangular_systems(landed):
     """The compiled physics step has two triangular solves, each against the identity: the legs'
     inverse Cholesky factors (one batched solve) and the attachment block's; every other use of
     them is a product. On a GPU each triangular solve of small batched matrices is a chain of
-    kernel launches (the H200's profile: 8 per solve, 145 us of the 96-robot step for the two
-    that solved with the attachment block before; benchmarks/RESULTS.md); the step once had
-    six."""
+    kernel launches, a product one (benchmarks/RESULTS.md has the kernel table)."""
     import re
 
     from softcrawl.jaxsim.engine import physics_step

@@ -152,8 +152,7 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
         ``(qdot_free (m,), inv_chol (m, m), n_bad)``: ``inv_chol = C^-1``, the inverse of the
         step matrix's lower Cholesky factor ``A = C C^T`` (lower triangular), so that every later
         solve with ``A`` is a matrix product (``A^-1 b = C^-T (C^-1 b)``): one triangular solve
-        per leg and step instead of one per use (on a GPU each is a chain of kernel launches,
-        ``benchmarks/RESULTS.md``).
+        per leg and step (on a GPU each is a chain of kernel launches, ``benchmarks/RESULTS.md``).
     """
     h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
     Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK)
