@@ -183,8 +183,8 @@ def test_vmap_over_robots_equals_one_call_per_robot(C):
         assert _rel(batch[r], one) <= ROUND_OFF
         assert all(abs(float(res[key][r]) - float(one_res[key])) <= ROUND_OFF * max(1.0, float(one_res[key]))
                    for key in one_res)
-    pts = rng.uniform(-1, 1, (R, 20, 3))
-    vel = rng.uniform(-20, 20, (R, 20, 3))
+    pts = rng.uniform(-1, 1, (R, 20))
+    vel = rng.uniform(-20, 20, (R, 20))
     batch = jax.vmap(lambda p, v: C.floor_contacts(p, v, 0.0, 0.5, 8, dt=0.02))(pts, vel)
     for r in range(R):
         for a, b in zip(batch, C.floor_contacts(pts[r], vel[r], 0.0, 0.5, 8, dt=0.02)):
@@ -466,9 +466,9 @@ def test_floor_contacts_keeps_the_k_lowest_predicted_gaps_in_point_order(C):
     """Six points, K = 3: the three of smallest predicted gap min(g, g + dt v_z) are chosen, in
     point order, active where that gap is below the contact distance, with their current gaps;
     more slots than points is refused."""
-    pts = np.array([[0, 0, 5.0], [0, 0, 0.2], [0, 0, 3.0], [0, 0, -0.1], [0, 0, 2.0], [0, 0, 0.4]])
-    vel = np.zeros((6, 3))
-    vel[2, 2] = -200.0  # falls 4 mm in 20 ms: predicted gap -1
+    pts = np.array([5.0, 0.2, 3.0, -0.1, 2.0, 0.4])
+    vel = np.zeros(6)
+    vel[2] = -200.0  # falls 4 mm in 20 ms: predicted gap -1
     idx, active, gap = C.floor_contacts(pts, vel, 0.0, 0.3, 3, dt=0.02)
     np.testing.assert_array_equal(idx, [1, 2, 3])
     np.testing.assert_array_equal(active, [True, True, True])

@@ -37,9 +37,10 @@ def landed():
     return one, jax.tree_util.tree_map(lambda a: a[0], state), jnp.asarray([150.0, 60.0, 90.0])
 
 
-def _step_rows(landed):
+def _step_rows(landed, R=None):
     """The next step's free motion and constraint rows of the ``landed`` robot at its pressures:
-    ``(model, rows, inv_chol, qd_free, R)`` (:mod:`softcrawl.jaxsim.delassus`)."""
+    ``(model, rows, inv_chol, qd_free, R)`` (:mod:`softcrawl.jaxsim.delassus`); ``R`` given: the
+    rows with that disk frame instead of the disk's own."""
     from softcrawl.jaxsim import disk as disk_motion
     from softcrawl.jaxsim import legs as leg_motion
     from softcrawl.jaxsim.delassus import constraint_rows
@@ -48,7 +49,8 @@ def _step_rows(landed):
     rd = model.robot
     qd_free, inv_chol, _ = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
         model.leg, model.settings, state.q, state.qdot, rd.rotation, kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
-    v_free, R = disk_motion.free_motion(model.disk, model.settings, state.x, state.v)
+    v_free, R_disk = disk_motion.free_motion(model.disk, model.settings, state.x, state.v)
+    R = R_disk if R is None else jnp.asarray(R)
     return model, constraint_rows(model, state, v_free, qd_free, R), inv_chol, qd_free, R
 
 
@@ -214,7 +216,7 @@ def test_the_step_solves_two_triangular_systems(landed):
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and
-    at most 600 operations in sequence per step (measured 544 with JAX 0.10.2; the previous
+    at most 600 operations in sequence per step (measured 545 with JAX 0.10.2; the previous
     engine's 100 Gauss-Seidel sweeps ran 8,101 trips and 184,545 operations per step:
     benchmarks/step_cost.py, benchmarks/RESULTS.md)."""
     out = subprocess.run([sys.executable, "benchmarks/step_cost.py", "--steps", "10"], capture_output=True, text=True,
@@ -223,6 +225,44 @@ def test_the_engines_step_has_a_short_dependency_chain():
     assert cost["loop_trips_per_step"] == 1.0 and cost["inner_loops"] == 0
     assert cost["dependent_ops_per_step"] <= 600
     assert cost["mflop_per_robot_step"] <= 50
+
+
+def test_the_legs_heights_are_the_z_of_their_rotated_collision_nodes(landed):
+    """``leg_heights`` forms only the world z of the legs' collision nodes (third row of each
+    leg's rotation): equal, to 1e-12 mm (float64 round-off of ~40-term sums of numbers below
+    100), to the full placement ``R (X + Phi q) + t`` in numpy, velocities likewise; absent legs
+    are FAR up. Rows and columns of ``R`` swapped would move the bent, pressed legs' nodes by
+    millimetres."""
+    from softcrawl.jaxsim.delassus import FAR, leg_heights
+
+    model, state, _ = landed
+    leg, rd = model.leg, model.robot
+    qdot = state.qdot + jnp.asarray(np.random.default_rng(1).normal(0.0, 5.0, state.qdot.shape))
+    z, vz = leg_heights(leg, rd, state.q, qdot)
+    Phi, R = np.asarray(leg.coll_basis), np.asarray(rd.rotation)
+    x = np.einsum("lac,lnc->lna", R, np.asarray(leg.coll_rest) + np.einsum("nam,lm->lna", Phi, np.asarray(state.q)))
+    v = np.einsum("lac,lnc->lna", R, np.einsum("nam,lm->lna", Phi, np.asarray(qdot)))
+    present = np.asarray(rd.leg_mask)
+    assert present.sum() == 4 and np.abs(R[present] - np.eye(3)).max() > 0.5
+    np.testing.assert_allclose(np.asarray(z)[present], (x[..., 2] + np.asarray(rd.translation)[:, 2:])[present],
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(vz), v[..., 2], rtol=0, atol=1e-12)
+    assert np.all(np.asarray(z)[~present] == FAR)
+
+
+def test_the_disks_attachment_share_is_its_gram_rotated_by_blocks(landed):
+    """The disk's share of the attachment block is ``R G_pq R^T`` for every pair of attachment
+    points (formed as one product with ``R (x) R``): equal to the blockwise einsum in numpy to
+    1e-12 of its largest entry for a rotation far from the identity (the landed disk's own is
+    near it); ``R^T G R`` instead is off by about the entries' size."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()
+    model, rows, _, _, _ = _step_rows(landed, R)
+    G = np.asarray(model.robot.att_gram)
+    ref = np.einsum("ab,pqbc,dc->paqd", R, G, R).reshape(rows.disk_aa.shape)
+    assert np.abs(np.asarray(rows.disk_aa) - ref).max() <= 1e-12 * np.abs(ref).max()
+    assert np.abs(np.einsum("ba,pqbc,cd->paqd", R, G, R).reshape(ref.shape) - ref).max() > 0.1 * np.abs(ref).max()
 
 
 def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):

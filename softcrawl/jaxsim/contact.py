@@ -381,7 +381,7 @@ def residuals(W, q, mu, lam, active):
     }
 
 
-def floor_contacts(points, velocities, floor_z, distance, K: int, *, dt):
+def floor_contacts(heights, vz, floor_z, distance, K: int, *, dt):
     """Choose at most ``K`` floor contact candidates among ``P`` points, with a fixed shape.
 
     Rule: a point's predicted gap is ``min(g, g + dt v_z)`` with ``g = z - floor_z`` (the CPU
@@ -401,7 +401,7 @@ def floor_contacts(points, velocities, floor_z, distance, K: int, *, dt):
     checks ``sum(min(g, g + dt v_z) < distance) <= K``).
 
     Args:
-        points: ``(P, 3)`` candidate positions, mm. velocities: ``(P, 3)`` their free
+        heights: ``(P,)`` the candidates' heights ``z``, mm. vz: ``(P,)`` their free vertical
             velocities, mm/s. floor_z, distance: floor height and contact distance, mm.
         K: number of contact slots (static, ``K <= P``). dt: time step, s.
 
@@ -411,11 +411,11 @@ def floor_contacts(points, velocities, floor_z, distance, K: int, *, dt):
     Raises:
         ValueError: ``K > P``.
     """
-    P = points.shape[0]
+    P = heights.shape[0]
     if K > P:
         raise ValueError(f"K = {K} contact slots exceed the {P} candidate points")
-    gap = points[:, 2] - floor_z
-    pred = jnp.minimum(gap, gap + dt * velocities[:, 2])
+    gap = heights - floor_z
+    pred = jnp.minimum(gap, gap + dt * vz)
     _, idx = lax.top_k(-pred, K)
     idx = jnp.sort(idx)
     return idx, pred[idx] < distance, gap[idx]

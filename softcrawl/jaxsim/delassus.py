@@ -84,13 +84,14 @@ def _disk_gather(inverse, rows_nodes, cols_nodes):
     return inverse[r.reshape(r.shape + (1,) * c.ndim), c.reshape((1,) * r.ndim + c.shape)]
 
 
-def leg_points(leg, rd, q, qdot):
-    """World positions and velocities ``(L, nc, 3)`` of the legs' collision nodes (absent legs
-    :data:`FAR` up)."""
-    x = jnp.einsum("lnc,lac->lna", leg.coll_rest[None] + jnp.einsum("nam,lm->lna", leg.coll_basis, q), rd.rotation)
-    x = x + rd.translation[:, None]
-    v = jnp.einsum("lnc,lac->lna", jnp.einsum("nam,lm->lna", leg.coll_basis, qdot), rd.rotation)
-    return jnp.where(rd.leg_mask[:, None, None], x, jnp.asarray([0.0, 0.0, FAR], x.dtype)), v
+def leg_heights(leg, rd, q, qdot):
+    """World heights and vertical velocities ``(L, nc)`` of the legs' collision nodes (absent
+    legs :data:`FAR` up), mm and mm/s: only the third row of each leg's rotation enters, so the
+    nodes' positions and velocities are one product with the modal basis and a 3-term sum."""
+    pv = jnp.einsum("nam,klm->klna", leg.coll_basis, jnp.stack([q, qdot]))
+    up = rd.rotation[:, 2]  # (L, 3): world z = up . part-frame position
+    z = jnp.sum((leg.coll_rest + pv[0]) * up[:, None], axis=-1) + rd.translation[:, 2:]
+    return jnp.where(rd.leg_mask[:, None], z, FAR), jnp.sum(pv[1] * up[:, None], axis=-1)
 
 
 def select_contacts(model, state, v_free, qd_free):
@@ -109,18 +110,17 @@ def select_contacts(model, state, v_free, qd_free):
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
     L = state.q.shape[0]
     nd, nc = dk.collision.shape[0], leg.coll_rest.shape[0]
-    xl, vl = leg_points(leg, rd, state.q, qd_free)
-    points = jnp.concatenate([state.x[dk.collision], xl.reshape(-1, 3)])
-    vel = jnp.concatenate([v_free[dk.collision], vl.reshape(-1, 3)])
-    pts = jnp.where(state.contact_points >= 0, state.contact_points, points.shape[0])
-    loaded = jnp.zeros(points.shape[0], bool).at[pts].max(state.impulses[:, 0] > 0, mode="drop")
-    ranked = points.at[:, 2].add(jnp.where(loaded, -FAR, 0.0))
+    zl, vl = leg_heights(leg, rd, state.q, qd_free)
+    z = jnp.concatenate([state.x[dk.collision, 2], zl.reshape(-1)])
+    vz = jnp.concatenate([v_free[dk.collision, 2], vl.reshape(-1)])
+    pts = jnp.where(state.contact_points >= 0, state.contact_points, z.shape[0])
+    loaded = jnp.zeros(z.shape[0], bool).at[pts].max(state.impulses[:, 0] > 0, mode="drop")
+    ranked = z - jnp.where(loaded, FAR, 0.0)
     select = partial(floor_contacts, floor_z=st.floor_z, distance=st.contact_distance, dt=st.dt)
-    i_d, a_d, _ = select(ranked[:nd], vel[:nd], K=st.disk_contacts)
-    i_l, a_l, _ = jax.vmap(partial(select, K=st.leg_contacts))(ranked[nd:].reshape(L, nc, 3),
-                                                             vel[nd:].reshape(L, nc, 3))
+    i_d, a_d, _ = select(ranked[:nd], vz[:nd], K=st.disk_contacts)
+    i_l, a_l, _ = jax.vmap(partial(select, K=st.leg_contacts))(ranked[nd:].reshape(L, nc), vz[nd:].reshape(L, nc))
     idx = jnp.concatenate([i_d, (i_l + nd + nc * jnp.arange(L)[:, None]).reshape(-1)])
-    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), points[idx, 2] - st.floor_z
+    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), z[idx] - st.floor_z
 
 
 def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
@@ -140,7 +140,8 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     nodes, w = rd.disk_nodes.reshape(A, -1), rd.disk_weights.reshape(A, -1)
     drift = (x_leg.reshape(A, 3) - jnp.einsum("ai,aic->ac", w, state.x[nodes])) * jnp.repeat(rd.leg_mask, F)[:, None]
     u_att = (drift / h - jnp.einsum("ai,aic->ac", w, v_free[nodes])).reshape(-1)
-    disk_aa = jnp.einsum("ab,pqbc,dc->paqd", R, rd.att_gram, R).reshape(3 * A, 3 * A)
+    RR = (R[:, None, :, None] * R[None, :, None, :]).reshape(9, 9)  # (R x R)[(a, d), (b, c)] = R_ab R_dc
+    disk_aa = (rd.att_gram.reshape(A, A, 9) @ RR.T).reshape(A, A, 3, 3).transpose(0, 2, 1, 3).reshape(3 * A, 3 * A)
     # contacts: the disk's, then each leg's
     nd, nc, Kd, Kl = dk.collision.shape[0], leg.coll_rest.shape[0], st.disk_contacts, st.leg_contacts
     if Kd + Kl:

@@ -35,7 +35,7 @@ from softcrawl.jaxsim.model import register_pytree
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
-ENGINE_VERSION = 3
+ENGINE_VERSION = 4
 
 #: The parts of :func:`physics_step`, in order, as named scopes of its operations (a profile's
 #: kernels are summed by them: :func:`softcrawl.jaxsim.cost.kernel_profile`).
@@ -52,7 +52,8 @@ class State:
         contact_points: ``(K,)`` last step's contact points (index into the disk's collision
             nodes, then each leg slot's); impulses: ``(K, 3)`` their impulses, mN s.
         pressure: ``(R,)`` regulator outputs, real kPa (``R = settings.channels``); t: time, s.
-        bad: inverted or degenerate RID elements met so far (0 for a valid rollout).
+        bad: inverted or degenerate RID elements and steps of non-finite disk velocities met so
+            far (0 for a valid rollout).
     """
 
     q: jax.Array
