@@ -91,9 +91,12 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
         K = K + G.reshape(-1) @ pair_products(fam.rows)
         w = s + c * jnp.einsum("eiq,eq->ei", CR, jnp.einsum("eqj,j->eq", fam.rows, qs))
         f = f - jnp.einsum("eq,eqj->j", jnp.einsum("eiq,ei->eq", CR, w), fam.rows)
-    if form == "rows":
+    if form == "rows":  # Z used by its column blocks only: no copy of the whole
         Z, s = jnp.concatenate(Zs), jnp.concatenate(ss)
-        return symmetric_gram(Z), -Z.T @ (s + c * (Z @ qs)), n_bad
+        edges = gram_columns(ms)
+        cols = [Z[:, a:b] for a, b in edges]
+        w = s + c * sum(Zc @ qs[a:b] for Zc, (a, b) in zip(cols, edges))
+        return symmetric_gram(cols), -jnp.concatenate([Zc.T @ w for Zc in cols]), n_bad
     i, j = np.triu_indices(ms)
     upper = jnp.zeros((ms, ms), K.dtype).at[i, j].set(K)
     return upper + jnp.triu(upper, 1).T, f, n_bad
@@ -116,16 +119,20 @@ def pair_products(rows):
 GRAM_BLOCKS = 4
 
 
-def symmetric_gram(Z):
-    """``Z^T Z`` ``(n, n)`` of ``Z`` ``(r, n)`` from the products of its column blocks on and above
-    the diagonal only (:data:`GRAM_BLOCKS` blocks: 10 of 16 products, five eighths of the dense
-    product's multiply-adds; the lower blocks are the upper ones transposed)."""
-    n = Z.shape[1]
+def gram_columns(n: int) -> list[tuple[int, int]]:
+    """``(start, stop)`` of the :data:`GRAM_BLOCKS` near-equal column blocks of ``n`` columns."""
     edges = [round(i * n / GRAM_BLOCKS) for i in range(GRAM_BLOCKS + 1)]
-    cols = [Z[:, a:b] for a, b in zip(edges[:-1], edges[1:])]
-    upper = {(i, j): cols[i].T @ cols[j] for i in range(GRAM_BLOCKS) for j in range(i, GRAM_BLOCKS)}
-    return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(GRAM_BLOCKS)]
-                      for i in range(GRAM_BLOCKS)])
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def symmetric_gram(cols):
+    """``Z^T Z`` ``(n, n)`` of ``Z`` ``(r, n)`` given by its :func:`gram_columns` blocks ``cols``
+    (``(r, n_i)`` each), from the block products on and above the diagonal only (10 of 16
+    products, five eighths of the dense product's multiply-adds; the lower blocks are the upper
+    ones transposed)."""
+    nb = len(cols)
+    upper = {(i, j): cols[i].T @ cols[j] for i in range(nb) for j in range(i, nb)}
+    return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(nb)] for i in range(nb)])
 
 
 def cavity_load(part, q, pressure):
