@@ -3,10 +3,13 @@
 # (JSON lines, logs, gzipped kernel tables) under OUTDIR. Run the stages in order, back to back
 # on the warm machine, and record the figures in benchmarks/RESULTS.md with the card:
 #
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~3 min, first
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
 #
+# latency:     the step at 96, 1,024 and 16,384 robots with XLA's defaults (CUDA graphs), float32,
+#              the two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384).
 # training:    the `paper` preset's episode-at-once loop at 96 and 1,024 envs, 8 rounds each, the
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
@@ -15,10 +18,13 @@
 # groundtruth: the all-designs ground truth's rate on 256 sampled designs and its projection
 #              for the 6,972 (`groundtruth.py rate`).
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: training, profile or groundtruth}
+out=${1:?OUTDIR}; stage=${2:?STAGE: latency, training, profile or groundtruth}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
+latency)
+    timeout 560 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024,16384 --calls 5 \
+        2>>"$out/log.txt" | tee -a "$out/latency.jsonl" ;;
 training)
     timeout 560 python3 benchmarks/train_throughput.py --jax-loops --jax-envs 96,1024 --episodes 8 \
         --preset paper --rollouts episode --set sac.device='"gpu"' 2>>"$out/log.txt" | tee -a "$out/training.jsonl" ;;
@@ -30,5 +36,5 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: training, profile or groundtruth" >&2; exit 2 ;;
+    echo "unknown stage $stage: latency, training, profile or groundtruth" >&2; exit 2 ;;
 esac

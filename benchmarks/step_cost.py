@@ -17,6 +17,12 @@ default device. Printed as one JSON line (per batch size when timing):
 * with ``--time`` (the default on a GPU): ``ms_per_step`` and ``robot_steps_per_s`` at each of
   ``--batches`` (random designs, landed for one action first; ``bad_robots``: robots whose state
   went invalid);
+* ``ops_by_scope``: ``dependent_ops_per_step`` split by the step's parts (``STEP_SCOPES``);
+* with ``--gpu-target CONFIG`` instead: the same counts of the program compiled for the GPU
+  that an XLA target configuration describes (``benchmarks/gpu_targets/h100.pbtxt``), on any
+  machine, at each of ``--batches``, nothing timed (:func:`softcrawl.jaxsim.cost.deviceless_gpu`;
+  needs JAX's CUDA plugin: ``pip install "jax-cuda12-plugin[with-cuda]==<jax version>"``, best
+  in a separate environment);
 * with ``--profile DIR``: one more call at each timed batch ``B`` under JAX's profiler, its
   trace in ``DIR/bB`` and, printed as one JSON line, the kernels per step, the device's busy time
   per step and the kernels that cost most, each with the JAX operation it came from
@@ -27,6 +33,7 @@ Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
         [--iterations N] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
+    python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384
 """
 
 from __future__ import annotations
@@ -52,8 +59,16 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-cost", action="store_true", help="time only: skip the small programs' cost analysis")
     p.add_argument("--profile", default=None, help="trace one more call at each batch into this folder")
+    p.add_argument("--gpu-target", default=None, metavar="CONFIG",
+                   help="compile for the GPU this XLA target configuration describes, without one (e.g. "
+                        "benchmarks/gpu_targets/h100.pbtxt; needs JAX's CUDA plugin) and print its program's "
+                        "sequential cost at each of --batches")
     args = p.parse_args(argv)
+    from softcrawl.jaxsim.cost import prepare_deviceless_gpu
 
+    if args.gpu_target:
+        target_config = Path(args.gpu_target).read_text()
+        prepare_deviceless_gpu()
     import jax
 
     jax.config.update("jax_enable_x64", args.precision == "float64")
@@ -62,7 +77,7 @@ def main(argv=None) -> None:
 
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.jaxsim.cost import kernel_profile, sequential_cost, xla_flops
+    from softcrawl.jaxsim.cost import deviceless_gpu, kernel_profile, sequential_cost, xla_flops
     from softcrawl.jaxsim.engine import STEP_SCOPES, rest_state
     from softcrawl.jaxsim.rig import Rig, make_action_rollout
     from softcrawl.jaxsim.tables import build_table
@@ -84,11 +99,26 @@ def main(argv=None) -> None:
         rig = Rig(jnp.ones((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt))
         return model, rig, rest_state(model)
 
-    def lowered(n_steps, model, rig, state):
+    def inputs(n_steps, model, rig, state):
         B = state.t.shape[0]
-        return make_action_rollout(n_steps).lower(model, rig, state, jnp.zeros((B, R), state.x.dtype),
-                                                  jnp.full((B,), n_steps, jnp.int32))
+        return model, rig, state, jnp.zeros((B, R), state.x.dtype), jnp.full((B,), n_steps, jnp.int32)
 
+    def lowered(n_steps, *args):
+        return make_action_rollout(n_steps).lower(*inputs(n_steps, *args))
+
+    if args.gpu_target:
+        sharding = deviceless_gpu(target_config)
+        for B in (int(b) for b in args.batches.split(",")):
+            specs = jax.tree.map(lambda a: jax.ShapeDtypeStruct(np.shape(a), a.dtype, sharding=sharding),
+                                 inputs(steps, *batch(B, designs)))
+            seq = sequential_cost(make_action_rollout(steps).lower(*specs).compile().as_text(), STEP_SCOPES)
+            print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
+                              "precision": args.precision, "solver": settings.solver,
+                              "iterations": settings.iterations, "dependent_ops_per_step": seq.ops / steps,
+                              "loop_trips_per_step": seq.trips / steps,
+                              "ops_by_scope": {k: v / steps for k, v in sorted(seq.by_scope.items())},
+                              "jax": jax.__version__}), flush=True)
+        return
     device = jax.devices()[0]
     out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),
            "precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
@@ -99,9 +129,10 @@ def main(argv=None) -> None:
         t0 = time.perf_counter()
         compiled = lowered(steps, *small).compile()
         compile_s = time.perf_counter() - t0
-        seq = sequential_cost(compiled.as_text())
+        seq = sequential_cost(compiled.as_text(), STEP_SCOPES)
         one = lowered(1, *small).compile()
         out.update(compile_s=round(compile_s, 2), dependent_ops_per_step=seq.ops / steps,
+                   ops_by_scope={k: v / steps for k, v in sorted(seq.by_scope.items())},
                    loop_trips_per_step=seq.trips / steps, mflop_per_robot_step=xla_flops(one) / args.batch / 1e6,
                    inner_loops=sequential_cost(one.as_text()).loops, unknown_trip_loops=seq.unknown_trip_loops)
         print(json.dumps(out), flush=True)

@@ -161,6 +161,44 @@ def test_sequential_cost_counts_loop_trips_and_ops():
     assert (u.trips, u.loops) == (0, 0) and 3 <= u.ops <= 12
 
 
+def test_sequential_cost_splits_its_count_by_scope():
+    """With ``scopes``, :func:`softcrawl.jaxsim.cost.sequential_cost` splits its ``ops`` by the
+    named scope of each instruction: a scope inside a loop of 7 trips counts 7 times its body's
+    operations, the parts add up to the whole, instructions of no scope asked for are
+    ``"other"``; without scopes there is no split."""
+    from jax import lax
+
+    from softcrawl.jaxsim.cost import sequential_cost
+
+    def f(x):
+        with jax.named_scope("outside"):
+            x = jnp.cos(x) @ x
+        def body(i, y):
+            with jax.named_scope("inside"):
+                return jnp.sin(y) @ x
+        return lax.fori_loop(0, 7, body, x)
+
+    text = jax.jit(f).lower(jnp.ones((4, 4))).compile().as_text()
+    c = sequential_cost(text, ("inside", "outside"))
+    assert sum(c.by_scope.values()) == c.ops
+    assert c.by_scope["inside"] >= 7 and c.by_scope["inside"] % 7 == 0
+    assert 1 <= c.by_scope["outside"] < 7
+    assert sequential_cost(text).by_scope == {}
+
+
+def test_deviceless_gpu_compilation_says_what_it_needs():
+    """Without JAX's CUDA plugin (CI's install) asking for a GPU target says which package to
+    install, instead of JAX's bare "topology not implemented"."""
+    import importlib.util
+
+    from softcrawl.jaxsim.cost import deviceless_gpu
+
+    if importlib.util.find_spec("jax_plugins") is not None:
+        pytest.skip("JAX has plugins here")
+    with pytest.raises(RuntimeError, match="jax-cuda12-plugin"):
+        deviceless_gpu((Path(__file__).parents[1] / "benchmarks/gpu_targets/h100.pbtxt").read_text())
+
+
 def test_kernel_profile_reads_a_trace_by_scope(tmp_path):
     """:func:`softcrawl.jaxsim.cost.kernel_profile` of a traced program of two named parts (three
     calls of it, as three steps): every kernel is placed in its part, the counts are per step,
@@ -216,7 +254,7 @@ def test_the_step_solves_two_triangular_systems(landed):
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and
-    at most 600 operations in sequence per step (measured 553 with JAX 0.10.2; the previous
+    at most 600 operations in sequence per step (measured 548 with JAX 0.10.2; the previous
     engine's 100 Gauss-Seidel sweeps ran 8,101 trips and 184,545 operations per step:
     benchmarks/step_cost.py, benchmarks/RESULTS.md)."""
     out = subprocess.run([sys.executable, "benchmarks/step_cost.py", "--steps", "10"], capture_output=True, text=True,
@@ -263,6 +301,18 @@ def test_the_disks_attachment_share_is_its_gram_rotated_by_blocks(landed):
     ref = np.einsum("ab,pqbc,dc->paqd", R, G, R).reshape(rows.disk_aa.shape)
     assert np.abs(np.asarray(rows.disk_aa) - ref).max() <= 1e-12 * np.abs(ref).max()
     assert np.abs(np.einsum("ba,pqbc,cd->paqd", R, G, R).reshape(ref.shape) - ref).max() > 0.1 * np.abs(ref).max()
+
+
+def test_the_strain_modes_terms_are_placed_by_their_slots(landed):
+    """``LegPart.mode_slots`` gives each strain mode its position among them and every other mode
+    (the rigid translations, which have no internal force) the padding slot ``m'``: the legs'
+    step gathers ``K_r`` and ``f_r`` into all modes by it."""
+    leg = landed[0].leg
+    sm, slots = np.asarray(leg.strain_modes), np.asarray(leg.mode_slots)
+    m = np.asarray(leg.mass).shape[0]
+    assert slots.shape == (m,) and 0 < len(sm) < m
+    np.testing.assert_array_equal(slots[sm], np.arange(len(sm)))
+    assert np.all(np.delete(slots, sm) == len(sm))
 
 
 def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):

@@ -142,7 +142,10 @@ def test_a_mixed_batch_steps_each_robot_as_alone(precision, robot):
     round-off differs: 5e-8 mm after a 1.5 m fall (measured 1.2e-8 mm, 1e-11 of the fall). On the floor (20 steps of landing, 20 of actuation) both robots, padded or not, end up
     to 0.03 mm from their own runs (measured in float64): round-off decides ties among the
     assembled legs' tip points, which lie at one height, for the 12 contact rows of each leg,
-    and contact mode switches amplify it; so 0.1 mm."""
+    and contact mode switches amplify it; so 0.1 mm. In float32 the same amplification of a
+    larger round-off moved the padded runs 0.005 to 0.10 mm from their own across formulations
+    of the step that differ in the order of their arithmetic only, so 0.3 mm there: the budget
+    of the engine against the CPU engine (:func:`test_landing_and_actuation_match_the_cpu_engine`)."""
     import jax.numpy as jnp
 
     from softcrawl.jaxsim.engine import Control, make_rollout, rest_state
@@ -151,7 +154,7 @@ def test_a_mixed_batch_steps_each_robot_as_alone(precision, robot):
 
     four = build_robot("1,0,2,0,1,0,3,0", RobotConfig(model="reduced"))
     roll = make_rollout(20)
-    for floor, tol in ([(False, 5e-8)] if precision == "float64" else []) + [(True, 0.1)]:
+    for floor, tol in [(False, 5e-8), (True, 0.1)] if precision == "float64" else [(True, 0.3)]:
         both = build_model([robot, four], floor=floor)
         assert both.robot.leg_mask.shape == (2, 4) and not bool(both.robot.leg_mask[0, 3])
         dt = rest_state(both).x.dtype

@@ -63,8 +63,13 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jax.scipy.linalg import cho_factor, cho_solve
+
+#: The normal column of ``(K, 3)`` impulses or velocities (a broadcastable mask).
+_NORMAL = np.arange(3) == 0
+
 
 def _blocks(W, mu, lam0, active):
     """Common set-up: ``(dtype, mu (K,), lam0 masked (3K,), row mask (3K,))``."""
@@ -124,28 +129,38 @@ def pgs_coulomb(W, q, mu, lam0, active, n_sweeps: int):
     return lax.fori_loop(0, n_sweeps, lambda _, lam: lax.fori_loop(0, K, block, lam), lam)
 
 
+def _columns(v):
+    """The normal and the two tangential components of ``(K, 3)`` vectors, each broadcast to
+    ``(K, 3)``: a cone's arithmetic then runs on whole ``(K, 3)`` arrays (three times the
+    elementwise work) and its result is a select, not a stack, which XLA compiles as a
+    concatenation of its own: on a GPU an accelerated-gradient iteration is then one product
+    with ``W`` and one fused loop (``benchmarks/RESULTS.md``)."""
+    return tuple(jnp.broadcast_to(v[:, i:i + 1], v.shape) for i in range(3))
+
+
 def project_cone(lam, mu):
     """Euclidean projection of impulses ``(K, 3)`` (normal first) onto the Coulomb cones
     ``|lam_t| <= mu lam_n``: unchanged inside, 0 in the polar cone ``mu |lam_t| <= -lam_n``,
     else ``lam_n' = (lam_n + mu |lam_t|) / (1 + mu^2)``, ``lam_t' = mu lam_n' lam_t / |lam_t|``
     (the closed-form projection onto a second-order cone, as in Mazhar et al. 2015). Written
-    with one reciprocal square root per contact and selects only, so that a compiled iteration
-    fuses it into few loops: ``|lam_t| = s r``, ``s = |lam_t|^2``, ``r = 1 / sqrt(s)`` (``s``
-    floored at the dtype's smallest normal number for ``lam_t = 0``)."""
-    n, t1, t2 = lam[:, 0], lam[:, 1], lam[:, 2]
+    with one reciprocal square root, selects and broadcasts (:func:`_columns`), so that a
+    compiled iteration fuses it with its neighbours: ``|lam_t| = s r``, ``s = |lam_t|^2``, ``r =
+    1 / sqrt(s)`` (``s`` floored at the dtype's smallest normal number for ``lam_t = 0``)."""
+    n, t1, t2 = _columns(lam)
+    mu = jnp.reshape(mu, (-1, 1))
     s = t1 * t1 + t2 * t2
     r = lax.rsqrt(jnp.maximum(s, jnp.finfo(lam.dtype).tiny))
     nt = s * r
     inside = nt <= mu * n
     ln = jnp.where(inside, n, jnp.maximum((n + mu * nt) / (1 + mu * mu), 0))
-    scale = jnp.where(inside, 1, mu * ln * r)
-    return jnp.stack([ln, t1 * scale, t2 * scale], axis=1)
+    return jnp.where(_NORMAL, ln, lam * jnp.where(inside, 1, mu * ln * r))
 
 
 def _de_saxce(u, mu):
     """Velocities ``(K, 3)`` with De Saxce's normal ``u_n + mu |u_t|``: complementary to the
     impulses in the Coulomb cone exactly when they solve the Coulomb problem."""
-    return jnp.stack([u[:, 0] + mu * jnp.sqrt(u[:, 1] ** 2 + u[:, 2] ** 2), u[:, 1], u[:, 2]], axis=1)
+    _, t1, t2 = _columns(u)
+    return u + jnp.where(_NORMAL, jnp.reshape(mu, (-1, 1)) * jnp.sqrt(t1 * t1 + t2 * t2), 0)
 
 
 def gershgorin_bound(W):

@@ -16,14 +16,23 @@ A CPU and a GPU compile the same program with different fusion decisions, so the
 between backends by a small factor; the dependency chain (a loop of ``K`` dependent updates
 per sweep, say) is the same. Loops whose trip count XLA does not know statically (a
 ``lax.while_loop`` on data) are counted once and reported in ``unknown_trip_loops``.
+
+A GPU's program can be read without a GPU: XLA compiles for a GPU described by a target
+configuration (:func:`deviceless_gpu`, "deviceless" ahead-of-time compilation), with the same
+fusion passes as on the device but no autotuning, so library calls stand where the device
+might pick Triton matrix-product fusions. On the step of ``benchmarks/step_cost.py`` its counts
+equal an H200's kernels part by part where no library routine intervenes; a cuSOLVER or cuBLAS
+routine counts one and launches several kernels (``benchmarks/RESULTS.md``).
 """
 
 from __future__ import annotations
 
 import gzip
 import json
+import os
 import re
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 
 #: Opcodes that launch no kernel.
@@ -42,12 +51,16 @@ class SequentialCost:
         ops: instructions executed in sequence. trips: loop iterations executed.
         loops: ``while`` loops in the program (statically, nested ones once).
         unknown_trip_loops: loops of unknown trip count (counted as one trip).
+        by_scope: ``ops`` split by the first of the ``scopes`` asked for (names given to
+            :func:`jax.named_scope`) that each instruction's JAX ``op_name`` holds,
+            ``"other"`` for none; empty when no scopes were asked for.
     """
 
     ops: int
     trips: int
     loops: int
     unknown_trip_loops: int
+    by_scope: dict = field(default_factory=dict)
 
 
 def _computations(text: str) -> tuple[dict[str, list[str]], str]:
@@ -81,19 +94,35 @@ def _trip_count(line: str) -> int | None:
     return int(m.group(1)) if m else None
 
 
-def sequential_cost(hlo_text: str) -> SequentialCost:
-    """The sequential cost (module doc) of an optimized HLO module (``compiled.as_text()``).
+def _scope(op_name: str, scopes: tuple[str, ...]) -> str:
+    """The first of ``scopes`` that the JAX ``op_name`` holds as a path component, else ``"other"``."""
+    return next((sc for sc in scopes if f"/{sc}/" in op_name + "/"), "other")
+
+
+def _add(a: Counter, b: Counter, n: int = 1) -> None:
+    for k, v in b.items():
+        a[k] += n * v
+
+
+def sequential_cost(hlo_text: str, scopes: tuple[str, ...] = ()) -> SequentialCost:
+    """The sequential cost (module doc) of an optimized HLO module (``compiled.as_text()``),
+    split by ``scopes`` where given (:class:`SequentialCost`).
 
     Raises:
         ValueError: text without an ENTRY computation.
     """
     comps, entry = _computations(hlo_text)
-    memo: dict[str, tuple[int, int, int, int]] = {}
+    names = _op_names(hlo_text) if scopes else {}
+    memo: dict[str, tuple[int, int, int, int, Counter]] = {}
 
-    def walk(name: str) -> tuple[int, int, int, int]:
+    def scope(line: str) -> str:
+        return _scope(names.get(re.match(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)", line).group(1), ""), scopes)
+
+    def walk(name: str) -> tuple[int, int, int, int, Counter]:
         if name in memo:
             return memo[name]
         ops = trips = loops = unknown = 0
+        split: Counter = Counter()
         for line in comps.get(name, ()):
             m = _INSTR.match(line)
             if not m:
@@ -111,24 +140,34 @@ def sequential_cost(hlo_text: str) -> SequentialCost:
                 trips += n * (1 + b[1] + c[1])
                 loops += 1 + b[2] + c[2]
                 unknown += b[3] + c[3]
+                _add(split, b[4], n)
+                _add(split, c[4], n)
             elif opcode == "conditional":
                 branches = re.findall(r"%?([\w.\-]+)", (re.search(r"branch_computations=\{([^}]*)\}", line)
                                                          or re.search(r"()", "")).group(1))
                 branches += [b for b in (_attr(line, "true_computation"), _attr(line, "false_computation")) if b]
-                costs = [walk(b) for b in branches] or [(0, 0, 0, 0)]
-                ops += 1 + max(c[0] for c in costs)
+                costs = [walk(b) for b in branches] or [(0, 0, 0, 0, Counter())]
+                big = max(costs, key=lambda c: c[0])
+                ops += 1 + big[0]
                 trips += max(c[1] for c in costs)
                 loops += sum(c[2] for c in costs)
                 unknown += sum(c[3] for c in costs)
+                _add(split, big[4])
+                if scopes:
+                    split[scope(line)] += 1
             elif opcode == "call":
                 c = walk(_attr(line, "to_apply"))
                 ops, trips, loops, unknown = ops + c[0], trips + c[1], loops + c[2], unknown + c[3]
+                _add(split, c[4])
             else:
                 ops += 1
-        memo[name] = (ops, trips, loops, unknown)
+                if scopes:
+                    split[scope(line)] += 1
+        memo[name] = (ops, trips, loops, unknown, split)
         return memo[name]
 
-    return SequentialCost(*walk(entry))
+    ops, trips, loops, unknown, split = walk(entry)
+    return SequentialCost(ops, trips, loops, unknown, dict(split))
 
 
 def xla_flops(compiled) -> float:
@@ -204,7 +243,7 @@ def kernel_profile(trace_dir, hlo_text: str, steps: int, top: int | None = 25, s
     rows = sorted(by_op.items(), key=lambda kv: -sum(kv[1]))
     by_scope: dict[str, list[float]] = {}
     for op, d in rows:
-        key = next((sc for sc in scopes if f"/{sc}/" in names.get(op, "") + "/"), "other")
+        key = _scope(names.get(op, ""), scopes)
         tot = by_scope.setdefault(key, [0.0, 0.0])
         tot[0], tot[1] = tot[0] + len(d) / steps, tot[1] + sum(d) / steps
     rows = rows if top is None else rows[:top]
@@ -214,3 +253,47 @@ def kernel_profile(trace_dir, hlo_text: str, steps: int, top: int | None = 25, s
             "kernel_us_per_step": sum(float(e["dur"]) for e in kernels) / steps,
             "top": [{"op": op, "count": len(d), "us_per_step": sum(d) / steps, "op_name": names.get(op, "")}
                     for op, d in rows]}
+
+
+#: Environment for :func:`deviceless_gpu`, set before JAX starts its backends: the CUDA plugin
+#: starts without a device (``cuInit`` fails on a machine without a driver) and uses none that
+#: is present; XLA's Triton matrix products are off, their tile sizes need autotuning on a device.
+DEVICELESS_ENV = {"JAX_SKIP_CUDA_CONSTRAINTS_CHECK": "1", "CUDA_VISIBLE_DEVICES": "-1"}
+DEVICELESS_XLA_FLAGS = "--xla_gpu_enable_triton_gemm=false"
+
+
+def prepare_deviceless_gpu() -> None:
+    """Set :data:`DEVICELESS_ENV` and :data:`DEVICELESS_XLA_FLAGS` in ``os.environ``; call it before
+    anything starts JAX's backends (creating an array does)."""
+    os.environ.update(DEVICELESS_ENV)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if DEVICELESS_XLA_FLAGS not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {DEVICELESS_XLA_FLAGS}".strip()
+
+
+def deviceless_gpu(target_config: str):
+    """A sharding on one NVIDIA GPU that need not be present, for ahead-of-time compilation:
+    ``jax.jit(f).lower(*specs).compile()`` with ``jax.ShapeDtypeStruct`` arguments carrying it
+    compiles ``f`` for that GPU on any machine (module doc). The compiled program can be read
+    (``as_text()``), not run.
+
+    Args:
+        target_config: an XLA ``GpuTargetConfig`` in protobuf text format (the device's
+            description: compute capability, cores, memory; ``benchmarks/gpu_targets/``).
+
+    Raises:
+        RuntimeError: JAX has no CUDA plugin, or it started without :func:`prepare_deviceless_gpu`
+            (the plugin of the installed JAX's version: ``pip install
+            "jax-cuda12-plugin[with-cuda]==<jax version>"``).
+    """
+    import jax
+    from jax.experimental import topologies
+
+    try:
+        topo = topologies.get_topology_desc(platform="cuda", target_config=target_config, topology="1x1x1")
+    except (NotImplementedError, RuntimeError) as e:
+        raise RuntimeError("compiling for a GPU without one needs JAX's CUDA plugin of the installed JAX's version "
+                           f'(pip install "jax-cuda12-plugin[with-cuda]=={jax.__version__}"), started after '
+                           "softcrawl.jaxsim.cost.prepare_deviceless_gpu()") from e
+    mesh = topologies.make_mesh(topo, (1,), ("gpu",))
+    return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())

@@ -87,7 +87,7 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
             ss.append(s.reshape(-1))
             continue
         a, b = np.triu_indices(CR.shape[-1])
-        G = jnp.einsum("eia,eib->eab", CR, CR)[:, a, b]
+        G = jnp.sum(CR[:, :, a] * CR[:, :, b], axis=1)  # the upper triangle only, one fused reduction
         K = K + G.reshape(-1) @ pair_products(fam.rows)
         w = s + c * jnp.einsum("eiq,eq->ei", CR, jnp.einsum("eqj,j->eq", fam.rows, qs))
         f = f - jnp.einsum("eq,eqj->j", jnp.einsum("eiq,ei->eq", CR, w), fam.rows)
@@ -97,9 +97,16 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
         cols = [Z[:, a:b] for a, b in edges]
         w = s + c * sum(Zc @ qs[a:b] for Zc, (a, b) in zip(cols, edges))
         return symmetric_gram(cols), -jnp.concatenate([Zc.T @ w for Zc in cols]), n_bad
-    i, j = np.triu_indices(ms)
-    upper = jnp.zeros((ms, ms), K.dtype).at[i, j].set(K)
-    return upper + jnp.triu(upper, 1).T, f, n_bad
+    return K[_symmetric_index(ms)], f, n_bad
+
+
+def _symmetric_index(n: int) -> np.ndarray:
+    """``(n, n)`` the position of each entry of a symmetric matrix in its row-major upper
+    triangle (``np.triu_indices`` order): a gather, not a scatter, makes the matrix."""
+    i, j = np.triu_indices(n)
+    idx = np.empty((n, n), np.int32)
+    idx[i, j] = idx[j, i] = np.arange(len(i))
+    return idx
 
 
 def pair_products(rows):
@@ -164,11 +171,11 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
     h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
     Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK)
     m = q.shape[0]
-    sm = part.strain_modes
-    K = jnp.zeros((m, m), q.dtype).at[sm[:, None], sm[None, :]].set(Ks)
+    at = part.mode_slots  # the strain modes' terms among all modes, zero for the others: gathers
+    K = jnp.pad(Ks, ((0, 1), (0, 1)))[at[:, None], at[None, :]]
     g = jnp.asarray(settings.gravity, q.dtype)
     load = part.mass_rows.T @ (rotation.T @ g) + cavity_load(part, q, pressure)
-    f = (load * mask).at[sm].add(fs)
+    f = load * mask + jnp.pad(fs, (0, 1))[at]
     A = (1.0 + h * rM) * part.mass + (h * (h + rK)) * K
     inv_chol = jax.scipy.linalg.solve_triangular(jnp.linalg.cholesky(A), jnp.eye(m, dtype=A.dtype), lower=True)
     dq = inv_chol.T @ (inv_chol @ (h * (f - rM * (part.mass @ qdot))))

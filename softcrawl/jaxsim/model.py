@@ -63,7 +63,9 @@ class LegPart:
     """The leg reduction, part frame (mm, kg), shared by all legs.
 
     Attributes:
-        strain_modes: ``(m',)`` modes with internal forces.
+        strain_modes: ``(m',)`` modes with internal forces; mode_slots: ``(m,)`` each mode's
+            position among them, ``m'`` for the others (the stiffness and forces of the strain
+            modes placed among all modes by a gather).
         mass: ``(m, m)`` reduced mass, kg; mass_rows: ``(3, m)`` ``sum_n m_n Phi_n`` (gravity
             load ``mass_rows^T R_b^T g``).
         rid_rest, rid_basis: ``(nr, 3)``, ``(nr, 3, m)`` rest positions and basis rows of the RID nodes.
@@ -76,6 +78,7 @@ class LegPart:
     """
 
     strain_modes: object
+    mode_slots: object
     mass: object
     mass_rows: object
     rid_rest: object
@@ -211,7 +214,10 @@ def _leg_part(robot) -> LegPart:
     att_rest = np.stack([w @ X[nd] for nd, w in patches])
     att_basis = np.stack([np.einsum("n,nam->am", w, rows[nd]) for nd, w in patches])
     mass_rows = np.einsum("n,nam->am", body.nodal_mass, rows)
-    part = LegPart(np.asarray(rb.strain_modes), rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
+    sm = np.asarray(rb.strain_modes)
+    slots = np.full(m, len(sm), np.int32)
+    slots[sm] = np.arange(len(sm))
+    part = LegPart(sm, slots, rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
                    X[cav], rows[cav], local.reshape(tris.shape), X[coll], rows[coll], att_rest, att_basis, rows)
     return part
 
