@@ -9,7 +9,9 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
 #
 # latency:     the step at 96, 1,024 and 16,384 robots with XLA's defaults (CUDA graphs), float32,
-#              the two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384).
+#              the two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384); then
+#              at 1,024 and 16,384 with the Delassus operator applied by blocks (fewer bytes,
+#              more kernels: which batch it pays from).
 # training:    the `paper` preset's episode-at-once loop at 96 and 1,024 envs, 8 rounds each, the
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
@@ -23,7 +25,9 @@ mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
 latency)
-    timeout 560 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024,16384 --calls 5 \
+    timeout 300 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024,16384 --calls 5 \
+        2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
+    timeout 240 python3 benchmarks/step_cost.py --no-cost --time --batches 1024,16384 --calls 5 --delassus blocks \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl" ;;
 training)
     timeout 560 python3 benchmarks/train_throughput.py --jax-loops --jax-envs 96,1024 --episodes 8 \

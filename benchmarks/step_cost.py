@@ -18,11 +18,14 @@ default device. Printed as one JSON line (per batch size when timing):
   ``--batches`` (random designs, landed for one action first; ``bad_robots``: robots whose state
   went invalid);
 * ``ops_by_scope``: ``dependent_ops_per_step`` split by the step's parts (``STEP_SCOPES``);
+  ``mb_per_robot_step`` (and by part): the bytes the step's operations touch per robot, each
+  operation's operands and output counted once (:class:`softcrawl.jaxsim.cost.SequentialCost`);
 * with ``--gpu-target CONFIG`` instead: the same counts of the program compiled for the GPU
   that an XLA target configuration describes (``benchmarks/gpu_targets/h100.pbtxt``), on any
   machine, at each of ``--batches``, nothing timed (:func:`softcrawl.jaxsim.cost.deviceless_gpu`;
   needs JAX's CUDA plugin: ``pip install "jax-cuda12-plugin[with-cuda]==<jax version>"``, best
-  in a separate environment);
+  in a separate environment), and what the bytes cost at the GPU's memory bandwidth:
+  ``bandwidth_floor_ms_per_step`` and the ``bandwidth_bound_robot_steps_per_s`` it allows;
 * with ``--profile DIR``: one more call at each timed batch ``B`` under JAX's profiler, its
   trace in ``DIR/bB`` and, printed as one JSON line, the kernels per step, the device's busy time
   per step and the kernels that cost most, each with the JAX operation it came from
@@ -31,7 +34,7 @@ default device. Printed as one JSON line (per batch size when timing):
 
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
-        [--iterations N] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
+        [--iterations N] [--delassus dense] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384
 """
@@ -39,8 +42,10 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
+import re
 import time
 from pathlib import Path
 
@@ -51,6 +56,8 @@ def main(argv=None) -> None:
     p.add_argument("--precision", choices=("float32", "float64"), default="float32")
     p.add_argument("--solver", choices=("apgd", "pgs"), default="apgd")
     p.add_argument("--iterations", type=int, default=None, help="contact solver iterations (default: the solver's)")
+    p.add_argument("--delassus", choices=("dense", "blocks"), default="dense",
+                   help="how the accelerated gradient applies the Delassus operator (Settings.delassus)")
     p.add_argument("--batch", type=int, default=2, help="robots of the compiled program whose cost is read")
     p.add_argument("--steps", type=int, default=None, help="steps per action (default: the preset's)")
     p.add_argument("--time", action="store_true", help="also time the step (the default where JAX has a GPU)")
@@ -95,6 +102,7 @@ def main(argv=None) -> None:
 
     def batch(B, pool):
         model = table.model([pool[i] for i in rng.integers(len(pool), size=B)])
+        model = dataclasses.replace(model, settings=dataclasses.replace(model.settings, delassus=args.delassus))
         dt = model.disk.rest.dtype
         rig = Rig(jnp.ones((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt))
         return model, rig, rest_state(model)
@@ -106,22 +114,31 @@ def main(argv=None) -> None:
     def lowered(n_steps, *args):
         return make_action_rollout(n_steps).lower(*inputs(n_steps, *args))
 
+    def split(seq, B):
+        return {"ops_by_scope": {k: v[0] / steps for k, v in sorted(seq.by_scope.items())},
+                "mb_per_robot_step": seq.bytes / steps / B / 1e6,
+                "mb_per_robot_step_by_scope": {k: round(v[1] / steps / B / 1e6, 3) for k, v in sorted(seq.by_scope.items())}}
+
     if args.gpu_target:
         sharding = deviceless_gpu(target_config)
+        bandwidth = float(re.search(r"memory_bandwidth:\s*(\d+)", target_config).group(1))  # bytes/s
         for B in (int(b) for b in args.batches.split(",")):
             specs = jax.tree.map(lambda a: jax.ShapeDtypeStruct(np.shape(a), a.dtype, sharding=sharding),
                                  inputs(steps, *batch(B, designs)))
             seq = sequential_cost(make_action_rollout(steps).lower(*specs).compile().as_text(), STEP_SCOPES)
+            floor_s = seq.bytes / steps / bandwidth
             print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
                               "precision": args.precision, "solver": settings.solver,
-                              "iterations": settings.iterations, "dependent_ops_per_step": seq.ops / steps,
-                              "loop_trips_per_step": seq.trips / steps,
-                              "ops_by_scope": {k: v / steps for k, v in sorted(seq.by_scope.items())},
-                              "jax": jax.__version__}), flush=True)
+                              "iterations": settings.iterations, "delassus": args.delassus,
+                              "dependent_ops_per_step": seq.ops / steps,
+                              "loop_trips_per_step": seq.trips / steps, **split(seq, B),
+                              "bandwidth_floor_ms_per_step": 1e3 * floor_s,
+                              "bandwidth_bound_robot_steps_per_s": B / floor_s, "jax": jax.__version__}), flush=True)
         return
     device = jax.devices()[0]
     out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),
            "precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
+           "delassus": args.delassus,
            "leg_slots": slots, "contacts": settings.disk_contacts + slots * settings.leg_contacts,
            "steps_per_action": steps, "jax": jax.__version__}
     if not args.no_cost:
@@ -131,8 +148,7 @@ def main(argv=None) -> None:
         compile_s = time.perf_counter() - t0
         seq = sequential_cost(compiled.as_text(), STEP_SCOPES)
         one = lowered(1, *small).compile()
-        out.update(compile_s=round(compile_s, 2), dependent_ops_per_step=seq.ops / steps,
-                   ops_by_scope={k: v / steps for k, v in sorted(seq.by_scope.items())},
+        out.update(compile_s=round(compile_s, 2), dependent_ops_per_step=seq.ops / steps, **split(seq, args.batch),
                    loop_trips_per_step=seq.trips / steps, mflop_per_robot_step=xla_flops(one) / args.batch / 1e6,
                    inner_loops=sequential_cost(one.as_text()).loops, unknown_trip_loops=seq.unknown_trip_loops)
         print(json.dumps(out), flush=True)
@@ -158,7 +174,7 @@ def main(argv=None) -> None:
                           "ms_per_step": 1e3 * wall / (args.calls * steps),
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
                           "device": out["device"], "precision": args.precision, "solver": out["solver"],
-                          "iterations": out["iterations"]}), flush=True)
+                          "iterations": out["iterations"], "delassus": args.delassus}), flush=True)
         if args.profile:
             where = Path(args.profile, f"b{B}")
             with jax.profiler.trace(str(where), create_perfetto_trace=True):

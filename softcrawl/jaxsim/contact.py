@@ -186,7 +186,7 @@ def momentum_schedule(n_iter: int) -> tuple[float, ...]:
 
 
 @partial(jax.jit, static_argnames=("n_iter", "restart"))
-def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True):
+def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=None):
     """Accelerated projected gradient descent for frictional contact, ``n_iter`` iterations.
 
     With ``S`` the per-contact scaling ``1 / sqrt(W_nn)`` (one scalar per block, which keeps the
@@ -212,7 +212,10 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True):
       scene); over hundreds of iterations from a cold start it oscillates.
 
     Args and returns as :func:`pgs_coulomb` (``n_iter`` for ``n_sweeps``; one iteration is
-    one product with ``W``, the arithmetic of one Gauss-Seidel sweep, but all contacts at once).
+    one product with ``W``, the arithmetic of one Gauss-Seidel sweep, but all contacts at once);
+    ``op``, where given, applies ``W`` in the iterations (``op @ y``: the same operator kept in
+    factors, :class:`softcrawl.jaxsim.delassus.DelassusBlocks`), ``W`` then giving only the
+    scaling and the step.
     """
     dtype, mu, lam, rows = _blocks(W, mu, lam0, active)
     K = active.shape[0]
@@ -227,7 +230,8 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True):
         return jnp.where(live, project_cone(z, mu), 0)
 
     def grad(y):
-        return _de_saxce((Ws @ y.reshape(-1) + qs).reshape(K, 3), mu)
+        Wy = Ws @ y.reshape(-1) if op is None else s * (op @ (s * y.reshape(-1)))
+        return _de_saxce((Wy + qs).reshape(K, 3), mu)
 
     x0 = proj(jnp.where(rows, lam / jnp.where(rows, s, 1), 0).reshape(K, 3))
     if restart:
@@ -270,14 +274,15 @@ def check_solver(solver: str, iterations: int | None) -> int:
     return int(n)
 
 
-def solve_contacts(W, q, mu, lam0, active, solver: str, iterations: int):
+def solve_contacts(W, q, mu, lam0, active, solver: str, iterations: int, op=None):
     """The engine's contact solve: ``iterations`` of :func:`apgd_coulomb` without restart (unrolled:
     no loop in the compiled step) for ``solver="apgd"``, or sweeps of :func:`pgs_coulomb` for ``"pgs"``; the
-    arguments and result as theirs. No contact slots (no floor) gives an empty result."""
+    arguments and result as theirs (``op``: the accelerated gradient's, ignored by Gauss-Seidel,
+    which reads ``W`` by rows). No contact slots (no floor) gives an empty result."""
     if not active.shape[0]:
         return jnp.zeros(0, jnp.result_type(W))
     if solver == "apgd":
-        return apgd_coulomb(W, q, mu, lam0, active, iterations, restart=False)
+        return apgd_coulomb(W, q, mu, lam0, active, iterations, restart=False, op=op)
     return pgs_coulomb(W, q, mu, lam0, active, iterations)
 
 

@@ -11,6 +11,9 @@ so they can be read on any machine, a CPU included (:func:`sequential_cost`):
   conditional's largest branch once. Bookkeeping that launches nothing (parameters,
   constants, tuples, ``get-tuple-element``, bitcasts) counts zero.
 * ``trips``: loop iterations executed, nested loops multiplied.
+* ``bytes``: what the executed instructions read and write, each operand and output counted
+  once: where a large batch makes the step bound by memory, its time is at least ``bytes``
+  over the memory's bandwidth.
 
 A CPU and a GPU compile the same program with different fusion decisions, so the counts differ
 between backends by a small factor; the dependency chain (a loop of ``K`` dependent updates
@@ -51,16 +54,42 @@ class SequentialCost:
         ops: instructions executed in sequence. trips: loop iterations executed.
         loops: ``while`` loops in the program (statically, nested ones once).
         unknown_trip_loops: loops of unknown trip count (counted as one trip).
-        by_scope: ``ops`` split by the first of the ``scopes`` asked for (names given to
-            :func:`jax.named_scope`) that each instruction's JAX ``op_name`` holds,
-            ``"other"`` for none; empty when no scopes were asked for.
+        bytes: the bytes the executed instructions touch, each instruction's operands and
+            output counted whole once (library calls' scratch buffers left out): an estimate of
+            the memory traffic, high for an instruction that reads a slice of an operand, low
+            for a product whose tiles are read more than once.
+        by_scope: ``{scope: (ops, bytes)}``, split by the first of the ``scopes`` asked for
+            (names given to :func:`jax.named_scope`) that each instruction's JAX ``op_name``
+            holds, ``"other"`` for none; empty when no scopes were asked for.
     """
 
     ops: int
     trips: int
     loops: int
     unknown_trip_loops: int
+    bytes: int = 0
     by_scope: dict = field(default_factory=dict)
+
+
+class _Tally:
+    """Running counts of :func:`sequential_cost` for one computation."""
+
+    def __init__(self):
+        self.ops = self.trips = self.loops = self.unknown = self.bytes = 0
+        self.split_ops: Counter = Counter()
+        self.split_bytes: Counter = Counter()
+
+    def add(self, other: "_Tally", n: int = 1) -> None:
+        """Add ``n`` runs of ``other`` (loops and unknown loops once: they are static counts)."""
+        self.ops += n * other.ops
+        self.trips += n * other.trips
+        self.bytes += n * other.bytes
+        self.loops += other.loops
+        self.unknown += other.unknown
+        for k, v in other.split_ops.items():
+            self.split_ops[k] += n * v
+        for k, v in other.split_bytes.items():
+            self.split_bytes[k] += n * v
 
 
 def _computations(text: str) -> tuple[dict[str, list[str]], str]:
@@ -99,9 +128,24 @@ def _scope(op_name: str, scopes: tuple[str, ...]) -> str:
     return next((sc for sc in scopes if f"/{sc}/" in op_name + "/"), "other")
 
 
-def _add(a: Counter, b: Counter, n: int = 1) -> None:
-    for k, v in b.items():
-        a[k] += n * v
+_DEF = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*(\([^()]*\)|\S+)\s")
+_ARRAY = re.compile(r"\b(pred|s8|u8|s16|u16|f16|bf16|s32|u32|f32|s64|u64|f64|c64|c128)\[([\d,]*)\]")
+_ITEM = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2, "s32": 4, "u32": 4, "f32": 4,
+         "s64": 8, "u64": 8, "f64": 8, "c64": 8, "c128": 16}
+
+
+def _shape_bytes(shape: str, scratch: bool = False) -> int:
+    """Bytes of the arrays of an HLO shape (a tuple's elements summed); with ``scratch``, byte
+    arrays (``s8``/``u8``: a library call's workspace) left out."""
+    total = 0
+    for dtype, dims in _ARRAY.findall(shape):
+        if scratch and dtype in ("s8", "u8"):
+            continue
+        n = _ITEM[dtype]
+        for d in filter(None, dims.split(",")):
+            n *= int(d)
+        total += n
+    return total
 
 
 def sequential_cost(hlo_text: str, scopes: tuple[str, ...] = ()) -> SequentialCost:
@@ -113,16 +157,13 @@ def sequential_cost(hlo_text: str, scopes: tuple[str, ...] = ()) -> SequentialCo
     """
     comps, entry = _computations(hlo_text)
     names = _op_names(hlo_text) if scopes else {}
-    memo: dict[str, tuple[int, int, int, int, Counter]] = {}
+    shapes = {m.group(1): m.group(2) for m in map(_DEF.match, hlo_text.splitlines()) if m}
+    memo: dict[str, _Tally] = {}
 
-    def scope(line: str) -> str:
-        return _scope(names.get(re.match(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)", line).group(1), ""), scopes)
-
-    def walk(name: str) -> tuple[int, int, int, int, Counter]:
+    def walk(name: str) -> _Tally:
         if name in memo:
             return memo[name]
-        ops = trips = loops = unknown = 0
-        split: Counter = Counter()
+        t = _Tally()
         for line in comps.get(name, ()):
             m = _INSTR.match(line)
             if not m:
@@ -132,42 +173,42 @@ def sequential_cost(hlo_text: str, scopes: tuple[str, ...] = ()) -> SequentialCo
                 continue
             if opcode == "while":
                 n = _trip_count(line)
-                unknown += n is None
+                t.unknown += n is None
                 n = 1 if n is None else n
-                b = walk(_attr(line, "body"))
-                c = walk(_attr(line, "condition"))
-                ops += n * (b[0] + c[0])
-                trips += n * (1 + b[1] + c[1])
-                loops += 1 + b[2] + c[2]
-                unknown += b[3] + c[3]
-                _add(split, b[4], n)
-                _add(split, c[4], n)
-            elif opcode == "conditional":
+                t.loops += 1
+                t.trips += n
+                t.add(walk(_attr(line, "body")), n)
+                t.add(walk(_attr(line, "condition")), n)
+                continue
+            if opcode == "call":
+                t.add(walk(_attr(line, "to_apply")))
+                continue
+            if opcode == "conditional":
                 branches = re.findall(r"%?([\w.\-]+)", (re.search(r"branch_computations=\{([^}]*)\}", line)
                                                          or re.search(r"()", "")).group(1))
                 branches += [b for b in (_attr(line, "true_computation"), _attr(line, "false_computation")) if b]
-                costs = [walk(b) for b in branches] or [(0, 0, 0, 0, Counter())]
-                big = max(costs, key=lambda c: c[0])
-                ops += 1 + big[0]
-                trips += max(c[1] for c in costs)
-                loops += sum(c[2] for c in costs)
-                unknown += sum(c[3] for c in costs)
-                _add(split, big[4])
-                if scopes:
-                    split[scope(line)] += 1
-            elif opcode == "call":
-                c = walk(_attr(line, "to_apply"))
-                ops, trips, loops, unknown = ops + c[0], trips + c[1], loops + c[2], unknown + c[3]
-                _add(split, c[4])
-            else:
-                ops += 1
-                if scopes:
-                    split[scope(line)] += 1
-        memo[name] = (ops, trips, loops, unknown, split)
-        return memo[name]
+                tallies = [walk(b) for b in branches] or [_Tally()]
+                big = max(tallies, key=lambda c: c.ops)
+                t.add(big)
+                t.trips += max(c.trips for c in tallies) - big.trips
+                t.loops += sum(c.loops for c in tallies) - big.loops
+                t.unknown += sum(c.unknown for c in tallies) - big.unknown
+            d = _DEF.match(line)
+            operands = set(re.findall(r"%([\w.\-]+)", m.group(2).split(")", 1)[0]))
+            b = _shape_bytes(d.group(2) if d else "", scratch=opcode == "custom-call") + sum(
+                _shape_bytes(shapes.get(o, "")) for o in operands)
+            t.ops += 1
+            t.bytes += b
+            if scopes:
+                key = _scope(names.get(d.group(1) if d else "", ""), scopes)
+                t.split_ops[key] += 1
+                t.split_bytes[key] += b
+        memo[name] = t
+        return t
 
-    ops, trips, loops, unknown, split = walk(entry)
-    return SequentialCost(ops, trips, loops, unknown, dict(split))
+    t = walk(entry)
+    split = {k: (t.split_ops[k], t.split_bytes[k]) for k in t.split_ops}
+    return SequentialCost(t.ops, t.trips, t.loops, t.unknown, t.bytes, split)
 
 
 def xla_flops(compiled) -> float:

@@ -162,6 +162,44 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
 
 
 @dataclass(frozen=True)
+class DelassusBlocks:
+    """The condensed Delassus operator ``W_c = W_cc - W_cb W_bb^-1 W_bc`` of one robot kept in its
+    blocks (:func:`condense`), applied without forming it: ``W_c @ y`` (:meth:`__matmul__`) reads
+    ``3K_d^2 + L (3K_l)^2 + 2 (3A 3K_d + L 3F 3K_l) + (3A)^2`` numbers, 22,176 for the paper
+    preset's robots (``K_d`` 8, ``L`` 6, ``K_l`` 12, ``F`` 4) against ``(3K)^2 = 57,600`` of the
+    dense ``W_c``: an iterative solve that streams its operator from memory every iteration (a
+    GPU's at thousands of robots) moves 2.6 times fewer bytes.
+
+    Attributes:
+        disk: ``(3K_d, 3K_d)`` the disk's contacts among themselves; legs: ``(L, 3K_l, 3K_l)``
+            each leg's contacts among themselves (``W_cc``, block diagonal).
+        disk_att: ``(3A, 3K_d)`` and legs_att: ``(L, 3F, 3K_l)``: ``W_bc``, the attachments
+            against the disk's contacts (dense) and each leg's against its own contacts.
+        att_inv: ``(3A, 3A)`` ``W_bb^-1``.
+    """
+
+    disk: jax.Array
+    legs: jax.Array
+    disk_att: jax.Array
+    legs_att: jax.Array
+    att_inv: jax.Array
+
+    def __matmul__(self, y):
+        """``W_c y`` ``(3K,)``, mm/s, of contact impulses ``y`` ``(3K,)``, mN s (the disk's contacts
+        first, then each leg's): the Schur complement of the module doc, term by term."""
+        nd = self.disk.shape[0]
+        L, F3, Kl3 = self.legs_att.shape
+        yd, yl = y[:nd], y[nd:].reshape(L, Kl3)
+        t = self.att_inv @ (self.disk_att @ yd + jnp.einsum("lbk,lk->lb", self.legs_att, yl).reshape(-1))
+        return jnp.concatenate([self.disk @ yd - self.disk_att.T @ t,
+                                (jnp.einsum("lij,lj->li", self.legs, yl)
+                                 - jnp.einsum("lbk,lb->lk", self.legs_att, t.reshape(L, F3))).reshape(-1)])
+
+
+register_pytree(DelassusBlocks)
+
+
+@dataclass(frozen=True)
 class Condensed:
     """The contact problem of one robot after the attachments' elimination (:func:`condense`).
 
@@ -171,12 +209,14 @@ class Condensed:
         X: ``(3A, 3K + 1)`` ``W_bb^-1 [u_b, W_bc]``: the attachment impulses are
             ``-(X[:, 0] + X[:, 1:] lam_c)``.
         Y: ``(L, m, 3F + 3K_l)`` each leg's ``C_l^-1 J_l^T`` (velocity corrections).
+        blocks: ``W`` in its blocks (:class:`DelassusBlocks`).
     """
 
     W: jax.Array
     q: jax.Array
     X: jax.Array
     Y: jax.Array
+    blocks: DelassusBlocks
 
 
 register_pytree(Condensed)
@@ -220,7 +260,8 @@ def condense(rows: Rows, inv_chol, qd_free) -> Condensed:
     W_cc = jnp.zeros((Kd3 + L * Kl3,) * 2, dt).at[:Kd3, :Kd3].set(rows.disk_dd)
     W_cc = W_cc.at[Kd3:, Kd3:].set((eye_l[:, None, :, None] * G[:, F3:, None, F3:]).reshape(L * Kl3, L * Kl3))
     u_c = jnp.concatenate([rows.u_disk, (u_leg[:, F3:] + _gap_rows(rows.gap_leg)).reshape(-1)])
-    return Condensed(W_cc - WX[:, 1:], u_c - WX[:, 0], X, Y)
+    blocks = DelassusBlocks(rows.disk_dd, G[:, F3:, F3:], W_bd, W_bl, W_inv)
+    return Condensed(W_cc - WX[:, 1:], u_c - WX[:, 0], X, Y, blocks)
 
 
 def inverse_spd(A):

@@ -148,7 +148,11 @@ class Settings:
             (:func:`softcrawl.jaxsim.contact.solve_contacts`);
         calibration: ``(a, b)`` of ``sim = max(a real + b, 0)``; rate: regulator slew, kPa/s;
         channels: ``R``, the pressure channels (regulators of the robots' design space; 3 in the
-            paper's): the length of every robot's regulator pressures.
+            paper's): the length of every robot's regulator pressures;
+        delassus: how the accelerated gradient applies the contacts' Delassus operator:
+            ``"dense"`` (one matrix-vector product per iteration, the fewest kernels) or
+            ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6 times fewer
+            bytes per iteration, more kernels), the same operator.
     """
 
     dt: float
@@ -166,6 +170,7 @@ class Settings:
     calibration: tuple
     rate: float
     channels: int = 3
+    delassus: str = "dense"
 
 
 @dataclass(frozen=True)
