@@ -143,14 +143,13 @@ def test_the_delassus_blocks_apply_the_condensed_operator(landed):
 
 
 def test_an_unknown_delassus_form_is_refused(landed):
-    """``Settings.delassus`` other than ``"dense"`` or ``"blocks"`` stops the step's tracing with
-    a ValueError naming the setting, instead of falling back to the dense product silently."""
-    from softcrawl.jaxsim.engine import physics_step
-
-    model, state, kpa = landed
-    bad = dataclasses.replace(model, settings=dataclasses.replace(model.settings, delassus="block"))
+    """``Settings.delassus`` other than ``"dense"`` or ``"blocks"`` is refused where the settings
+    are made, with a ValueError naming the setting, instead of the step falling back to the
+    dense product silently."""
+    model = landed[0]
     with pytest.raises(ValueError, match="settings.delassus"):
-        jax.jit(physics_step).lower(bad, state, kpa)
+        dataclasses.replace(model.settings, delassus="block")
+    assert dataclasses.replace(model.settings, delassus="blocks").delassus == "blocks"
 
 
 def test_corrections_give_the_constrained_velocities_the_impulses_ask_for(landed):

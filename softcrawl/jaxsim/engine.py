@@ -146,8 +146,6 @@ def _physics_step(model, state: State, sim_kpa) -> State:
     # 2.-3. free motion, constraint rows, the attachments eliminated; the contacts solved
     qd_free, inv_chol, n_bad, v_free, R, rows, cond, warm = _constrained(model, state, sim_kpa)
     K = rows.points.shape[0]
-    if st.delassus not in ("dense", "blocks"):
-        raise ValueError(f"settings.delassus must be 'dense' or 'blocks', not {st.delassus!r}")
     with jax.named_scope("solve_contacts"):
         lam_c = solve_contacts(cond.W, cond.q, jnp.full((K,), st.friction, cond.W.dtype), warm, rows.active,
                                st.solver, st.iterations, op=cond.blocks if st.delassus == "blocks" else None)

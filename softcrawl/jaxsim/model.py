@@ -172,6 +172,11 @@ class Settings:
     channels: int = 3
     delassus: str = "dense"
 
+    def __post_init__(self):
+        """Raises: ValueError: a ``delassus`` other than ``"dense"`` or ``"blocks"``."""
+        if self.delassus not in ("dense", "blocks"):
+            raise ValueError(f"settings.delassus must be 'dense' or 'blocks', not {self.delassus!r}")
+
 
 @dataclass(frozen=True)
 class Model:
