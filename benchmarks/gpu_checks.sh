@@ -3,19 +3,20 @@
 # (JSON lines, logs, gzipped kernel tables) under OUTDIR. Run the stages in order, back to back
 # on the warm machine, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~3 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~5 min, first
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
 #
 # latency:     the step at 96, 1,024 and 16,384 robots with XLA's defaults (CUDA graphs), float32,
-#              the issue's two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384); then
-#              at 1,024 and 16,384 with the Delassus operator applied by blocks (fewer bytes,
-#              more kernels: which batch it pays from).
+#              the issue's two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384); at
+#              1,024 with the Delassus operator applied by blocks (fewer bytes, more kernels);
+#              then every kernel of the 96-robot step timed without CUDA graphs (kernels-b96).
+#              Each batch size compiles in its own 30-60 s; 16,384 robots take 0.4 s a step.
 # training:    the `paper` preset's episode-at-once loop at 96 and 1,024 envs, 8 rounds each, the
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
-# profile:     the step at 96, 1,024 and 16,384 robots without CUDA graphs, every kernel timed
+# profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed
 #              (`step_cost.py --profile`): where the large batches' time goes.
 # groundtruth: the all-designs ground truth's rate on 256 sampled designs and its projection
 #              for the 6,972 (`groundtruth.py rate`).
@@ -25,16 +26,21 @@ mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
 latency)
-    timeout 300 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024,16384 --calls 5 \
+    timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
-    timeout 240 python3 benchmarks/step_cost.py --no-cost --time --batches 1024,16384 --calls 5 --delassus blocks \
-        2>>"$out/log.txt" | tee -a "$out/latency.jsonl" ;;
+    timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 \
+        2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
+    timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 1024 --calls 5 --delassus blocks \
+        2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
+    XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 90 python3 benchmarks/step_cost.py --no-cost --time \
+        --batches 96 --calls 3 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
+    gzip -c /tmp/prof/b96/kernels.json > "$out/kernels-b96.json.gz" ;;
 training)
     timeout 560 python3 benchmarks/train_throughput.py --jax-loops --jax-envs 96,1024 --episodes 8 \
         --preset paper --rollouts episode --set sac.device='"gpu"' 2>>"$out/log.txt" | tee -a "$out/training.jsonl" ;;
 profile)
     XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 560 python3 benchmarks/step_cost.py --no-cost --time \
-        --batches 96,1024,16384 --calls 3 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
+        --batches 1024,16384 --calls 2 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
     for b in /tmp/prof/b*; do gzip -c "$b/kernels.json" > "$out/kernels-$(basename "$b").json.gz"; done ;;
 groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \

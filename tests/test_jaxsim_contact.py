@@ -480,6 +480,26 @@ def test_floor_contacts_keeps_the_k_lowest_predicted_gaps_in_point_order(C):
         C.floor_contacts(pts, vel, 0.0, 0.3, 7, dt=0.02)
 
 
+@pytest.mark.parametrize("P", [1024, 1179, 3000])
+def test_the_two_stage_selection_picks_what_one_top_k_picks(C, P):
+    """``smallest_k`` (two stages from ``SMALLEST_K_SPLIT`` values on: a leg's 1,179 collision
+    points) returns exactly the indices of ``lax.top_k(-values, K)``, sorted, also where many
+    values are equal (integers: the lower indices of equal values win in both) and where the
+    smallest values crowd into one group. Leaving the chosen groups in the order of their minima
+    instead of their indices before the second stage breaks ties at the K-th value differently
+    and fails the draws of integers below P / 4."""
+    from jax import lax
+
+    assert P >= C.SMALLEST_K_SPLIT
+    rng = np.random.default_rng(P)
+    draws = [rng.normal(size=P), rng.integers(0, 6, P).astype(float), np.where(np.arange(P) < 40, -1.0, 1.0)
+             + 1e-3 * rng.normal(size=P)] + [rng.integers(0, P // 4, P).astype(float) for _ in range(20)]
+    for K in (1, 8, 12, 16):
+        for v in draws:
+            np.testing.assert_array_equal(np.asarray(C.smallest_k(jnp.asarray(v), K)),
+                                          np.sort(np.asarray(lax.top_k(-jnp.asarray(v), K)[1])))
+
+
 def test_an_unknown_method_is_refused(C):
     W, q, mu = _random_problem(np.random.default_rng(0), 2)
     with pytest.raises(ValueError, match="method"):

@@ -316,7 +316,7 @@ def test_the_step_solves_two_triangular_systems(landed):
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and
-    at most 600 operations in sequence per step (measured 548 with JAX 0.10.2; the previous
+    at most 600 operations in sequence per step (measured 553 with JAX 0.10.2; the previous
     engine's 100 Gauss-Seidel sweeps ran 8,101 trips and 184,545 operations per step:
     benchmarks/step_cost.py, benchmarks/RESULTS.md)."""
     out = subprocess.run([sys.executable, "benchmarks/step_cost.py", "--steps", "10"], capture_output=True, text=True,
@@ -375,6 +375,25 @@ def test_the_strain_modes_terms_are_placed_by_their_slots(landed):
     assert slots.shape == (m,) and 0 < len(sm) < m
     np.testing.assert_array_equal(slots[sm], np.arange(len(sm)))
     assert np.all(np.delete(slots, sm) == len(sm))
+
+
+def test_the_cavity_load_agrees_by_nodes_and_by_triangles(landed):
+    """``cavity_load`` scattered into the cavity nodes (the CPU's form) and summed by triangle
+    with ``LegPart.cavity_rows`` (the GPU's) on the landed robot's bent legs at 30 kPa: the same
+    sums in another order, equal to 1e-12 of the largest entry in float64 (each entry sums about
+    4,000 products); ``cavity_rows`` holding one vertex's rows instead of the three's moves the
+    load by about two thirds. An unknown form is refused."""
+    from softcrawl.jaxsim import legs as leg_motion
+
+    model, state, _ = landed
+    assert float(jnp.abs(state.q).max()) > 1.0
+    loads = {form: jax.vmap(lambda q, form=form: leg_motion.cavity_load(model.leg, q, 30.0, form))(state.q)
+             for form in ("nodes", "triangles")}
+    scale = np.abs(np.asarray(loads["nodes"])).max()
+    assert scale > 0
+    assert np.abs(np.asarray(loads["triangles"] - loads["nodes"])).max() <= 1e-12 * scale
+    with pytest.raises(ValueError, match="form"):
+        leg_motion.cavity_load(model.leg, state.q[0], 30.0, "edges")
 
 
 def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):

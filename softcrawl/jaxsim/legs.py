@@ -79,15 +79,21 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
             n_bad = n_bad + jnp.sum(~(jnp.linalg.det(d) > 0)).astype(jnp.int32)
         n_bad = n_bad + jnp.sum(~jnp.all(jnp.isfinite(F), axis=(1, 2))).astype(jnp.int32)
         g = jnp.einsum("epc,eac->eap", F, d).reshape(E, -1)
-        s = jnp.einsum("eiq,eq->ei", fam.factors, g) - fam.rest_terms
-        r = fam.factors.shape[1]
-        CR = jnp.einsum("eiap,epc->eiac", fam.factors.reshape(E, r, k1, 3), F).reshape(E, r, -1)
+        r, n = fam.factors.shape[1:]
+        C = fam.factors.reshape(E, r, k1, 3)
         if form == "rows":
+            s = jnp.einsum("eiq,eq->ei", fam.factors, g) - fam.rest_terms
+            CR = jnp.einsum("eiap,epc->eiac", C, F).reshape(E, r, -1)
             Zs.append(jnp.einsum("eiq,eqj->eij", CR, fam.rows).reshape(E * r, ms))
             ss.append(s.reshape(-1))
             continue
-        a, b = np.triu_indices(CR.shape[-1])
-        G = jnp.sum(CR[:, :, a] * CR[:, :, b], axis=1)  # the upper triangle only, one fused reduction
+        # The per-element contractions as sums of products, not batched matrix products: a GPU
+        # then runs them as element-wise kernels over the legs' elements instead of library calls
+        # batched over the elements with transposing kernels after them; G_e's upper triangle
+        # row by row (np.triu_indices order) from slices, without a gather.
+        s = sum(fam.factors[:, :, q] * g[:, None, q] for q in range(n)) - fam.rest_terms
+        CR = sum(C[:, :, :, p, None] * F[:, None, None, p, :] for p in range(3)).reshape(E, r, n)
+        G = jnp.concatenate([sum(CR[:, i, a, None] * CR[:, i, a:] for i in range(r)) for a in range(n)], axis=-1)
         K = K + G.reshape(-1) @ pair_products(fam.rows)
         w = s + c * jnp.einsum("eiq,eq->ei", CR, jnp.einsum("eqj,j->eq", fam.rows, qs))
         f = f - jnp.einsum("eq,eqj->j", jnp.einsum("eiq,ei->eq", CR, w), fam.rows)
@@ -142,13 +148,30 @@ def symmetric_gram(cols):
     return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(nb)] for i in range(nb)])
 
 
-def cavity_load(part, q, pressure):
+def cavity_load(part, q, pressure, form: str | None = None):
     """``(m,)`` reduced follower load of the cavity at ``pressure`` (kPa): every triangle gives
-    ``p/3 * (x1 - x0) x (x2 - x0) / 2`` to each vertex (physics.md, "Pneumatic actuation";
-    :func:`softcrawl.reduction.kernels.cavity_forces`), projected on the basis rows, mN."""
+    ``w_t = p/3 * (x1 - x0) x (x2 - x0) / 2`` to each vertex (physics.md, "Pneumatic actuation";
+    :func:`softcrawl.reduction.kernels.cavity_forces`), projected on the basis rows, mN.
+
+    ``form``: ``"nodes"`` (the triangles' forces scattered into the cavity nodes, then projected
+    on their basis rows), ``"triangles"`` (``sum_t (Phi_t0 + Phi_t1 + Phi_t2)^T w_t`` with
+    ``LegPart.cavity_rows``: one matrix product over all legs of a batch, no scatter, twice the
+    multiply-adds) or ``None``: ``"nodes"`` on a CPU, ``"triangles"`` elsewhere. The same sums
+    in another order.
+
+    Raises:
+        ValueError: an unknown ``form``.
+    """
+    if form is None:
+        return jax.lax.platform_dependent(part, q, pressure, cpu=partial(cavity_load, form="nodes"),
+                                          default=partial(cavity_load, form="triangles"))
+    if form not in ("nodes", "triangles"):
+        raise ValueError(f"form must be 'nodes' or 'triangles', not {form!r}")
     x = part.cavity_rest + part.cavity_basis @ q
     t = x[part.cavity_tris]
     w = 0.5 * jnp.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]) * (pressure / 3.0)
+    if form == "triangles":
+        return jnp.einsum("tam,ta->m", part.cavity_rows, w)
     F = jnp.zeros_like(x).at[part.cavity_tris.reshape(-1)].add(jnp.repeat(w, 3, axis=0))
     return jnp.einsum("nam,na->m", part.cavity_basis, F)
 

@@ -71,7 +71,8 @@ class LegPart:
         rid_rest, rid_basis: ``(nr, 3)``, ``(nr, 3, m)`` rest positions and basis rows of the RID nodes.
         families: the RID families (:class:`Family`).
         cavity_rest, cavity_basis: ``(c, 3)``, ``(c, 3, m)`` of the cavity nodes; cavity_tris:
-            ``(T, 3)`` indices into them.
+            ``(T, 3)`` indices into them; cavity_rows: ``(T, 3, m)`` each triangle's three
+            vertices' basis rows summed (the cavity load's projection by triangle).
         coll_rest, coll_basis: ``(nc, 3)``, ``(nc, 3, m)`` of the collision nodes.
         att_rest, att_basis: ``(F, 3)``, ``(F, 3, m)`` weighted attachment patches.
         basis: ``(n, 3, m)`` the basis rows of every node (node speeds ``|Phi_n qdot|``, mm/s).
@@ -87,6 +88,7 @@ class LegPart:
     cavity_rest: object
     cavity_basis: object
     cavity_tris: object
+    cavity_rows: object
     coll_rest: object
     coll_basis: object
     att_rest: object
@@ -228,7 +230,8 @@ def _leg_part(robot) -> LegPart:
     slots = np.full(m, len(sm), np.int32)
     slots[sm] = np.arange(len(sm))
     part = LegPart(sm, slots, rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
-                   X[cav], rows[cav], local.reshape(tris.shape), X[coll], rows[coll], att_rest, att_basis, rows)
+                   X[cav], rows[cav], local.reshape(tris.shape), rows[tris].sum(axis=1), X[coll], rows[coll],
+                   att_rest, att_basis, rows)
     return part
 
 
