@@ -401,14 +401,20 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
     GPU's: ``G_e`` contracted with the products of the basis rows) on the landed robot's bent,
     pressed legs: the same sums in another order, so ``K_r`` and ``f_r`` agree to 1e-12 of their
     largest entries in float64 (each entry sums ~2,000-14,000 products, each rounded to 1.1e-16).
-    A wrong pair factor (the off-diagonal transpose left out) moves ``K_r`` by about half."""
+    A wrong pair factor (the off-diagonal transpose left out) moves ``K_r`` by about half. The
+    pair products formed once before a loop (``with_pair_products``) give the same bits."""
     from softcrawl.jaxsim import legs as leg_motion
 
     model, state, _ = landed
     qdot = state.qdot + jnp.asarray(np.random.default_rng(0).normal(0.0, 5.0, state.qdot.shape))
-    terms = {form: jax.vmap(lambda q, v, form=form: leg_motion.rid_terms(model.leg, q, v, 0.03, form))(state.q, qdot)
-             for form in ("rows", "pairs")}
-    (Kr, fr, nr), (Kp, fp, np_) = terms["rows"], terms["pairs"]
+    formed = leg_motion.with_pair_products(model.leg)
+    terms = {(form, part is formed): jax.vmap(lambda q, v, form=form, part=part: leg_motion.rid_terms(
+        part, q, v, 0.03, form))(state.q, qdot) for form in ("rows", "pairs") for part in (model.leg, formed)}
+    for form in ("rows", "pairs"):
+        for a, b in zip(terms[(form, False)], terms[(form, True)]):
+            np.testing.assert_array_equal(a, b)
+    assert all(f.pairs is None for f in model.leg.families)
+    (Kr, fr, nr), (Kp, fp, np_) = terms[("rows", False)], terms[("pairs", False)]
     assert float(jnp.abs(state.q).max()) > 1.0  # bent: the frames are not the rest frames
     assert np.abs(np.asarray(Kp - Kr)).max() <= 1e-12 * np.abs(np.asarray(Kr)).max()
     assert np.abs(np.asarray(Kp - Kp.transpose(0, 2, 1))).max() == 0.0

@@ -178,6 +178,13 @@ def max_speed(model, state: State):
     return jnp.sqrt(jnp.maximum(jnp.max(jnp.sum(state.v ** 2, axis=1)), jnp.max(jnp.sum(vl ** 2, axis=2))))
 
 
+def shared_parts(model):
+    """The model without its per-robot data (``robot=None``: the parts every robot of a batch
+    shares, ``jax.vmap`` ped with ``in_axes=None``), ready for a loop of steps: the legs' pair
+    products formed once, outside the loop (:func:`softcrawl.jaxsim.legs.with_pair_products`)."""
+    return dataclasses.replace(model, robot=None, leg=leg_motion.with_pair_products(model.leg))
+
+
 def make_settle(rest_speed: float = 0.5, hold_steps: int = 5, max_steps: int = 300):
     """A jitted ``settle(model, state) -> (state, steps)``: every robot of the batch stepped at zero
     pressure until its :func:`max_speed` stayed below ``rest_speed`` (mm/s) for ``hold_steps``
@@ -202,7 +209,7 @@ def make_settle(rest_speed: float = 0.5, hold_steps: int = 5, max_steps: int = 3
 
     @jax.jit
     def settle(model, state):
-        return jax.vmap(one, in_axes=(None, 0, 0))(dataclasses.replace(model, robot=None), model.robot, state)
+        return jax.vmap(one, in_axes=(None, 0, 0))(shared_parts(model), model.robot, state)
 
     return settle
 
@@ -223,7 +230,7 @@ def make_rollout(n_steps: int, physics_only: bool = False):
 
     @jax.jit
     def rollout(model, state, control):
-        return jax.vmap(one, in_axes=(None, 0, 0, 0))(dataclasses.replace(model, robot=None), model.robot, state,
+        return jax.vmap(one, in_axes=(None, 0, 0, 0))(shared_parts(model), model.robot, state,
                                                       control)
 
     return rollout
@@ -259,7 +266,7 @@ def make_schedule_rollout(physics_only: bool = False, trace: bool = False):
 
     @jax.jit
     def rollout(model, state, schedule):
-        return jax.vmap(one, in_axes=(None, 0, 0, 0))(dataclasses.replace(model, robot=None), model.robot, state,
+        return jax.vmap(one, in_axes=(None, 0, 0, 0))(shared_parts(model), model.robot, state,
                                                       schedule)
 
     return rollout

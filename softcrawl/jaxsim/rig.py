@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from softcrawl.jaxsim.engine import physics_step
+from softcrawl.jaxsim.engine import physics_step, shared_parts
 from softcrawl.jaxsim.model import register_pytree
 
 
@@ -100,7 +100,7 @@ def make_action_rollout(n_steps: int):
 
     @jax.jit
     def rollout(model, rig, state, command, steps):
-        return jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0))(dataclasses.replace(model, robot=None), model.robot, rig,
+        return jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0))(shared_parts(model), model.robot, rig,
                                                            state, command, steps)
 
     return rollout
