@@ -230,8 +230,7 @@ def make_rollout(n_steps: int, physics_only: bool = False):
 
     @jax.jit
     def rollout(model, state, control):
-        return jax.vmap(one, in_axes=(None, 0, 0, 0))(shared_parts(model), model.robot, state,
-                                                      control)
+        return jax.vmap(one, in_axes=(None, 0, 0, 0))(shared_parts(model), model.robot, state, control)
 
     return rollout
 
@@ -266,7 +265,6 @@ def make_schedule_rollout(physics_only: bool = False, trace: bool = False):
 
     @jax.jit
     def rollout(model, state, schedule):
-        return jax.vmap(one, in_axes=(None, 0, 0, 0))(shared_parts(model), model.robot, state,
-                                                      schedule)
+        return jax.vmap(one, in_axes=(None, 0, 0, 0))(shared_parts(model), model.robot, state, schedule)
 
     return rollout
