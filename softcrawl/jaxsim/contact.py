@@ -453,13 +453,13 @@ def smallest_k(values, K: int):
     Where ``P`` is large (:data:`SMALLEST_K_SPLIT` or more) and large against ``K``, it makes
     two small selections instead of one large: the values in ``G`` groups of ``S ~ sqrt(P /
     K)``, the ``K`` groups of smallest minimum, then the ``K`` smallest of those groups' ``K S``
-    values. Exact: each of the ``K`` smallest values
-    lies in one of those groups (a group left out has ``K`` groups of no larger minimum before
-    it, which hold ``K`` values no larger than any of its own, of lower index where equal). A
-    GPU's top-k does work in proportion to ``P K`` per row (a leg's 1,179 points: 81 µs of the
-    96-robot step on an H100, ``benchmarks/RESULTS.md``); the two stages do ``(G + K S) K``,
-    a fifth of it there. Fewer values than :data:`SMALLEST_K_SPLIT` take one selection (XLA
-    sorts them, in one kernel on a GPU).
+    values. Exact: each of the ``K`` smallest values lies in one of those groups (a group left
+    out has ``K`` groups of no larger minimum before it, which hold ``K`` values no larger than
+    any of its own, of lower index where equal). A GPU's top-k does work in proportion to ``P
+    K`` per row (a leg's 1,179 points: 81 µs of the 96-robot step on an H100,
+    ``benchmarks/RESULTS.md``); the two stages do ``(G + K S) K``, a fifth of it there. Fewer
+    values than :data:`SMALLEST_K_SPLIT` take one selection (XLA sorts them, in one kernel on a
+    GPU).
     """
     P = values.shape[0]
     S = max(2, round(math.sqrt(P / K)))
