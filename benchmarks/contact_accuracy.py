@@ -1,7 +1,9 @@
 """How well the JAX engine's contact solve solves the contact problems of landed, pressurised robots:
 the default solve (accelerated projected gradient without restart, its default iterations,
 :func:`softcrawl.jaxsim.contact.solve_contacts`) against the previous engine's projected
-Gauss-Seidel (100 sweeps), on the same problems with the same warm start.
+Gauss-Seidel (100 sweeps), on the same problems with the same warm start; ``apgd_float16``: the
+default solve reading the Delassus operator in float16 (``Settings.delassus = "dense16"``, the
+float32 engine's default; ``apgd`` reads it in the arrays' precision).
 
 Random designs of the ``paper`` preset (each leg count of the space in turn) are settled
 (:func:`~softcrawl.jaxsim.engine.make_settle`), then held for one action at random regulator
@@ -65,6 +67,8 @@ def main(argv=None) -> None:
     problem = jax.jit(jax.vmap(lambda rd, s, kpa: contact_problem(dataclasses.replace(model, robot=rd), s, kpa)))
     solvers = {
         "apgd": jax.jit(jax.vmap(lambda *a: contact.solve_contacts(*a, "apgd", contact.DEFAULT_ITERATIONS["apgd"]))),
+        "apgd_float16": jax.jit(jax.vmap(lambda *a: contact.solve_contacts(*a, "apgd", contact.DEFAULT_ITERATIONS["apgd"],
+                                                                           storage="float16"))),
         "pgs": jax.jit(jax.vmap(lambda *a: contact.solve_contacts(*a, "pgs", 100))),
         "reference": jax.jit(jax.vmap(lambda *a: contact.apgd_coulomb(*a, args.reference))),
     }

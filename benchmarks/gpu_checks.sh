@@ -10,8 +10,8 @@
 #
 # latency:     the step at 96, 1,024 and 16,384 robots with XLA's defaults (CUDA graphs), float32,
 #              the two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384); at
-#              1,024 with the Delassus operator applied by blocks (fewer bytes, more kernels);
-#              then every kernel of the 96-robot step timed without CUDA graphs (kernels-b96,
+#              96 and 1,024 with the Delassus operator read in float32 (`--delassus dense`: the
+#              default's float16 operator against it, in the same call); then every kernel of the 96-robot step timed without CUDA graphs (kernels-b96,
 #              and the device's compiled program, step-b96.hlo.txt, which names what each kernel fuses).
 #              Each batch size compiles in its own 30-60 s; 16,384 robots take 0.4 s a step.
 # training:    the `paper` preset's episode-at-once loop at 96 and 1,024 envs, 8 rounds each, the
@@ -31,7 +31,7 @@ latency)
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
     timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
-    timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 1024 --calls 5 --delassus blocks \
+    timeout 120 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --delassus dense \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
     XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 90 python3 benchmarks/step_cost.py --no-cost --time \
         --batches 96 --calls 3 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"

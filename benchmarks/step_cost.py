@@ -34,7 +34,7 @@ default device. Printed as one JSON line (per batch size when timing):
 
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
-        [--iterations N] [--delassus dense] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
+        [--iterations N] [--delassus dense16] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384
 """
@@ -42,7 +42,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import platform
 import re
@@ -56,8 +55,9 @@ def main(argv=None) -> None:
     p.add_argument("--precision", choices=("float32", "float64"), default="float32")
     p.add_argument("--solver", choices=("apgd", "pgs"), default="apgd")
     p.add_argument("--iterations", type=int, default=None, help="contact solver iterations (default: the solver's)")
-    p.add_argument("--delassus", choices=("dense", "blocks"), default="dense",
-                   help="how the accelerated gradient applies the Delassus operator (Settings.delassus)")
+    p.add_argument("--delassus", choices=("dense", "dense16", "blocks"), default=None,
+                   help="how the accelerated gradient applies the Delassus operator (Settings.delassus; "
+                        "default: the engine's for the precision)")
     p.add_argument("--batch", type=int, default=2, help="robots of the compiled program whose cost is read")
     p.add_argument("--steps", type=int, default=None, help="steps per action (default: the preset's)")
     p.add_argument("--time", action="store_true", help="also time the step (the default where JAX has a GPU)")
@@ -93,7 +93,7 @@ def main(argv=None) -> None:
     space, designs = cfg.env.design_space(), cfg.env.designs()
     slots = max(sum(v > 0 for v in d) for d in designs)
     table = build_table(space, factory=robot_factory(cfg), n_slots=slots, solver=args.solver,
-                        iterations=args.iterations)
+                        iterations=args.iterations, delassus=args.delassus)
     settings = table.parts.settings
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
@@ -102,7 +102,6 @@ def main(argv=None) -> None:
 
     def batch(B, pool):
         model = table.model([pool[i] for i in rng.integers(len(pool), size=B)])
-        model = dataclasses.replace(model, settings=dataclasses.replace(model.settings, delassus=args.delassus))
         dt = model.disk.rest.dtype
         rig = Rig(jnp.ones((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt))
         return model, rig, rest_state(model)
@@ -129,7 +128,7 @@ def main(argv=None) -> None:
             floor_s = seq.bytes / steps / bandwidth
             print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
                               "precision": args.precision, "solver": settings.solver,
-                              "iterations": settings.iterations, "delassus": args.delassus,
+                              "iterations": settings.iterations, "delassus": settings.delassus,
                               "dependent_ops_per_step": seq.ops / steps,
                               "loop_trips_per_step": seq.trips / steps, **split(seq, B),
                               "bandwidth_floor_ms_per_step": 1e3 * floor_s,
@@ -138,7 +137,7 @@ def main(argv=None) -> None:
     device = jax.devices()[0]
     out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),
            "precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
-           "delassus": args.delassus,
+           "delassus": settings.delassus,
            "leg_slots": slots, "contacts": settings.disk_contacts + slots * settings.leg_contacts,
            "steps_per_action": steps, "jax": jax.__version__}
     if not args.no_cost:
@@ -174,7 +173,7 @@ def main(argv=None) -> None:
                           "ms_per_step": 1e3 * wall / (args.calls * steps),
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
                           "device": out["device"], "precision": args.precision, "solver": out["solver"],
-                          "iterations": out["iterations"], "delassus": args.delassus}), flush=True)
+                          "iterations": out["iterations"], "delassus": settings.delassus}), flush=True)
         if args.profile:
             where = Path(args.profile, f"b{B}")
             with jax.profiler.trace(str(where), create_perfetto_trace=True):

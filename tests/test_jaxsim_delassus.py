@@ -143,13 +143,68 @@ def test_the_delassus_blocks_apply_the_condensed_operator(landed):
 
 
 def test_an_unknown_delassus_form_is_refused(landed):
-    """``Settings.delassus`` other than ``"dense"`` or ``"blocks"`` is refused where the settings
-    are made, with a ValueError naming the setting, instead of the step falling back to the
-    dense product silently."""
+    """``Settings.delassus`` other than ``"dense"``, ``"dense16"`` or ``"blocks"`` is refused where
+    the settings are made, with a ValueError naming the setting, instead of the step falling back
+    to the dense product silently. :func:`build_model` makes float64 models ``"dense"`` (the
+    verifying engine keeps its operator whole) and float32 ones ``"dense16"``."""
+    from softcrawl.jaxsim.model import build_model
+    from softcrawl.robot import RobotConfig, build_robot
+
     model = landed[0]
     with pytest.raises(ValueError, match="settings.delassus"):
         dataclasses.replace(model.settings, delassus="block")
     assert dataclasses.replace(model.settings, delassus="blocks").delassus == "blocks"
+    assert model.settings.delassus == "dense" and model.settings.delassus_storage is None
+    robot = build_robot("1,0,2,0,1,0,3,0", RobotConfig(model="reduced", dt=0.02, disk_mesh_size=25))
+    half = build_model([robot], dtype=jnp.float32).settings
+    assert half.delassus == "dense16" and half.delassus_storage == "float16"
+    with pytest.raises(ValueError, match="settings.delassus"):
+        build_model([robot], delassus="float16")
+
+
+def test_the_float16_operator_gives_the_full_operators_velocities(landed):
+    """The accelerated gradient reading the scaled Delassus operator in float16
+    (:func:`softcrawl.jaxsim.contact.apgd_coulomb`'s ``storage``, ``Settings.delassus =
+    "dense16"``, the float32 engine's default) on the landed robot's contact problem, in float64
+    so that only the operator's storage differs; constraint velocities ``W lam`` against the
+    full operator's solve (their scale here about 300 mm/s):
+
+    * one solve from the step's warm start: within 0.1 mm/s (measured 0.033), below the 48
+      iterations' own truncation (one more full solve moves them 1.5 mm/s), and not to
+      round-off (above 1e-4 mm/s: the operator is read in float16);
+    * ten solves, each warm-started from the last (a persisting contact state): within 0.01
+      mm/s (measured 0.0014): the iterative refinement's error shrinks with the step from the
+      warm start (an operator merely rounded to float16 stays about 0.09 mm/s away).
+    """
+    from softcrawl.jaxsim.contact import solve_contacts
+    from softcrawl.jaxsim.engine import contact_problem
+
+    model, state, kpa = landed
+    W, q, mu, warm, active = contact_problem(model, state, kpa)
+    Wn = np.asarray(W)
+    full, half = warm, warm
+    for k in range(10):
+        full = solve_contacts(W, q, mu, full, active, "apgd", 48)
+        half = solve_contacts(W, q, mu, half, active, "apgd", 48, storage="float16")
+        gap = np.abs(Wn @ np.asarray(full - half)).max()
+        if k == 0:
+            assert 1e-4 < gap <= 0.1
+    assert gap <= 0.01
+
+
+def test_a_cpu_steps_the_float16_operators_setting_with_the_whole_operator(landed):
+    """``Settings.delassus = "dense16"`` reads the operator in float16 where the step runs on an
+    accelerator only: a CPU's step (``jax.lax.platform_dependent``'s CPU branch) is the
+    ``"dense"`` step to the bit, and the traced step holds the float16 branch for the others."""
+    from softcrawl.jaxsim.engine import physics_step
+
+    model, state, kpa = landed
+    half = dataclasses.replace(model, settings=dataclasses.replace(model.settings, delassus="dense16"))
+    a, b = physics_step(model, state, kpa), physics_step(half, state, kpa)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert "f16[" in str(jax.make_jaxpr(physics_step)(half, state, kpa))
+    assert "f16[" not in str(jax.make_jaxpr(physics_step)(model, state, kpa))
 
 
 def test_corrections_give_the_constrained_velocities_the_impulses_ask_for(landed):
@@ -316,7 +371,7 @@ def test_the_step_solves_two_triangular_systems(landed):
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and
-    at most 600 operations in sequence per step (measured 553 with JAX 0.10.2; the previous
+    at most 600 operations in sequence per step (measured 553 and 556 on two hosts with JAX 0.10.2; the previous
     engine's 100 Gauss-Seidel sweeps ran 8,101 trips and 184,545 operations per step:
     benchmarks/step_cost.py, benchmarks/RESULTS.md)."""
     out = subprocess.run([sys.executable, "benchmarks/step_cost.py", "--steps", "10"], capture_output=True, text=True,

@@ -186,8 +186,8 @@ def momentum_schedule(n_iter: int) -> tuple[float, ...]:
     return tuple(out)
 
 
-@partial(jax.jit, static_argnames=("n_iter", "restart"))
-def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=None):
+@partial(jax.jit, static_argnames=("n_iter", "restart", "storage"))
+def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=None, storage=None):
     """Accelerated projected gradient descent for frictional contact, ``n_iter`` iterations.
 
     With ``S`` the per-contact scaling ``1 / sqrt(W_nn)`` (one scalar per block, which keeps the
@@ -217,6 +217,17 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
     ``op``, where given, applies ``W`` in the iterations (``op @ y``: the same operator kept in
     factors, :class:`softcrawl.jaxsim.delassus.DelassusBlocks`), ``W`` then giving only the
     scaling and the step.
+
+    ``storage`` (static), where given, is the dtype in which the iterations read the scaled
+    operator (``"float16"``: half the bytes of float32), by mixed-precision iterative refinement
+    (Higham 2002, "Accuracy and Stability of Numerical Algorithms", ch. 12): the gradient at the
+    warm start ``x0`` is formed once at full precision and the iterations add the reduced
+    operator ``Ws~``'s product with their step from it, ``g(y) = Ws~ (y - x0) + (Ws x0 + S q)``,
+    computed as ``Ws~ y + ((Ws - Ws~) x0 + S q)`` with the products summed in ``W``'s dtype.
+    The fixed point then errs by ``(Ws - Ws~)(x* - x0)``: float16's rounding
+    (``2^-11`` relative; ``Ws``'s unit normal diagonal bounds its entries, well inside float16's
+    range) times the step from the warm start, which vanishes as a persisting contact state's
+    warm start converges across steps.
     """
     dtype, mu, lam, rows = _blocks(W, mu, lam0, active)
     K = active.shape[0]
@@ -230,11 +241,21 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
     def proj(z):
         return jnp.where(live, project_cone(z, mu), 0)
 
-    def grad(y):
-        Wy = Ws @ y.reshape(-1) if op is None else s * (op @ (s * y.reshape(-1)))
-        return _de_saxce((Wy + qs).reshape(K, 3), mu)
-
     x0 = proj(jnp.where(rows, lam / jnp.where(rows, s, 1), 0).reshape(K, 3))
+    if op is not None:
+        def grad(y):
+            return _de_saxce((s * (op @ (s * y.reshape(-1))) + qs).reshape(K, 3), mu)
+    else:
+        if storage is None:
+            Wi, g0 = Ws, qs
+        else:  # materialised once (the barrier keeps XLA from fusing the rounding into every product)
+            Wi = lax.optimization_barrier(Ws.astype(storage))
+            g0 = (Ws - Wi.astype(dtype)) @ x0.reshape(-1) + qs  # Ws x0 + S q - Ws~ x0 (docstring)
+
+        def grad(y):
+            Wy = lax.dot_general(Wi, y.reshape(-1), (((1,), (0,)), ((), ())), preferred_element_type=dtype)
+            return _de_saxce((Wy + g0).reshape(K, 3), mu)
+
     if restart:
         def it(_, c):
             x, y, theta, best, best_r = c
@@ -275,15 +296,15 @@ def check_solver(solver: str, iterations: int | None) -> int:
     return int(n)
 
 
-def solve_contacts(W, q, mu, lam0, active, solver: str, iterations: int, op=None):
+def solve_contacts(W, q, mu, lam0, active, solver: str, iterations: int, op=None, storage=None):
     """The engine's contact solve: ``iterations`` of :func:`apgd_coulomb` without restart (unrolled:
     no loop in the compiled step) for ``solver="apgd"``, or sweeps of :func:`pgs_coulomb` for ``"pgs"``; the
-    arguments and result as theirs (``op``: the accelerated gradient's, ignored by Gauss-Seidel,
-    which reads ``W`` by rows). No contact slots (no floor) gives an empty result."""
+    arguments and result as theirs (``op`` and ``storage``: the accelerated gradient's, ignored by
+    Gauss-Seidel, which reads ``W`` by rows). No contact slots (no floor) gives an empty result."""
     if not active.shape[0]:
         return jnp.zeros(0, jnp.result_type(W))
     if solver == "apgd":
-        return apgd_coulomb(W, q, mu, lam0, active, iterations, restart=False, op=op)
+        return apgd_coulomb(W, q, mu, lam0, active, iterations, restart=False, op=op, storage=storage)
     return pgs_coulomb(W, q, mu, lam0, active, iterations)
 
 

@@ -35,7 +35,7 @@ from softcrawl.jaxsim.model import register_pytree
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
-ENGINE_VERSION = 6
+ENGINE_VERSION = 7
 
 #: The parts of :func:`physics_step`, in order, as named scopes of its operations (a profile's
 #: kernels are summed by them: :func:`softcrawl.jaxsim.cost.kernel_profile`).
@@ -147,8 +147,13 @@ def _physics_step(model, state: State, sim_kpa) -> State:
     qd_free, inv_chol, n_bad, v_free, R, rows, cond, warm = _constrained(model, state, sim_kpa)
     K = rows.points.shape[0]
     with jax.named_scope("solve_contacts"):
-        lam_c = solve_contacts(cond.W, cond.q, jnp.full((K,), st.friction, cond.W.dtype), warm, rows.active,
-                               st.solver, st.iterations, op=cond.blocks if st.delassus == "blocks" else None)
+        solve = partial(solve_contacts, solver=st.solver, iterations=st.iterations,
+                        op=cond.blocks if st.delassus == "blocks" else None)
+        problem = (cond.W, cond.q, jnp.full((K,), st.friction, cond.W.dtype), warm, rows.active)
+        if st.delassus_storage is None:
+            lam_c = solve(*problem)
+        else:  # a CPU reads its operator whole (Settings.delassus)
+            lam_c = jax.lax.platform_dependent(*problem, cpu=solve, default=partial(solve, storage=st.delassus_storage))
     # 4. corrections
     with jax.named_scope("corrections"):
         dq, dv, _ = corrections(model, rows, cond, inv_chol, lam_c, R)

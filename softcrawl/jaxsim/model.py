@@ -142,6 +142,10 @@ class RobotData:
     att_gram: object
 
 
+#: The forms of :attr:`Settings.delassus`.
+DELASSUS_FORMS = ("dense", "dense16", "blocks")
+
+
 @dataclass(frozen=True)
 class Settings:
     """Scalar settings (static: a change recompiles).
@@ -157,9 +161,13 @@ class Settings:
         channels: ``R``, the pressure channels (regulators of the robots' design space; 3 in the
             paper's): the length of every robot's regulator pressures;
         delassus: how the accelerated gradient applies the contacts' Delassus operator:
-            ``"dense"`` (one matrix-vector product per iteration, the fewest kernels) or
-            ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6 times fewer
-            bytes per iteration, more kernels), the same operator.
+            ``"dense"`` (one matrix-vector product per iteration, the fewest kernels),
+            ``"dense16"`` (the same, the iterations reading the operator in float16 by iterative
+            refinement, :func:`softcrawl.jaxsim.contact.apgd_coulomb`'s ``storage``: half the
+            bytes; :func:`build_model`'s default in float32; a CPU reads its operator whole,
+            ``jax.lax.platform_dependent``: there it stays in cache and float16 would only add
+            conversions) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
+            times fewer bytes per iteration than ``"dense"``, more kernels), the same operator.
     """
 
     dt: float
@@ -180,9 +188,15 @@ class Settings:
     delassus: str = "dense"
 
     def __post_init__(self):
-        """Raises: ValueError: a ``delassus`` other than ``"dense"`` or ``"blocks"``."""
-        if self.delassus not in ("dense", "blocks"):
-            raise ValueError(f"settings.delassus must be 'dense' or 'blocks', not {self.delassus!r}")
+        """Raises: ValueError: a ``delassus`` not among :data:`DELASSUS_FORMS`."""
+        if self.delassus not in DELASSUS_FORMS:
+            raise ValueError(f"settings.delassus must be one of {DELASSUS_FORMS}, not {self.delassus!r}")
+
+    @property
+    def delassus_storage(self):
+        """The dtype name in which the accelerated gradient's iterations read the dense operator
+        (:func:`softcrawl.jaxsim.contact.apgd_coulomb`'s ``storage``), None for the arrays' own."""
+        return "float16" if self.delassus == "dense16" else None
 
 
 @dataclass(frozen=True)
@@ -316,7 +330,8 @@ def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
 
 def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: str = "apgd",
                 iterations: int | None = None, dtype=None, n_slots: int | None = None, floor: bool = True,
-                calibration: PressureCalibration = PressureCalibration(), rate_kpa_s: float = 150.0) -> Model:
+                calibration: PressureCalibration = PressureCalibration(), rate_kpa_s: float = 150.0,
+                delassus: str | None = None) -> Model:
     """The static model of a batch of reduced robots (stacked per-robot data, leading axis = robot).
 
     Args:
@@ -334,11 +349,13 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: 
         floor: False leaves the floor out (a robot hanging free).
         calibration: the real-to-sim pressure warp; rate_kpa_s: the regulators' slew limit, kPa/s
             (:class:`softcrawl.robot.RegulatorBank`).
+        delassus: :attr:`Settings.delassus` (default ``"dense16"`` in float32, ``"dense"`` in
+            float64: a float64 engine is the one that verifies, and keeps its operator whole).
 
     Raises:
         ValueError: an empty batch, a robot that is not reduced with a floating disk, robots
             that differ in their leg reduction, disk, attachments or settings, too few slots, an
-            unknown solver or fewer than one iteration.
+            unknown solver or fewer than one iteration, an unknown ``delassus``.
     """
     iterations = check_solver(solver, iterations)
     robots = list(robots)
@@ -366,13 +383,15 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: 
     cfg, mdl = first.config, first.model
     cal = calibration
     floor = bool(floor and mdl.floor is not None)
+    if dtype is None:
+        dtype = jnp.asarray(0.0).dtype  # float64 under jax_enable_x64, else float32
+    if delassus is None:
+        delassus = "dense16" if jnp.dtype(dtype) == jnp.float32 else "dense"
     settings = Settings(float(cfg.dt), float(mdl.rayleigh_mass), float(mdl.rayleigh_stiffness),
                         tuple(float(g) for g in mdl.gravity), floor, float(mdl.floor.height),
                         float(mdl.floor.contact_distance), float(mdl.floor.friction),
                         int(disk_contacts) if floor else 0, int(leg_contacts) if floor else 0, solver, iterations,
-                        (float(cal.a), float(cal.b)), float(rate_kpa_s), int(mdl.n_channels))
-    if dtype is None:
-        dtype = jnp.asarray(0.0).dtype  # float64 under jax_enable_x64, else float32
+                        (float(cal.a), float(cal.b)), float(rate_kpa_s), int(mdl.n_channels), delassus)
 
     def cast(a):
         a = np.asarray(a)
