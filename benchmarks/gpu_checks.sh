@@ -7,6 +7,7 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR forms        # ~5 min
 #
 # latency:     the step at 96, 1,024 and 16,384 robots with XLA's defaults (CUDA graphs), float32,
 #              the issue's two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384); at
@@ -21,8 +22,12 @@
 #              (`step_cost.py --profile`): where the large batches' time goes.
 # groundtruth: the all-designs ground truth's rate on 256 sampled designs and its projection
 #              for the 6,972 (`groundtruth.py rate`).
+# forms:       the step at 96, 1,024 and 16,384 robots with the legs' RID terms through `Z`
+#              (`--rid-form rows`, the CPU's form) instead of the pairs form: the pairs' matrix
+#              product is 3x the multiply-adds (about 1.6 TFLOP per step at 16,384 robots), `Z`
+#              its bytes (256 KB per leg); compare with `latency`'s lines.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: latency, training, profile or groundtruth}
+out=${1:?OUTDIR}; stage=${2:?STAGE: latency, training, profile, groundtruth or forms}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
@@ -44,9 +49,14 @@ profile)
     XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 560 python3 benchmarks/step_cost.py --no-cost --time \
         --batches 1024,16384 --calls 2 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
     for b in /tmp/prof/b*; do gzip -c "$b/kernels.json" > "$out/kernels-$(basename "$b").json.gz"; done ;;
+forms)
+    timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --rid-form rows \
+        2>>"$out/log.txt" | tee -a "$out/forms.jsonl"
+    timeout 200 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --rid-form rows \
+        2>>"$out/log.txt" | tee -a "$out/forms.jsonl" ;;
 groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: latency, training, profile or groundtruth" >&2; exit 2 ;;
+    echo "unknown stage $stage: latency, training, profile, groundtruth or forms" >&2; exit 2 ;;
 esac

@@ -207,6 +207,22 @@ def test_a_cpu_steps_the_float16_operators_setting_with_the_whole_operator(lande
     assert "f16[" not in str(jax.make_jaxpr(physics_step)(model, state, kpa))
 
 
+def test_the_step_takes_the_rid_form_its_settings_name(landed):
+    """``Settings.rid_form`` reaches the legs' RID terms: on a CPU (``"rows"`` by platform) the
+    step with ``"pairs"`` differs from the default in its last bits but not beyond float64
+    round-off (the two forms' sums in another order: modal velocities within 1e-9 of their
+    size, measured 2e-12), and an unknown form is refused where the settings are made."""
+    from softcrawl.jaxsim.engine import physics_step
+
+    model, state, kpa = landed
+    pairs = dataclasses.replace(model, settings=dataclasses.replace(model.settings, rid_form="pairs"))
+    a, b = np.asarray(physics_step(model, state, kpa).qdot), np.asarray(physics_step(pairs, state, kpa).qdot)
+    assert not np.array_equal(a, b)
+    assert np.abs(a - b).max() <= 1e-9 * np.abs(a).max()
+    with pytest.raises(ValueError, match="settings.rid_form"):
+        dataclasses.replace(model.settings, rid_form="z")
+
+
 def test_corrections_give_the_constrained_velocities_the_impulses_ask_for(landed):
     """After the step's contact solve, the attachment rows' velocities are those the elimination
     demands: every present leg's attachment points move with the disk (``u_b = 0``, with the
@@ -457,7 +473,9 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
     pressed legs: the same sums in another order, so ``K_r`` and ``f_r`` agree to 1e-12 of their
     largest entries in float64 (each entry sums ~2,000-14,000 products, each rounded to 1.1e-16).
     A wrong pair factor (the off-diagonal transpose left out) moves ``K_r`` by about half. The
-    pair products formed once before a loop (``with_pair_products``) give the same bits."""
+    pair products and element Grams formed once before a loop (``with_pair_products``) give the
+    same bits. On legs bent far enough to invert elements (random modal displacements of 80 mm:
+    8-56 per leg), both forms count the same inverted or degenerate elements."""
     from softcrawl.jaxsim import legs as leg_motion
 
     model, state, _ = landed
@@ -475,5 +493,10 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
     assert np.abs(np.asarray(Kp - Kp.transpose(0, 2, 1))).max() == 0.0
     assert np.abs(np.asarray(fp - fr)).max() <= 1e-12 * np.abs(np.asarray(fr)).max()
     np.testing.assert_array_equal(nr, np_)
+    wild = jnp.asarray(np.random.default_rng(1).normal(0.0, 80.0, (4, state.q.shape[-1])))
+    bad = [jax.vmap(lambda q, form=form: leg_motion.rid_terms(model.leg, q, 0 * q, 0.03, form)[2])(wild)
+           for form in ("rows", "pairs")]
+    assert np.asarray(bad[0]).min() > 0
+    np.testing.assert_array_equal(bad[0], bad[1])
     with pytest.raises(ValueError, match="form"):
         leg_motion.rid_terms(model.leg, state.q[0], qdot[0], 0.03, "dense")

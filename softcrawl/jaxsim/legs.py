@@ -20,11 +20,12 @@ F_part``), so the leg's placement enters only its gravity load. The step is
 from __future__ import annotations
 
 import dataclasses
-from functools import partial
+from functools import partial, reduce
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 
 def _unit(v):
@@ -74,30 +75,21 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
     for fam in part.families:
         xe = x[fam.conn]
         d = xe[:, 1:] - xe[:, :1]
+        if form == "pairs":
+            dK, df, bad = _pair_terms(fam, d, qs, c)
+            K, f, n_bad = K + dK, f + df, n_bad + bad
+            continue
         E, k1 = d.shape[:2]
         F = element_frames(d)
         if k1 == 3:
             n_bad = n_bad + jnp.sum(~(jnp.linalg.det(d) > 0)).astype(jnp.int32)
         n_bad = n_bad + jnp.sum(~jnp.all(jnp.isfinite(F), axis=(1, 2))).astype(jnp.int32)
         g = jnp.einsum("epc,eac->eap", F, d).reshape(E, -1)
-        r, n = fam.factors.shape[1:]
-        C = fam.factors.reshape(E, r, k1, 3)
-        if form == "rows":
-            s = jnp.einsum("eiq,eq->ei", fam.factors, g) - fam.rest_terms
-            CR = jnp.einsum("eiap,epc->eiac", C, F).reshape(E, r, -1)
-            Zs.append(jnp.einsum("eiq,eqj->eij", CR, fam.rows).reshape(E * r, ms))
-            ss.append(s.reshape(-1))
-            continue
-        # The per-element contractions as sums of products, not batched matrix products: a GPU
-        # then runs them as element-wise kernels over the legs' elements instead of library calls
-        # batched over the elements with transposing kernels after them; G_e's upper triangle
-        # row by row (np.triu_indices order) from slices, without a gather.
-        s = sum(fam.factors[:, :, q] * g[:, None, q] for q in range(n)) - fam.rest_terms
-        CR = sum(C[:, :, :, p, None] * F[:, None, None, p, :] for p in range(3)).reshape(E, r, n)
-        G = jnp.concatenate([sum(CR[:, i, a, None] * CR[:, i, a:] for i in range(r)) for a in range(n)], axis=-1)
-        K = K + G.reshape(-1) @ (pair_products(fam.rows) if fam.pairs is None else fam.pairs)
-        w = s + c * jnp.einsum("eiq,eq->ei", CR, jnp.einsum("eqj,j->eq", fam.rows, qs))
-        f = f - jnp.einsum("eq,eqj->j", jnp.einsum("eiq,ei->eq", CR, w), fam.rows)
+        r = fam.factors.shape[1]
+        s = jnp.einsum("eiq,eq->ei", fam.factors, g) - fam.rest_terms
+        CR = jnp.einsum("eiap,epc->eiac", fam.factors.reshape(E, r, k1, 3), F).reshape(E, r, -1)
+        Zs.append(jnp.einsum("eiq,eqj->eij", CR, fam.rows).reshape(E * r, ms))
+        ss.append(s.reshape(-1))
     if form == "rows":  # Z used by its column blocks only: no copy of the whole
         Z, s = jnp.concatenate(Zs), jnp.concatenate(ss)
         edges = gram_columns(ms)
@@ -105,6 +97,54 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
         w = s + c * sum(Zc @ qs[a:b] for Zc, (a, b) in zip(cols, edges))
         return symmetric_gram(cols), -jnp.concatenate([Zc.T @ w for Zc in cols]), n_bad
     return K[_symmetric_index(ms)], f, n_bad
+
+
+def _cross(a, b):
+    """The cross product of two vectors given by their components (lists of three arrays)."""
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _unit_components(a):
+    """The unit vector along ``a`` given by its components (a list of three arrays)."""
+    inv = lax.rsqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    return [ai * inv for ai in a]
+
+
+def _pair_terms(fam, d, qs, c):
+    """One family's share of :func:`rid_terms`' ``(K upper triangle, f, n_bad)`` in the pairs form.
+
+    Every per-element quantity is a list of ``(E,)`` component arrays, combined by sums of
+    products: the frame ``F`` (rows e1, e2, n as :func:`element_frames`), ``g = F d``, the
+    stresses ``s_e``, ``G_e = F^T (C~_e^T C~_e) F`` blockwise (the element's constant Gram
+    ``Family.grams`` between two frames: ``C~_e F_e`` itself, 54 numbers per tetrahedron, is never
+    formed) and ``(C~_e F_e)^T w_e`` as ``F^T (C~_e^T w_e)``. XLA then fuses the elements' terms
+    into element-wise kernels without the stacks and concatenations that vector operations
+    (``jnp.cross``, ``jnp.stack``) bring, which a GPU runs as kernels of their own."""
+    E, k1 = d.shape[:2]
+    r, n = fam.factors.shape[1:]
+    dc = [[d[:, a, i] for i in range(3)] for a in range(k1)]  # dc[a][i]: edge a, component i
+    e1 = _unit_components(dc[0])
+    nrm = _unit_components(_cross(dc[0], dc[1]))
+    F = [e1, _cross(nrm, e1), nrm]  # F[p][i]
+    bad = ~reduce(jnp.logical_and, [jnp.isfinite(v) for row in F for v in row])
+    if k1 == 3:
+        bad = bad | ~(sum(a * b for a, b in zip(dc[2], _cross(dc[0], dc[1]))) > 0)
+    g = [F[p][0] * dc[a][0] + F[p][1] * dc[a][1] + F[p][2] * dc[a][2] for a in range(k1) for p in range(3)]
+    s = [sum(fam.factors[:, i, q] * g[q] for q in range(n)) - fam.rest_terms[:, i] for i in range(r)]
+    H = element_grams(fam.factors) if fam.grams is None else fam.grams  # H[(a, p), (b, p')]
+
+    def G(a, x, b, y):  # G[(a, x), (b, y)] = sum_{p, p'} F[p][x] H[(a, p), (b, p')] F[p'][y]
+        return sum(F[p][x] * sum(H[:, 3 * a + p, 3 * b + pp] * F[pp][y] for pp in range(3)) for p in range(3))
+
+    upper = [G(i // 3, i % 3, j // 3, j % 3) for i in range(n) for j in range(i, n)]
+    dK = jnp.stack(upper, axis=-1).reshape(-1) @ (pair_products(fam.rows) if fam.pairs is None else fam.pairs)
+    u = jnp.einsum("eqj,j->eq", fam.rows, qs)
+    v = [[sum(F[p][i] * u[:, 3 * a + i] for i in range(3)) for p in range(3)] for a in range(k1)]  # F u_a
+    w = [s[i] + c * sum(fam.factors[:, i, 3 * a + p] * v[a][p] for a in range(k1) for p in range(3))
+         for i in range(r)]
+    t = [[sum(fam.factors[:, i, 3 * a + p] * w[i] for i in range(r)) for p in range(3)] for a in range(k1)]
+    CRw = jnp.stack([sum(t[a][p] * F[p][i] for p in range(3)) for a in range(k1) for i in range(3)], axis=-1)
+    return dK, -jnp.einsum("eq,eqj->j", CRw, fam.rows), jnp.sum(bad).astype(jnp.int32)
 
 
 def _symmetric_index(n: int) -> np.ndarray:
@@ -129,12 +169,21 @@ def pair_products(rows):
     return T.reshape(E * len(a), len(i))
 
 
+def element_grams(factors):
+    """``(E, n, n)`` each element's ``C~_e^T C~_e`` of its factors ``(E, r, n)``, at full
+    precision wherever it is traced (:func:`with_pair_products` runs outside the step's
+    precision setting, and a GPU's default for float32 products is TF32)."""
+    return jnp.einsum("eiq,eip->eqp", factors, factors, precision=lax.Precision.HIGHEST)
+
+
 def with_pair_products(part):
-    """``part`` with each RID family's :func:`pair_products` formed (``Family.pairs``), for a loop
-    of steps to form them once: XLA does not hoist them out of the loop by itself (the program
-    compiled for an H100 forms them, 24 MB from 0.3 MB of basis rows, in every step). Where
-    the pairs form is not taken (a CPU), XLA drops them unused."""
-    return dataclasses.replace(part, families=tuple(dataclasses.replace(f, pairs=pair_products(f.rows))
+    """``part`` with each RID family's :func:`pair_products` and :func:`element_grams` formed
+    (``Family.pairs``, ``Family.grams``), for a loop of steps to form them once: XLA does not
+    hoist them out of the loop by itself (the program compiled for an H100 forms the pair
+    products, 24 MB from 0.3 MB of basis rows, in every step). Where the pairs form is not taken
+    (a CPU), XLA drops them unused."""
+    return dataclasses.replace(part, families=tuple(dataclasses.replace(f, pairs=pair_products(f.rows),
+                                                                        grams=element_grams(f.factors))
                                                     for f in part.families))
 
 
@@ -202,7 +251,7 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
         per leg and step (on a GPU each is a chain of kernel launches, ``benchmarks/RESULTS.md``).
     """
     h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
-    Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK)
+    Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK, form=settings.rid_form)
     m = q.shape[0]
     at = part.mode_slots  # the strain modes' terms among all modes, zero for the others: gathers
     K = jnp.pad(Ks, ((0, 1), (0, 1)))[at[:, None], at[None, :]]

@@ -53,7 +53,9 @@ class Family:
         pairs: ``(E P, m'(m' + 1)/2)`` the products of ``rows`` that the GPU's form of the RID
             terms contracts (:func:`softcrawl.jaxsim.legs.pair_products`), formed once before a
             loop of steps (:func:`softcrawl.jaxsim.engine.shared_parts`), or None: formed in
-            each step.
+            each step; grams: ``(E, 3(k - 1), 3(k - 1))`` ``C~_e^T C~_e``, which that form
+            takes between the element's frames (:func:`softcrawl.jaxsim.legs.element_grams`),
+            formed with ``pairs`` or None.
     """
 
     conn: object
@@ -61,6 +63,7 @@ class Family:
     rest_terms: object
     rows: object
     pairs: object = None
+    grams: object = None
 
 
 @dataclass(frozen=True)
@@ -167,7 +170,9 @@ class Settings:
             bytes; :func:`build_model`'s default in float32; a CPU reads its operator whole,
             ``jax.lax.platform_dependent``: there it stays in cache and float16 would only add
             conversions) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
-            times fewer bytes per iteration than ``"dense"``, more kernels), the same operator.
+            times fewer bytes per iteration than ``"dense"``, more kernels), the same operator;
+        rid_form: the form of the legs' RID terms (:func:`softcrawl.jaxsim.legs.rid_terms`),
+            ``"rows"`` or ``"pairs"``, or None (the default: by platform).
     """
 
     dt: float
@@ -186,11 +191,15 @@ class Settings:
     rate: float
     channels: int = 3
     delassus: str = "dense"
+    rid_form: str | None = None
 
     def __post_init__(self):
-        """Raises: ValueError: a ``delassus`` not among :data:`DELASSUS_FORMS`."""
+        """Raises: ValueError: a ``delassus`` not among :data:`DELASSUS_FORMS`, a ``rid_form``
+        other than None, ``"rows"`` or ``"pairs"``."""
         if self.delassus not in DELASSUS_FORMS:
             raise ValueError(f"settings.delassus must be one of {DELASSUS_FORMS}, not {self.delassus!r}")
+        if self.rid_form not in (None, "rows", "pairs"):
+            raise ValueError(f"settings.rid_form must be None, 'rows' or 'pairs', not {self.rid_form!r}")
 
     @property
     def delassus_storage(self):
