@@ -12,8 +12,9 @@
 # latency:     the step at 96, 1,024 and 16,384 robots with XLA's defaults (CUDA graphs), float32,
 #              the two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384); at
 #              96 and 1,024 with the Delassus operator read in float32 (`--delassus dense`: the
-#              default's float16 operator against it, in the same call); then every kernel of the 96-robot step timed without CUDA graphs (kernels-b96,
-#              and the device's compiled program, step-b96.hlo.txt, which names what each kernel fuses).
+#              default's float16 operator against it, in the same call); then every kernel of
+#              the 96-robot step timed without CUDA graphs (kernels-b96, and the device's
+#              compiled program, step-b96.hlo.txt, which names what each kernel fuses).
 #              Each batch size compiles in its own 30-60 s; 16,384 robots take 0.4 s a step.
 # training:    the `paper` preset's episode-at-once loop at 96 and 1,024 envs, 8 rounds each, the
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
