@@ -136,15 +136,15 @@ def _pair_terms(fam, d, qs, c):
     def G(a, x, b, y):  # G[(a, x), (b, y)] = sum_{p, p'} F[p][x] H[(a, p), (b, p')] F[p'][y]
         return sum(F[p][x] * sum(H[:, 3 * a + p, 3 * b + pp] * F[pp][y] for pp in range(3)) for p in range(3))
 
-    upper = [G(i // 3, i % 3, j // 3, j % 3) for i in range(n) for j in range(i, n)]
-    dK = jnp.stack(upper, axis=-1).reshape(-1) @ (pair_products(fam.rows) if fam.pairs is None else fam.pairs)
+    upper = [G(i // 3, i % 3, j // 3, j % 3) for i in range(n) for j in range(i, n)]  # (P, E): entry-major
+    dK = jnp.stack(upper).reshape(-1) @ (pair_products(fam.rows) if fam.pairs is None else fam.pairs)
     u = jnp.einsum("eqj,j->eq", fam.rows, qs)
     v = [[sum(F[p][i] * u[:, 3 * a + i] for i in range(3)) for p in range(3)] for a in range(k1)]  # F u_a
     w = [s[i] + c * sum(fam.factors[:, i, 3 * a + p] * v[a][p] for a in range(k1) for p in range(3))
          for i in range(r)]
     t = [[sum(fam.factors[:, i, 3 * a + p] * w[i] for i in range(r)) for p in range(3)] for a in range(k1)]
-    CRw = jnp.stack([sum(t[a][p] * F[p][i] for p in range(3)) for a in range(k1) for i in range(3)], axis=-1)
-    return dK, -jnp.einsum("eq,eqj->j", CRw, fam.rows), jnp.sum(bad).astype(jnp.int32)
+    CRw = jnp.stack([sum(t[a][p] * F[p][i] for p in range(3)) for a in range(k1) for i in range(3)])  # (n, E)
+    return dK, -jnp.einsum("qe,eqj->j", CRw, fam.rows), jnp.sum(bad).astype(jnp.int32)
 
 
 def _symmetric_index(n: int) -> np.ndarray:
@@ -157,16 +157,18 @@ def _symmetric_index(n: int) -> np.ndarray:
 
 
 def pair_products(rows):
-    """``(E P, m'(m' + 1)/2)`` the products of one family's basis rows ``rows`` ``(E, n, m')``
+    """``(P E, m'(m' + 1)/2)`` the products of one family's basis rows ``rows`` ``(E, n, m')``
     that take its elements' ``G_e`` (``P = n(n + 1)/2`` entries on and above the diagonal, row
     major) to the upper triangle of ``K_r = sum_e rows_e^T G_e rows_e``: for ``a <= b``,
-    ``rows_ea (x) rows_eb`` plus, off the diagonal, its transpose (``G_e`` symmetric)."""
+    ``rows_ea (x) rows_eb`` plus, off the diagonal, its transpose (``G_e`` symmetric). Row
+    ``p E + e`` is entry ``p`` of element ``e``: the entries' order of ``G`` ``(P, E)``, which the
+    pairs form writes one entry after the other (:func:`_pair_terms`)."""
     E, n, ms = rows.shape
     a, b = np.triu_indices(n)
     i, j = np.triu_indices(ms)
-    ra, rb = rows[:, a], rows[:, b]
-    T = ra[:, :, i] * rb[:, :, j] + jnp.where((a != b)[None, :, None], ra[:, :, j] * rb[:, :, i], 0.0)
-    return T.reshape(E * len(a), len(i))
+    ra, rb = rows[:, a].transpose(1, 0, 2), rows[:, b].transpose(1, 0, 2)  # (P, E, m')
+    T = ra[:, :, i] * rb[:, :, j] + jnp.where((a != b)[:, None, None], ra[:, :, j] * rb[:, :, i], 0.0)
+    return T.reshape(len(a) * E, len(i))
 
 
 def element_grams(factors):
