@@ -120,15 +120,16 @@ def _pair_terms(fam, d, qs, c):
     formed) and ``(C~_e F_e)^T w_e`` as ``F^T (C~_e^T w_e)``. XLA then fuses the elements' terms
     into element-wise kernels without the stacks and concatenations that vector operations
     (``jnp.cross``, ``jnp.stack``) bring, which a GPU runs as kernels of their own."""
-    E, k1 = d.shape[:2]
+    k1 = d.shape[1]
     r, n = fam.factors.shape[1:]
     dc = [[d[:, a, i] for i in range(3)] for a in range(k1)]  # dc[a][i]: edge a, component i
+    normal = _cross(dc[0], dc[1])
     e1 = _unit_components(dc[0])
-    nrm = _unit_components(_cross(dc[0], dc[1]))
+    nrm = _unit_components(normal)
     F = [e1, _cross(nrm, e1), nrm]  # F[p][i]
     bad = ~reduce(jnp.logical_and, [jnp.isfinite(v) for row in F for v in row])
-    if k1 == 3:
-        bad = bad | ~(sum(a * b for a, b in zip(dc[2], _cross(dc[0], dc[1]))) > 0)
+    if k1 == 3:  # the tetrahedron's volume sign, det(d) = d_2 . (d_0 x d_1)
+        bad = bad | ~(sum(a * b for a, b in zip(dc[2], normal)) > 0)
     g = [F[p][0] * dc[a][0] + F[p][1] * dc[a][1] + F[p][2] * dc[a][2] for a in range(k1) for p in range(3)]
     s = [sum(fam.factors[:, i, q] * g[q] for q in range(n)) - fam.rest_terms[:, i] for i in range(r)]
     H = element_grams(fam.factors) if fam.grams is None else fam.grams  # H[(a, p), (b, p')]
