@@ -1,8 +1,9 @@
 """The legs' RID product of the ``pairs`` form (:func:`softcrawl.jaxsim.legs.rid_terms`) at each
 float32 dot algorithm JAX offers on the device: time and error against float64.
 
-The product is ``G (legs, E P) @ T (E P, m'(m'+1)/2)`` with the shipped leg's sizes (14,325 by 561;
-random data of the same scale), for the legs of ``--robots`` six-legged robots. Prints one JSON
+The product is ``mono (legs, M' E) @ S (M' E, m'(m'+1)/2)`` (each element's frame monomials and its
+stiffness per monomial, :func:`softcrawl.jaxsim.legs.frame_stiffness`) with the shipped leg's sizes
+(11,595 by 561; random data of the same scale), for the legs of ``--robots`` six-legged robots. Prints one JSON
 line per algorithm: ``ms`` (median of ``--calls``), ``rel_error`` (``|out - ref| / |ref|``, Frobenius,
 against a float64 product on the host) and ``tflops``.
 
@@ -20,7 +21,7 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--robots", type=int, default=96)
     p.add_argument("--calls", type=int, default=20)
-    p.add_argument("--inner", type=int, default=14325, help="E P, the products' inner size")
+    p.add_argument("--inner", type=int, default=11595, help="M' E, the products' inner size")
     p.add_argument("--cols", type=int, default=561, help="m'(m'+1)/2")
     args = p.parse_args(argv)
 

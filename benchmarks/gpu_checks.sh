@@ -25,7 +25,7 @@
 #              for the 6,972 (`groundtruth.py rate`).
 # forms:       the step at 96, 1,024 and 16,384 robots with the legs' RID terms through `Z`
 #              (`--rid-form rows`, the CPU's form) instead of the pairs form: the pairs' matrix
-#              product is 3x the multiply-adds (about 1.6 TFLOP per step at 16,384 robots), `Z`
+#              product is 2.5x the multiply-adds (about 1.3 TFLOP per step at 16,384 robots), `Z`
 #              its bytes (256 KB per leg); compare with `latency`'s lines.
 set -u
 out=${1:?OUTDIR}; stage=${2:?STAGE: latency, training, profile, groundtruth or forms}

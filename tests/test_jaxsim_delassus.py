@@ -467,26 +467,66 @@ def test_the_cavity_load_agrees_by_nodes_and_by_triangles(landed):
         leg_motion.cavity_load(model.leg, state.q[0], 30.0, "edges")
 
 
+@pytest.mark.parametrize("n_rows, kept", [(3, 35), (2, 19)])
+def test_the_kept_frame_monomials_give_every_quadratic_monomial_of_a_rotation(n_rows, kept):
+    """:func:`softcrawl.jaxsim.legs.frame_monomials` on 500 random rotations (float64): every
+    quadratic monomial of the first ``n_rows`` rows is the expansion of the kept ones to 1e-14
+    (measured 1.2e-15; the relations are exact, the rows orthonormal to round-off), and the kept
+    ones are independent there (their rank over the samples is their number: 35 = 1 + 9 + 25 for
+    a rotation, 19 for two orthonormal rows), so no smaller set would do. Without the column relations
+    (40 kept) both counts fail."""
+    from scipy.spatial.transform import Rotation
+
+    from softcrawl.jaxsim.legs import frame_monomials
+
+    i, j, E = frame_monomials(n_rows)
+    assert len(i) == kept and E.shape == (3 * n_rows * (3 * n_rows + 1) // 2, kept)
+    assert set(np.unique(E)) <= {-1.0, 0.0, 1.0}
+    f = Rotation.random(500, random_state=0).as_matrix()[:, :n_rows].reshape(500, -1)
+    a, b = np.triu_indices(3 * n_rows)
+    every, mine = f[:, a] * f[:, b], f[:, i] * f[:, j]
+    assert np.abs(every - mine @ E.T).max() <= 1e-14
+    assert np.linalg.matrix_rank(mine, tol=1e-8) == kept
+    with pytest.raises(ValueError, match="n_rows"):
+        frame_monomials(1)
+
+
+def test_a_membrane_triangles_factors_act_in_its_plane(landed):
+    """The pairs form takes a triangle's frame rows e1 and e2 only (:func:`frame_rows`): its
+    factors' normal columns must vanish. On the shipped leg they are 1.6e-16 of the largest
+    factor (round-off of the membrane stiffness' eigenvectors); the tetrahedra use all three."""
+    from softcrawl.jaxsim.legs import frame_rows
+
+    model = landed[0]
+    for fam in model.leg.families:
+        C = np.abs(np.asarray(fam.factors))
+        k1 = C.shape[2] // 3
+        normal = C[:, :, 2::3].max() / C.max()
+        assert (normal <= 1e-12) if frame_rows(k1) == 2 else (normal > 0.1)
+
+
 def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
     """``rid_terms`` with ``Z`` formed (``"rows"``, the CPU's) and without (``"pairs"``, the
-    GPU's: ``G_e`` contracted with the products of the basis rows) on the landed robot's bent,
-    pressed legs: the same sums in another order, so ``K_r`` and ``f_r`` agree to 1e-12 of their
-    largest entries in float64 (each entry sums ~2,000-14,000 products, each rounded to 1.1e-16).
-    A wrong pair factor (the off-diagonal transpose left out) moves ``K_r`` by about half. The
-    pair products and element Grams formed once before a loop (``with_pair_products``) give the
-    same bits. On legs bent far enough to invert elements (random modal displacements of 80 mm:
-    8-56 per leg), both forms count the same inverted or degenerate elements."""
+    GPU's: the frames' kept quadratic monomials contracted with each element's stiffness per
+    monomial) on the landed robot's bent, pressed legs: the same sums in another order, so
+    ``K_r`` and ``f_r`` agree to 1e-12 of their largest entries in float64 (each entry sums
+    ~2,000-14,000 products, each rounded to 1.1e-16; the relations among the monomials hold to
+    the frames' round-off). A wrong pair factor (the off-diagonal transpose left out) moves
+    ``K_r`` by about half. The frame stiffness formed once before a loop
+    (``with_frame_stiffness``) gives the same bits. On legs bent far enough to invert elements
+    (random modal displacements of 80 mm: 8-56 per leg), both forms count the same inverted or
+    degenerate elements."""
     from softcrawl.jaxsim import legs as leg_motion
 
     model, state, _ = landed
     qdot = state.qdot + jnp.asarray(np.random.default_rng(0).normal(0.0, 5.0, state.qdot.shape))
-    formed = leg_motion.with_pair_products(model.leg)
+    formed = leg_motion.with_frame_stiffness(model.leg)
     terms = {(form, part is formed): jax.vmap(lambda q, v, form=form, part=part: leg_motion.rid_terms(
         part, q, v, 0.03, form))(state.q, qdot) for form in ("rows", "pairs") for part in (model.leg, formed)}
     for form in ("rows", "pairs"):
         for a, b in zip(terms[(form, False)], terms[(form, True)]):
             np.testing.assert_array_equal(a, b)
-    assert all(f.pairs is None for f in model.leg.families)
+    assert all(f.stiffness is None for f in model.leg.families)
     (Kr, fr, nr), (Kp, fp, np_) = terms[("rows", False)], terms[("pairs", False)]
     assert float(jnp.abs(state.q).max()) > 1.0  # bent: the frames are not the rest frames
     assert np.abs(np.asarray(Kp - Kr)).max() <= 1e-12 * np.abs(np.asarray(Kr)).max()

@@ -35,7 +35,7 @@ from softcrawl.jaxsim.model import register_pytree
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
-ENGINE_VERSION = 7
+ENGINE_VERSION = 8
 
 #: The parts of :func:`physics_step`, in order, as named scopes of its operations (a profile's
 #: kernels are summed by them: :func:`softcrawl.jaxsim.cost.kernel_profile`).
@@ -185,9 +185,9 @@ def max_speed(model, state: State):
 
 def shared_parts(model):
     """The model without its per-robot data (``robot=None``: the parts every robot of a batch
-    shares, ``jax.vmap`` ped with ``in_axes=None``), ready for a loop of steps: the legs' pair
-    products formed once, outside the loop (:func:`softcrawl.jaxsim.legs.with_pair_products`)."""
-    return dataclasses.replace(model, robot=None, leg=leg_motion.with_pair_products(model.leg))
+    shares, ``jax.vmap`` ped with ``in_axes=None``), ready for a loop of steps: the legs' frame
+    stiffness formed once, outside the loop (:func:`softcrawl.jaxsim.legs.with_frame_stiffness`)."""
+    return dataclasses.replace(model, robot=None, leg=leg_motion.with_frame_stiffness(model.leg))
 
 
 def make_settle(rest_speed: float = 0.5, hold_steps: int = 5, max_steps: int = 300):

@@ -20,11 +20,12 @@ F_part``), so the leg's placement enters only its gravity load. The step is
 from __future__ import annotations
 
 import dataclasses
-from functools import partial, reduce
+from functools import lru_cache, partial, reduce
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 from jax import lax
 
 
@@ -47,13 +48,13 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
         part: :class:`~softcrawl.jaxsim.model.LegPart`.
         q, qdot: ``(m,)`` modal displacement (mm) and velocity (mm/s).
         c: ``h + r_K``, s.
-        form: ``"rows"`` (``Z`` formed, ``K_r = Z^T Z``), ``"pairs"`` (``Z`` never formed: each
-            element's ``G_e = (C~_e F_e)^T (C~_e F_e)`` contracted with the products of its basis
-            rows, :func:`pair_products`) or ``None``: ``"rows"`` on a CPU, ``"pairs"`` elsewhere
-            (``jax.lax.platform_dependent``). The same sums in another order; ``"pairs"`` costs
-            about 3x the multiply-adds but is one large matrix product over all legs of a batch
-            and keeps no ``Z`` (256 KB per leg): faster on a GPU, slower on a CPU (figures in
-            benchmarks/RESULTS.md).
+        form: ``"rows"`` (``Z`` formed, ``K_r = Z^T Z``), ``"pairs"`` (``Z`` never formed: the
+            quadratic monomials of each element's frame contracted with its stiffness per
+            monomial, :func:`frame_stiffness`, made of the products of pairs of its basis rows)
+            or ``None``: ``"rows"`` on a CPU, ``"pairs"`` elsewhere (``jax.lax.platform_dependent``).
+            The same sums in another order; ``"pairs"`` costs about 2.5x the multiply-adds but is
+            one large matrix product over all legs of a batch and keeps no ``Z`` (256 KB per
+            leg): faster on a GPU, slower on a CPU (figures in benchmarks/RESULTS.md).
 
     Returns:
         ``(K, f, n_bad)``: ``(m', m')`` ``K_r`` of the strain modes (mN/mm), ``(m',)``
@@ -115,11 +116,12 @@ def _pair_terms(fam, d, qs, c):
 
     Every per-element quantity is a list of ``(E,)`` component arrays, combined by sums of
     products: the frame ``F`` (rows e1, e2, n as :func:`element_frames`), ``g = F d``, the
-    stresses ``s_e``, ``G_e = F^T (C~_e^T C~_e) F`` blockwise (the element's constant Gram
-    ``Family.grams`` between two frames: ``C~_e F_e`` itself, 54 numbers per tetrahedron, is never
-    formed) and ``(C~_e F_e)^T w_e`` as ``F^T (C~_e^T w_e)``. XLA then fuses the elements' terms
-    into element-wise kernels without the stacks and concatenations that vector operations
-    (``jnp.cross``, ``jnp.stack``) bring, which a GPU runs as kernels of their own."""
+    stresses ``s_e`` and ``(C~_e F_e)^T w_e`` as ``F^T (C~_e^T w_e)``. ``K_r``'s share is the
+    frame's kept quadratic monomials (:func:`frame_monomials`) contracted with the elements'
+    stiffness per monomial (:func:`frame_stiffness`): ``C~_e F_e`` and ``G_e`` are never formed.
+    XLA then fuses the elements' terms into element-wise kernels without the stacks and
+    concatenations that vector operations (``jnp.cross``, ``jnp.stack``) bring, which a GPU runs
+    as kernels of their own."""
     k1 = d.shape[1]
     r, n = fam.factors.shape[1:]
     dc = [[d[:, a, i] for i in range(3)] for a in range(k1)]  # dc[a][i]: edge a, component i
@@ -132,13 +134,9 @@ def _pair_terms(fam, d, qs, c):
         bad = bad | ~(sum(a * b for a, b in zip(dc[2], normal)) > 0)
     g = [F[p][0] * dc[a][0] + F[p][1] * dc[a][1] + F[p][2] * dc[a][2] for a in range(k1) for p in range(3)]
     s = [sum(fam.factors[:, i, q] * g[q] for q in range(n)) - fam.rest_terms[:, i] for i in range(r)]
-    H = element_grams(fam.factors) if fam.grams is None else fam.grams  # H[(a, p), (b, p')]
-
-    def G(a, x, b, y):  # G[(a, x), (b, y)] = sum_{p, p'} F[p][x] H[(a, p), (b, p')] F[p'][y]
-        return sum(F[p][x] * sum(H[:, 3 * a + p, 3 * b + pp] * F[pp][y] for pp in range(3)) for p in range(3))
-
-    upper = [G(i // 3, i % 3, j // 3, j % 3) for i in range(n) for j in range(i, n)]  # (P, E): entry-major
-    dK = jnp.stack(upper).reshape(-1) @ (pair_products(fam.rows) if fam.pairs is None else fam.pairs)
+    mi, mj, _ = frame_monomials(frame_rows(k1))
+    mono = jnp.stack([F[a // 3][a % 3] * F[b // 3][b % 3] for a, b in zip(mi, mj)])  # (M, E): monomial-major
+    dK = mono.reshape(-1) @ (frame_stiffness(fam) if fam.stiffness is None else fam.stiffness)
     u = jnp.einsum("eqj,j->eq", fam.rows, qs)
     v = [[sum(F[p][i] * u[:, 3 * a + i] for i in range(3)) for p in range(3)] for a in range(k1)]  # F u_a
     w = [s[i] + c * sum(fam.factors[:, i, 3 * a + p] * v[a][p] for a in range(k1) for p in range(3))
@@ -146,6 +144,101 @@ def _pair_terms(fam, d, qs, c):
     t = [[sum(fam.factors[:, i, 3 * a + p] * w[i] for i in range(r)) for p in range(3)] for a in range(k1)]
     CRw = jnp.stack([sum(t[a][p] * F[p][i] for p in range(3)) for a in range(k1) for i in range(3)])  # (n, E)
     return dK, -jnp.einsum("qe,eqj->j", CRw, fam.rows), jnp.sum(bad).astype(jnp.int32)
+
+
+def frame_rows(k1: int) -> int:
+    """How many rows of an element's frame (e1, e2, n) its factors ``C~_e`` act on: all three
+    for a tetrahedron (``k1 = 3`` edges), e1 and e2 for a membrane triangle (``k1 = 2``: its
+    stiffness is in-plane, :func:`softcrawl.reduction.kernels.stiffness_factors`)."""
+    return 3 if k1 == 3 else 2
+
+
+@lru_cache(maxsize=None)
+def frame_monomials(n_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The quadratic monomials ``f_i f_j`` of a frame's first ``n_rows`` rows (entries ``f_{3p+x}
+    = F[p][x]``) that span all the others on frames with orthonormal rows, and how the others
+    follow from them.
+
+    ``G_e`` is quadratic in the frame's entries, but on rotations these 45 monomials span 35
+    dimensions only (products of two entries of the rotation's 3 x 3 representation are matrix
+    coefficients of its tensor square, the representations of degree 0, 1 and 2: 1 + 9 + 25
+    dimensions; Peter-Weyl, e.g. Folland 2016, "A Course in Abstract Harmonic Analysis", ch. 5):
+    orthonormal rows and columns give 10 linear relations among them
+    (rows orthogonal, 3; columns orthogonal, 3; all six norms equal, 4). Two orthonormal rows
+    (a membrane triangle's e1, e2) have 21 monomials and 2 relations (orthogonal, equal norms):
+    19. The eliminated monomials are those a pivoted QR factorisation of the relations picks.
+
+    Returns:
+        ``(i, j, E)``: the kept monomials' entry indices, ``(M',)`` each (``i <= j``), and ``E``
+        ``(M, M')``, entries 0 and +-1: the ``M = 3 n_rows (3 n_rows + 1) / 2`` monomials in
+        ``np.triu_indices(3 n_rows)`` order are ``E`` times the kept ones. Cached: do not modify.
+
+    Raises:
+        ValueError: ``n_rows`` is not 2 or 3.
+    """
+    if n_rows not in (2, 3):
+        raise ValueError(f"n_rows must be 2 or 3, not {n_rows}")
+    N = 3 * n_rows
+    i, j = np.triu_indices(N)
+    M = len(i)
+    index = np.empty((N, N), np.int64)
+    index[i, j] = index[j, i] = np.arange(M)
+    relations = []
+
+    def relation(terms):  # terms: (sign, entry, entry); the relation says their sum is zero
+        row = np.zeros(M)
+        for sign, a, b in terms:
+            row[index[a, b]] += sign
+        relations.append(row)
+
+    for p in range(n_rows):
+        for q in range(p + 1, n_rows):
+            relation([(1, 3 * p + x, 3 * q + x) for x in range(3)])  # rows p, q orthogonal
+        if p:
+            relation([(1, 3 * p + x, 3 * p + x) for x in range(3)] + [(-1, x, x) for x in range(3)])
+    if n_rows == 3:
+        for x in range(3):
+            for y in range(x + 1, 3):
+                relation([(1, 3 * p + x, 3 * p + y) for p in range(3)])  # columns x, y orthogonal
+            if x < 2:  # column x's norm that of row 0 (the third column's then follows)
+                relation([(1, 3 * p + x, 3 * p + x) for p in range(3)] + [(-1, y, y) for y in range(3)])
+    R = np.array(relations)
+    pivots = scipy.linalg.qr(R, pivoting=True)[2]
+    gone = np.sort(pivots[:len(R)])
+    kept = np.setdiff1d(np.arange(M), gone)
+    E = np.zeros((M, len(kept)))
+    E[kept, np.arange(len(kept))] = 1.0
+    E[gone] = np.round(-np.linalg.solve(R[:, gone], R[:, kept]), 12)
+    return i[kept], j[kept], E
+
+
+def frame_stiffness(fam):
+    """``(M' E, m'(m' + 1)/2)`` each element's share of ``K_r``'s upper triangle per kept monomial
+    of its frame (:func:`frame_monomials`; ``M'`` = 35 for tetrahedra, 19 for triangles): row
+    ``b E + e`` (monomial-major, the order in which the pairs form writes them) is what monomial
+    ``b`` of element ``e``'s frame multiplies, so that
+
+        K_r = sum_e rows_e^T G_e rows_e = sum_e sum_b f_ib f_jb S[b E + e].
+
+    ``G_e[(a, x), (c, y)] = sum_{p, p'} F[p][x] H_e[(a, p), (c, p')] F[p'][y]`` with ``H_e =
+    C~_e^T C~_e`` is linear in the frame's monomials; its coefficients are contracted with the
+    element's :func:`pair_products` and mapped onto the kept monomials. Model data only, at full
+    precision wherever it is traced (a GPU's default for float32 products is TF32)."""
+    E, n, ms = fam.rows.shape
+    k1, P = n // 3, n * (n + 1) // 2
+    nr = frame_rows(k1)
+    i, j = np.triu_indices(3 * nr)
+    a, b = np.triu_indices(n)  # G's upper entries: (edge a // 3, component a % 3), likewise b
+    H = element_grams(fam.factors)
+
+    def coefficient(u, v):  # of f_u f_v in G[a, b]: F[p_u][x_u] H[(a, p_u), (b, p_v)] F[p_v][x_v]
+        at = (a[:, None] % 3 == u[None] % 3) & (b[:, None] % 3 == v[None] % 3)
+        return jnp.where(at, H[:, 3 * (a[:, None] // 3) + u[None] // 3, 3 * (b[:, None] // 3) + v[None] // 3], 0.0)
+
+    A = coefficient(i, j) + jnp.where(i != j, coefficient(j, i), 0.0)  # (E, P, M)
+    kept = jnp.einsum("epm,mb->epb", A, jnp.asarray(frame_monomials(nr)[2], A.dtype), precision=lax.Precision.HIGHEST)
+    T = pair_products(fam.rows).reshape(P, E, -1)
+    return jnp.einsum("epb,pej->bej", kept, T, precision=lax.Precision.HIGHEST).reshape(-1, T.shape[-1])
 
 
 def _symmetric_index(n: int) -> np.ndarray:
@@ -162,8 +255,7 @@ def pair_products(rows):
     that take its elements' ``G_e`` (``P = n(n + 1)/2`` entries on and above the diagonal, row
     major) to the upper triangle of ``K_r = sum_e rows_e^T G_e rows_e``: for ``a <= b``,
     ``rows_ea (x) rows_eb`` plus, off the diagonal, its transpose (``G_e`` symmetric). Row
-    ``p E + e`` is entry ``p`` of element ``e``: the entries' order of ``G`` ``(P, E)``, which the
-    pairs form writes one entry after the other (:func:`_pair_terms`)."""
+    ``p E + e`` is entry ``p`` of element ``e``."""
     E, n, ms = rows.shape
     a, b = np.triu_indices(n)
     i, j = np.triu_indices(ms)
@@ -174,19 +266,17 @@ def pair_products(rows):
 
 def element_grams(factors):
     """``(E, n, n)`` each element's ``C~_e^T C~_e`` of its factors ``(E, r, n)``, at full
-    precision wherever it is traced (:func:`with_pair_products` runs outside the step's
-    precision setting, and a GPU's default for float32 products is TF32)."""
+    precision wherever it is traced (:func:`frame_stiffness` runs outside the step's precision
+    setting, and a GPU's default for float32 products is TF32)."""
     return jnp.einsum("eiq,eip->eqp", factors, factors, precision=lax.Precision.HIGHEST)
 
 
-def with_pair_products(part):
-    """``part`` with each RID family's :func:`pair_products` and :func:`element_grams` formed
-    (``Family.pairs``, ``Family.grams``), for a loop of steps to form them once: XLA does not
-    hoist them out of the loop by itself (the program compiled for an H100 forms the pair
-    products, 24 MB from 0.3 MB of basis rows, in every step). Where the pairs form is not taken
-    (a CPU), XLA drops them unused."""
-    return dataclasses.replace(part, families=tuple(dataclasses.replace(f, pairs=pair_products(f.rows),
-                                                                        grams=element_grams(f.factors))
+def with_frame_stiffness(part):
+    """``part`` with each RID family's :func:`frame_stiffness` formed (``Family.stiffness``), for a
+    loop of steps to form it once: XLA does not hoist it out of the loop by itself (its pair
+    products alone are 24 MB, formed from 0.3 MB of basis rows). Where the pairs form is not
+    taken (a CPU), XLA drops it unused."""
+    return dataclasses.replace(part, families=tuple(dataclasses.replace(f, stiffness=frame_stiffness(f))
                                                     for f in part.families))
 
 

@@ -50,20 +50,17 @@ class Family:
         factors: ``(E, r, 3(k - 1))`` ``C~_e`` (sqrt(mN/mm), ECSW weight included).
         rest_terms: ``(E, r)`` ``s0_e``.
         rows: ``(E, 3(k - 1), m')`` edge basis rows of the strain modes.
-        pairs: ``(P E, m'(m' + 1)/2)`` the products of ``rows`` that the GPU's form of the RID
-            terms contracts (:func:`softcrawl.jaxsim.legs.pair_products`), formed once before a
-            loop of steps (:func:`softcrawl.jaxsim.engine.shared_parts`), or None: formed in
-            each step; grams: ``(E, 3(k - 1), 3(k - 1))`` ``C~_e^T C~_e``, which that form
-            takes between the element's frames (:func:`softcrawl.jaxsim.legs.element_grams`),
-            formed with ``pairs`` or None.
+        stiffness: ``(M' E, m'(m' + 1)/2)`` each element's share of ``K_r`` per quadratic
+            monomial of its frame, which the GPU's form of the RID terms contracts
+            (:func:`softcrawl.jaxsim.legs.frame_stiffness`), formed once before a loop of steps
+            (:func:`softcrawl.jaxsim.engine.shared_parts`), or None: formed in each step.
     """
 
     conn: object
     factors: object
     rest_terms: object
     rows: object
-    pairs: object = None
-    grams: object = None
+    stiffness: object = None
 
 
 @dataclass(frozen=True)
