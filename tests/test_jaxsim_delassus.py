@@ -491,20 +491,6 @@ def test_the_kept_frame_monomials_give_every_quadratic_monomial_of_a_rotation(n_
         frame_monomials(1)
 
 
-def test_a_membrane_triangles_factors_act_in_its_plane(landed):
-    """The pairs form takes a triangle's frame rows e1 and e2 only (:func:`frame_rows`): its
-    factors' normal columns must vanish. On the shipped leg they are 1.6e-16 of the largest
-    factor (round-off of the membrane stiffness' eigenvectors); the tetrahedra use all three."""
-    from softcrawl.jaxsim.legs import frame_rows
-
-    model = landed[0]
-    for fam in model.leg.families:
-        C = np.abs(np.asarray(fam.factors))
-        k1 = C.shape[2] // 3
-        normal = C[:, :, 2::3].max() / C.max()
-        assert (normal <= 1e-12) if frame_rows(k1) == 2 else (normal > 0.1)
-
-
 def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
     """``rid_terms`` with ``Z`` formed (``"rows"``, the CPU's) and without (``"pairs"``, the
     GPU's: the frames' kept quadratic monomials contracted with each element's stiffness per

@@ -228,8 +228,12 @@ def test_paper_best_crawl_distance_is_the_cpu_engines():
 
 
 def test_build_model_refuses_what_the_engine_cannot_step(robot):
-    """No robots, a robot that is not reduced, and too few leg slots are refused with one clear
-    error each."""
+    """No robots, a robot that is not reduced, too few leg slots and RID triangles that are not
+    membranes (the GPU's form of the RID terms takes their in-plane frame rows only; the shipped
+    triangles' factors on the normal components are 1.6e-16 of the largest, the limit 1e-9) are
+    refused with one clear error each."""
+    import copy
+
     from softcrawl.jaxsim.model import build_model
 
     with pytest.raises(ValueError, match="at least one robot"):
@@ -238,6 +242,14 @@ def test_build_model_refuses_what_the_engine_cannot_step(robot):
         build_model([dataclasses.replace(robot, reduced={})])
     with pytest.raises(ValueError, match="n_slots"):
         build_model([robot], n_slots=2)
+    body = robot.legs[0].body
+    leg = copy.copy(robot.reduced[body])
+    tets, tris = leg.element_factors
+    bent = tris.factors.copy()
+    bent[:, :, 2::3] = 1e-3 * np.abs(bent).max()
+    leg.__dict__["element_factors"] = (tets, dataclasses.replace(tris, factors=bent))
+    with pytest.raises(ValueError, match="membrane triangles"):
+        build_model([dataclasses.replace(robot, reduced={**robot.reduced, body: leg})])
 
 
 def test_float32_products_are_not_lowered_to_tensorfloat32(robot):

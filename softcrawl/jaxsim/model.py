@@ -243,6 +243,11 @@ def _leg_part(robot) -> LegPart:
     rid = np.unique(np.concatenate([f.conn.ravel() for f in facs]))
     remap = np.full(n, -1, np.int64)
     remap[rid] = np.arange(len(rid))
+    for f in facs:  # the pairs form takes a triangle's in-plane frame rows only (legs.frame_rows)
+        C = np.abs(np.asarray(f.factors))
+        if C.shape[2] == 6 and C[:, :, 2::3].max(initial=0.0) > 1e-9 * C.max(initial=0.0):
+            raise ValueError("the JAX engine steps membrane triangles only: this leg reduction's triangle "
+                             "factors act on the elements' normal components")
     families = tuple(Family(remap[f.conn], f.factors, f.rest_terms, f.rows) for f in facs)
     tris = np.concatenate([np.asarray(c.triangles, np.int64) for c in body.cavities])
     cav, local = np.unique(tris, return_inverse=True)
@@ -361,7 +366,8 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: 
     Raises:
         ValueError: an empty batch, a robot that is not reduced with a floating disk, robots
             that differ in their leg reduction, disk, attachments or settings, too few slots, an
-            unknown solver or fewer than one iteration, an unknown ``delassus``.
+            unknown solver or fewer than one iteration, an unknown ``delassus``, RID triangles
+            that are not membranes (factors on their normal components).
     """
     iterations = check_solver(solver, iterations)
     robots = list(robots)
