@@ -448,21 +448,31 @@ def test_the_strain_modes_terms_are_placed_by_their_slots(landed):
     assert np.all(np.delete(slots, sm) == len(sm))
 
 
-def test_the_cavity_load_agrees_by_nodes_and_by_triangles(landed):
-    """``cavity_load`` scattered into the cavity nodes (the CPU's form) and summed by triangle
-    with ``LegPart.cavity_rows`` (the GPU's) on the landed robot's bent legs at 30 kPa: the same
-    sums in another order, equal to 1e-12 of the largest entry in float64 (each entry sums about
-    4,000 products); ``cavity_rows`` holding one vertex's rows instead of the three's moves the
-    load by about two thirds. An unknown form is refused."""
+def test_the_cavity_load_is_the_polynomial_it_is(landed):
+    """``cavity_load`` as its quadratic polynomial in ``q`` (the default) and as the CPU engine
+    computes it (positions, cross products, scattered into the cavity nodes) on the landed
+    robot's bent legs and on legs bent far (random modal displacements of 20 and 80 mm) at 30
+    kPa: equal to 1e-12 of the largest entry in float64 (measured 1.1e-15; the polynomial is
+    exact, its coefficients summed in float64), and in float32 within 2e-6 of it, about 30
+    roundings (measured 6.0e-7, the nodes' form 2.4e-7; on the landed legs 4.9e-7 and 3.6e-7).
+    Leaving out the quadratic terms' transposed pairs moves the load by a third of its largest
+    entry. An unknown form is refused."""
     from softcrawl.jaxsim import legs as leg_motion
 
     model, state, _ = landed
+    rng = np.random.default_rng(0)
+    qs = jnp.concatenate([state.q, jnp.asarray(rng.normal(0.0, 20.0, (4, state.q.shape[1]))),
+                          jnp.asarray(rng.normal(0.0, 80.0, (4, state.q.shape[1])))])
     assert float(jnp.abs(state.q).max()) > 1.0
-    loads = {form: jax.vmap(lambda q, form=form: leg_motion.cavity_load(model.leg, q, 30.0, form))(state.q)
-             for form in ("nodes", "triangles")}
-    scale = np.abs(np.asarray(loads["nodes"])).max()
+    loads = {form: np.asarray(jax.vmap(lambda q, form=form: leg_motion.cavity_load(model.leg, q, 30.0, form))(qs))
+             for form in ("nodes", "polynomial")}
+    scale = np.abs(loads["nodes"]).max()
     assert scale > 0
-    assert np.abs(np.asarray(loads["triangles"] - loads["nodes"])).max() <= 1e-12 * scale
+    assert np.abs(loads["polynomial"] - loads["nodes"]).max() <= 1e-12 * scale
+    leg32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, model.leg)
+    load32 = jax.vmap(lambda q: leg_motion.cavity_load(leg32, q, jnp.float32(30.0)))(qs.astype(jnp.float32))
+    assert load32.dtype == jnp.float32
+    assert np.abs(np.asarray(load32, float) - loads["nodes"]).max() <= 2e-6 * scale
     with pytest.raises(ValueError, match="form"):
         leg_motion.cavity_load(model.leg, state.q[0], 30.0, "edges")
 

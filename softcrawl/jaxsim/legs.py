@@ -300,30 +300,29 @@ def symmetric_gram(cols):
     return jnp.block([[upper[(i, j)] if i <= j else upper[(j, i)].T for j in range(nb)] for i in range(nb)])
 
 
-def cavity_load(part, q, pressure, form: str | None = None):
+def cavity_load(part, q, pressure, form: str = "polynomial"):
     """``(m,)`` reduced follower load of the cavity at ``pressure`` (kPa): every triangle gives
     ``w_t = p/3 * (x1 - x0) x (x2 - x0) / 2`` to each vertex (physics.md, "Pneumatic actuation";
     :func:`softcrawl.reduction.kernels.cavity_forces`), projected on the basis rows, mN.
 
-    ``form``: ``"nodes"`` (the triangles' forces scattered into the cavity nodes, then projected
-    on their basis rows), ``"triangles"`` (``sum_t (Phi_t0 + Phi_t1 + Phi_t2)^T w_t`` with
-    ``LegPart.cavity_rows``: one matrix product over all legs of a batch, no scatter, twice the
-    multiply-adds) or ``None``: ``"nodes"`` on a CPU, ``"triangles"`` elsewhere. The same sums
-    in another order.
+    ``form``: ``"polynomial"`` (the load is a quadratic polynomial in ``q``, its coefficients
+    summed once, :func:`softcrawl.jaxsim.model.cavity_polynomial`: the products of ``(q, 1)`` in
+    pairs, 703 for the shipped leg, and one product with the coefficients) or ``"nodes"`` (the
+    cavity's positions, the triangles' forces scattered into its nodes and projected on their
+    basis rows, as the CPU engine computes it). The same load.
 
     Raises:
         ValueError: an unknown ``form``.
     """
-    if form is None:
-        return jax.lax.platform_dependent(part, q, pressure, cpu=partial(cavity_load, form="nodes"),
-                                          default=partial(cavity_load, form="triangles"))
-    if form not in ("nodes", "triangles"):
-        raise ValueError(f"form must be 'nodes' or 'triangles', not {form!r}")
+    if form == "polynomial":
+        qe = jnp.append(q, jnp.ones((), q.dtype))
+        i, j = np.triu_indices(qe.shape[0])
+        return pressure * ((qe[i] * qe[j]) @ part.cavity_terms)
+    if form != "nodes":
+        raise ValueError(f"form must be 'polynomial' or 'nodes', not {form!r}")
     x = part.cavity_rest + part.cavity_basis @ q
     t = x[part.cavity_tris]
     w = 0.5 * jnp.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]) * (pressure / 3.0)
-    if form == "triangles":
-        return jnp.einsum("tam,ta->m", part.cavity_rows, w)
     F = jnp.zeros_like(x).at[part.cavity_tris.reshape(-1)].add(jnp.repeat(w, 3, axis=0))
     return jnp.einsum("nam,na->m", part.cavity_basis, F)
 

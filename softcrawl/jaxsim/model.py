@@ -76,8 +76,11 @@ class LegPart:
         rid_rest, rid_basis: ``(nr, 3)``, ``(nr, 3, m)`` rest positions and basis rows of the RID nodes.
         families: the RID families (:class:`Family`).
         cavity_rest, cavity_basis: ``(c, 3)``, ``(c, 3, m)`` of the cavity nodes; cavity_tris:
-            ``(T, 3)`` indices into them; cavity_rows: ``(T, 3, m)`` each triangle's three
-            vertices' basis rows summed (the cavity load's projection by triangle).
+            ``(T, 3)`` indices into them.
+        cavity_terms: ``((m + 1)(m + 2)/2, m)`` the cavity load per kPa as the quadratic
+            polynomial it is in ``q``: the coefficients of the products ``q'_i q'_j`` (``i <= j``,
+            ``np.triu_indices(m + 1)`` order) of ``q' = (q, 1)``, mN/kPa
+            (:func:`cavity_polynomial`).
         coll_rest, coll_basis: ``(nc, 3)``, ``(nc, 3, m)`` of the collision nodes.
         att_rest, att_basis: ``(F, 3)``, ``(F, 3, m)`` weighted attachment patches.
         basis: ``(n, 3, m)`` the basis rows of every node (node speeds ``|Phi_n qdot|``, mm/s).
@@ -93,7 +96,7 @@ class LegPart:
     cavity_rest: object
     cavity_basis: object
     cavity_tris: object
-    cavity_rows: object
+    cavity_terms: object
     coll_rest: object
     coll_basis: object
     att_rest: object
@@ -260,9 +263,51 @@ def _leg_part(robot) -> LegPart:
     slots = np.full(m, len(sm), np.int32)
     slots[sm] = np.arange(len(sm))
     part = LegPart(sm, slots, rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
-                   X[cav], rows[cav], local.reshape(tris.shape), rows[tris].sum(axis=1), X[coll], rows[coll],
-                   att_rest, att_basis, rows)
+                   X[cav], rows[cav], local.reshape(tris.shape), cavity_polynomial(X, rows, tris),
+                   X[coll], rows[coll], att_rest, att_basis, rows)
     return part
+
+
+#: The Levi-Civita symbol ``eps[i, j, k]`` (``(a x b)_i = eps_ijk a_j b_k``).
+_LEVI_CIVITA = np.zeros((3, 3, 3))
+_LEVI_CIVITA[0, 1, 2] = _LEVI_CIVITA[1, 2, 0] = _LEVI_CIVITA[2, 0, 1] = 1.0
+_LEVI_CIVITA[0, 2, 1] = _LEVI_CIVITA[2, 1, 0] = _LEVI_CIVITA[1, 0, 2] = -1.0
+
+
+def cavity_polynomial(X: np.ndarray, rows: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """The cavity's follower load per kPa as the quadratic polynomial it is in the modal
+    displacement ``q``.
+
+    Each cavity triangle ``t`` gives each of its vertices ``w_t = (p/6) e1 x e2`` (its area
+    vector times ``p/3``; physics.md, "Pneumatic actuation"), projected on the vertices' basis
+    rows ``S_t = Phi_t0 + Phi_t1 + Phi_t2``. Its edges are linear in ``q``, ``e1 = a + A q``,
+    ``e2 = b + B q``, so the load per kPa is exactly
+
+        (1/6) sum_t S_t^T (a x b + a x B q + A q x b + A q x B q),
+
+    a quadratic polynomial in ``q``, summed here once in float64: a step then takes the products
+    of ``q' = (q, 1)`` in pairs and one product with these coefficients, instead of the cavity's
+    positions, cross products and projection.
+
+    Args:
+        X: ``(n, 3)`` rest positions, mm; rows: ``(n, 3, m)`` basis rows of the part's nodes;
+            tris: ``(T, 3)`` the cavity triangles' node indices (outward normals).
+
+    Returns:
+        ``((m + 1)(m + 2)/2, m)``: the coefficient of ``q'_i q'_j`` (``i <= j``,
+        ``np.triu_indices(m + 1)`` order; ``q'_m = 1``) in each mode's load, mN/kPa per mm^2,
+        mm or 1 of ``q``.
+    """
+    x0, x1, x2 = (X[tris[:, k]] for k in range(3))
+    p0, p1, p2 = (rows[tris[:, k]] for k in range(3))
+    A = np.concatenate([p1 - p0, (x1 - x0)[:, :, None]], axis=2)  # e1 = A q'
+    B = np.concatenate([p2 - p0, (x2 - x0)[:, :, None]], axis=2)  # e2 = B q'
+    T, m = len(tris), rows.shape[2]
+    M = np.einsum("ijk,tio->tjko", _LEVI_CIVITA, p0 + p1 + p2) / 6.0  # (S_t^T (u x v))_o = M_jko u_j v_k
+    N = np.einsum("tjko,tjr->tkor", M, A, optimize=True)
+    Q = (B.reshape(T * 3, m + 1).T @ N.reshape(T * 3, m * (m + 1))).reshape(m + 1, m, m + 1)  # Q[s, o, r]
+    i, j = np.triu_indices(m + 1)
+    return np.where((i == j)[:, None], Q[j, :, i], Q[j, :, i] + Q[i, :, j])
 
 
 def disk_inverse(robot) -> np.ndarray:
