@@ -387,7 +387,7 @@ def test_the_step_solves_two_triangular_systems(landed):
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and
-    at most 600 operations in sequence per step (measured 553 and 556 on two hosts with JAX
+    at most 600 operations in sequence per step (measured 551 to 556 on two hosts with JAX
     0.10.2; the previous engine's 100 Gauss-Seidel sweeps ran 8,101 trips and 184,545
     operations per step: benchmarks/step_cost.py, benchmarks/RESULTS.md)."""
     out = subprocess.run([sys.executable, "benchmarks/step_cost.py", "--steps", "10"], capture_output=True, text=True,

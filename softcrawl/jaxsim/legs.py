@@ -29,6 +29,10 @@ import scipy.linalg
 from jax import lax
 
 
+#: The forms of :func:`rid_terms` (``Settings.rid_form``).
+RID_FORMS = ("rows", "pairs")
+
+
 def _unit(v):
     return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
 
@@ -66,8 +70,8 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
     if form is None:
         return jax.lax.platform_dependent(part, q, qdot, c, cpu=partial(rid_terms, form="rows"),
                                           default=partial(rid_terms, form="pairs"))
-    if form not in ("rows", "pairs"):
-        raise ValueError(f"form must be 'rows' or 'pairs', not {form!r}")
+    if form not in RID_FORMS:
+        raise ValueError(f"form must be one of {RID_FORMS}, not {form!r}")
     x = part.rid_rest + part.rid_basis @ q
     qs = qdot[part.strain_modes]
     ms = part.strain_modes.shape[0]

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softcrawl.jaxsim.contact import check_solver
+from softcrawl.jaxsim.legs import RID_FORMS, frame_rows
 from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.robot.actuation import PressureCalibration
 
@@ -195,11 +196,11 @@ class Settings:
 
     def __post_init__(self):
         """Raises: ValueError: a ``delassus`` not among :data:`DELASSUS_FORMS`, a ``rid_form``
-        other than None, ``"rows"`` or ``"pairs"``."""
+        other than None or one of :data:`softcrawl.jaxsim.legs.RID_FORMS`."""
         if self.delassus not in DELASSUS_FORMS:
             raise ValueError(f"settings.delassus must be one of {DELASSUS_FORMS}, not {self.delassus!r}")
-        if self.rid_form not in (None, "rows", "pairs"):
-            raise ValueError(f"settings.rid_form must be None, 'rows' or 'pairs', not {self.rid_form!r}")
+        if self.rid_form is not None and self.rid_form not in RID_FORMS:
+            raise ValueError(f"settings.rid_form must be None or one of {RID_FORMS}, not {self.rid_form!r}")
 
     @property
     def delassus_storage(self):
@@ -246,9 +247,9 @@ def _leg_part(robot) -> LegPart:
     rid = np.unique(np.concatenate([f.conn.ravel() for f in facs]))
     remap = np.full(n, -1, np.int64)
     remap[rid] = np.arange(len(rid))
-    for f in facs:  # the pairs form takes a triangle's in-plane frame rows only (legs.frame_rows)
-        C = np.abs(np.asarray(f.factors))
-        if C.shape[2] == 6 and C[:, :, 2::3].max(initial=0.0) > 1e-9 * C.max(initial=0.0):
+    for f in facs:  # the pairs form takes the frame rows legs.frame_rows names, no others
+        C = np.abs(np.asarray(f.factors)).reshape(*f.factors.shape[:2], -1, 3)
+        if C[..., frame_rows(C.shape[2]):].max(initial=0.0) > 1e-9 * C.max(initial=0.0):
             raise ValueError("the JAX engine steps membrane triangles only: this leg reduction's triangle "
                              "factors act on the elements' normal components")
     families = tuple(Family(remap[f.conn], f.factors, f.rest_terms, f.rows) for f in facs)
