@@ -3,19 +3,26 @@
 # (JSON lines, logs, gzipped kernel tables) under OUTDIR. Run the stages in order, back to back
 # on the warm machine, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~5 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~6 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR throughput   # ~5 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR forms        # ~5 min
 #
-# latency:     the step at 96, 1,024 and 16,384 robots with XLA's defaults (CUDA graphs), float32,
-#              the issue's two targets (1.5 ms at 96 robots, 250k robot-steps/s at 16,384); at
-#              96 and 1,024 with the Delassus operator read in float32 (`--delassus dense`: the
-#              default's float16 operator against it, in the same call); then every kernel of
+# latency:     the contact solve's iterations in one kernel (`fused_kernel.py`: the kernel compiled
+#              for the card against XLA's iterations on 96 landed robots' problems, the solve
+#              alone at 96 and 16,384 robots, three actions of the whole engine in each form);
+#              then the step at 96 robots, float32, with the default (`dense16`) and with
+#              `--delassus fused16`: the issue's 1.5 ms. If `fused16` is faster and agrees, make
+#              it `build_model`'s float32 default. Each batch size compiles in its own 30-60 s.
+# throughput:  the step at 16,384 robots in both forms: the issue's 250k robot-steps/s (about
+#              0.4 s a step).
+# kernels:     the step at 96 and 1,024 robots with the Delassus operator read in float32
+#              (`--delassus dense`: the float16 operator against it), then every kernel of
 #              the 96-robot step timed without CUDA graphs (kernels-b96, and the device's
 #              compiled program, step-b96.hlo.txt, which names what each kernel fuses).
-#              Each batch size compiles in its own 30-60 s; 16,384 robots take 0.4 s a step.
 # training:    the `paper` preset's episode-at-once loop at 96 and 1,024 envs, 8 rounds each, the
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
@@ -28,16 +35,24 @@
 #              product is 2.5x the multiply-adds (about 1.3 TFLOP per step at 16,384 robots), `Z`
 #              its bytes (256 KB per leg); compare with `latency`'s lines.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: latency, training, profile, groundtruth or forms}
+out=${1:?OUTDIR}; stage=${2:?STAGE: latency, throughput, kernels, training, profile, groundtruth or forms}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
 latency)
-    timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 5 \
-        2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
-    timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 \
-        2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
-    timeout 120 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --delassus dense \
+    timeout 210 python3 benchmarks/fused_kernel.py --batch 96 --batches 96,16384 \
+        2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
+    for form in dense16 fused16; do
+        timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 96 --calls 5 --delassus $form \
+            2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
+    done ;;
+throughput)
+    for form in dense16 fused16; do
+        timeout 170 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --delassus $form \
+            2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
+    done ;;
+kernels)
+    timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --delassus dense \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
     XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 90 python3 benchmarks/step_cost.py --no-cost --time \
         --batches 96 --calls 3 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
@@ -59,5 +74,5 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: latency, training, profile, groundtruth or forms" >&2; exit 2 ;;
+    echo "unknown stage $stage: latency, throughput, kernels, training, profile, groundtruth or forms" >&2; exit 2 ;;
 esac

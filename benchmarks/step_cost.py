@@ -56,7 +56,7 @@ def main(argv=None) -> None:
     p.add_argument("--precision", choices=("float32", "float64"), default="float32")
     p.add_argument("--solver", choices=("apgd", "pgs"), default="apgd")
     p.add_argument("--iterations", type=int, default=None, help="contact solver iterations (default: the solver's)")
-    p.add_argument("--delassus", choices=("dense", "dense16", "blocks"), default=None,
+    p.add_argument("--delassus", choices=("dense", "dense16", "fused16", "blocks"), default=None,
                    help="how the accelerated gradient applies the Delassus operator (Settings.delassus; "
                         "default: the engine's for the precision)")
     p.add_argument("--rid-form", choices=("rows", "pairs"), default=None,
@@ -127,7 +127,9 @@ def main(argv=None) -> None:
         for B in (int(b) for b in args.batches.split(",")):
             specs = jax.tree.map(lambda a: jax.ShapeDtypeStruct(np.shape(a), a.dtype, sharding=sharding),
                                  inputs(steps, *batch(B, designs)))
-            seq = sequential_cost(make_action_rollout(steps).lower(*specs).compile().as_text(), STEP_SCOPES)
+            with jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):  # Pallas reads the GPU's kind here
+                lowered = make_action_rollout(steps).lower(*specs)
+            seq = sequential_cost(lowered.compile().as_text(), STEP_SCOPES)
             floor_s = seq.bytes / steps / bandwidth
             print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
                               "precision": args.precision, "solver": settings.solver,

@@ -2,7 +2,7 @@
 (:mod:`softcrawl.fem.contact`, :mod:`softcrawl.reduction.constrain`) and closed-form friction.
 
 Float64 throughout (``jax_enable_x64`` is switched on for this module only and restored after),
-except the float32 test."""
+except the float32 tests."""
 
 from __future__ import annotations
 
@@ -381,6 +381,66 @@ def test_the_engines_warm_started_solve_reaches_the_closed_form_results(C, theta
     if speed:
         np.testing.assert_allclose(L[:, 1:].sum(axis=0), -1.2 * L[:, 0].sum() * np.array([np.cos(ph), np.sin(ph)]),
                                    rtol=1e-12)
+
+
+#: Float32 bound on the fused kernel's results against closed form and XLA's iterations, in units
+#: of the scales named by each test: 16 times float32's rounding unit (1.2e-7). The kernel sums
+#: its matrix-vector products in another order than XLA's; both reach about 3e-7.
+FUSED_TOL = 2e-6
+
+
+@pytest.mark.parametrize("theta", [45.0, 60.0])
+def test_the_fused_kernels_warm_started_solve_reaches_the_closed_form_results(C, theta):
+    """The engine's GPU solve with its iterations in one kernel (``fused``,
+    :mod:`softcrawl.jaxsim.fused`; here in Pallas' interpreter, the kernel's program run on a
+    CPU) in float32, operator read in float16, warm-started across the box's repeated step as
+    the test above: after 6 steps the corners' velocities are the closed-form ones to
+    :data:`FUSED_TOL` of ``dt g`` (measured 2.2e-7 at 45 deg, 3.0e-7 at 60; XLA's float32
+    iterations 1.3e-7 and 2.7e-7; one cold solve is 3.7e-4 and 3.1e-3 away), and the normal
+    impulses carry the weight to :data:`FUSED_TOL` (measured 1.5e-7 and 2.6e-7)."""
+    W, q, mu, mgdt, dt = (np.asarray(a, np.float32) for a in _box_on_incline(theta, 30.0, 1.2))
+    lam = np.zeros(12, np.float32)
+    for _ in range(6):
+        lam = np.asarray(C.solve_contacts(W, q, mu, lam, np.ones(4, bool), "apgd", C.DEFAULT_ITERATIONS["apgd"],
+                                          storage="float16", fused="interpret"))
+    assert lam.dtype == np.float32
+    u, L = (W.astype(float) @ lam + q).reshape(4, 3), lam.reshape(4, 3)
+    th, ph = np.radians(theta), np.radians(30.0)
+    speed = max(dt * 9810.0 * (np.sin(th) - 1.2 * np.cos(th)), 0.0)
+    want = np.tile([0.0, speed * np.cos(ph), speed * np.sin(ph)], (4, 1))
+    assert np.abs(u - want).max() <= FUSED_TOL * dt * 9810.0
+    assert abs(L[:, 0].sum() - mgdt * np.cos(th)) <= FUSED_TOL * mgdt
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_fused_kernel_iterates_as_xlas_unrolled_iterations(C, dtype):
+    """The kernel's 48 iterations (interpreted) against XLA's unrolled ones, both with the
+    operator in float16 and the iterations in ``dtype``, on random problems of 2-10 contacts
+    padded to 10 slots and warm-started from a solve: impulses within :data:`FUSED_TOL` (float32;
+    measured 7.1e-7) or 1e-12 (float64; measured 1.3e-15) of the largest, the products summed in
+    another order; padding contacts exactly 0."""
+    rng = np.random.default_rng(5)
+    for _ in range(4):
+        k = int(rng.integers(2, 11))
+        W, q, mu, warm, act = _padded(*_random_problem(rng, k), np.zeros(3 * k))
+        arrays = [a.astype(dtype) for a in (W, q, mu)]
+        warm = np.asarray(C.apgd_coulomb(*arrays, warm.astype(dtype), act, 20, restart=False, storage="float16"))
+        ref = np.asarray(C.apgd_coulomb(*arrays, warm, act, 48, restart=False, storage="float16"))
+        out = np.asarray(C.apgd_coulomb(*arrays, warm, act, 48, restart=False, storage="float16", fused="interpret"))
+        assert out.dtype == dtype
+        assert _rel(out, ref) <= (FUSED_TOL if dtype == np.float32 else 1e-12)
+        assert not out[3 * k:].any()
+
+
+def test_the_fused_kernel_is_refused_where_it_does_not_apply(C):
+    """``fused`` needs the float16 storage's refinement, the unrolled iterations, the dense
+    operator: anything else is a ValueError, not a silent fallback."""
+    W, q, mu, warm, act = (np.asarray(a) for a in _padded(*_random_problem(np.random.default_rng(0), 2), np.zeros(6)))
+    f32 = [a.astype(np.float32) for a in (W, q, mu, warm)]
+    for kwargs in ({}, {"storage": "float16", "restart": True}, {"storage": "float16", "op": W.astype(np.float32)},
+                   {"storage": "float16", "fused": "triton"}):
+        with pytest.raises(ValueError, match="fused"):
+            C.apgd_coulomb(*f32, act, 5, **{"restart": False, "fused": "interpret", **kwargs})
 
 
 def test_float32_solves_agree_with_float64_within_the_stated_tolerance(C):

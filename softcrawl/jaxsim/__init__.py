@@ -42,7 +42,8 @@ mixed designs pays for its largest; grouping designs by leg count is the caller'
 :func:`~softcrawl.jaxsim.model.select_robots` repeats its robots into a batch. float32 or float64
 follow ``jax_enable_x64``, which the caller sets (never at import).
 :mod:`~softcrawl.jaxsim.contact` holds the constraint solve (attachments and frictional floor
-contact) of one robot with fixed, padded shapes, ``jax.vmap``-ped over the batch by the engine.
+contact) of one robot with fixed, padded shapes, ``jax.vmap``-ped over the batch by the engine;
+:mod:`~softcrawl.jaxsim.fused` runs its iterations in one GPU kernel per robot.
 For a vector env (:mod:`softcrawl.envs.backends.jaxvec`): :mod:`~softcrawl.jaxsim.rig` gives each
 robot its own regulators and pressure warp and stops a robot where it diverged
 (:func:`~softcrawl.jaxsim.rig.make_action_rollout`); :mod:`~softcrawl.jaxsim.batch` writes rows into

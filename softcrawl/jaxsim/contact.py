@@ -186,8 +186,9 @@ def momentum_schedule(n_iter: int) -> tuple[float, ...]:
     return tuple(out)
 
 
-@partial(jax.jit, static_argnames=("n_iter", "restart", "storage"))
-def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=None, storage=None):
+@partial(jax.jit, static_argnames=("n_iter", "restart", "storage", "fused"))
+def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=None, storage=None,
+                 fused: str | None = None):
     """Accelerated projected gradient descent for frictional contact, ``n_iter`` iterations.
 
     With ``S`` the per-contact scaling ``1 / sqrt(W_nn)`` (one scalar per block, which keeps the
@@ -229,7 +230,19 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
     most 1.18 on landed robots of the paper's space, far inside float16's range) times the step
     from the warm start, which vanishes as a persisting contact state's warm start converges
     across steps.
+
+    ``fused`` (static), with ``storage`` and without ``restart``, runs the iterations in one
+    kernel (:func:`softcrawl.jaxsim.fused.fused_iterations`): ``"gpu"`` compiled for a GPU,
+    ``"interpret"`` in Pallas' interpreter (any platform; the tests'); None: XLA's iterations.
+
+    Raises:
+        ValueError: ``fused`` without ``storage``, with ``restart`` or with ``op``, or not one of
+            None, ``"gpu"``, ``"interpret"``.
     """
+    if fused not in (None, "gpu", "interpret"):
+        raise ValueError(f"fused must be None, 'gpu' or 'interpret', got {fused!r}")
+    if fused and (storage is None or restart or op is not None):
+        raise ValueError("the fused iterations need a storage dtype, no restart and no op")
     dtype, mu, lam, rows = _blocks(W, mu, lam0, active)
     K = active.shape[0]
     W, q = jnp.asarray(W, dtype), jnp.asarray(q, dtype)
@@ -249,8 +262,9 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
     else:
         if storage is None:
             Wi, g0 = Ws, qs
-        else:  # materialised once (the barrier keeps XLA from fusing the rounding into every product)
-            Wi = lax.optimization_barrier(Ws.astype(storage))
+        else:  # materialised once (the barrier keeps XLA from fusing the rounding into every product;
+            # the fused kernel is its only reader besides g0)
+            Wi = Ws.astype(storage) if fused else lax.optimization_barrier(Ws.astype(storage))
             g0 = (Ws - Wi.astype(dtype)) @ x0.reshape(-1) + qs  # Ws x0 + S q - Ws~ x0 (docstring)
 
         def grad(y):
@@ -271,6 +285,12 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
                     best_r)
 
         x = lax.fori_loop(0, n_iter, it, (x0, x0, jnp.ones((), dtype), x0, jnp.asarray(jnp.inf, dtype)))[3]
+    elif fused:
+        from softcrawl.jaxsim.fused import fused_iterations
+
+        x = fused_iterations(Wi, g0, x0.reshape(-1), jnp.repeat(mu, 3), live.reshape(-1),
+                             step, jnp.asarray(momentum_schedule(n_iter), dtype),
+                             interpret=fused == "interpret")
     else:
         x = y = x0
         for beta in momentum_schedule(n_iter):
@@ -297,15 +317,15 @@ def check_solver(solver: str, iterations: int | None) -> int:
     return int(n)
 
 
-def solve_contacts(W, q, mu, lam0, active, solver: str, iterations: int, op=None, storage=None):
+def solve_contacts(W, q, mu, lam0, active, solver: str, iterations: int, op=None, storage=None, fused=None):
     """The engine's contact solve: ``iterations`` of :func:`apgd_coulomb` without restart (unrolled:
     no loop in the compiled step) for ``solver="apgd"``, or sweeps of :func:`pgs_coulomb` for ``"pgs"``; the
-    arguments and result as theirs (``op`` and ``storage``: the accelerated gradient's, ignored by
-    Gauss-Seidel, which reads ``W`` by rows). No contact slots (no floor) gives an empty result."""
+    arguments and result as theirs (``op``, ``storage`` and ``fused``: the accelerated gradient's,
+    ignored by Gauss-Seidel, which reads ``W`` by rows). No contact slots (no floor) gives an empty result."""
     if not active.shape[0]:
         return jnp.zeros(0, jnp.result_type(W))
     if solver == "apgd":
-        return apgd_coulomb(W, q, mu, lam0, active, iterations, restart=False, op=op, storage=storage)
+        return apgd_coulomb(W, q, mu, lam0, active, iterations, restart=False, op=op, storage=storage, fused=fused)
     return pgs_coulomb(W, q, mu, lam0, active, iterations)
 
 

@@ -153,7 +153,8 @@ def _physics_step(model, state: State, sim_kpa) -> State:
         if st.delassus_storage is None:
             lam_c = solve(*problem)
         else:  # a CPU reads its operator whole (Settings.delassus)
-            lam_c = jax.lax.platform_dependent(*problem, cpu=solve, default=partial(solve, storage=st.delassus_storage))
+            lam_c = jax.lax.platform_dependent(*problem, cpu=solve, default=partial(
+                solve, storage=st.delassus_storage, fused="gpu" if st.delassus == "fused16" else None))
     # 4. corrections
     with jax.named_scope("corrections"):
         dq, dv, _ = corrections(model, rows, cond, inv_chol, lam_c, R)

@@ -147,7 +147,7 @@ class RobotData:
 
 
 #: The forms of :attr:`Settings.delassus`.
-DELASSUS_FORMS = ("dense", "dense16", "blocks")
+DELASSUS_FORMS = ("dense", "dense16", "fused16", "blocks")
 
 
 @dataclass(frozen=True)
@@ -170,7 +170,9 @@ class Settings:
             refinement, :func:`softcrawl.jaxsim.contact.apgd_coulomb`'s ``storage``: half the
             bytes; :func:`build_model`'s default in float32; a CPU reads its operator whole,
             ``jax.lax.platform_dependent``: there it stays in cache and float16 would only add
-            conversions) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
+            conversions), ``"fused16"`` (``"dense16"`` with the iterations in one kernel on a
+            GPU, :mod:`softcrawl.jaxsim.fused`: the operator read from memory once; a CPU runs
+            ``"dense"``) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
             times fewer bytes per iteration than ``"dense"``, more kernels), the same operator;
         rid_form: the form of the legs' RID terms (:func:`softcrawl.jaxsim.legs.rid_terms`),
             ``"rows"`` or ``"pairs"``, or None (the default: by platform).
@@ -206,7 +208,7 @@ class Settings:
     def delassus_storage(self):
         """The dtype name in which the accelerated gradient's iterations read the dense operator
         (:func:`softcrawl.jaxsim.contact.apgd_coulomb`'s ``storage``), None for the arrays' own."""
-        return "float16" if self.delassus == "dense16" else None
+        return "float16" if self.delassus in ("dense16", "fused16") else None
 
 
 @dataclass(frozen=True)
