@@ -8,8 +8,10 @@ lines:
   solved by 48 iterations from the engine's warm start in both forms, the kernel compiled for the
   GPU (or run in Pallas' interpreter where JAX has none): the largest impulse difference relative
   to the robot's largest impulse, and of the constraint velocities ``W lam`` (mm/s);
-* ``"part": "solve"``: the solve alone (both forms; the problems tiled to each of ``--batches``),
-  ``ms_per_solve``;
+* ``"part": "solve"``: the solve alone (the problems tiled to each of ``--batches``),
+  ``ms_per_solve`` of XLA's iterations and of the kernel (on a GPU also its variants: rows of
+  the operator multiplied at once and warps, :data:`softcrawl.jaxsim.fused.ROW_BLOCK`,
+  :data:`~softcrawl.jaxsim.fused.NUM_WARPS`);
 * ``"part": "rollout"`` (GPU only: on a CPU ``"fused16"`` steps as ``"dense"``): ``--actions``
   actions of the whole engine from the landed state in each form, the disk nodes' largest
   distance between the two (mm) and the robots that went invalid.
@@ -41,6 +43,7 @@ def main(argv=None) -> None:
 
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
+    from softcrawl.jaxsim import fused as fused_mod
     from softcrawl.jaxsim.contact import DEFAULT_ITERATIONS, solve_contacts
     from softcrawl.jaxsim.engine import contact_problem, rest_state
     from softcrawl.jaxsim.rig import Rig, make_action_rollout, rig_pressures
@@ -80,16 +83,29 @@ def main(argv=None) -> None:
                       "max_rel_impulse_diff": float((np.abs(fused - xla).max(axis=1) / scale).max()),
                       "max_velocity_diff_mm_s": float(np.abs(np.einsum("bij,bj->bi", W, fused - xla)).max()),
                       "velocity_scale_mm_s": float(np.abs(np.einsum("bij,bj->bi", W, xla)).max())}), flush=True)
+    default = (fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS)
+    variants = [default] + [v for v in ((64, 8), (128, 8), (32, 4)) if v != default]  # none spills on an H100
     for nb in (int(b) for b in args.batches.split(",")):
         tiled = jax.tree_util.tree_map(lambda a: jnp.asarray(np.resize(np.asarray(a), (nb, *a.shape[1:]))), problems)
         out = {**head, "part": "solve", "batch": nb}
-        for form, solve in solvers.items():
+
+        def timed(solve):
             jax.block_until_ready(solve(*tiled))
             t0 = time.perf_counter()
             for _ in range(args.calls):
                 r = solve(*tiled)
             jax.block_until_ready(r)
-            out[f"{form}_ms_per_solve"] = 1e3 * (time.perf_counter() - t0) / args.calls
+            return 1e3 * (time.perf_counter() - t0) / args.calls
+
+        out["dense16_ms_per_solve"] = timed(solvers["dense16"])
+        for rows, warps in variants if gpu else variants[:1]:  # the kernel's variants (module constants)
+            fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS = rows, warps
+            jax.clear_caches()
+            solve = jax.jit(jax.vmap(lambda *a: solve_contacts(*a, "apgd", DEFAULT_ITERATIONS["apgd"],
+                                                               storage="float16", fused=kernel)))
+            out[f"fused16_rows{rows}_w{warps}_ms_per_solve"] = timed(solve)
+        fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS = default
+        jax.clear_caches()
         print(json.dumps(out), flush=True)
     if not gpu:
         return

@@ -13,7 +13,9 @@
 #
 # latency:     the contact solve's iterations in one kernel (`fused_kernel.py`: the kernel compiled
 #              for the card against XLA's iterations on 96 landed robots' problems, the solve
-#              alone at 96 and 16,384 robots, three actions of the whole engine in each form);
+#              alone at 96 and 16,384 robots in XLA's form and the kernel's four variants, three
+#              actions of the whole engine in each form; if a variant other than the default
+#              (32 rows at a time, 8 warps) is fastest, set fused.ROW_BLOCK / NUM_WARPS);
 #              then the step at 96 robots, float32, with the default (`dense16`) and with
 #              `--delassus fused16`: the issue's 1.5 ms. If `fused16` is faster and agrees, make
 #              it `build_model`'s float32 default. Each batch size compiles in its own 30-60 s.
@@ -40,7 +42,7 @@ mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
 latency)
-    timeout 210 python3 benchmarks/fused_kernel.py --batch 96 --batches 96,16384 \
+    timeout 240 python3 benchmarks/fused_kernel.py --batch 96 --batches 96,16384 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
     for form in dense16 fused16; do
         timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 96 --calls 5 --delassus $form \

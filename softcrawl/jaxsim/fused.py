@@ -5,8 +5,9 @@ matrix-vector product and a fused elementwise loop per iteration: 48 iterations 
 hundred kernels in sequence, each reading the Delassus operator from memory again. At a few
 dozen robots a step's latency is the count of its kernels; at thousands, the bytes moved
 (``benchmarks/RESULTS.md``). :func:`fused_iterations` runs all the iterations of one robot in one
-program of one kernel (a batch of robots under ``jax.vmap``: one program per robot): it reads the
-operator from memory once, then iterates on chip.
+program of one kernel (a batch of robots under ``jax.vmap``: one program per robot): the operator
+comes from device memory once, and each iteration reads it again from the cache (128 KB a robot
+in float16).
 
 The iteration is :func:`~softcrawl.jaxsim.contact.apgd_coulomb`'s with ``restart=False`` and a
 reduced-precision ``storage`` (Mazhar et al. 2015 with De Saxce's change; iterative refinement as
@@ -21,10 +22,9 @@ program, where XLA's program needs a reshape of the whole vector.
 
 The kernel is Pallas' Triton form (``jax.experimental.pallas.triton``; JAX marks it deprecated
 in favour of Mosaic GPU, and keeps it): one program per robot, :data:`NUM_WARPS` warps, the
-operator ``(N, N)`` (``N`` the rows padded to a power of two, 256 for the paper preset's 80
-contacts) held in registers in its storage dtype; above 256 rows (85 contacts) it no longer fits
-and spills. Where JAX has no GPU (``interpret=True``, the tests on a CPU) the same kernel runs in
-Pallas' interpreter.
+operator ``(N, N)`` in its storage dtype (``N`` the rows padded to a power of two, 256 for the
+paper preset's 80 contacts) multiplied :data:`ROW_BLOCK` rows at a time. Where JAX has no GPU
+(``interpret=True``, the tests on a CPU) the same kernel runs in Pallas' interpreter.
 """
 
 from __future__ import annotations
@@ -34,9 +34,16 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 from jax import lax
+from jax.experimental import pallas as pl
 
-#: Warps per program: a float16 ``(256, 256)`` operator is 64 registers a thread at 16 warps.
-NUM_WARPS = 16
+#: Warps per program, and rows of the operator a program multiplies at once (a block's numbers
+#: are spread over the program's registers). Compiled for an H100 without one (ptxas, JAX 0.11.2):
+#: 128 registers a thread at 8 warps and 32 rows, two programs per multiprocessor; 160 at 64
+#: rows, 240 at 128 (one program); 16 warps spill at every block size, as does the whole
+#: operator at once. Read when a solve is traced: ``benchmarks/fused_kernel.py`` times the
+#: variants (each after ``jax.clear_caches()``).
+NUM_WARPS = 8
+ROW_BLOCK = 32
 
 
 def _padded(n: int) -> int:
@@ -44,15 +51,15 @@ def _padded(n: int) -> int:
     return max(16, 1 << (int(n) - 1).bit_length())
 
 
-def _kernel(n_iter: int, barrier, w_ref, v_ref, b_ref, x_ref, su_ref, sz_ref):
-    """One robot's iterations (module doc): ``w_ref`` ``(N, N)`` the reduced operator,
+def _kernel(n_iter: int, barrier, row_block: int, w_ref, v_ref, b_ref, x_ref, su_ref, sz_ref):
+    """One robot's iterations (module doc): ``w_ref`` ``(N, N)`` the reduced operator (read
+    ``row_block`` rows at a time, every iteration: after the first from the cache),
     ``v_ref`` ``(8, N)`` rows ``g0, x0, mu, live, step``, ``b_ref`` the extrapolation weights;
     ``x_ref`` receives the last iterate, ``su_ref`` and ``sz_ref`` are scratch, read back after
     ``barrier()`` (the program's threads' stores made visible to all of them)."""
     N = w_ref.shape[-1]
     dt = v_ref.dtype
-    W = w_ref[...]
-    g0, x0, mu, step = v_ref[0, :], v_ref[1, :], v_ref[2, :], v_ref[4, :]
+    x0, mu, step = v_ref[1, :], v_ref[2, :], v_ref[4, :]
     live = v_ref[3, :] > 0
     i = lax.iota(jnp.int32, N)
     base = 3 * (i // 3)
@@ -62,10 +69,11 @@ def _kernel(n_iter: int, barrier, w_ref, v_ref, b_ref, x_ref, su_ref, sz_ref):
 
     def body(k, c):
         x, y = c
-        u = jnp.sum(W.astype(dt) * y[None, :], axis=1) + g0
-        su_ref[...] = u
+        for r0 in range(0, N, row_block):  # u = Ws~ y + g0, by blocks of rows
+            rows = pl.ds(r0, row_block)
+            su_ref[rows] = jnp.sum(w_ref[rows, :].astype(dt) * y[None, :], axis=1) + v_ref[0, rows]
         barrier()
-        u1, u2 = su_ref[i1], su_ref[i2]
+        u, u1, u2 = su_ref[...], su_ref[i1], su_ref[i2]
         z = y - step * (u + jnp.where(normal, mu * jnp.sqrt(u1 * u1 + u2 * u2), 0))
         sz_ref[...] = z
         barrier()
@@ -107,7 +115,6 @@ def fused_iterations(Wi, g0, x0, mu, live, step, betas, *, interpret: bool = Fal
     Raises:
         ValueError: ``n`` not a multiple of 3, or arrays of other lengths.
     """
-    from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
     n = Wi.shape[0]
@@ -121,7 +128,7 @@ def fused_iterations(Wi, g0, x0, mu, live, step, betas, *, interpret: bool = Fal
     b = jnp.zeros(_padded(n_iter), dt).at[:n_iter].set(betas.astype(dt))
     vec = jax.ShapeDtypeStruct((N,), dt)
     x, _, _ = pl.pallas_call(
-        partial(_kernel, n_iter, (lambda: None) if interpret else pltriton.debug_barrier),
+        partial(_kernel, n_iter, (lambda: None) if interpret else pltriton.debug_barrier, min(ROW_BLOCK, N)),
         out_shape=(vec, vec, vec),
         interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
