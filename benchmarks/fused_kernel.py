@@ -8,13 +8,13 @@ lines:
   solved by 48 iterations from the engine's warm start in both forms, the kernel compiled for the
   GPU (or run in Pallas' interpreter where JAX has none): the largest impulse difference relative
   to the robot's largest impulse, and of the constraint velocities ``W lam`` (mm/s);
+* ``"part": "rollout"`` (GPU only: on a CPU ``"fused16"`` steps as ``"dense"``): ``--actions``
+  actions of the whole engine from the landed state in each form, the disk nodes' largest
+  distance between the two (mm) and the robots that went invalid;
 * ``"part": "solve"``: the solve alone (the problems tiled to each of ``--batches``),
   ``ms_per_solve`` of XLA's iterations and of the kernel (on a GPU also its variants: rows of
   the operator multiplied at once and warps, :data:`softcrawl.jaxsim.fused.ROW_BLOCK`,
-  :data:`~softcrawl.jaxsim.fused.NUM_WARPS`);
-* ``"part": "rollout"`` (GPU only: on a CPU ``"fused16"`` steps as ``"dense"``): ``--actions``
-  actions of the whole engine from the landed state in each form, the disk nodes' largest
-  distance between the two (mm) and the robots that went invalid.
+  :data:`~softcrawl.jaxsim.fused.NUM_WARPS`).
 
 Usage:
     python benchmarks/fused_kernel.py [--preset paper] [--batch 96] [--batches 96,16384] [--actions 3]
@@ -84,6 +84,18 @@ def main(argv=None) -> None:
                       "max_velocity_diff_mm_s": float(np.abs(np.einsum("bij,bj->bi", W, fused - xla)).max()),
                       "velocity_scale_mm_s": float(np.abs(np.einsum("bij,bj->bi", W, xla)).max())}), flush=True)
     default = (fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS)
+    if gpu:  # on a CPU "fused16" steps as "dense": nothing to compare
+        ends = {}
+        for form in ("dense16", "fused16"):
+            mdl = dataclasses.replace(model, settings=dataclasses.replace(model.settings, delassus=form))
+            s, dead = state, jnp.zeros(B, bool)
+            for _ in range(args.actions):
+                s, d = roll(mdl, rig, s, go, steps_b)
+                dead = dead | d
+            ends[form] = (np.asarray(s.x), int(np.sum(np.asarray(dead))))
+        gap = np.linalg.norm(ends["fused16"][0] - ends["dense16"][0], axis=-1).max()
+        print(json.dumps({**head, "part": "rollout", "actions": args.actions, "max_node_distance_mm": float(gap),
+                          "bad_robots": {f: e[1] for f, e in ends.items()}}), flush=True)
     variants = [default] + [v for v in ((64, 8), (128, 8), (32, 4)) if v != default]  # none spills on an H100
     for nb in (int(b) for b in args.batches.split(",")):
         tiled = jax.tree_util.tree_map(lambda a: jnp.asarray(np.resize(np.asarray(a), (nb, *a.shape[1:]))), problems)
@@ -107,19 +119,6 @@ def main(argv=None) -> None:
         fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS = default
         jax.clear_caches()
         print(json.dumps(out), flush=True)
-    if not gpu:
-        return
-    ends = {}
-    for form in ("dense16", "fused16"):
-        mdl = dataclasses.replace(model, settings=dataclasses.replace(model.settings, delassus=form))
-        s, dead = state, jnp.zeros(B, bool)
-        for _ in range(args.actions):
-            s, d = roll(mdl, rig, s, go, steps_b)
-            dead = dead | d
-        ends[form] = (np.asarray(s.x), int(np.sum(np.asarray(dead))))
-    print(json.dumps({**head, "part": "rollout", "actions": args.actions,
-                      "max_node_distance_mm": float(np.linalg.norm(ends["fused16"][0] - ends["dense16"][0], axis=-1).max()),
-                      "bad_robots": {f: e[1] for f, e in ends.items()}}), flush=True)
 
 
 if __name__ == "__main__":

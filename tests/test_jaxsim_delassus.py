@@ -145,8 +145,9 @@ def test_the_delassus_blocks_apply_the_condensed_operator(landed):
 def test_an_unknown_delassus_form_is_refused(landed):
     """``Settings.delassus`` other than ``"dense"``, ``"dense16"``, ``"fused16"`` or ``"blocks"``
     is refused where the settings are made, with a ValueError naming the setting, instead of the
-    step falling back to the dense product silently; ``"fused16"`` reads the operator in float16. :func:`build_model` makes float64 models ``"dense"`` (the
-    verifying engine keeps its operator whole) and float32 ones ``"dense16"``."""
+    step falling back to the dense product silently; ``"fused16"`` reads the operator in
+    float16. :func:`build_model` makes float64 models ``"dense"`` (the verifying engine keeps
+    its operator whole) and float32 ones ``"dense16"``."""
     from softcrawl.jaxsim.model import build_model
     from softcrawl.robot import RobotConfig, build_robot
 
@@ -216,7 +217,7 @@ def test_the_fused_kernel_solves_the_landed_robots_problem_as_xlas_iterations(la
     times each from the last as a persisting contact state is, by the iterations in one kernel
     (:mod:`softcrawl.jaxsim.fused`, interpreted) and by XLA's, both reading the operator in
     float16: constraint velocities ``W lam`` within 1e-3 mm/s of each other after every solve
-    (their scale about 300 mm/s; measured at most 1.7e-4 mm/s: float32's rounding of products
+    (their scale about 300 mm/s; measured at most 1.4e-4 mm/s: float32's rounding of products
     summed in another order), far below the 0.033 mm/s by which the float16 operator moves
     them (test above)."""
     from softcrawl.jaxsim.contact import solve_contacts
