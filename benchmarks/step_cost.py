@@ -26,6 +26,8 @@ default device. Printed as one JSON line (per batch size when timing):
   needs JAX's CUDA plugin: ``pip install "jax-cuda12-plugin[with-cuda]==<jax version>"``, best
   in a separate environment), and what the bytes cost at the GPU's memory bandwidth:
   ``bandwidth_floor_ms_per_step`` and the ``bandwidth_bound_robot_steps_per_s`` it allows;
+  with ``--registers`` also ptxas' report of the kernels (:func:`softcrawl.jaxsim.cost.ptxas_report`):
+  ``ptxas.spilling`` (bytes spilled by kernel) and the five that use the most registers;
 * with ``--profile DIR``: one more call at each timed batch ``B`` under JAX's profiler, its
   trace in ``DIR/bB`` and, printed as one JSON line, the kernels per step, the device's busy time
   per step and the kernels that cost most, each with the JAX operation it came from
@@ -36,12 +38,13 @@ Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
         [--iterations N] [--delassus dense16] [--rid-form rows] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
-    python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384
+    python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384 [--registers]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import platform
@@ -69,6 +72,8 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-cost", action="store_true", help="time only: skip the small programs' cost analysis")
     p.add_argument("--profile", default=None, help="trace one more call at each batch into this folder")
+    p.add_argument("--registers", action="store_true",
+                   help="with --gpu-target: also ptxas' report of the kernels (registers, spills)")
     p.add_argument("--gpu-target", default=None, metavar="CONFIG",
                    help="compile for the GPU this XLA target configuration describes, without one (e.g. "
                         "benchmarks/gpu_targets/h100.pbtxt; needs JAX's CUDA plugin) and print its program's "
@@ -78,7 +83,7 @@ def main(argv=None) -> None:
 
     if args.gpu_target:
         target_config = Path(args.gpu_target).read_text()
-        prepare_deviceless_gpu()
+        prepare_deviceless_gpu(ptxas_report=args.registers)
     import jax
 
     jax.config.update("jax_enable_x64", args.precision == "float64")
@@ -87,7 +92,8 @@ def main(argv=None) -> None:
 
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.jaxsim.cost import deviceless_gpu, kernel_profile, sequential_cost, xla_flops
+    from softcrawl.jaxsim.cost import (captured_stderr, deviceless_gpu, kernel_profile, ptxas_report,
+                                       sequential_cost, xla_flops)
     from softcrawl.jaxsim.engine import STEP_SCOPES, rest_state
     from softcrawl.jaxsim.rig import Rig, make_action_rollout
     from softcrawl.jaxsim.tables import build_table
@@ -129,7 +135,14 @@ def main(argv=None) -> None:
                                  inputs(steps, *batch(B, designs)))
             with jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):  # Pallas reads the GPU's kind here
                 lowered = make_action_rollout(steps).lower(*specs)
-            seq = sequential_cost(lowered.compile().as_text(), STEP_SCOPES)
+            with captured_stderr() if args.registers else contextlib.nullcontext([""]) as log:
+                text = lowered.compile().as_text()
+            seq = sequential_cost(text, STEP_SCOPES)
+            kernels = ptxas_report(log[0])
+            registers = {} if not args.registers else {"ptxas": {
+                "kernels": len(kernels),
+                "spilling": {k: v["spill_stores"] for k, v in kernels.items() if v["spill_stores"]},
+                "most_registers": sorted(((v["registers"], k) for k, v in kernels.items()), reverse=True)[:5]}}
             floor_s = seq.bytes / steps / bandwidth
             print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
                               "precision": args.precision, "solver": settings.solver,
@@ -138,7 +151,8 @@ def main(argv=None) -> None:
                               "dependent_ops_per_step": seq.ops / steps,
                               "loop_trips_per_step": seq.trips / steps, **split(seq, B),
                               "bandwidth_floor_ms_per_step": 1e3 * floor_s,
-                              "bandwidth_bound_robot_steps_per_s": B / floor_s, "jax": jax.__version__}), flush=True)
+                              "bandwidth_bound_robot_steps_per_s": B / floor_s, **registers,
+                              "jax": jax.__version__}), flush=True)
         return
     device = jax.devices()[0]
     out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),

@@ -563,3 +563,35 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
     np.testing.assert_array_equal(bad[0], bad[1])
     with pytest.raises(ValueError, match="form"):
         leg_motion.rid_terms(model.leg, state.q[0], qdot[0], 0.03, "dense")
+
+
+def test_ptxas_report_reads_each_kernels_registers_and_spills():
+    """:func:`softcrawl.jaxsim.cost.ptxas_report` on ptxas' report as XLA logs it (two kernels of
+    a step compiled for an H100 without one, the log's lines as they came): each kernel's
+    registers and spilled bytes; :func:`~softcrawl.jaxsim.cost.captured_stderr` returns what was
+    written to file descriptor 2 (where XLA's C++ logs go) and restores it."""
+    import os
+
+    from softcrawl.jaxsim.cost import captured_stderr, ptxas_report
+
+    log = """I1127 09:19:44.872731   13321 subprocess_compilation.cc:349] ptxas warning : Registers are spilled \
+to local memory in function 'input_add_reduce_fusion_1', 8 bytes spill stores, 8 bytes spill loads
+ptxas info    : 0 bytes gmem
+ptxas info    : Compiling entry function 'input_add_reduce_fusion_1' for 'sm_90a'
+ptxas info    : Function properties for input_add_reduce_fusion_1
+    8 bytes stack frame, 8 bytes spill stores, 8 bytes spill loads
+ptxas info    : Used 128 registers, used 0 barriers, 8 bytes cumulative stack size
+ptxas info    : Compile time = 20.417 ms
+I1127 09:22:05.660347   14483 subprocess_compilation.cc:356] ptxas info    : 0 bytes gmem
+ptxas info    : Compiling entry function 'apgd_iterations' for 'sm_90a'
+ptxas info    : Function properties for apgd_iterations
+    0 bytes stack frame, 0 bytes spill stores, 0 bytes spill loads
+ptxas info    : Used 128 registers, used 1 barriers
+"""
+    assert ptxas_report(log) == {
+        "input_add_reduce_fusion_1": {"registers": 128, "spill_stores": 8, "spill_loads": 8, "stack": 8},
+        "apgd_iterations": {"registers": 128, "spill_stores": 0, "spill_loads": 0, "stack": 0}}
+    with captured_stderr() as out:
+        os.write(2, b"ptxas info    : Function properties for k\n    0 bytes stack frame, 4 bytes spill stores, "
+                    b"4 bytes spill loads\nptxas info    : Used 255 registers\n")
+    assert ptxas_report(out[0]) == {"k": {"registers": 255, "spill_stores": 4, "spill_loads": 4, "stack": 0}}

@@ -34,7 +34,10 @@ import gzip
 import json
 import os
 import re
+import sys
+import tempfile
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -303,10 +306,19 @@ DEVICELESS_ENV = {"JAX_SKIP_CUDA_CONSTRAINTS_CHECK": "1", "CUDA_VISIBLE_DEVICES"
 DEVICELESS_XLA_FLAGS = "--xla_gpu_enable_triton_gemm=false"
 
 
-def prepare_deviceless_gpu() -> None:
-    """Set :data:`DEVICELESS_ENV` and :data:`DEVICELESS_XLA_FLAGS` in ``os.environ``; call it before
-    anything starts JAX's backends (creating an array does)."""
+#: Environment that makes XLA log ptxas' report of every kernel it compiles for a GPU (registers
+#: a thread, bytes spilled to local memory), where XLA runs ptxas as a program (the CUDA
+#: plugin's, as in deviceless compilation): :func:`ptxas_report` reads it.
+PTXAS_REPORT_ENV = {"TF_CPP_MIN_LOG_LEVEL": "0", "TF_CPP_VMODULE": "subprocess_compilation=3"}
+
+
+def prepare_deviceless_gpu(ptxas_report: bool = False) -> None:
+    """Set :data:`DEVICELESS_ENV` and :data:`DEVICELESS_XLA_FLAGS` in ``os.environ`` (and
+    :data:`PTXAS_REPORT_ENV` with ``ptxas_report``); call it before anything starts JAX's
+    backends (creating an array does)."""
     os.environ.update(DEVICELESS_ENV)
+    if ptxas_report:
+        os.environ.update(PTXAS_REPORT_ENV)
     flags = os.environ.get("XLA_FLAGS", "")
     if DEVICELESS_XLA_FLAGS not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} {DEVICELESS_XLA_FLAGS}".strip()
@@ -338,3 +350,36 @@ def deviceless_gpu(target_config: str):
                            "softcrawl.jaxsim.cost.prepare_deviceless_gpu()") from e
     mesh = topologies.make_mesh(topo, (1,), ("gpu",))
     return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+
+
+_PTXAS_KERNEL = re.compile(r"Function properties for (\S+)\s*\n\s*(\d+) bytes stack frame, (\d+) bytes spill stores, "
+                           r"(\d+) bytes spill loads\s*\n.*?Used (\d+) registers")
+
+
+def ptxas_report(log: str) -> dict[str, dict[str, int]]:
+    """Each kernel's ptxas report in a compilation's log (:data:`PTXAS_REPORT_ENV`): ``{name:
+    {"registers": a thread, "spill_stores": bytes, "spill_loads": bytes, "stack": bytes}}``. A
+    kernel that spills reads and writes local memory (the L1 cache, else device memory) where
+    it would use registers."""
+    return {m.group(1): {"registers": int(m.group(5)), "spill_stores": int(m.group(3)),
+                         "spill_loads": int(m.group(4)), "stack": int(m.group(2))}
+            for m in _PTXAS_KERNEL.finditer(log)}
+
+
+@contextmanager
+def captured_stderr():
+    """The process's standard error (file descriptor 2, where XLA's C++ logs go) redirected to a
+    temporary file while the block runs; yields a list that receives its text at the end."""
+    out: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as f:
+        os.dup2(f.fileno(), 2)
+        try:
+            yield out
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            f.seek(0)
+            out.append(f.read().decode("utf-8", "replace"))
