@@ -16,9 +16,10 @@ there), row by row on the contacts' interleaved rows ``(normal, tangent 1, tange
 
     u = Ws~ y + g0;   u_n += mu |u_t|;   z = y - step u;   x' = P(z);   y = x' + beta (x' - x)
 
-A row's contact's three components (for De Saxce's term and the cone projection ``P``) are read
-back from a scratch vector the program stores and reads again after a barrier: a gather within the
-program, where XLA's program needs a reshape of the whole vector.
+A row's contact's three components of ``u`` and ``y`` (for De Saxce's term and the cone
+projection ``P``, which need all three) are read back from scratch vectors the program stores and
+reads again after a barrier, one an iteration: a gather within the program, where XLA's program
+needs a reshape of the whole vector.
 
 The kernel is Pallas' Triton form (``jax.experimental.pallas.triton``; JAX marks it deprecated
 in favour of Mosaic GPU, and keeps it): one program per robot, :data:`NUM_WARPS` warps, the
@@ -38,10 +39,10 @@ from jax.experimental import pallas as pl
 
 #: Warps per program, and rows of the operator a program multiplies at once (a block's numbers
 #: are spread over the program's registers). Compiled for an H100 without one (ptxas, JAX 0.11.2):
-#: 128 registers a thread at 8 warps and 32 rows, two programs per multiprocessor; 160 at 64
-#: rows, 240 at 128 (one program); 16 warps spill at every block size, as does the whole
-#: operator at once. Read when a solve is traced: ``benchmarks/fused_kernel.py`` times the
-#: variants (each after ``jax.clear_caches()``).
+#: 120 registers a thread at 8 warps and 32 rows, two programs per multiprocessor; 160 at 64
+#: rows, 164 at 128 (one program); at 16 warps 64 at 16 rows, and 32 or 64 rows spill, as
+#: does the whole operator at once at any warp count. Read when a solve is traced:
+#: ``benchmarks/fused_kernel.py`` times the variants (each after ``jax.clear_caches()``).
 NUM_WARPS = 8
 ROW_BLOCK = 32
 
@@ -51,40 +52,45 @@ def _padded(n: int) -> int:
     return max(16, 1 << (int(n) - 1).bit_length())
 
 
-def _kernel(n_iter: int, barrier, row_block: int, w_ref, v_ref, b_ref, x_ref, su_ref, sz_ref):
+def _kernel(n_iter: int, barrier, row_block: int, w_ref, v_ref, b_ref, x_ref, su_ref, sy_ref):
     """One robot's iterations (module doc): ``w_ref`` ``(N, N)`` the reduced operator (read
     ``row_block`` rows at a time, every iteration: after the first from the cache),
     ``v_ref`` ``(8, N)`` rows ``g0, x0, mu, live, step``, ``b_ref`` the extrapolation weights;
-    ``x_ref`` receives the last iterate, ``su_ref`` and ``sz_ref`` are scratch, read back after
-    ``barrier()`` (the program's threads' stores made visible to all of them)."""
+    ``x_ref`` receives the last iterate. An iteration stores ``u`` and ``y`` into the scratch
+    ``su_ref`` and ``sy_ref`` ``(2, N)``, slot ``k % 2``, and reads back its contact's three
+    components of each after ``barrier()`` (the program's threads' stores made visible to all
+    of them): one barrier an iteration, the two slots keeping an iteration's stores from
+    overwriting what a slower thread still reads of the last."""
     N = w_ref.shape[-1]
     dt = v_ref.dtype
     x0, mu, step = v_ref[1, :], v_ref[2, :], v_ref[4, :]
     live = v_ref[3, :] > 0
     i = lax.iota(jnp.int32, N)
     base = 3 * (i // 3)
-    normal = i == base
+    normal, tangent1 = i == base, i == base + 1
     i1, i2 = jnp.minimum(base + 1, N - 1), jnp.minimum(base + 2, N - 1)
     tiny = jnp.finfo(dt).tiny
 
     def body(k, c):
         x, y = c
+        slot = lax.rem(k, 2)
+        sy_ref[slot, :] = y
         for r0 in range(0, N, row_block):  # u = Ws~ y + g0, by blocks of rows
             rows = pl.ds(r0, row_block)
-            su_ref[rows] = jnp.sum(w_ref[rows, :].astype(dt) * y[None, :], axis=1) + v_ref[0, rows]
+            su_ref[slot, rows] = jnp.sum(w_ref[rows, :].astype(dt) * y[None, :], axis=1) + v_ref[0, rows]
         barrier()
-        u, u1, u2 = su_ref[...], su_ref[i1], su_ref[i2]
-        z = y - step * (u + jnp.where(normal, mu * jnp.sqrt(u1 * u1 + u2 * u2), 0))
-        sz_ref[...] = z
-        barrier()
-        n, t1, t2 = sz_ref[base], sz_ref[i1], sz_ref[i2]
+        u1, u2 = su_ref[slot, i1], su_ref[slot, i2]
+        # z = y - step u after De Saxce's change, this row's contact's three components
+        n = sy_ref[slot, base] - step * (su_ref[slot, base] + mu * jnp.sqrt(u1 * u1 + u2 * u2))
+        t1, t2 = sy_ref[slot, i1] - step * u1, sy_ref[slot, i2] - step * u2
         # project_cone's arithmetic on this row's contact
         s = t1 * t1 + t2 * t2
         r = lax.rsqrt(jnp.maximum(s, tiny))
         nt = s * r
         inside = nt <= mu * n
         ln = jnp.where(inside, n, jnp.maximum((n + mu * nt) / (1 + mu * mu), 0))
-        xn = jnp.where(live, jnp.where(normal, ln, z * jnp.where(inside, 1, mu * ln * r)), 0)
+        own = jnp.where(tangent1, t1, t2)
+        xn = jnp.where(live, jnp.where(normal, ln, own * jnp.where(inside, 1, mu * ln * r)), 0)
         beta = b_ref[k]
         return xn, xn + beta * (xn - x)
 
@@ -126,10 +132,10 @@ def fused_iterations(Wi, g0, x0, mu, live, step, betas, *, interpret: bool = Fal
     Wp = jnp.zeros((N, N), Wi.dtype).at[:n, :n].set(Wi)
     v = jnp.zeros((8, N), dt).at[:5, :n].set(jnp.stack([g0, x0, mu, live, jnp.broadcast_to(step, (n,))]).astype(dt))
     b = jnp.zeros(_padded(n_iter), dt).at[:n_iter].set(betas.astype(dt))
-    vec = jax.ShapeDtypeStruct((N,), dt)
+    scratch = jax.ShapeDtypeStruct((2, N), dt)
     x, _, _ = pl.pallas_call(
         partial(_kernel, n_iter, (lambda: None) if interpret else pltriton.debug_barrier, min(ROW_BLOCK, N)),
-        out_shape=(vec, vec, vec),
+        out_shape=(jax.ShapeDtypeStruct((N,), dt), scratch, scratch),
         interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
         name="apgd_iterations",
