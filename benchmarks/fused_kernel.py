@@ -73,9 +73,12 @@ def main(argv=None) -> None:
 
     problems = jax.jit(jax.vmap(one))(model.robot, state, rig)
     kernel = "gpu" if gpu else "interpret"
-    solvers = {form: jax.jit(jax.vmap(lambda *a, f=fused: solve_contacts(*a, "apgd", DEFAULT_ITERATIONS["apgd"],
-                                                                         storage="float16", fused=f)))
-               for form, fused in (("dense16", None), ("fused16", kernel))}
+
+    def solver(fused):  # the engine's solve of a batch, XLA's iterations (None) or the kernel's
+        return jax.jit(jax.vmap(lambda *a: solve_contacts(*a, "apgd", DEFAULT_ITERATIONS["apgd"], storage="float16",
+                                                          fused=fused)))
+
+    solvers = {"dense16": solver(None), "fused16": solver(kernel)}
     xla, fused = (np.asarray(solvers[f](*problems), float) for f in ("dense16", "fused16"))
     W = np.asarray(problems[0], float)
     scale = np.maximum(np.abs(xla).max(axis=1), 1e-30)
@@ -113,9 +116,7 @@ def main(argv=None) -> None:
         for rows, warps in variants if gpu else variants[:1]:  # the kernel's variants (module constants)
             fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS = rows, warps
             jax.clear_caches()
-            solve = jax.jit(jax.vmap(lambda *a: solve_contacts(*a, "apgd", DEFAULT_ITERATIONS["apgd"],
-                                                               storage="float16", fused=kernel)))
-            out[f"fused16_rows{rows}_w{warps}_ms_per_solve"] = timed(solve)
+            out[f"fused16_rows{rows}_w{warps}_ms_per_solve"] = timed(solver(kernel))
         fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS = default
         jax.clear_caches()
         print(json.dumps(out), flush=True)

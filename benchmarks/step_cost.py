@@ -138,11 +138,13 @@ def main(argv=None) -> None:
             with captured_stderr() if args.registers else contextlib.nullcontext([""]) as log:
                 text = lowered.compile().as_text()
             seq = sequential_cost(text, STEP_SCOPES)
-            kernels = ptxas_report(log[0])
-            registers = {} if not args.registers else {"ptxas": {
-                "kernels": len(kernels),
-                "spilling": {k: v["spill_stores"] for k, v in kernels.items() if v["spill_stores"]},
-                "most_registers": sorted(((v["registers"], k) for k, v in kernels.items()), reverse=True)[:5]}}
+            registers = {}
+            if args.registers:
+                kernels = ptxas_report(log[0])
+                registers = {"ptxas": {
+                    "kernels": len(kernels),
+                    "spilling": {k: v["spill_stores"] for k, v in kernels.items() if v["spill_stores"]},
+                    "most_registers": sorted(((v["registers"], k) for k, v in kernels.items()), reverse=True)[:5]}}
             floor_s = seq.bytes / steps / bandwidth
             print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
                               "precision": args.precision, "solver": settings.solver,

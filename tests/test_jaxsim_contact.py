@@ -353,6 +353,15 @@ def test_a_box_above_the_friction_angle_slides_with_the_coulomb_acceleration(C, 
     np.testing.assert_allclose(total[1:], -1.2 * total[0] * np.array([np.cos(ph), np.sin(ph)]), rtol=1e-12)
 
 
+def _incline_velocities(theta: float, dt: float):
+    """The closed-form results of the box of :func:`_box_on_incline` at ``theta`` deg (gravity
+    towards 30 deg in the floor plane, mu 1.2) after one step from rest: the slip speed ``dt g
+    max(sin - mu cos, 0)`` (mm/s) and every corner's velocity ``(4, 3)`` (normal, tangents)."""
+    th, ph = np.radians(theta), np.radians(30.0)
+    speed = max(dt * 9810.0 * (np.sin(th) - 1.2 * np.cos(th)), 0.0)
+    return speed, np.tile([0.0, speed * np.cos(ph), speed * np.sin(ph)], (4, 1))
+
+
 @pytest.mark.parametrize("storage", [None, "float16"])
 @pytest.mark.parametrize("theta", [45.0, 60.0])
 def test_the_engines_warm_started_solve_reaches_the_closed_form_results(C, theta, storage):
@@ -374,8 +383,7 @@ def test_the_engines_warm_started_solve_reaches_the_closed_form_results(C, theta
                                           storage=storage))
     u, L = (W @ lam + q).reshape(4, 3), lam.reshape(4, 3)
     th, ph = np.radians(theta), np.radians(30.0)
-    speed = max(dt * 9810.0 * (np.sin(th) - 1.2 * np.cos(th)), 0.0)
-    want = np.tile([0.0, speed * np.cos(ph), speed * np.sin(ph)], (4, 1))
+    speed, want = _incline_velocities(theta, dt)
     assert np.abs(u - want).max() <= 1e-12 * dt * 9810.0
     assert abs(L[:, 0].sum() - mgdt * np.cos(th)) <= 1e-12 * mgdt
     if speed:
@@ -405,11 +413,9 @@ def test_the_fused_kernels_warm_started_solve_reaches_the_closed_form_results(C,
                                           storage="float16", fused="interpret"))
     assert lam.dtype == np.float32
     u, L = (W.astype(float) @ lam + q).reshape(4, 3), lam.reshape(4, 3)
-    th, ph = np.radians(theta), np.radians(30.0)
-    speed = max(dt * 9810.0 * (np.sin(th) - 1.2 * np.cos(th)), 0.0)
-    want = np.tile([0.0, speed * np.cos(ph), speed * np.sin(ph)], (4, 1))
+    _, want = _incline_velocities(theta, dt)
     assert np.abs(u - want).max() <= FUSED_TOL * dt * 9810.0
-    assert abs(L[:, 0].sum() - mgdt * np.cos(th)) <= FUSED_TOL * mgdt
+    assert abs(L[:, 0].sum() - mgdt * np.cos(np.radians(theta))) <= FUSED_TOL * mgdt
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
