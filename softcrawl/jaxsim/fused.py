@@ -37,11 +37,10 @@ import jax.numpy as jnp
 from jax import lax
 from jax.experimental import pallas as pl
 
-#: Warps per program, and rows of the operator a program multiplies at once (a block's numbers
-#: are spread over the program's registers). Compiled for an H100 without one (ptxas, JAX 0.11.2):
-#: 120 registers a thread at 8 warps and 32 rows, two programs per multiprocessor; 160 at 64
-#: rows, 164 at 128 (one program); at 16 warps 64 at 16 rows, and 32 or 64 rows spill, as
-#: does the whole operator at once at any warp count. Read when a solve is traced:
+#: Warps per program, and rows of the operator a program multiplies at once: a block's numbers
+#: are spread over the program's registers, and too large a block (the whole operator at any
+#: warp count) spills them to local memory (ptxas' counts for an H100: benchmarks/RESULTS.md,
+#: ``step_cost.py --gpu-target ... --registers``). Read when a solve is traced:
 #: ``benchmarks/fused_kernel.py`` times the variants (each after ``jax.clear_caches()``).
 NUM_WARPS = 8
 ROW_BLOCK = 32
