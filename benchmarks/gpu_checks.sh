@@ -3,24 +3,33 @@
 # (JSON lines, logs, gzipped kernel tables) under OUTDIR. Run the stages in order, back to back
 # on the warm machine, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~6 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~5 min, first
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR throughput   # ~5 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~6 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR forms        # ~5 min
 #
-# latency:     the contact solve's iterations in one kernel (`fused_kernel.py`: the kernel compiled
-#              for the card against XLA's iterations on 96 landed robots' problems, the solve
-#              alone at 96 and 16,384 robots in XLA's form and the kernel's four variants, three
-#              actions of the whole engine in each form; if a variant other than the default
-#              (32 rows at a time, 8 warps) is fastest, set fused.ROW_BLOCK / NUM_WARPS);
-#              then the step at 96 robots, float32, with the default (`dense16`) and with
-#              `--delassus fused16`: the issue's 1.5 ms. If `fused16` is faster and agrees, make
-#              it `build_model`'s float32 default. Each batch size compiles in its own 30-60 s.
+# latency:     the two GPU kernels checked on the card, then the issue's 1.5 ms: the contact solve in
+#              one kernel (`fused_kernel.py`: compiled for the card against XLA's iterations on 96
+#              landed robots' problems, three actions of the whole engine in each form, the solve
+#              alone at 96 robots in XLA's form and the kernel's five variants; if a variant other
+#              than the default, 32 rows at a time and 8 warps, is fastest, set fused.ROW_BLOCK /
+#              NUM_WARPS), the inverse Cholesky factors in one kernel (`cholesky_kernel.py`: its
+#              error and the library's, both timed at 96 robots' matrices with the kernel's warps;
+#              if another `factor.PER_THREAD` is fastest, set it); then the step at 96 robots,
+#              float32, with the defaults (`dense16`, `library`) and with both kernels
+#              (`--delassus fused16 --cholesky kernel`). If the kernels' step is faster and the
+#              checks agree, make them the GPU's defaults (`build_model`'s float32 `delassus`,
+#              `Settings.cholesky`); `attribution` tells which of the two pays. Each batch size
+#              compiles in its own 30-60 s.
 # throughput:  the step at 16,384 robots in both forms: the issue's 250k robot-steps/s (about
-#              0.4 s a step).
+#              0.07 s a step).
+# attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
+#              factors, `dense16` with the kernel's), and both kernels alone at 16,384 robots
+#              (their variants: occupancy decides there).
 # kernels:     the step at 96 and 1,024 robots with the Delassus operator read in float32
 #              (`--delassus dense`: the float16 operator against it), then every kernel of
 #              the 96-robot step timed without CUDA graphs (kernels-b96, and the device's
@@ -37,22 +46,34 @@
 #              product is 2.5x the multiply-adds (about 1.3 TFLOP per step at 16,384 robots), `Z`
 #              its bytes (256 KB per leg); compare with `latency`'s lines.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: latency, throughput, kernels, training, profile, groundtruth or forms}
+out=${1:?OUTDIR}; stage=${2:?STAGE: latency, throughput, attribution, kernels, training, profile, groundtruth or forms}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
 latency)
-    timeout 240 python3 benchmarks/fused_kernel.py --batch 96 --batches 96,16384 \
+    timeout 200 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    for form in dense16 fused16; do
-        timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 96 --calls 5 --delassus $form \
+    timeout 60 python3 benchmarks/cholesky_kernel.py --robots 96 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl"
+    for forms in "dense16 library" "fused16 kernel"; do
+        set -- $forms
+        timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 96 --calls 5 --delassus $1 --cholesky $2 \
             2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
     done ;;
 throughput)
-    for form in dense16 fused16; do
-        timeout 170 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --delassus $form \
-            2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
+    for forms in "dense16 library" "fused16 kernel"; do
+        set -- $forms
+        timeout 170 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --delassus $1 \
+            --cholesky $2 2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
     done ;;
+attribution)
+    for forms in "fused16 library" "dense16 kernel"; do
+        set -- $forms
+        timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 96 --calls 5 --delassus $1 --cholesky $2 \
+            2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
+    done
+    timeout 120 python3 benchmarks/fused_kernel.py --batch 96 --batches 16384 --actions 0 --calls 5 \
+        2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
+    timeout 60 python3 benchmarks/cholesky_kernel.py --robots 16384 --calls 5 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
 kernels)
     timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --delassus dense \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
@@ -76,5 +97,5 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: latency, throughput, kernels, training, profile, groundtruth or forms" >&2; exit 2 ;;
+    echo "unknown stage $stage: latency, throughput, attribution, kernels, training, profile, groundtruth or forms" >&2; exit 2 ;;
 esac

@@ -36,7 +36,7 @@ default device. Printed as one JSON line (per batch size when timing):
 
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
-        [--iterations N] [--delassus dense16] [--rid-form rows] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
+        [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky kernel] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384 [--registers]
 """
@@ -64,6 +64,8 @@ def main(argv=None) -> None:
                         "default: the engine's for the precision)")
     p.add_argument("--rid-form", choices=("rows", "pairs"), default=None,
                    help="the legs' RID terms' form (Settings.rid_form; default: by platform)")
+    p.add_argument("--cholesky", choices=("library", "kernel"), default="library",
+                   help="how the step inverts its Cholesky factors (Settings.cholesky)")
     p.add_argument("--batch", type=int, default=2, help="robots of the compiled program whose cost is read")
     p.add_argument("--steps", type=int, default=None, help="steps per action (default: the preset's)")
     p.add_argument("--time", action="store_true", help="also time the step (the default where JAX has a GPU)")
@@ -103,7 +105,7 @@ def main(argv=None) -> None:
     slots = max(sum(v > 0 for v in d) for d in designs)
     table = build_table(space, factory=robot_factory(cfg), n_slots=slots, solver=args.solver,
                         iterations=args.iterations, delassus=args.delassus)
-    settings = dataclasses.replace(table.parts.settings, rid_form=args.rid_form)
+    settings = dataclasses.replace(table.parts.settings, rid_form=args.rid_form, cholesky=args.cholesky)
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)
@@ -149,7 +151,7 @@ def main(argv=None) -> None:
             print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
                               "precision": args.precision, "solver": settings.solver,
                               "iterations": settings.iterations, "delassus": settings.delassus,
-                              "rid_form": settings.rid_form,
+                              "rid_form": settings.rid_form, "cholesky": settings.cholesky,
                               "dependent_ops_per_step": seq.ops / steps,
                               "loop_trips_per_step": seq.trips / steps, **split(seq, B),
                               "bandwidth_floor_ms_per_step": 1e3 * floor_s,
@@ -159,7 +161,7 @@ def main(argv=None) -> None:
     device = jax.devices()[0]
     out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),
            "precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
-           "delassus": settings.delassus, "rid_form": settings.rid_form,
+           "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
            "leg_slots": slots, "contacts": settings.disk_contacts + slots * settings.leg_contacts,
            "steps_per_action": steps, "jax": jax.__version__}
     if not args.no_cost:
@@ -196,7 +198,7 @@ def main(argv=None) -> None:
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
                           "device": out["device"], "precision": args.precision, "solver": out["solver"],
                           "iterations": out["iterations"], "delassus": settings.delassus,
-                          "rid_form": settings.rid_form}), flush=True)
+                          "rid_form": settings.rid_form, "cholesky": settings.cholesky}), flush=True)
         if args.profile:
             where = Path(args.profile, f"b{B}")
             with jax.profiler.trace(str(where), create_perfetto_trace=True):

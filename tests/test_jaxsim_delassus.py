@@ -214,10 +214,10 @@ def test_a_cpu_steps_the_float16_operators_setting_with_the_whole_operator(lande
 
 def test_the_fused_kernel_solves_the_landed_robots_problem_as_xlas_iterations(landed):
     """The landed robot's contact problem in float32 (the GPU engine's precision), solved ten
-    times each from the last as a persisting contact state is, by the iterations in one kernel
-    (:mod:`softcrawl.jaxsim.fused`, interpreted) and by XLA's, both reading the operator in
-    float16: constraint velocities ``W lam`` within 1e-3 mm/s of each other after every solve
-    (their scale about 300 mm/s; measured at most 1.4e-4 mm/s: float32's rounding of products
+    times each from the last as a persisting contact state is, by the solve in one kernel
+    (:mod:`softcrawl.jaxsim.fused`, interpreted) and by XLA's iterations, both reading the operator
+    in float16: constraint velocities ``W lam`` within 1e-3 mm/s of each other after every solve
+    (their scale about 300 mm/s; measured at most 1.2e-4 mm/s: float32's rounding of products
     summed in another order), far below the 0.033 mm/s by which the float16 operator moves
     them (test above)."""
     from softcrawl.jaxsim.contact import solve_contacts
@@ -595,3 +595,31 @@ ptxas info    : Used 128 registers, used 1 barriers
         os.write(2, b"ptxas info    : Function properties for k\n    0 bytes stack frame, 4 bytes spill stores, "
                     b"4 bytes spill loads\nptxas info    : Used 255 registers\n")
     assert ptxas_report(out[0]) == {"k": {"registers": 255, "spill_stores": 4, "spill_loads": 4, "stack": 0}}
+
+
+def test_the_cholesky_kernels_step_is_the_librarys(landed, monkeypatch):
+    """``Settings.cholesky = "kernel"`` (the legs' and the attachment block's inverse factors in
+    one GPU kernel, :mod:`softcrawl.jaxsim.factor`): on a CPU the step is the library's to the
+    bit, the traced step holding the kernel for other platforms; with the kernel forced
+    (interpreted) for every inverse of the landed robot's step, the step's modal and disk
+    velocities are the library's within 1e-8 of their size (float64). The two factorisations'
+    round-off: the legs' step matrices have condition numbers of about 1e5, and their inverse
+    factors differ by up to 1.3e-13 of their size; the contact solve amplifies that to 8e-11
+    (modal) and 2.6e-10 (disk) of the velocities, measured. A wrong inverse moves them by
+    their own size."""
+    from softcrawl.jaxsim import factor
+    from softcrawl.jaxsim.engine import physics_step
+
+    model, state, kpa = landed
+    kernel = dataclasses.replace(model, settings=dataclasses.replace(model.settings, cholesky="kernel"))
+    a, b = physics_step(model, state, kpa), physics_step(kernel, state, kpa)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert "pallas_call" in str(jax.make_jaxpr(physics_step)(kernel, state, kpa))
+    assert "pallas_call" not in str(jax.make_jaxpr(physics_step)(model, state, kpa))
+    monkeypatch.setattr(factor, "_library", lambda A, symmetrize=False: factor.cholesky_inverse(A, "interpret", symmetrize))
+    c = physics_step(model, state, kpa)
+    for name in ("qdot", "v"):
+        x, y = np.asarray(getattr(a, name)), np.asarray(getattr(c, name))
+        assert not np.array_equal(x, y)
+        assert np.abs(x - y).max() <= 1e-8 * np.abs(x).max(), name

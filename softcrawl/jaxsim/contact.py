@@ -231,9 +231,10 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
     from the warm start, which vanishes as a persisting contact state's warm start converges
     across steps.
 
-    ``fused`` (static), with ``storage`` and without ``restart``, runs the iterations in one
-    kernel (:func:`softcrawl.jaxsim.fused.fused_iterations`): ``"gpu"`` compiled for a GPU,
-    ``"interpret"`` in Pallas' interpreter (any platform; the tests'); None: XLA's iterations.
+    ``fused`` (static), with ``storage`` and without ``restart``, runs the solve, scaling and
+    refinement included, in one kernel (:func:`softcrawl.jaxsim.fused.fused_solve`): ``"gpu"``
+    compiled for a GPU, ``"interpret"`` in Pallas' interpreter (any platform; the tests'); None:
+    XLA's iterations.
 
     Raises:
         ValueError: ``fused`` without ``storage``, with ``restart`` or with ``op``, or not one of
@@ -244,6 +245,12 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
     if fused and (storage is None or restart or op is not None):
         raise ValueError("the fused iterations need a storage dtype, no restart and no op")
     dtype, mu, lam, rows = _blocks(W, mu, lam0, active)
+    if fused:
+        from softcrawl.jaxsim.fused import fused_solve
+
+        return fused_solve(jnp.asarray(W, dtype), jnp.asarray(q, dtype), mu, jnp.asarray(lam0, dtype), active,
+                           jnp.asarray(momentum_schedule(n_iter), dtype), storage=storage,
+                           interpret=fused == "interpret")
     K = active.shape[0]
     W, q = jnp.asarray(W, dtype), jnp.asarray(q, dtype)
     s = jnp.repeat(jnp.where(active, lax.rsqrt(jnp.where(active, jnp.diagonal(W)[::3], 1)), 0), 3)
@@ -262,9 +269,8 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
     else:
         if storage is None:
             Wi, g0 = Ws, qs
-        else:  # materialised once (the barrier keeps XLA from fusing the rounding into every product;
-            # the fused kernel is its only reader besides g0)
-            Wi = Ws.astype(storage) if fused else lax.optimization_barrier(Ws.astype(storage))
+        else:  # materialised once (the barrier keeps XLA from fusing the rounding into every product)
+            Wi = lax.optimization_barrier(Ws.astype(storage))
             g0 = (Ws - Wi.astype(dtype)) @ x0.reshape(-1) + qs  # Ws x0 + S q - Ws~ x0 (docstring)
 
         def grad(y):
@@ -285,12 +291,6 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
                     best_r)
 
         x = lax.fori_loop(0, n_iter, it, (x0, x0, jnp.ones((), dtype), x0, jnp.asarray(jnp.inf, dtype)))[3]
-    elif fused:
-        from softcrawl.jaxsim.fused import fused_iterations
-
-        x = fused_iterations(Wi, g0, x0.reshape(-1), jnp.repeat(mu, 3), live.reshape(-1),
-                             step, jnp.asarray(momentum_schedule(n_iter), dtype),
-                             interpret=fused == "interpret")
     else:
         x = y = x0
         for beta in momentum_schedule(n_iter):

@@ -27,9 +27,9 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import solve_triangular
 
 from softcrawl.jaxsim.contact import floor_contacts
+from softcrawl.jaxsim.factor import inverse_spd
 from softcrawl.jaxsim.model import register_pytree
 
 #: Floor contact frame, rows normal, tangent 1, tangent 2 (:mod:`softcrawl.fem.solver`).
@@ -222,15 +222,15 @@ class Condensed:
 register_pytree(Condensed)
 
 
-def condense(rows: Rows, inv_chol, qd_free) -> Condensed:
+def condense(rows: Rows, inv_chol, qd_free, cholesky: str = "library") -> Condensed:
     """The condensed contact problem (module doc) of ``rows`` with the inverses ``inv_chol``
     ``(L, m, m)`` of the legs' step-matrix Cholesky factors (lower; ``C_l^-1``) and free modal
     velocities ``qd_free`` ``(L, m)``.
 
     The attachment block ``W_bb`` is positive definite for attachments of distinct disk nodes;
     rows of absent legs are identity rows with zero impulse. Its inverse is formed from its
-    Cholesky factor's (:func:`inverse_spd`), so that ``X`` is formed by products, by the blocks
-    of ``W_bc``.
+    Cholesky factor's (:func:`softcrawl.jaxsim.factor.inverse_spd` in the form ``cholesky``), so
+    that ``X`` is formed by products, by the blocks of ``W_bc``.
     """
     L, n_leg, m = rows.leg.shape
     F3 = rows.u_att.shape[0] // L
@@ -249,7 +249,7 @@ def condense(rows: Rows, inv_chol, qd_free) -> Condensed:
     Kl3 = n_leg - F3
     W_bd = jnp.where(m_b[:, None], rows.disk_ad, 0)
     W_bl = G[:, :F3, F3:] * m_b.reshape(L, F3)[:, :, None]  # (L, F3, Kl3)
-    W_inv = inverse_spd(W_bb)
+    W_inv = inverse_spd(W_bb, cholesky)
     X = jnp.concatenate([W_inv @ jnp.concatenate([u_b[:, None], W_bd], axis=1),
                          jnp.einsum("alb,lbk->alk", W_inv.reshape(L * F3, L, F3), W_bl).reshape(L * F3, -1)], axis=1)
     # W_cb X by blocks: disk contact rows use every attachment, leg contact rows their leg's
@@ -262,18 +262,6 @@ def condense(rows: Rows, inv_chol, qd_free) -> Condensed:
     u_c = jnp.concatenate([rows.u_disk, (u_leg[:, F3:] + _gap_rows(rows.gap_leg)).reshape(-1)])
     blocks = DelassusBlocks(rows.disk_dd, G[:, F3:, F3:], W_bd, W_bl, W_inv)
     return Condensed(W_cc - WX[:, 1:], u_c - WX[:, 0], X, Y, blocks)
-
-
-def inverse_spd(A):
-    """The inverse ``(n, n)`` of a symmetric positive definite ``A`` ``(n, n)``, ``C^-T C^-1`` from
-    its lower Cholesky factor ``C``: one factorisation and one triangular solve (against the
-    identity), then products only (on a GPU a triangular solve of small batched matrices is a
-    chain of kernel launches, a product one: ``benchmarks/RESULTS.md``). Its error
-    is of the order of ``cond(A)`` times the rounding unit, as a solve's. Only the lower triangle
-    of ``A`` is read (as ``jax.scipy.linalg.cho_factor``)."""
-    C = jax.lax.linalg.cholesky(A, symmetrize_input=False)
-    Ci = solve_triangular(C, jnp.eye(A.shape[0], dtype=A.dtype), lower=True)
-    return Ci.T @ Ci
 
 
 def _gap_rows(gap):

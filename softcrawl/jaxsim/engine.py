@@ -126,7 +126,7 @@ def _constrained(model, state: State, sim_kpa):
     with jax.named_scope("constraint_rows"):
         rows = constraint_rows(model, state, v_free, qd_free, R)
     with jax.named_scope("condense"):
-        cond = condense(rows, inv_chol, qd_free)
+        cond = condense(rows, inv_chol, qd_free, st.cholesky)
         warm = ((rows.points[:, None] == state.contact_points[None, :]).astype(state.x.dtype) @ state.impulses)
     return qd_free, inv_chol, n_bad, v_free, R, rows, cond, warm.reshape(-1)
 

@@ -1,31 +1,35 @@
-"""The accelerated gradient's iterations for one robot's contacts in one GPU kernel (Pallas).
+"""The accelerated gradient's solve of one robot's contacts in one GPU kernel (Pallas).
 
 :func:`softcrawl.jaxsim.contact.apgd_coulomb`'s unrolled iterations compile, on a GPU, to a
 matrix-vector product and a fused elementwise loop per iteration: 48 iterations are about a
-hundred kernels in sequence, each reading the Delassus operator from memory again. At a few
-dozen robots a step's latency is the count of its kernels; at thousands, the bytes moved
-(``benchmarks/RESULTS.md``). :func:`fused_iterations` runs all the iterations of one robot in one
-program of one kernel (a batch of robots under ``jax.vmap``: one program per robot): the operator
-comes from device memory once, and each iteration reads it again from the cache (128 KB a robot
-in float16).
+hundred kernels in sequence, each reading the Delassus operator from memory again, after half a
+dozen more that scale the operator, round it to float16 and form the refinement's constant. At a
+few dozen robots a step's latency is the count of its kernels; at thousands, the bytes moved
+(``benchmarks/RESULTS.md``). :func:`fused_solve` runs all of it for one robot in one program of
+one kernel (a batch of robots under ``jax.vmap``: one program per robot): the operator comes
+from device memory once, in its own precision; the program writes its scaled float16 copy
+(128 KB a robot) and each iteration reads that again from the cache.
 
-The iteration is :func:`~softcrawl.jaxsim.contact.apgd_coulomb`'s with ``restart=False`` and a
+The solve is :func:`~softcrawl.jaxsim.contact.apgd_coulomb`'s with ``restart=False`` and a
 reduced-precision ``storage`` (Mazhar et al. 2015 with De Saxce's change; iterative refinement as
 there), row by row on the contacts' interleaved rows ``(normal, tangent 1, tangent 2)``: with
-``y`` the extrapolated iterate,
+``S`` the per-contact scaling, ``Ws~`` the scaled operator ``S W S`` in the storage dtype, ``x0``
+the scaled warm start projected, ``g0 = (Ws - Ws~) x0 + S q``, ``L`` the Gershgorin bound of
+``Ws`` and ``y`` the extrapolated iterate,
 
-    u = Ws~ y + g0;   u_n += mu |u_t|;   z = y - step u;   x' = P(z);   y = x' + beta (x' - x)
+    u = Ws~ y + g0;   u_n += mu |u_t|;   z = y - u / L;   x' = P(z);   y = x' + beta (x' - x)
 
-A row's contact's three components of ``u`` and ``y`` (for De Saxce's term and the cone
-projection ``P``, which need all three) are read back from scratch vectors the program stores and
-reads again after a barrier, one an iteration: a gather within the program, where XLA's program
-needs a reshape of the whole vector.
+and the impulses ``S x``. A row's contact's three components of ``u`` and ``y`` (for De Saxce's
+term and the cone projection ``P``, which need all three) are read back from scratch vectors the
+program stores and reads again after a barrier, one an iteration: a gather within the program,
+where XLA's program needs a reshape of the whole vector.
 
 The kernel is Pallas' Triton form (``jax.experimental.pallas.triton``; JAX marks it deprecated
 in favour of Mosaic GPU, and keeps it): one program per robot, :data:`NUM_WARPS` warps, the
-operator ``(N, N)`` in its storage dtype (``N`` the rows padded to a power of two, 256 for the
-paper preset's 80 contacts) multiplied :data:`ROW_BLOCK` rows at a time. Where JAX has no GPU
-(``interpret=True``, the tests on a CPU) the same kernel runs in Pallas' interpreter.
+operator handled ``(N, N)`` (``N`` the rows padded to a power of two, 256 for the paper preset's
+80 contacts; the inputs read through masked pointers) and multiplied :data:`ROW_BLOCK` rows at
+a time. Where JAX has no GPU (``interpret=True``, the tests on a CPU) the same kernel runs in
+Pallas' interpreter.
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ import jax.numpy as jnp
 from jax import lax
 from jax.experimental import pallas as pl
 
+from softcrawl.jaxsim.factor import padded_size
+
 #: Warps per program, and rows of the operator a program multiplies at once: a block's numbers
 #: are spread over the program's registers, and too large a block (the whole operator at any
 #: warp count) spills them to local memory (ptxas' counts for an H100: benchmarks/RESULTS.md,
@@ -46,29 +52,65 @@ NUM_WARPS = 8
 ROW_BLOCK = 32
 
 
-def _padded(n: int) -> int:
-    """The smallest power of two ``>= max(n, 16)``: Triton's blocks have power-of-two shapes."""
-    return max(16, 1 << (int(n) - 1).bit_length())
+def _kernel(n: int, n_iter: int, barrier, row_block: int, w_ref, q_ref, mu_ref, lam_ref, act_ref, b_ref,
+            x_ref, wi_ref, g_ref, su_ref, sy_ref):
+    """One robot's solve (module doc). Inputs ``w_ref`` ``(n, n)`` the operator ``W``, ``q_ref``
+    ``(n,)``, ``mu_ref`` and ``act_ref`` ``(K,)`` (``act_ref`` int32, nonzero for an active
+    contact), ``lam_ref`` ``(n,)`` the warm start, ``b_ref`` the extrapolation weights; ``x_ref``
+    ``(n,)`` receives the impulses. The program works on ``N`` rows (``n`` padded to a power of
+    two) and reads its inputs through masked pointers (lanes past ``n`` load nothing).
 
+    First, once: each row's scaling ``s`` (its contact's ``1 / sqrt(W_nn)``, 0 on inactive
+    contacts' rows), the warm start ``x0`` projected, and, ``row_block`` rows of ``W`` at a time,
+    ``Ws = s W s`` rounded to the storage dtype into the scratch ``wi_ref`` ``(N, N)``, the
+    refinement's constant ``g0 = (Ws - Ws~) x0 + s q`` into ``g_ref`` and the Gershgorin bound
+    ``L``. Then the iterations: each stores ``u`` and ``y`` into the scratch ``su_ref`` and
+    ``sy_ref`` ``(2, N)``, slot ``k % 2``, and reads back its contact's three components of each
+    after ``barrier()`` (the program's threads' stores made visible to all of them): one barrier
+    an iteration, the two slots keeping an iteration's stores from overwriting what a slower
+    thread still reads of the last."""
+    from jax.experimental.pallas import triton as pltriton
 
-def _kernel(n_iter: int, barrier, row_block: int, w_ref, v_ref, b_ref, x_ref, su_ref, sy_ref):
-    """One robot's iterations (module doc): ``w_ref`` ``(N, N)`` the reduced operator (read
-    ``row_block`` rows at a time, every iteration: after the first from the cache),
-    ``v_ref`` ``(8, N)`` rows ``g0, x0, mu, live, step``, ``b_ref`` the extrapolation weights;
-    ``x_ref`` receives the last iterate. An iteration stores ``u`` and ``y`` into the scratch
-    ``su_ref`` and ``sy_ref`` ``(2, N)``, slot ``k % 2``, and reads back its contact's three
-    components of each after ``barrier()`` (the program's threads' stores made visible to all
-    of them): one barrier an iteration, the two slots keeping an iteration's stores from
-    overwriting what a slower thread still reads of the last."""
-    N = w_ref.shape[-1]
-    dt = v_ref.dtype
-    x0, mu, step = v_ref[1, :], v_ref[2, :], v_ref[4, :]
-    live = v_ref[3, :] > 0
+    N = wi_ref.shape[-1]
+    dt = x_ref.dtype
     i = lax.iota(jnp.int32, N)
     base = 3 * (i // 3)
     normal, tangent1 = i == base, i == base + 1
     i1, i2 = jnp.minimum(base + 1, N - 1), jnp.minimum(base + 2, N - 1)
     tiny = jnp.finfo(dt).tiny
+
+    def scale(rows):  # s and the live mask of these rows
+        on = (rows < n) & (pltriton.load(act_ref.at[rows // 3], mask=rows < n, other=0) != 0)
+        b = 3 * (rows // 3)
+        return jnp.where(on, lax.rsqrt(pltriton.load(w_ref.at[b, b], mask=on, other=1.0)), 0), on
+
+    s, live = scale(i)
+    mu = pltriton.load(mu_ref.at[i // 3], mask=i < n, other=0.0)
+
+    def project(n_, t1, t2):  # project_cone's arithmetic on this row's contact: this row's component
+        sq = t1 * t1 + t2 * t2
+        r = lax.rsqrt(jnp.maximum(sq, tiny))
+        nt = sq * r
+        inside = nt <= mu * n_
+        ln = jnp.where(inside, n_, jnp.maximum((n_ + mu * nt) / (1 + mu * mu), 0))
+        own = jnp.where(tangent1, t1, t2)
+        return jnp.where(live, jnp.where(normal, ln, own * jnp.where(inside, 1, mu * ln * r)), 0)
+
+    safe = jnp.where(live, s, 1)
+    x0 = project(*(pltriton.load(lam_ref.at[j], mask=live, other=0.0) / safe for j in (base, base + 1, base + 2)))
+    bound = jnp.zeros((), dt)
+    for r0 in range(0, N, row_block):  # Ws~, g0 and the bound, by blocks of rows
+        rows = r0 + lax.iota(jnp.int32, row_block)
+        s_r, _ = scale(rows)
+        Wb = pltriton.load(w_ref.at[rows[:, None], i[None, :]], mask=(rows[:, None] < n) & (i[None, :] < n), other=0.0)
+        Ws = s_r[:, None] * Wb * s[None, :]
+        Wi = Ws.astype(wi_ref.dtype)
+        wi_ref[pl.ds(r0, row_block), :] = Wi
+        bound = jnp.maximum(bound, jnp.max(jnp.sum(jnp.abs(Ws), axis=1)))
+        q_r = pltriton.load(q_ref.at[rows], mask=rows < n, other=0.0)
+        g_ref[pl.ds(r0, row_block)] = jnp.sum((Ws - Wi.astype(dt)) * x0[None, :], axis=1) + s_r * q_r
+    step = 1 / jnp.maximum(bound, tiny)
+    barrier()
 
     def body(k, c):
         x, y = c
@@ -76,67 +118,58 @@ def _kernel(n_iter: int, barrier, row_block: int, w_ref, v_ref, b_ref, x_ref, su
         sy_ref[slot, :] = y
         for r0 in range(0, N, row_block):  # u = Ws~ y + g0, by blocks of rows
             rows = pl.ds(r0, row_block)
-            su_ref[slot, rows] = jnp.sum(w_ref[rows, :].astype(dt) * y[None, :], axis=1) + v_ref[0, rows]
+            su_ref[slot, rows] = jnp.sum(wi_ref[rows, :].astype(dt) * y[None, :], axis=1) + g_ref[rows]
         barrier()
         u1, u2 = su_ref[slot, i1], su_ref[slot, i2]
-        # z = y - step u after De Saxce's change, this row's contact's three components
-        n = sy_ref[slot, base] - step * (su_ref[slot, base] + mu * jnp.sqrt(u1 * u1 + u2 * u2))
-        t1, t2 = sy_ref[slot, i1] - step * u1, sy_ref[slot, i2] - step * u2
-        # project_cone's arithmetic on this row's contact
-        s = t1 * t1 + t2 * t2
-        r = lax.rsqrt(jnp.maximum(s, tiny))
-        nt = s * r
-        inside = nt <= mu * n
-        ln = jnp.where(inside, n, jnp.maximum((n + mu * nt) / (1 + mu * mu), 0))
-        own = jnp.where(tangent1, t1, t2)
-        xn = jnp.where(live, jnp.where(normal, ln, own * jnp.where(inside, 1, mu * ln * r)), 0)
-        beta = b_ref[k]
-        return xn, xn + beta * (xn - x)
+        # z = y - step u after De Saxce's change, this row's contact's three components, projected
+        xn = project(sy_ref[slot, base] - step * (su_ref[slot, base] + mu * jnp.sqrt(u1 * u1 + u2 * u2)),
+                     sy_ref[slot, i1] - step * u1, sy_ref[slot, i2] - step * u2)
+        return xn, xn + b_ref[k] * (xn - x)
 
-    x_ref[...] = lax.fori_loop(0, n_iter, body, (x0, x0))[0]
+    x = lax.fori_loop(0, n_iter, body, (x0, x0))[0]
+    pltriton.store(x_ref.at[i], scale(i)[0] * x, mask=i < n)  # s again: fewer registers held through the loop
 
 
-@partial(jax.jit, static_argnames=("interpret",))
-def fused_iterations(Wi, g0, x0, mu, live, step, betas, *, interpret: bool = False):
-    """The accelerated gradient's iterations of one robot in one kernel (module doc).
+@partial(jax.jit, static_argnames=("storage", "interpret"))
+def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", interpret: bool = False):
+    """The accelerated gradient's solve of one robot's contacts in one kernel (module doc).
 
     Args:
-        Wi: ``(n, n)`` the scaled Delassus operator in its storage dtype (float16), rows and
-            columns interleaved by contact (normal, tangent 1, tangent 2), ``n = 3K``.
-        g0: ``(n,)`` the refinement's constant ``(Ws - Ws~) x0 + S q``, mm/s scaled, float32 or
-            float64: the iterations' precision.
-        x0: ``(n,)`` the projected warm start.
-        mu: ``(n,)`` each row's contact's friction coefficient.
-        live: ``(n,)`` bool, False on the rows of padding contacts (their iterate stays 0).
-        step: the step ``1 / L`` (a scalar).
+        W: ``(n, n)`` the Delassus operator (mm/s per mN s), rows and columns interleaved by
+            contact (normal, tangent 1, tangent 2), ``n = 3K``, float32 or float64: the
+            iterations' precision.
+        q: ``(n,)`` the free velocities, mm/s.
+        mu: ``(K,)`` each contact's friction coefficient.
+        lam0: ``(n,)`` the warm start, mN s.
+        active: ``(K,)`` bool, False for padding contacts (their impulses are 0).
         betas: ``(n_iter,)`` the extrapolation weights
             (:func:`softcrawl.jaxsim.contact.momentum_schedule`).
+        storage: the dtype in which the iterations read the scaled operator (static).
         interpret: run the kernel in Pallas' interpreter (any platform) instead of compiling it
             for a GPU.
 
     Returns:
-        ``(n,)`` the last iterate ``x``, in ``g0``'s dtype.
+        ``(n,)`` the impulses after ``n_iter`` iterations, mN s, in ``W``'s dtype.
 
     Raises:
-        ValueError: ``n`` not a multiple of 3, or arrays of other lengths.
+        ValueError: ``n`` not ``3K``, or arrays of other lengths.
     """
     from jax.experimental.pallas import triton as pltriton
 
-    n = Wi.shape[0]
-    if n % 3 or Wi.shape != (n, n) or any(a.shape != (n,) for a in (g0, x0, mu, live)):
-        raise ValueError(f"fused_iterations needs a (3K, 3K) operator and (3K,) vectors, got {Wi.shape}, "
-                         f"{[a.shape for a in (g0, x0, mu, live)]}")
-    N, dt = _padded(n), g0.dtype
+    n, K = W.shape[0], active.shape[0]
+    if W.shape != (n, n) or n != 3 * K or q.shape != (n,) or lam0.shape != (n,) or mu.shape != (K,):
+        raise ValueError(f"fused_solve needs a (3K, 3K) operator, (3K,) q and lam0, (K,) mu and active; got "
+                         f"{W.shape}, {q.shape}, {lam0.shape}, {mu.shape}, {active.shape}")
+    N, dt = padded_size(n), W.dtype
     n_iter = betas.shape[0]
-    Wp = jnp.zeros((N, N), Wi.dtype).at[:n, :n].set(Wi)
-    v = jnp.zeros((8, N), dt).at[:5, :n].set(jnp.stack([g0, x0, mu, live, jnp.broadcast_to(step, (n,))]).astype(dt))
-    b = jnp.zeros(_padded(n_iter), dt).at[:n_iter].set(betas.astype(dt))
-    scratch = jax.ShapeDtypeStruct((2, N), dt)
-    x, _, _ = pl.pallas_call(
-        partial(_kernel, n_iter, (lambda: None) if interpret else pltriton.debug_barrier, min(ROW_BLOCK, N)),
-        out_shape=(jax.ShapeDtypeStruct((N,), dt), scratch, scratch),
+    b = jnp.zeros(padded_size(n_iter), dt).at[:n_iter].set(betas.astype(dt))
+    vector = jax.ShapeDtypeStruct((N,), dt)
+    pair = jax.ShapeDtypeStruct((2, N), dt)
+    x, *_ = pl.pallas_call(
+        partial(_kernel, n, n_iter, (lambda: None) if interpret else pltriton.debug_barrier, min(ROW_BLOCK, N)),
+        out_shape=(jax.ShapeDtypeStruct((n,), dt), jax.ShapeDtypeStruct((N, N), storage), vector, pair, pair),
         interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
-        name="apgd_iterations",
-    )(Wp, v, b)
-    return x[:n]
+        name="apgd_solve",
+    )(W, q.astype(dt), mu.astype(dt), lam0.astype(dt), active.astype(jnp.int32), b)
+    return x

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softcrawl.jaxsim.contact import check_solver
+from softcrawl.jaxsim.factor import CHOLESKY_FORMS
 from softcrawl.jaxsim.legs import RID_FORMS, frame_rows
 from softcrawl.reduction.floating import FloatingFrameBody
 from softcrawl.robot.actuation import PressureCalibration
@@ -170,12 +171,16 @@ class Settings:
             refinement, :func:`softcrawl.jaxsim.contact.apgd_coulomb`'s ``storage``: half the
             bytes; :func:`build_model`'s default in float32; a CPU reads its operator whole,
             ``jax.lax.platform_dependent``: there it stays in cache and float16 would only add
-            conversions), ``"fused16"`` (``"dense16"`` with the iterations in one kernel on a
-            GPU, :mod:`softcrawl.jaxsim.fused`: the operator read from memory once; a CPU runs
-            ``"dense"``) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
+            conversions), ``"fused16"`` (``"dense16"``'s solve, its scaling and rounding
+            included, in one kernel on a GPU, :mod:`softcrawl.jaxsim.fused`: the operator read
+            from memory once; a CPU runs ``"dense"``) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
             times fewer bytes per iteration than ``"dense"``, more kernels), the same operator;
         rid_form: the form of the legs' RID terms (:func:`softcrawl.jaxsim.legs.rid_terms`),
-            ``"rows"`` or ``"pairs"``, or None (the default: by platform).
+            ``"rows"`` or ``"pairs"``, or None (the default: by platform);
+        cholesky: how the step inverts the Cholesky factors of the legs' step matrices and of the
+            attachment block (:func:`softcrawl.jaxsim.factor.cholesky_inverse`): ``"library"``
+            (a factorisation and a triangular solve) or ``"kernel"`` (both in one kernel on a GPU;
+            a CPU runs the library's).
     """
 
     dt: float
@@ -195,14 +200,18 @@ class Settings:
     channels: int = 3
     delassus: str = "dense"
     rid_form: str | None = None
+    cholesky: str = "library"
 
     def __post_init__(self):
         """Raises: ValueError: a ``delassus`` not among :data:`DELASSUS_FORMS`, a ``rid_form``
-        other than None or one of :data:`softcrawl.jaxsim.legs.RID_FORMS`."""
+        other than None or one of :data:`softcrawl.jaxsim.legs.RID_FORMS`, a ``cholesky`` not
+        among :data:`softcrawl.jaxsim.factor.CHOLESKY_FORMS`."""
         if self.delassus not in DELASSUS_FORMS:
             raise ValueError(f"settings.delassus must be one of {DELASSUS_FORMS}, not {self.delassus!r}")
         if self.rid_form is not None and self.rid_form not in RID_FORMS:
             raise ValueError(f"settings.rid_form must be None or one of {RID_FORMS}, not {self.rid_form!r}")
+        if self.cholesky not in CHOLESKY_FORMS:
+            raise ValueError(f"settings.cholesky must be one of {CHOLESKY_FORMS}, not {self.cholesky!r}")
 
     @property
     def delassus_storage(self):

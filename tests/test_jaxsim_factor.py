@@ -1,0 +1,113 @@
+"""The inverse Cholesky factor of small SPD matrices (:mod:`softcrawl.jaxsim.factor`): the GPU
+kernel, run in Pallas' interpreter, against LAPACK's factor in float64 (numpy), and the settings
+that choose it. The kernel inside a whole step: tests/test_jaxsim_delassus.py."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+import jax.numpy as jnp  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _float64(x64):
+    """Float64 available (``x64``: tests/conftest.py); each test names its arrays' dtype."""
+
+
+def _spd(rng, batch, n, cond):
+    """``(batch, n, n)`` symmetric positive definite matrices of condition number ``cond``
+    (eigenvalues spread geometrically from 1 to ``cond``, random orthogonal eigenvectors)."""
+    Q, _ = np.linalg.qr(rng.standard_normal((batch, n, n)))
+    return np.einsum("bij,j,bkj->bik", Q, np.geomspace(1.0, cond, n), Q)
+
+
+@pytest.mark.parametrize("n", [5, 36, 72])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_the_kernel_inverts_the_cholesky_factor(n, dtype):
+    """The kernel's ``C^-1`` (interpreted, batched by ``jax.vmap``) against LAPACK's float64
+    factor inverted, for sizes below, at and above a power of two (the legs' 36 and the
+    attachment block's 72 are padded to 64 and 128), on matrices of condition number 1e4 (the
+    landed robot's leg step matrices: about 1e5): relative error (of the largest entry) within
+    ``cond u`` with ``u`` the rounding unit (Higham 2002, sec. 10.1: the factor's error is of
+    that order; measured at most 8e-14 in float64 and 5e-5 in float32, where LAPACK's own
+    float32 factor errs by 4e-5), exactly lower triangular, and ``C^-1 A C^-T = I`` within the
+    same bound (measured 2e-13 and 8e-5)."""
+    from softcrawl.jaxsim.factor import cholesky_inverse
+
+    cond = 1e4
+    A = _spd(np.random.default_rng(n), 3, n, cond)
+    Ci = np.asarray(jax.vmap(lambda a: cholesky_inverse(a, "interpret"))(jnp.asarray(A, dtype)), float)
+    ref = np.linalg.inv(np.linalg.cholesky(A))
+    tol = cond * np.finfo(dtype).eps
+    assert np.abs(Ci - ref).max() <= tol * np.abs(ref).max()
+    assert np.all(np.triu(Ci, 1) == 0)
+    eye = np.einsum("bij,bjk,blk->bil", Ci, A, Ci)
+    assert np.abs(eye - np.eye(n)).max() <= tol
+
+
+def test_the_library_and_kernel_forms_agree_and_a_cpu_takes_the_library():
+    """``"library"`` (factorisation and triangular solve) and the kernel give the same factor
+    (float64, condition 100: within 1e-12 relative, measured 1.2e-15); ``"kernel"`` on a CPU is the
+    library's result to the bit (``jax.lax.platform_dependent``), its traced program holding the
+    kernel for other platforms."""
+    from softcrawl.jaxsim.factor import cholesky_inverse, inverse_spd
+
+    A = jnp.asarray(_spd(np.random.default_rng(1), 1, 36, 100.0)[0])
+    lib = np.asarray(cholesky_inverse(A))
+    assert np.abs(np.asarray(cholesky_inverse(A, "interpret")) - lib).max() <= 1e-12 * np.abs(lib).max()
+    np.testing.assert_array_equal(np.asarray(cholesky_inverse(A, "kernel")), lib)
+    assert "pallas_call" in str(jax.make_jaxpr(lambda a: cholesky_inverse(a, "kernel"))(A))
+    assert "pallas_call" not in str(jax.make_jaxpr(cholesky_inverse)(A))
+    np.testing.assert_allclose(np.asarray(inverse_spd(A, "interpret")) @ np.asarray(A), np.eye(36), atol=1e-12)
+
+
+def test_the_symmetrized_library_form_is_jax_numpys_factor_inverted():
+    """``symmetrize=True`` (the legs' step matrices, sums symmetric up to round-off) is
+    ``jnp.linalg.cholesky``'s factor of ``(A + A^T) / 2`` inverted by a triangular solve, to the
+    bit: the CPU engine's step is the one it was before the factor had forms."""
+    from jax.scipy.linalg import solve_triangular
+
+    from softcrawl.jaxsim.factor import cholesky_inverse
+
+    A = _spd(np.random.default_rng(3), 1, 36, 1e3)[0]
+    A = jnp.asarray(A * (1 + 1e-5 * np.triu(np.random.default_rng(4).standard_normal((36, 36)), 1)), jnp.float32)
+    want = solve_triangular(jnp.linalg.cholesky(A), jnp.eye(36, dtype=A.dtype), lower=True)
+    np.testing.assert_array_equal(np.asarray(cholesky_inverse(A, symmetrize=True)), np.asarray(want))
+    assert not np.array_equal(np.asarray(cholesky_inverse(A)), np.asarray(want))
+
+
+def test_a_matrix_that_is_not_positive_definite_gives_no_finite_factor():
+    """An indefinite matrix (one negative eigenvalue) and a singular one: the kernel's factor
+    holds NaN or infinite entries, as the library's holds NaN, so that the step marks the robot
+    bad instead of stepping it with a wrong inverse."""
+    from softcrawl.jaxsim.factor import cholesky_inverse
+
+    rng = np.random.default_rng(2)
+    Q, _ = np.linalg.qr(rng.standard_normal((8, 8)))
+    for eig in ([-1.0] + [1.0] * 7, [0.0] + [1.0] * 7):
+        A = jnp.asarray(Q @ np.diag(eig) @ Q.T)
+        assert not np.all(np.isfinite(np.asarray(cholesky_inverse(A, "interpret"))))
+        assert not np.all(np.isfinite(np.asarray(cholesky_inverse(A))))
+
+
+def test_bad_forms_and_shapes_are_refused():
+    """An unknown form, a non-square or batched argument, and a model setting naming no form:
+    ValueError naming what is wrong."""
+    from softcrawl.jaxsim.factor import cholesky_inverse
+    from softcrawl.jaxsim.model import Settings
+
+    A = jnp.eye(4)
+    with pytest.raises(ValueError, match="form must be"):
+        cholesky_inverse(A, "cusolver")
+    with pytest.raises(ValueError, match="one square matrix"):
+        cholesky_inverse(jnp.ones((4, 3)))
+    with pytest.raises(ValueError, match="one square matrix"):
+        cholesky_inverse(jnp.ones((2, 4, 4)))
+    args = dict(dt=0.01, rayleigh_mass=0.0, rayleigh_stiffness=0.0, gravity=(0.0, 0.0, -9810.0), floor=True,
+                floor_z=0.0, contact_distance=1.0, friction=0.5, disk_contacts=8, leg_contacts=12, solver="apgd",
+                iterations=48, calibration=(1.0, 0.0), rate=1000.0)
+    assert Settings(**args).cholesky == "library" and Settings(**args, cholesky="kernel").cholesky == "kernel"
+    with pytest.raises(ValueError, match="settings.cholesky"):
+        Settings(**args, cholesky="interpret")
