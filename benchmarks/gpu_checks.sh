@@ -53,7 +53,7 @@ case $stage in
 latency)
     timeout 200 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 60 python3 benchmarks/cholesky_kernel.py --robots 96 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl"
+    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 96 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl"
     for forms in "dense16 library" "fused16 kernel"; do
         set -- $forms
         timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 96 --calls 5 --delassus $1 --cholesky $2 \
@@ -71,9 +71,9 @@ attribution)
         timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 96 --calls 5 --delassus $1 --cholesky $2 \
             2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
     done
-    timeout 120 python3 benchmarks/fused_kernel.py --batch 96 --batches 16384 --actions 0 --calls 5 \
+    timeout 180 python3 benchmarks/fused_kernel.py --batch 96 --batches 16384 --actions 0 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 60 python3 benchmarks/cholesky_kernel.py --robots 16384 --calls 5 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
+    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 16384 --calls 5 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
 kernels)
     timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --delassus dense \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
