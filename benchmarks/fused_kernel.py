@@ -99,7 +99,7 @@ def main(argv=None) -> None:
         gap = np.linalg.norm(ends["fused16"][0] - ends["dense16"][0], axis=-1).max()
         print(json.dumps({**head, "part": "rollout", "actions": args.actions, "max_node_distance_mm": float(gap),
                           "bad_robots": {f: e[1] for f, e in ends.items()}}), flush=True)
-    variants = [default] + [v for v in ((16, 8), (64, 8), (8, 16), (32, 4)) if v != default]  # none spills on an H100
+    variants = [default] + [v for v in ((16, 8), (64, 8), (16, 16), (32, 4)) if v != default]  # none spills on an H100
     for nb in (int(b) for b in args.batches.split(",")):
         tiled = jax.tree_util.tree_map(lambda a: jnp.asarray(np.resize(np.asarray(a), (nb, *a.shape[1:]))), problems)
         out = {**head, "part": "solve", "batch": nb}

@@ -98,18 +98,21 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, w_ref, q_ref, mu_ref, 
 
     safe = jnp.where(live, s, 1)
     x0 = project(*(pltriton.load(lam_ref.at[j], mask=live, other=0.0) / safe for j in (base, base + 1, base + 2)))
-    bound = jnp.zeros((), dt)
-    for r0 in range(0, N, row_block):  # Ws~, g0 and the bound, by blocks of rows
+
+    def prepare(blk, bound):  # Ws~, g0 and the bound, by blocks of rows (a loop in the program:
+        # unrolled, the compiler held several blocks in registers at once, benchmarks/RESULTS.md)
+        r0 = blk * row_block
         rows = r0 + lax.iota(jnp.int32, row_block)
         s_r, _ = scale(rows)
         Wb = pltriton.load(w_ref.at[rows[:, None], i[None, :]], mask=(rows[:, None] < n) & (i[None, :] < n), other=0.0)
         Ws = s_r[:, None] * Wb * s[None, :]
         Wi = Ws.astype(wi_ref.dtype)
         wi_ref[pl.ds(r0, row_block), :] = Wi
-        bound = jnp.maximum(bound, jnp.max(jnp.sum(jnp.abs(Ws), axis=1)))
         q_r = pltriton.load(q_ref.at[rows], mask=rows < n, other=0.0)
         g_ref[pl.ds(r0, row_block)] = jnp.sum((Ws - Wi.astype(dt)) * x0[None, :], axis=1) + s_r * q_r
-    step = 1 / jnp.maximum(bound, tiny)
+        return jnp.maximum(bound, jnp.max(jnp.sum(jnp.abs(Ws), axis=1)))
+
+    step = 1 / jnp.maximum(lax.fori_loop(0, N // row_block, prepare, jnp.zeros((), dt)), tiny)
     barrier()
 
     def body(k, c):
