@@ -13,8 +13,9 @@ lines:
   distance between the two (mm) and the robots that went invalid;
 * ``"part": "solve"``: the solve alone (the problems tiled to each of ``--batches``),
   ``ms_per_solve`` of XLA's iterations and of the kernel (on a GPU also its variants: rows of
-  the operator multiplied at once and warps, :data:`softcrawl.jaxsim.fused.ROW_BLOCK`,
-  :data:`~softcrawl.jaxsim.fused.NUM_WARPS`, none spilling on an H100).
+  the operator multiplied at once, warps and the product looped or unrolled,
+  :data:`softcrawl.jaxsim.fused.ROW_BLOCK`, :data:`~softcrawl.jaxsim.fused.NUM_WARPS`,
+  :data:`~softcrawl.jaxsim.fused.LOOP_PRODUCT`, none spilling on an H100).
 
 Usage:
     python benchmarks/fused_kernel.py [--preset paper] [--batch 96] [--batches 96,16384] [--actions 3]
@@ -86,7 +87,7 @@ def main(argv=None) -> None:
                       "max_rel_impulse_diff": float((np.abs(fused - xla).max(axis=1) / scale).max()),
                       "max_velocity_diff_mm_s": float(np.abs(np.einsum("bij,bj->bi", W, fused - xla)).max()),
                       "velocity_scale_mm_s": float(np.abs(np.einsum("bij,bj->bi", W, xla)).max())}), flush=True)
-    default = (fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS)
+    default = (fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT)
     if gpu and args.actions:  # on a CPU "fused16" steps as "dense": nothing to compare
         ends = {}
         for form in ("dense16", "fused16"):
@@ -99,7 +100,8 @@ def main(argv=None) -> None:
         gap = np.linalg.norm(ends["fused16"][0] - ends["dense16"][0], axis=-1).max()
         print(json.dumps({**head, "part": "rollout", "actions": args.actions, "max_node_distance_mm": float(gap),
                           "bad_robots": {f: e[1] for f, e in ends.items()}}), flush=True)
-    variants = [default] + [v for v in ((16, 8), (64, 8), (16, 16), (32, 4)) if v != default]  # none spills on an H100
+    variants = [default] + [v for v in ((16, 8, False), (64, 8, False), (16, 16, False), (32, 4, False),  # none spills
+                                        (32, 8, True), (16, 8, True)) if v != default]  # on an H100
     for nb in (int(b) for b in args.batches.split(",")):
         tiled = jax.tree_util.tree_map(lambda a: jnp.asarray(np.resize(np.asarray(a), (nb, *a.shape[1:]))), problems)
         out = {**head, "part": "solve", "batch": nb}
@@ -113,11 +115,11 @@ def main(argv=None) -> None:
             return 1e3 * (time.perf_counter() - t0) / args.calls
 
         out["dense16_ms_per_solve"] = timed(solvers["dense16"])
-        for rows, warps in variants if gpu else variants[:1]:  # the kernel's variants (module constants)
-            fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS = rows, warps
+        for rows, warps, loop in variants if gpu else variants[:1]:  # the kernel's variants (module constants)
+            fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT = rows, warps, loop
             jax.clear_caches()
-            out[f"fused16_rows{rows}_w{warps}_ms_per_solve"] = timed(solver(kernel))
-        fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS = default
+            out[f"fused16_rows{rows}_w{warps}{'_looped' if loop else ''}_ms_per_solve"] = timed(solver(kernel))
+        fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT = default
         jax.clear_caches()
         print(json.dumps(out), flush=True)
 

@@ -15,10 +15,11 @@
 # latency:     the two GPU kernels checked on the card, then the issue's 1.5 ms: the contact solve in
 #              one kernel (`fused_kernel.py`: compiled for the card against XLA's iterations on 96
 #              landed robots' problems, three actions of the whole engine in each form, the solve
-#              alone at 96 robots in XLA's form and the kernel's five variants; if a variant other
-#              than the default, 32 rows at a time and 8 warps, is fastest, set fused.ROW_BLOCK /
-#              NUM_WARPS), the inverse Cholesky factors in one kernel (`cholesky_kernel.py`: its
-#              error and the library's, both timed at 96 robots' matrices with the kernel's warps;
+#              alone at 96 robots in XLA's form and the kernel's seven variants; if a variant
+#              other than the default, 32 rows at a time, 8 warps, unrolled, is fastest, set
+#              fused.ROW_BLOCK / NUM_WARPS / LOOP_PRODUCT), the inverse Cholesky factors in one
+#              kernel (`cholesky_kernel.py`: its error and the library's, both timed at 96
+#              robots' matrices with the kernel's warps;
 #              if another `factor.PER_THREAD` is fastest, set it); then the step at 96 robots,
 #              float32, with the defaults (`dense16`, `library`) and with both kernels
 #              (`--delassus fused16 --cholesky kernel`). If the kernels' step is faster and the

@@ -439,6 +439,31 @@ def test_the_fused_kernel_iterates_as_xlas_unrolled_iterations(C, dtype):
         assert not out[3 * k:].any()
 
 
+def test_the_fused_kernels_variants_give_the_same_impulses(C, monkeypatch):
+    """The kernel's tuning constants (:data:`softcrawl.jaxsim.fused.ROW_BLOCK`, ``NUM_WARPS``,
+    ``LOOP_PRODUCT``, which ``benchmarks/fused_kernel.py`` times on a GPU) change how a program
+    is laid out, not its arithmetic: in the interpreter (float32; warps do not reach it) blocks
+    of 16 rows and the product looped give the default's impulses to the bit, each row's
+    product summed over all columns in one reduction."""
+    from softcrawl.jaxsim import fused
+
+    W, q, mu, warm, act = _padded(*_random_problem(np.random.default_rng(9), 8), np.zeros(24))
+    args = [a.astype(np.float32) for a in (W, q, mu, warm)]
+
+    def solve():
+        jax.clear_caches()  # the constants are read when a solve is traced
+        return np.asarray(C.apgd_coulomb(*args[:3], args[3], act, 48, restart=False, storage="float16",
+                                         fused="interpret"))
+
+    want = solve()
+    assert np.abs(want).max() > 0
+    for rows, loop in ((16, False), (32, True), (16, True)):
+        monkeypatch.setattr(fused, "ROW_BLOCK", rows)
+        monkeypatch.setattr(fused, "LOOP_PRODUCT", loop)
+        np.testing.assert_array_equal(solve(), want)
+    jax.clear_caches()
+
+
 def test_the_fused_kernel_is_refused_where_it_does_not_apply(C):
     """``fused`` needs the float16 storage's refinement, the unrolled iterations, the dense
     operator: anything else is a ValueError, not a silent fallback."""

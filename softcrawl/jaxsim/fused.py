@@ -50,10 +50,14 @@ from softcrawl.jaxsim.factor import padded_size
 #: ``benchmarks/fused_kernel.py`` times the variants (each after ``jax.clear_caches()``).
 NUM_WARPS = 8
 ROW_BLOCK = 32
+#: Whether an iteration's product runs its blocks of rows as a loop in the program instead of
+#: unrolled: fewer registers a thread, so more programs per multiprocessor at large batches, and
+#: less overlap of the blocks' loads within a program. Read when a solve is traced, as above.
+LOOP_PRODUCT = False
 
 
-def _kernel(n: int, n_iter: int, barrier, row_block: int, w_ref, q_ref, mu_ref, lam_ref, act_ref, b_ref,
-            x_ref, wi_ref, g_ref, su_ref, sy_ref):
+def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_ref, q_ref, mu_ref, lam_ref, act_ref,
+            b_ref, x_ref, wi_ref, g_ref, su_ref, sy_ref):
     """One robot's solve (module doc). Inputs ``w_ref`` ``(n, n)`` the operator ``W``, ``q_ref``
     ``(n,)``, ``mu_ref`` and ``act_ref`` ``(K,)`` (``act_ref`` int32, nonzero for an active
     contact), ``lam_ref`` ``(n,)`` the warm start, ``b_ref`` the extrapolation weights; ``x_ref``
@@ -119,9 +123,15 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, w_ref, q_ref, mu_ref, 
         x, y = c
         slot = lax.rem(k, 2)
         sy_ref[slot, :] = y
-        for r0 in range(0, N, row_block):  # u = Ws~ y + g0, by blocks of rows
+        def product(r0):  # u = Ws~ y + g0 on a block of rows
             rows = pl.ds(r0, row_block)
             su_ref[slot, rows] = jnp.sum(wi_ref[rows, :].astype(dt) * y[None, :], axis=1) + g_ref[rows]
+
+        if loop_product:
+            lax.fori_loop(0, N // row_block, lambda blk, c: (product(blk * row_block), c)[1], 0)
+        else:
+            for r0 in range(0, N, row_block):
+                product(r0)
         barrier()
         u1, u2 = su_ref[slot, i1], su_ref[slot, i2]
         # z = y - step u after De Saxce's change, this row's contact's three components, projected
@@ -169,7 +179,8 @@ def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", inte
     vector = jax.ShapeDtypeStruct((N,), dt)
     pair = jax.ShapeDtypeStruct((2, N), dt)
     x, *_ = pl.pallas_call(
-        partial(_kernel, n, n_iter, (lambda: None) if interpret else pltriton.debug_barrier, min(ROW_BLOCK, N)),
+        partial(_kernel, n, n_iter, (lambda: None) if interpret else pltriton.debug_barrier, min(ROW_BLOCK, N),
+                LOOP_PRODUCT),
         out_shape=(jax.ShapeDtypeStruct((n,), dt), jax.ShapeDtypeStruct((N, N), storage), vector, pair, pair),
         interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
