@@ -68,7 +68,8 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
     contacts' rows), the warm start ``x0`` projected, and, ``row_block`` rows of ``W`` at a time,
     ``Ws = s W s`` rounded to the storage dtype into the scratch ``wi_ref`` ``(N, N)``, the
     refinement's constant ``g0 = (Ws - Ws~) x0 + s q`` into ``g_ref`` and the Gershgorin bound
-    ``L``. Then the iterations: each stores ``u`` and ``y`` into the scratch ``su_ref`` and
+    ``L``. Then the iterations (each product ``row_block`` rows at a time, the blocks unrolled or,
+    with ``loop_product``, looped): each stores ``u`` and ``y`` into the scratch ``su_ref`` and
     ``sy_ref`` ``(2, N)``, slot ``k % 2``, and reads back its contact's three components of each
     after ``barrier()`` (the program's threads' stores made visible to all of them): one barrier
     an iteration, the two slots keeping an iteration's stores from overwriting what a slower
