@@ -43,7 +43,9 @@ mixed designs pays for its largest; grouping designs by leg count is the caller'
 follow ``jax_enable_x64``, which the caller sets (never at import).
 :mod:`~softcrawl.jaxsim.contact` holds the constraint solve (attachments and frictional floor
 contact) of one robot with fixed, padded shapes, ``jax.vmap``-ped over the batch by the engine;
-:mod:`~softcrawl.jaxsim.fused` runs its iterations in one GPU kernel per robot.
+:mod:`~softcrawl.jaxsim.fused` runs its accelerated-gradient solve in one GPU kernel per robot,
+both forms on :mod:`~softcrawl.jaxsim.cone`'s arithmetic; :mod:`~softcrawl.jaxsim.factor`
+inverts the step's Cholesky factors, by the library or in one GPU kernel per matrix.
 For a vector env (:mod:`softcrawl.envs.backends.jaxvec`): :mod:`~softcrawl.jaxsim.rig` gives each
 robot its own regulators and pressure warp and stops a robot where it diverged
 (:func:`~softcrawl.jaxsim.rig.make_action_rollout`); :mod:`~softcrawl.jaxsim.batch` writes rows into

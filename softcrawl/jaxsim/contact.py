@@ -68,6 +68,8 @@ import numpy as np
 from jax import lax
 from jax.scipy.linalg import cho_factor, cho_solve
 
+from softcrawl.jaxsim.cone import cone_projection, de_saxce_term
+
 #: The normal column of ``(K, 3)`` impulses or velocities (a broadcastable mask).
 _NORMAL = np.arange(3) == 0
 
@@ -141,27 +143,18 @@ def _columns(v):
 
 def project_cone(lam, mu):
     """Euclidean projection of impulses ``(K, 3)`` (normal first) onto the Coulomb cones
-    ``|lam_t| <= mu lam_n``: unchanged inside, 0 in the polar cone ``mu |lam_t| <= -lam_n``,
-    else ``lam_n' = (lam_n + mu |lam_t|) / (1 + mu^2)``, ``lam_t' = mu lam_n' lam_t / |lam_t|``
-    (the closed-form projection onto a second-order cone, as in Mazhar et al. 2015). Written
-    with one reciprocal square root, selects and broadcasts (:func:`_columns`), so that a
-    compiled iteration fuses it with its neighbours: ``|lam_t| = s r``, ``s = |lam_t|^2``, ``r =
-    1 / sqrt(s)`` (``s`` floored at the dtype's smallest normal number for ``lam_t = 0``)."""
+    ``|lam_t| <= mu lam_n`` (:func:`softcrawl.jaxsim.cone.cone_projection`), written with selects
+    and broadcasts (:func:`_columns`) so that a compiled iteration fuses it with its neighbours."""
     n, t1, t2 = _columns(lam)
-    mu = jnp.reshape(mu, (-1, 1))
-    s = t1 * t1 + t2 * t2
-    r = lax.rsqrt(jnp.maximum(s, jnp.finfo(lam.dtype).tiny))
-    nt = s * r
-    inside = nt <= mu * n
-    ln = jnp.where(inside, n, jnp.maximum((n + mu * nt) / (1 + mu * mu), 0))
-    return jnp.where(_NORMAL, ln, lam * jnp.where(inside, 1, mu * ln * r))
+    ln, f = cone_projection(n, t1, t2, jnp.reshape(mu, (-1, 1)))
+    return jnp.where(_NORMAL, ln, lam * f)
 
 
 def _de_saxce(u, mu):
-    """Velocities ``(K, 3)`` with De Saxce's normal ``u_n + mu |u_t|``: complementary to the
-    impulses in the Coulomb cone exactly when they solve the Coulomb problem."""
+    """Velocities ``(K, 3)`` with De Saxce's normal ``u_n + mu |u_t|``
+    (:func:`softcrawl.jaxsim.cone.de_saxce_term`)."""
     _, t1, t2 = _columns(u)
-    return u + jnp.where(_NORMAL, jnp.reshape(mu, (-1, 1)) * jnp.sqrt(t1 * t1 + t2 * t2), 0)
+    return u + jnp.where(_NORMAL, de_saxce_term(t1, t2, jnp.reshape(mu, (-1, 1))), 0)
 
 
 def gershgorin_bound(W):

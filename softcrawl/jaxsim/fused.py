@@ -41,6 +41,7 @@ import jax.numpy as jnp
 from jax import lax
 from jax.experimental import pallas as pl
 
+from softcrawl.jaxsim.cone import cone_projection, de_saxce_term
 from softcrawl.jaxsim.factor import padded_size
 
 #: Warps per program, and rows of the operator a program multiplies at once: a block's numbers
@@ -92,14 +93,9 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
     s, live = scale(i)
     mu = pltriton.load(mu_ref.at[i // 3], mask=i < n, other=0.0)
 
-    def project(n_, t1, t2):  # project_cone's arithmetic on this row's contact: this row's component
-        sq = t1 * t1 + t2 * t2
-        r = lax.rsqrt(jnp.maximum(sq, tiny))
-        nt = sq * r
-        inside = nt <= mu * n_
-        ln = jnp.where(inside, n_, jnp.maximum((n_ + mu * nt) / (1 + mu * mu), 0))
-        own = jnp.where(tangent1, t1, t2)
-        return jnp.where(live, jnp.where(normal, ln, own * jnp.where(inside, 1, mu * ln * r)), 0)
+    def project(n_, t1, t2):  # the cone projection of this row's contact: this row's component
+        ln, f = cone_projection(n_, t1, t2, mu)
+        return jnp.where(live, jnp.where(normal, ln, jnp.where(tangent1, t1, t2) * f), 0)
 
     safe = jnp.where(live, s, 1)
     x0 = project(*(pltriton.load(lam_ref.at[j], mask=live, other=0.0) / safe for j in (base, base + 1, base + 2)))
@@ -124,19 +120,21 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
         x, y = c
         slot = lax.rem(k, 2)
         sy_ref[slot, :] = y
-        def product(r0):  # u = Ws~ y + g0 on a block of rows
-            rows = pl.ds(r0, row_block)
+
+        def product(blk, carry):  # u = Ws~ y + g0 on a block of rows
+            rows = pl.ds(blk * row_block, row_block)
             su_ref[slot, rows] = jnp.sum(wi_ref[rows, :].astype(dt) * y[None, :], axis=1) + g_ref[rows]
+            return carry
 
         if loop_product:
-            lax.fori_loop(0, N // row_block, lambda blk, c: (product(blk * row_block), c)[1], 0)
+            lax.fori_loop(0, N // row_block, product, 0)
         else:
-            for r0 in range(0, N, row_block):
-                product(r0)
+            for blk in range(N // row_block):
+                product(blk, 0)
         barrier()
         u1, u2 = su_ref[slot, i1], su_ref[slot, i2]
         # z = y - step u after De Saxce's change, this row's contact's three components, projected
-        xn = project(sy_ref[slot, base] - step * (su_ref[slot, base] + mu * jnp.sqrt(u1 * u1 + u2 * u2)),
+        xn = project(sy_ref[slot, base] - step * (su_ref[slot, base] + de_saxce_term(u1, u2, mu)),
                      sy_ref[slot, i1] - step * u1, sy_ref[slot, i2] - step * u2)
         return xn, xn + b_ref[k] * (xn - x)
 
