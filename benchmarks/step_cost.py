@@ -136,9 +136,9 @@ def main(argv=None) -> None:
             specs = jax.tree.map(lambda a: jax.ShapeDtypeStruct(np.shape(a), a.dtype, sharding=sharding),
                                  inputs(steps, *batch(B, designs)))
             with jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):  # Pallas reads the GPU's kind here
-                lowered = make_action_rollout(steps).lower(*specs)
+                program = make_action_rollout(steps).lower(*specs)
             with captured_stderr() if args.registers else contextlib.nullcontext([""]) as log:
-                text = lowered.compile().as_text()
+                text = program.compile().as_text()
             seq = sequential_cost(text, STEP_SCOPES)
             registers = {}
             if args.registers:
