@@ -2,8 +2,9 @@
 the default solve (accelerated projected gradient without restart, its default iterations,
 :func:`softcrawl.jaxsim.contact.solve_contacts`) against the previous engine's projected
 Gauss-Seidel (100 sweeps), on the same problems with the same warm start; ``apgd_float16``: the
-default solve reading the Delassus operator in float16 (``Settings.delassus = "dense16"``, the
-float32 engine's default; ``apgd`` reads it in the arrays' precision).
+default solve reading the Delassus operator in float16 (``Settings.delassus = "dense16"``; the
+float32 engine's default ``"fused16"`` is the same solve in one GPU kernel; ``apgd`` reads it in
+the arrays' precision).
 
 Random designs of the ``paper`` preset (each leg count of the space in turn) are settled
 (:func:`~softcrawl.jaxsim.engine.make_settle`), then held for one action at random regulator

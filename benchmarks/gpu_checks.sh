@@ -10,27 +10,25 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR forms        # ~5 min
 #
 # latency:     the two GPU kernels checked on the card, then the issue's 1.5 ms: the contact solve in
 #              one kernel (`fused_kernel.py`: compiled for the card against XLA's iterations on 96
 #              landed robots' problems, three actions of the whole engine in each form, the solve
 #              alone at 96 robots in XLA's form and the kernel's seven variants; if a variant
-#              other than the default, 32 rows at a time, 8 warps, unrolled, is fastest, set
+#              other than the default, 64 rows at a time, 8 warps, unrolled, is fastest, set
 #              fused.ROW_BLOCK / NUM_WARPS / LOOP_PRODUCT), the inverse Cholesky factors in one
 #              kernel (`cholesky_kernel.py`: its error and the library's, both timed at 96
-#              robots' matrices with the kernel's warps;
-#              if another `factor.PER_THREAD` is fastest, set it); then the step at 96 robots,
-#              float32, with the defaults (`dense16`, `library`) and with both kernels
-#              (`--delassus fused16 --cholesky kernel`). If the kernels' step is faster and the
-#              checks agree, make them the GPU's defaults (`build_model`'s float32 `delassus`,
-#              `Settings.cholesky`); `attribution` tells which of the two pays. Each batch size
-#              compiles in its own 30-60 s.
+#              robots' matrices with the kernel's warps; if another `factor.PER_THREAD` than 64
+#              is fastest, set it); then the step at 96 robots, float32, with XLA's solve and the
+#              library's factors (`--delassus dense16 --cholesky library`) and with the defaults
+#              (both kernels). Each batch size compiles in its own 30-60 s.
 # throughput:  the step at 16,384 robots in both forms: the issue's 250k robot-steps/s (about
 #              0.07 s a step).
 # attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
-#              factors, `dense16` with the kernel's), and both kernels alone at 16,384 robots
-#              (their variants: occupancy decides there).
+#              factors, `dense16` with the kernel's); both kernels alone at 16,384 robots
+#              (their variants: occupancy decides there); the legs' RID product at JAX's float32
+#              dot algorithms at 2,048 robots (`dot_algorithms.py`: whether three TF32 passes
+#              pay where the product is bound by float32's arithmetic).
 # kernels:     the step at 96 and 1,024 robots with the Delassus operator read in float32
 #              (`--delassus dense`: the float16 operator against it), then every kernel of
 #              the 96-robot step timed without CUDA graphs (kernels-b96, and the device's
@@ -42,12 +40,8 @@
 #              (`step_cost.py --profile`): where the large batches' time goes.
 # groundtruth: the all-designs ground truth's rate on 256 sampled designs and its projection
 #              for the 6,972 (`groundtruth.py rate`).
-# forms:       the step at 96, 1,024 and 16,384 robots with the legs' RID terms through `Z`
-#              (`--rid-form rows`, the CPU's form) instead of the pairs form: the pairs' matrix
-#              product is 2.5x the multiply-adds (about 1.3 TFLOP per step at 16,384 robots), `Z`
-#              its bytes (256 KB per leg); compare with `latency`'s lines.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: latency, throughput, attribution, kernels, training, profile, groundtruth or forms}
+out=${1:?OUTDIR}; stage=${2:?STAGE: latency, throughput, attribution, kernels, training, profile or groundtruth}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
@@ -74,7 +68,8 @@ attribution)
     done
     timeout 180 python3 benchmarks/fused_kernel.py --batch 96 --batches 16384 --actions 0 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 16384 --calls 5 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
+    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 16384 --calls 5 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl"
+    timeout 120 python3 benchmarks/dot_algorithms.py --robots 2048 --calls 5 2>>"$out/log.txt" | tee -a "$out/dots.jsonl" ;;
 kernels)
     timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --delassus dense \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
@@ -89,14 +84,9 @@ profile)
     XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 560 python3 benchmarks/step_cost.py --no-cost --time \
         --batches 1024,16384 --calls 2 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
     for b in /tmp/prof/b*; do gzip -c "$b/kernels.json" > "$out/kernels-$(basename "$b").json.gz"; done ;;
-forms)
-    timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --rid-form rows \
-        2>>"$out/log.txt" | tee -a "$out/forms.jsonl"
-    timeout 200 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --rid-form rows \
-        2>>"$out/log.txt" | tee -a "$out/forms.jsonl" ;;
 groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: latency, throughput, attribution, kernels, training, profile, groundtruth or forms" >&2; exit 2 ;;
+    echo "unknown stage $stage: latency, throughput, attribution, kernels, training, profile or groundtruth" >&2; exit 2 ;;
 esac

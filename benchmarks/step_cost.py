@@ -36,7 +36,7 @@ default device. Printed as one JSON line (per batch size when timing):
 
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
-        [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky kernel] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
+        [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384 [--registers]
 """
@@ -64,8 +64,9 @@ def main(argv=None) -> None:
                         "default: the engine's for the precision)")
     p.add_argument("--rid-form", choices=("rows", "pairs"), default=None,
                    help="the legs' RID terms' form (Settings.rid_form; default: by platform)")
-    p.add_argument("--cholesky", choices=("library", "kernel"), default="library",
-                   help="how the step inverts its Cholesky factors (Settings.cholesky)")
+    p.add_argument("--cholesky", choices=("library", "kernel"), default=None,
+                   help="how the step inverts its Cholesky factors (Settings.cholesky; default: the engine's for "
+                        "the precision)")
     p.add_argument("--batch", type=int, default=2, help="robots of the compiled program whose cost is read")
     p.add_argument("--steps", type=int, default=None, help="steps per action (default: the preset's)")
     p.add_argument("--time", action="store_true", help="also time the step (the default where JAX has a GPU)")
@@ -104,8 +105,8 @@ def main(argv=None) -> None:
     space, designs = cfg.env.design_space(), cfg.env.designs()
     slots = max(sum(v > 0 for v in d) for d in designs)
     table = build_table(space, factory=robot_factory(cfg), n_slots=slots, solver=args.solver,
-                        iterations=args.iterations, delassus=args.delassus)
-    settings = dataclasses.replace(table.parts.settings, rid_form=args.rid_form, cholesky=args.cholesky)
+                        iterations=args.iterations, delassus=args.delassus, cholesky=args.cholesky)
+    settings = dataclasses.replace(table.parts.settings, rid_form=args.rid_form)
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)

@@ -443,8 +443,8 @@ def test_the_fused_kernels_variants_give_the_same_impulses(C, monkeypatch):
     """The kernel's tuning constants (:data:`softcrawl.jaxsim.fused.ROW_BLOCK`, ``NUM_WARPS``,
     ``LOOP_PRODUCT``, which ``benchmarks/fused_kernel.py`` times on a GPU) change how a program
     is laid out, not its arithmetic: in the interpreter (float32; warps do not reach it) blocks
-    of 16 rows and the product looped give the default's impulses to the bit, each row's
-    product summed over all columns in one reduction."""
+    of 16, 32 and 64 rows, the product unrolled or looped, give the same impulses to the bit,
+    each row's product summed over all columns in one reduction."""
     from softcrawl.jaxsim import fused
 
     W, q, mu, warm, act = _padded(*_random_problem(np.random.default_rng(9), 8), np.zeros(24))
@@ -455,9 +455,11 @@ def test_the_fused_kernels_variants_give_the_same_impulses(C, monkeypatch):
         return np.asarray(C.apgd_coulomb(*args[:3], args[3], act, 48, restart=False, storage="float16",
                                          fused="interpret"))
 
+    monkeypatch.setattr(fused, "ROW_BLOCK", 64)
+    monkeypatch.setattr(fused, "LOOP_PRODUCT", False)
     want = solve()
     assert np.abs(want).max() > 0
-    for rows, loop in ((16, False), (32, True), (16, True)):
+    for rows, loop in ((32, False), (16, False), (64, True), (16, True)):
         monkeypatch.setattr(fused, "ROW_BLOCK", rows)
         monkeypatch.setattr(fused, "LOOP_PRODUCT", loop)
         np.testing.assert_array_equal(solve(), want)

@@ -146,8 +146,10 @@ def test_an_unknown_delassus_form_is_refused(landed):
     """``Settings.delassus`` other than ``"dense"``, ``"dense16"``, ``"fused16"`` or ``"blocks"``
     is refused where the settings are made, with a ValueError naming the setting, instead of the
     step falling back to the dense product silently; ``"fused16"`` reads the operator in
-    float16. :func:`build_model` makes float64 models ``"dense"`` (the verifying engine keeps
-    its operator whole) and float32 ones ``"dense16"``."""
+    float16. :func:`build_model` makes float64 models ``"dense"`` with the library's
+    factorisations (the verifying engine keeps its operator whole) and float32 ones the GPU's
+    kernels, ``"fused16"`` and ``Settings.cholesky = "kernel"`` (a CPU steps them as ``"dense"``
+    and ``"library"`` to the bit: the tests below); an unknown ``cholesky`` is refused too."""
     from softcrawl.jaxsim.model import build_model
     from softcrawl.robot import RobotConfig, build_robot
 
@@ -157,11 +159,15 @@ def test_an_unknown_delassus_form_is_refused(landed):
     assert dataclasses.replace(model.settings, delassus="blocks").delassus == "blocks"
     assert dataclasses.replace(model.settings, delassus="fused16").delassus_storage == "float16"
     assert model.settings.delassus == "dense" and model.settings.delassus_storage is None
+    assert model.settings.cholesky == "library"
     robot = build_robot("1,0,2,0,1,0,3,0", RobotConfig(model="reduced", dt=0.02, disk_mesh_size=25))
     half = build_model([robot], dtype=jnp.float32).settings
-    assert half.delassus == "dense16" and half.delassus_storage == "float16"
+    assert half.delassus == "fused16" and half.delassus_storage == "float16" and half.cholesky == "kernel"
+    assert build_model([robot], dtype=jnp.float32, delassus="dense16", cholesky="library").settings.cholesky == "library"
     with pytest.raises(ValueError, match="settings.delassus"):
         build_model([robot], delassus="float16")
+    with pytest.raises(ValueError, match="settings.cholesky"):
+        build_model([robot], cholesky="cusolver")
 
 
 def test_the_float16_operator_gives_the_full_operators_velocities(landed):

@@ -40,10 +40,11 @@ def padded_size(n: int) -> int:
 
 
 #: Numbers of each of the program's two ``(N, N)`` matrices a thread holds, which sets its warps
-#: (:func:`_warps`; 1 to 16): 16 gives 8 warps for the legs (``N = 64``) and 16 for the attachment
-#: block (``N = 128``), neither spilling on an H100 (ptxas' counts: benchmarks/RESULTS.md). Read
-#: when a call is traced: ``benchmarks/cholesky_kernel.py`` times other values.
-PER_THREAD = 16
+#: (:func:`_warps`; 1 to 16): 64 gives 2 warps for the legs (``N = 64``) and 8 for the attachment
+#: block (``N = 128``), 128 registers a thread, no spill on an H100 (ptxas' counts), the fastest
+#: of 8, 16, 32 and 64 for both sizes on an H200 (benchmarks/RESULTS.md). Read when a call is
+#: traced: ``benchmarks/cholesky_kernel.py`` times other values.
+PER_THREAD = 64
 
 
 def _warps(N: int) -> int:

@@ -48,9 +48,11 @@ from softcrawl.jaxsim.factor import padded_size
 #: are spread over the program's registers, and too large a block (the whole operator at any
 #: warp count) spills them to local memory (ptxas' counts for an H100: benchmarks/RESULTS.md,
 #: ``step_cost.py --gpu-target ... --registers``). Read when a solve is traced:
-#: ``benchmarks/fused_kernel.py`` times the variants (each after ``jax.clear_caches()``).
+#: ``benchmarks/fused_kernel.py`` times the variants (each after ``jax.clear_caches()``). 64 rows
+#: at 8 warps (160 registers, no spill) was the fastest of seven on an H200 at 96 robots
+#: (benchmarks/RESULTS.md).
 NUM_WARPS = 8
-ROW_BLOCK = 32
+ROW_BLOCK = 64
 #: Whether an iteration's product runs its blocks of rows as a loop in the program instead of
 #: unrolled: fewer registers a thread, so more programs per multiprocessor at large batches, and
 #: less overlap of the blocks' loads within a program. Read when a solve is traced, as above.

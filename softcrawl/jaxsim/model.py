@@ -169,18 +169,18 @@ class Settings:
             ``"dense"`` (one matrix-vector product per iteration, the fewest kernels),
             ``"dense16"`` (the same, the iterations reading the operator in float16 by iterative
             refinement, :func:`softcrawl.jaxsim.contact.apgd_coulomb`'s ``storage``: half the
-            bytes; :func:`build_model`'s default in float32; a CPU reads its operator whole,
+            bytes; a CPU reads its operator whole,
             ``jax.lax.platform_dependent``: there it stays in cache and float16 would only add
             conversions), ``"fused16"`` (``"dense16"``'s solve, its scaling and rounding
             included, in one kernel on a GPU, :mod:`softcrawl.jaxsim.fused`: the operator read
-            from memory once; a CPU runs ``"dense"``) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
+            from memory once; a CPU runs ``"dense"``; :func:`build_model`'s default in float32) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
             times fewer bytes per iteration than ``"dense"``, more kernels), the same operator;
         rid_form: the form of the legs' RID terms (:func:`softcrawl.jaxsim.legs.rid_terms`),
             ``"rows"`` or ``"pairs"``, or None (the default: by platform);
         cholesky: how the step inverts the Cholesky factors of the legs' step matrices and of the
             attachment block (:func:`softcrawl.jaxsim.factor.cholesky_inverse`): ``"library"``
             (a factorisation and a triangular solve) or ``"kernel"`` (both in one kernel on a GPU;
-            a CPU runs the library's).
+            a CPU runs the library's; :func:`build_model`'s default in float32).
     """
 
     dt: float
@@ -399,7 +399,7 @@ def _robot_data(robot, n_slots: int, inverse: np.ndarray) -> RobotData:
 def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: str = "apgd",
                 iterations: int | None = None, dtype=None, n_slots: int | None = None, floor: bool = True,
                 calibration: PressureCalibration = PressureCalibration(), rate_kpa_s: float = 150.0,
-                delassus: str | None = None) -> Model:
+                delassus: str | None = None, cholesky: str | None = None) -> Model:
     """The static model of a batch of reduced robots (stacked per-robot data, leading axis = robot).
 
     Args:
@@ -417,13 +417,16 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: 
         floor: False leaves the floor out (a robot hanging free).
         calibration: the real-to-sim pressure warp; rate_kpa_s: the regulators' slew limit, kPa/s
             (:class:`softcrawl.robot.RegulatorBank`).
-        delassus: :attr:`Settings.delassus` (default ``"dense16"`` in float32, ``"dense"`` in
-            float64: a float64 engine is the one that verifies, and keeps its operator whole).
+        delassus, cholesky: :attr:`Settings.delassus` and :attr:`Settings.cholesky` (defaults
+            ``"fused16"`` and ``"kernel"`` in float32: a GPU's fastest step, measured on an H200,
+            ``benchmarks/RESULTS.md``, and on a CPU the same step as ``"dense"`` and
+            ``"library"``; ``"dense"`` and ``"library"`` in float64: a float64 engine is the one
+            that verifies, and keeps its operator whole and its factorisations the library's).
 
     Raises:
         ValueError: an empty batch, a robot that is not reduced with a floating disk, robots
             that differ in their leg reduction, disk, attachments or settings, too few slots, an
-            unknown solver or fewer than one iteration, an unknown ``delassus``, RID triangles
+            unknown solver or fewer than one iteration, an unknown ``delassus`` or ``cholesky``, RID triangles
             that are not membranes (factors on their normal components).
     """
     iterations = check_solver(solver, iterations)
@@ -454,13 +457,17 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: 
     floor = bool(floor and mdl.floor is not None)
     if dtype is None:
         dtype = jnp.asarray(0.0).dtype  # float64 under jax_enable_x64, else float32
+    single = jnp.dtype(dtype) == jnp.float32
     if delassus is None:
-        delassus = "dense16" if jnp.dtype(dtype) == jnp.float32 else "dense"
+        delassus = "fused16" if single else "dense"
+    if cholesky is None:
+        cholesky = "kernel" if single else "library"
     settings = Settings(float(cfg.dt), float(mdl.rayleigh_mass), float(mdl.rayleigh_stiffness),
                         tuple(float(g) for g in mdl.gravity), floor, float(mdl.floor.height),
                         float(mdl.floor.contact_distance), float(mdl.floor.friction),
                         int(disk_contacts) if floor else 0, int(leg_contacts) if floor else 0, solver, iterations,
-                        (float(cal.a), float(cal.b)), float(rate_kpa_s), int(mdl.n_channels), delassus)
+                        (float(cal.a), float(cal.b)), float(rate_kpa_s), int(mdl.n_channels), delassus,
+                        cholesky=cholesky)
 
     def cast(a):
         a = np.asarray(a)

@@ -188,7 +188,7 @@ def build_table(space: DesignSpace, config: RobotConfig | None = None,
             covering designs share).
         n_slots: default leg slots of the rows (default the space's ``max_legs``).
         dtype: array precision (default float64 if ``jax_enable_x64`` is on, else float32).
-        model_kw: :func:`~softcrawl.jaxsim.model.build_model`'s contact, calibration, rate, Delassus and
+        model_kw: :func:`~softcrawl.jaxsim.model.build_model`'s contact, calibration, rate, Delassus, Cholesky and
             floor settings.
 
     Raises:
