@@ -4,7 +4,7 @@
 # on the warm machine, and record the figures in benchmarks/RESULTS.md with the card:
 #
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~5 min, first
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR throughput   # ~5 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR throughput   # ~6 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~6 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
@@ -23,12 +23,13 @@
 #              library's factors (`--delassus dense16 --cholesky library`) and with the defaults
 #              (both kernels). Each batch size compiles in its own 30-60 s.
 # throughput:  the step at 16,384 robots in both forms: the issue's 250k robot-steps/s (about
-#              0.07 s a step).
+#              0.07 s a step); then the defaults with the RID pair product at three TF32 passes
+#              (`--pairs-dot TF32_TF32_F32_X3`: whether tensor cores beat float32's arithmetic
+#              where the product is 1.3 TFLOP a step; at 96 robots they did not). If faster, set
+#              legs.PAIRS_DOT_ALGORITHM.
 # attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
 #              factors, `dense16` with the kernel's); both kernels alone at 16,384 robots
-#              (their variants: occupancy decides there); the legs' RID product at JAX's float32
-#              dot algorithms at 2,048 robots (`dot_algorithms.py`: whether three TF32 passes
-#              pay where the product is bound by float32's arithmetic).
+#              (their variants: occupancy decides there).
 # kernels:     the step at 96 and 1,024 robots with the Delassus operator read in float32
 #              (`--delassus dense`: the float16 operator against it), then every kernel of
 #              the 96-robot step timed without CUDA graphs (kernels-b96, and the device's
@@ -59,7 +60,9 @@ throughput)
         set -- $forms
         timeout 170 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --delassus $1 \
             --cholesky $2 2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
-    done ;;
+    done
+    timeout 170 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --pairs-dot TF32_TF32_F32_X3 \
+        2>>"$out/log.txt" | tee -a "$out/latency.jsonl" ;;
 attribution)
     for forms in "fused16 library" "dense16 kernel"; do
         set -- $forms
@@ -68,8 +71,7 @@ attribution)
     done
     timeout 180 python3 benchmarks/fused_kernel.py --batch 96 --batches 16384 --actions 0 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 16384 --calls 5 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl"
-    timeout 120 python3 benchmarks/dot_algorithms.py --robots 2048 --calls 5 2>>"$out/log.txt" | tee -a "$out/dots.jsonl" ;;
+    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 16384 --calls 5 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
 kernels)
     timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --delassus dense \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"

@@ -36,7 +36,7 @@ default device. Printed as one JSON line (per batch size when timing):
 
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
-        [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
+        [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library] [--pairs-dot TF32_TF32_F32_X3] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384 [--registers]
 """
@@ -64,6 +64,9 @@ def main(argv=None) -> None:
                         "default: the engine's for the precision)")
     p.add_argument("--rid-form", choices=("rows", "pairs"), default=None,
                    help="the legs' RID terms' form (Settings.rid_form; default: by platform)")
+    p.add_argument("--pairs-dot", default=None, metavar="PRESET",
+                   help="the pairs form's product's dot algorithm in float32, a jax.lax.DotAlgorithmPreset name "
+                        "(softcrawl.jaxsim.legs.PAIRS_DOT_ALGORITHM; default: full float32)")
     p.add_argument("--cholesky", choices=("library", "kernel"), default=None,
                    help="how the step inverts its Cholesky factors (Settings.cholesky; default: the engine's for "
                         "the precision)")
@@ -95,6 +98,7 @@ def main(argv=None) -> None:
 
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
+    from softcrawl.jaxsim import legs
     from softcrawl.jaxsim.cost import (captured_stderr, deviceless_gpu, kernel_profile, ptxas_report,
                                        sequential_cost, xla_flops)
     from softcrawl.jaxsim.engine import STEP_SCOPES, rest_state
@@ -107,6 +111,7 @@ def main(argv=None) -> None:
     table = build_table(space, factory=robot_factory(cfg), n_slots=slots, solver=args.solver,
                         iterations=args.iterations, delassus=args.delassus, cholesky=args.cholesky)
     settings = dataclasses.replace(table.parts.settings, rid_form=args.rid_form)
+    legs.PAIRS_DOT_ALGORITHM = args.pairs_dot
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)
@@ -152,7 +157,7 @@ def main(argv=None) -> None:
             print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
                               "precision": args.precision, "solver": settings.solver,
                               "iterations": settings.iterations, "delassus": settings.delassus,
-                              "rid_form": settings.rid_form, "cholesky": settings.cholesky,
+                              "rid_form": settings.rid_form, "cholesky": settings.cholesky, "pairs_dot": args.pairs_dot,
                               "dependent_ops_per_step": seq.ops / steps,
                               "loop_trips_per_step": seq.trips / steps, **split(seq, B),
                               "bandwidth_floor_ms_per_step": 1e3 * floor_s,
@@ -163,6 +168,7 @@ def main(argv=None) -> None:
     out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),
            "precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
            "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
+           "pairs_dot": args.pairs_dot,
            "leg_slots": slots, "contacts": settings.disk_contacts + slots * settings.leg_contacts,
            "steps_per_action": steps, "jax": jax.__version__}
     if not args.no_cost:
@@ -199,7 +205,8 @@ def main(argv=None) -> None:
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
                           "device": out["device"], "precision": args.precision, "solver": out["solver"],
                           "iterations": out["iterations"], "delassus": settings.delassus,
-                          "rid_form": settings.rid_form, "cholesky": settings.cholesky}), flush=True)
+                          "rid_form": settings.rid_form, "cholesky": settings.cholesky,
+                          "pairs_dot": args.pairs_dot}), flush=True)
         if args.profile:
             where = Path(args.profile, f"b{B}")
             with jax.profiler.trace(str(where), create_perfetto_trace=True):

@@ -571,6 +571,32 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
         leg_motion.rid_terms(model.leg, state.q[0], qdot[0], 0.03, "dense")
 
 
+def test_the_pairs_forms_dot_algorithm_reaches_its_product_in_float32_only(landed, monkeypatch):
+    """:data:`softcrawl.jaxsim.legs.PAIRS_DOT_ALGORITHM` names the dot algorithm of the pairs
+    form's matrix product (for a GPU's tensor cores, which a CPU does not have: XLA's CPU runs
+    every preset in float32, so only where the setting goes is testable here): the float32
+    leg's traced RID terms carry it on their two products (tetrahedra, triangles), the float64
+    leg's do not (the verifying engine keeps full products), and a name that is no
+    ``jax.lax.DotAlgorithmPreset`` is a ValueError naming the setting."""
+    from softcrawl.jaxsim import legs as leg_motion
+
+    model, state, _ = landed
+    f32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a,
+                                 model.leg)
+    q = state.q[0]
+
+    def traced(part, dtype):
+        return str(jax.make_jaxpr(lambda a: leg_motion.rid_terms(part, a, 0 * a, 0.03, "pairs"))(q.astype(dtype)))
+
+    assert "TF32_TF32_F32_X3" not in traced(f32, jnp.float32)
+    monkeypatch.setattr(leg_motion, "PAIRS_DOT_ALGORITHM", "TF32_TF32_F32_X3")
+    assert traced(f32, jnp.float32).count("TF32_TF32_F32_X3") == 2
+    assert "TF32_TF32_F32_X3" not in traced(model.leg, jnp.float64)
+    monkeypatch.setattr(leg_motion, "PAIRS_DOT_ALGORITHM", "TF32x3")
+    with pytest.raises(ValueError, match="PAIRS_DOT_ALGORITHM"):
+        traced(f32, jnp.float32)
+
+
 def test_ptxas_report_reads_each_kernels_registers_and_spills():
     """:func:`softcrawl.jaxsim.cost.ptxas_report` on ptxas' report as XLA logs it (two kernels of
     a step compiled for an H100 without one, the log's lines as they came): each kernel's

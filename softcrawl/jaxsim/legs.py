@@ -34,6 +34,15 @@ from softcrawl.jaxsim.factor import cholesky_inverse
 #: The forms of :func:`rid_terms` (``Settings.rid_form``).
 RID_FORMS = ("rows", "pairs")
 
+#: The dot algorithm (a name of ``jax.lax.DotAlgorithmPreset``) of the pairs form's matrix
+#: product in float32, None for full float32 arithmetic: e.g. ``"TF32_TF32_F32_X3"``, three
+#: TF32 passes on a GPU's tensor cores at about float32's accuracy (relative error 2e-7 against
+#: 3e-4 for one pass, ``benchmarks/dot_algorithms.py``). At 16,384 robots the product is about
+#: 1.3 TFLOP a step, bound by float32 arithmetic on an H200 (benchmarks/RESULTS.md); at 96 robots
+#: three TF32 passes were not faster. Other precisions ignore it. Read when a step is traced
+#: (``benchmarks/step_cost.py --pairs-dot`` times it).
+PAIRS_DOT_ALGORITHM = None
+
 
 def _unit(v):
     return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
@@ -142,7 +151,8 @@ def _pair_terms(fam, d, qs, c):
     s = [sum(fam.factors[:, i, q] * g[q] for q in range(n)) - fam.rest_terms[:, i] for i in range(r)]
     mi, mj, _ = frame_monomials(frame_rows(k1))
     mono = jnp.stack([F[a // 3][a % 3] * F[b // 3][b % 3] for a, b in zip(mi, mj)])  # (M, E): monomial-major
-    dK = mono.reshape(-1) @ (frame_stiffness(fam) if fam.stiffness is None else fam.stiffness)
+    S = frame_stiffness(fam) if fam.stiffness is None else fam.stiffness
+    dK = jnp.matmul(mono.reshape(-1), S, precision=_pairs_dot(mono.dtype))
     u = jnp.einsum("eqj,j->eq", fam.rows, qs)
     v = [[sum(F[p][i] * u[:, 3 * a + i] for i in range(3)) for p in range(3)] for a in range(k1)]  # F u_a
     w = [s[i] + c * sum(fam.factors[:, i, 3 * a + p] * v[a][p] for a in range(k1) for p in range(3))
@@ -150,6 +160,20 @@ def _pair_terms(fam, d, qs, c):
     t = [[sum(fam.factors[:, i, 3 * a + p] * w[i] for i in range(r)) for p in range(3)] for a in range(k1)]
     CRw = jnp.stack([sum(t[a][p] * F[p][i] for p in range(3)) for a in range(k1) for i in range(3)])  # (n, E)
     return dK, -jnp.einsum("qe,eqj->j", CRw, fam.rows), jnp.sum(bad).astype(jnp.int32)
+
+
+def _pairs_dot(dtype):
+    """The pairs form's product's ``precision`` for arrays of ``dtype`` (:data:`PAIRS_DOT_ALGORITHM`).
+
+    Raises:
+        ValueError: a name that is not a ``jax.lax.DotAlgorithmPreset``.
+    """
+    name = PAIRS_DOT_ALGORITHM
+    if name is None or jnp.dtype(dtype) != jnp.float32:
+        return None
+    if name not in lax.DotAlgorithmPreset.__members__:
+        raise ValueError(f"PAIRS_DOT_ALGORITHM must name a jax.lax.DotAlgorithmPreset, not {name!r}")
+    return lax.DotAlgorithmPreset[name]
 
 
 def frame_rows(k1: int) -> int:
