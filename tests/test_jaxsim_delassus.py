@@ -571,6 +571,28 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
         leg_motion.rid_terms(model.leg, state.q[0], qdot[0], 0.03, "dense")
 
 
+def test_the_gpu_kernels_are_cudas_only(landed):
+    """The float32 defaults' two Pallas kernels (``Settings.delassus = "fused16"``,
+    ``Settings.cholesky = "kernel"``) are written for Triton on NVIDIA GPUs: the step exported for
+    CUDA holds them (JAX refuses to serialise their custom call, which names them), and the step
+    exported for other accelerators, TPU and ROCm, lowers without them (XLA's float16 solve and
+    the library's factors) instead of failing on a kernel it cannot lower."""
+    from softcrawl.jaxsim.engine import physics_step
+
+    model, state, kpa = landed
+    kernels = dataclasses.replace(model, settings=dataclasses.replace(model.settings, delassus="fused16",
+                                                                      cholesky="kernel"))
+
+    def exported(platform):
+        return jax.export.export(jax.jit(physics_step), platforms=[platform])(kernels, state, kpa).mlir_module()
+
+    with pytest.raises(ValueError, match="gpu.triton"):
+        exported("cuda")
+    for platform in ("tpu", "rocm"):
+        text = exported(platform)
+        assert "triton" not in text and "f16" in text
+
+
 def test_the_pairs_forms_dot_algorithm_reaches_its_product_in_float32_only(landed, monkeypatch):
     """:data:`softcrawl.jaxsim.legs.PAIRS_DOT_ALGORITHM` names the dot algorithm of the pairs
     form's matrix product (for a GPU's tensor cores, which a CPU does not have: XLA's CPU runs

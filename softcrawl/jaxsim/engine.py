@@ -152,9 +152,10 @@ def _physics_step(model, state: State, sim_kpa) -> State:
         problem = (cond.W, cond.q, jnp.full((K,), st.friction, cond.W.dtype), warm, rows.active)
         if st.delassus_storage is None:
             lam_c = solve(*problem)
-        else:  # a CPU reads its operator whole (Settings.delassus)
-            lam_c = jax.lax.platform_dependent(*problem, cpu=solve, default=partial(
-                solve, storage=st.delassus_storage, fused="gpu" if st.delassus == "fused16" else None))
+        else:  # a CPU reads its operator whole; the kernel is CUDA's (Settings.delassus)
+            stored = partial(solve, storage=st.delassus_storage)
+            kernel = {"cuda": partial(stored, fused="gpu")} if st.delassus == "fused16" else {}
+            lam_c = jax.lax.platform_dependent(*problem, cpu=solve, default=stored, **kernel)
     # 4. corrections
     with jax.named_scope("corrections"):
         dq, dv, _ = corrections(model, rows, cond, inv_chol, lam_c, R)

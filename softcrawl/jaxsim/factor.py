@@ -8,16 +8,17 @@ of each one's lower Cholesky factor ``A = C C^T`` once, so that every later solv
 ``form="library"`` factorises and then solves against the identity (``jax.lax.linalg.cholesky``
 and a triangular solve: LAPACK on a CPU; on a GPU cuSOLVER's batched factorisation and cuBLAS'
 triangular solve, each a chain of kernel launches, ``benchmarks/RESULTS.md``). ``form="kernel"``
-does both in one Pallas kernel on a GPU (Triton form, as :mod:`softcrawl.jaxsim.fused`), one
+does both in one Pallas kernel on an NVIDIA GPU (Triton form, as :mod:`softcrawl.jaxsim.fused`), one
 program per matrix, the matrix in registers: Gaussian elimination of ``[A | I]`` without pivoting,
 stable for SPD matrices as Cholesky's (Higham 2002, "Accuracy and Stability of Numerical
 Algorithms", sec. 10.1-10.2). Step ``k`` subtracts ``l r_k^T`` from the rows below ``k``, with
 ``r_k`` row ``k`` of the current matrix and ``l_i = a_ik / d_k`` (``d_k = a_kk``, the pivot); the
 same row operations turn ``I`` into ``L^-1`` of ``A = L D L^T`` (``L`` unit lower triangular), so
 that ``C = L D^1/2`` and ``C^-1 = D^-1/2 L^-1``. A matrix that is not positive definite gives a
-non-positive pivot and NaN or infinite entries, as the library's factorisation gives NaN. On a
-CPU ``"kernel"`` runs the library's form (``jax.lax.platform_dependent``); ``"interpret"`` runs the
-kernel in Pallas' interpreter on any platform (the tests').
+non-positive pivot and NaN or infinite entries, as the library's factorisation gives NaN. On
+other platforms than CUDA (a CPU among them) ``"kernel"`` runs the library's form
+(``jax.lax.platform_dependent``); ``"interpret"`` runs the kernel in Pallas' interpreter on any
+platform (the tests').
 """
 
 from __future__ import annotations
@@ -99,7 +100,7 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
     """``C^-1`` ``(n, n)`` (lower triangular), the inverse of the lower Cholesky factor of a
     symmetric positive definite ``A = C C^T`` ``(n, n)`` (any units: ``C^-1`` has the inverse
     square root of ``A``'s), by the module doc's ``form``: ``"library"``, ``"kernel"`` (one GPU
-    kernel; the library's form on a CPU) or ``"interpret"`` (the kernel in Pallas' interpreter).
+    kernel on CUDA, the library's form elsewhere) or ``"interpret"`` (the kernel in Pallas' interpreter).
     The library reads ``A``'s lower triangle only, the kernel the whole of it; ``symmetrize``
     factors ``(A + A^T) / 2`` instead, in every form (as ``jnp.linalg.cholesky``: for a matrix
     symmetric up to round-off, the step matrices' sums). Its error is of the order of
@@ -121,7 +122,7 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
 
     if form == "interpret":
         return kernel(A, True)
-    return lax.platform_dependent(A, cpu=partial(_library, symmetrize=symmetrize), default=partial(kernel, interpret=False))
+    return lax.platform_dependent(A, cuda=partial(kernel, interpret=False), default=partial(_library, symmetrize=symmetrize))
 
 
 def inverse_spd(A, form: str = "library"):

@@ -173,14 +173,16 @@ class Settings:
             ``jax.lax.platform_dependent``: there it stays in cache and float16 would only add
             conversions), ``"fused16"`` (``"dense16"``'s solve, its scaling and rounding
             included, in one kernel on a GPU, :mod:`softcrawl.jaxsim.fused`: the operator read
-            from memory once; a CPU runs ``"dense"``; :func:`build_model`'s default in float32) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
+            from memory once; CUDA only: a CPU runs ``"dense"``, other platforms ``"dense16"``;
+            :func:`build_model`'s default in float32) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
             times fewer bytes per iteration than ``"dense"``, more kernels), the same operator;
         rid_form: the form of the legs' RID terms (:func:`softcrawl.jaxsim.legs.rid_terms`),
             ``"rows"`` or ``"pairs"``, or None (the default: by platform);
         cholesky: how the step inverts the Cholesky factors of the legs' step matrices and of the
             attachment block (:func:`softcrawl.jaxsim.factor.cholesky_inverse`): ``"library"``
             (a factorisation and a triangular solve) or ``"kernel"`` (both in one kernel on a GPU;
-            a CPU runs the library's; :func:`build_model`'s default in float32).
+            CUDA only: other platforms, a CPU among them, run the library's; :func:`build_model`'s
+            default in float32).
     """
 
     dt: float
