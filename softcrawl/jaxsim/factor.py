@@ -122,7 +122,8 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
 
     if form == "interpret":
         return kernel(A, True)
-    return lax.platform_dependent(A, cuda=partial(kernel, interpret=False), default=partial(_library, symmetrize=symmetrize))
+    return lax.platform_dependent(A, cuda=partial(kernel, interpret=False),
+                                  default=partial(_library, symmetrize=symmetrize))
 
 
 def inverse_spd(A, form: str = "library"):

@@ -174,8 +174,9 @@ class Settings:
             conversions), ``"fused16"`` (``"dense16"``'s solve, its scaling and rounding
             included, in one kernel on a GPU, :mod:`softcrawl.jaxsim.fused`: the operator read
             from memory once; CUDA only: a CPU runs ``"dense"``, other platforms ``"dense16"``;
-            :func:`build_model`'s default in float32) or ``"blocks"`` (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6
-            times fewer bytes per iteration than ``"dense"``, more kernels), the same operator;
+            :func:`build_model`'s default in float32) or ``"blocks"``
+            (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6 times fewer bytes per
+            iteration than ``"dense"``, more kernels), the same operator;
         rid_form: the form of the legs' RID terms (:func:`softcrawl.jaxsim.legs.rid_terms`),
             ``"rows"`` or ``"pairs"``, or None (the default: by platform);
         cholesky: how the step inverts the Cholesky factors of the legs' step matrices and of the
@@ -428,8 +429,9 @@ def build_model(robots, leg_contacts: int = 12, disk_contacts: int = 8, solver: 
     Raises:
         ValueError: an empty batch, a robot that is not reduced with a floating disk, robots
             that differ in their leg reduction, disk, attachments or settings, too few slots, an
-            unknown solver or fewer than one iteration, an unknown ``delassus`` or ``cholesky``, RID triangles
-            that are not membranes (factors on their normal components).
+            unknown solver or fewer than one iteration, an unknown ``delassus`` or
+            ``cholesky``, RID triangles that are not membranes (factors on their normal
+            components).
     """
     iterations = check_solver(solver, iterations)
     robots = list(robots)
