@@ -3,30 +3,28 @@
 # (JSON lines, logs, gzipped kernel tables) under OUTDIR. Run the stages in order, back to back
 # on the warm machine, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR latency      # ~5 min, first
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR throughput   # ~6 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR targets      # ~7 min, first
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~6 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
 #
-# latency:     the two GPU kernels checked on the card, then the issue's 1.5 ms: the contact solve in
-#              one kernel (`fused_kernel.py`: compiled for the card against XLA's iterations on 96
-#              landed robots' problems, three actions of the whole engine in each form, the solve
-#              alone at 96 robots in XLA's form and the kernel's seven variants; if a variant
-#              other than the default, 64 rows at a time, 8 warps, unrolled, is fastest, set
-#              fused.ROW_BLOCK / NUM_WARPS / LOOP_PRODUCT), the inverse Cholesky factors in one
-#              kernel (`cholesky_kernel.py`: its error and the library's, both timed at 96
-#              robots' matrices with the kernel's warps; if another `factor.PER_THREAD` than 64
-#              is fastest, set it); then the step at 96 robots, float32, with XLA's solve and the
-#              library's factors (`--delassus dense16 --cholesky library`) and with the defaults
-#              (both kernels). Each batch size compiles in its own 30-60 s.
-# throughput:  the step at 16,384 robots in both forms: the issue's 250k robot-steps/s (about
-#              0.07 s a step); then the defaults with the RID pair product at three TF32 passes
-#              (`--pairs-dot TF32_TF32_F32_X3`: whether tensor cores beat float32's arithmetic
-#              where the product is 1.3 TFLOP a step; at 96 robots they did not). If faster, set
-#              legs.PAIRS_DOT_ALGORITHM.
+# targets:     the issue's two figures in one call (an H200 ran it but the TF32 step in 5.3 min): the step,
+#              float32, at 96 robots (1.5 ms) and 16,384 (250k robot-steps/s, about 0.07 s a
+#              step) with XLA's solve and the library's factors (`--delassus dense16 --cholesky
+#              library`) and with the defaults (both kernels), then the defaults at 16,384 with
+#              the RID pair product at three TF32 passes (`--pairs-dot TF32_TF32_F32_X3`: whether
+#              tensor cores beat float32's arithmetic where the product is 1.3 TFLOP a step; at
+#              96 robots they did not; if faster, set legs.PAIRS_DOT_ALGORITHM); then the two
+#              kernels checked on the card: the contact solve in one kernel (`fused_kernel.py`:
+#              against XLA's iterations on 96 landed robots' problems, two actions of the whole
+#              engine in each form, the solve alone at 96 robots in XLA's form and the kernel's
+#              seven variants; if one other than the default, 64 rows at a time, 8 warps,
+#              unrolled, is fastest, set fused.ROW_BLOCK / NUM_WARPS / LOOP_PRODUCT) and the
+#              inverse Cholesky factors (`cholesky_kernel.py`: its error and the library's, both
+#              timed at 96 robots' matrices; if a `factor.PER_THREAD` other than 64 is fastest,
+#              set it). Each batch size compiles in its own 20-45 s.
 # attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
 #              factors, `dense16` with the kernel's); both kernels alone at 16,384 robots
 #              (their variants: occupancy decides there).
@@ -42,27 +40,21 @@
 # groundtruth: the all-designs ground truth's rate on 256 sampled designs and its projection
 #              for the 6,972 (`groundtruth.py rate`).
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: latency, throughput, attribution, kernels, training, profile or groundtruth}
+out=${1:?OUTDIR}; stage=${2:?STAGE: targets, attribution, kernels, training, profile or groundtruth}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
-latency)
-    timeout 200 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 \
-        2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 96 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl"
+targets)
     for forms in "dense16 library" "fused16 kernel"; do
         set -- $forms
-        timeout 80 python3 benchmarks/step_cost.py --no-cost --time --batches 96 --calls 5 --delassus $1 --cholesky $2 \
-            2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
-    done ;;
-throughput)
-    for forms in "dense16 library" "fused16 kernel"; do
-        set -- $forms
-        timeout 170 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --delassus $1 \
-            --cholesky $2 2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
+        timeout 140 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 --delassus $1 \
+            --cholesky $2 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done
-    timeout 170 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 2 --pairs-dot TF32_TF32_F32_X3 \
-        2>>"$out/log.txt" | tee -a "$out/latency.jsonl" ;;
+    timeout 100 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 3 --pairs-dot TF32_TF32_F32_X3 \
+        2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+    timeout 130 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 20 \
+        2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
+    timeout 60 python3 benchmarks/cholesky_kernel.py --robots 96 --calls 20 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
 attribution)
     for forms in "fused16 library" "dense16 kernel"; do
         set -- $forms
@@ -90,5 +82,5 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: latency, throughput, attribution, kernels, training, profile or groundtruth" >&2; exit 2 ;;
+    echo "unknown stage $stage: targets, attribution, kernels, training, profile or groundtruth" >&2; exit 2 ;;
 esac
