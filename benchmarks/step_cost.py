@@ -112,6 +112,9 @@ def main(argv=None) -> None:
                         iterations=args.iterations, delassus=args.delassus, cholesky=args.cholesky)
     settings = dataclasses.replace(table.parts.settings, rid_form=args.rid_form)
     legs.PAIRS_DOT_ALGORITHM = args.pairs_dot
+    engine = {"precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
+              "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
+              "pairs_dot": args.pairs_dot}  # what every line printed was measured with
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)
@@ -154,10 +157,7 @@ def main(argv=None) -> None:
                     "spilling": {k: v["spill_stores"] for k, v in kernels.items() if v["spill_stores"]},
                     "most_registers": sorted(((v["registers"], k) for k, v in kernels.items()), reverse=True)[:5]}}
             floor_s = seq.bytes / steps / bandwidth
-            print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B,
-                              "precision": args.precision, "solver": settings.solver,
-                              "iterations": settings.iterations, "delassus": settings.delassus,
-                              "rid_form": settings.rid_form, "cholesky": settings.cholesky, "pairs_dot": args.pairs_dot,
+            print(json.dumps({"preset": args.preset, "gpu_target": args.gpu_target, "batch": B, **engine,
                               "dependent_ops_per_step": seq.ops / steps,
                               "loop_trips_per_step": seq.trips / steps, **split(seq, B),
                               "bandwidth_floor_ms_per_step": 1e3 * floor_s,
@@ -166,10 +166,7 @@ def main(argv=None) -> None:
         return
     device = jax.devices()[0]
     out = {"preset": args.preset, "device": f"{device.platform}:{device.device_kind}", "host": platform.node(),
-           "precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
-           "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
-           "pairs_dot": args.pairs_dot,
-           "leg_slots": slots, "contacts": settings.disk_contacts + slots * settings.leg_contacts,
+           **engine, "leg_slots": slots, "contacts": settings.disk_contacts + slots * settings.leg_contacts,
            "steps_per_action": steps, "jax": jax.__version__}
     if not args.no_cost:
         small = batch(args.batch, largest)
@@ -203,10 +200,7 @@ def main(argv=None) -> None:
                           "dependent_ops_per_step": sequential_cost(roll.as_text()).ops / steps,
                           "ms_per_step": 1e3 * wall / (args.calls * steps),
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
-                          "device": out["device"], "precision": args.precision, "solver": out["solver"],
-                          "iterations": out["iterations"], "delassus": settings.delassus,
-                          "rid_form": settings.rid_form, "cholesky": settings.cholesky,
-                          "pairs_dot": args.pairs_dot}), flush=True)
+                          "device": out["device"], **engine}), flush=True)
         if args.profile:
             where = Path(args.profile, f"b{B}")
             with jax.profiler.trace(str(where), create_perfetto_trace=True):
