@@ -1,18 +1,20 @@
-"""The step's inverse Cholesky factors in one kernel (``Settings.cholesky = "kernel"``,
+"""The step's inverses in one kernel each (``Settings.cholesky = "kernel"``,
 :mod:`softcrawl.jaxsim.factor`) against the library's factorisation and triangular solve, on
 JAX's default device.
 
-A robot's step inverts the factors of its legs' step matrices (``--legs`` per robot, 36 x 36 for
-the shipped leg) and of its attachment block (72 x 72 for six legs). On random symmetric positive
-definite matrices of those sizes and condition number ``--cond`` (the landed robots' leg step
-matrices: about 1e5), float32, printed as JSON lines:
+A robot's step inverts the Cholesky factors of its legs' step matrices (``--legs`` per robot, 36
+x 36 for the shipped leg; ``cholesky_inverse``, by elimination in the kernel) and its attachment
+block (72 x 72 for six legs; ``inverse_spd``, by sweeps in the kernel). Each function in each
+form, on random symmetric positive definite matrices of both sizes and condition number
+``--cond`` (the landed robots' leg step matrices: about 1e5), float32, printed as JSON lines:
 
-* ``"part": "agreement"``: each form's largest error against LAPACK's float64 factor inverted
-  (numpy), relative to the factor's largest entry, per size; the kernel compiled for the GPU (or
-  run in Pallas' interpreter where JAX has none);
-* ``"part": "time"``: ``ms`` per call of each form at each of ``--robots`` (a call inverts every
-  matrix of that many robots, each size in its own call), and on a GPU the kernel with other
-  numbers of each matrix per thread (:data:`softcrawl.jaxsim.factor.PER_THREAD`, the warps).
+* ``"part": "agreement"``: each form's largest error against numpy's float64 result (the factor
+  inverted, or the inverse), relative to its largest entry, per function and size; the kernel
+  compiled for the GPU (or run in Pallas' interpreter where JAX has none);
+* ``"part": "time"``: ``ms`` per call of each function and form at each of ``--robots`` (a call
+  treats every matrix of that many robots, each size in its own call), and on a GPU the kernels
+  with other numbers of each matrix per thread (:data:`softcrawl.jaxsim.factor.PER_THREAD`, the
+  warps).
 
 Usage:
     python benchmarks/cholesky_kernel.py [--robots 96,16384] [--legs 6] [--cond 1e5] [--calls 20]
@@ -51,15 +53,20 @@ def main(argv=None) -> None:
         Q, _ = np.linalg.qr(rng.standard_normal((batch, n, n)))
         return np.einsum("bij,j,bkj->bik", Q, np.geomspace(1.0, args.cond, n), Q)
 
-    def batched(form):
-        return jax.jit(jax.vmap(lambda a: factor.cholesky_inverse(a, form)))
+    functions = {"factor": factor.cholesky_inverse, "inverse": factor.inverse_spd}
+
+    def batched(function, form):
+        return jax.jit(jax.vmap(lambda a: functions[function](a, form)))
 
     for n in sizes:
         A = spd(16, n)
-        ref = np.linalg.inv(np.linalg.cholesky(A))
-        err = {form: float(np.abs(np.asarray(batched(form)(jnp.asarray(A, jnp.float32)), float) - ref).max()
-                           / np.abs(ref).max()) for form in ("library", kernel)}
-        print(json.dumps({**head, "part": "agreement", "n": n, "kernel": kernel, "rel_error": err}), flush=True)
+        refs = {"factor": np.linalg.inv(np.linalg.cholesky(A)), "inverse": np.linalg.inv(A)}
+        for function, ref in refs.items():
+            got = {form: np.asarray(batched(function, form)(jnp.asarray(A, jnp.float32)), float)
+                   for form in ("library", kernel)}
+            err = {form: float(np.abs(g - ref).max() / np.abs(ref).max()) for form, g in got.items()}
+            print(json.dumps({**head, "part": "agreement", "function": function, "n": n, "kernel": kernel,
+                              "rel_error": err}), flush=True)
     default = factor.PER_THREAD
     for robots in (int(b) for b in args.robots.split(",")):
         out = {**head, "part": "time", "robots": robots}
@@ -76,14 +83,15 @@ def main(argv=None) -> None:
                 return 1e3 * (time.perf_counter() - t0) / args.calls
 
             out[f"n{n}_matrices"] = count
-            out[f"n{n}_library_ms"] = timed(batched("library"))
-            if gpu:
-                for per in dict.fromkeys((default, 8, 16, 32, 64)):
-                    factor.PER_THREAD = per
+            for function in functions:
+                out[f"n{n}_{function}_library_ms"] = timed(batched(function, "library"))
+                if gpu:
+                    for per in dict.fromkeys((default, 16, 32, 64, 128)):
+                        factor.PER_THREAD = per
+                        jax.clear_caches()
+                        out[f"n{n}_{function}_kernel_per_thread{per}_ms"] = timed(batched(function, "kernel"))
+                    factor.PER_THREAD = default
                     jax.clear_caches()
-                    out[f"n{n}_kernel_per_thread{per}_ms"] = timed(batched("kernel"))
-                factor.PER_THREAD = default
-                jax.clear_caches()
         print(json.dumps(out), flush=True)
 
 

@@ -1,46 +1,43 @@
 #!/usr/bin/env bash
-# The GPU measurements still open, each a stage that fits one 10-minute device call; results
-# (JSON lines, logs, gzipped kernel tables) under OUTDIR. Run the stages in order, back to back
-# on the warm machine, and record the figures in benchmarks/RESULTS.md with the card:
+# The GPU measurements, each a stage that fits one 10-minute device call; results (JSON lines,
+# logs, gzipped kernel tables) under OUTDIR. Run the stages back to back on the warm machine, the
+# open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR targets      # ~7 min, first
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~6 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~8 min
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR targets      # ~6 min, measured on an H100
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~6 min, measured on an H100
 #
-# targets:     the issue's two figures in one call (an H200 ran it but the TF32 step in 5.3 min): the step,
-#              float32, at 96 robots (1.5 ms) and 16,384 (250k robot-steps/s, about 0.07 s a
-#              step) with XLA's solve and the library's factors (`--delassus dense16 --cholesky
-#              library`) and with the defaults (both kernels), then the defaults at 16,384 with
-#              the RID pair product at three TF32 passes (`--pairs-dot TF32_TF32_F32_X3`: whether
-#              tensor cores beat float32's arithmetic where the product is 1.3 TFLOP a step; at
-#              96 robots they did not; if faster, set legs.PAIRS_DOT_ALGORITHM); then the two
-#              kernels checked on the card: the contact solve in one kernel (`fused_kernel.py`:
-#              against XLA's iterations on 96 landed robots' problems, two actions of the whole
-#              engine in each form, the solve alone at 96 robots in XLA's form and the kernel's
-#              seven variants; if one other than the default, 64 rows at a time, 8 warps,
-#              unrolled, is fastest, set fused.ROW_BLOCK / NUM_WARPS / LOOP_PRODUCT) and the
-#              inverse Cholesky factors (`cholesky_kernel.py`: its error and the library's, both
-#              timed at 96 robots' matrices; if a `factor.PER_THREAD` other than 64 is fastest,
-#              set it). Each batch size compiles in its own 20-45 s.
+# profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed
+#              (`step_cost.py --profile`): where the large batches' time goes.
 # attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
-#              factors, `dense16` with the kernel's); both kernels alone at 16,384 robots
-#              (their variants: occupancy decides there).
+#              factors, `dense16` with the kernels'); the solve kernel's variants alone at 16,384
+#              robots (occupancy decides there).
 # kernels:     the step at 96 and 1,024 robots with the Delassus operator read in float32
 #              (`--delassus dense`: the float16 operator against it), then every kernel of
 #              the 96-robot step timed without CUDA graphs (kernels-b96, and the device's
 #              compiled program, step-b96.hlo.txt, which names what each kernel fuses).
+# groundtruth: the all-designs ground truth's rate on 256 sampled designs and its projection
+#              for the 6,972 (`groundtruth.py rate`).
+# targets:     the issue's two figures in one call: the step, float32, at 96 robots (1.5 ms) and
+#              16,384 (250k robot-steps/s, about 0.07 s a step) with XLA's solve and the
+#              library's factors (`--delassus dense16 --cholesky library`) and with the
+#              defaults (the kernels); then the kernels checked on the card: the contact solve
+#              in one kernel (`fused_kernel.py`: against XLA's iterations on 96 landed robots'
+#              problems, two actions of the whole engine in each form, the solve alone at 96
+#              robots in XLA's form and the kernel's seven variants; if one other than the
+#              default, 64 rows at a time, 8 warps, unrolled, is fastest, set fused.ROW_BLOCK /
+#              NUM_WARPS / LOOP_PRODUCT) and the inverses (`cholesky_kernel.py`: the legs'
+#              factors by elimination and the attachment block's inverse by sweeps, their errors
+#              and the library's, all timed at 96 and 16,384 robots; if a `factor.PER_THREAD`
+#              other than 64 is fastest, set it). Each batch size compiles in its own 20-45 s.
 # training:    the `paper` preset's episode-at-once loop at 96 and 1,024 envs, 8 rounds each, the
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
-# profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed
-#              (`step_cost.py --profile`): where the large batches' time goes.
-# groundtruth: the all-designs ground truth's rate on 256 sampled designs and its projection
-#              for the 6,972 (`groundtruth.py rate`).
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: targets, attribution, kernels, training, profile or groundtruth}
+out=${1:?OUTDIR}; stage=${2:?STAGE: profile, attribution, kernels, groundtruth, targets or training}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
@@ -50,11 +47,10 @@ targets)
         timeout 140 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 --delassus $1 \
             --cholesky $2 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done
-    timeout 100 python3 benchmarks/step_cost.py --no-cost --time --batches 16384 --calls 3 --pairs-dot TF32_TF32_F32_X3 \
-        2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     timeout 130 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 20 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 60 python3 benchmarks/cholesky_kernel.py --robots 96 --calls 20 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
+    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 2>>"$out/log.txt" \
+        | tee -a "$out/cholesky.jsonl" ;;
 attribution)
     for forms in "fused16 library" "dense16 kernel"; do
         set -- $forms
@@ -62,8 +58,7 @@ attribution)
             2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
     done
     timeout 180 python3 benchmarks/fused_kernel.py --batch 96 --batches 16384 --actions 0 --calls 5 \
-        2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 16384 --calls 5 2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
+        2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
 kernels)
     timeout 150 python3 benchmarks/step_cost.py --no-cost --time --batches 96,1024 --calls 3 --delassus dense \
         2>>"$out/log.txt" | tee -a "$out/latency.jsonl"
@@ -71,9 +66,11 @@ kernels)
         --batches 96 --calls 3 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
     gzip -c /tmp/prof/b96/kernels.json > "$out/kernels-b96.json.gz"
     gzip -c /tmp/prof/b96/step.hlo.txt > "$out/step-b96.hlo.txt.gz" ;;
-training)
-    timeout 560 python3 benchmarks/train_throughput.py --jax-loops --jax-envs 96,1024 --episodes 8 \
-        --preset paper --rollouts episode --set sac.device='"gpu"' 2>>"$out/log.txt" | tee -a "$out/training.jsonl" ;;
+training)  # one call per env count: a call prints its JSON at its end
+    for envs in 96 1024; do
+        timeout 270 python3 benchmarks/train_throughput.py --jax-loops --jax-envs $envs --episodes 8 --preset paper \
+            --rollouts episode --set sac.device='"gpu"' 2>>"$out/log.txt" | tee -a "$out/training.jsonl"
+    done ;;
 profile)
     XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 560 python3 benchmarks/step_cost.py --no-cost --time \
         --batches 1024,16384 --calls 2 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
@@ -82,5 +79,5 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: targets, attribution, kernels, training, profile or groundtruth" >&2; exit 2 ;;
+    echo "unknown stage $stage: profile, attribution, kernels, groundtruth, targets or training" >&2; exit 2 ;;
 esac

@@ -1,9 +1,11 @@
-"""The inverse of a symmetric positive definite matrix's Cholesky factor: by the library, or in one GPU kernel.
+"""The inverse of a symmetric positive definite matrix's Cholesky factor, and the matrix's inverse:
+by the library, or in one GPU kernel.
 
 The step solves with two kinds of small SPD matrices each time: every leg's step matrix (36 x 36
 for the shipped leg) and the attachment block (72 x 72 for six legs). It forms the inverse ``C^-1``
-of each one's lower Cholesky factor ``A = C C^T`` once, so that every later solve is a product
-(:func:`softcrawl.jaxsim.legs.free_motion`, :func:`softcrawl.jaxsim.delassus.condense`).
+of each leg's lower Cholesky factor ``A = C C^T`` and the attachment block's inverse once, so that
+every later solve is a product (:func:`softcrawl.jaxsim.legs.free_motion`,
+:func:`softcrawl.jaxsim.delassus.condense`).
 
 ``form="library"`` factorises and then solves against the identity (``jax.lax.linalg.cholesky``
 and a triangular solve: LAPACK on a CPU; on a GPU cuSOLVER's batched factorisation and cuBLAS'
@@ -19,6 +21,15 @@ non-positive pivot and NaN or infinite entries, as the library's factorisation g
 other platforms than CUDA (a CPU among them) ``"kernel"`` runs the library's form
 (``jax.lax.platform_dependent``); ``"interpret"`` runs the kernel in Pallas' interpreter on any
 platform (the tests').
+
+Where the inverse itself is wanted (the attachment block, :func:`inverse_spd`), the kernel form
+is the symmetric sweep operator instead (Goodnight 1979, "A tutorial on the SWEEP operator",
+The American Statistician 33(3); Gauss-Jordan elimination with the diagonal pivots, Higham 2002,
+sec. 14.4): sweeping pivot ``k`` (``d = a_kk``, ``c`` column ``k``) sets ``a_ij -= c_i c_j / d``
+off row and column ``k``, ``a_ik = a_ki = c_i / d`` and ``a_kk = -1 / d``; after all ``n``
+pivots the matrix is ``-A^-1``. One matrix, one column read and one rank-one update a pivot,
+against three reads and two updates of two matrices for ``C^-1`` (then ``C^-T C^-1``, a product
+more). Its pivots are the factorisation's; a non-positive one makes the result NaN.
 """
 
 from __future__ import annotations
@@ -40,11 +51,12 @@ def padded_size(n: int) -> int:
     return max(16, 1 << (int(n) - 1).bit_length())
 
 
-#: Numbers of each of the program's two ``(N, N)`` matrices a thread holds, which sets its warps
+#: Numbers of each of the program's ``(N, N)`` matrices a thread holds, which sets its warps
 #: (:func:`_warps`; 1 to 16): 64 gives 2 warps for the legs (``N = 64``) and 8 for the attachment
 #: block (``N = 128``), 128 registers a thread, no spill on an H100 (ptxas' counts), the fastest
-#: of 8, 16, 32 and 64 for both sizes on an H200 (benchmarks/RESULTS.md). Read when a call is
-#: traced: ``benchmarks/cholesky_kernel.py`` times other values.
+#: of 8, 16, 32 and 64 for both sizes on an H200, and for the sweeps within 4% of the fastest of
+#: 16 to 128 on an H100 (benchmarks/RESULTS.md). Read when a call is traced:
+#: ``benchmarks/cholesky_kernel.py`` times other values.
 PER_THREAD = 64
 
 
@@ -53,19 +65,29 @@ def _warps(N: int) -> int:
     return max(1, min(16, N * N // (PER_THREAD * 32)))
 
 
-def _kernel(n: int, a_ref, o_ref):
-    """One matrix (module doc): ``a_ref`` ``(n, n)`` the symmetric matrix, read whole; ``o_ref``
-    receives ``C^-1``. The program works on the padded size ``N`` (the identity on the padding)
-    and reads and writes through masked pointers: lanes past ``n`` neither load nor store."""
-    N = padded_size(n)
-    dt = o_ref.dtype
+def _padded(n: int, a_ref, dt):
+    """A program's matrix: ``a_ref`` ``(n, n)`` read whole at the padded size ``N`` through
+    masked pointers (lanes past ``n`` load nothing), the identity on the padding. Returns the
+    lane indices ``r`` ``(N,)``, ``rows`` ``(N, 1)`` and ``cols`` ``(1, N)``, the mask of the
+    ``n x n`` entries, the identity and the matrix ``(N, N)``."""
     from jax.experimental.pallas import triton as pltriton
 
-    r = lax.iota(jnp.int32, N)
+    r = lax.iota(jnp.int32, padded_size(n))
     rows, cols = r[:, None], r[None, :]
     inside = (rows < n) & (cols < n)
     eye = (rows == cols).astype(dt)
-    A = jnp.where(inside, pltriton.load(a_ref.at[rows, cols], mask=inside, other=0.0), eye)
+    return r, rows, cols, inside, eye, jnp.where(inside, pltriton.load(a_ref.at[rows, cols], mask=inside, other=0.0),
+                                                 eye)
+
+
+def _kernel(n: int, a_ref, o_ref):
+    """One matrix (module doc): ``a_ref`` ``(n, n)`` the symmetric matrix, read whole; ``o_ref``
+    receives ``C^-1``. The program works on the padded size ``N`` (:func:`_padded`) and writes
+    through masked pointers: lanes past ``n`` store nothing."""
+    from jax.experimental.pallas import triton as pltriton
+
+    dt = o_ref.dtype
+    r, rows, cols, inside, eye, A = _padded(n, a_ref, dt)
 
     def body(k, c):
         A, T, d = c
@@ -76,8 +98,27 @@ def _kernel(n: int, a_ref, o_ref):
         l = jnp.where(r > k, col / dk, 0)
         return A - l[:, None] * row[None, :], T - l[:, None] * trow[None, :], jnp.where(r == k, dk, d)
 
-    _, T, d = lax.fori_loop(0, n, body, (A, eye, jnp.ones((N,), dt)))
+    _, T, d = lax.fori_loop(0, n, body, (A, eye, jnp.ones(r.shape, dt)))
     pltriton.store(o_ref.at[rows, cols], T * lax.rsqrt(d)[:, None], mask=inside)
+
+
+def _sweep_kernel(n: int, a_ref, o_ref):
+    """One matrix's inverse by the symmetric sweep operator (module doc): ``a_ref`` ``(n, n)``
+    the symmetric matrix, read whole; ``o_ref`` receives ``A^-1``. Padded and masked as
+    :func:`_kernel`; the padding's identity rows are never swept."""
+    from jax.experimental.pallas import triton as pltriton
+
+    r, rows, cols, inside, _, A = _padded(n, a_ref, o_ref.dtype)
+
+    def body(k, c):
+        A, low = c
+        col = jnp.sum(jnp.where(cols == k, A, 0), axis=1)
+        dk = jnp.sum(jnp.where(r == k, col, 0))
+        u = jnp.where(r == k, -1.0, col) / dk
+        return jnp.where((rows == k) | (cols == k), 0, A) - (dk * u)[:, None] * u[None, :], jnp.minimum(low, dk)
+
+    A, low = lax.fori_loop(0, n, body, (A, jnp.ones((), A.dtype)))
+    pltriton.store(o_ref.at[rows, cols], jnp.where(low > 0, -A, jnp.nan), mask=inside)
 
 
 def _library(A, symmetrize: bool = False):
@@ -85,15 +126,22 @@ def _library(A, symmetrize: bool = False):
     return solve_triangular(C, jnp.eye(A.shape[-1], dtype=A.dtype), lower=True)
 
 
-def _pallas(A, interpret: bool):
+def _pallas(A, interpret: bool, kernel=_kernel, name: str = "cholesky_inverse"):
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
     n = A.shape[-1]
     return pl.pallas_call(
-        partial(_kernel, n), out_shape=jax.ShapeDtypeStruct((n, n), A.dtype), interpret=interpret,
+        partial(kernel, n), out_shape=jax.ShapeDtypeStruct((n, n), A.dtype), interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=_warps(padded_size(n)), num_stages=1),
-        name="cholesky_inverse")(A)
+        name=name)(A)
+
+
+def _check(A, form: str) -> None:
+    if form not in (*CHOLESKY_FORMS, "interpret"):
+        raise ValueError(f"form must be one of {CHOLESKY_FORMS} or 'interpret', not {form!r}")
+    if A.ndim != 2 or A.shape[0] != A.shape[1]:
+        raise ValueError(f"cholesky_inverse and inverse_spd need one square matrix, got shape {A.shape}")
 
 
 def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
@@ -110,10 +158,7 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
     Raises:
         ValueError: an unknown ``form``, or ``A`` not square.
     """
-    if form not in (*CHOLESKY_FORMS, "interpret"):
-        raise ValueError(f"form must be one of {CHOLESKY_FORMS} or 'interpret', not {form!r}")
-    if A.ndim != 2 or A.shape[0] != A.shape[1]:
-        raise ValueError(f"cholesky_inverse needs one square matrix, got shape {A.shape}")
+    _check(A, form)
     if form == "library":
         return _library(A, symmetrize)
 
@@ -127,8 +172,21 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
 
 
 def inverse_spd(A, form: str = "library"):
-    """The inverse ``(n, n)`` of a symmetric positive definite ``A`` ``(n, n)``, ``C^-T C^-1`` from
-    :func:`cholesky_inverse` (``form`` as there): then products only. Its error is of the order
-    of ``cond(A)`` times the rounding unit, as a solve's."""
-    Ci = cholesky_inverse(A, form)
-    return Ci.T @ Ci
+    """The inverse ``(n, n)`` of a symmetric positive definite ``A`` ``(n, n)`` (read whole), by
+    ``form`` as :func:`cholesky_inverse`'s: ``"library"`` is ``C^-T C^-1`` from that function's
+    library form; ``"kernel"`` (CUDA; the library's form elsewhere) and ``"interpret"`` are the
+    module doc's sweeps in one kernel, which form ``A^-1`` without a factor. Its error is of the
+    order of ``cond(A)`` times the rounding unit, as a solve's (Higham 2002, sec. 14.4); a matrix
+    that is not positive definite gives NaN or infinite entries in every form.
+
+    Raises:
+        ValueError: an unknown ``form``, or ``A`` not square.
+    """
+    _check(A, form)
+    if form == "library":
+        Ci = _library(A)
+        return Ci.T @ Ci
+    sweep = partial(_pallas, kernel=_sweep_kernel, name="inverse_spd")
+    if form == "interpret":
+        return sweep(A, True)
+    return lax.platform_dependent(A, cuda=partial(sweep, interpret=False), default=partial(inverse_spd, form="library"))

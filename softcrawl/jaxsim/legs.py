@@ -38,9 +38,10 @@ RID_FORMS = ("rows", "pairs")
 #: product in float32, None for full float32 arithmetic: e.g. ``"TF32_TF32_F32_X3"``, three
 #: TF32 passes on a GPU's tensor cores at about float32's accuracy (relative error 2e-7 against
 #: 3e-4 for one pass, ``benchmarks/dot_algorithms.py``). At 16,384 robots the product is about
-#: 1.3 TFLOP a step, bound by float32 arithmetic on an H200 (benchmarks/RESULTS.md); at 96 robots
-#: three TF32 passes were not faster. Other precisions ignore it. Read when a step is traced
-#: (``benchmarks/step_cost.py --pairs-dot`` times it).
+#: 1.3 TFLOP a step, bound by float32 arithmetic on an H200 (benchmarks/RESULTS.md); three TF32
+#: passes were not faster, at 96 robots on an H200 nor at 16,384 on an H100 (the step 3% slower).
+#: Other precisions ignore it. Read when a step is traced (``benchmarks/step_cost.py
+#: --pairs-dot`` times it).
 PAIRS_DOT_ALGORITHM = None
 
 

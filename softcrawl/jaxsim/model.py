@@ -179,9 +179,10 @@ class Settings:
             iteration than ``"dense"``, more kernels), the same operator;
         rid_form: the form of the legs' RID terms (:func:`softcrawl.jaxsim.legs.rid_terms`),
             ``"rows"`` or ``"pairs"``, or None (the default: by platform);
-        cholesky: how the step inverts the Cholesky factors of the legs' step matrices and of the
-            attachment block (:func:`softcrawl.jaxsim.factor.cholesky_inverse`): ``"library"``
-            (a factorisation and a triangular solve) or ``"kernel"`` (both in one kernel on a GPU;
+        cholesky: how the step inverts the Cholesky factors of the legs' step matrices and the
+            attachment block (:func:`softcrawl.jaxsim.factor.cholesky_inverse`,
+            :func:`~softcrawl.jaxsim.factor.inverse_spd`): ``"library"`` (a factorisation and a
+            triangular solve) or ``"kernel"`` (one kernel on a GPU each, the block's by sweeps;
             CUDA only: other platforms, a CPU among them, run the library's; :func:`build_model`'s
             default in float32).
     """
