@@ -3,13 +3,20 @@
 # logs, gzipped kernel tables) under OUTDIR. Run the stages back to back on the warm machine, the
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR rid          # ~7 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR targets      # ~6 min, measured on an H100
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~6 min, measured on an H100
 #
+# rid:         the legs' RID terms in one kernel (`--rid-form kernel`, not yet a default): against
+#              XLA's pairs and rows forms on the card and timed alone with its variants
+#              (`rid_kernel.py`: if a variant other than the default, 16 elements, 4 warps, three
+#              TF32 passes, is fastest, set ridkernel.ELEMENTS / NUM_WARPS / DOT_ALGORITHM), then
+#              the step at 96 and 16,384 robots with it and without it, in one call; if faster at
+#              both, make it the CUDA default (`legs.rid_terms`' None).
 # profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed
 #              (`step_cost.py --profile`): where the large batches' time goes.
 # attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
@@ -37,10 +44,17 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: profile, attribution, kernels, groundtruth, targets or training}
+out=${1:?OUTDIR}; stage=${2:?STAGE: rid, profile, attribution, kernels, groundtruth, targets or training}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
+rid)
+    timeout 200 python3 benchmarks/rid_kernel.py --robots 96,16384 --calls 10 2>>"$out/log.txt" \
+        | tee -a "$out/rid.jsonl"
+    for form in kernel pairs; do
+        timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 --rid-form $form \
+            2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+    done ;;
 targets)
     for forms in "dense16 library" "fused16 kernel"; do
         set -- $forms
@@ -79,5 +93,5 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: profile, attribution, kernels, groundtruth, targets or training" >&2; exit 2 ;;
+    echo "unknown stage $stage: rid, profile, attribution, kernels, groundtruth, targets or training" >&2; exit 2 ;;
 esac

@@ -62,7 +62,7 @@ def main(argv=None) -> None:
     p.add_argument("--delassus", choices=("dense", "dense16", "fused16", "blocks"), default=None,
                    help="how the accelerated gradient applies the Delassus operator (Settings.delassus; "
                         "default: the engine's for the precision)")
-    p.add_argument("--rid-form", choices=("rows", "pairs"), default=None,
+    p.add_argument("--rid-form", choices=("rows", "pairs", "kernel"), default=None,
                    help="the legs' RID terms' form (Settings.rid_form; default: by platform)")
     p.add_argument("--pairs-dot", default=None, metavar="PRESET",
                    help="the pairs form's product's dot algorithm in float32, a jax.lax.DotAlgorithmPreset name "

@@ -20,7 +20,7 @@ F_part``), so the leg's placement enters only its gravity load. The step is
 from __future__ import annotations
 
 import dataclasses
-from functools import lru_cache, partial, reduce
+from functools import lru_cache, partial
 
 import jax
 import jax.numpy as jnp
@@ -29,10 +29,12 @@ import scipy.linalg
 from jax import lax
 
 from softcrawl.jaxsim.factor import cholesky_inverse
+from softcrawl.jaxsim.frames import frame_terms
+from softcrawl.jaxsim.ridkernel import rid_kernel_terms
 
 
 #: The forms of :func:`rid_terms` (``Settings.rid_form``).
-RID_FORMS = ("rows", "pairs")
+RID_FORMS = ("rows", "pairs", "kernel")
 
 #: The dot algorithm (a name of ``jax.lax.DotAlgorithmPreset``) of the pairs form's matrix
 #: product in float32, None for full float32 arithmetic: e.g. ``"TF32_TF32_F32_X3"``, three
@@ -63,14 +65,18 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
     Args:
         part: :class:`~softcrawl.jaxsim.model.LegPart`.
         q, qdot: ``(m,)`` modal displacement (mm) and velocity (mm/s).
-        c: ``h + r_K``, s.
+        c: ``h + r_K``, s (a number for ``"kernel"`` and ``"interpret"``: compiled in).
         form: ``"rows"`` (``Z`` formed, ``K_r = Z^T Z``), ``"pairs"`` (``Z`` never formed: the
             quadratic monomials of each element's frame contracted with its stiffness per
-            monomial, :func:`frame_stiffness`, made of the products of pairs of its basis rows)
-            or ``None``: ``"rows"`` on a CPU, ``"pairs"`` elsewhere (``jax.lax.platform_dependent``).
-            The same sums in another order; ``"pairs"`` costs about 2.5x the multiply-adds but is
-            one large matrix product over all legs of a batch and keeps no ``Z`` (256 KB per
-            leg): faster on a GPU, slower on a CPU (figures in benchmarks/RESULTS.md).
+            monomial, :func:`frame_stiffness`, made of the products of pairs of its basis rows),
+            ``"kernel"`` (the rows form in one GPU kernel per leg, ``Z`` formed block by block on
+            chip, :mod:`softcrawl.jaxsim.ridkernel`; CUDA only: other platforms, a CPU among
+            them, run ``"rows"``), ``"interpret"`` (that kernel in Pallas' interpreter, any
+            platform: the tests') or ``None``: ``"rows"`` on a CPU, ``"pairs"`` elsewhere
+            (``jax.lax.platform_dependent``). The same sums in another order; ``"pairs"`` costs
+            about 2.5x the multiply-adds but is one large matrix product over all legs of a
+            batch and keeps no ``Z`` (256 KB per leg): faster on a GPU, slower on a CPU (figures
+            in benchmarks/RESULTS.md).
 
     Returns:
         ``(K, f, n_bad)``: ``(m', m')`` ``K_r`` of the strain modes (mN/mm), ``(m',)``
@@ -82,8 +88,16 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
     if form is None:
         return jax.lax.platform_dependent(part, q, qdot, c, cpu=partial(rid_terms, form="rows"),
                                           default=partial(rid_terms, form="pairs"))
-    if form not in RID_FORMS:
-        raise ValueError(f"form must be one of {RID_FORMS}, not {form!r}")
+    if form not in (*RID_FORMS, "interpret"):
+        raise ValueError(f"form must be one of {RID_FORMS} or 'interpret', not {form!r}")
+    if form in ("kernel", "interpret"):
+        def kernel(part, q, qdot, interpret):
+            return rid_kernel_terms(part, part.rid_rest + part.rid_basis @ q, qdot[part.strain_modes], c, interpret)
+
+        if form == "interpret":
+            return kernel(part, q, qdot, True)
+        return jax.lax.platform_dependent(part, q, qdot, cuda=partial(kernel, interpret=False),
+                                          default=lambda part, q, qdot: rid_terms(part, q, qdot, c, "rows"))
     x = part.rid_rest + part.rid_basis @ q
     qs = qdot[part.strain_modes]
     ms = part.strain_modes.shape[0]
@@ -116,17 +130,6 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
     return K[_symmetric_index(ms)], f, n_bad
 
 
-def _cross(a, b):
-    """The cross product of two vectors given by their components (lists of three arrays)."""
-    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-
-
-def _unit_components(a):
-    """The unit vector along ``a`` given by its components (a list of three arrays)."""
-    inv = lax.rsqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
-    return [ai * inv for ai in a]
-
-
 def _pair_terms(fam, d, qs, c):
     """One family's share of :func:`rid_terms`' ``(K upper triangle, f, n_bad)`` in the pairs form.
 
@@ -140,15 +143,7 @@ def _pair_terms(fam, d, qs, c):
     as kernels of their own."""
     k1 = d.shape[1]
     r, n = fam.factors.shape[1:]
-    dc = [[d[:, a, i] for i in range(3)] for a in range(k1)]  # dc[a][i]: edge a, component i
-    normal = _cross(dc[0], dc[1])
-    e1 = _unit_components(dc[0])
-    nrm = _unit_components(normal)
-    F = [e1, _cross(nrm, e1), nrm]  # F[p][i]
-    bad = ~reduce(jnp.logical_and, [jnp.isfinite(v) for row in F for v in row])
-    if k1 == 3:  # the tetrahedron's volume sign, det(d) = d_2 . (d_0 x d_1)
-        bad = bad | ~(sum(a * b for a, b in zip(dc[2], normal)) > 0)
-    g = [F[p][0] * dc[a][0] + F[p][1] * dc[a][1] + F[p][2] * dc[a][2] for a in range(k1) for p in range(3)]
+    F, g, bad = frame_terms([[d[:, a, i] for i in range(3)] for a in range(k1)])  # F[p][i]
     s = [sum(fam.factors[:, i, q] * g[q] for q in range(n)) - fam.rest_terms[:, i] for i in range(r)]
     mi, mj, _ = frame_monomials(frame_rows(k1))
     mono = jnp.stack([F[a // 3][a % 3] * F[b // 3][b % 3] for a, b in zip(mi, mj)])  # (M, E): monomial-major

@@ -178,7 +178,8 @@ class Settings:
             (:class:`softcrawl.jaxsim.delassus.DelassusBlocks`: 2.6 times fewer bytes per
             iteration than ``"dense"``, more kernels), the same operator;
         rid_form: the form of the legs' RID terms (:func:`softcrawl.jaxsim.legs.rid_terms`),
-            ``"rows"`` or ``"pairs"``, or None (the default: by platform);
+            ``"rows"``, ``"pairs"`` or ``"kernel"`` (one GPU kernel per leg, CUDA only), or None
+            (the default: by platform);
         cholesky: how the step inverts the Cholesky factors of the legs' step matrices and the
             attachment block (:func:`softcrawl.jaxsim.factor.cholesky_inverse`,
             :func:`~softcrawl.jaxsim.factor.inverse_spd`): ``"library"`` (a factorisation and a
