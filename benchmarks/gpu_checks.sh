@@ -14,7 +14,8 @@
 # rid:         the legs' RID terms in one kernel (`--rid-form kernel`, not yet a default): against
 #              XLA's pairs and rows forms on the card and timed alone with its variants
 #              (`rid_kernel.py`: if a variant other than the default, 16 elements, 4 warps, three
-#              TF32 passes, is fastest, set ridkernel.ELEMENTS / NUM_WARPS / DOT_ALGORITHM), then
+#              TF32 passes, one program a leg, is fastest, set ridkernel.ELEMENTS / NUM_WARPS /
+#              DOT_ALGORITHM / SPLIT), then
 #              the step at 96 and 16,384 robots with it and without it, in one call; if faster at
 #              both, make it the CUDA default (`legs.rid_terms`' None).
 # profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed

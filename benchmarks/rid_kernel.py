@@ -10,7 +10,7 @@ float32, printed as JSON lines:
   compiled for the GPU (or run in Pallas' interpreter where JAX has none);
 * ``"part": "time"``: ``ms`` per call of each form at each of ``--robots`` (a call treats
   ``--legs`` legs per robot), the rows form only where its ``Z`` fits (``--rows-max`` robots), and
-  on a GPU the kernel's variants (``ELEMENTS``, ``NUM_WARPS``, ``DOT_ALGORITHM``).
+  on a GPU the kernel's variants (``ELEMENTS``, ``NUM_WARPS``, ``DOT_ALGORITHM``, ``SPLIT``).
 
 Usage:
     python benchmarks/rid_kernel.py [--robots 96,16384] [--legs 6] [--calls 20]
@@ -23,9 +23,9 @@ import json
 import time
 from functools import partial
 
-#: The kernel's variants timed on a GPU: (ELEMENTS, NUM_WARPS, DOT_ALGORITHM).
-VARIANTS = ((16, 4, "TF32_TF32_F32_X3"), (16, 8, "TF32_TF32_F32_X3"), (16, 8, "F32_F32_F32"),
-            (32, 8, "TF32_TF32_F32_X3"), (16, 4, "F32_F32_F32"))
+#: The kernel's variants timed on a GPU: (ELEMENTS, NUM_WARPS, DOT_ALGORITHM, SPLIT).
+VARIANTS = ((16, 4, "TF32_TF32_F32_X3", 4), (16, 8, "TF32_TF32_F32_X3", 1), (16, 8, "F32_F32_F32", 1),
+            (32, 8, "TF32_TF32_F32_X3", 1), (16, 4, "F32_F32_F32", 1))
 
 
 def main(argv=None) -> None:
@@ -84,7 +84,7 @@ def main(argv=None) -> None:
                      "f": float(np.abs(np.asarray(f, float) - f0).max() / np.abs(f0).max()),
                      "bad": int(np.asarray(bad).sum())}
     print(json.dumps(out), flush=True)
-    default = (ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.DOT_ALGORITHM)
+    default = (ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.DOT_ALGORITHM, ridkernel.SPLIT)
     for robots in (int(b) for b in args.robots.split(",")):
         q, qd = state(robots * args.legs, jnp.float32)
 
@@ -101,10 +101,10 @@ def main(argv=None) -> None:
         for form in ("pairs", "rows") if robots <= args.rows_max else ("pairs",):
             out[f"{form}_ms"] = timed(batched(form, shared[form]))
         for variant in dict.fromkeys((default, *VARIANTS)) if gpu else (default,):
-            ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.DOT_ALGORITHM = variant
+            ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.DOT_ALGORITHM, ridkernel.SPLIT = variant
             jax.clear_caches()
             out["kernel_ms_" + "_".join(map(str, variant))] = timed(batched(kernel, part))
-        ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.DOT_ALGORITHM = default
+        ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.DOT_ALGORITHM, ridkernel.SPLIT = default
         jax.clear_caches()
         print(json.dumps(out), flush=True)
 

@@ -572,15 +572,18 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
         leg_motion.rid_terms(model.leg, state.q[0], qdot[0], 0.03, "dense")
 
 
-def test_the_rid_kernel_forms_the_rows_forms_terms(landed):
+def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     """``rid_terms`` in one kernel (``"interpret"``: :mod:`softcrawl.jaxsim.ridkernel` in Pallas'
     interpreter, ``Z`` formed 16 elements at a time in two column tiles, 32 + 16 for 33 strain
     modes) on the landed robot's bent, pressed legs: the rows form's ``K_r`` and ``f_r`` to 1e-12
     of their largest entries in float64 (the same products, summed by blocks: measured 4e-15 on
     a random state), ``K_r`` exactly symmetric, the same inverted or degenerate elements counted
-    on legs bent to invert them. ``"kernel"`` on a CPU is the rows form to the bit, its traced program holding the
-    kernel for CUDA; exported for a TPU, the step with it holds no kernel."""
+    on legs bent to invert them; the same with each leg's element blocks shared among three
+    programs (``ridkernel.SPLIT``), their shares added. ``"kernel"`` on a CPU is the rows form to
+    the bit, its traced program holding the kernel for CUDA; exported for a TPU, the step with it
+    holds no kernel."""
     from softcrawl.jaxsim import legs as leg_motion
+    from softcrawl.jaxsim import ridkernel
     from softcrawl.jaxsim.engine import physics_step
 
     model, state, kpa = landed
@@ -589,15 +592,18 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed):
     def terms(form, q, v):
         return jax.vmap(lambda q, v: leg_motion.rid_terms(model.leg, q, v, 0.03, form))(q, v)
 
-    (Kr, fr, nr), (Kk, fk, nk) = terms("rows", state.q, qdot), terms("interpret", state.q, qdot)
-    assert np.abs(np.asarray(Kk - Kr)).max() <= 1e-12 * np.abs(np.asarray(Kr)).max()
-    assert np.abs(np.asarray(Kk - Kk.transpose(0, 2, 1))).max() == 0.0
-    assert np.abs(np.asarray(fk - fr)).max() <= 1e-12 * np.abs(np.asarray(fr)).max()
-    np.testing.assert_array_equal(nr, nk)
+    Kr, fr, nr = terms("rows", state.q, qdot)
     wild = jnp.asarray(np.random.default_rng(1).normal(0.0, 80.0, (2, state.q.shape[-1])))
-    bad = [terms(form, wild, 0 * wild)[2] for form in ("rows", "interpret")]
-    assert np.asarray(bad[0]).min() > 0
-    np.testing.assert_array_equal(bad[0], bad[1])
+    bad = terms("rows", wild, 0 * wild)[2]
+    assert np.asarray(bad).min() > 0
+    for split in (1, 3):
+        monkeypatch.setattr(ridkernel, "SPLIT", split)
+        Kk, fk, nk = terms("interpret", state.q, qdot)
+        assert np.abs(np.asarray(Kk - Kr)).max() <= 1e-12 * np.abs(np.asarray(Kr)).max()
+        assert np.abs(np.asarray(Kk - Kk.transpose(0, 2, 1))).max() == 0.0
+        assert np.abs(np.asarray(fk - fr)).max() <= 1e-12 * np.abs(np.asarray(fr)).max()
+        np.testing.assert_array_equal(nr, nk)
+        np.testing.assert_array_equal(bad, terms("interpret", wild, 0 * wild)[2])
     for a, b in zip(terms("kernel", state.q, qdot), (Kr, fr, nr)):
         np.testing.assert_array_equal(a, b)
     assert "rid_terms" in str(jax.make_jaxpr(lambda q, v: terms("kernel", q, v))(state.q, qdot))

@@ -2,15 +2,16 @@
 leg with ``Z`` formed block by block on chip, never in memory (Pallas, Triton form).
 
 :func:`softcrawl.jaxsim.legs.rid_terms`' other forms are XLA programs: ``"rows"`` forms ``Z``
-(256 KB a leg: it does not fit at 16,384 robots on a GPU) and ``"pairs"`` contracts each element's
-frame monomials with a model matrix in one large product over all legs (about 1.3 TFLOP a step at
-16,384 robots, 3.8 times the rows form's multiply-adds, and the monomials written to memory and read
-again). This kernel runs the rows form per leg, one program a leg (``jax.vmap`` over legs and
-robots), :data:`ELEMENTS` elements at a time: their frames and stresses from the RID nodes'
-positions, ``Z``'s rows of the block in registers (``C~_e F_e`` times the elements' basis rows),
-and ``Z^T Z`` accumulated by matrix products (:data:`DOT_ALGORITHM`); the strain modes are handled
-in column tiles of at most 32 (``m' = 33`` as 32 + 16 padded), each pair of tiles one product.
-The formulas are those of :mod:`softcrawl.jaxsim.legs` (its module doc; Farhat, Chapman & Avery
+(256 KB a leg: it does not fit at 16,384 robots on a GPU) and ``"pairs"`` contracts each
+element's frame monomials with a model matrix in one large product over all legs (about 1.3
+TFLOP a step at 16,384 robots, 3.8 times the rows form's multiply-adds, and the monomials
+written to memory and read again). This kernel runs the rows form per leg, one program a leg
+(``jax.vmap`` over legs and robots; or :data:`SPLIT` programs sharing its elements),
+:data:`ELEMENTS` elements at a time: their frames and stresses from the RID nodes' positions,
+``Z``'s rows of the block in registers (``C~_e F_e`` times the elements' basis rows), and ``Z^T
+Z`` accumulated by matrix products (:data:`DOT_ALGORITHM`); the strain modes are handled in
+column tiles of at most 32 (``m' = 33`` as 32 + 16 padded), each pair of tiles one product. The
+formulas are those of :mod:`softcrawl.jaxsim.legs` (its module doc; Farhat, Chapman & Avery
 2015, eq. 20); the per-element quantities are component arrays (:mod:`softcrawl.jaxsim.frames`).
 
 Where JAX has no GPU (``interpret=True``, the tests on a CPU) the same kernel runs in Pallas'
@@ -32,6 +33,10 @@ from softcrawl.jaxsim.frames import frame_terms
 ELEMENTS = 16
 #: Warps per program.
 NUM_WARPS = 4
+#: Programs per leg: program ``s`` of a leg treats its element blocks ``s, s + SPLIT, ...`` and
+#: writes its shares of ``K_r``, ``f_r`` and the count, which are added after the kernel. More
+#: programs at few legs (96 robots: 576 legs for 132 multiprocessors), one at many.
+SPLIT = 1
 #: The dot algorithm (a ``jax.lax.DotAlgorithmPreset`` name) of the kernel's products in float32:
 #: three TF32 passes on the tensor cores, about float32's accuracy (relative error 2e-7,
 #: ``benchmarks/dot_algorithms.py``); None for full float32 arithmetic. Other precisions, and
@@ -54,11 +59,14 @@ def column_tiles(ms: int) -> list[tuple[int, int]]:
 def _kernel(shapes, ms: int, c: float, precision, x_ref, qs_ref, *refs):
     """One leg (module doc). ``shapes``: each family's ``(E, k, r)``; inputs ``x_ref``
     ``(3 nr,)`` the RID nodes' part-frame positions, ``qs_ref`` ``(m',)``, then per family its
-    ``conn``, ``factors``, ``rest_terms`` and ``rows``, flattened; outputs ``K`` ``(m' m',)``,
-    ``f`` ``(m',)`` and the bad elements' count in lane 0 of ``(16,)``."""
+    ``conn``, ``factors``, ``rest_terms`` and ``rows``, flattened; outputs ``K`` ``(S m' m',)``,
+    ``f`` ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others 0): program
+    ``s`` of :data:`SPLIT` ``S`` writes share ``s`` of each."""
+    from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
     k_ref, f_ref, bad_ref = refs[-3:]
+    share = pl.program_id(0)
     dt = k_ref.dtype
     tiles = column_tiles(ms)
     pairs = [(t, u) for t in range(len(tiles)) for u in range(t, len(tiles))]
@@ -75,7 +83,7 @@ def _kernel(shapes, ms: int, c: float, precision, x_ref, qs_ref, *refs):
         def block(b, carry, E=E, k=k, r=r, n=n, conn_ref=conn_ref, fac_ref=fac_ref, rest_ref=rest_ref,
                   rows_ref=rows_ref):
             K, f, bad = carry
-            e = b * ELEMENTS + eb
+            e = (share + SPLIT * b) * ELEMENTS + eb  # blocks past the family's: no element
             on = e < E
 
             def load(ref, index):
@@ -108,17 +116,18 @@ def _kernel(shapes, ms: int, c: float, precision, x_ref, qs_ref, *refs):
             K, f = lax.fori_loop(0, r, stress, (K, f))
             return K, f, bad
 
-        K, f, bad = lax.fori_loop(0, -(-E // ELEMENTS), block, (tuple(K), f, bad))
+        K, f, bad = lax.fori_loop(0, -(-E // (ELEMENTS * SPLIT)), block, (tuple(K), f, bad))
+    at = share * ms * ms
     for m, (t, u) in enumerate(pairs):
         i, j = cols[t], cols[u]
         inside = (i[:, None] < ms) & (j[None, :] < ms)
-        pltriton.store(k_ref.at[i[:, None] * ms + j[None, :]], K[m], mask=inside)
+        pltriton.store(k_ref.at[at + i[:, None] * ms + j[None, :]], K[m], mask=inside)
         if t != u:
-            pltriton.store(k_ref.at[j[None, :] * ms + i[:, None]], K[m], mask=inside)
+            pltriton.store(k_ref.at[at + j[None, :] * ms + i[:, None]], K[m], mask=inside)
     for j, fj in zip(cols, f):
-        pltriton.store(f_ref.at[j], -fj, mask=j < ms)
+        pltriton.store(f_ref.at[share * ms + j], -fj, mask=j < ms)
     lane = lax.iota(jnp.int32, 16)
-    pltriton.store(bad_ref.at[lane], jnp.where(lane == 0, bad, 0), mask=lane == 0)
+    pltriton.store(bad_ref.at[share * 16 + lane], jnp.where(lane == 0, bad, 0))
 
 
 def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False):
@@ -153,10 +162,12 @@ def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False):
         precision = (lax.Precision.HIGHEST, lax.Precision.HIGHEST)
     K, f, bad = pl.pallas_call(
         partial(_kernel, tuple(shapes), ms, float(c), precision),
-        out_shape=(jax.ShapeDtypeStruct((ms * ms,), dt), jax.ShapeDtypeStruct((ms,), dt),
-                   jax.ShapeDtypeStruct((16,), jnp.int32)),
-        interpret=interpret,
+        out_shape=(jax.ShapeDtypeStruct((SPLIT * ms * ms,), dt), jax.ShapeDtypeStruct((SPLIT * ms,), dt),
+                   jax.ShapeDtypeStruct((SPLIT * 16,), jnp.int32)),
+        grid=(SPLIT,), interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
         name="rid_terms",
     )(x.reshape(-1), qs, *arrays)
-    return K.reshape(ms, ms), f, bad[0]
+    if SPLIT == 1:
+        return K.reshape(ms, ms), f, bad[0]
+    return K.reshape(SPLIT, ms, ms).sum(0), f.reshape(SPLIT, ms).sum(0), bad[::16].sum(dtype=jnp.int32)
