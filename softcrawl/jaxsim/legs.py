@@ -85,21 +85,24 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
     Raises:
         ValueError: an unknown ``form``.
     """
-    if form is None:
-        return jax.lax.platform_dependent(part, q, qdot, c, cpu=partial(rid_terms, form="rows"),
-                                          default=partial(rid_terms, form="pairs"))
-    if form not in (*RID_FORMS, "interpret"):
+    if form not in (*RID_FORMS, "interpret", None):
         raise ValueError(f"form must be one of {RID_FORMS} or 'interpret', not {form!r}")
-    if form in ("kernel", "interpret"):
-        def kernel(part, q, qdot, interpret):
-            return rid_kernel_terms(part, part.rid_rest + part.rid_basis @ q, qdot[part.strain_modes], c, interpret)
-
-        if form == "interpret":
-            return kernel(part, q, qdot, True)
-        return jax.lax.platform_dependent(part, q, qdot, cuda=partial(kernel, interpret=False),
-                                          default=lambda part, q, qdot: rid_terms(part, q, qdot, c, "rows"))
     x = part.rid_rest + part.rid_basis @ q
     qs = qdot[part.strain_modes]
+    if form is None:
+        return jax.lax.platform_dependent(part, x, qs, cpu=partial(_xla_terms, c=c, form="rows"),
+                                          default=partial(_xla_terms, c=c, form="pairs"))
+    if form == "kernel":
+        return jax.lax.platform_dependent(part, x, qs, cuda=partial(rid_kernel_terms, c=c),
+                                          default=partial(_xla_terms, c=c, form="rows"))
+    if form == "interpret":
+        return rid_kernel_terms(part, x, qs, c, interpret=True)
+    return _xla_terms(part, x, qs, c, form)
+
+
+def _xla_terms(part, x, qs, c, form: str):
+    """:func:`rid_terms` in its XLA forms, ``"rows"`` or ``"pairs"``, from the RID nodes'
+    positions ``x`` ``(nr, 3)`` (mm) and the strain modes' velocities ``qs`` ``(m',)`` (mm/s)."""
     ms = part.strain_modes.shape[0]
     n_bad = jnp.zeros((), jnp.int32)
     Zs, ss, K, f = [], [], 0.0, 0.0
