@@ -14,10 +14,12 @@ form, on random symmetric positive definite matrices of both sizes and condition
 * ``"part": "time"``: ``ms`` per call of each function and form at each of ``--robots`` (a call
   treats every matrix of that many robots, each size in its own call), and on a GPU the kernels
   with other numbers of each matrix per thread (:data:`softcrawl.jaxsim.factor.PER_THREAD`, the
-  warps).
+  warps). The inverse's kernel is timed at every batch size, although its form hands batches of
+  :data:`~softcrawl.jaxsim.factor.LIBRARY_FROM` matrices or more to the library: the sizes
+  between 96 and 16,384 robots say where that should be.
 
 Usage:
-    python benchmarks/cholesky_kernel.py [--robots 96,16384] [--legs 6] [--cond 1e5] [--calls 20]
+    python benchmarks/cholesky_kernel.py [--robots 96,1024,2048,4096,16384] [--legs 6] [--cond 1e5] [--calls 20]
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import time
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--robots", default="96,16384", help="robots per call at which the forms are timed")
+    p.add_argument("--robots", default="96,1024,2048,4096,16384", help="robots per call at which the forms are timed")
     p.add_argument("--legs", type=int, default=6, help="leg step matrices per robot")
     p.add_argument("--sizes", default="36,72", help="the matrices' sizes: a leg's step matrix, the attachment block")
     p.add_argument("--cond", type=float, default=1e5)
@@ -68,6 +70,7 @@ def main(argv=None) -> None:
             print(json.dumps({**head, "part": "agreement", "function": function, "n": n, "kernel": kernel,
                               "rel_error": err}), flush=True)
     default = factor.PER_THREAD
+    factor.LIBRARY_FROM = 1 << 62  # the kernel at every batch size
     for robots in (int(b) for b in args.robots.split(",")):
         out = {**head, "part": "time", "robots": robots}
         for n in sizes:

@@ -3,7 +3,8 @@
 # logs, gzipped kernel tables) under OUTDIR. Run the stages back to back on the warm machine, the
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR rid          # ~7 min, first
+#   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
@@ -17,7 +18,13 @@
 #              TF32 passes, one program a leg, is fastest, set ridkernel.ELEMENTS / NUM_WARPS /
 #              DOT_ALGORITHM / SPLIT), then
 #              the step at 96 and 16,384 robots with it and without it, in one call; if faster at
-#              both, make it the CUDA default (`legs.rid_terms`' None).
+#              both, make it the CUDA default (`legs.rid_terms`' None). BASE, where given, is a
+#              folder holding an earlier commit's `softcrawl` package (`git archive COMMIT softcrawl
+#              | tar -x -C DIR`, carried under .gpu-carry): its step is timed in the same call.
+# crossover:   the legs' factors and the attachment block's inverse alone at 96, 1,024, 2,048,
+#              4,096 and 16,384 robots, each kernel against the library (`cholesky_kernel.py`):
+#              set `factor.LIBRARY_FROM` (the batch from which the block's inverse is the
+#              library's) where the library's inverse becomes the faster.
 # profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed
 #              (`step_cost.py --profile`): where the large batches' time goes.
 # attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
@@ -45,7 +52,7 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: rid, profile, attribution, kernels, groundtruth, targets or training}
+out=${1:?OUTDIR}; stage=${2:?STAGE: rid, crossover, profile, attribution, kernels, groundtruth, targets or training}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
@@ -55,7 +62,14 @@ rid)
     for form in kernel pairs; do
         timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 --rid-form $form \
             2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
-    done ;;
+    done
+    if [ -n "${BASE:-}" ]; then
+        PYTHONPATH=$BASE timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
+            2>>"$out/log.txt" | sed 's/^{/{"base": true, /' | tee -a "$out/targets.jsonl"
+    fi ;;
+crossover)
+    timeout 300 python3 benchmarks/cholesky_kernel.py --robots 96,1024,2048,4096,16384 --calls 5 \
+        2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
 targets)
     for forms in "dense16 library" "fused16 kernel"; do
         set -- $forms
@@ -94,5 +108,6 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: rid, profile, attribution, kernels, groundtruth, targets or training" >&2; exit 2 ;;
+    echo "unknown stage $stage: rid, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
+    exit 2 ;;
 esac

@@ -466,6 +466,27 @@ def test_the_fused_kernels_variants_give_the_same_impulses(C, monkeypatch):
     jax.clear_caches()
 
 
+def test_the_fused_kernels_row_blocks_cover_the_rows_and_no_more_of_the_padding():
+    """:func:`softcrawl.jaxsim.fused.row_blocks`: for every row count up to 300 and block size
+    16, 32 and 64, full blocks then tail blocks of powers of two (at least 16) cover rows ``0 ..
+    n`` in order, each inside the padded size ``N`` and aligned to its size; past ``n`` they
+    reach less than 16 rows (the paper preset's 240 rows: 240, not 256; the crawl preset's 132:
+    144)."""
+    from softcrawl.jaxsim.factor import padded_size
+    from softcrawl.jaxsim.fused import row_blocks
+
+    assert row_blocks(240, 64) == (3, [(192, 32), (224, 16)])
+    assert row_blocks(132, 64) == (2, [(128, 16)])
+    for rb in (16, 32, 64):
+        for n in range(1, 301):
+            full, tail = row_blocks(n, rb)
+            blocks = [(b * rb, rb) for b in range(full)] + tail
+            assert [s for s, _ in blocks] == list(np.cumsum([0] + [z for _, z in blocks[:-1]]))
+            end = blocks[-1][0] + blocks[-1][1]
+            assert n <= end < n + 16 and end <= padded_size(n)
+            assert all(z in (16, 32, 64) and z <= rb and s % z == 0 for s, z in blocks)
+
+
 def test_the_fused_kernel_is_refused_where_it_does_not_apply(C):
     """``fused`` needs the float16 storage's refinement, the unrolled iterations, the dense
     operator: anything else is a ValueError, not a silent fallback."""

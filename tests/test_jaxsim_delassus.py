@@ -421,7 +421,7 @@ def test_the_step_solves_two_triangular_systems(landed):
 def test_the_engines_step_has_a_short_dependency_chain():
     """The vector env's step of the paper preset's robots (6 leg slots, 80 contact slots, the
     default contact solve) compiled for a CPU: no loop but the steps' own (one trip per step) and
-    at most 600 operations in sequence per step (measured 551 to 556 on two hosts with JAX
+    at most 600 operations in sequence per step (measured 545 on this VM with JAX
     0.10.2; the previous engine's 100 Gauss-Seidel sweeps ran 8,101 trips and 184,545
     operations per step: benchmarks/step_cost.py, benchmarks/RESULTS.md)."""
     out = subprocess.run([sys.executable, "benchmarks/step_cost.py", "--steps", "10"], capture_output=True, text=True,
@@ -444,8 +444,8 @@ def test_the_legs_heights_are_the_z_of_their_rotated_collision_nodes(landed):
     leg, rd = model.leg, model.robot
     qdot = state.qdot + jnp.asarray(np.random.default_rng(1).normal(0.0, 5.0, state.qdot.shape))
     z, vz = leg_heights(leg, rd, state.q, qdot)
-    Phi, R = np.asarray(leg.coll_basis), np.asarray(rd.rotation)
-    x = np.einsum("lac,lnc->lna", R, np.asarray(leg.coll_rest) + np.einsum("nam,lm->lna", Phi, np.asarray(state.q)))
+    Phi, X, R = np.asarray(leg.coll_affine[..., :-1]), np.asarray(leg.coll_affine[..., -1]), np.asarray(rd.rotation)
+    x = np.einsum("lac,lnc->lna", R, X + np.einsum("nam,lm->lna", Phi, np.asarray(state.q)))
     v = np.einsum("lac,lnc->lna", R, np.einsum("nam,lm->lna", Phi, np.asarray(qdot)))
     present = np.asarray(rd.leg_mask)
     assert present.sum() == 4 and np.abs(R[present] - np.eye(3)).max() > 0.5
@@ -453,6 +453,38 @@ def test_the_legs_heights_are_the_z_of_their_rotated_collision_nodes(landed):
                                rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(vz), v[..., 2], rtol=0, atol=1e-12)
     assert np.all(np.asarray(z)[~present] == FAR)
+
+
+def test_the_disks_rotation_by_newtons_iteration_is_the_svds(landed):
+    """On CUDA the disk's Kabsch rotation is the polar factor by Newton's iteration
+    (:func:`softcrawl.jaxsim.disk.polar_rotation`), elsewhere by the SVD. On 300 moment matrices
+    of the paper's disk, rotated at random, stretched and sheared by up to 30% and moved, the
+    two agree to 1e-13 in float64 (measured 1e-14) and 1e-6 in float32 (measured 1.6e-7,
+    round-off of entries near 1); a disk turned inside out (``det H < 0``) gives NaN, where the
+    SVD would fit a rotation to a reflected disk; and the step exported for CUDA calls no
+    library routine for it (cuSOLVER's SVD is a chain of kernels there)."""
+    from scipy.spatial.transform import Rotation
+
+    from softcrawl.jaxsim.disk import _svd_rotation, kabsch, polar_rotation
+
+    model = landed[0]
+    rest, wr = np.asarray(model.disk.rest), np.asarray(model.disk.weighted_rest)
+    rng = np.random.default_rng(3)
+    newton, svd = jax.jit(polar_rotation), jax.jit(_svd_rotation)
+    err = {np.float64: 0.0, np.float32: 0.0}
+    for k in range(300):
+        stretch = np.eye(3) + rng.uniform(-0.3, 0.3, (3, 3))
+        x = rest @ stretch.T @ Rotation.random(random_state=k).as_matrix().T + rng.normal(0.0, 5.0, 3)
+        H = wr.T @ x
+        ref = np.asarray(svd(jnp.asarray(H)))
+        for dt in err:
+            err[dt] = max(err[dt], np.abs(np.asarray(newton(jnp.asarray(H, dt))) - ref).max())
+    assert err[np.float64] <= 1e-13 and err[np.float32] <= 1e-6
+    assert np.isnan(np.asarray(polar_rotation(jnp.asarray(wr.T @ (rest * [1.0, 1.0, -1.0]))))).all()
+    args = (jnp.asarray(rest), jnp.asarray(wr))
+    assert "custom_call" not in jax.export.export(jax.jit(kabsch), platforms=["cuda"])(*args).mlir_module()
+    fit = jax.jit(lambda x, w: _svd_rotation(w.T @ x))
+    assert np.array_equal(np.asarray(jax.jit(kabsch)(*args)), np.asarray(fit(*args)))
 
 
 def test_the_disks_attachment_share_is_its_gram_rotated_by_blocks(landed):
@@ -695,8 +727,8 @@ ptxas info    : Used 128 registers, used 1 barriers
 
 def test_the_cholesky_kernels_step_is_the_librarys(landed, monkeypatch):
     """``Settings.cholesky = "kernel"`` (the legs' and the attachment block's inverse factors in
-    one GPU kernel, :mod:`softcrawl.jaxsim.factor`): on a CPU the step is the library's to the
-    bit, the traced step holding the kernel for other platforms; with the kernel forced
+    one GPU kernel, :mod:`softcrawl.jaxsim.factor`): on a CPU the compiled step is the library's
+    to the bit, the traced step holding the kernel for other platforms; with the kernel forced
     (interpreted) for every inverse of the landed robot's step, the step's modal and disk
     velocities are the library's within 1e-8 of their size (float64). The two factorisations'
     round-off: the legs' step matrices have condition numbers of about 1e5, and their inverse
@@ -708,14 +740,17 @@ def test_the_cholesky_kernels_step_is_the_librarys(landed, monkeypatch):
 
     model, state, kpa = landed
     kernel = dataclasses.replace(model, settings=dataclasses.replace(model.settings, cholesky="kernel"))
-    a, b = physics_step(model, state, kpa), physics_step(kernel, state, kpa)
+    step = jax.jit(physics_step)
+    a, b = step(model, state, kpa), step(kernel, state, kpa)
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert "pallas_call" in str(jax.make_jaxpr(physics_step)(kernel, state, kpa))
     assert "pallas_call" not in str(jax.make_jaxpr(physics_step)(model, state, kpa))
     monkeypatch.setattr(factor, "_library", lambda A, symmetrize=False: factor.cholesky_inverse(A, "interpret", symmetrize))
-    c = physics_step(model, state, kpa)
+    jax.clear_caches()  # the patched factor is read when the step is traced
+    c = step(model, state, kpa)
     for name in ("qdot", "v"):
         x, y = np.asarray(getattr(a, name)), np.asarray(getattr(c, name))
         assert not np.array_equal(x, y)
         assert np.abs(x - y).max() <= 1e-8 * np.abs(x).max(), name
+    jax.clear_caches()  # nothing traced with the patched factor outlives the test

@@ -82,8 +82,27 @@ def test_the_library_and_kernel_forms_agree_and_a_cpu_takes_the_library():
     assert "pallas_call" in str(jax.make_jaxpr(lambda a: cholesky_inverse(a, "kernel"))(A))
     assert "pallas_call" not in str(jax.make_jaxpr(cholesky_inverse)(A))
     np.testing.assert_allclose(np.asarray(inverse_spd(A, "interpret")) @ np.asarray(A), np.eye(36), atol=1e-12)
-    np.testing.assert_array_equal(np.asarray(inverse_spd(A, "kernel")), np.asarray(inverse_spd(A)))
+    np.testing.assert_array_equal(np.asarray(inverse_spd(A, "kernel")), np.asarray(jax.jit(inverse_spd)(A)))
     assert "inverse_spd" in str(jax.make_jaxpr(lambda a: inverse_spd(a, "kernel"))(A))
+
+
+def test_a_large_batch_of_the_inverses_kernel_form_is_the_librarys(monkeypatch):
+    """``inverse_spd``'s ``"kernel"`` form batched by ``jax.vmap``: below
+    :data:`softcrawl.jaxsim.factor.LIBRARY_FROM` matrices the traced program holds the sweeps'
+    kernel (for CUDA), from it only the library's form (cuSOLVER's batched factorisation is
+    faster there on a GPU); on a CPU both are the library's result to the bit, and the choice is
+    made again for each batch size (it is read when a call is traced)."""
+    from softcrawl.jaxsim import factor
+
+    monkeypatch.setattr(factor, "LIBRARY_FROM", 4)
+    A = jnp.asarray(_spd(np.random.default_rng(6), 5, 12, 100.0))
+    for batch, kernel in ((3, True), (4, False), (5, False)):
+        def f(a):
+            return jax.vmap(lambda m: factor.inverse_spd(m, "kernel"))(a)
+
+        assert ("inverse_spd" in str(jax.make_jaxpr(f)(A[:batch]))) == kernel
+        np.testing.assert_array_equal(np.asarray(jax.jit(f)(A[:batch])),
+                                      np.asarray(jax.jit(jax.vmap(factor.inverse_spd))(A[:batch])))
 
 
 def test_the_symmetrized_library_form_is_jax_numpys_factor_inverted():

@@ -252,17 +252,25 @@ def test_build_model_refuses_what_the_engine_cannot_step(robot):
         build_model([dataclasses.replace(robot, reduced={**robot.reduced, body: leg})])
 
 
-def test_float32_products_are_not_lowered_to_tensorfloat32(robot):
+@pytest.mark.parametrize("library_from", [None, 1])
+def test_float32_products_are_not_lowered_to_tensorfloat32(robot, monkeypatch, library_from):
     """Regression: on a GPU the default precision of float32 matrix products is TF32 (10-bit
-    mantissa), which inverted elements of every robot of the GPU benchmark; the step's products ask for full precision (``precision = HIGHEST`` in the lowered program,
-    which a CPU ignores and a GPU obeys)."""
+    mantissa), which inverted elements of every robot of the GPU benchmark; the step's products
+    ask for full precision (``precision = HIGHEST`` in the lowered program, which a CPU ignores
+    and a GPU obeys). The attachment block's inverse is traced by its batching rule, outside the
+    step's precision setting: its product asks for full precision itself, below
+    ``factor.LIBRARY_FROM`` (the sweeps on CUDA, the library's form elsewhere) and from it (here
+    1: the library's form, batched)."""
     import re
 
     import jax.numpy as jnp
 
+    from softcrawl.jaxsim import factor
     from softcrawl.jaxsim.engine import Control, make_rollout, rest_state
     from softcrawl.jaxsim.model import build_model
 
+    if library_from:
+        monkeypatch.setattr(factor, "LIBRARY_FROM", library_from)
     model = build_model([robot], dtype=jnp.float32)
     st = rest_state(model)
     text = make_rollout(1).lower(model, st, Control(jnp.zeros((1, 3), jnp.float32))).as_text()

@@ -86,12 +86,16 @@ def _disk_gather(inverse, rows_nodes, cols_nodes):
 
 def leg_heights(leg, rd, q, qdot):
     """World heights and vertical velocities ``(L, nc)`` of the legs' collision nodes (absent
-    legs :data:`FAR` up), mm and mm/s: only the third row of each leg's rotation enters, so the
-    nodes' positions and velocities are one product with the modal basis and a 3-term sum."""
-    pv = jnp.einsum("nam,klm->klna", leg.coll_basis, jnp.stack([q, qdot]))
+    legs :data:`FAR` up), mm and mm/s: only the third row ``u`` of each leg's rotation enters,
+    ``z_n = u . (X_n + Phi_n q) + t_z = [Phi_n, X_n] : (u (q, 1)^T) + t_z``, so that heights and
+    velocities are one product of ``leg.coll_affine``, read as ``(nc, 3 (m + 1))``, with the legs'
+    ``u (x) (q, 1)`` and ``u (x) (qdot, 0)``: it writes the heights alone, not the nodes' three
+    coordinates."""
     up = rd.rotation[:, 2]  # (L, 3): world z = up . part-frame position
-    z = jnp.sum((leg.coll_rest + pv[0]) * up[:, None], axis=-1) + rd.translation[:, 2:]
-    return jnp.where(rd.leg_mask[:, None], z, FAR), jnp.sum(pv[1] * up[:, None], axis=-1)
+    one = jnp.ones((q.shape[0], 1), q.dtype)
+    qq = jnp.stack([jnp.concatenate([q, one], axis=1), jnp.concatenate([qdot, jnp.zeros_like(one)], axis=1)])
+    z, vz = jnp.einsum("nam,klam->kln", leg.coll_affine, up[None, :, :, None] * qq[:, :, None, :])
+    return jnp.where(rd.leg_mask[:, None], z + rd.translation[:, 2:], FAR), vz
 
 
 def select_contacts(model, state, v_free, qd_free):
@@ -109,7 +113,7 @@ def select_contacts(model, state, v_free, qd_free):
     """
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
     L = state.q.shape[0]
-    nd, nc = dk.collision.shape[0], leg.coll_rest.shape[0]
+    nd, nc = dk.collision.shape[0], leg.coll_affine.shape[0]
     zl, vl = leg_heights(leg, rd, state.q, qd_free)
     z = jnp.concatenate([state.x[dk.collision, 2], zl.reshape(-1)])
     vz = jnp.concatenate([v_free[dk.collision, 2], vl.reshape(-1)])
@@ -143,7 +147,7 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     RR = (R[:, None, :, None] * R[None, :, None, :]).reshape(9, 9)  # (R x R)[(a, d), (b, c)] = R_ab R_dc
     disk_aa = (rd.att_gram.reshape(A, A, 9) @ RR.T).reshape(A, A, 3, 3).transpose(0, 2, 1, 3).reshape(3 * A, 3 * A)
     # contacts: the disk's, then each leg's
-    nd, nc, Kd, Kl = dk.collision.shape[0], leg.coll_rest.shape[0], st.disk_contacts, st.leg_contacts
+    nd, nc, Kd, Kl = dk.collision.shape[0], leg.coll_affine.shape[0], st.disk_contacts, st.leg_contacts
     if Kd + Kl:
         idx, active, gap = select_contacts(model, state, v_free, qd_free)
     else:  # no floor
@@ -152,7 +156,8 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     DR = D @ R
     node = dk.collision[idx[:Kd]]
     lnode = (idx[Kd:] - nd).reshape(L, Kl) % nc
-    J_con = jnp.einsum("ab,lbc,lkcm->lkam", D, rd.rotation, leg.coll_basis[lnode]).reshape(L, 3 * Kl, m)
+    J_con = jnp.einsum("ab,lbc,lkcm->lkam", D, rd.rotation, leg.coll_affine[lnode, :, :m])
+    J_con = J_con.reshape(L, 3 * Kl, m)
     disk_dd = jnp.einsum("ab,pbqc,dc->paqd", DR, _disk_gather(dk.inverse, node, node), DR).reshape(3 * Kd, 3 * Kd)
     disk_ad = -jnp.einsum("ai,xb,aibkc,dc->axkd", w, R, _disk_gather(dk.inverse, nodes, node), DR).reshape(3 * A, 3 * Kd)
     u_disk = (v_free[node] @ D.T).at[:, 0].add(gap[:Kd] / h).reshape(-1)

@@ -9,13 +9,48 @@ constant.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+
+#: Newton iterations of :func:`polar_rotation`: 8 give the SVD's rotation to 1e-14 in float64 and
+#: 1.6e-7 in float32 on moment matrices of the paper's disk rotated at random, stretched and
+#: sheared by up to 30% (``tests/test_jaxsim_delassus.py``).
+POLAR_ITERATIONS = 8
+
+
+def polar_rotation(H, iterations: int = POLAR_ITERATIONS):
+    """``(3, 3)`` the rotation maximising ``tr(R H)``: the orthogonal polar factor of ``H^T``, by
+    Newton's iteration with determinant scaling ``X' = (z X + X^-T / z) / 2``, ``z = |det X|^-1/3``,
+    from ``X = H^T`` (Higham 2008, "Functions of Matrices", sec. 8.6, eq. 8.24 and 8.26): ``X^-T``
+    is the cofactor matrix over the determinant, so that the iterations are elementwise
+    arithmetic on the nine entries, each its own array (on a GPU they fuse into few kernels;
+    the SVD is a chain of library kernels). ``H`` with ``det H <= 0`` (the disk turned inside
+    out: no rotation fits without a reflection) gives NaN."""
+    X = [[H[j, i] for j in range(3)] for i in range(3)]  # rows of H^T, each entry its own array
+    for _ in range(iterations):
+        cof = [_cross(X[1], X[2]), _cross(X[2], X[0]), _cross(X[0], X[1])]
+        det = X[0][0] * cof[0][0] + X[0][1] * cof[0][1] + X[0][2] * cof[0][2]
+        z = jnp.abs(det) ** (-1.0 / 3.0)
+        w = 1.0 / (z * det)
+        X = [[0.5 * (z * X[i][j] + w * cof[i][j]) for j in range(3)] for i in range(3)]
+    return jnp.where(jnp.linalg.det(H) > 0, jnp.stack([jnp.stack(r) for r in X]), jnp.nan)
+
+
+def _cross(a, b):
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
 def kabsch(x, weighted_rest):
     """``(3, 3)`` rotation maximising ``tr(R H)``, ``H = sum_n w_n X_n x_n^T`` (reflections
-    excluded; Kabsch 1976, Acta Cryst. A32, 922); ``x``, ``weighted_rest``: ``(n, 3)`` mm."""
-    U, _, Vt = jnp.linalg.svd(weighted_rest.T @ x)
+    excluded; Kabsch 1976, Acta Cryst. A32, 922); ``x``, ``weighted_rest``: ``(n, 3)`` mm. By the
+    SVD ``H = U S V^T``, ``R = V diag(1, 1, d) U^T``; on CUDA by :func:`polar_rotation`, the same
+    rotation to round-off wherever ``det H > 0``."""
+    H = weighted_rest.T @ x
+    return jax.lax.platform_dependent(H, cuda=polar_rotation, default=_svd_rotation)
+
+
+def _svd_rotation(H):
+    U, _, Vt = jnp.linalg.svd(H)
     d = jnp.sign(jnp.linalg.det(U @ Vt))
     V = Vt.T.at[:, 2].multiply(d)
     return V @ U.T

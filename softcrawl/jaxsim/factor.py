@@ -58,6 +58,13 @@ def padded_size(n: int) -> int:
 #: 16 to 128 on an H100 (benchmarks/RESULTS.md). Read when a call is traced:
 #: ``benchmarks/cholesky_kernel.py`` times other values.
 PER_THREAD = 64
+#: Matrices in a batch (``jax.vmap``'s axis) from which :func:`inverse_spd`'s ``"kernel"`` form
+#: hands the batch to the library: one program a matrix pads the attachment block's 72 rows to
+#: 128, and at 16,384 blocks cuSOLVER's batched factorisation and inverse take 5.45 ms against
+#: the sweeps' 7.37; at 96, 0.263 against 0.104 (H100, benchmarks/RESULTS.md). A line through
+#: both crosses at about 1,900 blocks; ``benchmarks/cholesky_kernel.py`` times the sizes between.
+#: Read when a call is traced.
+LIBRARY_FROM = 2048
 
 
 def _warps(N: int) -> int:
@@ -175,18 +182,38 @@ def inverse_spd(A, form: str = "library"):
     """The inverse ``(n, n)`` of a symmetric positive definite ``A`` ``(n, n)`` (read whole), by
     ``form`` as :func:`cholesky_inverse`'s: ``"library"`` is ``C^-T C^-1`` from that function's
     library form; ``"kernel"`` (CUDA; the library's form elsewhere) and ``"interpret"`` are the
-    module doc's sweeps in one kernel, which form ``A^-1`` without a factor. Its error is of the
-    order of ``cond(A)`` times the rounding unit, as a solve's (Higham 2002, sec. 14.4); a matrix
-    that is not positive definite gives NaN or infinite entries in every form.
+    module doc's sweeps in one kernel, which form ``A^-1`` without a factor; ``"kernel"``
+    batched by ``jax.vmap`` over :data:`LIBRARY_FROM` matrices or more is the library's form,
+    faster there. Its error is of the order of ``cond(A)`` times the rounding unit, as a
+    solve's (Higham 2002, sec. 14.4); a matrix that is not positive definite gives NaN or
+    infinite entries in every form.
 
     Raises:
         ValueError: an unknown ``form``, or ``A`` not square.
     """
     _check(A, form)
-    if form == "library":
+    if form == "library":  # the product at full precision wherever it is traced (a GPU's float32 default is TF32)
         Ci = _library(A)
-        return Ci.T @ Ci
-    sweep = partial(_pallas, kernel=_sweep_kernel, name="inverse_spd")
+        return jnp.matmul(Ci.T, Ci, precision=lax.Precision.HIGHEST)
     if form == "interpret":
-        return sweep(A, True)
-    return lax.platform_dependent(A, cuda=partial(sweep, interpret=False), default=partial(inverse_spd, form="library"))
+        return _pallas(A, True, kernel=_sweep_kernel, name="inverse_spd")
+    return _inverse_by_batch(A)
+
+
+def _sweeps_on_cuda(A):
+    return lax.platform_dependent(A, cuda=partial(_pallas, interpret=False, kernel=_sweep_kernel, name="inverse_spd"),
+                                  default=inverse_spd)
+
+
+@jax.custom_batching.custom_vmap
+def _inverse_by_batch(A):
+    """:func:`inverse_spd`'s ``"kernel"`` form: the sweeps on CUDA; batched by ``jax.vmap``, the
+    library's form from :data:`LIBRARY_FROM` matrices (the innermost ``vmap``'s size)."""
+    return _sweeps_on_cuda(A)
+
+
+@_inverse_by_batch.def_vmap
+def _inverse_batched(axis_size, in_batched, A):
+    if not in_batched[0]:
+        return _inverse_by_batch(A), False
+    return jax.vmap(inverse_spd if axis_size >= LIBRARY_FROM else _sweeps_on_cuda)(A), True

@@ -26,9 +26,11 @@ where XLA's program needs a reshape of the whole vector.
 
 The kernel is Pallas' Triton form (``jax.experimental.pallas.triton``; JAX marks it deprecated
 in favour of Mosaic GPU, and keeps it): one program per robot, :data:`NUM_WARPS` warps, the
-operator handled ``(N, N)`` (``N`` the rows padded to a power of two, 256 for the paper preset's
-80 contacts; the inputs read through masked pointers) and multiplied :data:`ROW_BLOCK` rows at
-a time. Where JAX has no GPU (``interpret=True``, the tests on a CPU) the same kernel runs in
+operator handled in blocks of :data:`ROW_BLOCK` rows and powers of two after them
+(:func:`row_blocks`) by ``N`` columns (``N`` the rows padded to a power of two, 256 for the
+paper preset's 80 contacts), read through masked pointers: an iteration reads 240 of the 256
+rows and columns for the paper preset, 144 rows of 132 columns for the crawl preset's 44
+contacts. Where JAX has no GPU (``interpret=True``, the tests on a CPU) the same kernel runs in
 Pallas' interpreter.
 """
 
@@ -59,6 +61,20 @@ ROW_BLOCK = 64
 LOOP_PRODUCT = False
 
 
+def row_blocks(n: int, row_block: int) -> tuple[int, list[tuple[int, int]]]:
+    """How a program covers ``n`` rows: ``full`` blocks of ``row_block`` rows, then ``tail``, the
+    ``(start, size)`` of blocks of the largest powers of two (at least 16) that cover the rest,
+    the last masked past ``n``: 240 rows at 64 are 3 blocks and ``[(192, 32), (224, 16)]``, so
+    that no row of the padding to ``N = 256`` is read."""
+    full = n // row_block
+    tail, start = [], full * row_block
+    while start < n:
+        size = max(16, 1 << ((n - start).bit_length() - 1))
+        tail.append((start, size))
+        start += size
+    return full, tail
+
+
 def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_ref, q_ref, mu_ref, lam_ref, act_ref,
             b_ref, x_ref, wi_ref, g_ref, su_ref, sy_ref):
     """One robot's solve (module doc). Inputs ``w_ref`` ``(n, n)`` the operator ``W``, ``q_ref``
@@ -68,15 +84,15 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
     two) and reads its inputs through masked pointers (lanes past ``n`` load nothing).
 
     First, once: each row's scaling ``s`` (its contact's ``1 / sqrt(W_nn)``, 0 on inactive
-    contacts' rows), the warm start ``x0`` projected, and, ``row_block`` rows of ``W`` at a time,
+    contacts' rows), the warm start ``x0`` projected, and, by the blocks of :func:`row_blocks`,
     ``Ws = s W s`` rounded to the storage dtype into the scratch ``wi_ref`` ``(N, N)``, the
     refinement's constant ``g0 = (Ws - Ws~) x0 + s q`` into ``g_ref`` and the Gershgorin bound
-    ``L``. Then the iterations (each product ``row_block`` rows at a time, the blocks unrolled or,
-    with ``loop_product``, looped): each stores ``u`` and ``y`` into the scratch ``su_ref`` and
-    ``sy_ref`` ``(2, N)``, slot ``k % 2``, and reads back its contact's three components of each
-    after ``barrier()`` (the program's threads' stores made visible to all of them): one barrier
-    an iteration, the two slots keeping an iteration's stores from overwriting what a slower
-    thread still reads of the last."""
+    ``L``. Then the iterations (each product by the same blocks, the full ones unrolled or, with
+    ``loop_product``, looped; no column past ``n`` read): each stores ``u`` and ``y`` into the
+    scratch ``su_ref`` and ``sy_ref`` ``(2, N)``, slot ``k % 2``, and reads back its contact's
+    three components of each after ``barrier()`` (the program's threads' stores made visible to
+    all of them): one barrier an iteration, the two slots keeping an iteration's stores from
+    overwriting what a slower thread still reads of the last."""
     from jax.experimental.pallas import triton as pltriton
 
     N = wi_ref.shape[-1]
@@ -102,20 +118,25 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
     safe = jnp.where(live, s, 1)
     x0 = project(*(pltriton.load(lam_ref.at[j], mask=live, other=0.0) / safe for j in (base, base + 1, base + 2)))
 
-    def prepare(blk, bound):  # Ws~, g0 and the bound, by blocks of rows (a loop in the program:
-        # unrolled, the compiler held several blocks in registers at once, benchmarks/RESULTS.md)
-        r0 = blk * row_block
-        rows = r0 + lax.iota(jnp.int32, row_block)
+    full, tail = row_blocks(n, row_block)
+
+    def prepare(r0, size, bound):  # Ws~, g0 and the bound on rows r0 .. r0 + size (the full
+        # blocks in a loop of the program: unrolled, the compiler held several blocks in registers
+        # at once, benchmarks/RESULTS.md)
+        rows = r0 + lax.iota(jnp.int32, size)
         s_r, _ = scale(rows)
         Wb = pltriton.load(w_ref.at[rows[:, None], i[None, :]], mask=(rows[:, None] < n) & (i[None, :] < n), other=0.0)
         Ws = s_r[:, None] * Wb * s[None, :]
         Wi = Ws.astype(wi_ref.dtype)
-        wi_ref[pl.ds(r0, row_block), :] = Wi
+        wi_ref[pl.ds(r0, size), :] = Wi
         q_r = pltriton.load(q_ref.at[rows], mask=rows < n, other=0.0)
-        g_ref[pl.ds(r0, row_block)] = jnp.sum((Ws - Wi.astype(dt)) * x0[None, :], axis=1) + s_r * q_r
+        g_ref[pl.ds(r0, size)] = jnp.sum((Ws - Wi.astype(dt)) * x0[None, :], axis=1) + s_r * q_r
         return jnp.maximum(bound, jnp.max(jnp.sum(jnp.abs(Ws), axis=1)))
 
-    step = 1 / jnp.maximum(lax.fori_loop(0, N // row_block, prepare, jnp.zeros((), dt)), tiny)
+    bound = lax.fori_loop(0, full, lambda blk, b: prepare(blk * row_block, row_block, b), jnp.zeros((), dt))
+    for r0, size in tail:
+        bound = prepare(r0, size, bound)
+    step = 1 / jnp.maximum(bound, tiny)
     barrier()
 
     def body(k, c):
@@ -123,16 +144,22 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
         slot = lax.rem(k, 2)
         sy_ref[slot, :] = y
 
-        def product(blk, carry):  # u = Ws~ y + g0 on a block of rows
-            rows = pl.ds(blk * row_block, row_block)
-            su_ref[slot, rows] = jnp.sum(wi_ref[rows, :].astype(dt) * y[None, :], axis=1) + g_ref[rows]
-            return carry
+        def product(r0, size):  # u = Ws~ y + g0 on rows r0 .. r0 + size, the columns past n not read
+            rows = r0 + lax.iota(jnp.int32, size)
+            Wb = pltriton.load(wi_ref.at[rows[:, None], i[None, :]], mask=(i < n)[None, :], other=0.0)
+            su_ref[slot, pl.ds(r0, size)] = jnp.sum(Wb.astype(dt) * y[None, :], axis=1) + g_ref[pl.ds(r0, size)]
 
         if loop_product:
-            lax.fori_loop(0, N // row_block, product, 0)
+            def looped(blk, c):
+                product(blk * row_block, row_block)
+                return c
+
+            lax.fori_loop(0, full, looped, 0)
         else:
-            for blk in range(N // row_block):
-                product(blk, 0)
+            for blk in range(full):
+                product(blk * row_block, row_block)
+        for r0, size in tail:
+            product(r0, size)
         barrier()
         u1, u2 = su_ref[slot, i1], su_ref[slot, i2]
         # z = y - step u after De Saxce's change, this row's contact's three components, projected

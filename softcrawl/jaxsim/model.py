@@ -83,7 +83,9 @@ class LegPart:
             polynomial it is in ``q``: the coefficients of the products ``q'_i q'_j`` (``i <= j``,
             ``np.triu_indices(m + 1)`` order) of ``q' = (q, 1)``, mN/kPa
             (:func:`cavity_polynomial`).
-        coll_rest, coll_basis: ``(nc, 3)``, ``(nc, 3, m)`` of the collision nodes.
+        coll_affine: ``(nc, 3, m + 1)`` the collision nodes' basis rows and rest positions, ``[Phi_n,
+            X_n]``: part-frame positions ``X_n + Phi_n q`` are ``coll_affine @ (q, 1)``, mm
+            (:func:`softcrawl.jaxsim.delassus.leg_heights`).
         att_rest, att_basis: ``(F, 3)``, ``(F, 3, m)`` weighted attachment patches.
         basis: ``(n, 3, m)`` the basis rows of every node (node speeds ``|Phi_n qdot|``, mm/s).
     """
@@ -99,8 +101,7 @@ class LegPart:
     cavity_basis: object
     cavity_tris: object
     cavity_terms: object
-    coll_rest: object
-    coll_basis: object
+    coll_affine: object
     att_rest: object
     att_basis: object
     basis: object
@@ -281,7 +282,7 @@ def _leg_part(robot) -> LegPart:
     slots[sm] = np.arange(len(sm))
     part = LegPart(sm, slots, rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
                    X[cav], rows[cav], local.reshape(tris.shape), cavity_polynomial(X, rows, tris),
-                   X[coll], rows[coll], att_rest, att_basis, rows)
+                   np.concatenate([rows[coll], X[coll][:, :, None]], axis=2), att_rest, att_basis, rows)
     return part
 
 
