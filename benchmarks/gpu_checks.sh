@@ -19,8 +19,9 @@
 #              DOT_ALGORITHM / SPLIT), then
 #              the step at 96 and 16,384 robots with it and without it, in one call; if faster at
 #              both, make it the CUDA default (`legs.rid_terms`' None). BASE, where given, is a
-#              folder holding an earlier commit's `softcrawl` package (`git archive COMMIT softcrawl
-#              | tar -x -C DIR`, carried under .gpu-carry): its step is timed in the same call.
+#              folder holding an earlier commit's `softcrawl` package, put first on PYTHONPATH
+#              (`mkdir -p .gpu-carry/base && git archive COMMIT softcrawl | tar -x -C
+#              .gpu-carry/base`, then BASE=.gpu-carry/base): its step is timed in the same call.
 # crossover:   the legs' factors and the attachment block's inverse alone at 96, 1,024, 2,048,
 #              4,096 and 16,384 robots, each kernel against the library (`cholesky_kernel.py`):
 #              set `factor.LIBRARY_FROM` (the batch from which the block's inverse is the
@@ -64,7 +65,7 @@ rid)
             2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done
     if [ -n "${BASE:-}" ]; then
-        PYTHONPATH=$BASE timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
+        PYTHONPATH=$BASE:$PYTHONPATH timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
             2>>"$out/log.txt" | sed 's/^{/{"base": true, /' | tee -a "$out/targets.jsonl"
     fi ;;
 crossover)
