@@ -21,7 +21,7 @@ POLAR_ITERATIONS = 8
 def polar_rotation(H, iterations: int = POLAR_ITERATIONS):
     """``(3, 3)`` the rotation maximising ``tr(R H)``: the orthogonal polar factor of ``H^T``, by
     Newton's iteration with determinant scaling ``X' = (z X + X^-T / z) / 2``, ``z = |det X|^-1/3``,
-    from ``X = H^T`` (Higham 2008, "Functions of Matrices", sec. 8.6, eq. 8.24 and 8.26): ``X^-T``
+    from ``X = H^T`` (Higham 2008, "Functions of Matrices", ch. 8, determinantal scaling): ``X^-T``
     is the cofactor matrix over the determinant, so that the iterations are elementwise
     arithmetic on the nine entries, each its own array (on a GPU they fuse into few kernels;
     the SVD is a chain of library kernels). ``H`` with ``det H <= 0`` (the disk turned inside
