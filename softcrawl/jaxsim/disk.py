@@ -12,6 +12,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from softcrawl.jaxsim.frames import cross
+
 #: Newton iterations of :func:`polar_rotation`: 8 give the SVD's rotation to 1e-14 in float64 and
 #: 1.6e-7 in float32 on moment matrices of the paper's disk rotated at random, stretched and
 #: sheared by up to 30% (``tests/test_jaxsim_delassus.py``).
@@ -27,17 +29,15 @@ def polar_rotation(H, iterations: int = POLAR_ITERATIONS):
     the SVD is a chain of library kernels). ``H`` with ``det H <= 0`` (the disk turned inside
     out: no rotation fits without a reflection) gives NaN."""
     X = [[H[j, i] for j in range(3)] for i in range(3)]  # rows of H^T, each entry its own array
+    det_h = None
     for _ in range(iterations):
-        cof = [_cross(X[1], X[2]), _cross(X[2], X[0]), _cross(X[0], X[1])]
+        cof = [cross(X[1], X[2]), cross(X[2], X[0]), cross(X[0], X[1])]
         det = X[0][0] * cof[0][0] + X[0][1] * cof[0][1] + X[0][2] * cof[0][2]
+        det_h = det if det_h is None else det_h  # det X_0 = det H
         z = jnp.abs(det) ** (-1.0 / 3.0)
         w = 1.0 / (z * det)
         X = [[0.5 * (z * X[i][j] + w * cof[i][j]) for j in range(3)] for i in range(3)]
-    return jnp.where(jnp.linalg.det(H) > 0, jnp.stack([jnp.stack(r) for r in X]), jnp.nan)
-
-
-def _cross(a, b):
-    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    return jnp.where(det_h > 0, jnp.stack([jnp.stack(r) for r in X]), jnp.nan)
 
 
 def kabsch(x, weighted_rest):

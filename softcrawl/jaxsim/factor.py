@@ -196,13 +196,15 @@ def inverse_spd(A, form: str = "library"):
         Ci = _library(A)
         return jnp.matmul(Ci.T, Ci, precision=lax.Precision.HIGHEST)
     if form == "interpret":
-        return _pallas(A, True, kernel=_sweep_kernel, name="inverse_spd")
+        return _sweeps(A, True)
     return _inverse_by_batch(A)
 
 
+_sweeps = partial(_pallas, kernel=_sweep_kernel, name="inverse_spd")
+
+
 def _sweeps_on_cuda(A):
-    return lax.platform_dependent(A, cuda=partial(_pallas, interpret=False, kernel=_sweep_kernel, name="inverse_spd"),
-                                  default=inverse_spd)
+    return lax.platform_dependent(A, cuda=partial(_sweeps, interpret=False), default=inverse_spd)
 
 
 @jax.custom_batching.custom_vmap
