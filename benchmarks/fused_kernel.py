@@ -13,12 +13,17 @@ lines:
   distance between the two (mm) and the robots that went invalid;
 * ``"part": "solve"``: the solve alone (the problems tiled to each of ``--batches``),
   ``ms_per_solve`` of XLA's iterations and of the kernel (on a GPU also its variants: rows of
-  the operator multiplied at once, warps and the product looped or unrolled,
-  :data:`softcrawl.jaxsim.fused.ROW_BLOCK`, :data:`~softcrawl.jaxsim.fused.NUM_WARPS`,
-  :data:`~softcrawl.jaxsim.fused.LOOP_PRODUCT`, none spilling on an H100).
+  the operator multiplied at once, warps, the product looped or unrolled and the operator held on
+  chip, :data:`softcrawl.jaxsim.fused.ROW_BLOCK`, :data:`~softcrawl.jaxsim.fused.NUM_WARPS`,
+  :data:`~softcrawl.jaxsim.fused.LOOP_PRODUCT`, :data:`~softcrawl.jaxsim.fused.RESIDENT_ROWS`, none
+  spilling on an H100).
+
+``--resident-rows`` sets :data:`~softcrawl.jaxsim.fused.RESIDENT_ROWS` for the agreement and
+rollout parts and makes it the first of the variants.
 
 Usage:
     python benchmarks/fused_kernel.py [--preset paper] [--batch 96] [--batches 96,16384] [--actions 3]
+        [--resident-rows 128]
 """
 
 from __future__ import annotations
@@ -36,6 +41,8 @@ def main(argv=None) -> None:
     p.add_argument("--batches", default="96,16384", help="batch sizes at which the solve alone is timed")
     p.add_argument("--calls", type=int, default=20, help="timed calls per batch size")
     p.add_argument("--actions", type=int, default=3, help="actions rolled out in each form (GPU only; 0: none)")
+    p.add_argument("--resident-rows", type=int, default=None, metavar="ROWS",
+                   help="the kernel compared holds the operator on chip by blocks of ROWS rows")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     import jax
@@ -73,6 +80,8 @@ def main(argv=None) -> None:
         return contact_problem(mdl, s, rig_pressures(mdl.settings, rg, s.pressure))
 
     problems = jax.jit(jax.vmap(one))(model.robot, state, rig)
+    fused_mod.RESIDENT_ROWS = args.resident_rows
+    head["resident_rows"] = args.resident_rows
     kernel = "gpu" if gpu else "interpret"
 
     def solver(fused):  # the engine's solve of a batch, XLA's iterations (None) or the kernel's
@@ -87,7 +96,7 @@ def main(argv=None) -> None:
                       "max_rel_impulse_diff": float((np.abs(fused - xla).max(axis=1) / scale).max()),
                       "max_velocity_diff_mm_s": float(np.abs(np.einsum("bij,bj->bi", W, fused - xla)).max()),
                       "velocity_scale_mm_s": float(np.abs(np.einsum("bij,bj->bi", W, xla)).max())}), flush=True)
-    default = (fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT)
+    default = (fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT, fused_mod.RESIDENT_ROWS)
     if gpu and args.actions:  # on a CPU "fused16" steps as "dense": nothing to compare
         ends = {}
         for form in ("dense16", "fused16"):
@@ -100,8 +109,9 @@ def main(argv=None) -> None:
         gap = np.linalg.norm(ends["fused16"][0] - ends["dense16"][0], axis=-1).max()
         print(json.dumps({**head, "part": "rollout", "actions": args.actions, "max_node_distance_mm": float(gap),
                           "bad_robots": {f: e[1] for f, e in ends.items()}}), flush=True)
-    variants = [default] + [v for v in ((16, 8, False), (64, 8, False), (16, 16, False), (32, 4, False),  # none spills
-                                        (32, 8, True), (16, 8, True)) if v != default]  # on an H100
+    variants = [default] + [v for v in ((64, 8, False, None), (16, 8, False, None), (16, 16, False, None),  # none
+                                        (32, 4, False, None), (32, 8, True, None), (16, 8, True, None),  # spills on
+                                        (64, 8, False, 128), (64, 8, False, 64)) if v != default]  # an H100
     for nb in (int(b) for b in args.batches.split(",")):
         tiled = jax.tree_util.tree_map(lambda a: jnp.asarray(np.resize(np.asarray(a), (nb, *a.shape[1:]))), problems)
         out = {**head, "part": "solve", "batch": nb}
@@ -115,11 +125,13 @@ def main(argv=None) -> None:
             return 1e3 * (time.perf_counter() - t0) / args.calls
 
         out["dense16_ms_per_solve"] = timed(solvers["dense16"])
-        for rows, warps, loop in variants if gpu else variants[:1]:  # the kernel's variants (module constants)
-            fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT = rows, warps, loop
+        for v in variants if gpu else variants[:1]:  # the kernel's variants (module constants)
+            rows, warps, loop, held = v
+            fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT, fused_mod.RESIDENT_ROWS = v
             jax.clear_caches()
-            out[f"fused16_rows{rows}_w{warps}{'_looped' if loop else ''}_ms_per_solve"] = timed(solver(kernel))
-        fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT = default
+            name = f"held{held}" if held else f"rows{rows}{'_looped' if loop else ''}"
+            out[f"fused16_{name}_w{warps}_ms_per_solve"] = timed(solver(kernel))
+        fused_mod.ROW_BLOCK, fused_mod.NUM_WARPS, fused_mod.LOOP_PRODUCT, fused_mod.RESIDENT_ROWS = default
         jax.clear_caches()
         print(json.dumps(out), flush=True)
 

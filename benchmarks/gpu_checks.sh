@@ -4,6 +4,7 @@
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
 #   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~7 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~5 min
@@ -22,6 +23,12 @@
 #              folder holding an earlier commit's `softcrawl` package, put first on PYTHONPATH
 #              (`mkdir -p .gpu-carry/base && git archive COMMIT softcrawl | tar -x -C
 #              .gpu-carry/base`, then BASE=.gpu-carry/base): its step is timed in the same call.
+# solve:       the solve kernel holding its operator on chip, its products on the tensor cores
+#              (`fused.RESIDENT_ROWS`, not yet a default): against XLA's iterations on 96 landed
+#              robots' problems and two actions of the whole engine with it (`fused_kernel.py
+#              --resident-rows 128`), the solve alone at 96 and 16,384 robots in each of the
+#              kernel's variants, then the step at 96 and 16,384 robots with it and without it in
+#              one call; if faster at both, make 128 the default (or the fastest held variant's).
 # crossover:   the legs' factors and the attachment block's inverse alone at 96, 1,024, 2,048,
 #              4,096 and 16,384 robots, each kernel against the library (`cholesky_kernel.py`):
 #              set `factor.LIBRARY_FROM` (the batch from which the block's inverse is the
@@ -53,7 +60,7 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: rid, crossover, profile, attribution, kernels, groundtruth, targets or training}
+out=${1:?OUTDIR}; stage=${2:?STAGE: rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
@@ -68,6 +75,13 @@ rid)
         PYTHONPATH=$BASE:$PYTHONPATH timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
             2>>"$out/log.txt" | sed 's/^{/{"base": true, /' | tee -a "$out/targets.jsonl"
     fi ;;
+solve)
+    timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
+        --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
+    for rows in 128 ""; do
+        timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
+            ${rows:+--resident-rows $rows} 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+    done ;;
 crossover)
     timeout 300 python3 benchmarks/cholesky_kernel.py --robots 96,1024,2048,4096,16384 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
@@ -109,6 +123,6 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: rid, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
+    echo "unknown stage $stage: rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
     exit 2 ;;
 esac

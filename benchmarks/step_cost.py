@@ -36,7 +36,9 @@ default device. Printed as one JSON line (per batch size when timing):
 
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
-        [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library] [--pairs-dot TF32_TF32_F32_X3] [--batch 2] [--steps 50] [--time] [--batches 96,1024,16384] [--calls 5]
+        [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library]
+        [--pairs-dot TF32_TF32_F32_X3] [--resident-rows 128] [--batch 2] [--steps 50] [--time]
+        [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384 [--registers]
 """
@@ -67,6 +69,10 @@ def main(argv=None) -> None:
     p.add_argument("--pairs-dot", default=None, metavar="PRESET",
                    help="the pairs form's product's dot algorithm in float32, a jax.lax.DotAlgorithmPreset name "
                         "(softcrawl.jaxsim.legs.PAIRS_DOT_ALGORITHM; default: full float32)")
+    p.add_argument("--resident-rows", type=int, default=None, metavar="ROWS",
+                   help="the solve kernel holds the operator on chip, by blocks of ROWS rows, its products on the "
+                        "tensor cores (softcrawl.jaxsim.fused.RESIDENT_ROWS; default: read from the cache every "
+                        "iteration)")
     p.add_argument("--cholesky", choices=("library", "kernel"), default=None,
                    help="how the step inverts its Cholesky factors (Settings.cholesky; default: the engine's for "
                         "the precision)")
@@ -98,7 +104,7 @@ def main(argv=None) -> None:
 
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.jaxsim import legs
+    from softcrawl.jaxsim import fused, legs
     from softcrawl.jaxsim.cost import (captured_stderr, deviceless_gpu, kernel_profile, ptxas_report,
                                        sequential_cost, xla_flops)
     from softcrawl.jaxsim.engine import STEP_SCOPES, rest_state
@@ -112,9 +118,10 @@ def main(argv=None) -> None:
                         iterations=args.iterations, delassus=args.delassus, cholesky=args.cholesky)
     settings = dataclasses.replace(table.parts.settings, rid_form=args.rid_form)
     legs.PAIRS_DOT_ALGORITHM = args.pairs_dot
+    fused.RESIDENT_ROWS = args.resident_rows
     engine = {"precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
               "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
-              "pairs_dot": args.pairs_dot}  # what every line printed was measured with
+              "pairs_dot": args.pairs_dot, "resident_rows": args.resident_rows}  # what every line was measured with
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)

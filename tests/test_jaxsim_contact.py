@@ -466,6 +466,88 @@ def test_the_fused_kernels_variants_give_the_same_impulses(C, monkeypatch):
     jax.clear_caches()
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_fused_kernel_holding_its_operator_on_chip_iterates_as_reading_it(C, monkeypatch, dtype):
+    """:data:`softcrawl.jaxsim.fused.RESIDENT_ROWS`: in float32 the program keeps the scaled
+    float16 operator through the iterations and forms each product as a matrix product with ``y``
+    split into two float16 columns, instead of reading the operator from its scratch output every
+    iteration. On random problems of 2-10 contacts padded to 10 slots, blocks of 16 to 128 rows:
+    float32 impulses within :data:`FUSED_TOL` of the largest of the kernel reading its scratch
+    (measured 2.1e-7); float64, which the held form does not serve (two float16 columns carry 22
+    bits of ``y``), the scratch's to the bit; padding contacts exactly 0. An operator too large to
+    hold (86 contacts: ``N = 512``, a float16 copy of 512 KB beyond
+    :data:`~softcrawl.jaxsim.fused.HELD_BYTES`) keeps the scratch's form: its impulses to the bit."""
+    from softcrawl.jaxsim import fused
+
+    def solve(held, arrays, warm, act):
+        monkeypatch.setattr(fused, "RESIDENT_ROWS", held)
+        jax.clear_caches()  # read when a solve is traced
+        return np.asarray(C.apgd_coulomb(*arrays, warm, act, 48, restart=False, storage="float16", fused="interpret"))
+
+    rng = np.random.default_rng(5)
+    for held in (128, 64, 32, 16):
+        k = int(rng.integers(2, 11))
+        W, q, mu, warm, act = _padded(*_random_problem(rng, k), np.zeros(3 * k))
+        arrays = [a.astype(dtype) for a in (W, q, mu)]
+        warm = np.asarray(C.apgd_coulomb(*arrays, warm.astype(dtype), act, 20, restart=False, storage="float16"))
+        want, got = solve(None, arrays, warm, act), solve(held, arrays, warm, act)
+        assert got.dtype == dtype and np.abs(want).max() > 0
+        if dtype == np.float32:
+            assert _rel(got, want) <= FUSED_TOL
+        else:
+            np.testing.assert_array_equal(got, want)
+        assert not got[3 * k:].any()
+    if dtype == np.float32:
+        W, q, mu = (a.astype(dtype) for a in _random_problem(rng, 86))
+        zero, act = np.zeros(258, dtype), np.ones(86, bool)
+        np.testing.assert_array_equal(solve(128, (W, q, mu), zero, act), solve(None, (W, q, mu), zero, act))
+    jax.clear_caches()
+
+
+def test_split_columns_carry_a_vector_to_float32s_accuracy_in_two_float16_columns():
+    """:func:`softcrawl.jaxsim.fused.split_columns`: ``m (Y[:, 0] + Y[:, 1])`` gives ``y`` back to
+    2^-23 of its largest entry ``m = max |y|`` (measured 2^-24: the second column's rounding,
+    float16's smallest subnormal being 2^-24) whatever the scale of ``y`` (1e-6 to 1e4, beyond
+    float16's range of 6e-5 to 65504), the other columns 0; ``y = 0`` splits into zeros with
+    ``m`` positive."""
+    from softcrawl.jaxsim.fused import SPLIT_COLUMNS, split_columns
+
+    rng = np.random.default_rng(4)
+    for scale in (1e-6, 1.0, 1e4):
+        y = (scale * rng.standard_normal(256) * rng.uniform(0, 1, 256) ** 6).astype(np.float32)
+        m, Y = split_columns(jnp.asarray(y), jnp.float16)
+        Y = np.asarray(Y)
+        assert Y.dtype == np.float16 and Y.shape == (256, SPLIT_COLUMNS) and not Y[:, 2:].any()
+        assert float(m) == np.abs(y).max()
+        back = float(m) * (Y[:, 0].astype(np.float64) + Y[:, 1].astype(np.float64))
+        assert np.abs(back - y).max() <= 2.0 ** -23 * float(m)
+    m, Y = split_columns(jnp.zeros(16, jnp.float32), jnp.float16)
+    assert float(m) > 0 and not np.asarray(Y).any()
+
+
+def test_kernel_sass_counts_the_instructions_of_the_largest_loop():
+    """``benchmarks/kernel_sass.py`` reads an iteration's instructions from ``nvdisasm -c`` text:
+    the largest loop (a label to the furthest backward branch to it, here 4 instructions, not
+    the inner loop's 2), opcodes without predicates or modifiers."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("kernel_sass", Path(__file__).parents[1] / "benchmarks/kernel_sass.py")
+    sass = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sass)
+    text = """
+        /*0000*/                   MOV R1, c[0x0][0x28] ;
+.L_x_0:
+        /*0010*/                   LDG.E R2, desc[UR4][R4.64] ;
+.L_x_1:
+        /*0020*/                   FADD R3, R2, R2 ;
+        /*0030*/               @P0 BRA `(.L_x_1) ;
+        /*0040*/              @!P1 BRA `(.L_x_0) ;
+        /*0050*/                   EXIT ;
+"""
+    assert sass.largest_loop(text) == {"LDG": 1, "FADD": 1, "BRA": 2}
+    assert sass.largest_loop("        /*0000*/                   EXIT ;") == {}
+
+
 def test_the_fused_kernels_row_blocks_cover_the_rows_and_no_more_of_the_padding():
     """:func:`softcrawl.jaxsim.fused.row_blocks`: for every row count up to 300 and block size
     16, 32 and 64, full blocks then tail blocks of powers of two (at least 16) cover rows ``0 ..

@@ -8,7 +8,8 @@ few dozen robots a step's latency is the count of its kernels; at thousands, the
 (``benchmarks/RESULTS.md``). :func:`fused_solve` runs all of it for one robot in one program of
 one kernel (a batch of robots under ``jax.vmap``: one program per robot): the operator comes
 from device memory once, in its own precision; the program writes its scaled float16 copy
-(128 KB a robot) and each iteration reads that again from the cache.
+(128 KB a robot) and each iteration reads that again from the cache, or, with
+:data:`RESIDENT_ROWS`, keeps that copy on chip and multiplies it on the tensor cores.
 
 The solve is :func:`~softcrawl.jaxsim.contact.apgd_coulomb`'s with ``restart=False`` and a
 reduced-precision ``storage`` (Mazhar et al. 2015 with De Saxce's change; iterative refinement as
@@ -59,6 +60,22 @@ ROW_BLOCK = 64
 #: unrolled: fewer registers a thread, so more programs per multiprocessor at large batches, and
 #: less overlap of the blocks' loads within a program. Read when a solve is traced, as above.
 LOOP_PRODUCT = False
+#: Rows a block of the scaled operator that the program holds on chip through the iterations of a
+#: float32 solve, or None: the program writes the operator to a scratch output and reads it back
+#: from the cache every iteration, by blocks of :data:`ROW_BLOCK` rows (the default, every
+#: float64 solve, and operators whose float16 copy exceeds :data:`HELD_BYTES`). Held, the
+#: blocks are unrolled (:data:`LOOP_PRODUCT` ignored) and each iteration's product is a matrix
+#: product on the tensor cores: the float16 block times ``y`` split into two float16 columns, ``y
+#: = m (y1 + y2)``, accumulated in float32 (:func:`split_columns`); Triton keeps the blocks in
+#: shared memory (123 KB for the paper preset's 240 rows) instead of reading them from the
+#: cache, 90 GB a step at 16,384 robots. Compiled for an H100 (``benchmarks/kernel_sass.py``):
+#: an iteration is 536 instructions a warp at 128 rows and 8 warps (234 registers), 624 at 64
+#: (176), against 1,261 for the scratch's. Read when a solve is traced, as above.
+RESIDENT_ROWS = None
+#: The largest float16 copy of the scaled operator (``N x N``) held on chip: an H100's program
+#: has 227 KB of shared memory, of which Triton takes some for its own exchanges; 128 KiB holds
+#: ``N = 256`` (up to 85 contacts).
+HELD_BYTES = 128 * 1024
 
 
 def row_blocks(n: int, row_block: int) -> tuple[int, list[tuple[int, int]]]:
@@ -75,8 +92,8 @@ def row_blocks(n: int, row_block: int) -> tuple[int, list[tuple[int, int]]]:
     return full, tail
 
 
-def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_ref, q_ref, mu_ref, lam_ref, act_ref,
-            b_ref, x_ref, wi_ref, g_ref, su_ref, sy_ref):
+def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, resident: bool, w_ref, q_ref, mu_ref,
+            lam_ref, act_ref, b_ref, x_ref, wi_ref, g_ref, su_ref, sy_ref):
     """One robot's solve (module doc). Inputs ``w_ref`` ``(n, n)`` the operator ``W``, ``q_ref``
     ``(n,)``, ``mu_ref`` and ``act_ref`` ``(K,)`` (``act_ref`` int32, nonzero for an active
     contact), ``lam_ref`` ``(n,)`` the warm start, ``b_ref`` the extrapolation weights; ``x_ref``
@@ -85,9 +102,10 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
 
     First, once: each row's scaling ``s`` (its contact's ``1 / sqrt(W_nn)``, 0 on inactive
     contacts' rows), the warm start ``x0`` projected, and, by the blocks of :func:`row_blocks`,
-    ``Ws = s W s`` rounded to the storage dtype into the scratch ``wi_ref`` ``(N, N)``, the
-    refinement's constant ``g0 = (Ws - Ws~) x0 + s q`` into ``g_ref`` and the Gershgorin bound
-    ``L``. Then the iterations (each product by the same blocks, the full ones unrolled or, with
+    ``Ws = s W s`` rounded to the storage dtype into the scratch ``wi_ref`` ``(N, N)`` (with
+    ``resident``, kept as values through the iterations, ``wi_ref`` unused), the refinement's
+    constant ``g0 = (Ws - Ws~) x0 + s q`` into ``g_ref`` and the Gershgorin bound ``L``. Then the
+    iterations (each product by the same blocks, the full ones unrolled or, with
     ``loop_product``, looped; no column past ``n`` read): each stores ``u`` and ``y`` into the
     scratch ``su_ref`` and ``sy_ref`` ``(2, N)``, slot ``k % 2``, and reads back its contact's
     three components of each after ``barrier()`` (the program's threads' stores made visible to
@@ -128,14 +146,20 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
         Wb = pltriton.load(w_ref.at[rows[:, None], i[None, :]], mask=(rows[:, None] < n) & (i[None, :] < n), other=0.0)
         Ws = s_r[:, None] * Wb * s[None, :]
         Wi = Ws.astype(wi_ref.dtype)
-        wi_ref[pl.ds(r0, size), :] = Wi
+        if not resident:
+            wi_ref[pl.ds(r0, size), :] = Wi
         q_r = pltriton.load(q_ref.at[rows], mask=rows < n, other=0.0)
         g_ref[pl.ds(r0, size)] = jnp.sum((Ws - Wi.astype(dt)) * x0[None, :], axis=1) + s_r * q_r
-        return jnp.maximum(bound, jnp.max(jnp.sum(jnp.abs(Ws), axis=1)))
+        return jnp.maximum(bound, jnp.max(jnp.sum(jnp.abs(Ws), axis=1))), Wi
 
-    bound = lax.fori_loop(0, full, lambda blk, b: prepare(blk * row_block, row_block, b), jnp.zeros((), dt))
-    for r0, size in tail:
-        bound = prepare(r0, size, bound)
+    bound, held = jnp.zeros((), dt), {}
+    if resident:
+        for r0, size in [(blk * row_block, row_block) for blk in range(full)] + tail:
+            bound, held[r0] = prepare(r0, size, bound)
+    else:
+        bound = lax.fori_loop(0, full, lambda blk, b: prepare(blk * row_block, row_block, b)[0], bound)
+        for r0, size in tail:
+            bound = prepare(r0, size, bound)[0]
     step = 1 / jnp.maximum(bound, tiny)
     barrier()
 
@@ -145,11 +169,19 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
         sy_ref[slot, :] = y
 
         def product(r0, size):  # u = Ws~ y + g0 on rows r0 .. r0 + size, the columns past n not read
-            rows = r0 + lax.iota(jnp.int32, size)
-            Wb = pltriton.load(wi_ref.at[rows[:, None], i[None, :]], mask=(i < n)[None, :], other=0.0)
-            su_ref[slot, pl.ds(r0, size)] = jnp.sum(Wb.astype(dt) * y[None, :], axis=1) + g_ref[pl.ds(r0, size)]
+            if resident:  # the block times Y's two columns, on the tensor cores
+                Wy = m * jnp.sum(jnp.where(two, jnp.dot(held[r0], Y, preferred_element_type=dt), 0), axis=1)
+            else:
+                rows = r0 + lax.iota(jnp.int32, size)
+                Wb = pltriton.load(wi_ref.at[rows[:, None], i[None, :]], mask=(i < n)[None, :], other=0.0)
+                Wy = jnp.sum(Wb.astype(dt) * y[None, :], axis=1)
+            su_ref[slot, pl.ds(r0, size)] = Wy + g_ref[pl.ds(r0, size)]
 
-        if loop_product:
+        if resident:
+            m, Y = split_columns(y, wi_ref.dtype)
+            two = lax.iota(jnp.int32, SPLIT_COLUMNS)[None, :] < 2
+
+        if loop_product and not resident:
             def looped(blk, c):
                 product(blk * row_block, row_block)
                 return c
@@ -169,6 +201,27 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, w_
 
     x = lax.fori_loop(0, n_iter, body, (x0, x0))[0]
     pltriton.store(x_ref.at[i], scale(i)[0] * x, mask=i < n)  # s again: fewer registers held through the loop
+
+
+#: Columns of :func:`split_columns`' matrix: a GPU's matrix product takes 16 at least.
+SPLIT_COLUMNS = 16
+
+
+def split_columns(y, dtype):
+    """``(m, Y)``: ``y`` ``(N,)`` as ``m (Y[:, 0] + Y[:, 1])`` with ``m = max |y|`` (the smallest
+    normal number if ``y`` is 0) and ``Y`` ``(N, SPLIT_COLUMNS)`` of the 16-bit ``dtype``, its
+    first column ``y / m`` rounded, its second the rest rounded, the others 0: with float16, ``y``
+    to 2^-24 of ``m`` (the second column's rounding: float16's smallest subnormal is 2^-24,
+    whatever ``y``'s scale). A product ``A @ Y`` of float16 ``A`` accumulated in float32 then
+    gives ``A y`` to about float32's accuracy for ``y``'s largest entries: the splitting of Ozaki
+    et al. 2012 ("Error-free transformations of matrix multiplication by using fast routines of
+    matrix multiplication and its applications", Numer. Algorithms 59) in two terms."""
+    m = jnp.maximum(jnp.max(jnp.abs(y)), jnp.finfo(y.dtype).tiny)
+    ys = y / m
+    y1 = ys.astype(dtype)
+    y2 = (ys - y1.astype(y.dtype)).astype(dtype)
+    col = lax.iota(jnp.int32, SPLIT_COLUMNS)[None, :]
+    return m, jnp.where(col == 0, y1[:, None], jnp.where(col == 1, y2[:, None], jnp.zeros((), dtype)))
 
 
 @partial(jax.jit, static_argnames=("storage", "interpret"))
@@ -206,10 +259,12 @@ def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", inte
     b = jnp.zeros(padded_size(n_iter), dt).at[:n_iter].set(betas.astype(dt))
     vector = jax.ShapeDtypeStruct((N,), dt)
     pair = jax.ShapeDtypeStruct((2, N), dt)
+    resident = RESIDENT_ROWS is not None and dt == jnp.float32 and N * N * jnp.dtype(storage).itemsize <= HELD_BYTES
     x, *_ = pl.pallas_call(
-        partial(_kernel, n, n_iter, (lambda: None) if interpret else pltriton.debug_barrier, min(ROW_BLOCK, N),
-                LOOP_PRODUCT),
-        out_shape=(jax.ShapeDtypeStruct((n,), dt), jax.ShapeDtypeStruct((N, N), storage), vector, pair, pair),
+        partial(_kernel, n, n_iter, (lambda: None) if interpret else pltriton.debug_barrier,
+                min(RESIDENT_ROWS if resident else ROW_BLOCK, N), LOOP_PRODUCT, resident),
+        out_shape=(jax.ShapeDtypeStruct((n,), dt), jax.ShapeDtypeStruct((1 if resident else N, N), storage), vector,
+                   pair, pair),
         interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
         name="apgd_solve",
