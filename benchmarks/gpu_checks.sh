@@ -3,7 +3,8 @@
 # logs, gzipped kernel tables) under OUTDIR. Run the stages back to back on the warm machine, the
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
+#   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~7 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
@@ -13,6 +14,11 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR targets      # ~6 min, measured on an H100
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~6 min, measured on an H100
 #
+# candidates:  the step at 96 and 16,384 robots, float32, with each form not yet a default and
+#              without: the defaults, the RID kernel (`--rid-form kernel`), the solve's operator
+#              on chip (`--resident-rows 128`), both; one call, so that the four are compared on
+#              one warm card. A default changes only after `rid` or `solve` checked that form's
+#              results on the card.
 # rid:         the legs' RID terms in one kernel (`--rid-form kernel`, not yet a default): against
 #              XLA's pairs and rows forms on the card and timed alone with its variants
 #              (`rid_kernel.py`: if a variant other than the default, 16 elements, 4 warps, three
@@ -60,10 +66,15 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training}
+out=${1:?OUTDIR}; stage=${2:?STAGE: candidates, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
+candidates)
+    for flags in "" "--rid-form kernel" "--resident-rows 128" "--rid-form kernel --resident-rows 128"; do
+        timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
+            2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+    done ;;
 rid)
     timeout 200 python3 benchmarks/rid_kernel.py --robots 96,16384 --calls 10 2>>"$out/log.txt" \
         | tee -a "$out/rid.jsonl"
@@ -123,6 +134,6 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
+    echo "unknown stage $stage: candidates, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
     exit 2 ;;
 esac
