@@ -5,7 +5,7 @@
 #
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
 #   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~7 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~5 min
@@ -33,8 +33,8 @@
 #              (`fused.RESIDENT_ROWS`, not yet a default): against XLA's iterations on 96 landed
 #              robots' problems and two actions of the whole engine with it (`fused_kernel.py
 #              --resident-rows 128`), the solve alone at 96 and 16,384 robots in each of the
-#              kernel's variants, then the step at 96 and 16,384 robots with it and without it in
-#              one call; if faster at both, make 128 the default (or the fastest held variant's).
+#              kernel's variants (the step with it: `candidates`); if the step is faster with it at
+#              both sizes, make 128 the default (or the fastest held variant's).
 # crossover:   the legs' factors and the attachment block's inverse alone at 96, 1,024, 2,048,
 #              4,096 and 16,384 robots, each kernel against the library (`cholesky_kernel.py`):
 #              set `factor.LIBRARY_FROM` (the batch from which the block's inverse is the
@@ -88,11 +88,7 @@ rid)
     fi ;;
 solve)
     timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
-        --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    for rows in 128 ""; do
-        timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
-            ${rows:+--resident-rows $rows} 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
-    done ;;
+        --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
 crossover)
     timeout 300 python3 benchmarks/cholesky_kernel.py --robots 96,1024,2048,4096,16384 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;

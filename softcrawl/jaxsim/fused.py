@@ -169,7 +169,8 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, re
         sy_ref[slot, :] = y
 
         def product(r0, size):  # u = Ws~ y + g0 on rows r0 .. r0 + size, the columns past n not read
-            if resident:  # the block times Y's two columns, on the tensor cores
+            if resident:  # the block times Y's two columns, on the tensor cores (the select lets the
+                # compiler skip the products of Y's zero columns: 536 instructions an iteration, 566 without)
                 Wy = m * jnp.sum(jnp.where(two, jnp.dot(held[r0], Y, preferred_element_type=dt), 0), axis=1)
             else:
                 rows = r0 + lax.iota(jnp.int32, size)
