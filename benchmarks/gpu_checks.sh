@@ -4,6 +4,7 @@
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR parts        # ~6 min
 #   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~4 min
@@ -19,6 +20,12 @@
 #              on chip (`--resident-rows 128`), both; one call, so that the four are compared on
 #              one warm card. A default changes only after `rid` or `solve` checked that form's
 #              results on the card.
+# parts:       the solve kernel reading the condensed operator in its parts (`fused.OPERATOR_PARTS`,
+#              the default, counted but not timed on a card): the step at 96 and 16,384 robots
+#              with it and with the operator formed by XLA first (`--formed-operator`), in one
+#              call; then two actions of the whole engine with the kernel against XLA's
+#              iterations (`fused_kernel.py`'s rollout: the engine's operator in its parts). If
+#              the formed operator is faster at both sizes, set `fused.OPERATOR_PARTS = False`.
 # rid:         the legs' RID terms in one kernel (`--rid-form kernel`, not yet a default): against
 #              XLA's pairs and rows forms on the card and timed alone with its variants
 #              (`rid_kernel.py`: if a variant other than the default, 16 elements, 4 warps, three
@@ -66,7 +73,7 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: candidates, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training}
+out=${1:?OUTDIR}; stage=${2:?STAGE: candidates, parts, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training}
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
@@ -75,6 +82,13 @@ candidates)
         timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
             2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done ;;
+parts)
+    for flags in "" "--formed-operator"; do
+        timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
+            2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+    done
+    timeout 100 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 5 \
+        2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
 rid)
     timeout 200 python3 benchmarks/rid_kernel.py --robots 96,16384 --calls 10 2>>"$out/log.txt" \
         | tee -a "$out/rid.jsonl"
@@ -130,6 +144,6 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: candidates, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
+    echo "unknown stage $stage: candidates, parts, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
     exit 2 ;;
 esac

@@ -37,7 +37,7 @@ default device. Printed as one JSON line (per batch size when timing):
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
         [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library]
-        [--pairs-dot TF32_TF32_F32_X3] [--resident-rows 128] [--batch 2] [--steps 50] [--time]
+        [--pairs-dot TF32_TF32_F32_X3] [--resident-rows 128] [--formed-operator] [--batch 2] [--steps 50] [--time]
         [--batches 96,1024,16384] [--calls 5]
         [--profile DIR]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384 [--registers]
@@ -73,6 +73,9 @@ def main(argv=None) -> None:
                    help="the solve kernel holds the operator on chip, by blocks of ROWS rows, its products on the "
                         "tensor cores (softcrawl.jaxsim.fused.RESIDENT_ROWS; default: read from the cache every "
                         "iteration)")
+    p.add_argument("--formed-operator", action="store_true",
+                   help="the solve kernel reads the condensed operator formed by XLA, not in its parts "
+                        "(softcrawl.jaxsim.fused.OPERATOR_PARTS = False)")
     p.add_argument("--cholesky", choices=("library", "kernel"), default=None,
                    help="how the step inverts its Cholesky factors (Settings.cholesky; default: the engine's for "
                         "the precision)")
@@ -119,9 +122,11 @@ def main(argv=None) -> None:
     settings = dataclasses.replace(table.parts.settings, rid_form=args.rid_form)
     legs.PAIRS_DOT_ALGORITHM = args.pairs_dot
     fused.RESIDENT_ROWS = args.resident_rows
+    fused.OPERATOR_PARTS = not args.formed_operator
     engine = {"precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
               "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
-              "pairs_dot": args.pairs_dot, "resident_rows": args.resident_rows}  # what every line was measured with
+              "pairs_dot": args.pairs_dot, "resident_rows": args.resident_rows,
+              "operator_parts": fused.OPERATOR_PARTS}  # what every line was measured with
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)

@@ -525,10 +525,11 @@ def test_split_columns_carry_a_vector_to_float32s_accuracy_in_two_float16_column
     assert float(m) > 0 and not np.asarray(Y).any()
 
 
-def test_kernel_sass_counts_the_instructions_of_the_largest_loop():
-    """``benchmarks/kernel_sass.py`` reads an iteration's instructions from ``nvdisasm -c`` text:
-    the largest loop (a label to the furthest backward branch to it, here 4 instructions, not
-    the inner loop's 2), opcodes without predicates or modifiers."""
+def test_kernel_sass_counts_the_instructions_of_the_outermost_loops():
+    """``benchmarks/kernel_sass.py`` reads the loops' instructions from ``nvdisasm -c`` text: each
+    outermost loop in the order of the code (a label to the furthest backward branch to it; the
+    last here 4 instructions with its inner loop's 2, the solve kernel's iterations, after the
+    larger loop that prepares the operator), opcodes without predicates or modifiers."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("kernel_sass", Path(__file__).parents[1] / "benchmarks/kernel_sass.py")
@@ -536,16 +537,22 @@ def test_kernel_sass_counts_the_instructions_of_the_largest_loop():
     spec.loader.exec_module(sass)
     text = """
         /*0000*/                   MOV R1, c[0x0][0x28] ;
+.L_x_2:
+        /*0010*/                   LDG.E R5, desc[UR4][R4.64] ;
+        /*0020*/                   STG.E desc[UR4][R4.64], R5 ;
+        /*0030*/                   FMUL R5, R5, R5 ;
+        /*0040*/                   FMUL R5, R5, R5 ;
+        /*0050*/               @P2 BRA `(.L_x_2) ;
 .L_x_0:
-        /*0010*/                   LDG.E R2, desc[UR4][R4.64] ;
+        /*0060*/                   LDG.E R2, desc[UR4][R4.64] ;
 .L_x_1:
-        /*0020*/                   FADD R3, R2, R2 ;
-        /*0030*/               @P0 BRA `(.L_x_1) ;
-        /*0040*/              @!P1 BRA `(.L_x_0) ;
-        /*0050*/                   EXIT ;
+        /*0070*/                   FADD R3, R2, R2 ;
+        /*0080*/               @P0 BRA `(.L_x_1) ;
+        /*0090*/              @!P1 BRA `(.L_x_0) ;
+        /*00a0*/                   EXIT ;
 """
-    assert sass.largest_loop(text) == {"LDG": 1, "FADD": 1, "BRA": 2}
-    assert sass.largest_loop("        /*0000*/                   EXIT ;") == {}
+    assert sass.outer_loops(text) == [{"LDG": 1, "STG": 1, "FMUL": 2, "BRA": 1}, {"LDG": 1, "FADD": 1, "BRA": 2}]
+    assert sass.outer_loops("        /*0000*/                   EXIT ;") == []
 
 
 def test_the_fused_kernels_row_blocks_cover_the_rows_and_no_more_of_the_padding():

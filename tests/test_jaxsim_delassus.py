@@ -92,9 +92,10 @@ def _dense(rows, inv_chol, qd_free):
 def test_block_assembly_and_elimination_equal_the_dense_schur_complement(landed):
     """On a landed, pressurised 4-legged robot in 6 slots (80 contact slots, 24 of the 72
     attachment rows masked): the block-assembled condensed operator ``W_c``, velocities ``q_c``
-    and back-substitution ``X`` equal :func:`softcrawl.jaxsim.contact.condense` of the densely
-    summed Delassus operator to 1e-10 of their scale (float64; measured 1e-13: only the order of
-    the sums differs), with contacts active."""
+    and back-substitution (``x_u`` and ``P^T``, the columns of the dense ``X``) equal
+    :func:`softcrawl.jaxsim.contact.condense` of the densely summed Delassus operator to 1e-10 of
+    their scale (float64; measured 1e-13: only the order of the sums differs), with contacts
+    active."""
     from softcrawl.jaxsim.contact import condense as dense_condense
     from softcrawl.jaxsim.delassus import condense
 
@@ -103,7 +104,7 @@ def test_block_assembly_and_elimination_equal_the_dense_schur_complement(landed)
     W, u = _dense(rows, inv_chol, qd_free)
     X, Wc, qc = dense_condense(W, u, rows.bilateral, least_squares=False)
     assert int(rows.active.sum()) > 4
-    for a, b in ((got.W, Wc), (got.q, qc), (got.X, X)):
+    for a, b in ((got.W, Wc), (got.q, qc), (got.x_u, X[:, 0]), (np.asarray(got.P).T, X[:, 1:])):
         a, b = np.asarray(a), np.asarray(b)
         assert np.abs(a - b).max() <= 1e-10 * np.abs(b).max()
 
@@ -140,6 +141,36 @@ def test_the_delassus_blocks_apply_the_condensed_operator(landed):
     dense, blocks = solve_contacts(*args), solve_contacts(*args, op=cond.blocks)
     assert float(jnp.abs(dense).max()) > 0
     assert np.abs(np.asarray(blocks - dense)).max() <= 1e-9 * np.abs(np.asarray(dense)).max()
+
+
+def test_the_solve_kernel_reads_the_operator_in_its_parts_as_formed(landed, monkeypatch):
+    """The GPU's solve kernel (in Pallas' interpreter) given the landed robot's condensed operator
+    in its parts (:class:`softcrawl.jaxsim.schur.SchurOperator`: ``W_cc``'s blocks, the legs' as
+    their whole Grams, and ``S``'s column blocks) forms each entry as
+    :meth:`~softcrawl.jaxsim.schur.SchurOperator.dense` does and iterates on it as on the formed
+    operator: the impulses to the bit, in float64 and in float32, reading its scaled copy from
+    the scratch and holding it (:data:`softcrawl.jaxsim.fused.RESIDENT_ROWS`)."""
+    from softcrawl.jaxsim import fused
+    from softcrawl.jaxsim.contact import apgd_coulomb
+    from softcrawl.jaxsim.delassus import condense
+    from softcrawl.jaxsim.schur import SchurOperator
+
+    model, rows, inv_chol, qd_free, _ = _step_rows(landed)
+    cond = condense(rows, inv_chol, qd_free)
+    assert cond.schur.legs.shape[1] > cond.schur.s_legs.shape[2]  # the Grams' attachment rows are skipped
+    K = rows.active.shape[0]
+    for dtype, held in ((jnp.float64, None), (jnp.float32, None), (jnp.float32, 128)):
+        monkeypatch.setattr(fused, "RESIDENT_ROWS", held)
+        jax.clear_caches()  # read when a solve is traced
+        parts = jax.tree.map(lambda a: a.astype(dtype), cond.schur)
+        assert isinstance(parts, SchurOperator)
+        args = (cond.q.astype(dtype), jnp.full((K,), model.settings.friction, dtype), jnp.zeros(3 * K, dtype),
+                rows.active, 48)
+        kw = dict(restart=False, storage="float16", fused="interpret")
+        got, want = apgd_coulomb(parts, *args, **kw), apgd_coulomb(parts.dense(), *args, **kw)
+        assert got.dtype == dtype and float(jnp.abs(want).max()) > 0
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    jax.clear_caches()
 
 
 def test_an_unknown_delassus_form_is_refused(landed):

@@ -69,14 +69,20 @@ from jax import lax
 from jax.scipy.linalg import cho_factor, cho_solve
 
 from softcrawl.jaxsim.cone import cone_projection, de_saxce_term
+from softcrawl.jaxsim.schur import SchurOperator
 
 #: The normal column of ``(K, 3)`` impulses or velocities (a broadcastable mask).
 _NORMAL = np.arange(3) == 0
 
 
+def _dtype(W):
+    """The dtype of an operator, formed or in its parts (:class:`~softcrawl.jaxsim.schur.SchurOperator`)."""
+    return W.dtype if isinstance(W, SchurOperator) else jnp.result_type(W)
+
+
 def _blocks(W, mu, lam0, active):
     """Common set-up: ``(dtype, mu (K,), lam0 masked (3K,), row mask (3K,))``."""
-    dtype = jnp.result_type(W)
+    dtype = _dtype(W)
     K = active.shape[0]
     mu = jnp.broadcast_to(jnp.asarray(mu, dtype), (K,))
     rows = jnp.repeat(jnp.asarray(active, bool), 3)
@@ -227,7 +233,9 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
     ``fused`` (static), with ``storage`` and without ``restart``, runs the solve, scaling and
     refinement included, in one kernel (:func:`softcrawl.jaxsim.fused.fused_solve`): ``"gpu"``
     compiled for a GPU, ``"interpret"`` in Pallas' interpreter (any platform; the tests'); None:
-    XLA's iterations.
+    XLA's iterations. ``W`` may be given in its parts
+    (:class:`~softcrawl.jaxsim.schur.SchurOperator`): the kernel reads them, XLA's iterations
+    form ``W`` first.
 
     Raises:
         ValueError: ``fused`` without ``storage``, with ``restart`` or with ``op``, or not one of
@@ -237,13 +245,15 @@ def apgd_coulomb(W, q, mu, lam0, active, n_iter: int, restart: bool = True, op=N
         raise ValueError(f"fused must be None, 'gpu' or 'interpret', got {fused!r}")
     if fused and (storage is None or restart or op is not None):
         raise ValueError("the fused iterations need a storage dtype, no restart and no op")
+    if isinstance(W, SchurOperator) and not fused:
+        W = W.dense()
     dtype, mu, lam, rows = _blocks(W, mu, lam0, active)
     if fused:
         from softcrawl.jaxsim.fused import fused_solve
 
-        return fused_solve(jnp.asarray(W, dtype), jnp.asarray(q, dtype), mu, jnp.asarray(lam0, dtype), active,
-                           jnp.asarray(momentum_schedule(n_iter), dtype), storage=storage,
-                           interpret=fused == "interpret")
+        return fused_solve(W if isinstance(W, SchurOperator) else jnp.asarray(W, dtype), jnp.asarray(q, dtype), mu,
+                           jnp.asarray(lam0, dtype), active, jnp.asarray(momentum_schedule(n_iter), dtype),
+                           storage=storage, interpret=fused == "interpret")
     K = active.shape[0]
     W, q = jnp.asarray(W, dtype), jnp.asarray(q, dtype)
     s = jnp.repeat(jnp.where(active, lax.rsqrt(jnp.where(active, jnp.diagonal(W)[::3], 1)), 0), 3)
@@ -314,12 +324,13 @@ def solve_contacts(W, q, mu, lam0, active, solver: str, iterations: int, op=None
     """The engine's contact solve: ``iterations`` of :func:`apgd_coulomb` without restart (unrolled:
     no loop in the compiled step) for ``solver="apgd"``, or sweeps of :func:`pgs_coulomb` for ``"pgs"``; the
     arguments and result as theirs (``op``, ``storage`` and ``fused``: the accelerated gradient's,
-    ignored by Gauss-Seidel, which reads ``W`` by rows). No contact slots (no floor) gives an empty result."""
+    ignored by Gauss-Seidel, which reads ``W`` by rows; ``W`` formed or in its parts,
+    :class:`~softcrawl.jaxsim.schur.SchurOperator`). No contact slots (no floor) gives an empty result."""
     if not active.shape[0]:
-        return jnp.zeros(0, jnp.result_type(W))
+        return jnp.zeros(0, _dtype(W))
     if solver == "apgd":
         return apgd_coulomb(W, q, mu, lam0, active, iterations, restart=False, op=op, storage=storage, fused=fused)
-    return pgs_coulomb(W, q, mu, lam0, active, iterations)
+    return pgs_coulomb(W.dense() if isinstance(W, SchurOperator) else W, q, mu, lam0, active, iterations)
 
 
 @partial(jax.jit, static_argnames="least_squares")

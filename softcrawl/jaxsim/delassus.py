@@ -13,11 +13,12 @@ points, then each leg slot's ``K_l``. The Delassus operator ``W = sum_b J_b A_b^
   ``J_l``, it is ``Y_l^T Y_l``, ``Y_l = C_l^-1 J_l^T``. Formed per leg this costs
   ``L (3F + 3K_l)^2 m`` multiply-adds, against ``(3A + 3K)^2 L m`` for the dense sum.
 
-The attachments are eliminated exactly by a Schur complement (:func:`condense`): ``X = W_bb^-1
-[u_b, W_bc]``, ``W_c = W_cc - W_cb X[:, 1:]``, ``q_c = u_c - W_cb X[:, 0]``, where a leg's
-contact rows of ``W_cb`` are non-zero in its own attachment columns only, so that product too
-is formed by blocks. The contact problem ``(W_c, q_c)`` is then solved by
-:mod:`softcrawl.jaxsim.contact`; :func:`corrections` maps the impulses back to velocities.
+The attachments are eliminated exactly by a Schur complement (:func:`condense`): ``P = W_cb
+W_bb^-1``, ``W_c = W_cc - P W_bc``, ``q_c = u_c - P u_b``, where a leg's contact rows of ``W_cb``
+are non-zero in its own attachment columns only, so that both products are formed by blocks;
+``W_c`` stays in its parts (:class:`softcrawl.jaxsim.schur.SchurOperator`). The contact problem
+``(W_c, q_c)`` is then solved by :mod:`softcrawl.jaxsim.contact`; :func:`corrections` maps the
+impulses back to velocities.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import jax.numpy as jnp
 from softcrawl.jaxsim.contact import floor_contacts
 from softcrawl.jaxsim.factor import inverse_spd
 from softcrawl.jaxsim.model import register_pytree
+from softcrawl.jaxsim.schur import SchurOperator
 
 #: Floor contact frame, rows normal, tangent 1, tangent 2 (:mod:`softcrawl.fem.solver`).
 FLOOR_FRAME = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
@@ -209,19 +211,26 @@ class Condensed:
     """The contact problem of one robot after the attachments' elimination (:func:`condense`).
 
     Attributes:
-        W: ``(3K, 3K)`` the contacts' Delassus operator (mm/s per mN s); q: ``(3K,)`` their
-            velocities at zero contact impulse, mm/s.
-        X: ``(3A, 3K + 1)`` ``W_bb^-1 [u_b, W_bc]``: the attachment impulses are
-            ``-(X[:, 0] + X[:, 1:] lam_c)``.
+        schur: the contacts' Delassus operator ``W_c`` (mm/s per mN s) in its parts
+            (:class:`~softcrawl.jaxsim.schur.SchurOperator`; :attr:`W` formed); q: ``(3K,)``
+            their velocities at zero contact impulse, mm/s.
+        x_u: ``(3A,)`` ``W_bb^-1 u_b``, mN s, and P: ``(3K, 3A)`` ``W_cb W_bb^-1``: the
+            attachment impulses are ``-(x_u + P^T lam_c)``.
         Y: ``(L, m, 3F + 3K_l)`` each leg's ``C_l^-1 J_l^T`` (velocity corrections).
-        blocks: ``W`` in its blocks (:class:`DelassusBlocks`).
+        blocks: ``W_c`` in its factors (:class:`DelassusBlocks`).
     """
 
-    W: jax.Array
+    schur: SchurOperator
     q: jax.Array
-    X: jax.Array
+    x_u: jax.Array
+    P: jax.Array
     Y: jax.Array
     blocks: DelassusBlocks
+
+    @property
+    def W(self) -> jax.Array:
+        """``(3K, 3K)`` the contacts' Delassus operator, formed (:meth:`SchurOperator.dense`)."""
+        return self.schur.dense()
 
 
 register_pytree(Condensed)
@@ -235,7 +244,7 @@ def condense(rows: Rows, inv_chol, qd_free, cholesky: str = "library") -> Conden
     The attachment block ``W_bb`` is positive definite for attachments of distinct disk nodes;
     rows of absent legs are identity rows with zero impulse. Its inverse is formed from its
     Cholesky factor's (:func:`softcrawl.jaxsim.factor.inverse_spd` in the form ``cholesky``), so
-    that ``X`` is formed by products, by the blocks of ``W_bc``.
+    that ``P`` and ``S = P W_bc`` are products, by the blocks of ``W_cb`` and ``W_bc``.
     """
     L, n_leg, m = rows.leg.shape
     F3 = rows.u_att.shape[0] // L
@@ -249,24 +258,21 @@ def condense(rows: Rows, inv_chol, qd_free, cholesky: str = "library") -> Conden
     m_b = rows.bilateral
     W_bb = jnp.where(m_b[:, None] & m_b[None, :], W_bb, jnp.eye(L * F3, dtype=dt))
     u_b = jnp.where(m_b, rows.u_att + u_leg[:, :F3].reshape(-1), 0)
-    # attachments x contacts: the disk's against its contacts (dense), each leg's against its
-    # own (block diagonal), and X = W_bb^-1 [u_b, W_bc] by the same blocks
+    # attachments x contacts: the disk's against its contacts (dense), each leg's against its own
     Kl3 = n_leg - F3
     W_bd = jnp.where(m_b[:, None], rows.disk_ad, 0)
     W_bl = G[:, :F3, F3:] * m_b.reshape(L, F3)[:, :, None]  # (L, F3, Kl3)
     W_inv = inverse_spd(W_bb, cholesky)
-    X = jnp.concatenate([W_inv @ jnp.concatenate([u_b[:, None], W_bd], axis=1),
-                         jnp.einsum("alb,lbk->alk", W_inv.reshape(L * F3, L, F3), W_bl).reshape(L * F3, -1)], axis=1)
-    # W_cb X by blocks: disk contact rows use every attachment, leg contact rows their leg's
-    WX_d = W_bd.T @ X
-    WX_l = jnp.einsum("lbc,lbk->lck", W_bl, X.reshape(L, F3, X.shape[1])).reshape(L * Kl3, X.shape[1])
-    WX = jnp.concatenate([WX_d, WX_l])
-    Kd3 = rows.disk_dd.shape[0]
-    W_cc = jnp.zeros((Kd3 + L * Kl3,) * 2, dt).at[:Kd3, :Kd3].set(rows.disk_dd)
-    W_cc = W_cc.at[Kd3:, Kd3:].set((eye_l[:, None, :, None] * G[:, F3:, None, F3:]).reshape(L * Kl3, L * Kl3))
+    # P = W_cb W_bb^-1 by W_cb's blocks (disk contact rows use every attachment, a leg's contact
+    # rows its own leg's; u_b^T W_bb^-1 as one more disk row), then S = P W_bc by W_bc's column blocks
+    P_d = jnp.concatenate([W_bd, u_b[:, None]], axis=1).T @ W_inv
+    x_u, Kd3 = P_d[-1], W_bd.shape[1]
+    P = jnp.concatenate([P_d[:Kd3], jnp.einsum("lbc,lba->lca", W_bl, W_inv.reshape(L, F3, L * F3))
+                         .reshape(L * Kl3, L * F3)])
+    s_legs = jnp.einsum("rlb,lbk->lrk", P.reshape(-1, L, F3), W_bl)
     u_c = jnp.concatenate([rows.u_disk, (u_leg[:, F3:] + _gap_rows(rows.gap_leg)).reshape(-1)])
-    blocks = DelassusBlocks(rows.disk_dd, G[:, F3:, F3:], W_bd, W_bl, W_inv)
-    return Condensed(W_cc - WX[:, 1:], u_c - WX[:, 0], X, Y, blocks)
+    return Condensed(SchurOperator(rows.disk_dd, G, P @ W_bd, s_legs), u_c - P @ u_b, x_u, P, Y,
+                     DelassusBlocks(rows.disk_dd, G[:, F3:, F3:], W_bd, W_bl, W_inv))
 
 
 def _gap_rows(gap):
@@ -287,7 +293,7 @@ def corrections(model, rows: Rows, cond: Condensed, inv_chol, lam_c, R):
     L = rows.leg.shape[0]
     F3 = rows.u_att.shape[0] // L
     Kd3 = rows.disk_dd.shape[0]
-    lam_b = -(cond.X[:, 0] + cond.X[:, 1:] @ lam_c)
+    lam_b = -(cond.x_u + lam_c @ cond.P)
     lam_leg = jnp.concatenate([lam_b.reshape(L, F3), lam_c[Kd3:].reshape(L, rows.leg.shape[1] - F3)], axis=1)
     r = jnp.einsum("lmi,li->lm", cond.Y, lam_leg)
     dq = jnp.einsum("lkm,lk->lm", inv_chol, r)

@@ -35,7 +35,7 @@ from softcrawl.jaxsim.model import register_pytree
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
-ENGINE_VERSION = 9
+ENGINE_VERSION = 10
 
 #: The parts of :func:`physics_step`, in order, as named scopes of its operations (a profile's
 #: kernels are summed by them: :func:`softcrawl.jaxsim.cost.kernel_profile`).
@@ -149,7 +149,7 @@ def _physics_step(model, state: State, sim_kpa) -> State:
     with jax.named_scope("solve_contacts"):
         solve = partial(solve_contacts, solver=st.solver, iterations=st.iterations,
                         op=cond.blocks if st.delassus == "blocks" else None)
-        problem = (cond.W, cond.q, jnp.full((K,), st.friction, cond.W.dtype), warm, rows.active)
+        problem = (cond.schur, cond.q, jnp.full((K,), st.friction, cond.q.dtype), warm, rows.active)
         if st.delassus_storage is None:
             lam_c = solve(*problem)
         else:  # a CPU reads its operator whole; the kernel is CUDA's (Settings.delassus)

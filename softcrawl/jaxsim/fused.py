@@ -7,9 +7,12 @@ dozen more that scale the operator, round it to float16 and form the refinement'
 few dozen robots a step's latency is the count of its kernels; at thousands, the bytes moved
 (``benchmarks/RESULTS.md``). :func:`fused_solve` runs all of it for one robot in one program of
 one kernel (a batch of robots under ``jax.vmap``: one program per robot): the operator comes
-from device memory once, in its own precision; the program writes its scaled float16 copy
-(128 KB a robot) and each iteration reads that again from the cache, or, with
-:data:`RESIDENT_ROWS`, keeps that copy on chip and multiplies it on the tensor cores.
+from device memory once, in its own precision, whole or in the parts the step forms it from
+(:class:`~softcrawl.jaxsim.schur.SchurOperator`, :data:`OPERATOR_PARTS`: each entry formed as it
+is read, so that the formed operator never passes through memory); the program writes its
+scaled float16 copy (128 KB a robot) and each iteration reads that again from the cache, or,
+with :data:`RESIDENT_ROWS`, reads it once more and keeps it on chip, multiplying it on the
+tensor cores.
 
 The solve is :func:`~softcrawl.jaxsim.contact.apgd_coulomb`'s with ``restart=False`` and a
 reduced-precision ``storage`` (Mazhar et al. 2015 with De Saxce's change; iterative refinement as
@@ -46,6 +49,7 @@ from jax.experimental import pallas as pl
 
 from softcrawl.jaxsim.cone import cone_projection, de_saxce_term
 from softcrawl.jaxsim.factor import padded_size
+from softcrawl.jaxsim.schur import SchurOperator
 
 #: Warps per program, and rows of the operator a program multiplies at once: a block's numbers
 #: are spread over the program's registers, and too large a block (the whole operator at any
@@ -68,10 +72,22 @@ LOOP_PRODUCT = False
 #: product on the tensor cores: the float16 block times ``y`` split into two float16 columns, ``y
 #: = m (y1 + y2)``, accumulated in float32 (:func:`split_columns`); Triton keeps the blocks in
 #: shared memory (123 KB for the paper preset's 240 rows) instead of reading them from the
-#: cache, 90 GB a step at 16,384 robots. Compiled for an H100 (``benchmarks/kernel_sass.py``):
-#: an iteration is 536 instructions a warp at 128 rows and 8 warps (234 registers), 624 at 64
-#: (176), against 1,261 for the scratch's. Read when a solve is traced, as above.
+#: cache, 90 GB a step at 16,384 robots. Compiled for an H100 (``benchmarks/kernel_sass.py``,
+#: the paper preset's operator in its parts): an iteration is 567 instructions a warp at 128 rows
+#: and 8 warps, 825 at 64, against 1,261 for the scratch's (255 registers a thread, no spill in
+#: the iterations). Read when a solve is traced, as above.
 RESIDENT_ROWS = None
+#: Whether the program reads a condensed operator given in its parts
+#: (:class:`~softcrawl.jaxsim.schur.SchurOperator`, the engine's) as parts, each entry formed as
+#: it is read, or XLA forms the operator first and the program reads it whole: compiled for an
+#: H100, the parts take 0.7 MB a robot-step from the step's memory traffic (the formed operator
+#: written and read again, 230 KB each) for one more operation at 96 robots and twice the
+#: instructions in the preparation before the iterations (``benchmarks/RESULTS.md``). Read when
+#: a solve is traced, as above.
+OPERATOR_PARTS = True
+#: Columns of the operator a program reads at once when it scales and rounds it, before the
+#: iterations. Read when a solve is traced, as above.
+COLUMN_BLOCK = 64
 #: The largest float16 copy of the scaled operator (``N x N``) held on chip: an H100's program
 #: has 227 KB of shared memory, of which Triton takes some for its own exchanges; 128 KiB holds
 #: ``N = 256`` (up to 85 contacts).
@@ -92,19 +108,49 @@ def row_blocks(n: int, row_block: int) -> tuple[int, list[tuple[int, int]]]:
     return full, tail
 
 
-def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, resident: bool, w_ref, q_ref, mu_ref,
-            lam_ref, act_ref, b_ref, x_ref, wi_ref, g_ref, su_ref, sy_ref):
-    """One robot's solve (module doc). Inputs ``w_ref`` ``(n, n)`` the operator ``W``, ``q_ref``
-    ``(n,)``, ``mu_ref`` and ``act_ref`` ``(K,)`` (``act_ref`` int32, nonzero for an active
-    contact), ``lam_ref`` ``(n,)`` the warm start, ``b_ref`` the extrapolation weights; ``x_ref``
-    ``(n,)`` receives the impulses. The program works on ``N`` rows (``n`` padded to a power of
-    two) and reads its inputs through masked pointers (lanes past ``n`` load nothing).
+def _entries(w_refs):
+    """``entries(r, c, mask)``: ``W``'s entries at rows ``r`` and columns ``c`` (broadcast
+    together; int32 arrays) where ``mask`` (0 elsewhere), read through masked pointers: from
+    ``w_refs`` ``(W,)`` the operator ``(n, n)``, or from its
+    :class:`~softcrawl.jaxsim.schur.SchurOperator` parts ``(disk, legs, s_disk, s_legs)``, each
+    entry ``W_cc_ij - S_ij`` (``W_cc``'s block or 0, ``S``'s column block) as
+    :meth:`~softcrawl.jaxsim.schur.SchurOperator.dense` forms it, to the bit."""
+    from jax.experimental.pallas import triton as pltriton
+
+    if len(w_refs) == 1:
+        return lambda r, c, mask: pltriton.load(w_refs[0].at[r, c], mask=mask, other=0.0)
+    disk, legs, s_disk, s_legs = w_refs
+    nd, (L, n, nl) = disk.shape[0], s_legs.shape
+    off = legs.shape[1] - nl  # the legs' contacts are their blocks' trailing rows
+
+    def entries(r, c, mask):
+        r = jnp.minimum(r, n - 1)
+        rd, cd = r < nd, c < nd
+        rl, cl = jnp.maximum(r - nd, 0), jnp.clip(c - nd, 0, L * nl - 1)
+        lr, lc, d = rl // nl, cl // nl, jnp.minimum(c, nd - 1)
+        w_cc = (pltriton.load(disk.at[jnp.minimum(r, nd - 1), d], mask=mask & rd & cd, other=0.0)
+                + pltriton.load(legs.at[lr, off + rl % nl, off + cl % nl], mask=mask & ~rd & ~cd & (lr == lc),
+                                other=0.0))
+        return w_cc - (pltriton.load(s_disk.at[r, d], mask=mask & cd, other=0.0)
+                       + pltriton.load(s_legs.at[lc, r, cl % nl], mask=mask & ~cd, other=0.0))
+
+    return entries
+
+
+def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, resident: bool, n_parts: int, *refs):
+    """One robot's solve (module doc). Inputs ``refs[:n_parts]`` the operator ``W`` ``(n, n)`` or
+    its parts (:func:`_entries`), then ``q_ref`` ``(n,)``, ``mu_ref`` and ``act_ref`` ``(K,)``
+    (``act_ref`` int32, nonzero for an active contact), ``lam_ref`` ``(n,)`` the warm start,
+    ``b_ref`` the extrapolation weights; ``x_ref`` ``(n,)`` receives the impulses. The program
+    works on ``N`` rows (``n`` padded to a power of two) and reads its inputs through masked
+    pointers (lanes past ``n`` load nothing).
 
     First, once: each row's scaling ``s`` (its contact's ``1 / sqrt(W_nn)``, 0 on inactive
-    contacts' rows), the warm start ``x0`` projected, and, by the blocks of :func:`row_blocks`,
-    ``Ws = s W s`` rounded to the storage dtype into the scratch ``wi_ref`` ``(N, N)`` (with
-    ``resident``, kept as values through the iterations, ``wi_ref`` unused), the refinement's
-    constant ``g0 = (Ws - Ws~) x0 + s q`` into ``g_ref`` and the Gershgorin bound ``L``. Then the
+    contacts' rows), the warm start ``x0`` projected, and, by the blocks of :func:`row_blocks`
+    and of :data:`COLUMN_BLOCK` columns, ``Ws = s W s`` rounded to the storage dtype into the
+    scratch ``wi_ref`` ``(N, N)`` (with ``resident``, read back once, by the row blocks, and kept
+    as values through the iterations), the refinement's constant ``g0 = (Ws - Ws~) x0 + s q``
+    into ``g_ref`` and the Gershgorin bound ``L``. Then the
     iterations (each product by the same blocks, the full ones unrolled or, with
     ``loop_product``, looped; no column past ``n`` read): each stores ``u`` and ``y`` into the
     scratch ``su_ref`` and ``sy_ref`` ``(2, N)``, slot ``k % 2``, and reads back its contact's
@@ -113,6 +159,8 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, re
     overwriting what a slower thread still reads of the last."""
     from jax.experimental.pallas import triton as pltriton
 
+    entries = _entries(refs[:n_parts])
+    q_ref, mu_ref, lam_ref, act_ref, b_ref, x_ref, wi_ref, g_ref, su_ref, sy_ref = refs[n_parts:]
     N = wi_ref.shape[-1]
     dt = x_ref.dtype
     i = lax.iota(jnp.int32, N)
@@ -124,7 +172,7 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, re
     def scale(rows):  # s and the live mask of these rows
         on = (rows < n) & (pltriton.load(act_ref.at[rows // 3], mask=rows < n, other=0) != 0)
         b = 3 * (rows // 3)
-        return jnp.where(on, lax.rsqrt(pltriton.load(w_ref.at[b, b], mask=on, other=1.0)), 0), on
+        return jnp.where(on, lax.rsqrt(jnp.where(on, entries(b, b, on), 1)), 0), on
 
     s, live = scale(i)
     mu = pltriton.load(mu_ref.at[i // 3], mask=i < n, other=0.0)
@@ -138,30 +186,39 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, re
 
     full, tail = row_blocks(n, row_block)
 
-    def prepare(r0, size, bound):  # Ws~, g0 and the bound on rows r0 .. r0 + size (the full
-        # blocks in a loop of the program: unrolled, the compiler held several blocks in registers
-        # at once, benchmarks/RESULTS.md)
+    # s and x0 by columns, for the column blocks of prepare (a program cannot slice the vectors in its registers)
+    su_ref[0, :] = s
+    sy_ref[0, :] = x0
+    barrier()
+
+    def prepare(r0, size, bound):  # Ws~ into the scratch, g0 and the bound on rows r0 .. r0 + size, by
+        # column blocks (fewer numbers a thread, all the more where the operator comes in parts; the
+        # full row blocks in a loop of the program: unrolled, the compiler held several at once)
         rows = r0 + lax.iota(jnp.int32, size)
         s_r, _ = scale(rows)
-        Wb = pltriton.load(w_ref.at[rows[:, None], i[None, :]], mask=(rows[:, None] < n) & (i[None, :] < n), other=0.0)
-        Ws = s_r[:, None] * Wb * s[None, :]
-        Wi = Ws.astype(wi_ref.dtype)
-        if not resident:
-            wi_ref[pl.ds(r0, size), :] = Wi
-        q_r = pltriton.load(q_ref.at[rows], mask=rows < n, other=0.0)
-        g_ref[pl.ds(r0, size)] = jnp.sum((Ws - Wi.astype(dt)) * x0[None, :], axis=1) + s_r * q_r
-        return jnp.maximum(bound, jnp.max(jnp.sum(jnp.abs(Ws), axis=1))), Wi
+        g, total = jnp.zeros((size,), dt), jnp.zeros((size,), dt)
+        for c0 in range(0, n, min(COLUMN_BLOCK, N)):
+            cols = c0 + lax.iota(jnp.int32, min(COLUMN_BLOCK, N))
+            Ws = (s_r[:, None] * entries(rows[:, None], cols[None, :], (rows[:, None] < n) & (cols[None, :] < n))
+                  * su_ref[0, pl.ds(c0, cols.shape[0])][None, :])
+            Wi = Ws.astype(wi_ref.dtype)
+            wi_ref[pl.ds(r0, size), pl.ds(c0, cols.shape[0])] = Wi
+            g += jnp.sum((Ws - Wi.astype(dt)) * sy_ref[0, pl.ds(c0, cols.shape[0])][None, :], axis=1)
+            total += jnp.sum(jnp.abs(Ws), axis=1)
+        g_ref[pl.ds(r0, size)] = g + s_r * pltriton.load(q_ref.at[rows], mask=rows < n, other=0.0)
+        return jnp.maximum(bound, jnp.max(total))
 
-    bound, held = jnp.zeros((), dt), {}
-    if resident:
-        for r0, size in [(blk * row_block, row_block) for blk in range(full)] + tail:
-            bound, held[r0] = prepare(r0, size, bound)
-    else:
-        bound = lax.fori_loop(0, full, lambda blk, b: prepare(blk * row_block, row_block, b)[0], bound)
-        for r0, size in tail:
-            bound = prepare(r0, size, bound)[0]
+    def block(r0, size):  # the scratch's rows r0 .. r0 + size, the columns past n not read
+        rows = r0 + lax.iota(jnp.int32, size)
+        return pltriton.load(wi_ref.at[rows[:, None], i[None, :]], mask=(i < n)[None, :], other=0.0)
+
+    bound = lax.fori_loop(0, full, lambda blk, b: prepare(blk * row_block, row_block, b), jnp.zeros((), dt))
+    for r0, size in tail:
+        bound = prepare(r0, size, bound)
     step = 1 / jnp.maximum(bound, tiny)
     barrier()
+    held = {r0: block(r0, size) for r0, size in [(b * row_block, row_block) for b in range(full)] + tail} \
+        if resident else {}
 
     def body(k, c):
         x, y = c
@@ -170,12 +227,10 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, re
 
         def product(r0, size):  # u = Ws~ y + g0 on rows r0 .. r0 + size, the columns past n not read
             if resident:  # the block times Y's two columns, on the tensor cores (the select lets the
-                # compiler skip the products of Y's zero columns: 536 instructions an iteration, 566 without)
+                # compiler skip the products of Y's zero columns: 567 instructions an iteration, 595 without)
                 Wy = m * jnp.sum(jnp.where(two, jnp.dot(held[r0], Y, preferred_element_type=dt), 0), axis=1)
             else:
-                rows = r0 + lax.iota(jnp.int32, size)
-                Wb = pltriton.load(wi_ref.at[rows[:, None], i[None, :]], mask=(i < n)[None, :], other=0.0)
-                Wy = jnp.sum(Wb.astype(dt) * y[None, :], axis=1)
+                Wy = jnp.sum(block(r0, size).astype(dt) * y[None, :], axis=1)
             su_ref[slot, pl.ds(r0, size)] = Wy + g_ref[pl.ds(r0, size)]
 
         if resident:
@@ -232,7 +287,8 @@ def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", inte
     Args:
         W: ``(n, n)`` the Delassus operator (mm/s per mN s), rows and columns interleaved by
             contact (normal, tangent 1, tangent 2), ``n = 3K``, float32 or float64: the
-            iterations' precision.
+            iterations' precision; or the same operator in its parts
+            (:class:`~softcrawl.jaxsim.schur.SchurOperator`), which the program reads instead.
         q: ``(n,)`` the free velocities, mm/s.
         mu: ``(K,)`` each contact's friction coefficient.
         lam0: ``(n,)`` the warm start, mN s.
@@ -255,6 +311,10 @@ def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", inte
     if W.shape != (n, n) or n != 3 * K or q.shape != (n,) or lam0.shape != (n,) or mu.shape != (K,):
         raise ValueError(f"fused_solve needs a (3K, 3K) operator, (3K,) q and lam0, (K,) mu and active; got "
                          f"{W.shape}, {q.shape}, {lam0.shape}, {mu.shape}, {active.shape}")
+    if isinstance(W, SchurOperator):
+        parts = (W.disk, W.legs, W.s_disk, W.s_legs) if OPERATOR_PARTS else (W.dense(),)
+    else:
+        parts = (W,)
     N, dt = padded_size(n), W.dtype
     n_iter = betas.shape[0]
     b = jnp.zeros(padded_size(n_iter), dt).at[:n_iter].set(betas.astype(dt))
@@ -263,11 +323,11 @@ def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", inte
     resident = RESIDENT_ROWS is not None and dt == jnp.float32 and N * N * jnp.dtype(storage).itemsize <= HELD_BYTES
     x, *_ = pl.pallas_call(
         partial(_kernel, n, n_iter, (lambda: None) if interpret else pltriton.debug_barrier,
-                min(RESIDENT_ROWS if resident else ROW_BLOCK, N), LOOP_PRODUCT, resident),
-        out_shape=(jax.ShapeDtypeStruct((n,), dt), jax.ShapeDtypeStruct((1 if resident else N, N), storage), vector,
+                min(RESIDENT_ROWS if resident else ROW_BLOCK, N), LOOP_PRODUCT, resident, len(parts)),
+        out_shape=(jax.ShapeDtypeStruct((n,), dt), jax.ShapeDtypeStruct((N, N), storage), vector,
                    pair, pair),
         interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
         name="apgd_solve",
-    )(W, q.astype(dt), mu.astype(dt), lam0.astype(dt), active.astype(jnp.int32), b)
+    )(*parts, q.astype(dt), mu.astype(dt), lam0.astype(dt), active.astype(jnp.int32), b)
     return x
