@@ -504,6 +504,40 @@ def test_the_fused_kernel_holding_its_operator_on_chip_iterates_as_reading_it(C,
     jax.clear_caches()
 
 
+@pytest.mark.parametrize("shape", [(2, 3, 2), (3, 1, 4), (0, 2, 3), (2, 2, 0)])
+def test_the_fused_kernel_reads_an_operator_in_its_parts_as_formed(C, shape):
+    """:func:`softcrawl.jaxsim.fused.fused_solve` given a random SPD operator in its
+    :class:`~softcrawl.jaxsim.schur.SchurOperator` parts (``K_d`` disk contacts, ``L`` legs of
+    ``K_l``, the legs' blocks with 2 leading rows and columns the kernel skips) forms the
+    entries as :meth:`~softcrawl.jaxsim.schur.SchurOperator.dense` does and gives the impulses
+    of the same solve on the formed operator to round-off, in the interpreter: the two programs
+    compile to different fusions, whose rounding may differ (float32 within :data:`FUSED_TOL`
+    of the largest impulse, measured up to 1.2e-8; float64 within 1e-12, measured 8e-17). A disk
+    or legs without contacts (``K_d`` or ``K_l`` 0) are read formed."""
+    from softcrawl.jaxsim.fused import fused_solve
+    from softcrawl.jaxsim.schur import SchurOperator
+
+    Kd, L, Kl = shape
+    nd, nl = 3 * Kd, 3 * Kl
+    n = nd + L * nl
+    rng = np.random.default_rng(n)
+    U = rng.standard_normal((n + 3, n)) / n
+    S = U.T @ U
+    spd = [(lambda a: a @ a.T / k + np.eye(k))(rng.standard_normal((k, k))) for k in [nd] + [nl + 2] * L]
+    for dtype in (np.float32, np.float64):
+        parts = SchurOperator(*(jnp.asarray(a, dtype) for a in (
+            spd[0], np.stack(spd[1:]), S[:, :nd], S[:, nd:].reshape(n, L, nl).transpose(1, 0, 2))))
+        W = parts.dense()
+        K = n // 3
+        q = jnp.asarray(np.where(np.arange(n) % 3 == 0, -1.0, 0.3) * rng.standard_normal(n) ** 2, dtype)
+        mu, lam0 = jnp.full(K, 0.6, dtype), jnp.asarray(np.abs(rng.standard_normal(n)) * 0.1, dtype)
+        act, betas = jnp.asarray(rng.random(K) < 0.8), jnp.asarray(C.momentum_schedule(48), dtype)
+        want = np.asarray(fused_solve(W, q, mu, lam0, act, betas, interpret=True))
+        assert np.abs(want).max() > 0
+        got = np.asarray(fused_solve(parts, q, mu, lam0, act, betas, interpret=True))
+        assert _rel(got, want) <= (FUSED_TOL if dtype == np.float32 else 1e-12)
+
+
 def test_split_columns_carry_a_vector_to_float32s_accuracy_in_two_float16_columns():
     """:func:`softcrawl.jaxsim.fused.split_columns`: ``m (Y[:, 0] + Y[:, 1])`` gives ``y`` back to
     2^-23 of its largest entry ``m = max |y|`` (measured 2^-24: the second column's rounding,

@@ -148,8 +148,10 @@ def test_the_solve_kernel_reads_the_operator_in_its_parts_as_formed(landed, monk
     in its parts (:class:`softcrawl.jaxsim.schur.SchurOperator`: ``W_cc``'s blocks, the legs' as
     their whole Grams, and ``S``'s column blocks) forms each entry as
     :meth:`~softcrawl.jaxsim.schur.SchurOperator.dense` does and iterates on it as on the formed
-    operator: the impulses to the bit, in float64 and in float32, reading its scaled copy from
-    the scratch and holding it (:data:`softcrawl.jaxsim.fused.RESIDENT_ROWS`)."""
+    operator: the impulses to round-off (the two programs' fusions may round differently; float64
+    within 1e-12 of the largest, float32 within 2e-6, 16 rounding units, reading its scaled copy
+    from the scratch and holding it, :data:`softcrawl.jaxsim.fused.RESIDENT_ROWS`; measured
+    equal)."""
     from softcrawl.jaxsim import fused
     from softcrawl.jaxsim.contact import apgd_coulomb
     from softcrawl.jaxsim.delassus import condense
@@ -169,7 +171,8 @@ def test_the_solve_kernel_reads_the_operator_in_its_parts_as_formed(landed, monk
         kw = dict(restart=False, storage="float16", fused="interpret")
         got, want = apgd_coulomb(parts, *args, **kw), apgd_coulomb(parts.dense(), *args, **kw)
         assert got.dtype == dtype and float(jnp.abs(want).max()) > 0
-        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        tol = 1e-12 if dtype == jnp.float64 else 2e-6
+        assert float(jnp.abs(got - want).max()) <= tol * float(jnp.abs(want).max())
     jax.clear_caches()
 
 

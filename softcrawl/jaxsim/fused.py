@@ -114,7 +114,7 @@ def _entries(w_refs):
     ``w_refs`` ``(W,)`` the operator ``(n, n)``, or from its
     :class:`~softcrawl.jaxsim.schur.SchurOperator` parts ``(disk, legs, s_disk, s_legs)``, each
     entry ``W_cc_ij - S_ij`` (``W_cc``'s block or 0, ``S``'s column block) as
-    :meth:`~softcrawl.jaxsim.schur.SchurOperator.dense` forms it, to the bit."""
+    :meth:`~softcrawl.jaxsim.schur.SchurOperator.dense` forms it."""
     from jax.experimental.pallas import triton as pltriton
 
     if len(w_refs) == 1:
@@ -311,8 +311,9 @@ def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", inte
     if W.shape != (n, n) or n != 3 * K or q.shape != (n,) or lam0.shape != (n,) or mu.shape != (K,):
         raise ValueError(f"fused_solve needs a (3K, 3K) operator, (3K,) q and lam0, (K,) mu and active; got "
                          f"{W.shape}, {q.shape}, {lam0.shape}, {mu.shape}, {active.shape}")
-    if isinstance(W, SchurOperator):
-        parts = (W.disk, W.legs, W.s_disk, W.s_legs) if OPERATOR_PARTS else (W.dense(),)
+    if isinstance(W, SchurOperator):  # parts without a disk's or legs' contacts: formed (no empty inputs)
+        whole = not (OPERATOR_PARTS and W.disk.size and W.s_legs.size)
+        parts = (W.dense(),) if whole else (W.disk, W.legs, W.s_disk, W.s_legs)
     else:
         parts = (W,)
     N, dt = padded_size(n), W.dtype

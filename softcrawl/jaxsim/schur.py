@@ -48,12 +48,13 @@ class SchurOperator:
         return (self.s_disk.shape[0],) * 2
 
     def dense(self) -> jax.Array:
-        """``W_c`` ``(3K, 3K)``: each entry ``W_cc_ij - S_ij``, one subtraction (the GPU kernel's
-        entries to the bit)."""
+        """``W_c`` ``(3K, 3K)``: each entry ``W_cc_ij - S_ij``, one subtraction (as the GPU kernel
+        forms each entry it reads)."""
         nd, (L, n, nl) = self.disk.shape[0], self.s_legs.shape
         eye = jnp.eye(L, dtype=self.dtype)
         W_cc = jnp.zeros((n, n), self.dtype).at[:nd, :nd].set(self.disk)
-        legs = self.legs[:, -nl:, -nl:]
+        off = self.legs.shape[1] - nl  # the contacts' trailing rows and columns
+        legs = self.legs[:, off:, off:]
         W_cc = W_cc.at[nd:, nd:].set((eye[:, None, :, None] * legs[:, :, None, :]).reshape(L * nl, L * nl))
         return W_cc - jnp.concatenate([self.s_disk, self.s_legs.transpose(1, 0, 2).reshape(n, L * nl)], axis=1)
 
