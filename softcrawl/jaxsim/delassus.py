@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from softcrawl.jaxsim.contact import floor_contacts
 from softcrawl.jaxsim.factor import inverse_spd
 from softcrawl.jaxsim.model import register_pytree
-from softcrawl.jaxsim.schur import SchurOperator
+from softcrawl.jaxsim.schur import SchurOperator, block_diagonal
 
 #: Floor contact frame, rows normal, tangent 1, tangent 2 (:mod:`softcrawl.fem.solver`).
 FLOOR_FRAME = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
@@ -253,8 +253,7 @@ def condense(rows: Rows, inv_chol, qd_free, cholesky: str = "library") -> Conden
     u_leg = jnp.einsum("lim,lm->li", rows.leg, qd_free)  # legs' part of the free velocities
     dt = G.dtype
     # attachments: the disk's dense share plus each leg's diagonal block
-    eye_l = jnp.eye(L, dtype=dt)
-    W_bb = rows.disk_aa + (eye_l[:, None, :, None] * G[:, :F3, None, :F3]).reshape(L * F3, L * F3)
+    W_bb = rows.disk_aa + block_diagonal(G[:, :F3, :F3])
     m_b = rows.bilateral
     W_bb = jnp.where(m_b[:, None] & m_b[None, :], W_bb, jnp.eye(L * F3, dtype=dt))
     u_b = jnp.where(m_b, rows.u_att + u_leg[:, :F3].reshape(-1), 0)

@@ -137,7 +137,7 @@ def contact_problem(model, state: State, sim_kpa):
     :func:`softcrawl.jaxsim.contact.solve_contacts` takes them (the attachments eliminated)."""
     with jax.default_matmul_precision("float32"):
         *_, rows, cond, warm = _constrained(model, state, sim_kpa)
-    return cond.W, cond.q, jnp.full(rows.active.shape, model.settings.friction, cond.W.dtype), warm, rows.active
+    return cond.W, cond.q, jnp.full(rows.active.shape, model.settings.friction, cond.q.dtype), warm, rows.active
 
 
 def _physics_step(model, state: State, sim_kpa) -> State:
