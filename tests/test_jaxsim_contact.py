@@ -6,6 +6,7 @@ except the float32 tests."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -512,8 +513,9 @@ def test_the_fused_kernel_reads_an_operator_in_its_parts_as_formed(C, shape):
     entries as :meth:`~softcrawl.jaxsim.schur.SchurOperator.dense` does and gives the impulses
     of the same solve on the formed operator to round-off, in the interpreter: the two programs
     compile to different fusions, whose rounding may differ (float32 within :data:`FUSED_TOL`
-    of the largest impulse, measured up to 1.2e-8; float64 within 1e-12, measured 8e-17). A disk
-    or legs without contacts (``K_d`` or ``K_l`` 0) are read formed."""
+    of the largest impulse, measured up to 1.2e-8; float64 within 1e-12, measured 8e-17), and
+    ``S`` off by 1e-4 fails both bounds. A disk or legs without contacts (``K_d`` or ``K_l`` 0)
+    are read formed."""
     from softcrawl.jaxsim.fused import fused_solve
     from softcrawl.jaxsim.schur import SchurOperator
 
@@ -535,7 +537,10 @@ def test_the_fused_kernel_reads_an_operator_in_its_parts_as_formed(C, shape):
         want = np.asarray(fused_solve(W, q, mu, lam0, act, betas, interpret=True))
         assert np.abs(want).max() > 0
         got = np.asarray(fused_solve(parts, q, mu, lam0, act, betas, interpret=True))
-        assert _rel(got, want) <= (FUSED_TOL if dtype == np.float32 else 1e-12)
+        tol = FUSED_TOL if dtype == np.float32 else 1e-12
+        assert _rel(got, want) <= tol
+        off = dataclasses.replace(parts, s_legs=parts.s_legs * (1 + 1e-4), s_disk=parts.s_disk * (1 + 1e-4))
+        assert _rel(fused_solve(off, q, mu, lam0, act, betas, interpret=True), want) > tol  # S 1e-4 off: caught
 
 
 def test_split_columns_carry_a_vector_to_float32s_accuracy_in_two_float16_columns():
