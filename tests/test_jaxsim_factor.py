@@ -121,16 +121,21 @@ def test_the_symmetrized_library_form_is_jax_numpys_factor_inverted():
 
 
 def test_a_matrix_that_is_not_positive_definite_gives_no_finite_factor():
-    """An indefinite matrix (one negative eigenvalue) and a singular one: the kernels' factor
-    and inverse hold NaN or infinite entries (the sweeps, which invert an indefinite matrix
-    too, by a non-positive pivot), as the library's hold NaN, so that the step marks the robot
-    bad instead of stepping it with a wrong inverse."""
+    """An indefinite matrix (one negative eigenvalue, rotated at random) and a singular one: the
+    kernels' factor and inverse hold NaN or infinite entries (the sweeps, which invert an
+    indefinite matrix too, by a non-positive pivot), as the library's hold NaN, so that the step
+    marks the robot bad instead of stepping it with a wrong inverse. The singular matrix is a
+    permuted diagonal, so that its zero pivot is exactly 0 on any CPU: rotated at random, that
+    pivot is 0 up to round-off, whose sign depends on the CPU (on one Intel Xeon host it came
+    out positive and the inverse finite, 1e8), so no factorisation can tell it from a
+    positive definite matrix of condition 1e16."""
     from softcrawl.jaxsim.factor import cholesky_inverse, inverse_spd
 
     rng = np.random.default_rng(2)
     Q, _ = np.linalg.qr(rng.standard_normal((8, 8)))
-    for eig in ([-1.0] + [1.0] * 7, [0.0] + [1.0] * 7):
-        A = jnp.asarray(Q @ np.diag(eig) @ Q.T)
+    P = np.eye(8)[[3, 0, 5, 1, 7, 2, 6, 4]]
+    for A in (Q @ np.diag([-1.0] + [1.0] * 7) @ Q.T, P @ np.diag([1.0] * 3 + [0.0] + [1.0] * 4) @ P.T):
+        A = jnp.asarray(A)
         for f in (cholesky_inverse, inverse_spd):
             assert not np.all(np.isfinite(np.asarray(f(A, "interpret"))))
             assert not np.all(np.isfinite(np.asarray(f(A))))
