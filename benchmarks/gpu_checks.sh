@@ -28,8 +28,8 @@
 #              the formed operator is faster at both sizes, set `fused.OPERATOR_PARTS = False`.
 # rid:         the legs' RID terms in one kernel (`--rid-form kernel`, not yet a default): against
 #              XLA's pairs and rows forms on the card and timed alone with its variants
-#              (`rid_kernel.py`: if a variant other than the default, 16 elements, 4 warps, three
-#              TF32 passes, one program a leg, is fastest, set ridkernel.ELEMENTS / NUM_WARPS /
+#              (`rid_kernel.py`: if a variant other than the default, 16 elements, 2 warps, two
+#              TF32 passes (SPLIT_TF32), one program a leg, is fastest, set ridkernel.ELEMENTS / NUM_WARPS /
 #              DOT_ALGORITHM / SPLIT), then
 #              the step at 96 and 16,384 robots with it and without it, in one call; if faster at
 #              both, make it the CUDA default (`legs.rid_terms`' None). BASE, where given, is a

@@ -1,4 +1,5 @@
-"""The contact solve kernel's iteration read from its machine code, without a GPU.
+"""The contact solve kernel's iteration, and the RID kernel's instructions a leg, read from their
+machine code without a GPU.
 
 Each variant of :func:`softcrawl.jaxsim.fused.fused_solve` (its module constants ``ROW_BLOCK``,
 ``NUM_WARPS``, ``LOOP_PRODUCT``, ``RESIDENT_ROWS``) is compiled for the GPU of a target
@@ -13,12 +14,21 @@ trip a block of rows) and the count of each opcode in the loop
 (``LDG``: loads from device memory or cache, ``BAR``: barriers, ``SHFL``: shuffles, ``HADD2``:
 the float16 conversions). A proxy for time where no GPU is lent, not a measurement.
 
+With ``--kernel rid``, each variant of :func:`softcrawl.jaxsim.ridkernel.rid_kernel_terms` (its
+constants ``ELEMENTS``, ``NUM_WARPS``, ``DOT_ALGORITHM``, ``SPLIT``) on the ``paper`` preset's
+leg: registers, each family's loop of element blocks and the edge loop inside it
+(:func:`loop_tree`), and ``warp_instructions_per_leg``, the instructions a leg's programs issue
+(each loop's instructions times its trips, times the warps): the kernel does little but
+arithmetic, so at the multiprocessors' issue rate (one instruction a cycle per scheduler) that
+count bounds its time from below.
+
 Needs JAX's CUDA plugin of the installed JAX's version and ``nvdisasm`` (``pip install
 "jax-cuda12-plugin[with-cuda]==<jax version>" nvidia-cuda-nvdisasm``).
 
 Usage:
     python benchmarks/kernel_sass.py [--gpu-target benchmarks/gpu_targets/h100.pbtxt]
         [--variants 64:8:0:-,64:8:0:128] [--contacts 80 | --schur 8:6:12]
+    python benchmarks/kernel_sass.py --kernel rid [--variants 16:2:SPLIT_TF32:1,16:4:-:1]
 """
 
 from __future__ import annotations
@@ -28,6 +38,7 @@ import collections
 import json
 import os
 import re
+import shutil
 import subprocess
 import tempfile
 from pathlib import Path
@@ -52,29 +63,127 @@ def tool(name: str) -> str:
                             '"jax-cuda12-plugin[with-cuda]==<jax version>"')
 
 
-def outer_loops(sass: str) -> list[collections.Counter]:
-    """The opcodes (predicates and modifiers dropped) of each outermost loop of ``nvdisasm -c``
-    output, in the order of the code (a loop: the instructions from a label to the furthest
-    backward branch to it; outermost: inside no other). In the solve kernel the last is the
-    iterations: they follow the loop that prepares the operator."""
+def _opcode(text: str) -> str:
+    """An instruction's opcode, its predicate and modifiers dropped."""
+    return re.sub(r"^@!?U?P\w+\s+", "", text).split()[0].split(".")[0]
+
+
+def _loops(sass: str):
+    """``(instructions, spans, parent)`` of ``nvdisasm -c`` output: ``(address, text)`` of each
+    instruction, ``(start, end)`` addresses of each loop in the order of the code (a loop: the
+    instructions from a label to the furthest backward branch to it) and the index of the
+    innermost loop holding each (None: outermost)."""
     ins = [(int(a, 16), t) for a, t in _SASS.findall(sass)]
     labels = {m.group(1): int(m.group(2), 16) for m in _LABEL.finditer(sass)}
-    loops = {}
+    ends = {}
     for a, t in ins:
         m = re.search(r"BRA\s+`?\(?\.?(L_x_\d+)", t)
         if m and labels.get(m.group(1), a) < a:
-            loops[labels[m.group(1)]] = max(a, loops.get(labels[m.group(1)], a))
-    outer = [(s, e) for s, e in loops.items() if not any(s2 <= s and e <= e2 and (s2, e2) != (s, e)
-                                                         for s2, e2 in loops.items())]
-    return [collections.Counter(re.sub(r"^@!?U?P\w+\s+", "", t).split()[0].split(".")[0]
-                                for a, t in ins if start <= a <= end) for start, end in sorted(outer)]
+            ends[labels[m.group(1)]] = max(a, ends.get(labels[m.group(1)], a))
+    spans = sorted(ends.items())
+    parent = [min((j for j, (s2, e2) in enumerate(spans) if j != i and s2 <= s and e <= e2),
+                  key=lambda j: spans[j][1] - spans[j][0], default=None) for i, (s, e) in enumerate(spans)]
+    return ins, spans, parent
+
+
+def outer_loops(sass: str) -> list[collections.Counter]:
+    """The opcodes (predicates and modifiers dropped) of each outermost loop of ``nvdisasm -c``
+    output, in the order of the code (:func:`_loops`; outermost: inside no other). In the solve
+    kernel the last is the iterations: they follow the loop that prepares the operator."""
+    ins, spans, parent = _loops(sass)
+    return [collections.Counter(_opcode(t) for a, t in ins if start <= a <= end)
+            for (start, end), p in zip(spans, parent) if p is None]
+
+
+def loop_tree(sass: str) -> list[dict]:
+    """Every loop of ``nvdisasm -c`` output in the order of the code (:func:`_loops`): ``parent``
+    the index of the innermost loop holding it (None outermost), ``opcodes`` its own
+    instructions' opcodes (its inner loops' left out), ``total`` all its instructions."""
+    ins, spans, parent = _loops(sass)
+    out = []
+    for i, (start, end) in enumerate(spans):
+        inner = [spans[j] for j in range(len(spans)) if parent[j] == i]
+        own = [t for a, t in ins if start <= a <= end and not any(s2 <= a <= e2 for s2, e2 in inner)]
+        out.append({"parent": parent[i], "total": sum(start <= a <= end for a, _ in ins),
+                    "opcodes": collections.Counter(map(_opcode, own))})
+    return out
+
+
+def leg_instructions(sass: str, families, elements: int, split: int, warps: int) -> int | None:
+    """The warp instructions a leg's RID kernel programs issue (module doc), from its machine
+    code ``sass`` and its families' ``(E, k)`` (elements, nodes an element): the outermost loops
+    are the families' loops of element blocks, ``ceil(E / (elements split))`` trips a program,
+    each holding one loop over the ``k - 1`` edges; None if the code has another shape."""
+    loops = loop_tree(sass)
+    outer = [i for i, lp in enumerate(loops) if lp["parent"] is None]
+    inner = [[j for j, lp in enumerate(loops) if lp["parent"] == i] for i in outer]
+    if len(outer) != len(families) or any(len(js) != 1 or loops[js[0]]["parent"] is None for js in inner):
+        return None
+    n_all = len(_SASS.findall(sass))
+    per_program = n_all - sum(loops[i]["total"] for i in outer)  # outside the loops, once
+    for i, (js, (E, k)) in zip(outer, zip(inner, families)):
+        own = sum(loops[i]["opcodes"].values())
+        per_program += -(-E // (elements * split)) * (own + (k - 1) * loops[js[0]]["total"])
+    return per_program * split * warps
+
+
+def machine_code(dump: str, name: str, arch: str) -> str:
+    """``nvdisasm -c`` of the kernel ``name`` whose PTX XLA dumped into ``dump``, assembled by ptxas."""
+    ptx = next(f for f in Path(dump).glob("*.ptx") if name in f.read_text())
+    cubin = Path(dump) / f"{name}.cubin"
+    subprocess.run([tool("ptxas"), f"-arch={arch}", "-O3", str(ptx), "-o", str(cubin)], check=True)
+    return subprocess.run([tool("nvdisasm"), "-c", str(cubin)], check=True, capture_output=True, text=True).stdout
+
+
+def rid_variants(args, arch, sharding, dump) -> None:
+    """``--kernel rid`` (module doc): one JSON line a variant."""
+    import jax
+    import jax.numpy as jnp
+
+    from softcrawl.codesign.config import preset
+    from softcrawl.codesign.factory import robot_factory
+    from softcrawl.jaxsim import legs, ridkernel
+    from softcrawl.jaxsim.cost import captured_stderr, ptxas_report
+    from softcrawl.jaxsim.tables import build_table
+
+    cfg = preset("paper")
+    table = build_table(cfg.env.design_space(), factory=robot_factory(cfg), n_slots=6)
+    part = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating)
+                        else jnp.asarray(a), table.parts.leg)
+    c = table.parts.settings.dt + table.parts.settings.rayleigh_stiffness
+    families = [f.conn.shape for f in part.families]
+    specs = [jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=sharding), part)] + [
+        jax.ShapeDtypeStruct((576, part.mass.shape[0]), jnp.float32, sharding=sharding)] * 2
+    for text in args.variants.split(","):
+        elements, warps, dot, split = text.split(":")
+        ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.SPLIT = int(elements), int(warps), int(split)
+        ridkernel.DOT_ALGORITHM = None if dot == "-" else dot
+        jax.clear_caches()
+        shutil.rmtree(dump)  # this variant's dump alone
+        terms = jax.jit(jax.vmap(lambda p, q, qd: legs.rid_terms(p, q, qd, c, "kernel"), in_axes=(None, 0, 0)))
+        with captured_stderr() as log, jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):
+            terms.lower(*specs).compile()
+        sass = machine_code(dump, "rid_terms", arch)
+        print(json.dumps({"kernel": "rid", "variant": {"elements": ridkernel.ELEMENTS, "num_warps": ridkernel.NUM_WARPS,
+                                                       "dot_algorithm": ridkernel.DOT_ALGORITHM,
+                                                       "split": ridkernel.SPLIT},
+                          "families": families, "arch": arch, "jax": jax.__version__,
+                          **ptxas_report(log[0]).get("rid_terms", {}),
+                          "warp_instructions_per_leg": leg_instructions(sass, families, ridkernel.ELEMENTS,
+                                                                        ridkernel.SPLIT, ridkernel.NUM_WARPS),
+                          "loops": [{"parent": lp["parent"], "total": lp["total"],
+                                     "opcodes": dict(lp["opcodes"].most_common(12))} for lp in loop_tree(sass)]}),
+              flush=True)
 
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--gpu-target", default=str(Path(__file__).parent / "gpu_targets" / "h100.pbtxt"))
-    p.add_argument("--variants", default="64:8:0:-,64:8:0:128,64:8:0:64",
-                   help="ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS (- for None), comma-separated")
+    p.add_argument("--kernel", choices=("solve", "rid"), default="solve")
+    p.add_argument("--variants", default=None,
+                   help="comma-separated; solve: ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS (- for None; "
+                        "default 64:8:0:-,64:8:0:128,64:8:0:64); rid: ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT "
+                        "(- for None; default 16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1)")
     p.add_argument("--contacts", type=int, default=80, help="contact slots K (the operator is 3K x 3K)")
     p.add_argument("--schur", default=None, metavar="KD:L:KL",
                    help="the operator in its parts (softcrawl.jaxsim.schur.SchurOperator): KD disk contacts and "
@@ -96,6 +205,10 @@ def main(argv=None) -> None:
     sharding = deviceless_gpu(config)
     cc = re.search(r"cuda_compute_capability\s*{\s*major:\s*(\d+)(?:\s*minor:\s*(\d+))?", config)
     arch = f"sm_{cc.group(1)}{cc.group(2) or 0}{'a' if cc.group(1) == '9' else ''}"
+    if args.kernel == "rid":
+        args.variants = args.variants or "16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1"
+        return rid_variants(args, arch, sharding, dump)
+    args.variants = args.variants or "64:8:0:-,64:8:0:128,64:8:0:64"
     B = 256
     if args.schur:
         Kd, L, Kl = (int(v) for v in args.schur.split(":"))
@@ -115,17 +228,12 @@ def main(argv=None) -> None:
         fused.ROW_BLOCK, fused.NUM_WARPS, fused.LOOP_PRODUCT = int(rows), int(warps), loop == "1"
         fused.RESIDENT_ROWS = None if held == "-" else int(held)
         jax.clear_caches()
-        for f in Path(dump).iterdir():
-            f.unlink()
+        shutil.rmtree(dump)  # this variant's dump alone
         solve = jax.jit(jax.vmap(fused.fused_solve, in_axes=(0, 0, 0, 0, 0, None)))
         with captured_stderr() as log, jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):
             solve.lower(*specs).compile()
         report = ptxas_report(log[0]).get("apgd_solve", {})
-        ptx = next(f for f in Path(dump).glob("*.ptx") if "apgd_solve" in f.read_text())
-        cubin = Path(dump) / "solve.cubin"
-        subprocess.run([tool("ptxas"), f"-arch={arch}", "-O3", str(ptx), "-o", str(cubin)], check=True)
-        *before, ops = outer_loops(subprocess.run([tool("nvdisasm"), "-c", str(cubin)], check=True, capture_output=True,
-                                          text=True).stdout)
+        *before, ops = outer_loops(machine_code(dump, "apgd_solve", arch))
         print(json.dumps({"variant": {"row_block": fused.ROW_BLOCK, "num_warps": fused.NUM_WARPS,
                                       "loop_product": fused.LOOP_PRODUCT, "resident_rows": fused.RESIDENT_ROWS},
                           "contacts": K, "operator": args.schur or "dense", "arch": arch, "jax": jax.__version__,

@@ -572,7 +572,10 @@ def test_kernel_sass_counts_the_instructions_of_the_outermost_loops():
     """``benchmarks/kernel_sass.py`` reads the loops' instructions from ``nvdisasm -c`` text: each
     outermost loop in the order of the code (a label to the furthest backward branch to it; the
     last here 4 instructions with its inner loop's 2, the solve kernel's iterations, after the
-    larger loop that prepares the operator), opcodes without predicates or modifiers."""
+    larger loop that prepares the operator), opcodes without predicates or modifiers; every loop
+    with its parent and its own instructions (``loop_tree``), and the RID kernel's instructions a
+    leg (``leg_instructions``: outside the loops once, each family's block loop times its blocks,
+    its edge loop times the edges too), None where the loops are not the families'."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("kernel_sass", Path(__file__).parents[1] / "benchmarks/kernel_sass.py")
@@ -596,6 +599,14 @@ def test_kernel_sass_counts_the_instructions_of_the_outermost_loops():
 """
     assert sass.outer_loops(text) == [{"LDG": 1, "STG": 1, "FMUL": 2, "BRA": 1}, {"LDG": 1, "FADD": 1, "BRA": 2}]
     assert sass.outer_loops("        /*0000*/                   EXIT ;") == []
+    tree = sass.loop_tree(text)
+    assert [(lp["parent"], lp["total"], dict(lp["opcodes"])) for lp in tree] == [
+        (None, 5, {"LDG": 1, "STG": 1, "FMUL": 2, "BRA": 1}), (None, 4, {"LDG": 1, "BRA": 1}),
+        (1, 2, {"FADD": 1, "BRA": 1})]
+    # read as the RID kernel: the second loop a family of 40 elements with 3 edges; the first is not
+    assert sass.leg_instructions(text, [(40, 4)], elements=16, split=1, warps=2) is None
+    one = text.replace("@P2 BRA `(.L_x_2)", "NOP")  # now one family's loop, its edge loop inside
+    assert sass.leg_instructions(one, [(40, 4)], elements=16, split=1, warps=2) == 2 * (7 + 3 * (2 + 3 * 2))
 
 
 def test_the_fused_kernels_row_blocks_cover_the_rows_and_no_more_of_the_padding():

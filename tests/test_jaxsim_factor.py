@@ -164,3 +164,19 @@ def test_bad_forms_and_shapes_are_refused():
     assert Settings(**args).cholesky == "library" and Settings(**args, cholesky="kernel").cholesky == "kernel"
     with pytest.raises(ValueError, match="settings.cholesky"):
         Settings(**args, cholesky="interpret")
+
+
+def test_the_kernels_rank_one_updates_are_fused_multiply_adds_in_float32_on_cuda():
+    """The kernels' rank-one updates (the elimination's and the sweeps') are one ``fma.rn.f32`` a
+    number in the float32 program compiled for CUDA (its traced branch holds the inline
+    assembly); in float64 and in Pallas' interpreter they stay a product and a sum
+    (``fused_multiply_add``), so the interpreted kernels the other tests check are unchanged."""
+    from softcrawl.jaxsim.factor import cholesky_inverse, fused_multiply_add, inverse_spd
+
+    A = jnp.asarray(np.eye(8) * 2.0)
+    for f in (cholesky_inverse, inverse_spd):
+        assert "fma.rn.f32" in str(jax.make_jaxpr(lambda a: f(a, "kernel"))(A.astype(jnp.float32)))
+        assert "fma.rn.f32" not in str(jax.make_jaxpr(lambda a: f(a, "kernel"))(A))
+        assert "fma.rn.f32" not in str(jax.make_jaxpr(lambda a: f(a, "interpret"))(A.astype(jnp.float32)))
+    a, b, c = (jnp.asarray([1.5, -2.0], jnp.float32) * k for k in (1, 3, 5))
+    np.testing.assert_array_equal(fused_multiply_add(a, b, c, compiled=False), a * b + c)

@@ -32,6 +32,7 @@ from softcrawl.jaxsim import legs as leg_motion
 from softcrawl.jaxsim.contact import solve_contacts
 from softcrawl.jaxsim.delassus import condense, constraint_rows, corrections
 from softcrawl.jaxsim.model import register_pytree
+from softcrawl.jaxsim.ridkernel import with_kernel_rows
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
@@ -188,8 +189,11 @@ def max_speed(model, state: State):
 def shared_parts(model):
     """The model without its per-robot data (``robot=None``: the parts every robot of a batch
     shares, ``jax.vmap`` ped with ``in_axes=None``), ready for a loop of steps: the legs' frame
-    stiffness formed once, outside the loop (:func:`softcrawl.jaxsim.legs.with_frame_stiffness`)."""
-    return dataclasses.replace(model, robot=None, leg=leg_motion.with_frame_stiffness(model.leg))
+    stiffness and the RID kernel's rows formed once, outside the loop
+    (:func:`softcrawl.jaxsim.legs.with_frame_stiffness`,
+    :func:`softcrawl.jaxsim.ridkernel.with_kernel_rows`)."""
+    return dataclasses.replace(model, robot=None,
+                               leg=with_kernel_rows(leg_motion.with_frame_stiffness(model.leg)))
 
 
 def make_settle(rest_speed: float = 0.5, hold_steps: int = 5, max_steps: int = 300):

@@ -45,6 +45,20 @@ from jax.scipy.linalg import solve_triangular
 CHOLESKY_FORMS = ("library", "kernel")
 
 
+def fused_multiply_add(a, b, c, compiled: bool):
+    """``a * b + c`` (broadcast together), one rounding: the GPU's ``fma.rn.f32`` where
+    ``compiled`` and float32, the two operations otherwise (Pallas' interpreter, float64).
+    Triton rounds each product and each sum of a Pallas kernel on its own (``mul.rn``,
+    ``add.rn``), which ptxas may not fuse: two instructions where one does."""
+    if not compiled or jnp.result_type(a, b, c) != jnp.float32:
+        return a * b + c
+    from jax.experimental.pallas import triton as pltriton
+
+    a, b, c = jnp.broadcast_arrays(a, b, c)
+    return pltriton.elementwise_inline_asm("fma.rn.f32 $0, $1, $2, $3;", args=[a, b, c], constraints="=f,f,f,f",
+                                           pack=1, result_shape_dtypes=[jax.ShapeDtypeStruct(a.shape, a.dtype)])[0]
+
+
 def padded_size(n: int) -> int:
     """The smallest power of two ``>= max(n, 16)``: the size a Triton program handles ``n`` rows
     at (its blocks have power-of-two shapes; :mod:`softcrawl.jaxsim.fused` too)."""
@@ -87,9 +101,10 @@ def _padded(n: int, a_ref, dt):
                                                  eye)
 
 
-def _kernel(n: int, a_ref, o_ref):
+def _kernel(n: int, fma, a_ref, o_ref):
     """One matrix (module doc): ``a_ref`` ``(n, n)`` the symmetric matrix, read whole; ``o_ref``
-    receives ``C^-1``. The program works on the padded size ``N`` (:func:`_padded`) and writes
+    receives ``C^-1``; ``fma`` the rank-one updates' multiply-add (:func:`fused_multiply_add`).
+    The program works on the padded size ``N`` (:func:`_padded`) and writes
     through masked pointers: lanes past ``n`` store nothing."""
     from jax.experimental.pallas import triton as pltriton
 
@@ -103,13 +118,13 @@ def _kernel(n: int, a_ref, o_ref):
         trow = jnp.sum(jnp.where(rows == k, T, 0), axis=0)
         dk = jnp.sum(jnp.where(r == k, col, 0))
         l = jnp.where(r > k, col / dk, 0)
-        return A - l[:, None] * row[None, :], T - l[:, None] * trow[None, :], jnp.where(r == k, dk, d)
+        return fma(-l[:, None], row[None, :], A), fma(-l[:, None], trow[None, :], T), jnp.where(r == k, dk, d)
 
     _, T, d = lax.fori_loop(0, n, body, (A, eye, jnp.ones(r.shape, dt)))
     pltriton.store(o_ref.at[rows, cols], T * lax.rsqrt(d)[:, None], mask=inside)
 
 
-def _sweep_kernel(n: int, a_ref, o_ref):
+def _sweep_kernel(n: int, fma, a_ref, o_ref):
     """One matrix's inverse by the symmetric sweep operator (module doc): ``a_ref`` ``(n, n)``
     the symmetric matrix, read whole; ``o_ref`` receives ``A^-1``. Padded and masked as
     :func:`_kernel`; the padding's identity rows are never swept."""
@@ -122,7 +137,7 @@ def _sweep_kernel(n: int, a_ref, o_ref):
         col = jnp.sum(jnp.where(cols == k, A, 0), axis=1)
         dk = jnp.sum(jnp.where(r == k, col, 0))
         u = jnp.where(r == k, -1.0, col) / dk
-        return jnp.where((rows == k) | (cols == k), 0, A) - (dk * u)[:, None] * u[None, :], jnp.minimum(low, dk)
+        return fma(-(dk * u)[:, None], u[None, :], jnp.where((rows == k) | (cols == k), 0, A)), jnp.minimum(low, dk)
 
     A, low = lax.fori_loop(0, n, body, (A, jnp.ones((), A.dtype)))
     pltriton.store(o_ref.at[rows, cols], jnp.where(low > 0, -A, jnp.nan), mask=inside)
@@ -139,7 +154,8 @@ def _pallas(A, interpret: bool, kernel=_kernel, name: str = "cholesky_inverse"):
 
     n = A.shape[-1]
     return pl.pallas_call(
-        partial(kernel, n), out_shape=jax.ShapeDtypeStruct((n, n), A.dtype), interpret=interpret,
+        partial(kernel, n, partial(fused_multiply_add, compiled=not interpret)),
+        out_shape=jax.ShapeDtypeStruct((n, n), A.dtype), interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=_warps(padded_size(n)), num_stages=1),
         name=name)(A)
 

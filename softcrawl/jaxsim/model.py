@@ -56,6 +56,8 @@ class Family:
             monomial of its frame, which the GPU's form of the RID terms contracts
             (:func:`softcrawl.jaxsim.legs.frame_stiffness`), formed once before a loop of steps
             (:func:`softcrawl.jaxsim.engine.shared_parts`), or None: formed in each step.
+        kernel_rows: ``rows`` as the GPU's RID kernel reads them, formed once before a loop of
+            steps as ``stiffness`` is (:func:`softcrawl.jaxsim.ridkernel.kernel_rows`), or None.
     """
 
     conn: object
@@ -63,6 +65,7 @@ class Family:
     rest_terms: object
     rows: object
     stiffness: object = None
+    kernel_rows: object = None
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,14 @@ TFLOP a step at 16,384 robots, 3.8 times the rows form's multiply-adds, and the 
 written to memory and read again). This kernel runs the rows form per leg, one program a leg
 (``jax.vmap`` over legs and robots; or :data:`SPLIT` programs sharing its elements),
 :data:`ELEMENTS` elements at a time: their frames and stresses from the RID nodes' positions,
-``Z``'s rows of the block in registers (``C~_e F_e`` times the elements' basis rows), and ``Z^T
-Z`` accumulated by matrix products (:data:`DOT_ALGORITHM`); the strain modes are handled in
-column tiles of at most 32 (``m' = 33`` as 32 + 16 padded), each pair of tiles one product. The
+``Z``'s rows of the block in registers and ``Z^T Z`` accumulated by matrix products
+(:data:`DOT_ALGORITHM`: two TF32 passes of split operands). An edge's basis rows are read once
+for all of an element's stress rows (``Z_i = sum_q (C~ F)_iq H_q``, ``q`` the edge's
+components), from rows padded to the column tiles' widths (aligned, so that Triton reads them by
+vectors), and each product and sum is one fused multiply-add
+(:func:`softcrawl.jaxsim.factor.fused_multiply_add`). The strain modes are handled in column
+tiles of at most 32 and a few loose columns (:func:`column_tiles`; ``m' = 33`` as one tile and
+one column), each pair of tiles one product, the loose columns' terms by elementwise sums. The
 formulas are those of :mod:`softcrawl.jaxsim.legs` (its module doc; Farhat, Chapman & Avery
 2015, eq. 20); the per-element quantities are component arrays (:mod:`softcrawl.jaxsim.frames`).
 
@@ -20,47 +25,88 @@ interpreter.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from softcrawl.jaxsim.factor import padded_size
+from softcrawl.jaxsim.factor import fused_multiply_add, padded_size
 from softcrawl.jaxsim.frames import frame_terms
 
 #: Elements a program treats at once (the products' inner size; at least 16).
 ELEMENTS = 16
-#: Warps per program.
-NUM_WARPS = 4
+#: Warps per program. The per-element numbers (frames, stresses, ``C~ F``) are computed by every
+#: thread that holds a column of their rows: fewer warps repeat them less. Machine code for an
+#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 128k warp instructions a leg at 2
+#: warps against 182k at 4 (255 and 223 registers, no spill).
+NUM_WARPS = 2
 #: Programs per leg: program ``s`` of a leg treats its element blocks ``s, s + SPLIT, ...`` and
 #: writes its shares of ``K_r``, ``f_r`` and the count, which are added after the kernel. More
 #: programs at few legs (96 robots: 576 legs for 132 multiprocessors), one at many.
 SPLIT = 1
-#: The dot algorithm (a ``jax.lax.DotAlgorithmPreset`` name) of the kernel's products in float32:
-#: three TF32 passes on the tensor cores, about float32's accuracy (relative error 2e-7,
-#: ``benchmarks/dot_algorithms.py``); None for full float32 arithmetic. Other precisions, and
-#: the interpreter, use their own arithmetic. These three are read when a call is traced:
+#: Strain modes after the last full column tile, up to this many, are treated one by one as
+#: vectors over the elements (not a padded tile of 16 columns).
+LOOSE = 4
+#: The kernel's products in float32: ``"SPLIT_TF32"``, each block's ``Z`` split as ``H + L``
+#: with ``H`` its TF32 part (:func:`tf32_high`) and ``Z^T Z`` accumulated as ``H^T H`` and ``H^T
+#: L`` by one TF32 pass each on the tensor cores, ``K_r = H^T H + H^T L + (H^T L)^T`` formed once
+#: at the end (two passes where three TF32 passes take three, about float32's accuracy); else a
+#: ``jax.lax.DotAlgorithmPreset`` name (``"TF32_TF32_F32_X3"``: the three passes, relative error
+#: 2e-7, ``benchmarks/dot_algorithms.py``), or None for full float32 arithmetic. Other
+#: precisions, and the interpreter, use their own arithmetic (the interpreter applies the split
+#: in float32, with exact products). This module's constants are read when a call is traced:
 #: ``benchmarks/rid_kernel.py`` times other values.
-DOT_ALGORITHM = "TF32_TF32_F32_X3"
+DOT_ALGORITHM = "SPLIT_TF32"
 
 
-def column_tiles(ms: int) -> list[tuple[int, int]]:
-    """``(start, width)`` of the column tiles of ``ms`` strain modes: widths powers of two from
-    16 to 32, the last padded (33 modes: ``[(0, 32), (32, 16)]``)."""
+def column_tiles(ms: int) -> tuple[list[tuple[int, int]], list[int]]:
+    """The strain modes' columns as the kernel treats them: ``(start, width)`` of the column
+    tiles, widths powers of two from 16 to 32 (a last one padded), and the columns after the
+    last tile, at most :data:`LOOSE` of them, each treated alone (33 modes: ``([(0, 32)],
+    [32])``; 40: ``([(0, 32), (32, 16)], [])``)."""
     tiles, start = [], 0
-    while start < ms:
+    while ms - start > LOOSE:
         width = 32 if ms - start >= 32 else padded_size(ms - start)
         tiles.append((start, width))
         start += width
-    return tiles
+    return tiles, list(range(start, ms))
 
 
-def _kernel(shapes, ms: int, c: float, precision, x_ref, qs_ref, *refs):
+def kernel_rows(rows, ms: int) -> tuple:
+    """The basis rows ``(E, n, m')`` as the kernel reads them, flattened: the column tiles'
+    columns padded to the tiles' widths (rows of a multiple of 16 numbers, so aligned), then the
+    loose columns (:func:`column_tiles`); each part left out where it has no column."""
+    tiles, loose = column_tiles(ms)
+    W = sum(w for _, w in tiles)
+    parts = (jnp.pad(rows[..., :W], ((0, 0), (0, 0), (0, max(W - ms, 0)))),) if tiles else ()
+    return tuple(p.reshape(-1) for p in parts + ((rows[..., W:],) if loose else ()))
+
+
+def with_kernel_rows(part):
+    """``part`` with each RID family's :func:`kernel_rows` formed (``Family.kernel_rows``), for a
+    loop of steps to form them once (XLA forms them in every step otherwise; where the kernel is
+    not taken, it drops them unused)."""
+    ms = part.strain_modes.shape[0]
+    return dataclasses.replace(part, families=tuple(dataclasses.replace(f, kernel_rows=kernel_rows(f.rows, ms))
+                                                    for f in part.families))
+
+
+def tf32_high(z):
+    """``z`` (float32) with the 13 low bits of its significand cleared: a TF32 number, ``z -
+    tf32_high(z)`` exact and below ``2^-10 |z|`` (the two-term splitting of a product's operands;
+    Ozaki et al. 2012, as :func:`softcrawl.jaxsim.fused.split_columns`)."""
+    bits = lax.bitcast_convert_type(z, jnp.int32) & jnp.int32(-(1 << 13))
+    return lax.bitcast_convert_type(bits, jnp.float32)
+
+
+def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, x_ref, qs_ref, *refs):
     """One leg (module doc). ``shapes``: each family's ``(E, k, r)``; inputs ``x_ref``
     ``(3 nr,)`` the RID nodes' part-frame positions, ``qs_ref`` ``(m',)``, then per family its
-    ``conn``, ``factors``, ``rest_terms`` and ``rows``, flattened; outputs ``K`` ``(S m' m',)``,
-    ``f`` ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others 0): program
+    ``conn``, ``factors``, ``rest_terms`` and :func:`kernel_rows`, flattened; with ``split``,
+    ``Z^T Z`` by :func:`tf32_high`'s two products (:data:`DOT_ALGORITHM`); outputs ``K`` ``(S m'
+    m',)``, ``f`` ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others 0): program
     ``s`` of :data:`SPLIT` ``S`` writes share ``s`` of each."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
@@ -68,21 +114,37 @@ def _kernel(shapes, ms: int, c: float, precision, x_ref, qs_ref, *refs):
     k_ref, f_ref, bad_ref = refs[-3:]
     share = pl.program_id(0)
     dt = k_ref.dtype
-    tiles = column_tiles(ms)
+    fma = partial(fused_multiply_add, compiled=compiled)
+
+    def dot(a, b):  # a^T b
+        return lax.dot_general(a, b, (((0,), (0,)), ((), ())), precision=precision, preferred_element_type=dt)
+
+    tiles, loose = column_tiles(ms)
     pairs = [(t, u) for t in range(len(tiles)) for u in range(t, len(tiles))]
+    lpairs = [(a, b) for a in range(len(loose)) for b in range(a, len(loose))]
     cols = [s + lax.iota(jnp.int32, w) for s, w in tiles]
     qs = [pltriton.load(qs_ref.at[j], mask=j < ms, other=0.0) for j in cols]
+    ql = [qs_ref[j] for j in loose]
     eb = lax.iota(jnp.int32, ELEMENTS)
-    K = [jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in pairs]
-    f = [jnp.zeros((w,), dt) for _, w in tiles]
+    ordered = [(t, u) for t in range(len(tiles)) for u in range(len(tiles))] if split else []
+    acc = {"K": tuple(jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in pairs),  # Z_t^T Z_u (split: H_t^T H_u)
+           "M": tuple(jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in ordered),  # split: H_t^T (Z_u - H_u)
+           "f": tuple(jnp.zeros((ELEMENTS, w), dt) for _, w in tiles),  # by element: Z_t w
+           "KL": tuple(jnp.zeros((ELEMENTS, w), dt) for _ in loose for _, w in tiles),  # Z_t z_l
+           "LL": tuple(jnp.zeros((ELEMENTS,), dt) for _ in lpairs),  # z_l z_l'
+           "fL": tuple(jnp.zeros((ELEMENTS,), dt) for _ in loose)}  # z_l w
     bad = jnp.zeros((), jnp.int32)
+    W, nl = sum(w for _, w in tiles), len(loose)
+    per = 3 + bool(tiles) + bool(loose)
     for fam, (E, k, r) in enumerate(shapes):
-        conn_ref, fac_ref, rest_ref, rows_ref = refs[4 * fam:4 * fam + 4]
+        conn_ref, fac_ref, rest_ref, *more = refs[per * fam:per * fam + per]
+        rows_ref = more[0] if tiles else None
+        loose_ref = more[-1] if loose else None
         n = 3 * (k - 1)
 
         def block(b, carry, E=E, k=k, r=r, n=n, conn_ref=conn_ref, fac_ref=fac_ref, rest_ref=rest_ref,
-                  rows_ref=rows_ref):
-            K, f, bad = carry
+                  rows_ref=rows_ref, loose_ref=loose_ref):
+            acc, bad = carry
             e = (share + SPLIT * b) * ELEMENTS + eb  # blocks past the family's: no element
             on = e < E
 
@@ -94,39 +156,69 @@ def _kernel(shapes, ms: int, c: float, precision, x_ref, qs_ref, *refs):
                  for a in range(k)]  # padding elements: a unit tetrahedron (or triangle), finite frames
             F, g, wrong = frame_terms([[x[a + 1][i] - x[0][i] for i in range(3)] for a in range(k - 1)])
             bad = bad + jnp.sum(wrong & on).astype(jnp.int32)
+            # Z's rows of the block, stress row i: Z_i = sum_q (C~ F)_iq H_q, q = 3a + c (edge a,
+            # component c); each basis row H_q of the block's elements read once for all i
+            def edge(a, carry):  # edge a's three components c: q = 3a + c
+                s, Z, zl = carry
+                fac = [[load(fac_ref, (e * r + i) * n + 3 * a + p) for p in range(3)] for i in range(r)]
+                ga = [sum(jnp.where(a == b, g[3 * b + p], 0.0) for b in range(k - 1)) for p in range(3)]
+                s = [si + sum(fac[i][p] * ga[p] for p in range(3)) for i, si in enumerate(s)]
+                for c_ in range(3):
+                    row = e * n + 3 * a + c_
+                    H = [pltriton.load(rows_ref.at[row[:, None] * W + j[None, :]], mask=on[:, None], other=0.0)
+                         for j in cols]
+                    Hl = [load(loose_ref, row * nl + m) for m in range(nl)]
+                    for i in range(r):
+                        CF = fma(fac[i][2], F[2][c_], fma(fac[i][1], F[1][c_], fac[i][0] * F[0][c_]))
+                        Z[i] = [fma(CF[:, None], h, z) for z, h in zip(Z[i], H)]
+                        zl[i] = [fma(CF, h, z) for z, h in zip(zl[i], Hl)]
+                return s, Z, zl
 
-            def stress(i, carry):  # stress row i of the block's elements: Z's rows i, their terms
-                K, f = carry
-                s = sum(load(fac_ref, (e * r + i) * n + q) * g[q] for q in range(n)) - load(rest_ref, e * r + i)
+            s, Z, zl = lax.fori_loop(0, k - 1, edge, (
+                [-load(rest_ref, e * r + i) for i in range(r)],
+                [[jnp.zeros((ELEMENTS, w), dt) for _, w in tiles] for _ in range(r)],
+                [[jnp.zeros((ELEMENTS,), dt) for _ in loose] for _ in range(r)]))
+            for i in range(r):
+                w = s[i] + c * (sum(jnp.sum(z * v[None, :], axis=1) for z, v in zip(Z[i], qs))
+                                + sum(z * v for z, v in zip(zl[i], ql)))
+                H = [tf32_high(z) for z in Z[i]] if split else Z[i]
+                acc = {"K": tuple(Km + dot(H[t], H[u]) for Km, (t, u) in zip(acc["K"], pairs)),
+                       "M": tuple(Mm + dot(H[t], Z[i][u] - H[u]) for Mm, (t, u) in zip(acc["M"], ordered)),
+                       "f": tuple(fma(z, w[:, None], fa) for fa, z in zip(acc["f"], Z[i])),
+                       "KL": tuple(fma(z, y[:, None], kl) for kl, (y, z) in
+                                   zip(acc["KL"], ((y, z) for y in zl[i] for z in Z[i]))),
+                       "LL": tuple(fma(zl[i][a], zl[i][b], ll) for ll, (a, b) in zip(acc["LL"], lpairs)),
+                       "fL": tuple(fma(y, w, fl) for fl, y in zip(acc["fL"], zl[i]))}
+            return acc, bad
 
-                def column(q, Z):  # Z_i += (C~ F)_iq rows_q, q = 3a + c: edge a, component c
-                    a, c_ = lax.div(q, 3), lax.rem(q, 3)
-                    Fc = [jnp.where(c_ == 0, F[p][0], jnp.where(c_ == 1, F[p][1], F[p][2])) for p in range(3)]
-                    CR = sum(load(fac_ref, (e * r + i) * n + 3 * a + p) * Fc[p] for p in range(3))
-                    return [z + CR[:, None] * pltriton.load(rows_ref.at[(e * n + q)[:, None] * ms + j[None, :]],
-                                                            mask=on[:, None] & (j < ms)[None, :], other=0.0)
-                            for z, j in zip(Z, cols)]
-
-                Z = lax.fori_loop(0, n, column, [jnp.zeros((ELEMENTS, w), dt) for _, w in tiles])
-                K = tuple(Km + lax.dot_general(Z[t], Z[u], (((0,), (0,)), ((), ())), precision=precision,
-                                               preferred_element_type=dt) for Km, (t, u) in zip(K, pairs))
-                w = s + c * sum(jnp.sum(z * v[None, :], axis=1) for z, v in zip(Z, qs))
-                return K, [fj + jnp.sum(z * w[:, None], axis=0) for fj, z in zip(f, Z)]
-
-            K, f = lax.fori_loop(0, r, stress, (K, f))
-            return K, f, bad
-
-        K, f, bad = lax.fori_loop(0, -(-E // (ELEMENTS * SPLIT)), block, (tuple(K), f, bad))
+        acc, bad = lax.fori_loop(0, -(-E // (ELEMENTS * SPLIT)), block, (acc, bad))
     at = share * ms * ms
+    lane = lax.iota(jnp.int32, 16)
+
+    def scalar(ref, index, value):  # one number, by lane 0 of a vector
+        pltriton.store(ref.at[index + lane], jnp.broadcast_to(value, (16,)), mask=lane == 0)
+
+    M = dict(zip(ordered, acc["M"]))
     for m, (t, u) in enumerate(pairs):
         i, j = cols[t], cols[u]
         inside = (i[:, None] < ms) & (j[None, :] < ms)
-        pltriton.store(k_ref.at[at + i[:, None] * ms + j[None, :]], K[m], mask=inside)
+        K = acc["K"][m] + (M[t, u] + M[u, t].T if split else 0)  # Z^T Z = H^T H + H^T L + (H^T L)^T
+        pltriton.store(k_ref.at[at + i[:, None] * ms + j[None, :]], K, mask=inside)
         if t != u:
-            pltriton.store(k_ref.at[at + j[None, :] * ms + i[:, None]], K[m], mask=inside)
-    for j, fj in zip(cols, f):
-        pltriton.store(f_ref.at[share * ms + j], -fj, mask=j < ms)
-    lane = lax.iota(jnp.int32, 16)
+            pltriton.store(k_ref.at[at + j[None, :] * ms + i[:, None]], K, mask=inside)
+    for m, (l, t) in enumerate((l, t) for l in loose for t in range(len(tiles))):
+        kl = jnp.sum(acc["KL"][m], axis=0)
+        pltriton.store(k_ref.at[at + cols[t] * ms + l], kl, mask=cols[t] < ms)
+        pltriton.store(k_ref.at[at + l * ms + cols[t]], kl, mask=cols[t] < ms)
+    for ll, (a, b) in zip(acc["LL"], lpairs):
+        total = jnp.sum(ll)
+        scalar(k_ref, at + loose[a] * ms + loose[b], total)
+        if a != b:
+            scalar(k_ref, at + loose[b] * ms + loose[a], total)
+    for j, fj in zip(cols, acc["f"]):
+        pltriton.store(f_ref.at[share * ms + j], -jnp.sum(fj, axis=0), mask=j < ms)
+    for l, fl in zip(loose, acc["fL"]):
+        scalar(f_ref, share * ms + l, -jnp.sum(fl))
     pltriton.store(bad_ref.at[share * 16 + lane], jnp.where(lane == 0, bad, 0))
 
 
@@ -154,14 +246,16 @@ def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False):
     for fam in part.families:
         E, k = fam.conn.shape
         shapes.append((E, k, fam.factors.shape[1]))
+        rows = kernel_rows(fam.rows, ms) if fam.kernel_rows is None else fam.kernel_rows
         arrays += [fam.conn.reshape(-1).astype(jnp.int32), fam.factors.reshape(-1).astype(dt),
-                   fam.rest_terms.reshape(-1).astype(dt), fam.rows.reshape(-1).astype(dt)]
+                   fam.rest_terms.reshape(-1).astype(dt), *(r.astype(dt) for r in rows)]
+    split = dt == jnp.float32 and DOT_ALGORITHM == "SPLIT_TF32"
     if dt == jnp.float32 and DOT_ALGORITHM is not None and not interpret:  # a CPU has no TF32
-        precision = lax.DotAlgorithmPreset[DOT_ALGORITHM]
+        precision = lax.DotAlgorithmPreset["TF32_TF32_F32" if split else DOT_ALGORITHM]
     else:
         precision = (lax.Precision.HIGHEST, lax.Precision.HIGHEST)
     K, f, bad = pl.pallas_call(
-        partial(_kernel, tuple(shapes), ms, float(c), precision),
+        partial(_kernel, tuple(shapes), ms, float(c), precision, split, not interpret),
         out_shape=(jax.ShapeDtypeStruct((SPLIT * ms * ms,), dt), jax.ShapeDtypeStruct((SPLIT * ms,), dt),
                    jax.ShapeDtypeStruct((SPLIT * 16,), jnp.int32)),
         grid=(SPLIT,), interpret=interpret,
