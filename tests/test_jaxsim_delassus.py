@@ -644,20 +644,20 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
 
 def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     """``rid_terms`` in one kernel (``"interpret"``: :mod:`softcrawl.jaxsim.ridkernel` in Pallas'
-    interpreter, ``Z`` formed 16 elements at a time in two column tiles, 32 + 16 for 33 strain
-    modes, a tile of 32 and one loose column) on the landed robot's bent, pressed legs: the rows
-    form's ``K_r`` and ``f_r`` to 1e-12
-    of their largest entries in float64 (the same products, summed by blocks: measured 4e-15 on
-    a random state), ``K_r`` exactly symmetric, the same inverted or degenerate elements counted
-    on legs bent to invert them; the same with each leg's element blocks shared among three
-    programs (``ridkernel.SPLIT``), their shares added; the same with the modes as padded tiles
-    only, and 3 of the modes as loose columns only (``ridkernel.LOOSE``); the same to the bit from
-    the kernel's rows formed before a loop of steps (``ridkernel.with_kernel_rows``); in float32,
-    ``K_r`` by the two products of its split operands (``DOT_ALGORITHM = "SPLIT_TF32"``) and by
-    one, both within 1e-5 of float64's (float32's round-off summed over 1,944 rows: measured
-    4.9e-7 and 2.7e-7 for ``K_r``, 7.3e-7 for ``f_r``). ``"kernel"`` on a CPU is the rows form to
-    the bit, its traced program holding the kernel for CUDA, in float32 with fused multiply-adds;
-    exported for a TPU, the step with it holds no kernel."""
+    interpreter, ``Z`` formed 16 elements at a time, its 33 strain modes as a tile of 32 and one
+    loose column) on the landed robot's bent, pressed legs: the rows form's ``K_r`` and ``f_r``
+    to 1e-12 of their largest entries in float64 (the same products, summed by blocks: measured
+    4e-15 on a random state), ``K_r`` exactly symmetric, the same inverted or degenerate elements
+    counted on legs bent to invert them; the same with each leg's element blocks shared among
+    three programs (``ridkernel.SPLIT``), their shares added; the same to the bit from the
+    kernel's rows formed before a loop of steps (``ridkernel.with_kernel_rows``). On one leg: the
+    same with the modes as padded tiles only (32 + 16), and with 3 of the modes as loose columns
+    only (``ridkernel.LOOSE``); in float32, ``K_r`` by the two products of its split operands
+    (``DOT_ALGORITHM = "SPLIT_TF32"``) within 1e-5 of float64's (float32's round-off summed over
+    1,944 rows: measured 4.9e-7 for ``K_r``, 7.3e-7 for ``f_r``; by one product, 2.7e-7 for
+    ``K_r``). ``"kernel"`` on a CPU is the rows form to the bit, its traced program holding the
+    kernel for CUDA, in float32 with fused multiply-adds; exported for a TPU, the step with it
+    holds no kernel."""
     from softcrawl.jaxsim import legs as leg_motion
     from softcrawl.jaxsim import ridkernel
     from softcrawl.jaxsim.engine import physics_step
@@ -672,7 +672,7 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     wild = jnp.asarray(np.random.default_rng(1).normal(0.0, 80.0, (2, state.q.shape[-1])))
     bad = terms("rows", wild, 0 * wild)[2]
     assert np.asarray(bad).min() > 0
-    for split in (1, 3):
+    for split in (3, 1):
         monkeypatch.setattr(ridkernel, "SPLIT", split)
         Kk, fk, nk = terms("interpret", state.q, qdot)
         assert np.abs(np.asarray(Kk - Kr)).max() <= 1e-12 * np.abs(np.asarray(Kr)).max()
@@ -680,33 +680,31 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
         assert np.abs(np.asarray(fk - fr)).max() <= 1e-12 * np.abs(np.asarray(fr)).max()
         np.testing.assert_array_equal(nr, nk)
         np.testing.assert_array_equal(bad, terms("interpret", wild, 0 * wild)[2])
-    monkeypatch.setattr(ridkernel, "SPLIT", 1)
+    shared = ridkernel.with_kernel_rows(model.leg)  # the rows formed before a loop of steps: the same terms
+    for a, b in zip(jax.vmap(lambda q, v: leg_motion.rid_terms(shared, q, v, 0.03, "interpret"))(state.q, qdot),
+                    (Kk, fk, nk)):
+        np.testing.assert_array_equal(a, b)
+    q1, v1 = state.q[:1], qdot[:1]  # one leg from here on: the interpreter is slow
     few = dataclasses.replace(model.leg, strain_modes=model.leg.strain_modes[:3], families=tuple(
         dataclasses.replace(f, rows=f.rows[..., :3]) for f in model.leg.families))
     for part, loose in ((model.leg, 0), (few, 4)):  # 33 modes as tiles of 32 and 16; 3 modes loose, no tile
         monkeypatch.setattr(ridkernel, "LOOSE", loose)
-        (Kr, fr, _), (Kk, fk, _) = (jax.vmap(lambda q, v: leg_motion.rid_terms(part, q, v, 0.03, form))(
-            state.q, qdot) for form in ("rows", "interpret"))
-        assert np.abs(np.asarray(Kk - Kr)).max() <= 1e-12 * np.abs(np.asarray(Kr)).max()
-        assert np.abs(np.asarray(Kk - Kk.transpose(0, 2, 1))).max() == 0.0
-        assert np.abs(np.asarray(fk - fr)).max() <= 1e-12 * np.abs(np.asarray(fr)).max()
-    Kr, fr, nr = terms("rows", state.q, qdot)
+        (Kp, fp, _), (Kq, fq, _) = (jax.vmap(lambda q, v: leg_motion.rid_terms(part, q, v, 0.03, form))(
+            q1, v1) for form in ("rows", "interpret"))
+        assert np.abs(np.asarray(Kq - Kp)).max() <= 1e-12 * np.abs(np.asarray(Kp)).max()
+        assert np.abs(np.asarray(Kq - Kq.transpose(0, 2, 1))).max() == 0.0
+        assert np.abs(np.asarray(fq - fp)).max() <= 1e-12 * np.abs(np.asarray(fp)).max()
+    K1, f1 = Kr[:1], fr[:1]
     f32 = jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, model.leg)
-    for algorithm in ("SPLIT_TF32", None):  # float32: K_r from the split's two products (H^T H + H^T L + L^T H)
-        monkeypatch.setattr(ridkernel, "DOT_ALGORITHM", algorithm)
-        K32, f32_, _ = jax.vmap(lambda q, v: leg_motion.rid_terms(f32, q, v, 0.03, "interpret"))(
-            state.q.astype(jnp.float32), qdot.astype(jnp.float32))
-        assert np.abs(np.asarray(K32, float) - np.asarray(Kr)).max() <= 1e-5 * np.abs(np.asarray(Kr)).max()
-        assert np.abs(np.asarray(f32_, float) - np.asarray(fr)).max() <= 1e-5 * np.abs(np.asarray(fr)).max()
-    shared = ridkernel.with_kernel_rows(model.leg)  # the rows formed before a loop of steps: the same terms
-    for a, b in zip(jax.vmap(lambda q, v: leg_motion.rid_terms(shared, q, v, 0.03, "interpret"))(state.q, qdot),
-                    terms("interpret", state.q, qdot)):
-        np.testing.assert_array_equal(a, b)
+    monkeypatch.setattr(ridkernel, "DOT_ALGORITHM", "SPLIT_TF32")  # float32: K_r = H^T H + H^T L + L^T H
+    K32, f32_, _ = jax.vmap(lambda q, v: leg_motion.rid_terms(f32, q, v, 0.03, "interpret"))(
+        q1.astype(jnp.float32), v1.astype(jnp.float32))
+    assert np.abs(np.asarray(K32, float) - np.asarray(K1)).max() <= 1e-5 * np.abs(np.asarray(K1)).max()
+    assert np.abs(np.asarray(f32_, float) - np.asarray(f1)).max() <= 1e-5 * np.abs(np.asarray(f1)).max()
     for a, b in zip(terms("kernel", state.q, qdot), (Kr, fr, nr)):
         np.testing.assert_array_equal(a, b)
     traced = str(jax.make_jaxpr(lambda q, v: terms("kernel", q, v))(state.q, qdot))
     assert "rid_terms" in traced and "fma.rn.f32" not in traced  # float64: no float32 fused multiply-add
-    f32 = jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, model.leg)
     traced = str(jax.make_jaxpr(jax.vmap(lambda q, v: leg_motion.rid_terms(f32, q, v, 0.03, "kernel")))(
         state.q.astype(jnp.float32), qdot.astype(jnp.float32)))
     assert "fma.rn.f32" in traced  # the CUDA kernel's products and sums, one rounding each
