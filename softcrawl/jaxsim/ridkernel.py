@@ -52,7 +52,7 @@ LOOSE = 4
 #: The kernel's products in float32: ``"SPLIT_TF32"``, each block's ``Z`` split as ``H + L``
 #: with ``H`` its TF32 part (:func:`tf32_high`) and ``Z^T Z`` accumulated as ``H^T H`` and ``H^T
 #: L`` by one TF32 pass each on the tensor cores, ``K_r = H^T H + H^T L + (H^T L)^T`` formed once
-#: at the end (two passes where three TF32 passes take three, about float32's accuracy); else a
+#: at the end (two passes instead of three, about float32's accuracy); else a
 #: ``jax.lax.DotAlgorithmPreset`` name (``"TF32_TF32_F32_X3"``: the three passes, relative error
 #: 2e-7, ``benchmarks/dot_algorithms.py``), or None for full float32 arithmetic. Other
 #: precisions, and the interpreter, use their own arithmetic (the interpreter applies the split
@@ -106,8 +106,8 @@ def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, x
     ``(3 nr,)`` the RID nodes' part-frame positions, ``qs_ref`` ``(m',)``, then per family its
     ``conn``, ``factors``, ``rest_terms`` and :func:`kernel_rows`, flattened; with ``split``,
     ``Z^T Z`` by :func:`tf32_high`'s two products (:data:`DOT_ALGORITHM`); outputs ``K`` ``(S m'
-    m',)``, ``f`` ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others 0): program
-    ``s`` of :data:`SPLIT` ``S`` writes share ``s`` of each."""
+    m',)``, ``f`` ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others
+    0): program ``s`` of :data:`SPLIT` ``S`` writes share ``s`` of each."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
