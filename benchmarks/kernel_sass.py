@@ -117,8 +117,9 @@ def leg_instructions(sass: str, families, elements: int, split: int, warps: int)
     loops = loop_tree(sass)
     outer = [i for i, lp in enumerate(loops) if lp["parent"] is None]
     inner = [[j for j, lp in enumerate(loops) if lp["parent"] == i] for i in outer]
-    if len(outer) != len(families) or any(len(js) != 1 or loops[js[0]]["parent"] is None for js in inner):
-        return None
+    if len(outer) != len(families) or any(len(js) != 1 or any(lp["parent"] == js[0] for lp in loops)
+                                          for js in inner):
+        return None  # not one edge loop, without loops of its own, in each family's loop
     n_all = len(_SASS.findall(sass))
     per_program = n_all - sum(loops[i]["total"] for i in outer)  # outside the loops, once
     for i, (js, (E, k)) in zip(outer, zip(inner, families)):
