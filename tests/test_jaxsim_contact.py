@@ -134,10 +134,10 @@ def test_padding_blocks_change_nothing(C):
     padding's impulses are exactly 0 (Gauss-Seidel, accelerated projected gradient, the whole
     constraint solve). The accelerated gradient runs to convergence (200 iterations: natural-map
     residual 5e-16) and agrees to 1e-11 (measured 6e-18): at 60 it is not converged on this
-    problem (residual 1.4e-9), and its adaptive restart, a decision taken on a sign, fired at
-    another iteration in the other layout on one CPU and not on another (2.5e-9 apart on an Intel
-    Xeon host, 6e-13 on the hosts before), so that comparison held only where the round-off
-    happened to fall the same way. With the padding at the end Gauss-Seidel equals the CPU
+    problem (residual 1.4e-9), and its adaptive restart, a decision taken on a sign, can fire at
+    another iteration in the other layout on one CPU and not on another (2.5e-9 apart on one,
+    6e-13 on others), so that comparison held only where the round-off happened to fall the same
+    way. With the padding at the end Gauss-Seidel equals the CPU
     function on the unpadded problem (the random-problem tests)."""
     rng = np.random.default_rng(7)
     nb, k = 4, 7

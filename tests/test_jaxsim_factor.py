@@ -126,9 +126,9 @@ def test_a_matrix_that_is_not_positive_definite_gives_no_finite_factor():
     indefinite matrix too, by a non-positive pivot), as the library's hold NaN, so that the step
     marks the robot bad instead of stepping it with a wrong inverse. The singular matrix is a
     permuted diagonal, so that its zero pivot is exactly 0 on any CPU: rotated at random, that
-    pivot is 0 up to round-off, whose sign depends on the CPU (on one Intel Xeon host it came
-    out positive and the inverse finite, 1e8), so no factorisation can tell it from a
-    positive definite matrix of condition 1e16."""
+    pivot is 0 up to round-off, whose sign depends on the CPU (positive on some, the inverse then
+    finite, 1e8), so no factorisation can tell it from a positive definite matrix of condition
+    1e16."""
     from softcrawl.jaxsim.factor import cholesky_inverse, inverse_spd
 
     rng = np.random.default_rng(2)
