@@ -193,7 +193,9 @@ def main(argv=None) -> None:
     from softcrawl.jaxsim.cost import captured_stderr, prepare_deviceless_gpu, ptxas_report
 
     dump = tempfile.mkdtemp(prefix="kernel_sass_")
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_dump_to={dump} --xla_dump_hlo_pass_re=NONE"
+    # the emitters' PTX (JAX 0.11 dumps it only where an emitter is named)
+    os.environ["XLA_FLAGS"] = (f"{os.environ.get('XLA_FLAGS', '')} --xla_dump_to={dump} --xla_dump_hlo_pass_re=NONE "
+                               "--xla_dump_emitter_re=.*")
     prepare_deviceless_gpu(ptxas_report=True)
     import jax
     import jax.numpy as jnp

@@ -27,7 +27,12 @@ def polar_rotation(H, iterations: int = POLAR_ITERATIONS):
     is the cofactor matrix over the determinant, so that the iterations are elementwise
     arithmetic on the nine entries, each its own array (on a GPU they fuse into few kernels;
     the SVD is a chain of library kernels). ``H`` with ``det H <= 0`` (the disk turned inside
-    out: no rotation fits without a reflection) gives NaN."""
+    out: no rotation fits without a reflection) gives NaN.
+
+    The nine entries pass an optimization barrier before they are stacked: fused with the
+    stack, XLA's GPU emitter evaluates the iterations once for each of the nine entries of the
+    output, and at small batches it fused all eight iterations into one such kernel, whose
+    machine code is two hundred times the barrier's (benchmarks/RESULTS.md)."""
     X = [[H[j, i] for j in range(3)] for i in range(3)]  # rows of H^T, each entry its own array
     det_h = None
     for _ in range(iterations):
@@ -37,6 +42,7 @@ def polar_rotation(H, iterations: int = POLAR_ITERATIONS):
         z = jnp.abs(det) ** (-1.0 / 3.0)
         w = 1.0 / (z * det)
         X = [[0.5 * (z * X[i][j] + w * cof[i][j]) for j in range(3)] for i in range(3)]
+    X, det_h = jax.lax.optimization_barrier((X, det_h))
     return jnp.where(det_h > 0, jnp.stack([jnp.stack(r) for r in X]), jnp.nan)
 
 
