@@ -499,7 +499,7 @@ def test_the_disks_rotation_by_newtons_iteration_is_the_svds(landed):
     the step exported for CUDA calls no library routine for it (cuSOLVER's SVD is a chain of
     kernels there), its iterations ending in an optimization barrier (without it, XLA's GPU
     fusion at 96 robots evaluated them once per entry of the stacked rotation: 216,000
-    instructions of machine code, 14 KB spilled a thread, 2.5 minutes of compilation)."""
+    instructions of machine code, 6.5 KB spilled a thread, 2.5 minutes of compilation)."""
     from scipy.spatial.transform import Rotation
 
     from softcrawl.jaxsim.disk import _svd_rotation, kabsch, polar_rotation

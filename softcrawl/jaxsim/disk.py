@@ -32,7 +32,7 @@ def polar_rotation(H, iterations: int = POLAR_ITERATIONS):
     The nine entries pass an optimization barrier before they are stacked: fused with the
     stack, XLA's GPU emitter evaluates the iterations once for each of the nine entries of the
     output, and at small batches it fused all eight iterations into one such kernel, whose
-    machine code is two hundred times the barrier's (benchmarks/RESULTS.md)."""
+    machine code is 170 times the barrier's (benchmarks/RESULTS.md)."""
     X = [[H[j, i] for j in range(3)] for i in range(3)]  # rows of H^T, each entry its own array
     det_h = None
     for _ in range(iterations):
