@@ -835,7 +835,8 @@ def test_the_cholesky_kernels_step_is_the_librarys(landed, monkeypatch):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert "pallas_call" in str(jax.make_jaxpr(physics_step)(kernel, state, kpa))
     assert "pallas_call" not in str(jax.make_jaxpr(physics_step)(model, state, kpa))
-    monkeypatch.setattr(factor, "_library", lambda A, symmetrize=False: factor.cholesky_inverse(A, "interpret", symmetrize))
+    monkeypatch.setattr(factor, "_library",
+                        lambda A, symmetrize=False: factor.cholesky_inverse(A, "interpret", symmetrize))
     jax.clear_caches()  # the patched factor is read when the step is traced
     c = step(model, state, kpa)
     for name in ("qdot", "v"):

@@ -9,7 +9,6 @@ relative to its folder (``red/leg.npz``, a copy of the shipped one), as the docs
 and the ground truth keep the same space, name and reduction.
 """
 
-import dataclasses
 import hashlib
 import json
 import math
