@@ -522,8 +522,7 @@ def test_the_disks_rotation_by_newtons_iteration_is_the_svds(landed):
     assert err["short"] > 1e-13  # five iterations are not enough (measured 1.9e-12): the bound can fail
     assert np.isnan(np.asarray(polar_rotation(jnp.asarray(wr.T @ (rest * [1.0, 1.0, -1.0]))))).all()
     args = (jnp.asarray(rest), jnp.asarray(wr))
-    cuda = jax.export.export(jax.jit(jax.vmap(kabsch, in_axes=(0, None))), platforms=["cuda"])(
-        jnp.stack([args[0]] * 2), args[1]).mlir_module()
+    cuda = jax.export.export(jax.jit(kabsch), platforms=["cuda"])(*args).mlir_module()
     assert "custom_call" not in cuda and "optimization_barrier" in cuda
     fit = jax.jit(lambda x, w: _svd_rotation(w.T @ x))
     assert np.array_equal(np.asarray(jax.jit(kabsch)(*args)), np.asarray(fit(*args)))
