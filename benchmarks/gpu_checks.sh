@@ -18,8 +18,13 @@
 # candidates:  the step at 96 and 16,384 robots, float32, with each form not yet a default and
 #              without: the defaults, the RID kernel (`--rid-form kernel`), the solve's operator
 #              on chip (`--resident-rows 128`), both; one call, so that the four are compared on
-#              one warm card. A default changes only after `rid` or `solve` checked that form's
-#              results on the card.
+#              one warm card, on the same robots: each form's disk nodes after its four actions
+#              against the defaults' (`--reference`: `reference_p99_robot_distance_mm`, the
+#              robots invalid in one run only). A form faster at both sizes whose robots end
+#              within 0.5 mm of the defaults' (99th percentile; the issue's budget between the
+#              engines over 2 s; two float32 forms on the CPU differ by 0.04 mm at most) and
+#              with no robot invalid that the defaults keep becomes the default: its results are
+#              checked on the card, `rid` and `solve` add the kernels' own checks and variants.
 # parts:       the solve kernel reading the condensed operator in its parts (`fused.OPERATOR_PARTS`,
 #              the default, counted but not timed on a card): the step at 96 and 16,384 robots
 #              with it and with the operator formed by XLA first (`--formed-operator`), in one
@@ -78,23 +83,26 @@ mkdir -p "$out"
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 case $stage in
 candidates)
+    rm -f /tmp/candidates.npz  # the defaults' ends, which the others are compared with (66 MB: not in OUTDIR)
     for flags in "" "--rid-form kernel" "--resident-rows 128" "--rid-form kernel --resident-rows 128"; do
         timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
-            2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+            --reference /tmp/candidates.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done ;;
 parts)
+    rm -f /tmp/parts.npz
     for flags in "" "--formed-operator"; do
         timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
-            2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+            --reference /tmp/parts.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done
     timeout 100 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
 rid)
     timeout 200 python3 benchmarks/rid_kernel.py --robots 96,16384 --calls 10 2>>"$out/log.txt" \
         | tee -a "$out/rid.jsonl"
-    for form in kernel pairs; do
+    rm -f /tmp/rid.npz
+    for form in pairs kernel; do
         timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 --rid-form $form \
-            2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+            --reference /tmp/rid.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done
     if [ -n "${BASE:-}" ]; then
         PYTHONPATH=$BASE:$PYTHONPATH timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \

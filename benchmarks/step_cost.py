@@ -17,6 +17,10 @@ default device. Printed as one JSON line (per batch size when timing):
 * with ``--time`` (the default on a GPU): ``ms_per_step`` and ``robot_steps_per_s`` at each of
   ``--batches`` (random designs, landed for one action first; ``bad_robots``: robots whose state
   went invalid);
+* with ``--reference FILE`` too: each batch's disk nodes after its timed calls against those a
+  run of another form of the step stored in ``FILE`` for the same robots (:func:`against_reference`:
+  ``reference_max_node_distance_mm``, the 99th percentile and median of the robots' largest,
+  the robots invalid in one run only), or stored there for the runs after it;
 * ``ops_by_scope``: ``dependent_ops_per_step`` split by the step's parts (``STEP_SCOPES``);
   ``mb_per_robot_step`` (and by part): the bytes the step's operations touch per robot, each
   operation's operands and output counted once (:class:`softcrawl.jaxsim.cost.SequentialCost`);
@@ -39,7 +43,7 @@ Usage:
         [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library]
         [--pairs-dot TF32_TF32_F32_X3] [--resident-rows 128] [--formed-operator] [--batch 2] [--steps 50] [--time]
         [--batches 96,1024,16384] [--calls 5]
-        [--profile DIR]
+        [--profile DIR] [--reference FILE]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384 [--registers]
 """
 
@@ -93,6 +97,10 @@ def main(argv=None) -> None:
                    help="compile for the GPU this XLA target configuration describes, without one (e.g. "
                         "benchmarks/gpu_targets/h100.pbtxt; needs JAX's CUDA plugin) and print its program's "
                         "sequential cost at each of --batches")
+    p.add_argument("--reference", default=None, metavar="FILE",
+                   help="with the timing: compare each batch's final disk node positions with those an earlier "
+                        "run (another form of the step, the same designs and calls) stored in FILE (.npz), or "
+                        "store them there where FILE holds none for that batch")
     args = p.parse_args(argv)
     from softcrawl.jaxsim.cost import prepare_deviceless_gpu
 
@@ -132,8 +140,9 @@ def main(argv=None) -> None:
     rng = np.random.default_rng(args.seed)
     largest = [d for d in designs if sum(v > 0 for v in d) == slots]
 
-    def batch(B, pool):
-        model = dataclasses.replace(table.model([pool[i] for i in rng.integers(len(pool), size=B)]), settings=settings)
+    def batch(B, pool, picked=None):
+        picked = [pool[i] for i in rng.integers(len(pool), size=B)] if picked is None else picked
+        model = dataclasses.replace(table.model(picked), settings=settings)
         dt = model.disk.rest.dtype
         rig = Rig(jnp.ones((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt), jnp.zeros((B, R), dt))
         return model, rig, rest_state(model)
@@ -194,7 +203,8 @@ def main(argv=None) -> None:
     if not (args.time or device.platform == "gpu"):
         return
     for B in (int(b) for b in args.batches.split(",")):
-        model, rig, state = batch(B, designs)
+        picked = [designs[i] for i in rng.integers(len(designs), size=B)]
+        model, rig, state = batch(B, designs, picked)
         dt = state.x.dtype
         steps_b = jnp.full((B,), steps, jnp.int32)
         land = jnp.zeros((B, R), dt)
@@ -208,11 +218,16 @@ def main(argv=None) -> None:
             state, dead = roll(model, rig, state, go, steps_b)
         jax.block_until_ready(state)
         wall = time.perf_counter() - t0
+        agreement = {}
+        if args.reference:
+            end = {"designs": np.asarray(picked, np.int64), "x": np.asarray(state.x), "dead": np.asarray(dead, bool),
+                   "calls": np.asarray(args.calls)}
+            agreement = against_reference(args.reference, f"b{B}", end)
         print(json.dumps({"batch": B, "first_call_s": round(first_s, 2),
                           "dependent_ops_per_step": sequential_cost(roll.as_text()).ops / steps,
                           "ms_per_step": 1e3 * wall / (args.calls * steps),
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
-                          "device": out["device"], **engine}), flush=True)
+                          **agreement, "device": out["device"], **engine}), flush=True)
         if args.profile:
             where = Path(args.profile, f"b{B}")
             with jax.profiler.trace(str(where), create_perfetto_trace=True):
@@ -222,6 +237,48 @@ def main(argv=None) -> None:
             prof = kernel_profile(where, hlo, steps, None, STEP_SCOPES)
             (where / "kernels.json").write_text(json.dumps(prof))
             print(json.dumps({"batch": B, **prof, "top": prof["top"][:25]}), flush=True)
+
+
+def against_reference(path, key: str, end: dict) -> dict:
+    """Compare one batch's end ``end`` (``designs`` ``(B, slots)``, ``x`` ``(B, n, 3)`` the disk
+    nodes, mm, ``dead`` ``(B,)``, ``calls``) with the reference stored under ``key`` in the npz
+    file ``path``; where the file has no ``key``, store ``end`` there under it instead, keeping
+    the file's other batches. Robots invalid in either run are left out of the distances and
+    counted.
+
+    Returns:
+        ``{"reference": "stored"}``, or the comparison: the largest distance of a disk node from
+        its reference position over the robots (``reference_max_node_distance_mm``), the 99th
+        percentile and the median of each robot's largest (mm), and the robots invalid in the
+        reference or here only.
+
+    Raises:
+        ValueError: the reference was made with other designs, calls or disk.
+    """
+    import numpy as np
+
+    stored = {}
+    if Path(path).exists():
+        with np.load(path, allow_pickle=False) as f:
+            stored = {name: f[name] for name in f.files}
+    if f"{key}/x" not in stored:
+        stored.update({f"{key}/{name}": v for name, v in end.items()})
+        np.savez(path, **stored)
+        return {"reference": "stored"}
+    ref = {name: stored[f"{key}/{name}"] for name in end}
+    for name in ("designs", "calls"):
+        if ref[name].shape != end[name].shape or np.any(ref[name] != end[name]):
+            raise ValueError(f"{path}: its batch {key} was run with other {name}: compare runs of the same "
+                             "--seed, --batches and --calls")
+    if ref["x"].shape != end["x"].shape:
+        raise ValueError(f"{path}: its batch {key}'s disk has shape {ref['x'].shape}, this run's {end['x'].shape}")
+    both = ~(ref["dead"] | end["dead"])
+    robot = np.linalg.norm(end["x"][both].astype(float) - ref["x"][both], axis=-1).max(axis=-1, initial=0.0)
+    return {"reference_max_node_distance_mm": float(robot.max(initial=0.0)),
+            "reference_p99_robot_distance_mm": float(np.percentile(robot, 99)) if robot.size else 0.0,
+            "reference_median_robot_distance_mm": float(np.median(robot)) if robot.size else 0.0,
+            "bad_robots_reference_only": int(np.sum(ref["dead"] & ~end["dead"])),
+            "bad_robots_here_only": int(np.sum(end["dead"] & ~ref["dead"]))}
 
 
 if __name__ == "__main__":

@@ -466,6 +466,66 @@ def test_the_engines_step_has_a_short_dependency_chain():
     assert cost["mflop_per_robot_step"] <= 50
 
 
+
+def _step_cost_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("step_cost", Path(__file__).parents[1] / "benchmarks/step_cost.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_step_cost_compares_a_batchs_end_with_a_reference_file(tmp_path):
+    """``against_reference`` stores a batch's end where the file has none (keeping its other
+    batches), then gives the largest node distance over robots valid in both runs (here 3 mm
+    and 4 mm moves of two nodes; the robot invalid in one run left out and counted), and
+    refuses a reference of other designs or calls."""
+    against = _step_cost_module().against_reference
+    path = tmp_path / "ref.npz"
+    rng = np.random.default_rng(0)
+    end = {"designs": rng.integers(0, 3, (4, 8)), "x": rng.normal(0.0, 50.0, (4, 5, 3)).astype(np.float32),
+           "dead": np.zeros(4, bool), "calls": np.asarray(3)}
+    assert against(path, "b4", end) == {"reference": "stored"}
+    assert against(path, "b2", {**end, "designs": end["designs"][:2], "x": end["x"][:2], "dead": end["dead"][:2]}) \
+        == {"reference": "stored"}
+    x = end["x"].copy()
+    x[0, 1, 2] += 3.0
+    x[2, 4] += (0.0, 4.0, 0.0)
+    x[3] += 100.0  # robot 3 invalid here: not compared
+    got = against(path, "b4", {**end, "x": x, "dead": np.asarray([False, False, False, True])})
+    assert got["reference_max_node_distance_mm"] == pytest.approx(4.0, abs=1e-5)
+    assert got["reference_median_robot_distance_mm"] == pytest.approx(3.0, abs=1e-5)
+    assert (got["bad_robots_here_only"], got["bad_robots_reference_only"]) == (1, 0)
+    assert against(path, "b2", {**end, "designs": end["designs"][:2], "x": end["x"][:2], "dead": end["dead"][:2]}) \
+        ["reference_max_node_distance_mm"] == 0.0
+    with pytest.raises(ValueError, match="other designs"):
+        against(path, "b4", {**end, "designs": end["designs"][::-1]})
+    with pytest.raises(ValueError, match="other calls"):
+        against(path, "b4", {**end, "calls": np.asarray(2)})
+
+
+def test_step_cost_compares_two_forms_of_the_step_on_the_same_robots(tmp_path):
+    """Two runs of ``benchmarks/step_cost.py --reference`` (the way a GPU session compares a
+    candidate form of the step with the defaults on the same robots): the RID terms' ``pairs``
+    form sums the ``rows`` form's terms in another order, so that after six steps (landing, then
+    pressing) the disk nodes differ by float32 round-off carried through the contacts, measured
+    0.016 mm on this VM; a wrong term in either would move them by millimetres. Bounded by 0.1
+    mm, a fifth of the issue's 0.5 mm between the engines over 2 s; not bit-equal, so that the
+    runs did step different programs."""
+    ref = tmp_path / "ref.npz"
+
+    def run(*flags):
+        out = subprocess.run([sys.executable, "benchmarks/step_cost.py", "--time", "--no-cost", "--batches", "2",
+                              "--calls", "1", "--steps", "3", "--reference", str(ref), *flags], capture_output=True,
+                             text=True, check=True, cwd=Path(__file__).parents[1]).stdout
+        return json.loads(out.strip().splitlines()[-1])
+
+    assert run("--rid-form", "rows")["reference"] == "stored"
+    got = run("--rid-form", "pairs")
+    assert 0.0 < got["reference_max_node_distance_mm"] <= 0.1
+    assert got["bad_robots"] == got["bad_robots_here_only"] == got["bad_robots_reference_only"] == 0
+
 def test_the_legs_heights_are_the_z_of_their_rotated_collision_nodes(landed):
     """``leg_heights`` forms only the world z of the legs' collision nodes (third row of each
     leg's rotation): equal, to 1e-12 mm (float64 round-off of ~40-term sums of numbers below
