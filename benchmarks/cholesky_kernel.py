@@ -14,7 +14,9 @@ form, on random symmetric positive definite matrices of both sizes and condition
 * ``"part": "time"``: ``ms`` per call of each function and form at each of ``--robots`` (a call
   treats every matrix of that many robots, each size in its own call), and on a GPU the kernels
   with other numbers of each matrix per thread (:data:`softcrawl.jaxsim.factor.PER_THREAD`, the
-  warps). The inverse's kernel is timed at every batch size, although its form hands batches of
+  warps), and with the pivots unrolled or looped, whichever is not the default, at 64 and 128
+  (:data:`~softcrawl.jaxsim.factor.UNROLL_PIVOTS`; ``_unrolled`` in the key). The inverse's
+  kernel is timed at every batch size, although its form hands batches of
   :data:`~softcrawl.jaxsim.factor.LIBRARY_FROM` matrices or more to the library: the sizes
   between 96 and 16,384 robots say where that should be.
 
@@ -69,7 +71,7 @@ def main(argv=None) -> None:
             err = {form: float(np.abs(g - ref).max() / np.abs(ref).max()) for form, g in got.items()}
             print(json.dumps({**head, "part": "agreement", "function": function, "n": n, "kernel": kernel,
                               "rel_error": err}), flush=True)
-    default = factor.PER_THREAD
+    default, unrolled = factor.PER_THREAD, factor.UNROLL_PIVOTS
     factor.LIBRARY_FROM = 1 << 62  # the kernel at every batch size
     for robots in (int(b) for b in args.robots.split(",")):
         out = {**head, "part": "time", "robots": robots}
@@ -89,11 +91,14 @@ def main(argv=None) -> None:
             for function in functions:
                 out[f"n{n}_{function}_library_ms"] = timed(batched(function, "library"))
                 if gpu:
-                    for per in dict.fromkeys((default, 16, 32, 64, 128)):
-                        factor.PER_THREAD = per
-                        jax.clear_caches()
-                        out[f"n{n}_{function}_kernel_per_thread{per}_ms"] = timed(batched(function, "kernel"))
-                    factor.PER_THREAD = default
+                    for unroll in dict.fromkeys((unrolled, max(sizes) * (not unrolled))):
+                        for per in dict.fromkeys((default, 16, 32, 64, 128) if unroll == unrolled else (64, 128)):
+                            factor.PER_THREAD, factor.UNROLL_PIVOTS = per, unroll
+                            jax.clear_caches()
+                            name = f"n{n}_{function}_kernel_per_thread{per}{'_unrolled' * (n <= unroll)}_ms"
+                            if name not in out:
+                                out[name] = timed(batched(function, "kernel"))
+                    factor.PER_THREAD, factor.UNROLL_PIVOTS = default, unrolled
                     jax.clear_caches()
         print(json.dumps(out), flush=True)
 

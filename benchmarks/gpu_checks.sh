@@ -7,7 +7,7 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR parts        # ~6 min
 #   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~4 min
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~4 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~6 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
@@ -50,7 +50,9 @@
 # crossover:   the legs' factors and the attachment block's inverse alone at 96, 1,024, 2,048,
 #              4,096 and 16,384 robots, each kernel against the library (`cholesky_kernel.py`):
 #              set `factor.LIBRARY_FROM` (the batch from which the block's inverse is the
-#              library's) where the library's inverse becomes the faster.
+#              library's) where the library's inverse becomes the faster; the kernels with their
+#              pivots unrolled too (`*_unrolled_ms`): if faster at 96 and 16,384 robots, set
+#              `factor.UNROLL_PIVOTS` (36: the legs' kernel only, 72: both) and `PER_THREAD`.
 # profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed
 #              (`step_cost.py --profile`): where the large batches' time goes.
 # attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
@@ -112,7 +114,7 @@ solve)
     timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
         --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
 crossover)
-    timeout 300 python3 benchmarks/cholesky_kernel.py --robots 96,1024,2048,4096,16384 --calls 5 \
+    timeout 420 python3 benchmarks/cholesky_kernel.py --robots 96,1024,2048,4096,16384 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
 targets)
     for forms in "dense16 library" "fused16 kernel"; do
@@ -122,7 +124,7 @@ targets)
     done
     timeout 130 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 20 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 90 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 2>>"$out/log.txt" \
+    timeout 120 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 2>>"$out/log.txt" \
         | tee -a "$out/cholesky.jsonl" ;;
 attribution)
     for forms in "fused16 library" "dense16 kernel"; do

@@ -22,6 +22,13 @@ leg: registers, each family's loop of element blocks and the edge loop inside it
 arithmetic, so at the multiprocessors' issue rate (one instruction a cycle per scheduler) that
 count bounds its time from below.
 
+With ``--kernel factor``, each variant of :mod:`softcrawl.jaxsim.factor`'s kernels (its constants
+``UNROLL_PIVOTS``, ``PER_THREAD``) for the 96-robot step's matrices (576 legs' 36 x 36 factors
+inverted, 96 attachment blocks' 72 x 72 inverses): registers, spills, ``instructions_per_pivot``
+(the pivot loop's, or with the pivots unrolled the straight-line code's share a pivot) and
+``warp_instructions_per_matrix`` (that times the pivots and the program's warps): at thousands
+of matrices the kernels are bound by the multiprocessors' issue rate.
+
 Needs JAX's CUDA plugin of the installed JAX's version and ``nvdisasm`` (``pip install
 "jax-cuda12-plugin[with-cuda]==<jax version>" nvidia-cuda-nvdisasm``).
 
@@ -29,6 +36,7 @@ Usage:
     python benchmarks/kernel_sass.py [--gpu-target benchmarks/gpu_targets/h100.pbtxt]
         [--variants 64:8:0:-,64:8:0:128] [--contacts 80 | --schur 8:6:12]
     python benchmarks/kernel_sass.py --kernel rid [--variants 16:2:SPLIT_TF32:1,16:4:-:1]
+    python benchmarks/kernel_sass.py --kernel factor [--variants 0:64,36:128]
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ import re
 import shutil
 import subprocess
 import tempfile
+from functools import partial
 from pathlib import Path
 
 _SASS = re.compile(r"^\s*/\*([0-9a-f]{4,})\*/\s+(.*?);", re.M)
@@ -177,14 +186,46 @@ def rid_variants(args, arch, sharding, dump) -> None:
               flush=True)
 
 
+def factor_variants(args, arch, sharding, dump) -> None:
+    """``--kernel factor`` (module doc): one JSON line a variant and kernel."""
+    import jax
+    import jax.numpy as jnp
+
+    from softcrawl.jaxsim import factor
+    from softcrawl.jaxsim.cost import captured_stderr, ptxas_report
+
+    kernels = (("cholesky_inverse", partial(factor.cholesky_inverse, form="kernel"), 576, 36),
+               ("inverse_spd", partial(factor.inverse_spd, form="kernel"), 96, 72))  # 96 robots' matrices
+    for text in args.variants.split(","):
+        unroll, per = text.split(":")
+        factor.UNROLL_PIVOTS, factor.PER_THREAD = int(unroll), int(per)
+        for name, function, count, n in kernels:
+            jax.clear_caches()
+            shutil.rmtree(dump)  # this kernel's dump alone
+            spec = jax.ShapeDtypeStruct((count, n, n), jnp.float32, sharding=sharding)
+            with captured_stderr() as log, jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):
+                jax.jit(jax.vmap(function)).lower(spec).compile()
+            sass = machine_code(dump, name, arch)
+            loops = outer_loops(sass)
+            total = len(_SASS.findall(sass))
+            pivot = sum(loops[0].values()) if loops else total / n  # the loop's body, or the straight line's share
+            warps = factor._warps(factor.padded_size(n))
+            print(json.dumps({"kernel": name, "n": n, "variant": {"unroll_pivots": factor.UNROLL_PIVOTS,
+                                                                  "per_thread": factor.PER_THREAD, "warps": warps},
+                              "arch": arch, "jax": jax.__version__, **ptxas_report(log[0]).get(name, {}),
+                              "instructions": total, "instructions_per_pivot": round(pivot, 1),
+                              "warp_instructions_per_matrix": round(pivot * n * warps)}), flush=True)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--gpu-target", default=str(Path(__file__).parent / "gpu_targets" / "h100.pbtxt"))
-    p.add_argument("--kernel", choices=("solve", "rid"), default="solve")
+    p.add_argument("--kernel", choices=("solve", "rid", "factor"), default="solve")
     p.add_argument("--variants", default=None,
                    help="comma-separated; solve: ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS (- for None; "
                         "default 64:8:0:-,64:8:0:128,64:8:0:64); rid: ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT "
-                        "(- for None; default 16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1)")
+                        "(- for None; default 16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1); "
+                        "factor: UNROLL_PIVOTS:PER_THREAD (default 0:64,72:64,72:128)")
     p.add_argument("--contacts", type=int, default=80, help="contact slots K (the operator is 3K x 3K)")
     p.add_argument("--schur", default=None, metavar="KD:L:KL",
                    help="the operator in its parts (softcrawl.jaxsim.schur.SchurOperator): KD disk contacts and "
@@ -211,6 +252,9 @@ def main(argv=None) -> None:
     if args.kernel == "rid":
         args.variants = args.variants or "16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1"
         return rid_variants(args, arch, sharding, dump)
+    if args.kernel == "factor":
+        args.variants = args.variants or "0:64,72:64,72:128"
+        return factor_variants(args, arch, sharding, dump)
     args.variants = args.variants or "64:8:0:-,64:8:0:128,64:8:0:64"
     B = 256
     if args.schur:

@@ -180,3 +180,25 @@ def test_the_kernels_rank_one_updates_are_fused_multiply_adds_in_float32_on_cuda
         assert "fma.rn.f32" not in str(jax.make_jaxpr(lambda a: f(a, "interpret"))(A.astype(jnp.float32)))
     a, b, c = (jnp.asarray([1.5, -2.0], jnp.float32) * k for k in (1, 3, 5))
     np.testing.assert_array_equal(fused_multiply_add(a, b, c, compiled=False), a * b + c)
+
+
+@pytest.mark.parametrize("function", ["cholesky_inverse", "inverse_spd"])
+def test_unrolled_pivots_are_the_loops_steps(monkeypatch, function):
+    """With :data:`softcrawl.jaxsim.factor.UNROLL_PIVOTS` at 36 the kernels (interpreted) of the
+    legs' 36 x 36 matrices run their pivots as straight-line code, no loop in the traced kernel,
+    and give the loop's result to float64 round-off (the same operations in the same order;
+    within 1e-13 of the largest entry, condition 1e4); a 72 x 72 matrix keeps the loop."""
+    from softcrawl.jaxsim import factor
+
+    f = getattr(factor, function)
+    A = jnp.asarray(_spd(np.random.default_rng(7), 2, 36, 1e4))
+    looped = np.asarray(jax.vmap(lambda a: f(a, "interpret"))(A))
+    monkeypatch.setattr(factor, "UNROLL_PIVOTS", 36)
+    unrolled = np.asarray(jax.vmap(lambda a: f(a, "interpret"))(A))
+    assert np.abs(unrolled - looped).max() <= 1e-13 * np.abs(looped).max()
+
+    def loops(a):  # the loops in the traced kernel's own program
+        call = next(e for e in jax.make_jaxpr(lambda m: f(m, "interpret"))(a).eqns if e.primitive.name == "pallas_call")
+        return [e.primitive.name for e in call.params["jaxpr"].eqns if e.primitive.name in ("while", "scan")]
+
+    assert loops(A[0]) == [] and len(loops(jnp.eye(72))) == 1

@@ -80,6 +80,28 @@ PER_THREAD = 64
 #: Read when a call is traced.
 LIBRARY_FROM = 2048
 
+#: The largest matrix size whose pivots the kernels unroll, or 0 for none. Unrolled (a pivot's
+#: step after the other in straight-line code), the masks of pivot ``k``'s row and column are
+#: constants: compiled for an H100 (``benchmarks/kernel_sass.py --kernel factor``), a leg's 36 x
+#: 36 factor takes 203 instructions a pivot and warp against the loop's 495, 14,640 warp
+#: instructions a matrix against 35,640 (7,320 instructions of code, 117 KB; 167 registers, no
+#: spill; at 128 numbers a thread, one warp, 10,488), the attachment block's 72 x 72 inverse 390
+#: against 588 (28,112 instructions, 24 bytes spilled). The looped kernel ran 98,304 legs'
+#: matrices at about 80% of an H100's issue rate (4.35 ms): there, fewer instructions should be
+#: faster, unless the longer code stalls on its fetch. Measured on a GPU before it becomes a
+#: default (``benchmarks/cholesky_kernel.py``' ``_unrolled`` variants). Read when a call is traced.
+UNROLL_PIVOTS = 0
+
+
+def _pivots(n: int, body, init):
+    """``body(k, carry)`` for pivots ``k = 0 .. n - 1``: a loop, or unrolled where ``n <=``
+    :data:`UNROLL_PIVOTS`."""
+    if n > UNROLL_PIVOTS:
+        return lax.fori_loop(0, n, body, init)
+    for k in range(n):
+        init = body(k, init)
+    return init
+
 
 def _warps(N: int) -> int:
     """Warps per program for a padded size ``N`` (:data:`PER_THREAD`)."""
@@ -120,7 +142,7 @@ def _kernel(n: int, fma, a_ref, o_ref):
         l = jnp.where(r > k, col / dk, 0)
         return fma(-l[:, None], row[None, :], A), fma(-l[:, None], trow[None, :], T), jnp.where(r == k, dk, d)
 
-    _, T, d = lax.fori_loop(0, n, body, (A, eye, jnp.ones(r.shape, dt)))
+    _, T, d = _pivots(n, body, (A, eye, jnp.ones(r.shape, dt)))
     pltriton.store(o_ref.at[rows, cols], T * lax.rsqrt(d)[:, None], mask=inside)
 
 
@@ -139,7 +161,7 @@ def _sweep_kernel(n: int, fma, a_ref, o_ref):
         u = jnp.where(r == k, -1.0, col) / dk
         return fma(-(dk * u)[:, None], u[None, :], jnp.where((rows == k) | (cols == k), 0, A)), jnp.minimum(low, dk)
 
-    A, low = lax.fori_loop(0, n, body, (A, jnp.ones((), A.dtype)))
+    A, low = _pivots(n, body, (A, jnp.ones((), A.dtype)))
     pltriton.store(o_ref.at[rows, cols], jnp.where(low > 0, -A, jnp.nan), mask=inside)
 
 
