@@ -713,7 +713,8 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     4e-15 on a random state), ``K_r`` exactly symmetric, the same inverted or degenerate elements
     counted on legs bent to invert them; the same with each leg's element blocks shared among
     three programs (``ridkernel.SPLIT``), their shares added; the same to the bit from the
-    kernel's rows formed before a loop of steps (``ridkernel.with_kernel_rows``). On one leg: the
+    kernel's rows formed before a loop of steps (``ridkernel.with_kernel_rows``); zeros for an
+    empty slot (``present`` false: its program treats no element). On one leg: the
     same with the modes as padded tiles only (32 + 16), and with 3 of the modes as loose columns
     only (``ridkernel.LOOSE``); in float32, ``K_r`` by the two products of its split operands
     (``DOT_ALGORITHM = "SPLIT_TF32"``) within 2e-6 of float64's (float32's round-off summed over
@@ -747,6 +748,13 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     for a, b in zip(jax.vmap(lambda q, v: leg_motion.rid_terms(shared, q, v, 0.03, "interpret"))(state.q, qdot),
                     (Kk, fk, nk)):
         np.testing.assert_array_equal(a, b)
+    on = np.asarray(model.robot.leg_mask)
+    pick = np.asarray([np.argmax(on), np.argmax(~on)])  # a present leg and an empty slot
+    got = jax.vmap(lambda q, v, present: leg_motion.rid_terms(model.leg, q, v, 0.03, "interpret", present))(
+        state.q[pick], qdot[pick], jnp.asarray([True, False]))
+    for a, b in zip(got, (Kk, fk, nk)):
+        np.testing.assert_array_equal(a[0], b[pick[0]])
+        assert not np.any(np.asarray(a[1]))
     q1, v1 = state.q[:1], qdot[:1]  # one leg from here on: the interpreter is slow
     few = dataclasses.replace(model.leg, strain_modes=model.leg.strain_modes[:3], families=tuple(
         dataclasses.replace(f, rows=f.rows[..., :3]) for f in model.leg.families))

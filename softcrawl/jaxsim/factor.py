@@ -80,8 +80,8 @@ PER_THREAD = 64
 #: Read when a call is traced.
 LIBRARY_FROM = 2048
 
-#: The largest matrix size whose pivots the kernels unroll, or 0 for none. Unrolled (a pivot's
-#: step after the other in straight-line code), the masks of pivot ``k``'s row and column are
+#: The largest matrix size whose pivots the kernels unroll, or 0 for none. Unrolled (one pivot's
+#: step after another in straight-line code), the masks of pivot ``k``'s row and column are
 #: constants: compiled for an H100 (``benchmarks/kernel_sass.py --kernel factor``), a leg's 36 x
 #: 36 factor takes 203 instructions a pivot and warp against the loop's 495, 14,640 warp
 #: instructions a matrix against 35,640 (7,320 instructions of code, 117 KB; 167 registers, no

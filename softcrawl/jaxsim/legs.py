@@ -59,7 +59,7 @@ def element_frames(d):
     return jnp.stack((e1, jnp.cross(n, e1), n), axis=-2)
 
 
-def rid_terms(part, q, qdot, c, form: str | None = None):
+def rid_terms(part, q, qdot, c, form: str | None = None, present=True):
     """The RID terms of one leg.
 
     Args:
@@ -77,6 +77,9 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
             about 2.5x the multiply-adds but is one large matrix product over all legs of a
             batch and keeps no ``Z`` (256 KB per leg): faster on a GPU, slower on a CPU (figures
             in benchmarks/RESULTS.md).
+        present: whether the leg exists (a bool, traced or not): the kernel's forms skip an
+            absent leg's elements and return zeros, the XLA forms compute its terms all the same
+            (an absent leg has no load and stays at rest: :func:`free_motion`).
 
     Returns:
         ``(K, f, n_bad)``: ``(m', m')`` ``K_r`` of the strain modes (mN/mm), ``(m',)``
@@ -93,10 +96,10 @@ def rid_terms(part, q, qdot, c, form: str | None = None):
         return jax.lax.platform_dependent(part, x, qs, cpu=partial(_xla_terms, c=c, form="rows"),
                                           default=partial(_xla_terms, c=c, form="pairs"))
     if form == "kernel":
-        return jax.lax.platform_dependent(part, x, qs, cuda=partial(rid_kernel_terms, c=c),
+        return jax.lax.platform_dependent(part, x, qs, cuda=partial(rid_kernel_terms, c=c, present=present),
                                           default=partial(_xla_terms, c=c, form="rows"))
     if form == "interpret":
-        return rid_kernel_terms(part, x, qs, c, interpret=True)
+        return rid_kernel_terms(part, x, qs, c, interpret=True, present=present)
     return _xla_terms(part, x, qs, c, form)
 
 
@@ -372,7 +375,7 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
         ``settings.cholesky`` says (:func:`softcrawl.jaxsim.factor.cholesky_inverse`).
     """
     h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
-    Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK, form=settings.rid_form)
+    Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK, form=settings.rid_form, present=mask)
     at = part.mode_slots  # the strain modes' terms among all modes, zero for the others: gathers
     K = jnp.pad(Ks, ((0, 1), (0, 1)))[at[:, None], at[None, :]]
     g = jnp.asarray(settings.gravity, q.dtype)

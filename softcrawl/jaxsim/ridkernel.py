@@ -101,9 +101,10 @@ def tf32_high(z):
     return lax.bitcast_convert_type(bits, jnp.float32)
 
 
-def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, x_ref, qs_ref, *refs):
-    """One leg (module doc). ``shapes``: each family's ``(E, k, r)``; inputs ``x_ref``
-    ``(3 nr,)`` the RID nodes' part-frame positions, ``qs_ref`` ``(m',)``, then per family its
+def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, on_ref, x_ref, qs_ref, *refs):
+    """One leg (module doc). ``shapes``: each family's ``(E, k, r)``; inputs ``on_ref`` ``(1,)``
+    1 where the leg exists, 0 where its slot is empty (no element treated: every output 0),
+    ``x_ref`` ``(3 nr,)`` the RID nodes' part-frame positions, ``qs_ref`` ``(m',)``, then per family its
     ``conn``, ``factors``, ``rest_terms`` and :func:`kernel_rows`, flattened; with ``split``,
     ``Z^T Z`` by :func:`tf32_high`'s two products (:data:`DOT_ALGORITHM`); outputs ``K`` ``(S m'
     m',)``, ``f`` ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others
@@ -136,95 +137,105 @@ def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, x
     bad = jnp.zeros((), jnp.int32)
     W, nl = sum(w for _, w in tiles), len(loose)
     per = 3 + bool(tiles) + bool(loose)
-    for fam, (E, k, r) in enumerate(shapes):
-        conn_ref, fac_ref, rest_ref, *more = refs[per * fam:per * fam + per]
-        rows_ref = more[0] if tiles else None
-        loose_ref = more[-1] if loose else None
-        n = 3 * (k - 1)
 
-        def block(b, carry, E=E, k=k, r=r, n=n, conn_ref=conn_ref, fac_ref=fac_ref, rest_ref=rest_ref,
-                  rows_ref=rows_ref, loose_ref=loose_ref):
-            acc, bad = carry
-            e = (share + SPLIT * b) * ELEMENTS + eb  # blocks past the family's: no element
-            on = e < E
+    def families(carry):  # every family's element blocks
+        acc, bad = carry
+        for fam, (E, k, r) in enumerate(shapes):
+            conn_ref, fac_ref, rest_ref, *more = refs[per * fam:per * fam + per]
+            rows_ref = more[0] if tiles else None
+            loose_ref = more[-1] if loose else None
+            n = 3 * (k - 1)
 
-            def load(ref, index):
-                return pltriton.load(ref.at[index], mask=on, other=0)
+            def block(b, carry, E=E, k=k, r=r, n=n, conn_ref=conn_ref, fac_ref=fac_ref, rest_ref=rest_ref,
+                      rows_ref=rows_ref, loose_ref=loose_ref):
+                acc, bad = carry
+                e = (share + SPLIT * b) * ELEMENTS + eb  # blocks past the family's: no element
+                on = e < E
 
-            node = [load(conn_ref, e * k + a) for a in range(k)]
-            x = [[pltriton.load(x_ref.at[3 * node[a] + i], mask=on, other=float(a == i + 1)) for i in range(3)]
-                 for a in range(k)]  # padding elements: a unit tetrahedron (or triangle), finite frames
-            F, g, wrong = frame_terms([[x[a + 1][i] - x[0][i] for i in range(3)] for a in range(k - 1)])
-            bad = bad + jnp.sum(wrong & on).astype(jnp.int32)
-            # Z's rows of the block, stress row i: Z_i = sum_q (C~ F)_iq H_q, q = 3a + c (edge a,
-            # component c); each basis row H_q of the block's elements read once for all i
-            def edge(a, carry):  # edge a's three components c: q = 3a + c
-                s, Z, zl = carry
-                fac = [[load(fac_ref, (e * r + i) * n + 3 * a + p) for p in range(3)] for i in range(r)]
-                ga = [sum(jnp.where(a == b, g[3 * b + p], 0.0) for b in range(k - 1)) for p in range(3)]
-                s = [si + sum(fac[i][p] * ga[p] for p in range(3)) for i, si in enumerate(s)]
-                for c_ in range(3):
-                    row = e * n + 3 * a + c_
-                    H = [pltriton.load(rows_ref.at[row[:, None] * W + j[None, :]], mask=on[:, None], other=0.0)
-                         for j in cols]
-                    Hl = [load(loose_ref, row * nl + m) for m in range(nl)]
-                    for i in range(r):
-                        CF = fma(fac[i][2], F[2][c_], fma(fac[i][1], F[1][c_], fac[i][0] * F[0][c_]))
-                        Z[i] = [fma(CF[:, None], h, z) for z, h in zip(Z[i], H)]
-                        zl[i] = [fma(CF, h, z) for z, h in zip(zl[i], Hl)]
-                return s, Z, zl
+                def load(ref, index):
+                    return pltriton.load(ref.at[index], mask=on, other=0)
 
-            s, Z, zl = lax.fori_loop(0, k - 1, edge, (
-                [-load(rest_ref, e * r + i) for i in range(r)],
-                [[jnp.zeros((ELEMENTS, w), dt) for _, w in tiles] for _ in range(r)],
-                [[jnp.zeros((ELEMENTS,), dt) for _ in loose] for _ in range(r)]))
-            for i in range(r):
-                w = s[i] + c * (sum(jnp.sum(z * v[None, :], axis=1) for z, v in zip(Z[i], qs))
-                                + sum(z * v for z, v in zip(zl[i], ql)))
-                H = [tf32_high(z) for z in Z[i]] if split else Z[i]
-                acc = {"K": tuple(Km + dot(H[t], H[u]) for Km, (t, u) in zip(acc["K"], pairs)),
-                       "M": tuple(Mm + dot(H[t], Z[i][u] - H[u]) for Mm, (t, u) in zip(acc["M"], ordered)),
-                       "f": tuple(fma(z, w[:, None], fa) for fa, z in zip(acc["f"], Z[i])),
-                       "KL": tuple(fma(z, y[:, None], kl) for kl, (y, z) in
-                                   zip(acc["KL"], ((y, z) for y in zl[i] for z in Z[i]))),
-                       "LL": tuple(fma(zl[i][a], zl[i][b], ll) for ll, (a, b) in zip(acc["LL"], lpairs)),
-                       "fL": tuple(fma(y, w, fl) for fl, y in zip(acc["fL"], zl[i]))}
-            return acc, bad
+                node = [load(conn_ref, e * k + a) for a in range(k)]
+                x = [[pltriton.load(x_ref.at[3 * node[a] + i], mask=on, other=float(a == i + 1)) for i in range(3)]
+                     for a in range(k)]  # padding elements: a unit tetrahedron (or triangle), finite frames
+                F, g, wrong = frame_terms([[x[a + 1][i] - x[0][i] for i in range(3)] for a in range(k - 1)])
+                bad = bad + jnp.sum(wrong & on).astype(jnp.int32)
+                # Z's rows of the block, stress row i: Z_i = sum_q (C~ F)_iq H_q, q = 3a + c (edge a,
+                # component c); each basis row H_q of the block's elements read once for all i
+                def edge(a, carry):  # edge a's three components c: q = 3a + c
+                    s, Z, zl = carry
+                    fac = [[load(fac_ref, (e * r + i) * n + 3 * a + p) for p in range(3)] for i in range(r)]
+                    ga = [sum(jnp.where(a == b, g[3 * b + p], 0.0) for b in range(k - 1)) for p in range(3)]
+                    s = [si + sum(fac[i][p] * ga[p] for p in range(3)) for i, si in enumerate(s)]
+                    for c_ in range(3):
+                        row = e * n + 3 * a + c_
+                        H = [pltriton.load(rows_ref.at[row[:, None] * W + j[None, :]], mask=on[:, None], other=0.0)
+                             for j in cols]
+                        Hl = [load(loose_ref, row * nl + m) for m in range(nl)]
+                        for i in range(r):
+                            CF = fma(fac[i][2], F[2][c_], fma(fac[i][1], F[1][c_], fac[i][0] * F[0][c_]))
+                            Z[i] = [fma(CF[:, None], h, z) for z, h in zip(Z[i], H)]
+                            zl[i] = [fma(CF, h, z) for z, h in zip(zl[i], Hl)]
+                    return s, Z, zl
 
-        acc, bad = lax.fori_loop(0, -(-E // (ELEMENTS * SPLIT)), block, (acc, bad))
-    at = share * ms * ms
-    lane = lax.iota(jnp.int32, 16)
+                s, Z, zl = lax.fori_loop(0, k - 1, edge, (
+                    [-load(rest_ref, e * r + i) for i in range(r)],
+                    [[jnp.zeros((ELEMENTS, w), dt) for _, w in tiles] for _ in range(r)],
+                    [[jnp.zeros((ELEMENTS,), dt) for _ in loose] for _ in range(r)]))
+                for i in range(r):
+                    w = s[i] + c * (sum(jnp.sum(z * v[None, :], axis=1) for z, v in zip(Z[i], qs))
+                                    + sum(z * v for z, v in zip(zl[i], ql)))
+                    H = [tf32_high(z) for z in Z[i]] if split else Z[i]
+                    acc = {"K": tuple(Km + dot(H[t], H[u]) for Km, (t, u) in zip(acc["K"], pairs)),
+                           "M": tuple(Mm + dot(H[t], Z[i][u] - H[u]) for Mm, (t, u) in zip(acc["M"], ordered)),
+                           "f": tuple(fma(z, w[:, None], fa) for fa, z in zip(acc["f"], Z[i])),
+                           "KL": tuple(fma(z, y[:, None], kl) for kl, (y, z) in
+                                       zip(acc["KL"], ((y, z) for y in zl[i] for z in Z[i]))),
+                           "LL": tuple(fma(zl[i][a], zl[i][b], ll) for ll, (a, b) in zip(acc["LL"], lpairs)),
+                           "fL": tuple(fma(y, w, fl) for fl, y in zip(acc["fL"], zl[i]))}
+                return acc, bad
 
-    def scalar(ref, index, value):  # one number, by lane 0 of a vector
-        pltriton.store(ref.at[index + lane], jnp.broadcast_to(value, (16,)), mask=lane == 0)
+            acc, bad = lax.fori_loop(0, -(-E // (ELEMENTS * SPLIT)), block, (acc, bad))
+        return acc, bad
 
-    M = dict(zip(ordered, acc["M"]))
-    for m, (t, u) in enumerate(pairs):
-        i, j = cols[t], cols[u]
-        inside = (i[:, None] < ms) & (j[None, :] < ms)
-        K = acc["K"][m] + (M[t, u] + M[u, t].T if split else 0)  # Z^T Z = H^T H + H^T L + (H^T L)^T
-        pltriton.store(k_ref.at[at + i[:, None] * ms + j[None, :]], K, mask=inside)
-        if t != u:
-            pltriton.store(k_ref.at[at + j[None, :] * ms + i[:, None]], K, mask=inside)
-    for m, (l, t) in enumerate((l, t) for l in loose for t in range(len(tiles))):
-        kl = jnp.sum(acc["KL"][m], axis=0)
-        pltriton.store(k_ref.at[at + cols[t] * ms + l], kl, mask=cols[t] < ms)
-        pltriton.store(k_ref.at[at + l * ms + cols[t]], kl, mask=cols[t] < ms)
-    for ll, (a, b) in zip(acc["LL"], lpairs):
-        total = jnp.sum(ll)
-        scalar(k_ref, at + loose[a] * ms + loose[b], total)
-        if a != b:
-            scalar(k_ref, at + loose[b] * ms + loose[a], total)
-    for j, fj in zip(cols, acc["f"]):
-        pltriton.store(f_ref.at[share * ms + j], -jnp.sum(fj, axis=0), mask=j < ms)
-    for l, fl in zip(loose, acc["fL"]):
-        scalar(f_ref, share * ms + l, -jnp.sum(fl))
-    pltriton.store(bad_ref.at[share * 16 + lane], jnp.where(lane == 0, bad, 0))
+    def write(acc, bad):  # this program's shares of K, f and the count
+        at = share * ms * ms
+        lane = lax.iota(jnp.int32, 16)
+
+        def scalar(ref, index, value):  # one number, by lane 0 of a vector
+            pltriton.store(ref.at[index + lane], jnp.broadcast_to(value, (16,)), mask=lane == 0)
+
+        M = dict(zip(ordered, acc["M"]))
+        for m, (t, u) in enumerate(pairs):
+            i, j = cols[t], cols[u]
+            inside = (i[:, None] < ms) & (j[None, :] < ms)
+            K = acc["K"][m] + (M[t, u] + M[u, t].T if split else 0)  # Z^T Z = H^T H + H^T L + (H^T L)^T
+            pltriton.store(k_ref.at[at + i[:, None] * ms + j[None, :]], K, mask=inside)
+            if t != u:
+                pltriton.store(k_ref.at[at + j[None, :] * ms + i[:, None]], K, mask=inside)
+        for m, (l, t) in enumerate((l, t) for l in loose for t in range(len(tiles))):
+            kl = jnp.sum(acc["KL"][m], axis=0)
+            pltriton.store(k_ref.at[at + cols[t] * ms + l], kl, mask=cols[t] < ms)
+            pltriton.store(k_ref.at[at + l * ms + cols[t]], kl, mask=cols[t] < ms)
+        for ll, (a, b) in zip(acc["LL"], lpairs):
+            total = jnp.sum(ll)
+            scalar(k_ref, at + loose[a] * ms + loose[b], total)
+            if a != b:
+                scalar(k_ref, at + loose[b] * ms + loose[a], total)
+        for j, fj in zip(cols, acc["f"]):
+            pltriton.store(f_ref.at[share * ms + j], -jnp.sum(fj, axis=0), mask=j < ms)
+        for l, fl in zip(loose, acc["fL"]):
+            scalar(f_ref, share * ms + l, -jnp.sum(fl))
+        pltriton.store(bad_ref.at[share * 16 + lane], jnp.where(lane == 0, bad, 0))
+
+    on = on_ref[0] != 0  # an empty slot treats no element and writes zeros
+    pl.when(on)(lambda: write(*families((acc, bad))))
+    pl.when(~on)(lambda: write(acc, bad))
 
 
-def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False):
+def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False, present=True):
     """One leg's ``(K (m', m'), f (m',), n_bad)`` as :func:`softcrawl.jaxsim.legs.rid_terms`
-    returns them, in one kernel (module doc).
+    returns them, in one kernel (module doc); zeros where the leg is absent.
 
     Args:
         part: :class:`~softcrawl.jaxsim.model.LegPart`; x: ``(nr, 3)`` the RID nodes' part-frame
@@ -232,6 +243,9 @@ def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False):
             (a number: the kernel is compiled for it).
         interpret: run the kernel in Pallas' interpreter (any platform) instead of compiling it
             for a GPU.
+        present: whether the leg exists (a bool, traced or not): the program of an empty slot
+            treats none of its elements and returns zeros (in a batch of the paper's space, 12%
+            of the slots).
 
     Returns:
         ``(K, f, n_bad)``: ``(m', m')`` ``K_r`` (mN/mm), ``(m',)`` ``f_r`` (mN) and the number of
@@ -261,7 +275,7 @@ def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False):
         grid=(SPLIT,), interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
         name="rid_terms",
-    )(x.reshape(-1), qs, *arrays)
+    )(jnp.asarray(present, jnp.int32).reshape(1), x.reshape(-1), qs, *arrays)
     if SPLIT == 1:
         return K.reshape(ms, ms), f, bad[0]
     return K.reshape(SPLIT, ms, ms).sum(0), f.reshape(SPLIT, ms).sum(0), bad[::16].sum(dtype=jnp.int32)
