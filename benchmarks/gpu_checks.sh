@@ -4,6 +4,7 @@
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR factors      # ~3 min, after candidates
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR parts        # ~6 min
 #   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~4 min
@@ -25,6 +26,11 @@
 #              engines over 2 s; two float32 forms on the CPU differ by 0.04 mm at most) and
 #              with no robot invalid that the defaults keep becomes the default: its results are
 #              checked on the card, `rid` and `solve` add the kernels' own checks and variants.
+# factors:     the legs' 36 x 36 factors alone at 96 and 16,384 robots (`cholesky_kernel.py
+#              --sizes 36`): the kernel with its pivots looped and unrolled against the library,
+#              short enough for the minutes `candidates` leaves; if an unrolled variant is faster
+#              at both sizes, set `factor.UNROLL_PIVOTS = 36` (and `PER_THREAD` if 128 wins);
+#              the attachment block's 72 x 72 inverse unrolled: `crossover`.
 # parts:       the solve kernel reading the condensed operator in its parts (`fused.OPERATOR_PARTS`,
 #              the default, counted but not timed on a card): the step at 96 and 16,384 robots
 #              with it and with the operator formed by XLA first (`--formed-operator`), in one
@@ -80,7 +86,7 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: candidates, parts, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training}
+out=${1:?OUTDIR}; stage=${2:?STAGE: candidates, factors, parts, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training}
 mkdir -p "$out"
 # JAX's persistent compilation cache on the warm machine: a stage after the first loads the
 # programs an earlier one compiled (the defaults' step at 96 and 16,384 robots: tens of seconds
@@ -117,6 +123,9 @@ rid)
 solve)
     timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
         --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
+factors)
+    timeout 220 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 --sizes 36 \
+        2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
 crossover)
     timeout 420 python3 benchmarks/cholesky_kernel.py --robots 96,1024,2048,4096,16384 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
@@ -158,6 +167,6 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: candidates, parts, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
+    echo "unknown stage $stage: candidates, factors, parts, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
     exit 2 ;;
 esac
