@@ -137,7 +137,7 @@ targets)
     done
     timeout 130 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 20 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
-    timeout 120 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 2>>"$out/log.txt" \
+    timeout 180 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 2>>"$out/log.txt" \
         | tee -a "$out/cholesky.jsonl" ;;
 attribution)
     for forms in "fused16 library" "dense16 kernel"; do
@@ -156,8 +156,9 @@ kernels)
     gzip -c /tmp/prof/b96/step.hlo.txt > "$out/step-b96.hlo.txt.gz" ;;
 training)  # one call per env count: a call prints its JSON at its end
     for envs in 96 1024; do
-        JAX_COMPILATION_CACHE_DIR= timeout 270 python3 benchmarks/train_throughput.py --jax-loops --jax-envs $envs --episodes 8 --preset paper \
-            --rollouts episode --set sac.device='"gpu"' 2>>"$out/log.txt" | tee -a "$out/training.jsonl"
+        JAX_COMPILATION_CACHE_DIR= timeout 270 python3 benchmarks/train_throughput.py --jax-loops --jax-envs $envs \
+            --episodes 8 --preset paper --rollouts episode --set sac.device='"gpu"' 2>>"$out/log.txt" \
+            | tee -a "$out/training.jsonl"
     done ;;
 profile)
     XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 560 python3 benchmarks/step_cost.py --no-cost --time \
