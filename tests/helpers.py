@@ -3,10 +3,21 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
+
+
+def benchmark_module(name: str):
+    """The script ``benchmarks/NAME.py`` loaded as a module (``benchmarks/`` is no package),
+    for tests of its functions."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def restored_learner(run):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from softcrawl.codesign.groundtruth import (  # noqa: E402
     parse_designs,
     run_groundtruth,
 )
+from helpers import benchmark_module  # noqa: E402
 
 DESIGNS = parse_designs("3")[:6]
 GT = {d: float(i) for i, d in enumerate(DESIGNS)}  # the last design is the best
@@ -96,14 +96,6 @@ def test_best_so_far_on_grid():
     np.testing.assert_array_equal(best_so_far_on_grid(tr, np.array([0, 10, 25, 40])), [np.nan, 1, 1, 3])
 
 
-def _load_bench():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "codesign_algorithms.py"
-    spec = importlib.util.spec_from_file_location("codesign_algorithms_bench", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_benchmark_compare_and_plot(tmp_path):
     def task(d, c):
         return DesignResult(tuple(d), GT[tuple(d)], PeriodicGait.paper_cycle().to_dict(), 3, "step",
@@ -112,7 +104,7 @@ def test_benchmark_compare_and_plot(tmp_path):
     run_groundtruth(DESIGNS, tmp_path / "gt", GroundTruthConfig(baseline_phases=()), executor="serial", task=task,
                     progress=False, refs=False)
     run = _fake_run(tmp_path / "run", [(16, DESIGNS[0], 1.0), (16, BEST, 2.0)])
-    bench = _load_bench()
+    bench = benchmark_module("codesign_algorithms")
     res = bench.compare(tmp_path / "gt", ["random", "tpe"], 3, 40.0, runs=[run, run, run], duration=1.0,
                         evals_per_design=5, cycles=(2,), evaluate=fake_eval([]), progress=False)
     assert set(res["summary"]) == {"random", "tpe", "gibbs-sac"}
@@ -142,7 +134,7 @@ def test_benchmark_keeps_finished_runs_and_grades_them_once_the_ground_truth_is_
     gt = tmp_path / "gt"
     cfg = GroundTruthConfig(baseline_phases=())
     run_groundtruth(DESIGNS[:2], gt, cfg, executor="serial", task=task, progress=False, refs=False)
-    bench = _load_bench()
+    bench = benchmark_module("codesign_algorithms")
     spec = ";".join(",".join(map(str, d)) for d in DESIGNS)
     calls = []
     kw = dict(duration=1.0, evals_per_design=5, cycles=(2,), evaluate=fake_eval(calls), progress=False,

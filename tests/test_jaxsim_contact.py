@@ -576,11 +576,9 @@ def test_kernel_sass_counts_the_instructions_of_the_outermost_loops():
     with its parent and its own instructions (``loop_tree``), and the RID kernel's instructions a
     leg (``leg_instructions``: outside the loops once, each family's block loop times its blocks,
     its edge loop times the edges too), None where the loops are not the families'."""
-    import importlib.util
+    from helpers import benchmark_module
 
-    spec = importlib.util.spec_from_file_location("kernel_sass", Path(__file__).parents[1] / "benchmarks/kernel_sass.py")
-    sass = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sass)
+    sass = benchmark_module("kernel_sass")
     text = """
         /*0000*/                   MOV R1, c[0x0][0x28] ;
 .L_x_2:

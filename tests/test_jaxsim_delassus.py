@@ -466,22 +466,14 @@ def test_the_engines_step_has_a_short_dependency_chain():
     assert cost["mflop_per_robot_step"] <= 50
 
 
-
-def _step_cost_module():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("step_cost", Path(__file__).parents[1] / "benchmarks/step_cost.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_step_cost_compares_a_batchs_end_with_a_reference_file(tmp_path):
     """``against_reference`` stores a batch's end where the file has none (keeping its other
     batches), then gives the largest node distance over robots valid in both runs (here 3 mm
     and 4 mm moves of two nodes; the robot invalid in one run left out and counted), and
     refuses a reference of other designs or calls."""
-    against = _step_cost_module().against_reference
+    from helpers import benchmark_module
+
+    against = benchmark_module("step_cost").against_reference
     path = tmp_path / "ref.npz"
     rng = np.random.default_rng(0)
     end = {"designs": rng.integers(0, 3, (4, 8)), "x": rng.normal(0.0, 50.0, (4, 5, 3)).astype(np.float32),
@@ -525,6 +517,7 @@ def test_step_cost_compares_two_forms_of_the_step_on_the_same_robots(tmp_path):
     got = run("--rid-form", "pairs")
     assert 0.0 < got["reference_max_node_distance_mm"] <= 0.1
     assert got["bad_robots"] == got["bad_robots_here_only"] == got["bad_robots_reference_only"] == 0
+
 
 def test_the_legs_heights_are_the_z_of_their_rotated_collision_nodes(landed):
     """``leg_heights`` forms only the world z of the legs' collision nodes (third row of each
