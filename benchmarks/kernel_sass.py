@@ -145,6 +145,22 @@ def machine_code(dump: str, name: str, arch: str) -> str:
     return subprocess.run([tool("nvdisasm"), "-c", str(cubin)], check=True, capture_output=True, text=True).stdout
 
 
+def compiled_kernel(function, specs, name: str, arch: str, sharding, dump: str) -> tuple[str, dict]:
+    """The kernel ``name`` of the jitted ``function`` compiled afresh for the abstract arguments
+    ``specs`` on the deviceless GPU ``sharding`` (JAX's caches cleared, ``dump`` emptied first):
+    its machine code (:func:`machine_code`) and ptxas' report of it (registers, spills; ``{}``
+    where ptxas reported none)."""
+    import jax
+
+    from softcrawl.jaxsim.cost import captured_stderr, ptxas_report
+
+    jax.clear_caches()
+    shutil.rmtree(dump)  # this compilation's dump alone
+    with captured_stderr() as log, jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):
+        function.lower(*specs).compile()
+    return machine_code(dump, name, arch), ptxas_report(log[0]).get(name, {})
+
+
 def rid_variants(args, arch, sharding, dump) -> None:
     """``--kernel rid`` (module doc): one JSON line a variant."""
     import jax
@@ -153,7 +169,6 @@ def rid_variants(args, arch, sharding, dump) -> None:
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
     from softcrawl.jaxsim import legs, ridkernel
-    from softcrawl.jaxsim.cost import captured_stderr, ptxas_report
     from softcrawl.jaxsim.tables import build_table
 
     cfg = preset("paper")
@@ -168,17 +183,12 @@ def rid_variants(args, arch, sharding, dump) -> None:
         elements, warps, dot, split = text.split(":")
         ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.SPLIT = int(elements), int(warps), int(split)
         ridkernel.DOT_ALGORITHM = None if dot == "-" else dot
-        jax.clear_caches()
-        shutil.rmtree(dump)  # this variant's dump alone
         terms = jax.jit(jax.vmap(lambda p, q, qd: legs.rid_terms(p, q, qd, c, "kernel"), in_axes=(None, 0, 0)))
-        with captured_stderr() as log, jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):
-            terms.lower(*specs).compile()
-        sass = machine_code(dump, "rid_terms", arch)
+        sass, report = compiled_kernel(terms, specs, "rid_terms", arch, sharding, dump)
         print(json.dumps({"kernel": "rid", "variant": {"elements": ridkernel.ELEMENTS, "num_warps": ridkernel.NUM_WARPS,
                                                        "dot_algorithm": ridkernel.DOT_ALGORITHM,
                                                        "split": ridkernel.SPLIT},
-                          "families": families, "arch": arch, "jax": jax.__version__,
-                          **ptxas_report(log[0]).get("rid_terms", {}),
+                          "families": families, "arch": arch, "jax": jax.__version__, **report,
                           "warp_instructions_per_leg": leg_instructions(sass, families, ridkernel.ELEMENTS,
                                                                         ridkernel.SPLIT, ridkernel.NUM_WARPS),
                           "loops": [{"parent": lp["parent"], "total": lp["total"],
@@ -192,7 +202,6 @@ def factor_variants(args, arch, sharding, dump) -> None:
     import jax.numpy as jnp
 
     from softcrawl.jaxsim import factor
-    from softcrawl.jaxsim.cost import captured_stderr, ptxas_report
 
     kernels = (("cholesky_inverse", partial(factor.cholesky_inverse, form="kernel"), 576, 36),
                ("inverse_spd", partial(factor.inverse_spd, form="kernel"), 96, 72))  # 96 robots' matrices
@@ -200,19 +209,15 @@ def factor_variants(args, arch, sharding, dump) -> None:
         unroll, per = text.split(":")
         factor.UNROLL_PIVOTS, factor.PER_THREAD = int(unroll), int(per)
         for name, function, count, n in kernels:
-            jax.clear_caches()
-            shutil.rmtree(dump)  # this kernel's dump alone
             spec = jax.ShapeDtypeStruct((count, n, n), jnp.float32, sharding=sharding)
-            with captured_stderr() as log, jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):
-                jax.jit(jax.vmap(function)).lower(spec).compile()
-            sass = machine_code(dump, name, arch)
+            sass, report = compiled_kernel(jax.jit(jax.vmap(function)), [spec], name, arch, sharding, dump)
             loops = outer_loops(sass)
             total = len(_SASS.findall(sass))
             pivot = sum(loops[0].values()) if loops else total / n  # the loop's body, or the straight line's share
             warps = factor._warps(factor.padded_size(n))
             print(json.dumps({"kernel": name, "n": n, "variant": {"unroll_pivots": factor.UNROLL_PIVOTS,
                                                                   "per_thread": factor.PER_THREAD, "warps": warps},
-                              "arch": arch, "jax": jax.__version__, **ptxas_report(log[0]).get(name, {}),
+                              "arch": arch, "jax": jax.__version__, **report,
                               "instructions": total, "instructions_per_pivot": round(pivot, 1),
                               "warp_instructions_per_matrix": round(pivot * n * warps)}), flush=True)
 
@@ -231,7 +236,7 @@ def main(argv=None) -> None:
                    help="the operator in its parts (softcrawl.jaxsim.schur.SchurOperator): KD disk contacts and "
                         "L legs of KL contacts (the paper preset's 8:6:12), instead of --contacts' dense operator")
     args = p.parse_args(argv)
-    from softcrawl.jaxsim.cost import captured_stderr, prepare_deviceless_gpu, ptxas_report
+    from softcrawl.jaxsim.cost import prepare_deviceless_gpu
 
     dump = tempfile.mkdtemp(prefix="kernel_sass_")
     # the emitters' PTX (JAX 0.11 dumps it only where an emitter is named)
@@ -274,13 +279,9 @@ def main(argv=None) -> None:
         rows, warps, loop, held = text.split(":")
         fused.ROW_BLOCK, fused.NUM_WARPS, fused.LOOP_PRODUCT = int(rows), int(warps), loop == "1"
         fused.RESIDENT_ROWS = None if held == "-" else int(held)
-        jax.clear_caches()
-        shutil.rmtree(dump)  # this variant's dump alone
         solve = jax.jit(jax.vmap(fused.fused_solve, in_axes=(0, 0, 0, 0, 0, None)))
-        with captured_stderr() as log, jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):
-            solve.lower(*specs).compile()
-        report = ptxas_report(log[0]).get("apgd_solve", {})
-        *before, ops = outer_loops(machine_code(dump, "apgd_solve", arch))
+        sass, report = compiled_kernel(solve, specs, "apgd_solve", arch, sharding, dump)
+        *before, ops = outer_loops(sass)
         print(json.dumps({"variant": {"row_block": fused.ROW_BLOCK, "num_warps": fused.NUM_WARPS,
                                       "loop_product": fused.LOOP_PRODUCT, "resident_rows": fused.RESIDENT_ROWS},
                           "contacts": K, "operator": args.schur or "dense", "arch": arch, "jax": jax.__version__,
