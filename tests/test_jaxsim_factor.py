@@ -186,8 +186,9 @@ def test_the_kernels_rank_one_updates_are_fused_multiply_adds_in_float32_on_cuda
 def test_unrolled_pivots_are_the_loops_steps(monkeypatch, function):
     """With :data:`softcrawl.jaxsim.factor.UNROLL_PIVOTS` at 36 the kernels (interpreted) of the
     legs' 36 x 36 matrices run their pivots as straight-line code, no loop in the traced kernel,
-    and give the loop's result to float64 round-off (the same operations in the same order;
-    within 1e-13 of the largest entry, condition 1e4); a 72 x 72 matrix keeps the loop."""
+    and give the loop's result to float64 round-off (the same operations in the same order:
+    within 1e-13 of the largest entry, condition 1e4; measured 0, while the matrices scaled by 1 +
+    1e-12 move it by 5e-13 to 9e-13, beyond the bound); a 72 x 72 matrix keeps the loop."""
     from softcrawl.jaxsim import factor
 
     f = getattr(factor, function)
