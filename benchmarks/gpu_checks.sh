@@ -10,18 +10,21 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~6 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR flags        # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR attribution  # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR kernels      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR groundtruth  # ~9 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR targets      # ~6 min, measured on an H100
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~6 min, measured on an H100
 #
-# candidates:  the step at 96 and 16,384 robots, float32, with each form not yet a default and
-#              without: the defaults, the RID kernel (`--rid-form kernel`), the solve's operator
-#              on chip (`--resident-rows 128`), both; one call, so that the four are compared on
-#              one warm card, on the same robots: each form's disk nodes after its four actions
-#              against the defaults' (`--reference`: `reference_p99_robot_distance_mm`, the
-#              robots invalid in one run only). A form faster at both sizes whose robots end
+# candidates:  the step at 96 and 16,384 robots, float32, with the forms not yet defaults and
+#              without: the defaults, all three together (the issue's figures if all are taken),
+#              the RID kernel alone (`--rid-form kernel`), the solve's operator on chip alone
+#              (`--resident-rows 128`; the unrolled factor alone: `factors`); one call, so that
+#              the four are compared on one warm card, on the same robots: each form's disk nodes
+#              after its four actions against the defaults' (`--reference`:
+#              `reference_p99_robot_distance_mm`, the robots invalid in one run only). A form (all
+#              three, where the call ends before the single ones) faster at both sizes whose robots end
 #              within 0.5 mm of the defaults' (99th percentile; the issue's budget between the
 #              engines over 2 s; two float32 forms on the CPU differ by 0.04 mm at most) and
 #              with no robot invalid that the defaults keep becomes the default: its results are
@@ -61,6 +64,12 @@
 #              `factor.UNROLL_PIVOTS` (36: the legs' kernel only, 72: both) and `PER_THREAD`.
 # profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed
 #              (`step_cost.py --profile`): where the large batches' time goes.
+# flags:       the step at 96 and 16,384 robots with XLA's matrix products by cuBLAS only
+#              (`--xla_gpu_enable_triton_gemm=false`) against XLA's defaults, on the same robots:
+#              the device pads the operands of the products it gives to Triton (13 padding
+#              kernels, 155 us of an earlier 96-robot step, absent from the program compiled
+#              without a GPU): what they cost at both sizes, and so whether the products are
+#              worth shaping to Triton's tiles (or the flag worth documenting for GPU runs).
 # attribution: the step at 96 robots with each kernel alone (`fused16` with the library's
 #              factors, `dense16` with the kernels'); the solve kernel's variants alone at 16,384
 #              robots (occupancy decides there).
@@ -86,7 +95,7 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: candidates, factors, parts, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training}
+out=${1:?OUTDIR}; stage=${2:?STAGE: candidates, factors, parts, rid, solve, crossover, profile, flags, attribution, kernels, groundtruth, targets or training}
 mkdir -p "$out"
 # JAX's persistent compilation cache on the warm machine: a stage after the first loads the
 # programs an earlier one compiled (the defaults' step at 96 and 16,384 robots: tens of seconds
@@ -96,7 +105,8 @@ nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee
 case $stage in
 candidates)
     rm -f /tmp/candidates.npz  # the defaults' ends, which the others are compared with (66 MB: not in OUTDIR)
-    for flags in "" "--rid-form kernel" "--resident-rows 128" "--rid-form kernel --resident-rows 128"; do
+    for flags in "" "--rid-form kernel --resident-rows 128 --unroll-pivots 36" "--rid-form kernel" \
+            "--resident-rows 128"; do
         timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
             --reference /tmp/candidates.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done ;;
@@ -164,10 +174,17 @@ profile)
     XLA_FLAGS=--xla_gpu_enable_command_buffer= timeout 560 python3 benchmarks/step_cost.py --no-cost --time \
         --batches 1024,16384 --calls 2 --profile /tmp/prof 2>>"$out/log.txt" | tee -a "$out/profile.jsonl"
     for b in /tmp/prof/b*; do gzip -c "$b/kernels.json" > "$out/kernels-$(basename "$b").json.gz"; done ;;
+flags)
+    rm -f /tmp/flags.npz
+    for flags in "" "--xla_gpu_enable_triton_gemm=false"; do
+        XLA_FLAGS="${XLA_FLAGS:-} $flags" timeout 200 python3 benchmarks/step_cost.py --no-cost --time \
+            --batches 96,16384 --calls 3 --reference /tmp/flags.npz 2>>"$out/log.txt" \
+            | sed "s/^{/{\"xla_flags\": \"$flags\", /" | tee -a "$out/targets.jsonl"
+    done ;;
 groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: candidates, factors, parts, rid, solve, crossover, profile, attribution, kernels, groundtruth, targets or training" >&2
+    echo "unknown stage $stage: candidates, factors, parts, rid, solve, crossover, profile, flags, attribution, kernels, groundtruth, targets or training" >&2
     exit 2 ;;
 esac

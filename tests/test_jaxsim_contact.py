@@ -509,6 +509,28 @@ def test_the_fused_kernel_holding_its_operator_on_chip_iterates_as_reading_it(C,
     jax.clear_caches()
 
 
+def test_the_solve_holds_its_operator_only_on_cards_with_room_for_it(monkeypatch):
+    """:func:`softcrawl.jaxsim.fused.held_bytes`: a program may hold the 128 KiB operator on a card
+    with 227 KiB of shared memory a program (compute capability 9.0, 10.0, 10.3), in the
+    interpreter and without a GPU (a kernel compiled for an H100 without one); on the A100 (8.0,
+    163 KiB) and the 99-KiB cards (8.6, 8.9, 12.0: A10, L4, L40, RTX 4090 and 5090) Triton could
+    not place it beside its own exchanges, and the solve keeps the scratch's form."""
+    from softcrawl.jaxsim import fused
+
+    class Card:
+        def __init__(self, capability):
+            self.compute_capability = capability
+
+    for capability, want in (("9.0", fused.HELD_BYTES), ("10.0", fused.HELD_BYTES), ("8.0", 0), ("8.9", 0),
+                             ("12.0", 0)):
+        monkeypatch.setattr(jax, "local_devices", lambda backend=None, c=capability: [Card(c)])
+        assert fused.held_bytes() == want, capability
+        assert fused.held_bytes(interpret=True) == fused.HELD_BYTES
+    monkeypatch.undo()
+    if all(d.platform == "cpu" for d in jax.devices()):  # no GPU here
+        assert fused.held_bytes() == fused.HELD_BYTES
+
+
 @pytest.mark.parametrize("shape", [(2, 3, 2), (3, 1, 4), (0, 2, 3), (2, 2, 0)])
 def test_the_fused_kernel_reads_an_operator_in_its_parts_as_formed(C, shape):
     """:func:`softcrawl.jaxsim.fused.fused_solve` given a random SPD operator in its

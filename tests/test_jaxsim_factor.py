@@ -120,6 +120,27 @@ def test_the_symmetrized_library_form_is_jax_numpys_factor_inverted():
     assert not np.array_equal(np.asarray(cholesky_inverse(A)), np.asarray(want))
 
 
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_the_symmetrized_kernel_factors_the_symmetric_part_it_reads(dtype):
+    """The kernel's ``symmetrize=True`` forms ``(A + A^T) / 2`` as it reads ``A`` (twice, by rows
+    and by columns; no transposing pass before it on a GPU): on a matrix symmetric up to a 1e-5
+    perturbation of its upper triangle (the legs' step matrices are sums, symmetric up to
+    round-off), the interpreted kernel's ``C^-1`` is the kernel's of the symmetrized matrix to
+    the bit, and differs from the kernel's of ``A`` as read (its column and row of each pivot
+    disagree)."""
+    from softcrawl.jaxsim.factor import cholesky_inverse
+
+    A = _spd(np.random.default_rng(3), 2, 36, 1e3)
+    A = jnp.asarray(A * (1 + 1e-5 * np.triu(np.random.default_rng(4).standard_normal((2, 36, 36)), 1)), dtype)
+
+    def kernel(a, symmetrize):
+        return np.asarray(jax.vmap(lambda m: cholesky_inverse(m, "interpret", symmetrize))(a))
+
+    want = kernel((A + A.transpose(0, 2, 1)) / 2, False)
+    np.testing.assert_array_equal(kernel(A, True), want)
+    assert not np.array_equal(kernel(A, False), want)
+
+
 def test_a_matrix_that_is_not_positive_definite_gives_no_finite_factor():
     """An indefinite matrix (one negative eigenvalue, rotated at random) and a singular one: the
     kernels' factor and inverse hold NaN or infinite entries (the sweeps, which invert an

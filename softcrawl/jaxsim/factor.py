@@ -108,30 +108,33 @@ def _warps(N: int) -> int:
     return max(1, min(16, N * N // (PER_THREAD * 32)))
 
 
-def _padded(n: int, a_ref, dt):
+def _padded(n: int, a_ref, dt, symmetrize: bool = False):
     """A program's matrix: ``a_ref`` ``(n, n)`` read whole at the padded size ``N`` through
-    masked pointers (lanes past ``n`` load nothing), the identity on the padding. Returns the
-    lane indices ``r`` ``(N,)``, ``rows`` ``(N, 1)`` and ``cols`` ``(1, N)``, the mask of the
-    ``n x n`` entries, the identity and the matrix ``(N, N)``."""
+    masked pointers (lanes past ``n`` load nothing), the identity on the padding; with
+    ``symmetrize``, ``(A + A^T) / 2`` (read twice: no transposing pass before the kernel).
+    Returns the lane indices ``r`` ``(N,)``, ``rows`` ``(N, 1)`` and ``cols`` ``(1, N)``, the mask
+    of the ``n x n`` entries, the identity and the matrix ``(N, N)``."""
     from jax.experimental.pallas import triton as pltriton
 
     r = lax.iota(jnp.int32, padded_size(n))
     rows, cols = r[:, None], r[None, :]
     inside = (rows < n) & (cols < n)
     eye = (rows == cols).astype(dt)
-    return r, rows, cols, inside, eye, jnp.where(inside, pltriton.load(a_ref.at[rows, cols], mask=inside, other=0.0),
-                                                 eye)
+    A = pltriton.load(a_ref.at[rows, cols], mask=inside, other=0.0)
+    if symmetrize:
+        A = (A + pltriton.load(a_ref.at[cols, rows], mask=inside, other=0.0)) / 2
+    return r, rows, cols, inside, eye, jnp.where(inside, A, eye)
 
 
-def _kernel(n: int, fma, a_ref, o_ref):
-    """One matrix (module doc): ``a_ref`` ``(n, n)`` the symmetric matrix, read whole; ``o_ref``
-    receives ``C^-1``; ``fma`` the rank-one updates' multiply-add (:func:`fused_multiply_add`).
-    The program works on the padded size ``N`` (:func:`_padded`) and writes
-    through masked pointers: lanes past ``n`` store nothing."""
+def _kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
+    """One matrix (module doc): ``a_ref`` ``(n, n)`` the symmetric matrix, read whole (with
+    ``symmetrize``, ``(A + A^T) / 2``); ``o_ref`` receives ``C^-1``; ``fma`` the rank-one updates'
+    multiply-add (:func:`fused_multiply_add`). The program works on the padded size ``N``
+    (:func:`_padded`) and writes through masked pointers: lanes past ``n`` store nothing."""
     from jax.experimental.pallas import triton as pltriton
 
     dt = o_ref.dtype
-    r, rows, cols, inside, eye, A = _padded(n, a_ref, dt)
+    r, rows, cols, inside, eye, A = _padded(n, a_ref, dt, symmetrize)
 
     def body(k, c):
         A, T, d = c
@@ -146,13 +149,14 @@ def _kernel(n: int, fma, a_ref, o_ref):
     pltriton.store(o_ref.at[rows, cols], T * lax.rsqrt(d)[:, None], mask=inside)
 
 
-def _sweep_kernel(n: int, fma, a_ref, o_ref):
+def _sweep_kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
     """One matrix's inverse by the symmetric sweep operator (module doc): ``a_ref`` ``(n, n)``
-    the symmetric matrix, read whole; ``o_ref`` receives ``A^-1``. Padded and masked as
+    the symmetric matrix, read whole (with ``symmetrize``, ``(A + A^T) / 2``); ``o_ref``
+    receives ``A^-1``. Padded and masked as
     :func:`_kernel`; the padding's identity rows are never swept."""
     from jax.experimental.pallas import triton as pltriton
 
-    r, rows, cols, inside, _, A = _padded(n, a_ref, o_ref.dtype)
+    r, rows, cols, inside, _, A = _padded(n, a_ref, o_ref.dtype, symmetrize)
 
     def body(k, c):
         A, low = c
@@ -170,13 +174,13 @@ def _library(A, symmetrize: bool = False):
     return solve_triangular(C, jnp.eye(A.shape[-1], dtype=A.dtype), lower=True)
 
 
-def _pallas(A, interpret: bool, kernel=_kernel, name: str = "cholesky_inverse"):
+def _pallas(A, interpret: bool, kernel=_kernel, name: str = "cholesky_inverse", symmetrize: bool = False):
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
     n = A.shape[-1]
     return pl.pallas_call(
-        partial(kernel, n, partial(fused_multiply_add, compiled=not interpret)),
+        partial(kernel, n, partial(fused_multiply_add, compiled=not interpret), symmetrize),
         out_shape=jax.ShapeDtypeStruct((n, n), A.dtype), interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=_warps(padded_size(n)), num_stages=1),
         name=name)(A)
@@ -196,7 +200,7 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
     kernel on CUDA, the library's form elsewhere) or ``"interpret"`` (the kernel in Pallas' interpreter).
     The library reads ``A``'s lower triangle only, the kernel the whole of it; ``symmetrize``
     factors ``(A + A^T) / 2`` instead, in every form (as ``jnp.linalg.cholesky``: for a matrix
-    symmetric up to round-off, the step matrices' sums). Its error is of the order of
+    symmetric up to round-off, the step matrices' sums; the kernel forms it as it reads ``A``). Its error is of the order of
     ``cond(A)`` times the rounding unit (Higham 2002, sec. 10.1). Batch it with ``jax.vmap``
     (the kernel: one program per matrix).
 
@@ -208,7 +212,7 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
         return _library(A, symmetrize)
 
     def kernel(a, interpret):
-        return _pallas((a + a.T) / 2 if symmetrize else a, interpret)
+        return _pallas(a, interpret, symmetrize=symmetrize)
 
     if form == "interpret":
         return kernel(A, True)

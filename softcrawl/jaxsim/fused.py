@@ -67,7 +67,8 @@ LOOP_PRODUCT = False
 #: Rows a block of the scaled operator that the program holds on chip through the iterations of a
 #: float32 solve, or None: the program writes the operator to a scratch output and reads it back
 #: from the cache every iteration, by blocks of :data:`ROW_BLOCK` rows (the default, every
-#: float64 solve, and operators whose float16 copy exceeds :data:`HELD_BYTES`). Held, the
+#: float64 solve, operators whose float16 copy exceeds :data:`HELD_BYTES`, and cards with less
+#: shared memory: :func:`held_bytes`). Held, the
 #: blocks are unrolled (:data:`LOOP_PRODUCT` ignored) and each iteration's product is a matrix
 #: product on the tensor cores: the float16 block times ``y`` split into two float16 columns, ``y
 #: = m (y1 + y2)``, accumulated in float32 (:func:`split_columns`); Triton keeps the blocks in
@@ -92,6 +93,26 @@ COLUMN_BLOCK = 64
 #: has 227 KB of shared memory, of which Triton takes some for its own exchanges; 128 KiB holds
 #: ``N = 256`` (up to 85 contacts).
 HELD_BYTES = 128 * 1024
+#: CUDA compute capabilities whose programs may use 227 KiB of shared memory (the CUDA C++
+#: Programming Guide's table of compute capabilities: 9.0, 10.0, 10.3; H100, H200, B200, B300),
+#: where the held operator's 128 KiB leave Triton room for its own exchanges. A card of another
+#: capability (A100's 163 KiB a program; 99 KiB on 8.6, 8.9 and 12.x: A10, L4, L40, RTX 4090 and
+#: 5090) solves with the scratch's form, whatever :data:`RESIDENT_ROWS` asks.
+HOLDING_CAPABILITIES = frozenset({"9.0", "10.0", "10.3"})
+
+
+def held_bytes(interpret: bool = False) -> int:
+    """The largest float16 copy of the scaled operator a program holds on chip here, bytes:
+    :data:`HELD_BYTES` on a GPU of :data:`HOLDING_CAPABILITIES`, in Pallas' interpreter, and where
+    JAX has no GPU (a kernel compiled without one, :func:`softcrawl.jaxsim.cost.deviceless_gpu`,
+    is compiled for an H100, as Pallas assumes there); 0 on any other GPU."""
+    if interpret:
+        return HELD_BYTES
+    try:
+        device = jax.local_devices(backend="gpu")[0]
+    except RuntimeError:  # no GPU
+        return HELD_BYTES
+    return HELD_BYTES if str(getattr(device, "compute_capability", "")) in HOLDING_CAPABILITIES else 0
 
 
 def row_blocks(n: int, row_block: int) -> tuple[int, list[tuple[int, int]]]:
@@ -321,7 +342,8 @@ def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", inte
     b = jnp.zeros(padded_size(n_iter), dt).at[:n_iter].set(betas.astype(dt))
     vector = jax.ShapeDtypeStruct((N,), dt)
     pair = jax.ShapeDtypeStruct((2, N), dt)
-    resident = RESIDENT_ROWS is not None and dt == jnp.float32 and N * N * jnp.dtype(storage).itemsize <= HELD_BYTES
+    resident = (RESIDENT_ROWS is not None and dt == jnp.float32
+                and N * N * jnp.dtype(storage).itemsize <= held_bytes(interpret))
     x, *_ = pl.pallas_call(
         partial(_kernel, n, n_iter, (lambda: None) if interpret else pltriton.debug_barrier,
                 min(RESIDENT_ROWS if resident else ROW_BLOCK, N), LOOP_PRODUCT, resident, len(parts)),
