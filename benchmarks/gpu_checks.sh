@@ -95,7 +95,8 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-out=${1:?OUTDIR}; stage=${2:?STAGE: candidates, factors, parts, rid, solve, crossover, profile, flags, attribution, kernels, groundtruth, targets or training}
+stages="candidates, factors, parts, rid, solve, crossover, profile, flags, attribution, kernels, groundtruth, targets or training"
+out=${1:?OUTDIR}; stage=${2:?STAGE: $stages}
 mkdir -p "$out"
 # JAX's persistent compilation cache on the warm machine: a stage after the first loads the
 # programs an earlier one compiled (the defaults' step at 96 and 16,384 robots: tens of seconds
@@ -185,6 +186,6 @@ groundtruth)
     timeout 580 python3 benchmarks/groundtruth.py rate --designs 256 --jax-batch 4096 --max-seconds 480 \
         --json "$out/gt-rate.json" 2>>"$out/log.txt" | tail -40 ;;
 *)
-    echo "unknown stage $stage: candidates, factors, parts, rid, solve, crossover, profile, flags, attribution, kernels, groundtruth, targets or training" >&2
+    echo "unknown stage $stage: $stages" >&2
     exit 2 ;;
 esac

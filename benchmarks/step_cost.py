@@ -141,7 +141,8 @@ def main(argv=None) -> None:
     engine = {"precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
               "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
               "pairs_dot": args.pairs_dot, "resident_rows": args.resident_rows,
-              "operator_parts": fused.OPERATOR_PARTS, "unroll_pivots": factor.UNROLL_PIVOTS}  # what every line was measured with
+              "operator_parts": fused.OPERATOR_PARTS,
+              "unroll_pivots": factor.UNROLL_PIVOTS}  # what every line was measured with
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)

@@ -200,9 +200,9 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
     kernel on CUDA, the library's form elsewhere) or ``"interpret"`` (the kernel in Pallas' interpreter).
     The library reads ``A``'s lower triangle only, the kernel the whole of it; ``symmetrize``
     factors ``(A + A^T) / 2`` instead, in every form (as ``jnp.linalg.cholesky``: for a matrix
-    symmetric up to round-off, the step matrices' sums; the kernel forms it as it reads ``A``). Its error is of the order of
-    ``cond(A)`` times the rounding unit (Higham 2002, sec. 10.1). Batch it with ``jax.vmap``
-    (the kernel: one program per matrix).
+    symmetric up to round-off, the step matrices' sums; the kernel forms it as it reads ``A``).
+    Its error is of the order of ``cond(A)`` times the rounding unit (Higham 2002, sec. 10.1).
+    Batch it with ``jax.vmap`` (the kernel: one program per matrix).
 
     Raises:
         ValueError: an unknown ``form``, or ``A`` not square.
