@@ -95,7 +95,8 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-stages="candidates, factors, parts, rid, solve, crossover, profile, flags, attribution, kernels, groundtruth, targets or training"
+stages="candidates, factors, parts, rid, solve, crossover, profile, flags, attribution, kernels, groundtruth,"
+stages="$stages targets or training"
 out=${1:?OUTDIR}; stage=${2:?STAGE: $stages}
 mkdir -p "$out"
 # JAX's persistent compilation cache on the warm machine: a stage after the first loads the
