@@ -5,6 +5,7 @@
 #
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR factors      # ~3 min, after candidates
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR selection    # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR parts        # ~6 min
 #   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~4 min
@@ -18,17 +19,23 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~6 min, measured on an H100
 #
 # candidates:  the step at 96 and 16,384 robots, float32, with the forms not yet defaults and
-#              without: the defaults, all three together (the issue's figures if all are taken),
-#              the RID kernel alone (`--rid-form kernel`), the solve's operator on chip alone
-#              (`--resident-rows 128`; the unrolled factor alone: `factors`); one call, so that
-#              the four are compared on one warm card, on the same robots: each form's disk nodes
-#              after its four actions against the defaults' (`--reference`:
-#              `reference_p99_robot_distance_mm`, the robots invalid in one run only). A form (all
-#              three, where the call ends before the single ones) faster at both sizes whose robots end
+#              without: the defaults, all four together (the issue's figures if all are taken:
+#              the RID kernel, the held solve, the unrolled factor, the contact candidates by a
+#              kernel a body), the RID kernel alone (`--rid-form kernel`), the solve's operator on
+#              chip alone (`--resident-rows 128`; the unrolled factor alone: `factors`, the
+#              candidates' kernel alone: `selection`); one call, so that the four are compared on
+#              one warm card, on the same robots: each form's disk nodes after its four actions
+#              against the defaults' (`--reference`: `reference_p99_robot_distance_mm`, the
+#              robots invalid in one run only). A form (all four, where the call ends before the
+#              single ones) faster at both sizes whose robots end
 #              within 0.5 mm of the defaults' (99th percentile; the issue's budget between the
 #              engines over 2 s; two float32 forms on the CPU differ by 0.04 mm at most) and
 #              with no robot invalid that the defaults keep becomes the default: its results are
 #              checked on the card, `rid` and `solve` add the kernels' own checks and variants.
+# selection:   the step at 96 and 16,384 robots with each body's contact candidates chosen by a
+#              kernel of its own (`--selection kernel`, softcrawl.jaxsim.candidates: 7 kernels
+#              fewer, 0.37 MB less a robot-step, compiled for an H100) against the defaults, on the
+#              same robots; if faster at both sizes, set `candidates.SELECTION`'s CUDA default.
 # factors:     the legs' 36 x 36 factors alone at 96 and 16,384 robots (`cholesky_kernel.py
 #              --sizes 36`): the kernel with its pivots looped and unrolled against the library,
 #              short enough for the minutes `candidates` leaves; if an unrolled variant is faster
@@ -95,8 +102,8 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-stages="candidates, factors, parts, rid, solve, crossover, profile, flags, attribution, kernels, groundtruth,"
-stages="$stages targets or training"
+stages="candidates, factors, selection, parts, rid, solve, crossover, profile, flags, attribution, kernels,"
+stages="$stages groundtruth, targets or training"
 out=${1:?OUTDIR}; stage=${2:?STAGE: $stages}
 mkdir -p "$out"
 # JAX's persistent compilation cache on the warm machine: a stage after the first loads the
@@ -107,8 +114,8 @@ nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee
 case $stage in
 candidates)
     rm -f /tmp/candidates.npz  # the defaults' ends, which the others are compared with (66 MB: not in OUTDIR)
-    for flags in "" "--rid-form kernel --resident-rows 128 --unroll-pivots 36" "--rid-form kernel" \
-            "--resident-rows 128"; do
+    for flags in "" "--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel" \
+            "--rid-form kernel" "--resident-rows 128"; do
         timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
             --reference /tmp/candidates.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     done ;;
@@ -135,6 +142,12 @@ rid)
 solve)
     timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
         --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
+selection)
+    rm -f /tmp/selection.npz
+    for flags in "" "--selection kernel"; do
+        timeout 200 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
+            --reference /tmp/selection.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+    done ;;
 factors)
     timeout 220 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 --sizes 36 \
         2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;

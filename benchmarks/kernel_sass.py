@@ -203,7 +203,7 @@ def factor_variants(args, arch, sharding, dump) -> None:
 
     from softcrawl.jaxsim import factor
 
-    kernels = (("cholesky_inverse", partial(factor.cholesky_inverse, form="kernel"), 576, 36),
+    kernels = (("cholesky_inverse", partial(factor.cholesky_inverse, form="kernel", symmetrize=True), 576, 36),
                ("inverse_spd", partial(factor.inverse_spd, form="kernel"), 96, 72))  # 96 robots' matrices
     for text in args.variants.split(","):
         unroll, per = text.split(":")

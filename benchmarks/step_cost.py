@@ -41,8 +41,8 @@ default device. Printed as one JSON line (per batch size when timing):
 Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
         [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library]
-        [--pairs-dot TF32_TF32_F32_X3] [--resident-rows 128] [--unroll-pivots 36] [--formed-operator] [--batch 2]
-        [--steps 50] [--time]
+        [--pairs-dot TF32_TF32_F32_X3] [--resident-rows 128] [--unroll-pivots 36] [--selection kernel]
+        [--formed-operator] [--batch 2] [--steps 50] [--time]
         [--batches 96,1024,16384] [--calls 5]
         [--profile DIR] [--reference FILE]
     python benchmarks/step_cost.py --gpu-target benchmarks/gpu_targets/h100.pbtxt --batches 96,1024,16384 [--registers]
@@ -82,6 +82,9 @@ def main(argv=None) -> None:
                    help="the factor kernels unroll their pivots for matrices of up to N rows (36: the legs' "
                         "factors, 72: the attachment block's inverse too; softcrawl.jaxsim.factor.UNROLL_PIVOTS; "
                         "default: the module's)")
+    p.add_argument("--selection", choices=("xla", "kernel"), default=None,
+                   help="how each body's contact candidates are chosen (softcrawl.jaxsim.candidates.SELECTION: "
+                        "XLA's program for all bodies at once, or one kernel a body; default: the module's)")
     p.add_argument("--formed-operator", action="store_true",
                    help="the solve kernel reads the condensed operator formed by XLA, not in its parts "
                         "(softcrawl.jaxsim.fused.OPERATOR_PARTS = False)")
@@ -120,7 +123,7 @@ def main(argv=None) -> None:
 
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.jaxsim import factor, fused, legs
+    from softcrawl.jaxsim import candidates, factor, fused, legs
     from softcrawl.jaxsim.cost import (captured_stderr, deviceless_gpu, kernel_profile, ptxas_report,
                                        sequential_cost, xla_flops)
     from softcrawl.jaxsim.engine import STEP_SCOPES, rest_state
@@ -138,11 +141,13 @@ def main(argv=None) -> None:
     fused.OPERATOR_PARTS = not args.formed_operator
     if args.unroll_pivots is not None:
         factor.UNROLL_PIVOTS = args.unroll_pivots
+    if args.selection is not None:
+        candidates.SELECTION = args.selection
     engine = {"precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
               "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
               "pairs_dot": args.pairs_dot, "resident_rows": args.resident_rows,
-              "operator_parts": fused.OPERATOR_PARTS,
-              "unroll_pivots": factor.UNROLL_PIVOTS}  # what every line was measured with
+              "operator_parts": fused.OPERATOR_PARTS, "unroll_pivots": factor.UNROLL_PIVOTS,
+              "selection": candidates.SELECTION}  # what every line was measured with
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)

@@ -816,6 +816,59 @@ def test_the_gpu_kernels_are_cudas_only(landed):
         assert "triton" not in text and "f16" in text
 
 
+def test_the_candidates_kernel_chooses_the_steps_contacts_as_xla(landed, monkeypatch):
+    """:data:`softcrawl.jaxsim.candidates.SELECTION`: each body's contact candidates chosen in one
+    kernel per body (interpreted here) are XLA's all-bodies choice on the landed robot (loaded
+    points kept, two empty slots), to the bit, and three whole steps from it end in the same
+    state to the bit; exported for CUDA the step holds the kernel, for ROCm it does not; an
+    unknown selection is refused."""
+    from softcrawl.jaxsim import candidates
+    from softcrawl.jaxsim import disk as disk_motion
+    from softcrawl.jaxsim import legs as leg_motion
+    from softcrawl.jaxsim.delassus import select_contacts
+    from softcrawl.jaxsim.engine import Control, make_rollout
+
+    model, state, kpa = landed
+    rd = model.robot
+    qd_free, _, _ = jax.vmap(leg_motion.free_motion, in_axes=(None, None, 0, 0, 0, 0, 0))(
+        model.leg, model.settings, state.q, state.qdot, rd.rotation, kpa[rd.channel] * rd.leg_mask, rd.leg_mask)
+    v_free, _ = disk_motion.free_motion(model.disk, model.settings, state.x, state.v)
+    assert np.sum(np.asarray(state.impulses[:, 0]) > 0) >= 3
+
+    def chosen(selection):
+        monkeypatch.setattr(candidates, "SELECTION", selection)
+        jax.clear_caches()
+        return [np.asarray(a) for a in select_contacts(model, state, v_free, qd_free)]
+
+    def stepped(selection):
+        monkeypatch.setattr(candidates, "SELECTION", selection)
+        jax.clear_caches()
+        batch = dataclasses.replace(model, robot=jax.tree_util.tree_map(lambda a: a[None], model.robot))
+        end = make_rollout(3)(batch, jax.tree_util.tree_map(lambda a: a[None], state), Control(kpa[None]))
+        return [np.asarray(a) for a in jax.tree_util.tree_leaves(end)]
+
+    want = chosen("xla")
+    assert want[1].sum() >= 3
+    for got, w in zip(chosen("interpret"), want):
+        np.testing.assert_array_equal(got, w)
+    for got, w in zip(stepped("interpret"), stepped("xla")):
+        np.testing.assert_array_equal(got, w)
+    monkeypatch.setattr(candidates, "SELECTION", "kernel")
+    jax.clear_caches()
+
+    def exported(platform):
+        return jax.export.export(jax.jit(lambda s: select_contacts(model, s, v_free, qd_free)),
+                                 platforms=[platform])(state).mlir_module()
+
+    with pytest.raises(ValueError, match="gpu.triton"):
+        exported("cuda")
+    assert "triton" not in exported("rocm")
+    monkeypatch.setattr(candidates, "SELECTION", "sorted")
+    with pytest.raises(ValueError, match="SELECTION"):
+        select_contacts(model, state, v_free, qd_free)
+    jax.clear_caches()
+
+
 def test_the_pairs_forms_dot_algorithm_reaches_its_product_in_float32_only(landed, monkeypatch):
     """:data:`softcrawl.jaxsim.legs.PAIRS_DOT_ALGORITHM` names the dot algorithm of the pairs
     form's matrix product (for a GPU's tensor cores, which a CPU does not have: XLA's CPU runs

@@ -29,6 +29,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
+from softcrawl.jaxsim import candidates
 from softcrawl.jaxsim.contact import floor_contacts
 from softcrawl.jaxsim.factor import inverse_spd
 from softcrawl.jaxsim.model import register_pytree
@@ -114,19 +115,51 @@ def select_contacts(model, state, v_free, qd_free):
         slot's), whether each is a candidate, its current gap (mm).
     """
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
-    L = state.q.shape[0]
-    nd, nc = dk.collision.shape[0], leg.coll_affine.shape[0]
     zl, vl = leg_heights(leg, rd, state.q, qd_free)
-    z = jnp.concatenate([state.x[dk.collision, 2], zl.reshape(-1)])
-    vz = jnp.concatenate([v_free[dk.collision, 2], vl.reshape(-1)])
-    pts = jnp.where(state.contact_points >= 0, state.contact_points, z.shape[0])
-    loaded = jnp.zeros(z.shape[0], bool).at[pts].max(state.impulses[:, 0] > 0, mode="drop")
+    args = (state.x[dk.collision, 2], v_free[dk.collision, 2], zl, vl, state.contact_points, state.impulses[:, 0] > 0)
+    rule = dict(Kd=st.disk_contacts, Kl=st.leg_contacts, floor_z=st.floor_z, distance=st.contact_distance, dt=st.dt)
+    if candidates.SELECTION not in ("xla", "kernel", "interpret"):
+        raise ValueError(f"candidates.SELECTION must be 'xla', 'kernel' or 'interpret', not {candidates.SELECTION!r}")
+    if candidates.SELECTION == "xla":
+        return _selected_by_xla(*args, **rule)
+    if candidates.SELECTION == "interpret":
+        return _selected_by_kernel(*args, **rule, interpret=True)
+    return jax.lax.platform_dependent(*args, cuda=partial(_selected_by_kernel, **rule, interpret=False),
+                                      default=partial(_selected_by_xla, **rule))
+
+
+def _selected_by_xla(zd, vd, zl, vl, points, held, *, Kd, Kl, floor_z, distance, dt):
+    """:func:`select_contacts` for all bodies at once: the disk's points' heights ``zd`` and
+    free vertical velocities ``vd`` ``(nd,)``, the legs' ``zl``, ``vl`` ``(L, nc)``, last step's
+    contact points ``points`` ``(K,)`` (-1: none) and whether each bore a normal impulse,
+    ``held``."""
+    nd, (L, nc) = zd.shape[0], zl.shape
+    z, vz = jnp.concatenate([zd, zl.reshape(-1)]), jnp.concatenate([vd, vl.reshape(-1)])
+    pts = jnp.where(points >= 0, points, z.shape[0])
+    loaded = jnp.zeros(z.shape[0], bool).at[pts].max(held, mode="drop")
     ranked = z - jnp.where(loaded, FAR, 0.0)
-    select = partial(floor_contacts, floor_z=st.floor_z, distance=st.contact_distance, dt=st.dt)
-    i_d, a_d, _ = select(ranked[:nd], vz[:nd], K=st.disk_contacts)
-    i_l, a_l, _ = jax.vmap(partial(select, K=st.leg_contacts))(ranked[nd:].reshape(L, nc), vz[nd:].reshape(L, nc))
+    select = partial(floor_contacts, floor_z=floor_z, distance=distance, dt=dt)
+    i_d, a_d, _ = select(ranked[:nd], vz[:nd], K=Kd)
+    i_l, a_l, _ = jax.vmap(partial(select, K=Kl))(ranked[nd:].reshape(L, nc), vz[nd:].reshape(L, nc))
     idx = jnp.concatenate([i_d, (i_l + nd + nc * jnp.arange(L)[:, None]).reshape(-1)])
-    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), z[idx] - st.floor_z
+    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), z[idx] - floor_z
+
+
+def _selected_by_kernel(zd, vd, zl, vl, points, held, *, Kd, Kl, floor_z, distance, dt, interpret):
+    """:func:`_selected_by_xla`'s choice body by body, each in one program
+    (:func:`softcrawl.jaxsim.candidates.body_candidates`): a body's slots held its own points."""
+    nd, (L, nc) = zd.shape[0], zl.shape
+    body = partial(candidates.body_candidates, far=FAR, floor_z=floor_z, distance=distance, dt=dt, interpret=interpret)
+    base = nd + nc * jnp.arange(L)[:, None]
+    parts = []
+    if Kd:
+        parts.append(body(zd, vd, points[:Kd], held[:Kd], K=Kd))
+    if Kl:
+        prev = points[Kd:].reshape(L, Kl)
+        i_l, a_l, g_l = jax.vmap(partial(body, K=Kl))(zl, vl, jnp.where(prev >= 0, prev - base, -1),
+                                                      held[Kd:].reshape(L, Kl))
+        parts.append(((i_l + base).reshape(-1), a_l.reshape(-1), g_l.reshape(-1)))
+    return tuple(jnp.concatenate(a) for a in zip(*parts))
 
 
 def constraint_rows(model, state, v_free, qd_free, R) -> Rows:

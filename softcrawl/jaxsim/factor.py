@@ -122,7 +122,7 @@ def _padded(n: int, a_ref, dt, symmetrize: bool = False):
     eye = (rows == cols).astype(dt)
     A = pltriton.load(a_ref.at[rows, cols], mask=inside, other=0.0)
     if symmetrize:
-        A = (A + pltriton.load(a_ref.at[cols, rows], mask=inside, other=0.0)) / 2
+        A = (A + A.T) / 2
     return r, rows, cols, inside, eye, jnp.where(inside, A, eye)
 
 
