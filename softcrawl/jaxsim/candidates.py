@@ -6,13 +6,14 @@ first (lowered by :data:`~softcrawl.jaxsim.delassus.FAR`), in point order
 (:func:`softcrawl.jaxsim.contact.floor_contacts`). XLA's program does it for all bodies at once:
 the loaded points scattered into a mask over every point, the ranked heights sliced per body,
 the legs' selection in two stages of sorts (:func:`~softcrawl.jaxsim.contact.smallest_k`), the
-chosen indices sorted, the gaps gathered: compiled for an H100, 15 of the 96-robot step's
-kernels. :func:`body_candidates` does one body's selection in one program: its points' heights
+chosen indices sorted, the gaps gathered: most of the constraint rows' kernels on a GPU.
+:func:`body_candidates` does one body's selection in one program: its points' heights
 and vertical velocities read once, its own slots of last step's contacts as the loaded points
 (a body's slots hold its own points only), then ``K`` rounds of the smallest predicted gap (of
 equal ones the lowest index, as ``lax.top_k`` orders them) and the chosen points stored in point
 order. The same choice as XLA's, arithmetic included (tested in Pallas' interpreter); a batch of
-bodies under ``jax.vmap`` is one program a body.
+bodies under ``jax.vmap`` is one program a body. Compiled for an H100, the step has 7 operations
+fewer at 96 and 16,384 robots and moves 0.37 MB less a robot-step (``benchmarks/RESULTS.md``).
 """
 
 from __future__ import annotations

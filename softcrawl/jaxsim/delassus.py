@@ -108,11 +108,16 @@ def select_contacts(model, state, v_free, qd_free):
 
     Each body gets its own rows, so that one body's landing cannot take the others'; loaded
     points stay, as in the CPU engine's contact set: a leg lying on its paper face has more
-    points at the floor than rows, and a set redrawn every step chatters.
+    points at the floor than rows, and a set redrawn every step chatters. Chosen as
+    :data:`softcrawl.jaxsim.candidates.SELECTION` says: by XLA for all bodies at once, or body by
+    body in one kernel each, the same choice.
 
     Returns:
         ``(idx, active, gap)``: ``(K,)`` point indices (disk collision nodes, then each leg
         slot's), whether each is a candidate, its current gap (mm).
+
+    Raises:
+        ValueError: an unknown ``candidates.SELECTION``.
     """
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
     zl, vl = leg_heights(leg, rd, state.q, qd_free)

@@ -111,7 +111,8 @@ def _warps(N: int) -> int:
 def _padded(n: int, a_ref, dt, symmetrize: bool = False):
     """A program's matrix: ``a_ref`` ``(n, n)`` read whole at the padded size ``N`` through
     masked pointers (lanes past ``n`` load nothing), the identity on the padding; with
-    ``symmetrize``, ``(A + A^T) / 2`` (read twice: no transposing pass before the kernel).
+    ``symmetrize``, ``(A + A^T) / 2``, the transpose formed in the program (no transposing pass
+    before the kernel).
     Returns the lane indices ``r`` ``(N,)``, ``rows`` ``(N, 1)`` and ``cols`` ``(1, N)``, the mask
     of the ``n x n`` entries, the identity and the matrix ``(N, N)``."""
     from jax.experimental.pallas import triton as pltriton
@@ -152,8 +153,8 @@ def _kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
 def _sweep_kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
     """One matrix's inverse by the symmetric sweep operator (module doc): ``a_ref`` ``(n, n)``
     the symmetric matrix, read whole (with ``symmetrize``, ``(A + A^T) / 2``); ``o_ref``
-    receives ``A^-1``. Padded and masked as
-    :func:`_kernel`; the padding's identity rows are never swept."""
+    receives ``A^-1``. Padded and masked as :func:`_kernel`; the padding's identity rows are
+    never swept."""
     from jax.experimental.pallas import triton as pltriton
 
     r, rows, cols, inside, _, A = _padded(n, a_ref, o_ref.dtype, symmetrize)
@@ -200,7 +201,7 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
     kernel on CUDA, the library's form elsewhere) or ``"interpret"`` (the kernel in Pallas' interpreter).
     The library reads ``A``'s lower triangle only, the kernel the whole of it; ``symmetrize``
     factors ``(A + A^T) / 2`` instead, in every form (as ``jnp.linalg.cholesky``: for a matrix
-    symmetric up to round-off, the step matrices' sums; the kernel forms it as it reads ``A``).
+    symmetric up to round-off, the step matrices' sums; the kernel forms it itself).
     Its error is of the order of ``cond(A)`` times the rounding unit (Higham 2002, sec. 10.1).
     Batch it with ``jax.vmap`` (the kernel: one program per matrix).
 
