@@ -32,10 +32,10 @@
 #              engines over 2 s; two float32 forms on the CPU differ by 0.04 mm at most) and
 #              with no robot invalid that the defaults keep becomes the default: its results are
 #              checked on the card, `rid` and `solve` add the kernels' own checks and variants.
-# selection:   the step at 96 and 16,384 robots with each body's contact candidates chosen by a
-#              kernel of its own (`--selection kernel`, softcrawl.jaxsim.candidates: 7 kernels
-#              fewer, 0.37 MB less a robot-step, compiled for an H100) against the defaults, on the
-#              same robots; if faster at both sizes, set `candidates.SELECTION`'s CUDA default.
+# selection:   the step at 96 and 16,384 robots with each robot's contact candidates chosen by one
+#              kernel (`--selection kernel`, softcrawl.jaxsim.candidates: 14 operations fewer,
+#              0.49 MB less a robot-step, compiled for an H100) against the defaults, on the same
+#              robots; if faster at both sizes, make "kernel" `candidates.SELECTION`'s default.
 # factors:     the legs' 36 x 36 factors alone at 96 and 16,384 robots (`cholesky_kernel.py
 #              --sizes 36`): the kernel with its pivots looped and unrolled against the library,
 #              short enough for the minutes `candidates` leaves; if an unrolled variant is faster

@@ -7,13 +7,15 @@ first (lowered by :data:`~softcrawl.jaxsim.delassus.FAR`), in point order
 the loaded points scattered into a mask over every point, the ranked heights sliced per body,
 the legs' selection in two stages of sorts (:func:`~softcrawl.jaxsim.contact.smallest_k`), the
 chosen indices sorted, the gaps gathered: most of the constraint rows' kernels on a GPU.
-:func:`body_candidates` does one body's selection in one program: its points' heights
-and vertical velocities read once, its own slots of last step's contacts as the loaded points
-(a body's slots hold its own points only), then ``K`` rounds of the smallest predicted gap (of
-equal ones the lowest index, as ``lax.top_k`` orders them) and the chosen points stored in point
-order. The same choice as XLA's, arithmetic included (tested in Pallas' interpreter); a batch of
-bodies under ``jax.vmap`` is one program a body. Compiled for an H100, the step has 7 operations
-fewer at 96 and 16,384 robots and moves 0.37 MB less a robot-step (``benchmarks/RESULTS.md``).
+:func:`robot_candidates` does one robot's selection in one kernel, one program a body: its
+points' heights and vertical velocities read once (the disk's gathered from its nodes, the legs'
+as their height product writes them, shifted and masked in the program), its own slots of last
+step's contacts as the loaded points (a body's slots hold its own points only), then ``K``
+rounds of the smallest predicted gap (of equal ones the lowest index, as ``lax.top_k`` orders
+them) and the chosen points written in point order into the robot's slots. The same choice as
+XLA's, arithmetic included (tested in Pallas' interpreter). Compiled for an H100, the step has
+14 operations fewer at 96 and 16,384 robots and moves 0.49 MB less a robot-step
+(``benchmarks/RESULTS.md``).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from jax import lax
 from softcrawl.jaxsim.factor import padded_size
 
 #: How :func:`softcrawl.jaxsim.delassus.select_contacts` chooses the candidates: ``"xla"`` (the
-#: default; every platform), ``"kernel"`` (:func:`body_candidates` on CUDA, ``"xla"`` elsewhere)
+#: default; every platform), ``"kernel"`` (:func:`robot_candidates` on CUDA, ``"xla"`` elsewhere)
 #: or ``"interpret"`` (the kernel in Pallas' interpreter, any platform: the tests'). Read when a
 #: step is traced.
 SELECTION = "xla"
@@ -37,24 +39,24 @@ NUM_WARPS = 4
 _LANES = 16
 
 
-def _kernel(P: int, K: int, far: float, floor_z: float, distance: float, dt: float,
-            z_ref, vz_ref, prev_ref, held_ref, idx_ref, act_ref, gap_ref):
-    """One body: ``z_ref``, ``vz_ref`` ``(P,)`` its points' heights (mm) and vertical free
-    velocities (mm/s); ``prev_ref`` ``(K,)`` its slots' points of last step (-1: none) and
-    ``held_ref`` ``(K,)`` whether each bore a normal impulse (int32); ``idx_ref``, ``act_ref``,
-    ``gap_ref`` ``(K,)`` receive the chosen points in point order, whether each is within the
-    contact distance (int32) and its gap (mm). The program works on ``N`` lanes (``P`` padded to
-    a power of two) and ``16`` lanes for the ``K <= 16`` choices."""
+def _choose(P: int, K: int, far: float, floor_z: float, distance: float, dt: float, heights, velocities,
+            first: int, offset, pts_ref, imp_ref, idx_ref, act_ref, gap_ref):
+    """One body's choice (module doc) in a program: ``heights(points, mask)`` and
+    ``velocities(points, mask)`` its ``P`` points' heights (mm) and free vertical velocities
+    (mm/s); its ``K`` slots are ``first ..`` of the robot's, whose last step's points
+    ``pts_ref`` (-1: none) are its own ``offset`` on and ``imp_ref`` their impulses; writes its
+    slots of ``idx_ref`` (the robot's point indices), ``act_ref`` (int32) and ``gap_ref`` (mm).
+    ``N`` lanes (``P`` padded to a power of two) and ``16`` for the choices."""
     from jax.experimental.pallas import triton as pltriton
 
     N = padded_size(P)
     i = lax.iota(jnp.int32, N)
     inside = i < P
-    z = pltriton.load(z_ref.at[i], mask=inside, other=0.0)
-    vz = pltriton.load(vz_ref.at[i], mask=inside, other=0.0)
+    z, vz = heights(i, inside), velocities(i, inside)
     loaded = jnp.zeros((N,), jnp.bool_)
     for k in range(K):
-        loaded = loaded | ((i == prev_ref[k]) & (held_ref[k] != 0))
+        p = pts_ref[first + k]
+        loaded = loaded | ((i == p - offset) & (p >= 0) & (imp_ref[first + k, 0] > 0))
     gap = (z - jnp.where(loaded, far, 0.0)) - floor_z  # floor_contacts' gap of the ranked heights
     pred = jnp.where(inside, jnp.minimum(gap, gap + dt * vz), jnp.inf)
     lane = lax.iota(jnp.int32, _LANES)
@@ -67,50 +69,106 @@ def _kernel(P: int, K: int, far: float, floor_z: float, distance: float, dt: flo
     valid = lane < K
     # each choice's place in point order (ties by round: a permutation of 0 .. K - 1 in any case),
     # then the choices in that order, lane by lane (one store of consecutive lanes, no scatter)
-    a, b = chosen[:, None], chosen[None, :]  # [choice, other choice]
-    earlier = (b < a) | ((b == a) & (lane[None, :] < lane[:, None]))
+    a, c = chosen[:, None], chosen[None, :]  # [choice, other choice]
+    earlier = (c < a) | ((c == a) & (lane[None, :] < lane[:, None]))
     rank = jnp.sum((earlier & valid[None, :]).astype(jnp.int32), axis=1, dtype=jnp.int32)
     at = (rank[None, :] == lane[:, None]) & valid[None, :]  # [place, choice]
     chosen = jnp.sum(jnp.where(at, chosen[None, :], 0), axis=1, dtype=jnp.int32)
     value = jnp.sum(jnp.where(at, value[None, :], 0), axis=1)
-    pltriton.store(idx_ref.at[lane], chosen, mask=valid)
-    pltriton.store(act_ref.at[lane], (value < distance).astype(jnp.int32), mask=valid)
-    heights = pltriton.load(z_ref.at[chosen], mask=valid, other=0.0)
-    pltriton.store(gap_ref.at[lane], heights - floor_z, mask=valid)
+    pltriton.store(idx_ref.at[first + lane], chosen + offset, mask=valid)
+    pltriton.store(act_ref.at[first + lane], (value < distance).astype(jnp.int32), mask=valid)
+    pltriton.store(gap_ref.at[first + lane], heights(chosen, valid) - floor_z, mask=valid)
 
 
-def body_candidates(z, vz, prev, held, *, K: int, far: float, floor_z: float, distance: float, dt: float,
-                    interpret: bool = False):
-    """One body's ``K`` floor contact candidates (module doc) in one kernel.
+def _kernel(nd: int, Kd: int, nc: int, Kl: int, rule: tuple, coll_ref, x_ref, v_ref, legs_ref, t_ref, on_ref,
+            pts_ref, imp_ref, idx_ref, act_ref, gap_ref):
+    """One robot's body ``b`` (the program's index): the disk (``b = 0``, its ``nd`` collision
+    nodes ``coll_ref`` among the nodes' positions ``x_ref`` and free velocities ``v_ref`` ``(n,
+    3)``) or leg ``b - 1`` (its ``nc`` points' heights before its translation and their
+    velocities in ``legs_ref`` ``(2, L, nc)``, its translation ``t_ref`` ``(L, 3)``, whether it
+    exists ``on_ref`` ``(L,)`` int32: an absent leg's points lie at ``far``); ``rule`` ``(far,
+    floor_z, distance, dt)``; the rest as :func:`_choose`."""
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as pltriton
+
+    b = pl.program_id(0)
+    out = (pts_ref, imp_ref, idx_ref, act_ref, gap_ref)
+
+    def disk(field_ref):
+        def read(points, mask):
+            node = pltriton.load(coll_ref.at[points], mask=mask, other=0)
+            return pltriton.load(field_ref.at[node, 2], mask=mask, other=0.0)
+        return read
+
+    if Kd:
+        pl.when(b == 0)(lambda: _choose(nd, Kd, *rule, disk(x_ref), disk(v_ref), 0, 0, *out))
+    if Kl:
+        def leg():
+            l = b - 1
+            on, shift = on_ref[l] != 0, t_ref[l, 2]
+
+            def heights(points, mask):
+                return jnp.where(on, pltriton.load(legs_ref.at[0, l, points], mask=mask, other=0.0) + shift, rule[0])
+
+            def velocities(points, mask):
+                return pltriton.load(legs_ref.at[1, l, points], mask=mask, other=0.0)
+
+            _choose(nc, Kl, *rule, heights, velocities, Kd + Kl * l, nd + nc * l, *out)
+
+        pl.when(b > 0)(leg)
+
+
+def robot_candidates(collision, x, v, legs, translation, present, points, impulses, *, Kd: int, Kl: int, far: float,
+                     floor_z: float, distance: float, dt: float, interpret: bool = False):
+    """One robot's floor contact candidates (module doc), one program a body: the disk's ``K_d``
+    and each leg slot's ``K_l``, as :func:`softcrawl.jaxsim.delassus.select_contacts` chooses
+    them.
 
     Args:
-        z, vz: ``(P,)`` its collision points' heights (mm) and free vertical velocities (mm/s).
-        prev: ``(K,)`` int, the points its contact slots held last step (-1: none); held: ``(K,)``
-            bool, whether each bore a normal impulse (those points are lowered by ``far``, mm,
-            so that they stay).
-        K: slots (static, ``K <= min(P, 16)``); floor_z, distance: mm; dt: s.
+        collision: ``(nd,)`` the disk's collision nodes; x, v: ``(n, 3)`` its nodes' positions
+            (mm) and free velocities (mm/s).
+        legs: ``(2, L, nc)`` the legs' collision points' heights before their translation (mm),
+            then their free vertical velocities (mm/s)
+            (:func:`softcrawl.jaxsim.delassus.leg_height_terms`, read as it writes them);
+            translation: ``(L, 3)`` each leg's placement's translation (mm; its heights are
+            ``legs[0] + translation[:, 2]``); present: ``(L,)`` bool, whether each leg exists
+            (an absent leg's points lie at ``far``).
+        points: ``(K,)`` int, last step's contact points (the disk's slots, then each leg's; -1:
+            none), the robot's indices (the disk's collision points, then each leg's); impulses:
+            ``(K, 3)`` theirs (those with a normal impulse are lowered by ``far``, mm, so that
+            they stay).
+        Kd, Kl: the disk's and each leg's slots (static, at most 16 and at most its points);
+        floor_z, distance: mm; dt: s.
         interpret: run the kernel in Pallas' interpreter instead of compiling it for a GPU.
 
     Returns:
-        ``(idx (K,) int32, active (K,) bool, gap (K,))``: the chosen points in point order,
-        whether each one's predicted gap ``min(g, g + dt v_z)`` (of the lowered heights) is below
-        ``distance``, and its gap ``z - floor_z``, mm (of its own height).
+        ``(idx (K,) int32, active (K,) bool, gap (K,))``: each body's chosen points in point
+        order (the robot's indices), whether each one's predicted gap ``min(g, g + dt v_z)`` (of
+        the lowered heights) is below ``distance``, and its gap ``z - floor_z``, mm (of its own
+        height).
 
     Raises:
-        ValueError: ``K`` above ``P`` or 16, or arrays of other lengths.
+        ValueError: a body with more slots than 16 or than its points, or arrays of other shapes.
     """
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
-    P = z.shape[0]
-    if not 0 < K <= min(P, _LANES) or vz.shape != (P,) or prev.shape != (K,) or held.shape != (K,):
-        raise ValueError(f"body_candidates needs 0 < K <= min(P, {_LANES}) and (P,) z and vz, (K,) prev and held; got "
-                         f"K = {K}, {z.shape}, {vz.shape}, {prev.shape}, {held.shape}")
-    out = jax.ShapeDtypeStruct((K,), jnp.int32)
+    nd, (_, L, nc) = collision.shape[0], legs.shape
+    K = Kd + L * Kl
+    if (Kd > min(nd, _LANES) or Kl > min(nc, _LANES) or legs.shape[0] != 2 or translation.shape != (L, 3)
+            or present.shape != (L,) or points.shape != (K,) or impulses.shape != (K, 3)):
+        raise ValueError(f"robot_candidates needs at most min(points, {_LANES}) slots a body, (2, L, nc) legs, "
+                         f"(L, 3) translation, (L,) present, (K,) points and (K, 3) impulses; got Kd = {Kd} of {nd}, "
+                         f"Kl = {Kl} of {nc}, {legs.shape}, {translation.shape}, {present.shape}, {points.shape}, "
+                         f"{impulses.shape}")
+    dt_ = legs.dtype
     idx, act, gap = pl.pallas_call(
-        partial(_kernel, P, K, float(far), float(floor_z), float(distance), float(dt)),
-        out_shape=(out, out, jax.ShapeDtypeStruct((K,), z.dtype)), interpret=interpret,
+        partial(_kernel, nd, Kd, nc, Kl, (float(far), float(floor_z), float(distance), float(dt))),
+        out_shape=(jax.ShapeDtypeStruct((K,), jnp.int32), jax.ShapeDtypeStruct((K,), jnp.int32),
+                   jax.ShapeDtypeStruct((K,), dt_)),
+        grid=(1 + L,), interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
         name="contact_candidates",
-    )(z, vz.astype(z.dtype), prev.astype(jnp.int32), held.astype(jnp.int32))
+    )(collision.astype(jnp.int32), x.astype(dt_), v.astype(dt_), legs, translation.astype(dt_),
+      present.astype(jnp.int32), points.astype(jnp.int32), impulses.astype(dt_))
     return idx, act != 0, gap

@@ -87,18 +87,29 @@ def _disk_gather(inverse, rows_nodes, cols_nodes):
     return inverse[r.reshape(r.shape + (1,) * c.ndim), c.reshape((1,) * r.ndim + c.shape)]
 
 
+def leg_height_terms(leg, rd, q, qdot):
+    """``(2, L, nc)``: the legs' collision nodes' heights before their placement's translation
+    (mm), then their vertical velocities (mm/s), as one product (:func:`leg_heights`)."""
+    up = rd.rotation[:, 2]  # (L, 3): world z = up . part-frame position
+    one = jnp.ones((q.shape[0], 1), q.dtype)
+    qq = jnp.stack([jnp.concatenate([q, one], axis=1), jnp.concatenate([qdot, jnp.zeros_like(one)], axis=1)])
+    return jnp.einsum("nam,klam->kln", leg.coll_affine, up[None, :, :, None] * qq[:, :, None, :])
+
+
 def leg_heights(leg, rd, q, qdot):
     """World heights and vertical velocities ``(L, nc)`` of the legs' collision nodes (absent
     legs :data:`FAR` up), mm and mm/s: only the third row ``u`` of each leg's rotation enters,
     ``z_n = u . (X_n + Phi_n q) + t_z = [Phi_n, X_n] : (u (q, 1)^T) + t_z``, so that heights and
     velocities are one product of ``leg.coll_affine``, read as ``(nc, 3 (m + 1))``, with the legs'
-    ``u (x) (q, 1)`` and ``u (x) (qdot, 0)``: it writes the heights alone, not the nodes' three
-    coordinates."""
-    up = rd.rotation[:, 2]  # (L, 3): world z = up . part-frame position
-    one = jnp.ones((q.shape[0], 1), q.dtype)
-    qq = jnp.stack([jnp.concatenate([q, one], axis=1), jnp.concatenate([qdot, jnp.zeros_like(one)], axis=1)])
-    z, vz = jnp.einsum("nam,klam->kln", leg.coll_affine, up[None, :, :, None] * qq[:, :, None, :])
-    return jnp.where(rd.leg_mask[:, None], z + rd.translation[:, 2:], FAR), vz
+    ``u (x) (q, 1)`` and ``u (x) (qdot, 0)`` (:func:`leg_height_terms`): it writes the heights
+    alone, not the nodes' three coordinates."""
+    z, vz = leg_height_terms(leg, rd, q, qdot)
+    return _placed(z, rd.translation[:, 2], rd.leg_mask), vz
+
+
+def _placed(z, shift, present):
+    """Heights ``z`` ``(L, nc)`` shifted by each leg's ``shift`` ``(L,)``, :data:`FAR` for absent legs."""
+    return jnp.where(present[:, None], z + shift[:, None], FAR)
 
 
 def select_contacts(model, state, v_free, qd_free):
@@ -109,8 +120,8 @@ def select_contacts(model, state, v_free, qd_free):
     Each body gets its own rows, so that one body's landing cannot take the others'; loaded
     points stay, as in the CPU engine's contact set: a leg lying on its paper face has more
     points at the floor than rows, and a set redrawn every step chatters. Chosen as
-    :data:`softcrawl.jaxsim.candidates.SELECTION` says: by XLA for all bodies at once, or body by
-    body in one kernel each, the same choice.
+    :data:`softcrawl.jaxsim.candidates.SELECTION` says: by XLA for all bodies at once, or in one
+    kernel, one program a body; the same choice.
 
     Returns:
         ``(idx, active, gap)``: ``(K,)`` point indices (disk collision nodes, then each leg
@@ -120,8 +131,8 @@ def select_contacts(model, state, v_free, qd_free):
         ValueError: an unknown ``candidates.SELECTION``.
     """
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
-    zl, vl = leg_heights(leg, rd, state.q, qd_free)
-    args = (state.x[dk.collision, 2], v_free[dk.collision, 2], zl, vl, state.contact_points, state.impulses[:, 0] > 0)
+    args = (dk.collision, state.x, v_free, leg_height_terms(leg, rd, state.q, qd_free), rd.translation, rd.leg_mask,
+            state.contact_points, state.impulses)
     rule = dict(Kd=st.disk_contacts, Kl=st.leg_contacts, floor_z=st.floor_z, distance=st.contact_distance, dt=st.dt)
     if candidates.SELECTION not in ("xla", "kernel", "interpret"):
         raise ValueError(f"candidates.SELECTION must be 'xla', 'kernel' or 'interpret', not {candidates.SELECTION!r}")
@@ -133,15 +144,15 @@ def select_contacts(model, state, v_free, qd_free):
                                       default=partial(_selected_by_xla, **rule))
 
 
-def _selected_by_xla(zd, vd, zl, vl, points, held, *, Kd, Kl, floor_z, distance, dt):
-    """:func:`select_contacts` for all bodies at once: the disk's points' heights ``zd`` and
-    free vertical velocities ``vd`` ``(nd,)``, the legs' ``zl``, ``vl`` ``(L, nc)``, last step's
-    contact points ``points`` ``(K,)`` (-1: none) and whether each bore a normal impulse,
-    ``held``."""
-    nd, (L, nc) = zd.shape[0], zl.shape
-    z, vz = jnp.concatenate([zd, zl.reshape(-1)]), jnp.concatenate([vd, vl.reshape(-1)])
+def _selected_by_xla(collision, x, v, legs, translation, present, points, impulses, *, Kd, Kl, floor_z, distance,
+                     dt):
+    """:func:`select_contacts` for all bodies at once (its arguments as
+    :func:`softcrawl.jaxsim.candidates.robot_candidates`')."""
+    zl, vl = _placed(legs[0], translation[:, 2], present), legs[1]
+    nd, (L, nc) = collision.shape[0], zl.shape
+    z, vz = jnp.concatenate([x[collision, 2], zl.reshape(-1)]), jnp.concatenate([v[collision, 2], vl.reshape(-1)])
     pts = jnp.where(points >= 0, points, z.shape[0])
-    loaded = jnp.zeros(z.shape[0], bool).at[pts].max(held, mode="drop")
+    loaded = jnp.zeros(z.shape[0], bool).at[pts].max(impulses[:, 0] > 0, mode="drop")
     ranked = z - jnp.where(loaded, FAR, 0.0)
     select = partial(floor_contacts, floor_z=floor_z, distance=distance, dt=dt)
     i_d, a_d, _ = select(ranked[:nd], vz[:nd], K=Kd)
@@ -150,21 +161,11 @@ def _selected_by_xla(zd, vd, zl, vl, points, held, *, Kd, Kl, floor_z, distance,
     return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), z[idx] - floor_z
 
 
-def _selected_by_kernel(zd, vd, zl, vl, points, held, *, Kd, Kl, floor_z, distance, dt, interpret):
-    """:func:`_selected_by_xla`'s choice body by body, each in one program
-    (:func:`softcrawl.jaxsim.candidates.body_candidates`): a body's slots held its own points."""
-    nd, (L, nc) = zd.shape[0], zl.shape
-    body = partial(candidates.body_candidates, far=FAR, floor_z=floor_z, distance=distance, dt=dt, interpret=interpret)
-    base = nd + nc * jnp.arange(L)[:, None]
-    parts = []
-    if Kd:
-        parts.append(body(zd, vd, points[:Kd], held[:Kd], K=Kd))
-    if Kl:
-        prev = points[Kd:].reshape(L, Kl)
-        i_l, a_l, g_l = jax.vmap(partial(body, K=Kl))(zl, vl, jnp.where(prev >= 0, prev - base, -1),
-                                                      held[Kd:].reshape(L, Kl))
-        parts.append(((i_l + base).reshape(-1), a_l.reshape(-1), g_l.reshape(-1)))
-    return tuple(jnp.concatenate(a) for a in zip(*parts))
+def _selected_by_kernel(*args, interpret, **rule):
+    """:func:`_selected_by_xla`'s choice in one kernel (:func:`softcrawl.jaxsim.candidates.robot_candidates`),
+    its indices in JAX's default integer (as XLA's)."""
+    idx, active, gap = candidates.robot_candidates(*args, far=FAR, interpret=interpret, **rule)
+    return idx.astype(jax.dtypes.canonicalize_dtype(jnp.int64)), active, gap
 
 
 def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
