@@ -520,17 +520,18 @@ def test_step_cost_compares_two_forms_of_the_step_on_the_same_robots(tmp_path):
 
 
 def test_the_legs_heights_are_the_z_of_their_rotated_collision_nodes(landed):
-    """``leg_heights`` forms only the world z of the legs' collision nodes (third row of each
-    leg's rotation): equal, to 1e-12 mm (float64 round-off of ~40-term sums of numbers below
-    100), to the full placement ``R (X + Phi q) + t`` in numpy, velocities likewise; absent legs
-    are FAR up. Rows and columns of ``R`` swapped would move the bent, pressed legs' nodes by
-    millimetres."""
-    from softcrawl.jaxsim.delassus import FAR, leg_heights
+    """``leg_height_terms`` forms only the world z of the legs' collision nodes (third row of each
+    leg's rotation), ``place_heights`` adds the translation: equal, to 1e-12 mm (float64
+    round-off of ~40-term sums of numbers below 100), to the full placement ``R (X + Phi q) + t``
+    in numpy, velocities likewise; absent legs are FAR up. Rows and columns of ``R`` swapped
+    would move the bent, pressed legs' nodes by millimetres."""
+    from softcrawl.jaxsim.delassus import FAR, leg_height_terms, place_heights
 
     model, state, _ = landed
     leg, rd = model.leg, model.robot
     qdot = state.qdot + jnp.asarray(np.random.default_rng(1).normal(0.0, 5.0, state.qdot.shape))
-    z, vz = leg_heights(leg, rd, state.q, qdot)
+    z, vz = leg_height_terms(leg, rd, state.q, qdot)
+    z = place_heights(z, rd.translation[:, 2], rd.leg_mask)
     Phi, X, R = np.asarray(leg.coll_affine[..., :-1]), np.asarray(leg.coll_affine[..., -1]), np.asarray(rd.rotation)
     x = np.einsum("lac,lnc->lna", R, X + np.einsum("nam,lm->lna", Phi, np.asarray(state.q)))
     v = np.einsum("lac,lnc->lna", R, np.einsum("nam,lm->lna", Phi, np.asarray(qdot)))

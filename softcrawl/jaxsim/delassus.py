@@ -88,27 +88,21 @@ def _disk_gather(inverse, rows_nodes, cols_nodes):
 
 
 def leg_height_terms(leg, rd, q, qdot):
-    """``(2, L, nc)``: the legs' collision nodes' heights before their placement's translation
-    (mm), then their vertical velocities (mm/s), as one product (:func:`leg_heights`)."""
+    """``(2, L, nc)``: the world heights of the legs' collision nodes before their placement's
+    translation (mm), then their vertical velocities (mm/s). Only the third row ``u`` of each
+    leg's rotation enters, ``z_n = u . (X_n + Phi_n q) (+ t_z) = [Phi_n, X_n] : (u (q, 1)^T)``,
+    so that heights and velocities are one product of ``leg.coll_affine``, read as ``(nc, 3 (m +
+    1))``, with the legs' ``u (x) (q, 1)`` and ``u (x) (qdot, 0)``: it writes the heights alone,
+    not the nodes' three coordinates (:func:`place_heights` adds ``t_z``)."""
     up = rd.rotation[:, 2]  # (L, 3): world z = up . part-frame position
     one = jnp.ones((q.shape[0], 1), q.dtype)
     qq = jnp.stack([jnp.concatenate([q, one], axis=1), jnp.concatenate([qdot, jnp.zeros_like(one)], axis=1)])
     return jnp.einsum("nam,klam->kln", leg.coll_affine, up[None, :, :, None] * qq[:, :, None, :])
 
 
-def leg_heights(leg, rd, q, qdot):
-    """World heights and vertical velocities ``(L, nc)`` of the legs' collision nodes (absent
-    legs :data:`FAR` up), mm and mm/s: only the third row ``u`` of each leg's rotation enters,
-    ``z_n = u . (X_n + Phi_n q) + t_z = [Phi_n, X_n] : (u (q, 1)^T) + t_z``, so that heights and
-    velocities are one product of ``leg.coll_affine``, read as ``(nc, 3 (m + 1))``, with the legs'
-    ``u (x) (q, 1)`` and ``u (x) (qdot, 0)`` (:func:`leg_height_terms`): it writes the heights
-    alone, not the nodes' three coordinates."""
-    z, vz = leg_height_terms(leg, rd, q, qdot)
-    return _placed(z, rd.translation[:, 2], rd.leg_mask), vz
-
-
-def _placed(z, shift, present):
-    """Heights ``z`` ``(L, nc)`` shifted by each leg's ``shift`` ``(L,)``, :data:`FAR` for absent legs."""
+def place_heights(z, shift, present):
+    """The legs' heights ``(L, nc)`` (mm): ``z`` of :func:`leg_height_terms` shifted by each leg's
+    translation ``shift`` ``(L,)`` (mm), :data:`FAR` up for the absent ones (``present`` false)."""
     return jnp.where(present[:, None], z + shift[:, None], FAR)
 
 
@@ -148,7 +142,7 @@ def _selected_by_xla(collision, x, v, legs, translation, present, points, impuls
                      dt):
     """:func:`select_contacts` for all bodies at once (its arguments as
     :func:`softcrawl.jaxsim.candidates.robot_candidates`')."""
-    zl, vl = _placed(legs[0], translation[:, 2], present), legs[1]
+    zl, vl = place_heights(legs[0], translation[:, 2], present), legs[1]
     nd, (L, nc) = collision.shape[0], zl.shape
     z, vz = jnp.concatenate([x[collision, 2], zl.reshape(-1)]), jnp.concatenate([v[collision, 2], vl.reshape(-1)])
     pts = jnp.where(points >= 0, points, z.shape[0])

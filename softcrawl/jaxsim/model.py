@@ -88,7 +88,7 @@ class LegPart:
             (:func:`cavity_polynomial`).
         coll_affine: ``(nc, 3, m + 1)`` the collision nodes' basis rows and rest positions, ``[Phi_n,
             X_n]``: part-frame positions ``X_n + Phi_n q`` are ``coll_affine @ (q, 1)``, mm
-            (:func:`softcrawl.jaxsim.delassus.leg_heights`).
+            (:func:`softcrawl.jaxsim.delassus.leg_height_terms`).
         att_rest, att_basis: ``(F, 3)``, ``(F, 3, m)`` weighted attachment patches.
         basis: ``(n, 3, m)`` the basis rows of every node (node speeds ``|Phi_n qdot|``, mm/s).
     """
