@@ -20,8 +20,8 @@
 #
 # candidates:  the step at 96 and 16,384 robots, float32, with the forms not yet defaults and
 #              without: the defaults, all four together (the issue's figures if all are taken:
-#              the RID kernel, the held solve, the unrolled factor, the contact candidates by a
-#              kernel a body), the RID kernel alone (`--rid-form kernel`), the solve's operator on
+#              the RID kernel, the held solve, the unrolled factor, the contact candidates by one
+#              kernel a robot), the RID kernel alone (`--rid-form kernel`), the solve's operator on
 #              chip alone (`--resident-rows 128`; the unrolled factor alone: `factors`, the
 #              candidates' kernel alone: `selection`); one call, so that the four are compared on
 #              one warm card, on the same robots: each form's disk nodes after its four actions

@@ -84,7 +84,8 @@ def main(argv=None) -> None:
                         "default: the module's)")
     p.add_argument("--selection", choices=("xla", "kernel"), default=None,
                    help="how each body's contact candidates are chosen (softcrawl.jaxsim.candidates.SELECTION: "
-                        "XLA's program for all bodies at once, or one kernel a body; default: the module's)")
+                        "XLA's program for all bodies at once, or one kernel, a program a body; default: the "
+                        "module's)")
     p.add_argument("--formed-operator", action="store_true",
                    help="the solve kernel reads the condensed operator formed by XLA, not in its parts "
                         "(softcrawl.jaxsim.fused.OPERATOR_PARTS = False)")

@@ -122,8 +122,8 @@ def test_the_symmetrized_library_form_is_jax_numpys_factor_inverted():
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_the_symmetrized_kernel_factors_the_symmetric_part_it_reads(dtype):
-    """The kernel's ``symmetrize=True`` forms ``(A + A^T) / 2`` as it reads ``A`` (twice, by rows
-    and by columns; no transposing pass before it on a GPU): on a matrix symmetric up to a 1e-5
+    """The kernel's ``symmetrize=True`` forms ``(A + A^T) / 2`` itself, the transpose in the program
+    (no transposing pass before it on a GPU): on a matrix symmetric up to a 1e-5
     perturbation of its upper triangle (the legs' step matrices are sums, symmetric up to
     round-off), the interpreted kernel's ``C^-1`` is the kernel's of the symmetrized matrix to
     the bit, and differs from the kernel's of ``A`` as read (its column and row of each pivot
