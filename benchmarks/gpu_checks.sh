@@ -111,30 +111,32 @@ mkdir -p "$out"
 # each) instead of compiling them again. `training` reports its compilation, so it runs without.
 export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/softcrawl-jax-cache}
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
+
+# forms NAME LIMIT FLAGS...: the step at 96 and 16,384 robots in each form (one word of
+# step_cost.py's flags, each call under LIMIT seconds), every form's robots against the first's
+# on the same robots (--reference: the first's ends in /tmp/NAME.npz, 66 MB, not in OUTDIR).
+forms() {
+    local name=$1 limit=$2 flags
+    shift 2
+    rm -f "/tmp/$name.npz"
+    for flags in "$@"; do
+        timeout "$limit" python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
+            --reference "/tmp/$name.npz" 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+    done
+}
+
 case $stage in
 candidates)
-    rm -f /tmp/candidates.npz  # the defaults' ends, which the others are compared with (66 MB: not in OUTDIR)
-    for flags in "" "--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel" \
-            "--rid-form kernel" "--resident-rows 128"; do
-        timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
-            --reference /tmp/candidates.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
-    done ;;
+    forms candidates 130 "" "--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel" \
+        "--rid-form kernel" "--resident-rows 128" ;;
 parts)
-    rm -f /tmp/parts.npz
-    for flags in "" "--formed-operator"; do
-        timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
-            --reference /tmp/parts.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
-    done
+    forms parts 130 "" "--formed-operator"
     timeout 100 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 5 \
         2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
 rid)
     timeout 200 python3 benchmarks/rid_kernel.py --robots 96,16384 --calls 10 2>>"$out/log.txt" \
         | tee -a "$out/rid.jsonl"
-    rm -f /tmp/rid.npz
-    for form in pairs kernel; do
-        timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 --rid-form $form \
-            --reference /tmp/rid.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
-    done
+    forms rid 130 "--rid-form pairs" "--rid-form kernel"
     if [ -n "${BASE:-}" ]; then
         PYTHONPATH=$BASE:$PYTHONPATH timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
             2>>"$out/log.txt" | sed 's/^{/{"base": true, /' | tee -a "$out/targets.jsonl"
@@ -143,11 +145,7 @@ solve)
     timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
         --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
 selection)
-    rm -f /tmp/selection.npz
-    for flags in "" "--selection kernel"; do
-        timeout 200 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
-            --reference /tmp/selection.npz 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
-    done ;;
+    forms selection 200 "" "--selection kernel" ;;
 factors)
     timeout 220 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 --sizes 36 \
         2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;

@@ -33,6 +33,8 @@ from softcrawl.jaxsim.factor import padded_size
 #: or ``"interpret"`` (the kernel in Pallas' interpreter, any platform: the tests'). Read when a
 #: step is traced.
 SELECTION = "xla"
+#: The values :data:`SELECTION` may take.
+SELECTIONS = ("xla", "kernel", "interpret")
 #: Warps a body's program: a leg's 1,179 points padded to 2,048 are 16 a thread.
 NUM_WARPS = 4
 #: Lanes of a program's choices: ``K`` at most this.

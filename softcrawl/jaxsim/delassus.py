@@ -128,8 +128,8 @@ def select_contacts(model, state, v_free, qd_free):
     args = (dk.collision, state.x, v_free, leg_height_terms(leg, rd, state.q, qd_free), rd.translation, rd.leg_mask,
             state.contact_points, state.impulses)
     rule = dict(Kd=st.disk_contacts, Kl=st.leg_contacts, floor_z=st.floor_z, distance=st.contact_distance, dt=st.dt)
-    if candidates.SELECTION not in ("xla", "kernel", "interpret"):
-        raise ValueError(f"candidates.SELECTION must be 'xla', 'kernel' or 'interpret', not {candidates.SELECTION!r}")
+    if candidates.SELECTION not in candidates.SELECTIONS:
+        raise ValueError(f"candidates.SELECTION must be one of {candidates.SELECTIONS}, not {candidates.SELECTION!r}")
     if candidates.SELECTION == "xla":
         return _selected_by_xla(*args, **rule)
     if candidates.SELECTION == "interpret":

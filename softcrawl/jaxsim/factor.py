@@ -83,9 +83,10 @@ LIBRARY_FROM = 2048
 #: The largest matrix size whose pivots the kernels unroll, or 0 for none. Unrolled (one pivot's
 #: step after another in straight-line code), the masks of pivot ``k``'s row and column are
 #: constants: compiled for an H100 (``benchmarks/kernel_sass.py --kernel factor``), a leg's 36 x
-#: 36 factor takes 203 instructions a pivot and warp against the loop's 495, 14,640 warp
-#: instructions a matrix against 35,640 (7,320 instructions of code, 117 KB; 167 registers, no
-#: spill; at 128 numbers a thread, one warp, 10,488), the attachment block's 72 x 72 inverse 390
+#: 36 factor (symmetrized, as the step asks) takes 208 instructions a pivot and warp against the
+#: loop's 495, 14,976 warp instructions a matrix against 35,640 (7,488 instructions of code, 120
+#: KB; 164 registers, no spill; at 128 numbers a thread, one warp, 10,800), the attachment
+#: block's 72 x 72 inverse 390
 #: against 588 (28,112 instructions, 24 bytes spilled). The looped kernel ran 98,304 legs'
 #: matrices at about 80% of an H100's issue rate (4.35 ms): there, fewer instructions should be
 #: faster, unless the longer code stalls on its fetch. Measured on a GPU before it becomes a
