@@ -23,8 +23,9 @@ arithmetic, so at the multiprocessors' issue rate (one instruction a cycle per s
 count bounds its time from below.
 
 With ``--kernel factor``, each variant of :mod:`softcrawl.jaxsim.factor`'s kernels (its constants
-``UNROLL_PIVOTS``, ``PER_THREAD``) for the 96-robot step's matrices (576 legs' 36 x 36 factors
-inverted, 96 attachment blocks' 72 x 72 inverses): registers, spills, ``instructions_per_pivot``
+``UNROLL_PIVOTS``, ``PER_THREAD``) for the 96-robot step's matrices (576 legs' 36 x 36 step
+matrices formed, their factors inverted and the free motion solved, ``step_solve``; 96
+attachment blocks' 72 x 72 inverses): registers, spills, ``instructions_per_pivot``
 (the pivot loop's, or with the pivots unrolled the straight-line code's share a pivot) and
 ``warp_instructions_per_matrix`` (that times the pivots and the program's warps): at thousands
 of matrices the kernels are bound by the multiprocessors' issue rate.
@@ -203,14 +204,20 @@ def factor_variants(args, arch, sharding, dump) -> None:
 
     from softcrawl.jaxsim import factor
 
-    kernels = (("cholesky_inverse", partial(factor.cholesky_inverse, form="kernel", symmetrize=True), 576, 36),
-               ("inverse_spd", partial(factor.inverse_spd, form="kernel"), 96, 72))  # 96 robots' matrices
+    def spec(*shape, dtype=jnp.float32):
+        return jax.ShapeDtypeStruct(shape, dtype, sharding=sharding)
+
+    def step(M, K, slots, b, x):  # a leg's step matrix and free motion, as the step forms them
+        return factor.step_solve(M, K, slots, 1.0, 1.0, b, x, "kernel")
+
+    kernels = (("step_solve", jax.vmap(step, in_axes=(None, 0, None, 0, 0)),  # 96 robots' matrices
+                (spec(36, 36), spec(576, 33, 33), spec(36, dtype=jnp.int32), spec(576, 36), spec(576, 36)), 36),
+               ("inverse_spd", jax.vmap(partial(factor.inverse_spd, form="kernel")), (spec(96, 72, 72),), 72))
     for text in args.variants.split(","):
         unroll, per = text.split(":")
         factor.UNROLL_PIVOTS, factor.PER_THREAD = int(unroll), int(per)
-        for name, function, count, n in kernels:
-            spec = jax.ShapeDtypeStruct((count, n, n), jnp.float32, sharding=sharding)
-            sass, report = compiled_kernel(jax.jit(jax.vmap(function)), [spec], name, arch, sharding, dump)
+        for name, function, specs, n in kernels:
+            sass, report = compiled_kernel(jax.jit(function), list(specs), name, arch, sharding, dump)
             loops = outer_loops(sass)
             total = len(_SASS.findall(sass))
             pivot = sum(loops[0].values()) if loops else total / n  # the loop's body, or the straight line's share

@@ -26,9 +26,9 @@ def test_the_kernel_chooses_xlas_contacts(nd, Kd, L, nc, Kl, dtype):
     six legs of 1,179 points and 12; and a small one, 16 of 20), heights on a 0.25-mm grid so
     that predicted gaps tie (some within the contact distance), last step's points partly
     loaded, one leg absent (its points at ``FAR``, none chosen active), the interpreted kernel gives XLA's choice
-    (``select_contacts``' all-bodies program) exactly: indices, activity and gaps, the same
-    arithmetic in the same order (of equal predicted gaps the lowest index first, as
-    ``lax.top_k``)."""
+    (``select_contacts``' all-bodies program) exactly: indices, activity, gaps and warm starts
+    (the points kept from last step bring their impulses), the same arithmetic in the same order
+    (of equal predicted gaps the lowest index first, as ``lax.top_k``)."""
     from softcrawl.jaxsim.candidates import robot_candidates
     from softcrawl.jaxsim.delassus import _selected_by_xla
 
@@ -52,8 +52,10 @@ def test_the_kernel_chooses_xlas_contacts(nd, Kd, L, nc, Kl, dtype):
     for g, w in zip(got, want):  # the indices int32 (XLA's int64 with float64 on)
         assert g.dtype == w.dtype or g.dtype == jnp.int32
         np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
-    idx, active = np.asarray(want[0]), np.asarray(want[1])
+    idx, active, warm = np.asarray(want[0]), np.asarray(want[1]), np.asarray(want[3])
     assert active.sum() > 0 and not active[Kd + Kl * (L - 2):Kd + Kl * (L - 1)].any()
+    kept = np.isin(idx, points)
+    assert not kept.all() and np.all(warm[~kept] == 0) and np.count_nonzero(warm[kept]) > 0
     if nc > Kl * 20:  # ties among a leg's choices
         assert len(set(legs[0, 0][idx[Kd:Kd + Kl] - nd])) < Kl
 

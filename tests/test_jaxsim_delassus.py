@@ -8,6 +8,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -931,12 +932,14 @@ ptxas info    : Used 128 registers, used 1 barriers
 def test_the_cholesky_kernels_step_is_the_librarys(landed, monkeypatch):
     """``Settings.cholesky = "kernel"`` (the legs' and the attachment block's inverse factors in
     one GPU kernel, :mod:`softcrawl.jaxsim.factor`): on a CPU the compiled step is the library's
-    to the bit, the traced step holding the kernel for other platforms; with the kernel forced
-    (interpreted) for every inverse of the landed robot's step, the step's modal and disk
-    velocities are the library's within 1e-8 of their size (float64). The two factorisations'
+    to the bit, the traced step holding the kernel for other platforms; with the kernels forced
+    (interpreted) for every inverse of the landed robot's step (each leg's step matrix formed,
+    factored and its free motion solved in one program, ``factor.step_solve``), the step's modal
+    and disk velocities are the library's within 1e-8 of their size (float64). The two factorisations'
     round-off: the legs' step matrices have condition numbers of about 1e5, and their inverse
-    factors differ by up to 1.3e-13 of their size; the contact solve amplifies that to 8e-11
-    (modal) and 2.6e-10 (disk) of the velocities, measured. A wrong inverse moves them by
+    factors differ by up to 1.3e-13 of their size; the contact solve amplifies that to 1.8e-10
+    (modal) and 4.8e-10 (disk) of the velocities, measured (8e-11 and 2.6e-10 with the legs'
+    step matrices formed and solved by XLA around the kernel). A wrong inverse moves them by
     their own size."""
     from softcrawl.jaxsim import factor
     from softcrawl.jaxsim.engine import physics_step
@@ -951,6 +954,7 @@ def test_the_cholesky_kernels_step_is_the_librarys(landed, monkeypatch):
     assert "pallas_call" not in str(jax.make_jaxpr(physics_step)(model, state, kpa))
     monkeypatch.setattr(factor, "_library",
                         lambda A, symmetrize=False: factor.cholesky_inverse(A, "interpret", symmetrize))
+    monkeypatch.setattr(factor, "_step_library", partial(factor._step_pallas, interpret=True))
     jax.clear_caches()  # the patched factor is read when the step is traced
     c = step(model, state, kpa)
     for name in ("qdot", "v"):

@@ -12,10 +12,11 @@ points' heights and vertical velocities read once (the disk's gathered from its 
 as their height product writes them, shifted and masked in the program), its own slots of last
 step's contacts as the loaded points (a body's slots hold its own points only), then ``K``
 rounds of the smallest predicted gap (of equal ones the lowest index, as ``lax.top_k`` orders
-them) and the chosen points written in point order into the robot's slots. The same choice as
-XLA's, arithmetic included (tested in Pallas' interpreter). Compiled for an H100, the step has
-14 operations fewer at 96 and 16,384 robots and moves 0.49 MB less a robot-step
-(``benchmarks/RESULTS.md``).
+them) and the chosen points written in point order into the robot's slots, each with its
+impulse of last step where it was a contact then (the contact solve's warm start, which XLA
+forms by a product with a ``K x K`` matrix of matches). The same choice as XLA's, arithmetic
+included (tested in Pallas' interpreter). Compiled for an H100, the step has 16 operations
+fewer at 96 and 16,384 robots and moves 0.55 MB less a robot-step (``benchmarks/RESULTS.md``).
 """
 
 from __future__ import annotations
@@ -42,12 +43,13 @@ _LANES = 16
 
 
 def _choose(P: int, K: int, far: float, floor_z: float, distance: float, dt: float, heights, velocities,
-            first: int, offset, pts_ref, imp_ref, idx_ref, act_ref, gap_ref):
+            first: int, offset, pts_ref, imp_ref, idx_ref, act_ref, gap_ref, warm_ref):
     """One body's choice (module doc) in a program: ``heights(points, mask)`` and
     ``velocities(points, mask)`` its ``P`` points' heights (mm) and free vertical velocities
     (mm/s); its ``K`` slots are ``first ..`` of the robot's, whose last step's points
     ``pts_ref`` (-1: none) are its own ``offset`` on and ``imp_ref`` their impulses; writes its
-    slots of ``idx_ref`` (the robot's point indices), ``act_ref`` (int32) and ``gap_ref`` (mm).
+    slots of ``idx_ref`` (the robot's point indices), ``act_ref`` (int32), ``gap_ref`` (mm) and
+    ``warm_ref`` (each chosen point's impulse of last step, 0 where it had no slot).
     ``N`` lanes (``P`` padded to a power of two) and ``16`` for the choices."""
     from jax.experimental.pallas import triton as pltriton
 
@@ -80,10 +82,17 @@ def _choose(P: int, K: int, far: float, floor_z: float, distance: float, dt: flo
     pltriton.store(idx_ref.at[first + lane], chosen + offset, mask=valid)
     pltriton.store(act_ref.at[first + lane], (value < distance).astype(jnp.int32), mask=valid)
     pltriton.store(gap_ref.at[first + lane], heights(chosen, valid) - floor_z, mask=valid)
+    # the warm start: a chosen point's impulse from its slot of last step (the body's own slots)
+    warm = [jnp.zeros((_LANES,), z.dtype) for _ in range(3)]
+    for k in range(K):
+        kept = chosen + offset == pts_ref[first + k]
+        warm = [jnp.where(kept, imp_ref[first + k, c], w) for c, w in enumerate(warm)]
+    for c, w in enumerate(warm):
+        pltriton.store(warm_ref.at[first + lane, c], w, mask=valid)
 
 
 def _kernel(nd: int, Kd: int, nc: int, Kl: int, rule: tuple, coll_ref, x_ref, v_ref, legs_ref, t_ref, on_ref,
-            pts_ref, imp_ref, idx_ref, act_ref, gap_ref):
+            pts_ref, imp_ref, idx_ref, act_ref, gap_ref, warm_ref):
     """One robot's body ``b`` (the program's index): the disk (``b = 0``, its ``nd`` collision
     nodes ``coll_ref`` among the nodes' positions ``x_ref`` and free velocities ``v_ref`` ``(n,
     3)``) or leg ``b - 1`` (its ``nc`` points' heights before its translation and their
@@ -94,7 +103,7 @@ def _kernel(nd: int, Kd: int, nc: int, Kl: int, rule: tuple, coll_ref, x_ref, v_
     from jax.experimental.pallas import triton as pltriton
 
     b = pl.program_id(0)
-    out = (pts_ref, imp_ref, idx_ref, act_ref, gap_ref)
+    out = (pts_ref, imp_ref, idx_ref, act_ref, gap_ref, warm_ref)
 
     def disk(field_ref):
         def read(points, mask):
@@ -144,10 +153,11 @@ def robot_candidates(collision, x, v, legs, translation, present, points, impuls
         interpret: run the kernel in Pallas' interpreter instead of compiling it for a GPU.
 
     Returns:
-        ``(idx (K,) int32, active (K,) bool, gap (K,))``: each body's chosen points in point
-        order (the robot's indices), whether each one's predicted gap ``min(g, g + dt v_z)`` (of
-        the lowered heights) is below ``distance``, and its gap ``z - floor_z``, mm (of its own
-        height).
+        ``(idx (K,) int32, active (K,) bool, gap (K,), warm (K, 3))``: each body's chosen points
+        in point order (the robot's indices), whether each one's predicted gap ``min(g, g + dt
+        v_z)`` (of the lowered heights) is below ``distance``, its gap ``z - floor_z``, mm (of its
+        own height), and its impulse of last step where it was a contact then (0 else), mN s: the
+        contact solve's warm start.
 
     Raises:
         ValueError: a body with more slots than 16 or than its points, or arrays of other shapes.
@@ -164,13 +174,13 @@ def robot_candidates(collision, x, v, legs, translation, present, points, impuls
                          f"Kl = {Kl} of {nc}, {legs.shape}, {translation.shape}, {present.shape}, {points.shape}, "
                          f"{impulses.shape}")
     dt_ = legs.dtype
-    idx, act, gap = pl.pallas_call(
+    idx, act, gap, warm = pl.pallas_call(
         partial(_kernel, nd, Kd, nc, Kl, (float(far), float(floor_z), float(distance), float(dt))),
         out_shape=(jax.ShapeDtypeStruct((K,), jnp.int32), jax.ShapeDtypeStruct((K,), jnp.int32),
-                   jax.ShapeDtypeStruct((K,), dt_)),
+                   jax.ShapeDtypeStruct((K,), dt_), jax.ShapeDtypeStruct((K, 3), dt_)),
         grid=(1 + L,), interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=NUM_WARPS, num_stages=1),
         name="contact_candidates",
     )(collision.astype(jnp.int32), x.astype(dt_), v.astype(dt_), legs, translation.astype(dt_),
       present.astype(jnp.int32), points.astype(jnp.int32), impulses.astype(dt_))
-    return idx, act != 0, gap
+    return idx, act != 0, gap, warm

@@ -60,6 +60,8 @@ class Rows:
             slot's); active: ``(K,)`` whether each is a contact candidate.
         disk_node: ``(K_d,)`` the disk contacts' nodes.
         bilateral: ``(3A,)`` the attachment rows of present legs.
+        warm: ``(K, 3)`` each contact's impulse of last step where its point was a contact
+            then (0 else), mN s: the contact solve's warm start.
     """
 
     leg: jax.Array
@@ -75,6 +77,7 @@ class Rows:
     active: jax.Array
     disk_node: jax.Array
     bilateral: jax.Array
+    warm: jax.Array
 
 
 register_pytree(Rows)
@@ -118,8 +121,9 @@ def select_contacts(model, state, v_free, qd_free):
     kernel, one program a body; the same choice.
 
     Returns:
-        ``(idx, active, gap)``: ``(K,)`` point indices (disk collision nodes, then each leg
-        slot's), whether each is a candidate, its current gap (mm).
+        ``(idx, active, gap, warm)``: ``(K,)`` point indices (disk collision nodes, then each leg
+        slot's), whether each is a candidate, its current gap (mm), and ``(K, 3)`` its impulse of
+        last step where it was a contact then (0 else), mN s.
 
     Raises:
         ValueError: an unknown ``candidates.SELECTION``.
@@ -152,14 +156,15 @@ def _selected_by_xla(collision, x, v, legs, translation, present, points, impuls
     i_d, a_d, _ = select(ranked[:nd], vz[:nd], K=Kd)
     i_l, a_l, _ = jax.vmap(partial(select, K=Kl))(ranked[nd:].reshape(L, nc), vz[nd:].reshape(L, nc))
     idx = jnp.concatenate([i_d, (i_l + nd + nc * jnp.arange(L)[:, None]).reshape(-1)])
-    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), z[idx] - floor_z
+    warm = (idx[:, None] == points[None, :]).astype(impulses.dtype) @ impulses
+    return idx, jnp.concatenate([a_d, a_l.reshape(-1)]), z[idx] - floor_z, warm
 
 
 def _selected_by_kernel(*args, interpret, **rule):
     """:func:`_selected_by_xla`'s choice in one kernel (:func:`softcrawl.jaxsim.candidates.robot_candidates`),
     its indices in JAX's default integer (as XLA's)."""
-    idx, active, gap = candidates.robot_candidates(*args, far=FAR, interpret=interpret, **rule)
-    return idx.astype(jax.dtypes.canonicalize_dtype(jnp.int64)), active, gap
+    idx, active, gap, warm = candidates.robot_candidates(*args, far=FAR, interpret=interpret, **rule)
+    return idx.astype(jax.dtypes.canonicalize_dtype(jnp.int64)), active, gap, warm
 
 
 def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
@@ -184,9 +189,10 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     # contacts: the disk's, then each leg's
     nd, nc, Kd, Kl = dk.collision.shape[0], leg.coll_affine.shape[0], st.disk_contacts, st.leg_contacts
     if Kd + Kl:
-        idx, active, gap = select_contacts(model, state, v_free, qd_free)
+        idx, active, gap, warm = select_contacts(model, state, v_free, qd_free)
     else:  # no floor
         idx, active, gap = jnp.zeros(0, jnp.int32), jnp.zeros(0, bool), jnp.zeros(0, dt)
+        warm = jnp.zeros((0, 3), dt)
     D = jnp.asarray(FLOOR_FRAME, dt)
     DR = D @ R
     node = dk.collision[idx[:Kd]]
@@ -198,7 +204,7 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     u_disk = (v_free[node] @ D.T).at[:, 0].add(gap[:Kd] / h).reshape(-1)
     rows = jnp.concatenate([J_att.reshape(L, 3 * F, m), J_con], axis=1)
     return Rows(rows, disk_aa, disk_ad, disk_dd, u_att, u_disk, gap[Kd:].reshape(L, Kl) / h, nodes, w, idx,
-                active, node, jnp.repeat(rd.leg_mask, 3 * F))
+                active, node, jnp.repeat(rd.leg_mask, 3 * F), warm)
 
 
 @dataclass(frozen=True)

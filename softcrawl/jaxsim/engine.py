@@ -36,7 +36,7 @@ from softcrawl.jaxsim.ridkernel import with_kernel_rows
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
-ENGINE_VERSION = 10
+ENGINE_VERSION = 11
 
 #: The parts of :func:`physics_step`, in order, as named scopes of its operations (a profile's
 #: kernels are summed by them: :func:`softcrawl.jaxsim.cost.kernel_profile`).
@@ -128,8 +128,7 @@ def _constrained(model, state: State, sim_kpa):
         rows = constraint_rows(model, state, v_free, qd_free, R)
     with jax.named_scope("condense"):
         cond = condense(rows, inv_chol, qd_free, st.cholesky)
-        warm = ((rows.points[:, None] == state.contact_points[None, :]).astype(state.x.dtype) @ state.impulses)
-    return qd_free, inv_chol, n_bad, v_free, R, rows, cond, warm.reshape(-1)
+    return qd_free, inv_chol, n_bad, v_free, R, rows, cond, rows.warm.reshape(-1)
 
 
 def contact_problem(model, state: State, sim_kpa):

@@ -16,8 +16,11 @@ stable for SPD matrices as Cholesky's (Higham 2002, "Accuracy and Stability of N
 Algorithms", sec. 10.1-10.2). Step ``k`` subtracts ``l r_k^T`` from the rows below ``k``, with
 ``r_k`` row ``k`` of the current matrix and ``l_i = a_ik / d_k`` (``d_k = a_kk``, the pivot); the
 same row operations turn ``I`` into ``L^-1`` of ``A = L D L^T`` (``L`` unit lower triangular), so
-that ``C = L D^1/2`` and ``C^-1 = D^-1/2 L^-1``. A matrix that is not positive definite gives a
-non-positive pivot and NaN or infinite entries, as the library's factorisation gives NaN. On
+that ``C = L D^1/2`` and ``C^-1 = D^-1/2 L^-1``. :func:`step_solve` runs it on a leg's step
+matrix formed in the program from its parts and solves the leg's free motion with the factor
+in the same program (:func:`softcrawl.jaxsim.legs.free_motion`). A matrix that is not positive
+definite gives a non-positive pivot and NaN or infinite entries, as the library's factorisation
+gives NaN. On
 other platforms than CUDA (a CPU among them) ``"kernel"`` runs the library's form
 (``jax.lax.platform_dependent``); ``"interpret"`` runs the kernel in Pallas' interpreter on any
 platform (the tests').
@@ -128,16 +131,10 @@ def _padded(n: int, a_ref, dt, symmetrize: bool = False):
     return r, rows, cols, inside, eye, jnp.where(inside, A, eye)
 
 
-def _kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
-    """One matrix (module doc): ``a_ref`` ``(n, n)`` the symmetric matrix, read whole (with
-    ``symmetrize``, ``(A + A^T) / 2``); ``o_ref`` receives ``C^-1``; ``fma`` the rank-one updates'
-    multiply-add (:func:`fused_multiply_add`). The program works on the padded size ``N``
-    (:func:`_padded`) and writes through masked pointers: lanes past ``n`` store nothing."""
-    from jax.experimental.pallas import triton as pltriton
-
-    dt = o_ref.dtype
-    r, rows, cols, inside, eye, A = _padded(n, a_ref, dt, symmetrize)
-
+def _eliminated(n: int, fma, r, rows, cols, eye, A):
+    """``C^-1`` ``(N, N)`` of a program's padded matrix ``A`` (:func:`_padded`'s ``r``, ``rows``,
+    ``cols``, ``eye`` and matrix) by the module doc's elimination of its ``n`` pivots; ``fma`` the
+    rank-one updates' multiply-add (:func:`fused_multiply_add`)."""
     def body(k, c):
         A, T, d = c
         col = jnp.sum(jnp.where(cols == k, A, 0), axis=1)  # column k, by rows
@@ -147,8 +144,47 @@ def _kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
         l = jnp.where(r > k, col / dk, 0)
         return fma(-l[:, None], row[None, :], A), fma(-l[:, None], trow[None, :], T), jnp.where(r == k, dk, d)
 
-    _, T, d = _pivots(n, body, (A, eye, jnp.ones(r.shape, dt)))
-    pltriton.store(o_ref.at[rows, cols], T * lax.rsqrt(d)[:, None], mask=inside)
+    _, T, d = _pivots(n, body, (A, eye, jnp.ones(r.shape, A.dtype)))
+    return T * lax.rsqrt(d)[:, None]
+
+
+def _kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
+    """One matrix (module doc): ``a_ref`` ``(n, n)`` the symmetric matrix, read whole (with
+    ``symmetrize``, ``(A + A^T) / 2``); ``o_ref`` receives ``C^-1``; ``fma`` the rank-one updates'
+    multiply-add (:func:`fused_multiply_add`). The program works on the padded size ``N``
+    (:func:`_padded`) and writes through masked pointers: lanes past ``n`` store nothing."""
+    from jax.experimental.pallas import triton as pltriton
+
+    r, rows, cols, inside, eye, A = _padded(n, a_ref, o_ref.dtype, symmetrize)
+    pltriton.store(o_ref.at[rows, cols], _eliminated(n, fma, r, rows, cols, eye, A), mask=inside)
+
+
+def _step_kernel(n: int, k: int, alpha: float, beta: float, fma, barrier, m_ref, k_ref, s_ref, b_ref, x_ref, o_ref,
+                 y_ref):
+    """:func:`step_solve`'s one matrix: ``A = alpha M + beta K_s`` formed in the program from
+    ``m_ref`` ``(n, n)`` and ``k_ref`` ``(k, k)`` placed by ``s_ref`` ``(n,)`` (index ``k``: a zero
+    row and column), symmetrized; ``o_ref`` receives ``C^-1`` (:func:`_eliminated`) and ``y_ref``
+    ``x + C^-T (C^-1 b)`` of ``b_ref`` and ``x_ref`` ``(n,)``; ``barrier()`` the program's (none in
+    the interpreter). Padded and masked as :func:`_kernel`."""
+    from jax.experimental.pallas import triton as pltriton
+
+    r = lax.iota(jnp.int32, padded_size(n))
+    rows, cols, on = r[:, None], r[None, :], r < n
+    inside = (rows < n) & (cols < n)
+    s = pltriton.load(s_ref.at[r], mask=on, other=k)
+    placed = (s[:, None] < k) & (s[None, :] < k)
+    M = pltriton.load(m_ref.at[rows, cols], mask=inside, other=0.0)
+    A = alpha * M + beta * pltriton.load(k_ref.at[s[:, None], s[None, :]], mask=placed, other=0.0)
+    eye = (rows == cols).astype(M.dtype)
+    A = jnp.where(inside, (A + A.T) / 2, eye)
+    pltriton.store(o_ref.at[rows, cols], _eliminated(n, fma, r, rows, cols, eye, A), mask=inside)
+    # read back after a barrier: products with the factor in registers change the layout Triton
+    # gives the elimination (684 instructions a pivot and 229 registers instead of 519 and 128)
+    barrier()
+    Ci = pltriton.load(o_ref.at[rows, cols], mask=inside, other=0.0)
+    y = jnp.sum(Ci * pltriton.load(b_ref.at[r], mask=on, other=0.0)[None, :], axis=1)  # C^-1 b
+    pltriton.store(y_ref.at[r], pltriton.load(x_ref.at[r], mask=on, other=0.0) + jnp.sum(Ci * y[:, None], axis=0),
+                   mask=on)
 
 
 def _sweep_kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
@@ -220,6 +256,62 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
         return kernel(A, True)
     return lax.platform_dependent(A, cuda=partial(kernel, interpret=False),
                                   default=partial(_library, symmetrize=symmetrize))
+
+
+def step_solve(M, K, slots, alpha: float, beta: float, b, x, form: str = "library"):
+    """A step's solve with ``A = alpha M + beta K_s``, symmetrized, where ``K_s`` ``(n, n)`` is ``K``
+    ``(k, k)`` placed by ``slots`` ``(n,)`` int (``K_s[i, j] = K[slots[i], slots[j]]``, zero
+    where a slot is ``k``): ``(C^-1 (n, n), x + A^-1 b (n,))`` with ``C^-1`` as
+    :func:`cholesky_inverse` gives it (a leg's step matrix ``(1 + h r_M) M + h (h + r_K) K``, its
+    free motion ``qdot + A^-1 h (f - r_M M qdot)``: :func:`softcrawl.jaxsim.legs.free_motion`).
+    ``form`` as :func:`cholesky_inverse`'s: ``"library"`` forms ``A`` and solves by XLA's
+    products; ``"kernel"`` (CUDA; the library's form elsewhere) and ``"interpret"`` do all of it
+    in one kernel program a matrix (:func:`cholesky_inverse`'s elimination, ``A`` formed as it
+    is read, ``A^-1 b`` from ``C^-1`` in the program's registers): no matrix ``A`` in memory, no
+    product after the kernel. ``alpha`` and ``beta`` are numbers (the kernel is compiled for
+    them). Batch it with ``jax.vmap`` (``M`` and ``slots`` may be shared).
+
+    Raises:
+        ValueError: an unknown ``form``, or arrays of other shapes.
+    """
+    _check(M, form)
+    n, k = M.shape[0], K.shape[0]
+    if K.shape != (k, k) or slots.shape != (n,) or b.shape != (n,) or x.shape != (n,):
+        raise ValueError(f"step_solve needs (n, n) M, (k, k) K and (n,) slots, b and x; got {M.shape}, {K.shape}, "
+                         f"{slots.shape}, {b.shape}, {x.shape}")
+    args = (M, K, slots, alpha, beta, b, x)
+    if form == "library":
+        return _step_library(*args)
+    if form == "interpret":
+        return _step_pallas(*args, interpret=True)
+    return lax.platform_dependent(*args[:3], *args[5:], cuda=partial(_step_on, alpha, beta, interpret=False),
+                                  default=partial(_step_on, alpha, beta, library=True))
+
+
+def _step_on(alpha, beta, M, K, slots, b, x, interpret=False, library=False):
+    if library:
+        return _step_library(M, K, slots, alpha, beta, b, x)
+    return _step_pallas(M, K, slots, alpha, beta, b, x, interpret=interpret)
+
+
+def _step_library(M, K, slots, alpha, beta, b, x):
+    A = alpha * M + beta * jnp.pad(K, ((0, 1), (0, 1)))[slots[:, None], slots[None, :]]
+    Ci = _library(A, symmetrize=True)
+    return Ci, x + Ci.T @ (Ci @ b)
+
+
+def _step_pallas(M, K, slots, alpha, beta, b, x, interpret: bool):
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as pltriton
+
+    n, dt = M.shape[0], M.dtype
+    barrier = (lambda: None) if interpret else pltriton.debug_barrier
+    return pl.pallas_call(
+        partial(_step_kernel, n, K.shape[0], float(alpha), float(beta),
+                partial(fused_multiply_add, compiled=not interpret), barrier),
+        out_shape=(jax.ShapeDtypeStruct((n, n), dt), jax.ShapeDtypeStruct((n,), dt)), interpret=interpret,
+        compiler_params=pltriton.CompilerParams(num_warps=_warps(padded_size(n)), num_stages=1),
+        name="step_solve")(M, K.astype(dt), slots.astype(jnp.int32), b.astype(dt), x.astype(dt))
 
 
 def inverse_spd(A, form: str = "library"):

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.linalg
 from jax import lax
 
-from softcrawl.jaxsim.factor import cholesky_inverse
+from softcrawl.jaxsim.factor import step_solve
 from softcrawl.jaxsim.frames import frame_terms
 from softcrawl.jaxsim.ridkernel import rid_kernel_terms
 
@@ -371,17 +371,16 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
     Returns:
         ``(qdot_free (m,), inv_chol (m, m), n_bad)``: ``inv_chol = C^-1``, the inverse of the
         step matrix's lower Cholesky factor ``A = C C^T`` (lower triangular), so that every later
-        solve with ``A`` is a matrix product (``A^-1 b = C^-T (C^-1 b)``), formed as
-        ``settings.cholesky`` says (:func:`softcrawl.jaxsim.factor.cholesky_inverse`).
+        solve with ``A`` is a matrix product (``A^-1 b = C^-T (C^-1 b)``), formed with the free
+        motion as ``settings.cholesky`` says (:func:`softcrawl.jaxsim.factor.step_solve`: on
+        CUDA in one kernel, where ``"kernel"``).
     """
     h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
     Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK, form=settings.rid_form, present=mask)
     at = part.mode_slots  # the strain modes' terms among all modes, zero for the others: gathers
-    K = jnp.pad(Ks, ((0, 1), (0, 1)))[at[:, None], at[None, :]]
     g = jnp.asarray(settings.gravity, q.dtype)
     load = part.mass_rows.T @ (rotation.T @ g) + cavity_load(part, q, pressure)
     f = load * mask + jnp.pad(fs, (0, 1))[at]
-    A = (1.0 + h * rM) * part.mass + (h * (h + rK)) * K
-    inv_chol = cholesky_inverse(A, settings.cholesky, symmetrize=True)
-    dq = inv_chol.T @ (inv_chol @ (h * (f - rM * (part.mass @ qdot))))
-    return qdot + dq, inv_chol, n_bad
+    inv_chol, qd_free = step_solve(part.mass, Ks, at, 1.0 + h * rM, h * (h + rK), h * (f - rM * (part.mass @ qdot)),
+                                   qdot, settings.cholesky)
+    return qd_free, inv_chol, n_bad
