@@ -11,6 +11,12 @@ form, on random symmetric positive definite matrices of both sizes and condition
 * ``"part": "agreement"``: each form's largest error against numpy's float64 result (the factor
   inverted, or the inverse), relative to its largest entry, per function and size; the kernel
   compiled for the GPU (or run in Pallas' interpreter where JAX has none);
+* ``"part": "step"``: each leg's step matrix formed, factored and its free motion solved
+  (``step_solve``, the step's form of the legs' factor) in one kernel program a leg
+  (``step_in_kernel_ms``) and with XLA forming the matrix and multiplying by the factor around
+  ``cholesky_inverse``'s kernel (``step_split_ms``; :data:`softcrawl.jaxsim.factor.STEP_IN_KERNEL`
+  off), ``ms`` per call at each of ``--robots`` on a GPU, with their largest difference
+  (relative to the free motion's size) where the two agree;
 * ``"part": "time"``: ``ms`` per call of each function and form at each of ``--robots`` (a call
   treats every matrix of that many robots, each size in its own call), and on a GPU the kernels
   with other numbers of each matrix per thread (:data:`softcrawl.jaxsim.factor.PER_THREAD`, the
@@ -71,6 +77,36 @@ def main(argv=None) -> None:
             err = {form: float(np.abs(g - ref).max() / np.abs(ref).max()) for form, g in got.items()}
             print(json.dumps({**head, "part": "agreement", "function": function, "n": n, "kernel": kernel,
                               "rel_error": err}), flush=True)
+    if sizes[0] > 3:  # a leg's step: its stiffness on all but three modes (the rigid ones), as the shipped leg's
+        n = sizes[0]
+        M, slots = jnp.asarray(spd(1, n)[0] / args.cond, jnp.float32), jnp.asarray(np.r_[[n - 3] * 3, :n - 3])
+        for robots in (int(b) for b in args.robots.split(",")):
+            count = robots * args.legs if gpu else 8  # interpreted: a few legs, for the agreement
+            K, f_s, f, x = (jnp.asarray(a, jnp.float32) for a in (np.resize(spd(64, n - 3), (count, n - 3, n - 3)),
+                                                                    rng.standard_normal((count, n - 3)),
+                                                                    rng.standard_normal((count, n)),
+                                                                    rng.standard_normal((count, n))))
+            out = {**head, "part": "step", "robots": robots, "legs": count}
+            ends = []
+            for in_kernel in (True, False):
+                factor.STEP_IN_KERNEL = in_kernel
+                jax.clear_caches()
+                step = jax.jit(jax.vmap(lambda *a: factor.step_solve(M, a[0], a[1], slots, a[2], True, a[3], 1.0, 1.0,
+                                                                     0.01, 0.1, kernel)))
+                ends.append(np.asarray(jax.block_until_ready(step(K, f_s, f, x))[1], float))
+                if gpu:
+                    t0 = time.perf_counter()
+                    for _ in range(args.calls):
+                        r = step(K, f_s, f, x)
+                    jax.block_until_ready(r)
+                    ms = 1e3 * (time.perf_counter() - t0) / args.calls
+                    out[f"step_{'in_kernel' if in_kernel else 'split'}_ms"] = ms
+            factor.STEP_IN_KERNEL = True
+            jax.clear_caches()
+            out["max_rel_difference"] = float(np.abs(ends[0] - ends[1]).max() / np.abs(ends[1] - np.asarray(x)).max())
+            print(json.dumps(out), flush=True)
+            if not gpu:
+                break  # interpreted: the agreement once
     default, unrolled = factor.PER_THREAD, factor.UNROLL_PIVOTS
     factor.LIBRARY_FROM = 1 << 62  # the kernel at every batch size
     for robots in (int(b) for b in args.robots.split(",")):

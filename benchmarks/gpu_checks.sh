@@ -4,7 +4,7 @@
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR factors      # ~3 min, after candidates
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR factors      # ~4 min, after candidates
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR selection    # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR parts        # ~6 min
 #   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min
@@ -37,10 +37,14 @@
 #              0.49 MB less a robot-step, compiled for an H100) against the defaults, on the same
 #              robots; if faster at both sizes, make "kernel" `candidates.SELECTION`'s default.
 # factors:     the legs' 36 x 36 factors alone at 96 and 16,384 robots (`cholesky_kernel.py
-#              --sizes 36`): the kernel with its pivots looped and unrolled against the library,
-#              short enough for the minutes `candidates` leaves; if an unrolled variant is faster
-#              at both sizes, set `factor.UNROLL_PIVOTS = 36` (and `PER_THREAD` if 128 wins);
-#              the attachment block's 72 x 72 inverse unrolled: `crossover`.
+#              --sizes 36`): first each leg's step matrix formed, factored and its free motion
+#              solved in one kernel program (`step_solve`, the step's form) against XLA forming
+#              the matrix and multiplying around the factor's kernel (`step_split_ms`); then the
+#              kernel with its pivots looped and unrolled against the library, short enough for
+#              the minutes `candidates` leaves. If the split form is faster at both sizes, set
+#              `factor.STEP_IN_KERNEL = False`; if an unrolled variant is faster at both sizes,
+#              `factor.UNROLL_PIVOTS = 36` (and `PER_THREAD` if 128 wins); the attachment
+#              block's 72 x 72 inverse unrolled: `crossover`.
 # parts:       the solve kernel reading the condensed operator in its parts (`fused.OPERATOR_PARTS`,
 #              the default, counted but not timed on a card): the step at 96 and 16,384 robots
 #              with it and with the operator formed by XLA first (`--formed-operator`), in one
@@ -147,7 +151,7 @@ solve)
 selection)
     forms selection 200 "" "--selection kernel" ;;
 factors)
-    timeout 220 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 --sizes 36 \
+    timeout 300 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 --sizes 36 \
         2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;
 crossover)
     timeout 420 python3 benchmarks/cholesky_kernel.py --robots 96,1024,2048,4096,16384 --calls 5 \

@@ -207,11 +207,12 @@ def factor_variants(args, arch, sharding, dump) -> None:
     def spec(*shape, dtype=jnp.float32):
         return jax.ShapeDtypeStruct(shape, dtype, sharding=sharding)
 
-    def step(M, K, slots, b, x):  # a leg's step matrix and free motion, as the step forms them
-        return factor.step_solve(M, K, slots, 1.0, 1.0, b, x, "kernel")
+    def step(M, K, f_s, slots, f, w, x):  # a leg's step matrix and free motion, as the step forms them
+        return factor.step_solve(M, K, f_s, slots, f, w, x, 1.0, 1.0, 0.01, 0.1, "kernel")
 
-    kernels = (("step_solve", jax.vmap(step, in_axes=(None, 0, None, 0, 0)),  # 96 robots' matrices
-                (spec(36, 36), spec(576, 33, 33), spec(36, dtype=jnp.int32), spec(576, 36), spec(576, 36)), 36),
+    kernels = (("step_solve", jax.vmap(step, in_axes=(None, 0, 0, None, 0, 0, 0)),  # 96 robots' matrices
+                (spec(36, 36), spec(576, 33, 33), spec(576, 33), spec(36, dtype=jnp.int32), spec(576, 36),
+                 spec(576, dtype=jnp.bool_), spec(576, 36)), 36),
                ("inverse_spd", jax.vmap(partial(factor.inverse_spd, form="kernel")), (spec(96, 72, 72),), 72))
     for text in args.variants.split(","):
         unroll, per = text.split(":")

@@ -142,46 +142,58 @@ def test_the_symmetrized_kernel_factors_the_symmetric_part_it_reads(dtype):
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
-def test_the_step_solve_forms_its_matrix_and_solves_in_the_kernel(dtype):
+def test_the_step_solve_forms_its_matrix_and_solves_in_the_kernel(dtype, monkeypatch):
     """``step_solve``: ``A = alpha M + beta K_s`` (a 36 x 36 mass-like ``M``, shared by the batch
     as the legs' is, and a 33 x 33 ``K`` placed by slots that leave three modes without
-    stiffness, as the legs' rigid modes) and ``x + A^-1 b``. Its interpreted kernel (batched by
-    ``jax.vmap``, ``M`` and the slots unbatched) against numpy's float64 ``A`` and solve: ``C^-1``
-    within ``cond u`` of the largest entry as :func:`cholesky_inverse`'s kernel (``C^-1 A C^-T =
-    I`` too), the solve within ``cond u`` of ``|A^-1 b|`` (condition 7.1e3 here, bounds 1.6e-12
-    and 8.5e-4; measured 1.7e-15 and 9.4e-7 for ``C^-1``, 1.4e-15 and 6.9e-7 for the solve); the
-    library form likewise; ``"kernel"`` on a CPU is the library's result to the bit, its traced program
-    holding the kernel for CUDA; shapes that do not fit are refused."""
+    stiffness, as the legs' rigid modes) and ``x + A^-1 h (w f + f_s - rate M x)`` (``f_s`` placed
+    as ``K``; ``w`` a leg's presence, true for two matrices and false for one). Its interpreted
+    kernel (batched by ``jax.vmap``, ``M`` and the slots unbatched) against numpy's float64 ``A``
+    and solve: ``C^-1`` within ``cond u`` of the largest entry as :func:`cholesky_inverse`'s
+    kernel (``C^-1 A C^-T = I`` too), the step within ``cond u`` of its change (condition 7.1e3
+    here, bounds 1.6e-12 and 8.5e-4; measured 1.7e-15 and 9.4e-7 for ``C^-1``, 4.6e-15 and 1.0e-6
+    for the step); the library form likewise; ``"kernel"`` on a CPU is the library's result to
+    the bit, its traced program holding the kernel for CUDA; with ``STEP_IN_KERNEL`` off, the
+    kernel forms factor in ``cholesky_inverse``'s kernel with XLA's products around it, within
+    the same bounds; shapes that do not fit are refused."""
+    from softcrawl.jaxsim import factor
     from softcrawl.jaxsim.factor import step_solve
 
     rng = np.random.default_rng(11)
     M, K = _spd(rng, 1, 36, 30.0)[0], _spd(rng, 3, 33, 1e3)
     slots = np.concatenate([np.arange(33), [33, 33, 33]])[rng.permutation(36)]
-    b, x = rng.standard_normal((3, 36)), rng.standard_normal((3, 36))
-    alpha, beta = 1.02, 50.0
+    f_s, f, x = rng.standard_normal((3, 33)), rng.standard_normal((3, 36)), rng.standard_normal((3, 36))
+    numbers = alpha, beta, h, rate = 1.02, 50.0, 0.02, 1.5
     Ks = np.pad(K, ((0, 0), (0, 1), (0, 1)))[:, slots[:, None], slots[None, :]]
     A = alpha * M + beta * Ks
+    w = np.array([True, False, True])
+    b = h * (f * w[:, None] + np.pad(f_s, ((0, 0), (0, 1)))[:, slots] - rate * x @ M.T)
     cond = np.linalg.cond(A).max()
     tol = cond * np.finfo(dtype).eps
     ref, solved = np.linalg.inv(np.linalg.cholesky(A)), x + np.linalg.solve(A, b[..., None])[..., 0]
-    args = [jnp.asarray(a, dtype) for a in (M, K)] + [jnp.asarray(slots)] + [jnp.asarray(a, dtype) for a in (b, x)]
+    M_, slots_ = jnp.asarray(M, dtype), jnp.asarray(slots)
+    batched = [jnp.asarray(a, dtype) for a in (K, f_s, f)] + [jnp.asarray(w), jnp.asarray(x, dtype)]
+
+    def step(form):
+        return lambda k, fs, f_, w_, x_: step_solve(M_, k, fs, slots_, f_, w_, x_, *numbers, form)
 
     def batch(form):
-        def one(k, b_, x_):
-            return step_solve(args[0], k, args[2], alpha, beta, b_, x_, form)
-        return [np.asarray(a, float) for a in jax.vmap(one)(args[1], args[3], args[4])]
+        return [np.asarray(a, float) for a in jax.vmap(step(form))(*batched)]
 
-    for form in ("interpret", "library"):
-        Ci, y = batch(form)
-        assert np.abs(Ci - ref).max() <= tol * np.abs(ref).max()
-        assert np.abs(np.einsum("bij,bjk,blk->bil", Ci, A, Ci) - np.eye(36)).max() <= tol
-        assert np.abs(y - solved).max() <= tol * np.abs(solved - x).max()
-    for got, want in zip(batch("kernel"), batch("library")):
-        np.testing.assert_array_equal(got, want)
-    one = [a[0] if a.ndim > 1 and a.shape[0] == 3 else a for a in args]
-    assert "step_solve" in str(jax.make_jaxpr(lambda *a: step_solve(*a[:3], alpha, beta, *a[3:], "kernel"))(*one))
+    def traced():
+        return str(jax.make_jaxpr(step("kernel"))(*(a[0] for a in batched)))
+
+    for in_kernel in (True, False):
+        monkeypatch.setattr(factor, "STEP_IN_KERNEL", in_kernel)
+        for form in ("interpret", "library"):
+            Ci, y = batch(form)
+            assert np.abs(Ci - ref).max() <= tol * np.abs(ref).max()
+            assert np.abs(np.einsum("bij,bjk,blk->bil", Ci, A, Ci) - np.eye(36)).max() <= tol
+            assert np.abs(y - solved).max() <= tol * np.abs(solved - x).max()
+        for got, want in zip(batch("kernel"), batch("library")):
+            np.testing.assert_array_equal(got, want)
+        assert ("step_solve" in traced()) == in_kernel and ("cholesky_inverse" in traced()) != in_kernel
     with pytest.raises(ValueError, match="step_solve needs"):
-        step_solve(one[0], one[1], one[2][:35], alpha, beta, one[3], one[4])
+        step_solve(M_, batched[0][0], batched[1][0], slots_[:35], batched[2][0], True, batched[4][0], *numbers)
 
 
 def test_a_matrix_that_is_not_positive_definite_gives_no_finite_factor():

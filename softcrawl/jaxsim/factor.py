@@ -20,8 +20,7 @@ that ``C = L D^1/2`` and ``C^-1 = D^-1/2 L^-1``. :func:`step_solve` runs it on a
 matrix formed in the program from its parts and solves the leg's free motion with the factor
 in the same program (:func:`softcrawl.jaxsim.legs.free_motion`). A matrix that is not positive
 definite gives a non-positive pivot and NaN or infinite entries, as the library's factorisation
-gives NaN. On
-other platforms than CUDA (a CPU among them) ``"kernel"`` runs the library's form
+gives NaN. On other platforms than CUDA (a CPU among them) ``"kernel"`` runs the library's form
 (``jax.lax.platform_dependent``); ``"interpret"`` runs the kernel in Pallas' interpreter on any
 platform (the tests').
 
@@ -95,6 +94,12 @@ LIBRARY_FROM = 2048
 #: faster, unless the longer code stalls on its fetch. Measured on a GPU before it becomes a
 #: default (``benchmarks/cholesky_kernel.py``' ``_unrolled`` variants). Read when a call is traced.
 UNROLL_PIVOTS = 0
+#: Whether :func:`step_solve`'s kernel forms (``"kernel"``, ``"interpret"``) form the matrix and
+#: solve in the kernel's program, or XLA forms the matrix and multiplies by the factor around
+#: :func:`cholesky_inverse`'s kernel (the step's form before; compiled for an H100, five to seven
+#: more operations and 0.13 MB a robot-step at 16,384 robots, about 13% fewer warp instructions a
+#: matrix in the kernel). Read when a call is traced: ``benchmarks/cholesky_kernel.py`` times both.
+STEP_IN_KERNEL = True
 
 
 def _pivots(n: int, body, init):
@@ -159,15 +164,17 @@ def _kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
     pltriton.store(o_ref.at[rows, cols], _eliminated(n, fma, r, rows, cols, eye, A), mask=inside)
 
 
-def _step_kernel(n: int, k: int, alpha: float, beta: float, fma, barrier, m_ref, k_ref, s_ref, b_ref, x_ref, o_ref,
-                 y_ref):
+def _step_kernel(n: int, k: int, numbers: tuple, fma, barrier, m_ref, k_ref, fs_ref, s_ref, f_ref, w_ref, x_ref,
+                 o_ref, y_ref):
     """:func:`step_solve`'s one matrix: ``A = alpha M + beta K_s`` formed in the program from
     ``m_ref`` ``(n, n)`` and ``k_ref`` ``(k, k)`` placed by ``s_ref`` ``(n,)`` (index ``k``: a zero
     row and column), symmetrized; ``o_ref`` receives ``C^-1`` (:func:`_eliminated`) and ``y_ref``
-    ``x + C^-T (C^-1 b)`` of ``b_ref`` and ``x_ref`` ``(n,)``; ``barrier()`` the program's (none in
-    the interpreter). Padded and masked as :func:`_kernel`."""
+    ``x + C^-T C^-1 h (w f + f_s - rate M x)`` of ``fs_ref`` ``(k,)`` (placed as ``K``), ``f_ref``
+    and ``x_ref`` ``(n,)`` and ``w_ref`` ``(1,)``; ``numbers`` ``(alpha, beta, h, rate)``; ``barrier()`` the program's
+    (none in the interpreter). Padded and masked as :func:`_kernel`."""
     from jax.experimental.pallas import triton as pltriton
 
+    alpha, beta, h, rate = numbers
     r = lax.iota(jnp.int32, padded_size(n))
     rows, cols, on = r[:, None], r[None, :], r < n
     inside = (rows < n) & (cols < n)
@@ -178,13 +185,18 @@ def _step_kernel(n: int, k: int, alpha: float, beta: float, fma, barrier, m_ref,
     eye = (rows == cols).astype(M.dtype)
     A = jnp.where(inside, (A + A.T) / 2, eye)
     pltriton.store(o_ref.at[rows, cols], _eliminated(n, fma, r, rows, cols, eye, A), mask=inside)
-    # read back after a barrier: products with the factor in registers change the layout Triton
-    # gives the elimination (684 instructions a pivot and 229 registers instead of 519 and 128)
+    # read back after a barrier (the factor, and M and the slots again): products with the factor
+    # in registers change the layout Triton gives the elimination (684 instructions a pivot and
+    # 229 registers instead of 519 and 128)
     barrier()
     Ci = pltriton.load(o_ref.at[rows, cols], mask=inside, other=0.0)
-    y = jnp.sum(Ci * pltriton.load(b_ref.at[r], mask=on, other=0.0)[None, :], axis=1)  # C^-1 b
-    pltriton.store(y_ref.at[r], pltriton.load(x_ref.at[r], mask=on, other=0.0) + jnp.sum(Ci * y[:, None], axis=0),
-                   mask=on)
+    M = pltriton.load(m_ref.at[rows, cols], mask=inside, other=0.0)
+    s = pltriton.load(s_ref.at[r], mask=on, other=k)
+    x = pltriton.load(x_ref.at[r], mask=on, other=0.0)
+    f = pltriton.load(f_ref.at[r], mask=on, other=0.0) * w_ref[0] + pltriton.load(fs_ref.at[s], mask=s < k, other=0.0)
+    b = h * (f - rate * jnp.sum(M * x[None, :], axis=1))
+    y = jnp.sum(Ci * b[None, :], axis=1)  # C^-1 b
+    pltriton.store(y_ref.at[r], x + jnp.sum(Ci * y[:, None], axis=0), mask=on)
 
 
 def _sweep_kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
@@ -258,60 +270,69 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
                                   default=partial(_library, symmetrize=symmetrize))
 
 
-def step_solve(M, K, slots, alpha: float, beta: float, b, x, form: str = "library"):
-    """A step's solve with ``A = alpha M + beta K_s``, symmetrized, where ``K_s`` ``(n, n)`` is ``K``
-    ``(k, k)`` placed by ``slots`` ``(n,)`` int (``K_s[i, j] = K[slots[i], slots[j]]``, zero
-    where a slot is ``k``): ``(C^-1 (n, n), x + A^-1 b (n,))`` with ``C^-1`` as
-    :func:`cholesky_inverse` gives it (a leg's step matrix ``(1 + h r_M) M + h (h + r_K) K``, its
-    free motion ``qdot + A^-1 h (f - r_M M qdot)``: :func:`softcrawl.jaxsim.legs.free_motion`).
-    ``form`` as :func:`cholesky_inverse`'s: ``"library"`` forms ``A`` and solves by XLA's
-    products; ``"kernel"`` (CUDA; the library's form elsewhere) and ``"interpret"`` do all of it
-    in one kernel program a matrix (:func:`cholesky_inverse`'s elimination, ``A`` formed as it
-    is read, ``A^-1 b`` from ``C^-1`` in the program's registers): no matrix ``A`` in memory, no
-    product after the kernel. ``alpha`` and ``beta`` are numbers (the kernel is compiled for
-    them). Batch it with ``jax.vmap`` (``M`` and ``slots`` may be shared).
+def step_solve(M, K, f_s, slots, f, w, x, alpha: float, beta: float, h: float, rate: float, form: str = "library"):
+    """A linearly implicit step's solve: ``A = alpha M + beta K_s`` (symmetrized) and ``x + A^-1 h
+    (w f + f_s - rate M x)``, where ``K_s`` ``(n, n)`` and ``f_s`` ``(n,)`` are ``K`` ``(k, k)`` and
+    ``f_s`` ``(k,)`` placed by ``slots`` ``(n,)`` int (``K_s[i, j] = K[slots[i], slots[j]]``, zero
+    where a slot is ``k``) and ``w`` a number (an array or bool). A leg's step
+    (:func:`softcrawl.jaxsim.legs.free_motion`): ``M`` its mass, ``K`` and ``f_s`` its RID
+    stiffness and internal forces, ``f`` its external load, ``w`` whether the leg exists, ``x``
+    its modal velocity, ``alpha = 1 + h r_M``, ``beta = h (h + r_K)``, ``rate = r_M`` (Rayleigh
+    damping). Returns ``(C^-1 (n, n), x + A^-1 h (w f + f_s - rate M x) (n,))``, ``C^-1`` as
+    :func:`cholesky_inverse` gives it. ``form`` as :func:`cholesky_inverse`'s: ``"library"``
+    forms ``A`` and solves by XLA's products; ``"kernel"`` (CUDA; the library's form elsewhere)
+    and ``"interpret"`` do all of it in one kernel program a matrix (:func:`cholesky_inverse`'s
+    elimination, ``A`` formed as it is read, the right-hand side and ``A^-1`` times it from
+    ``C^-1`` read back by the same program: no matrix ``A`` in memory, no product before or after
+    the kernel), unless :data:`STEP_IN_KERNEL` is off. The numbers ``alpha``, ``beta``, ``h``
+    and ``rate`` are compiled into the kernel. Batch it with ``jax.vmap`` (``M`` and ``slots``
+    may be shared).
 
     Raises:
         ValueError: an unknown ``form``, or arrays of other shapes.
     """
     _check(M, form)
     n, k = M.shape[0], K.shape[0]
-    if K.shape != (k, k) or slots.shape != (n,) or b.shape != (n,) or x.shape != (n,):
-        raise ValueError(f"step_solve needs (n, n) M, (k, k) K and (n,) slots, b and x; got {M.shape}, {K.shape}, "
-                         f"{slots.shape}, {b.shape}, {x.shape}")
-    args = (M, K, slots, alpha, beta, b, x)
+    if (K.shape != (k, k) or f_s.shape != (k,) or slots.shape != (n,) or f.shape != (n,) or jnp.ndim(w)
+            or x.shape != (n,)):
+        raise ValueError(f"step_solve needs (n, n) M, (k, k) K, (k,) f_s, (n,) slots and f, one w and (n,) x; got "
+                         f"{M.shape}, {K.shape}, {f_s.shape}, {slots.shape}, {f.shape}, {jnp.shape(w)}, {x.shape}")
+    arrays, numbers = (M, K, f_s, slots, f, jnp.asarray(w), x), (alpha, beta, h, rate)
     if form == "library":
-        return _step_library(*args)
+        return _step_library(*arrays, *numbers)
+    if not STEP_IN_KERNEL:
+        return _step_library(*arrays, *numbers, factor=partial(cholesky_inverse, form=form, symmetrize=True))
     if form == "interpret":
-        return _step_pallas(*args, interpret=True)
-    return lax.platform_dependent(*args[:3], *args[5:], cuda=partial(_step_on, alpha, beta, interpret=False),
-                                  default=partial(_step_on, alpha, beta, library=True))
+        return _step_pallas(*arrays, *numbers, interpret=True)
+    return lax.platform_dependent(*arrays, cuda=partial(_step_pallas, *numbers, interpret=False, first=False),
+                                  default=partial(_step_library, *numbers, first=False))
 
 
-def _step_on(alpha, beta, M, K, slots, b, x, interpret=False, library=False):
-    if library:
-        return _step_library(M, K, slots, alpha, beta, b, x)
-    return _step_pallas(M, K, slots, alpha, beta, b, x, interpret=interpret)
-
-
-def _step_library(M, K, slots, alpha, beta, b, x):
+def _step_library(*args, factor=None, first=True):
+    """:func:`step_solve` by XLA's products (``factor``: the factor's form, the library's if
+    None); its arguments in :func:`step_solve`'s order, or the numbers first (``first=False``)."""
+    M, K, f_s, slots, f, w, x, alpha, beta, h, rate = args if first else args[4:] + args[:4]
     A = alpha * M + beta * jnp.pad(K, ((0, 1), (0, 1)))[slots[:, None], slots[None, :]]
-    Ci = _library(A, symmetrize=True)
+    Ci = _library(A, symmetrize=True) if factor is None else factor(A)
+    b = h * (f * w + jnp.pad(f_s, (0, 1))[slots] - rate * (M @ x))
     return Ci, x + Ci.T @ (Ci @ b)
 
 
-def _step_pallas(M, K, slots, alpha, beta, b, x, interpret: bool):
+def _step_pallas(*args, interpret: bool, first=True):
+    """:func:`step_solve` in one kernel (:func:`_step_kernel`), arguments as :func:`_step_library`'s."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
+    M, K, f_s, slots, f, w, x, alpha, beta, h, rate = args if first else args[4:] + args[:4]
     n, dt = M.shape[0], M.dtype
     barrier = (lambda: None) if interpret else pltriton.debug_barrier
     return pl.pallas_call(
-        partial(_step_kernel, n, K.shape[0], float(alpha), float(beta),
+        partial(_step_kernel, n, K.shape[0], tuple(float(v) for v in (alpha, beta, h, rate)),
                 partial(fused_multiply_add, compiled=not interpret), barrier),
         out_shape=(jax.ShapeDtypeStruct((n, n), dt), jax.ShapeDtypeStruct((n,), dt)), interpret=interpret,
         compiler_params=pltriton.CompilerParams(num_warps=_warps(padded_size(n)), num_stages=1),
-        name="step_solve")(M, K.astype(dt), slots.astype(jnp.int32), b.astype(dt), x.astype(dt))
+        name="step_solve")(M, K.astype(dt), f_s.astype(dt), slots.astype(jnp.int32), f.astype(dt),
+                           w.astype(dt).reshape(1), x.astype(dt))
 
 
 def inverse_spd(A, form: str = "library"):

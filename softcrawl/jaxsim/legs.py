@@ -380,7 +380,6 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
     at = part.mode_slots  # the strain modes' terms among all modes, zero for the others: gathers
     g = jnp.asarray(settings.gravity, q.dtype)
     load = part.mass_rows.T @ (rotation.T @ g) + cavity_load(part, q, pressure)
-    f = load * mask + jnp.pad(fs, (0, 1))[at]
-    inv_chol, qd_free = step_solve(part.mass, Ks, at, 1.0 + h * rM, h * (h + rK), h * (f - rM * (part.mass @ qdot)),
-                                   qdot, settings.cholesky)
+    inv_chol, qd_free = step_solve(part.mass, Ks, fs, at, load, mask, qdot, 1.0 + h * rM, h * (h + rK), h, rM,
+                                   settings.cholesky)
     return qd_free, inv_chol, n_bad
