@@ -15,8 +15,9 @@ form, on random symmetric positive definite matrices of both sizes and condition
   (``step_solve``, the step's form of the legs' factor) in one kernel program a leg
   (``step_in_kernel_ms``) and with XLA forming the matrix and multiplying by the factor around
   ``cholesky_inverse``'s kernel (``step_split_ms``; :data:`softcrawl.jaxsim.factor.STEP_IN_KERNEL`
-  off), ``ms`` per call at each of ``--robots`` on a GPU, with their largest difference
-  (relative to the free motion's size) where the two agree;
+  off), ``ms`` per call at each of ``--robots`` on a GPU, and ``max_rel_difference``, the two
+  forms' largest difference relative to the largest change of ``x`` (interpreted on a CPU: 8
+  legs, no times);
 * ``"part": "time"``: ``ms`` per call of each function and form at each of ``--robots`` (a call
   treats every matrix of that many robots, each size in its own call), and on a GPU the kernels
   with other numbers of each matrix per thread (:data:`softcrawl.jaxsim.factor.PER_THREAD`, the

@@ -170,8 +170,8 @@ def _step_kernel(n: int, k: int, numbers: tuple, fma, barrier, m_ref, k_ref, fs_
     ``m_ref`` ``(n, n)`` and ``k_ref`` ``(k, k)`` placed by ``s_ref`` ``(n,)`` (index ``k``: a zero
     row and column), symmetrized; ``o_ref`` receives ``C^-1`` (:func:`_eliminated`) and ``y_ref``
     ``x + C^-T C^-1 h (w f + f_s - rate M x)`` of ``fs_ref`` ``(k,)`` (placed as ``K``), ``f_ref``
-    and ``x_ref`` ``(n,)`` and ``w_ref`` ``(1,)``; ``numbers`` ``(alpha, beta, h, rate)``; ``barrier()`` the program's
-    (none in the interpreter). Padded and masked as :func:`_kernel`."""
+    and ``x_ref`` ``(n,)`` and ``w_ref`` ``(1,)``; ``numbers`` ``(alpha, beta, h, rate)``;
+    ``barrier()`` the program's (none in the interpreter). Padded and masked as :func:`_kernel`."""
     from jax.experimental.pallas import triton as pltriton
 
     alpha, beta, h, rate = numbers
