@@ -33,9 +33,10 @@
 #              with no robot invalid that the defaults keep becomes the default: its results are
 #              checked on the card, `rid` and `solve` add the kernels' own checks and variants.
 # selection:   the step at 96 and 16,384 robots with each robot's contact candidates chosen by one
-#              kernel (`--selection kernel`, softcrawl.jaxsim.candidates: 14 operations fewer,
-#              0.49 MB less a robot-step, compiled for an H100) against the defaults, on the same
-#              robots; if faster at both sizes, make "kernel" `candidates.SELECTION`'s default.
+#              kernel (`--selection kernel`, softcrawl.jaxsim.candidates, the warm start with
+#              them: 16 operations fewer, 0.55 MB less a robot-step, compiled for an H100)
+#              against the defaults, on the same robots; if faster at both sizes, make "kernel"
+#              `candidates.SELECTION`'s default.
 # factors:     the legs' 36 x 36 factors alone at 96 and 16,384 robots (`cholesky_kernel.py
 #              --sizes 36`): first each leg's step matrix formed, factored and its free motion
 #              solved in one kernel program (`step_solve`, the step's form) against XLA forming
