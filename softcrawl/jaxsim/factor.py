@@ -97,7 +97,7 @@ UNROLL_PIVOTS = 0
 #: Whether :func:`step_solve`'s kernel forms (``"kernel"``, ``"interpret"``) form the matrix and
 #: solve in the kernel's program, or XLA forms the matrix and multiplies by the factor around
 #: :func:`cholesky_inverse`'s kernel (the step's form before; compiled for an H100, five to seven
-#: more operations and 0.13 MB a robot-step at 16,384 robots, about 13% fewer warp instructions a
+#: more operations and 0.13 MB a robot-step at 16,384 robots, about 11% fewer warp instructions a
 #: matrix in the kernel). Read when a call is traced: ``benchmarks/cholesky_kernel.py`` times both.
 STEP_IN_KERNEL = True
 
@@ -117,23 +117,28 @@ def _warps(N: int) -> int:
     return max(1, min(16, N * N // (PER_THREAD * 32)))
 
 
-def _padded(n: int, a_ref, dt, symmetrize: bool = False):
-    """A program's matrix: ``a_ref`` ``(n, n)`` read whole at the padded size ``N`` through
-    masked pointers (lanes past ``n`` load nothing), the identity on the padding; with
-    ``symmetrize``, ``(A + A^T) / 2``, the transpose formed in the program (no transposing pass
-    before the kernel).
-    Returns the lane indices ``r`` ``(N,)``, ``rows`` ``(N, 1)`` and ``cols`` ``(1, N)``, the mask
-    of the ``n x n`` entries, the identity and the matrix ``(N, N)``."""
-    from jax.experimental.pallas import triton as pltriton
-
+def _padded(n: int, dt, load, symmetrize: bool = False):
+    """A program's ``n x n`` matrix at the padded size ``N``: ``load(rows, cols, inside)`` its
+    entries (``rows`` ``(N, 1)``, ``cols`` ``(1, N)``, masked by ``inside``: lanes past ``n`` load
+    nothing), the identity on the padding; with ``symmetrize``, ``(A + A^T) / 2``, the transpose
+    formed in the program (no transposing pass before the kernel).
+    Returns the lane indices ``r`` ``(N,)``, ``rows``, ``cols``, the mask ``inside`` of the ``n x
+    n`` entries, the identity and the matrix ``(N, N)``."""
     r = lax.iota(jnp.int32, padded_size(n))
     rows, cols = r[:, None], r[None, :]
     inside = (rows < n) & (cols < n)
     eye = (rows == cols).astype(dt)
-    A = pltriton.load(a_ref.at[rows, cols], mask=inside, other=0.0)
+    A = load(rows, cols, inside)
     if symmetrize:
         A = (A + A.T) / 2
     return r, rows, cols, inside, eye, jnp.where(inside, A, eye)
+
+
+def _read(a_ref):
+    """:func:`_padded`'s ``load`` of a matrix ``a_ref`` read whole through masked pointers."""
+    from jax.experimental.pallas import triton as pltriton
+
+    return lambda rows, cols, inside: pltriton.load(a_ref.at[rows, cols], mask=inside, other=0.0)
 
 
 def _eliminated(n: int, fma, r, rows, cols, eye, A):
@@ -160,7 +165,7 @@ def _kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
     (:func:`_padded`) and writes through masked pointers: lanes past ``n`` store nothing."""
     from jax.experimental.pallas import triton as pltriton
 
-    r, rows, cols, inside, eye, A = _padded(n, a_ref, o_ref.dtype, symmetrize)
+    r, rows, cols, inside, eye, A = _padded(n, o_ref.dtype, _read(a_ref), symmetrize)
     pltriton.store(o_ref.at[rows, cols], _eliminated(n, fma, r, rows, cols, eye, A), mask=inside)
 
 
@@ -175,22 +180,20 @@ def _step_kernel(n: int, k: int, numbers: tuple, fma, barrier, m_ref, k_ref, fs_
     from jax.experimental.pallas import triton as pltriton
 
     alpha, beta, h, rate = numbers
-    r = lax.iota(jnp.int32, padded_size(n))
-    rows, cols, on = r[:, None], r[None, :], r < n
-    inside = (rows < n) & (cols < n)
-    s = pltriton.load(s_ref.at[r], mask=on, other=k)
-    placed = (s[:, None] < k) & (s[None, :] < k)
-    M = pltriton.load(m_ref.at[rows, cols], mask=inside, other=0.0)
-    A = alpha * M + beta * pltriton.load(k_ref.at[s[:, None], s[None, :]], mask=placed, other=0.0)
-    eye = (rows == cols).astype(M.dtype)
-    A = jnp.where(inside, (A + A.T) / 2, eye)
+
+    def formed(rows, cols, inside):
+        si, sj = (pltriton.load(s_ref.at[i], mask=i < n, other=k) for i in (rows, cols))
+        K = pltriton.load(k_ref.at[si, sj], mask=(si < k) & (sj < k), other=0.0)
+        return alpha * _read(m_ref)(rows, cols, inside) + beta * K
+
+    r, rows, cols, inside, eye, A = _padded(n, o_ref.dtype, formed, symmetrize=True)
     pltriton.store(o_ref.at[rows, cols], _eliminated(n, fma, r, rows, cols, eye, A), mask=inside)
     # read back after a barrier (the factor, and M and the slots again): products with the factor
     # in registers change the layout Triton gives the elimination (684 instructions a pivot and
-    # 229 registers instead of 519 and 128)
+    # 229 registers instead of 508 and 128)
     barrier()
-    Ci = pltriton.load(o_ref.at[rows, cols], mask=inside, other=0.0)
-    M = pltriton.load(m_ref.at[rows, cols], mask=inside, other=0.0)
+    on = r < n
+    Ci, M = _read(o_ref)(rows, cols, inside), _read(m_ref)(rows, cols, inside)
     s = pltriton.load(s_ref.at[r], mask=on, other=k)
     x = pltriton.load(x_ref.at[r], mask=on, other=0.0)
     f = pltriton.load(f_ref.at[r], mask=on, other=0.0) * w_ref[0] + pltriton.load(fs_ref.at[s], mask=s < k, other=0.0)
@@ -206,7 +209,7 @@ def _sweep_kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
     never swept."""
     from jax.experimental.pallas import triton as pltriton
 
-    r, rows, cols, inside, _, A = _padded(n, a_ref, o_ref.dtype, symmetrize)
+    r, rows, cols, inside, _, A = _padded(n, o_ref.dtype, _read(a_ref), symmetrize)
 
     def body(k, c):
         A, low = c
@@ -304,26 +307,25 @@ def step_solve(M, K, f_s, slots, f, w, x, alpha: float, beta: float, h: float, r
         return _step_library(*arrays, *numbers, factor=partial(cholesky_inverse, form=form, symmetrize=True))
     if form == "interpret":
         return _step_pallas(*arrays, *numbers, interpret=True)
-    return lax.platform_dependent(*arrays, cuda=partial(_step_pallas, *numbers, interpret=False, first=False),
-                                  default=partial(_step_library, *numbers, first=False))
+    named = dict(zip(("alpha", "beta", "h", "rate"), numbers))
+    return lax.platform_dependent(*arrays, cuda=partial(_step_pallas, **named, interpret=False),
+                                  default=partial(_step_library, **named))
 
 
-def _step_library(*args, factor=None, first=True):
+def _step_library(M, K, f_s, slots, f, w, x, alpha, beta, h, rate, factor=None):
     """:func:`step_solve` by XLA's products (``factor``: the factor's form, the library's if
-    None); its arguments in :func:`step_solve`'s order, or the numbers first (``first=False``)."""
-    M, K, f_s, slots, f, w, x, alpha, beta, h, rate = args if first else args[4:] + args[:4]
+    None), its arguments in :func:`step_solve`'s order."""
     A = alpha * M + beta * jnp.pad(K, ((0, 1), (0, 1)))[slots[:, None], slots[None, :]]
     Ci = _library(A, symmetrize=True) if factor is None else factor(A)
     b = h * (f * w + jnp.pad(f_s, (0, 1))[slots] - rate * (M @ x))
     return Ci, x + Ci.T @ (Ci @ b)
 
 
-def _step_pallas(*args, interpret: bool, first=True):
-    """:func:`step_solve` in one kernel (:func:`_step_kernel`), arguments as :func:`_step_library`'s."""
+def _step_pallas(M, K, f_s, slots, f, w, x, alpha, beta, h, rate, interpret: bool):
+    """:func:`step_solve` in one kernel (:func:`_step_kernel`), its arguments in its order."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
-    M, K, f_s, slots, f, w, x, alpha, beta, h, rate = args if first else args[4:] + args[:4]
     n, dt = M.shape[0], M.dtype
     barrier = (lambda: None) if interpret else pltriton.debug_barrier
     return pl.pallas_call(
