@@ -16,7 +16,8 @@ default device. Printed as one JSON line (per batch size when timing):
   the step has no loop of its own, ``inner_loops`` 0: XLA counts a loop body once);
 * with ``--time`` (the default on a GPU): ``ms_per_step`` and ``robot_steps_per_s`` at each of
   ``--batches`` (random designs, landed for one action first; ``bad_robots``: robots whose state
-  went invalid);
+  went invalid; ``peak_device_memory_gb``: the device's peak memory in use so far, where JAX
+  reports it);
 * with ``--reference FILE`` too: each batch's disk nodes after its timed calls against those a
   run of another form of the step stored in ``FILE`` for the same robots (:func:`against_reference`:
   ``reference_max_node_distance_mm``, the 99th percentile and median of the robots' largest,
@@ -29,8 +30,10 @@ default device. Printed as one JSON line (per batch size when timing):
   machine, at each of ``--batches``, nothing timed (:func:`softcrawl.jaxsim.cost.deviceless_gpu`;
   needs JAX's CUDA plugin: ``pip install "jax-cuda12-plugin[with-cuda]==<jax version>"``, best
   in a separate environment), and what the bytes cost at the GPU's memory bandwidth:
-  ``bandwidth_floor_ms_per_step`` and the ``bandwidth_bound_robot_steps_per_s`` it allows;
-  with ``--registers`` also ptxas' report of the kernels (:func:`softcrawl.jaxsim.cost.ptxas_report`):
+  ``bandwidth_floor_ms_per_step`` and the ``bandwidth_bound_robot_steps_per_s`` it allows, and
+  ``device_memory_gb``, the memory the program needs on the GPU (XLA's memory analysis:
+  arguments, outputs and temporary buffers; the largest batch a card holds); with
+  ``--registers`` also ptxas' report of the kernels (:func:`softcrawl.jaxsim.cost.ptxas_report`):
   ``ptxas.spilling`` (bytes spilled by kernel) and the five that use the most registers;
 * with ``--profile DIR``: one more call at each timed batch ``B`` under JAX's profiler, its
   trace in ``DIR/bB`` and, printed as one JSON line, the kernels per step, the device's busy time
@@ -182,7 +185,8 @@ def main(argv=None) -> None:
             with jax.sharding.use_abstract_mesh(sharding.mesh.abstract_mesh):  # Pallas reads the GPU's kind here
                 program = make_action_rollout(steps).lower(*specs)
             with captured_stderr() if args.registers else contextlib.nullcontext([""]) as log:
-                text = program.compile().as_text()
+                compiled = program.compile()
+            text = compiled.as_text()
             seq = sequential_cost(text, STEP_SCOPES)
             registers = {}
             if args.registers:
@@ -196,7 +200,8 @@ def main(argv=None) -> None:
                               "dependent_ops_per_step": seq.ops / steps,
                               "loop_trips_per_step": seq.trips / steps, **split(seq, B),
                               "bandwidth_floor_ms_per_step": 1e3 * floor_s,
-                              "bandwidth_bound_robot_steps_per_s": B / floor_s, **registers,
+                              "bandwidth_bound_robot_steps_per_s": B / floor_s,
+                              "device_memory_gb": device_memory(compiled) / 1e9, **registers,
                               "jax": jax.__version__}), flush=True)
         return
     device = jax.devices()[0]
@@ -241,6 +246,7 @@ def main(argv=None) -> None:
                           "dependent_ops_per_step": sequential_cost(roll.as_text()).ops / steps,
                           "ms_per_step": 1e3 * wall / (args.calls * steps),
                           "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
+                          "peak_device_memory_gb": (device.memory_stats() or {}).get("peak_bytes_in_use", 0) / 1e9,
                           **agreement, "device": out["device"], **engine}), flush=True)
         if args.profile:
             where = Path(args.profile, f"b{B}")
@@ -251,6 +257,13 @@ def main(argv=None) -> None:
             prof = kernel_profile(where, hlo, steps, None, STEP_SCOPES)
             (where / "kernels.json").write_text(json.dumps(prof))
             print(json.dumps({"batch": B, **prof, "top": prof["top"][:25]}), flush=True)
+
+
+def device_memory(compiled) -> int:
+    """Bytes of device memory a compiled program needs while it runs, by XLA's memory analysis:
+    its arguments, outputs and temporary buffers, less the outputs that alias arguments."""
+    m = compiled.memory_analysis()
+    return m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes
 
 
 def against_reference(path, key: str, end: dict) -> dict:

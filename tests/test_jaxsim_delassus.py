@@ -818,6 +818,32 @@ def test_the_gpu_kernels_are_cudas_only(landed):
         assert "triton" not in text and "f16" in text
 
 
+def test_a_gpu_older_than_ampere_runs_the_step_without_kernels(landed, monkeypatch):
+    """Every kernel form on (the solve, the factors, the RID terms, the contact candidates): for a
+    GPU of compute capability 7.5 (a T4; XLA compiles Triton kernels from 8.0 on and fails on
+    them) the step exported for CUDA holds no Triton kernel (XLA's forms instead, the float16
+    solve among them), for 9.0 it holds them (JAX refuses to serialise their custom call). A
+    regression test: a T4 failed to compile the float32 defaults."""
+    from softcrawl.jaxsim import candidates, gpu
+    from softcrawl.jaxsim.engine import physics_step
+
+    model, state, kpa = landed
+    kernels = dataclasses.replace(model, settings=dataclasses.replace(
+        model.settings, delassus="fused16", cholesky="kernel", rid_form="kernel"))
+    monkeypatch.setattr(candidates, "SELECTION", "kernel")
+
+    def exported(capability):
+        monkeypatch.setattr(gpu, "compute_capability", lambda: capability)
+        jax.clear_caches()
+        return jax.export.export(jax.jit(physics_step), platforms=["cuda"])(kernels, state, kpa).mlir_module()
+
+    text = exported((7, 5))
+    assert "triton" not in text and "f16" in text
+    with pytest.raises(ValueError, match="gpu.triton"):
+        exported((9, 0))
+    jax.clear_caches()
+
+
 def test_the_candidates_kernel_chooses_the_steps_contacts_as_xla(landed, monkeypatch):
     """:data:`softcrawl.jaxsim.candidates.SELECTION`: each body's contact candidates chosen in one
     kernel per body (interpreted here) are XLA's all-bodies choice on the landed robot (loaded

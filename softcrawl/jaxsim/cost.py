@@ -41,6 +41,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from softcrawl.jaxsim.gpu import set_target, target_capability
+
 #: Opcodes that launch no kernel.
 FREE_OPCODES = frozenset({"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "after-all",
                           "partition-id", "replica-id", "opt-barrier", "domain"})
@@ -328,7 +330,8 @@ def deviceless_gpu(target_config: str):
     """A sharding on one NVIDIA GPU that need not be present, for ahead-of-time compilation:
     ``jax.jit(f).lower(*specs).compile()`` with ``jax.ShapeDtypeStruct`` arguments carrying it
     compiles ``f`` for that GPU on any machine (module doc). The compiled program can be read
-    (``as_text()``), not run.
+    (``as_text()``), not run. The target's compute capability is recorded
+    (:func:`softcrawl.jaxsim.gpu.set_target`): the step's kernel forms follow it as on that GPU.
 
     Args:
         target_config: an XLA ``GpuTargetConfig`` in protobuf text format (the device's
@@ -338,6 +341,7 @@ def deviceless_gpu(target_config: str):
         RuntimeError: JAX has no CUDA plugin, or it started without :func:`prepare_deviceless_gpu`
             (the plugin of the installed JAX's version: ``pip install
             "jax-cuda12-plugin[with-cuda]==<jax version>"``).
+        ValueError: a configuration without a CUDA compute capability.
     """
     import jax
     from jax.experimental import topologies
@@ -349,6 +353,7 @@ def deviceless_gpu(target_config: str):
                            f'(pip install "jax-cuda12-plugin[with-cuda]=={jax.__version__}"), started after '
                            "softcrawl.jaxsim.cost.prepare_deviceless_gpu()") from e
     mesh = topologies.make_mesh(topo, (1,), ("gpu",))
+    set_target(target_capability(target_config))  # the kernels' forms and sizes follow the target
     return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
 
 

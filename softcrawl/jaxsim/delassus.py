@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from softcrawl.jaxsim import candidates
 from softcrawl.jaxsim.contact import floor_contacts
 from softcrawl.jaxsim.factor import inverse_spd
+from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.model import register_pytree
 from softcrawl.jaxsim.schur import SchurOperator, block_diagonal
 
@@ -138,7 +139,7 @@ def select_contacts(model, state, v_free, qd_free):
         return _selected_by_xla(*args, **rule)
     if candidates.SELECTION == "interpret":
         return _selected_by_kernel(*args, **rule, interpret=True)
-    return jax.lax.platform_dependent(*args, cuda=partial(_selected_by_kernel, **rule, interpret=False),
+    return jax.lax.platform_dependent(*args, **cuda_kernel(partial(_selected_by_kernel, **rule, interpret=False)),
                                       default=partial(_selected_by_xla, **rule))
 
 

@@ -31,6 +31,7 @@ from softcrawl.jaxsim import disk as disk_motion
 from softcrawl.jaxsim import legs as leg_motion
 from softcrawl.jaxsim.contact import solve_contacts
 from softcrawl.jaxsim.delassus import condense, constraint_rows, corrections
+from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.model import register_pytree
 from softcrawl.jaxsim.ridkernel import with_kernel_rows
 
@@ -154,7 +155,7 @@ def _physics_step(model, state: State, sim_kpa) -> State:
             lam_c = solve(*problem)
         else:  # a CPU reads its operator whole; the kernel is CUDA's (Settings.delassus)
             stored = partial(solve, storage=st.delassus_storage)
-            kernel = {"cuda": partial(stored, fused="gpu")} if st.delassus == "fused16" else {}
+            kernel = cuda_kernel(partial(stored, fused="gpu")) if st.delassus == "fused16" else {}
             lam_c = jax.lax.platform_dependent(*problem, cpu=solve, default=stored, **kernel)
     # 4. corrections
     with jax.named_scope("corrections"):

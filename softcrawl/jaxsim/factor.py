@@ -20,9 +20,9 @@ that ``C = L D^1/2`` and ``C^-1 = D^-1/2 L^-1``. :func:`step_solve` runs it on a
 matrix formed in the program from its parts and solves the leg's free motion with the factor
 in the same program (:func:`softcrawl.jaxsim.legs.free_motion`). A matrix that is not positive
 definite gives a non-positive pivot and NaN or infinite entries, as the library's factorisation
-gives NaN. On other platforms than CUDA (a CPU among them) ``"kernel"`` runs the library's form
-(``jax.lax.platform_dependent``); ``"interpret"`` runs the kernel in Pallas' interpreter on any
-platform (the tests').
+gives NaN. On other platforms than CUDA (a CPU among them) and on GPUs older than Ampere
+(:mod:`softcrawl.jaxsim.gpu`) ``"kernel"`` runs the library's form (``jax.lax.platform_dependent``);
+``"interpret"`` runs the kernel in Pallas' interpreter on any platform (the tests').
 
 Where the inverse itself is wanted (the attachment block, :func:`inverse_spd`), the kernel form
 is the symmetric sweep operator instead (Goodnight 1979, "A tutorial on the SWEEP operator",
@@ -42,6 +42,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.scipy.linalg import solve_triangular
+
+from softcrawl.jaxsim.gpu import cuda_kernel
 
 #: The forms of :func:`cholesky_inverse` a model may choose (``Settings.cholesky``).
 CHOLESKY_FORMS = ("library", "kernel")
@@ -269,7 +271,7 @@ def cholesky_inverse(A, form: str = "library", symmetrize: bool = False):
 
     if form == "interpret":
         return kernel(A, True)
-    return lax.platform_dependent(A, cuda=partial(kernel, interpret=False),
+    return lax.platform_dependent(A, **cuda_kernel(partial(kernel, interpret=False)),
                                   default=partial(_library, symmetrize=symmetrize))
 
 
@@ -308,7 +310,7 @@ def step_solve(M, K, f_s, slots, f, w, x, alpha: float, beta: float, h: float, r
     if form == "interpret":
         return _step_pallas(*arrays, *numbers, interpret=True)
     named = dict(zip(("alpha", "beta", "h", "rate"), numbers))
-    return lax.platform_dependent(*arrays, cuda=partial(_step_pallas, **named, interpret=False),
+    return lax.platform_dependent(*arrays, **cuda_kernel(partial(_step_pallas, **named, interpret=False)),
                                   default=partial(_step_library, **named))
 
 
@@ -363,7 +365,7 @@ _sweeps = partial(_pallas, kernel=_sweep_kernel, name="inverse_spd")
 
 
 def _sweeps_on_cuda(A):
-    return lax.platform_dependent(A, cuda=partial(_sweeps, interpret=False), default=inverse_spd)
+    return lax.platform_dependent(A, **cuda_kernel(partial(_sweeps, interpret=False)), default=inverse_spd)
 
 
 @jax.custom_batching.custom_vmap

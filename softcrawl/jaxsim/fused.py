@@ -47,6 +47,7 @@ import jax.numpy as jnp
 from jax import lax
 from jax.experimental import pallas as pl
 
+from softcrawl.jaxsim import gpu
 from softcrawl.jaxsim.cone import cone_projection, de_saxce_term
 from softcrawl.jaxsim.factor import padded_size
 from softcrawl.jaxsim.schur import SchurOperator
@@ -103,16 +104,13 @@ HOLDING_CAPABILITIES = frozenset({"9.0", "10.0", "10.3"})
 
 def held_bytes(interpret: bool = False) -> int:
     """The largest float16 copy of the scaled operator a program holds on chip here, bytes:
-    :data:`HELD_BYTES` on a GPU of :data:`HOLDING_CAPABILITIES`, in Pallas' interpreter, and where
-    JAX has no GPU (a kernel compiled without one, :func:`softcrawl.jaxsim.cost.deviceless_gpu`,
-    is compiled for an H100, as Pallas assumes there); 0 on any other GPU."""
-    if interpret:
+    :data:`HELD_BYTES` on a GPU of :data:`HOLDING_CAPABILITIES` (JAX's, or the one a deviceless
+    compilation targets: :func:`softcrawl.jaxsim.gpu.compute_capability`), in Pallas'
+    interpreter, and where there is none; 0 on any other GPU."""
+    capability = gpu.compute_capability()
+    if interpret or capability is None:
         return HELD_BYTES
-    try:
-        device = jax.local_devices(backend="gpu")[0]
-    except RuntimeError:  # no GPU
-        return HELD_BYTES
-    return HELD_BYTES if str(getattr(device, "compute_capability", "")) in HOLDING_CAPABILITIES else 0
+    return HELD_BYTES if "{}.{}".format(*capability) in HOLDING_CAPABILITIES else 0
 
 
 def row_blocks(n: int, row_block: int) -> tuple[int, list[tuple[int, int]]]:

@@ -30,6 +30,7 @@ from jax import lax
 
 from softcrawl.jaxsim.factor import step_solve
 from softcrawl.jaxsim.frames import frame_terms
+from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.ridkernel import rid_kernel_terms
 
 
@@ -96,7 +97,7 @@ def rid_terms(part, q, qdot, c, form: str | None = None, present=True):
         return jax.lax.platform_dependent(part, x, qs, cpu=partial(_xla_terms, c=c, form="rows"),
                                           default=partial(_xla_terms, c=c, form="pairs"))
     if form == "kernel":
-        return jax.lax.platform_dependent(part, x, qs, cuda=partial(rid_kernel_terms, c=c, present=present),
+        return jax.lax.platform_dependent(part, x, qs, **cuda_kernel(partial(rid_kernel_terms, c=c, present=present)),
                                           default=partial(_xla_terms, c=c, form="rows"))
     if form == "interpret":
         return rid_kernel_terms(part, x, qs, c, interpret=True, present=present)

@@ -190,6 +190,10 @@ class Settings:
             triangular solve) or ``"kernel"`` (one kernel on a GPU each, the block's by sweeps;
             CUDA only: other platforms, a CPU among them, run the library's; :func:`build_model`'s
             default in float32).
+
+    "CUDA" for a kernel form means an NVIDIA GPU of compute capability 8.0 or newer (Ampere on:
+    XLA compiles Pallas' Triton kernels for those only); on older ones (a T4, a V100) the step
+    takes the form it takes on other platforms (:mod:`softcrawl.jaxsim.gpu`).
     """
 
     dt: float
