@@ -28,7 +28,8 @@ def test_gpus_older_than_ampere_run_xlas_forms(monkeypatch):
     """XLA compiles Pallas' Triton kernels for compute capability 8.0 and up only: a T4 (7.5) and a
     V100 (7.0) get no CUDA branch (XLA's form serves them, as other platforms), an A100, H100 and
     RTX 4090 get the kernel; without a GPU or a deviceless target the kernel branch stays (it is
-    only compiled for a GPU). A deviceless target is JAX's GPU where there is none."""
+    only compiled for a GPU); an older GPU is told why its step is slower. A deviceless target is
+    JAX's GPU where there is none."""
     from softcrawl.jaxsim import gpu
 
     kernel = object()
@@ -36,7 +37,11 @@ def test_gpus_older_than_ampere_run_xlas_forms(monkeypatch):
                              (None, True)):
         monkeypatch.setattr(gpu, "compute_capability", lambda c=capability: c)
         assert gpu.runs_kernels() == runs
-        assert gpu.cuda_kernel(kernel) == ({"cuda": kernel} if runs else {})
+        if runs:
+            assert gpu.cuda_kernel(kernel) == {"cuda": kernel}
+        else:
+            with pytest.warns(UserWarning, match=r"compute capability {}\.{}".format(*capability)):
+                assert gpu.cuda_kernel(kernel) == {}
     monkeypatch.undo()
     if all(d.platform == "cpu" for d in jax.devices()):  # no GPU here: the recorded target, else none
         try:

@@ -6,7 +6,7 @@ The engine's kernels (the contact solve, the factors, the RID terms, the contact
 kernels for Ampere GPUs and newer only (compute capability 8.0 and up; on a T4 or a V100 it
 fails: "Triton support is only enabled for Ampere GPUs (compute capability 8.0) and up"). Each
 kernel form therefore goes through :func:`cuda_kernel`: the kernel where the GPU runs it, XLA's
-form of the same step on older GPUs, as on platforms other than CUDA.
+form of the same step on older GPUs (with a warning), as on platforms other than CUDA.
 
 The GPU is JAX's first CUDA device; where JAX has none, the GPU a deviceless compilation
 targets (:func:`softcrawl.jaxsim.cost.deviceless_gpu` records it from its target
@@ -17,6 +17,7 @@ configuration), and else none: then a kernel form is assumed to run (the CUDA br
 from __future__ import annotations
 
 import re
+import warnings
 
 #: The oldest compute capability whose GPUs run Pallas' Triton kernels (XLA's rule, above).
 TRITON_FROM = (8, 0)
@@ -71,5 +72,10 @@ def runs_kernels() -> bool:
 
 def cuda_kernel(kernel) -> dict:
     """``{"cuda": kernel}`` for ``jax.lax.platform_dependent`` where the GPU runs the kernels
-    (:func:`runs_kernels`), else ``{}`` (its ``default`` branch then serves CUDA too)."""
-    return {"cuda": kernel} if runs_kernels() else {}
+    (:func:`runs_kernels`), else ``{}`` (its ``default`` branch then serves CUDA too) and a
+    warning, shown once: the step is slower there."""
+    if runs_kernels():
+        return {"cuda": kernel}
+    warnings.warn("this GPU (compute capability {}.{}) compiles no Pallas kernels (Triton needs 8.0 or newer): the "
+                  "JAX engine runs XLA's forms of its kernels, slower".format(*compute_capability()), stacklevel=2)
+    return {}
