@@ -834,6 +834,7 @@ def test_a_gpu_older_than_ampere_runs_the_step_without_kernels(landed, monkeypat
 
     def exported(capability):
         monkeypatch.setattr(gpu, "compute_capability", lambda: capability)
+        monkeypatch.setattr(gpu, "_warned", False)
         jax.clear_caches()
         return jax.export.export(jax.jit(physics_step), platforms=["cuda"])(kernels, state, kpa).mlir_module()
 

@@ -3,6 +3,7 @@ device or a deviceless target configuration, and which GPUs run the engine's Pal
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import pytest
@@ -36,11 +37,15 @@ def test_gpus_older_than_ampere_run_xlas_forms(monkeypatch):
     for capability, runs in (((7, 5), False), ((7, 0), False), ((8, 0), True), ((8, 9), True), ((9, 0), True),
                              (None, True)):
         monkeypatch.setattr(gpu, "compute_capability", lambda c=capability: c)
+        monkeypatch.setattr(gpu, "_warned", False)
         assert gpu.runs_kernels() == runs
         if runs:
             assert gpu.cuda_kernel(kernel) == {"cuda": kernel}
         else:
             with pytest.warns(UserWarning, match=r"compute capability {}\.{}".format(*capability)):
+                assert gpu.cuda_kernel(kernel) == {}
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # once a process
                 assert gpu.cuda_kernel(kernel) == {}
     monkeypatch.undo()
     if all(d.platform == "cpu" for d in jax.devices()):  # no GPU here: the recorded target, else none

@@ -23,6 +23,7 @@ import warnings
 TRITON_FROM = (8, 0)
 
 _target: tuple[int, int] | None = None
+_warned = False
 
 
 def target_capability(config: str) -> tuple[int, int]:
@@ -73,9 +74,13 @@ def runs_kernels() -> bool:
 def cuda_kernel(kernel) -> dict:
     """``{"cuda": kernel}`` for ``jax.lax.platform_dependent`` where the GPU runs the kernels
     (:func:`runs_kernels`), else ``{}`` (its ``default`` branch then serves CUDA too) and a
-    warning, shown once: the step is slower there."""
+    warning, once a process: the step is slower there."""
+    global _warned
     if runs_kernels():
         return {"cuda": kernel}
-    warnings.warn("this GPU (compute capability {}.{}) compiles no Pallas kernels (Triton needs 8.0 or newer): the "
-                  "JAX engine runs XLA's forms of its kernels, slower".format(*compute_capability()), stacklevel=2)
+    if not _warned:
+        _warned = True
+        warnings.warn("this GPU (compute capability {}.{}) compiles no Pallas kernels (Triton needs 8.0 or newer): "
+                      "the JAX engine runs XLA's forms of its kernels, slower".format(*compute_capability()),
+                      stacklevel=2)
     return {}
