@@ -119,15 +119,19 @@ nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee
 
 # forms NAME LIMIT FLAGS...: the step at 96 and 16,384 robots in each form (one word of
 # step_cost.py's flags, each call under LIMIT seconds), every form's robots against the first's
-# on the same robots (--reference: the first's ends in /tmp/NAME.npz, 66 MB, not in OUTDIR).
+# on the same robots (--reference: the first's ends in /tmp/NAME.npz, 66 MB, not in OUTDIR);
+# the lines also in OUTDIR/NAME.jsonl, and gpu_verdict.py's rule on them in OUTDIR/verdict.jsonl
+# (which forms become the default).
 forms() {
     local name=$1 limit=$2 flags
     shift 2
-    rm -f "/tmp/$name.npz"
+    rm -f "/tmp/$name.npz" "$out/$name.jsonl"
     for flags in "$@"; do
         timeout "$limit" python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
-            --reference "/tmp/$name.npz" 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
+            --reference "/tmp/$name.npz" 2>>"$out/log.txt" | tee -a "$out/targets.jsonl" "$out/$name.jsonl"
     done
+    python3 benchmarks/gpu_verdict.py "$out/$name.jsonl" 2>>"$out/log.txt" | sed "s/^{/{\"stage\": \"$name\", /" \
+        | tee -a "$out/verdict.jsonl"
 }
 
 case $stage in
