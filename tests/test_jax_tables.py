@@ -203,6 +203,29 @@ def test_settled_states_round_trip(table, settled, recwarn):
         same_states(Rested(take(state, j), int(steps[j]), float(speed[j]), bool(ok[j])), rested[b])
 
 
+def test_settling_halves_its_batch_where_the_device_runs_out_of_memory(table, tmp_path):
+    """Three designs at a batch of 4, on a device (faked) that holds 2 robots: the batch of 4 runs
+    out of memory, the cache warns, settles 2 and then 1 (padded to 2) and remembers the batch
+    (``largest_batch``); every state is, to the bit, what a cache settling 2 at a time gives."""
+    OTHER = (0, 1, 0, 3, 2, 0, 0, 0)
+    cache = states(table, tmp_path / "a")
+    real, sizes = cache._settle, []
+
+    def settle(model):
+        sizes.append(model.robot.leg_mask.shape[0])
+        if sizes[-1] > 2:
+            raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 64 bytes.")
+        return real(model)
+
+    cache._settle = settle
+    with pytest.warns(UserWarning, match="out of memory on settling of 4 robots a batch; going on at 2"):
+        got = cache.get([THREE, FOUR, OTHER], 4, batch=4)
+    assert sizes == [4, 2, 2] and cache.largest_batch == 2 and cache.settled == 3
+    want = states(table, tmp_path / "b").get([THREE, FOUR, OTHER], 4, batch=2)
+    for a, b in zip(got, want):
+        same_states(a, b)
+
+
 def copy_folder(folder, tmp_path):
     import shutil
 

@@ -50,6 +50,58 @@ def test_batches_are_padded_to_a_few_sizes():
     assert [padded_size(n, 96) for n in (1, 4, 5, 17, 70, 96)] == [4, 4, 16, 64, 96, 96]
 
 
+def out_of_memory():
+    """The error XLA raises where a device cannot allocate a buffer."""
+    return jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 1073741824 bytes.")
+
+
+def test_a_batch_is_halved_only_where_the_device_ran_out_of_memory():
+    """:func:`halved_on_memory`: half the batch after a lack of memory (a warning naming it);
+    the same error for one robot, and any other error, raised again as it is."""
+    from softcrawl.jaxsim.batch import halved_on_memory
+
+    with pytest.warns(UserWarning, match="out of memory on episodes of 8 robots a batch; going on at 4"):
+        assert halved_on_memory(out_of_memory(), 8, "episodes") == 4
+    for error, size in ((out_of_memory(), 1), (jax.errors.JaxRuntimeError("INTERNAL: a failed launch"), 8),
+                        (ValueError("a bad design"), 8)):
+        with pytest.raises(type(error)) as raised:
+            halved_on_memory(error, size, "episodes")
+        assert raised.value is error
+
+
+def test_the_evaluator_halves_its_batch_where_the_device_runs_out_of_memory(monkeypatch):
+    """Five episodes at a largest batch of 8, on a device (faked) that holds 2 robots: the
+    batches of 8 and 4 run out of memory, the evaluator warns twice, goes on at 2 and returns
+    every request's result in order (3 batches), counting each episode once; later calls start
+    at 2."""
+    from softcrawl.jaxsim.episodes import JaxEvaluator, SettledDesign
+    from softcrawl.robot import RobotConfig
+
+    ev = JaxEvaluator(RobotConfig(model="reduced"), max_batch=8)
+    designs = ["1,1,1,0,0,0,0,0", "1,0,1,0,1,0,0,0", "2,1,1,0,0,0,0,0", "1,2,1,0,0,0,0,0", "1,1,2,0,0,0,0,0"]
+    runs = []
+
+    def prepare(ds):
+        for d in ds:
+            ev._designs[ev.space.canonicalize(d)] = SettledDesign(3, None, 0.0, 0, True, False)
+
+    def run(ds, commands):
+        runs.append(len(ds))
+        if len(ds) > 2:
+            raise out_of_memory()
+        return [(float(sum(d)), False) for d in ds]
+
+    monkeypatch.setattr(ev, "prepare", prepare)
+    monkeypatch.setattr(ev, "_run", run)
+    with pytest.warns(UserWarning, match="out of memory") as caught:
+        got = ev.evaluate([(d, short_gait(), 1.0) for d in designs])
+    assert len(caught) == 2 and ev.max_batch == 2 and runs == [5, 4, 2, 2, 1]
+    assert got == [(float(sum(ev.space.canonicalize(d))), False) for d in designs]
+    assert ev.episodes == 5
+    ev.evaluate([(designs[0], short_gait(), 1.0)] * 3)
+    assert runs[5:] == [2, 1] and ev.episodes == 8
+
+
 def test_evaluator_refuses_what_it_cannot_run():
     from softcrawl.codesign.groundtruth import DIVERGED_CM
     from softcrawl.jaxsim.episodes import JaxEvaluator

@@ -197,7 +197,8 @@ def register(subparsers) -> None:
                    help="cpu (default: one design per worker) or jax (every design's episode of a search round "
                         "in one batch on JAX's default device, CPU or GPU; --rid-dtype is its precision)")
     p.add_argument("--jax-batch", type=int, default=None, **bounded(1, MAX_JAX_BATCH),
-                   help="largest JAX batch, a power of two (default 1024)")
+                   help="largest JAX batch, a power of two (default 1024; halved, with a warning, where the "
+                        "device runs out of memory)")
     p.add_argument("--in-flight", type=int, default=None, **bounded(1, MAX_IN_FLIGHT),
                    help="--engine jax: designs searched at once, each round of all of them in one call (default "
                         "jax-batch / 16; memory grows with it); not saved, a resumed run may change it")

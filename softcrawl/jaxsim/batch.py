@@ -12,6 +12,7 @@ compiles each at most ``log4(B) + 1`` times.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from functools import partial
 
 import jax
@@ -29,6 +30,20 @@ def padded_size(n: int, batch: int, base: int = 4, smallest: int = 4) -> int:
     while size < max(n, smallest):
         size *= base
     return min(batch, size)
+
+
+def halved_on_memory(error: BaseException, size: int, what: str) -> int:
+    """The batch to try again with after ``error`` at ``size`` robots: ``size // 2`` where the
+    device ran out of memory (XLA's ``RESOURCE_EXHAUSTED``) and ``size > 1``, with a warning
+    naming ``what``; any other error, or one robot out of memory, is raised again.
+
+    Raises:
+        BaseException: ``error``, where it is not a device's lack of memory of a batch."""
+    if size < 2 or not (isinstance(error, jax.errors.JaxRuntimeError) and "RESOURCE_EXHAUSTED" in str(error)):
+        raise error
+    warnings.warn(f"the device ran out of memory on {what} of {size} robots a batch; going on at {size // 2}",
+                  stacklevel=2)
+    return size // 2
 
 
 def stack_padded(rows, size: int):

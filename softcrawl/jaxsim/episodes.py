@@ -36,7 +36,7 @@ from softcrawl.design.spacefile import DesignSpace
 from softcrawl.fem.solver import SolverSettings
 from softcrawl.gaits.periodic import PeriodicGait
 from softcrawl.gaits.pressure import P_MAX_KPA, P_MIN_KPA, check_pressures
-from softcrawl.jaxsim.batch import padded_size, stack_padded
+from softcrawl.jaxsim.batch import halved_on_memory, padded_size, stack_padded
 from softcrawl.jaxsim.engine import make_schedule_rollout
 from softcrawl.jaxsim.model import engine_dtype
 from softcrawl.jaxsim.tables import DesignTable, SettledStates, build_table
@@ -109,7 +109,9 @@ class JaxEvaluator:
         settling: the rest rule before each episode (:func:`softcrawl.robot.settle`'s).
         calibration, rate_kpa_s: the real-to-sim pressure warp and the regulators' slew, kPa/s.
         max_batch: largest batch of one call (a power of two); smaller groups are padded to
-            the next power of two.
+            the next power of two. Where the device runs out of memory on a batch, it is halved
+            and the batch run again (a warning; :func:`softcrawl.jaxsim.batch.halved_on_memory`),
+            settling included.
         diverged_cm: the score of a diverged episode
             (:data:`softcrawl.codesign.groundtruth.DIVERGED_CM`).
         leg_contacts, disk_contacts, solver, iterations: the contact solve (:func:`build_model`).
@@ -207,6 +209,8 @@ class JaxEvaluator:
             InvalidDesignError: an invalid design. ValueError: a duration under one step, a gait
                 that does not command ``R`` pressures. PressureRangeError: a gait commands a
                 pressure outside [0, 90] kPa. All are raised before anything is simulated.
+                JaxRuntimeError: the device's, other than a lack of memory of a batch of more
+                than one robot (those halve ``max_batch``).
         """
         dt = self.config.dt
         designs = [self.space.canonicalize(d) for d, _, _ in requests]
@@ -223,12 +227,19 @@ class JaxEvaluator:
             groups.setdefault((self._designs[d].legs, n), []).append(i)
         out: list[tuple[float, bool]] = [(self.diverged_cm, True)] * len(requests)
         for (_, n), idx in groups.items():
-            for i in range(0, len(idx), self.max_batch):
+            i = 0
+            while i < len(idx):
                 chunk = idx[i:i + self.max_batch]
-                for j, result in zip(chunk, self._run([designs[j] for j in chunk], [commands[j] for j in chunk])):
+                try:
+                    results = self._run([designs[j] for j in chunk], [commands[j] for j in chunk])
+                except Exception as error:  # out of the device's memory: smaller batches from now on
+                    self.max_batch = halved_on_memory(error, padded_size(len(chunk), self.max_batch, 2, 1), "episodes")
+                    continue
+                for j, result in zip(chunk, results):
                     out[j] = result
                 self.episodes += len(chunk)
                 self.sim_seconds += len(chunk) * n * dt
+                i += len(chunk)
         return out
 
     def _run(self, designs: list[Design], commands: list[np.ndarray]) -> list[tuple[float, bool]]:

@@ -39,7 +39,7 @@ import numpy as np
 
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.jaxsim import engine
-from softcrawl.jaxsim.batch import make_batch_settle, padded_size
+from softcrawl.jaxsim.batch import halved_on_memory, make_batch_settle, padded_size
 from softcrawl.jaxsim.model import (DISK_POINT_NODES, Model, RobotData, attachment_gram, build_model, disk_inverse,
                                    leg_rows)
 from softcrawl.robot.assembly import RobotConfig, build_robot
@@ -283,6 +283,7 @@ class SettledStates:
 
     Attributes:
         settled: designs settled by this object; loaded: designs read from the disk.
+        largest_batch: the batch the device's memory allowed after it ran out (None: it never did).
     """
 
     def __init__(self, table: DesignTable, settling: Settling = Settling(), folder: str | os.PathLike | None = None):
@@ -294,6 +295,7 @@ class SettledStates:
         self._keys: dict[int, tuple[str, object, list]] = {}
         self._warned_write = False
         self.settled = self.loaded = 0
+        self.largest_batch: int | None = None
 
     def _layout(self, n_slots: int) -> tuple[str, object, list]:
         """``(key, treedef, leaves)`` of ``n_slots`` leg slots: the cache key and the structure
@@ -395,8 +397,13 @@ class SettledStates:
             n_slots: the leg slots of the states (default: each design's leg count; the
                 designs are then settled in groups of one leg count).
 
+        Where the device runs out of memory on a batch, the batches are halved from then on
+        (:attr:`largest_batch`; a warning) and the batch settled again.
+
         Raises:
-            InvalidDesignError: an invalid design. ValueError: a design with more legs than ``n_slots``.
+            InvalidDesignError: an invalid design. ValueError: a design with more legs than
+                ``n_slots``. JaxRuntimeError: the device's, other than a lack of memory of a batch
+                of more than one robot.
         """
         designs = [tuple(int(v) for v in d) for d in self.table.designs_array(designs)]
         out: dict[int, Rested] = {}
@@ -416,17 +423,23 @@ class SettledStates:
         for L, idx in missing.items():
             key = self._layout(L)[0]
             todo = list(dict.fromkeys(designs[i] for i in idx))
-            done = {}
-            for start in range(0, len(todo), batch):
-                chunk = todo[start:start + batch]
-                size = padded_size(len(chunk), batch, base, smallest)
-                model = self.table.model(chunk + chunk[-1:] * (size - len(chunk)), L)
-                state, steps, speed, ok = jax.device_get(self._settle(model))
+            done, start = {}, 0
+            while start < len(todo):
+                largest = min(batch, self.largest_batch or batch)
+                chunk = todo[start:start + largest]
+                size = padded_size(len(chunk), largest, base, smallest)
+                try:
+                    model = self.table.model(chunk + chunk[-1:] * (size - len(chunk)), L)
+                    state, steps, speed, ok = jax.device_get(self._settle(model))
+                except Exception as error:  # out of the device's memory: smaller batches from now on
+                    self.largest_batch = halved_on_memory(error, size, "settling")
+                    continue
                 for j, d in enumerate(chunk):
                     done[d] = Rested(jax.tree_util.tree_map(lambda a: np.array(a[j]), state), int(steps[j]),
                                      float(speed[j]), bool(ok[j]))
                     self._store(key, d, done[d])
                     self.settled += 1
+                start += len(chunk)
             out.update((i, done[designs[i]]) for i in idx)
         return [out[i] for i in range(len(designs))]
 
