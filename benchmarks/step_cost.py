@@ -174,7 +174,8 @@ def main(argv=None) -> None:
     def split(seq, B):
         return {"ops_by_scope": {k: v[0] / steps for k, v in sorted(seq.by_scope.items())},
                 "mb_per_robot_step": seq.bytes / steps / B / 1e6,
-                "mb_per_robot_step_by_scope": {k: round(v[1] / steps / B / 1e6, 3) for k, v in sorted(seq.by_scope.items())}}
+                "mb_per_robot_step_by_scope": {k: round(v[1] / steps / B / 1e6, 3)
+                                               for k, v in sorted(seq.by_scope.items())}}
 
     if args.gpu_target:
         sharding = deviceless_gpu(target_config)
@@ -245,7 +246,8 @@ def main(argv=None) -> None:
         print(json.dumps({"batch": B, "first_call_s": round(first_s, 2),
                           "dependent_ops_per_step": sequential_cost(roll.as_text()).ops / steps,
                           "ms_per_step": 1e3 * wall / (args.calls * steps),
-                          "robot_steps_per_s": B * steps * args.calls / wall, "bad_robots": int(np.sum(np.asarray(dead))),
+                          "robot_steps_per_s": B * steps * args.calls / wall,
+                          "bad_robots": int(np.sum(np.asarray(dead))),
                           "peak_device_memory_gb": (device.memory_stats() or {}).get("peak_bytes_in_use", 0) / 1e9,
                           **agreement, "device": out["device"], **engine}), flush=True)
         if args.profile:

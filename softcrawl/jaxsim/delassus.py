@@ -201,7 +201,8 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     J_con = jnp.einsum("ab,lbc,lkcm->lkam", D, rd.rotation, leg.coll_affine[lnode, :, :m])
     J_con = J_con.reshape(L, 3 * Kl, m)
     disk_dd = jnp.einsum("ab,pbqc,dc->paqd", DR, _disk_gather(dk.inverse, node, node), DR).reshape(3 * Kd, 3 * Kd)
-    disk_ad = -jnp.einsum("ai,xb,aibkc,dc->axkd", w, R, _disk_gather(dk.inverse, nodes, node), DR).reshape(3 * A, 3 * Kd)
+    disk_ad = -jnp.einsum("ai,xb,aibkc,dc->axkd", w, R, _disk_gather(dk.inverse, nodes, node), DR)
+    disk_ad = disk_ad.reshape(3 * A, 3 * Kd)
     u_disk = (v_free[node] @ D.T).at[:, 0].add(gap[:Kd] / h).reshape(-1)
     rows = jnp.concatenate([J_att.reshape(L, 3 * F, m), J_con], axis=1)
     return Rows(rows, disk_aa, disk_ad, disk_dd, u_att, u_disk, gap[Kd:].reshape(L, Kl) / h, nodes, w, idx,
