@@ -32,6 +32,8 @@
 #              engines over 2 s; two float32 forms on the CPU differ by 0.04 mm at most) and
 #              with no robot invalid that the defaults keep becomes the default: its results are
 #              checked on the card, `rid` and `solve` add the kernels' own checks and variants.
+#              First, `softcrawl verify --only jax_incline` (OUTDIR/verify.json): the solve's
+#              kernel on the card against the box-on-incline closed form (seconds).
 # selection:   the step at 96 and 16,384 robots with each robot's contact candidates chosen by one
 #              kernel (`--selection kernel`, softcrawl.jaxsim.candidates, the warm start with
 #              them: 16 operations fewer, 0.55 MB less a robot-step, compiled for an H100)
@@ -136,6 +138,7 @@ forms() {
 
 case $stage in
 candidates)
+    timeout 60 python3 -m softcrawl.cli verify --only jax_incline --json 2>>"$out/log.txt" | tee "$out/verify.json"
     forms candidates 130 "" "--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel" \
         "--rid-form kernel" "--resident-rows 128" ;;
 parts)

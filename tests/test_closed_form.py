@@ -180,6 +180,16 @@ def resting_agrees(scales: ModelScales = NOMINAL) -> tuple[bool, list[float]]:
     return force.error <= 1e-8 and penetration.passed, [force.error, penetration.got]
 
 
+def jax_incline_agrees(scales: ModelScales = NOMINAL) -> tuple[bool, list[float]]:
+    """The JAX engine's float32 contact solve on this machine's device (a CPU here), the box at
+    45 and 60 deg: every result within the check's own bound, 2e-6 of dt g or of the impulse
+    (measured 4.8e-8 to 4.2e-7; 16 float32 rounding units leave room for another summation
+    order). Friction x 0.8 (the 45-deg box slides), x 1.001 (0.12 mm/s faster slip) and g x 1.01
+    (1% more normal impulse) fail."""
+    results = checks.check_jax_incline("coarse", scales)
+    return all(r.passed for r in results), [r.error for r in results]
+
+
 # -- the PneuNet: linear in p / E, converging under refinement -------------------------------------
 
 def _pneunet_tip_dz(mesh_size: float, pressure: float, scales: ModelScales = NOMINAL) -> float:
@@ -252,6 +262,7 @@ AGREES = {
     "incline (CLI angles: -2 / +5 deg)": lambda scales=NOMINAL: incline_agrees(scales, below=2.0, above=5.0),
     "sliding": sliding_agrees,
     "resting": resting_agrees,
+    "jax_incline": jax_incline_agrees,
 }
 
 #: Each mutation with the check that must reject it; the predicates' docstrings give the
@@ -274,6 +285,9 @@ MUTATIONS = [
     ("sliding", ModelScales(friction=0.9999)),
     ("sliding", ModelScales(gravity=1.01)),
     ("resting", ModelScales(gravity=1.0001)),
+    ("jax_incline", ModelScales(friction=0.8)),
+    ("jax_incline", ModelScales(friction=1.001)),
+    ("jax_incline", ModelScales(gravity=1.01)),
 ]
 
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from softcrawl.fem.contact import pgs_coulomb as cpu_pgs  # noqa: E402
 from softcrawl.reduction.constrain import condense as cpu_condense, solve_condensed  # noqa: E402
+from softcrawl.verify.jax_contact import box_on_incline  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 #: Impulse agreement with the CPU Gauss-Seidel (and between padded, batched and single calls),
@@ -302,34 +303,13 @@ def test_the_ill_conditioned_recorded_problem_is_solved_by_the_accelerated_gradi
     assert float(res["natural_map"]) > 1e-6 * fscale
 
 
-def _box_on_incline(theta_deg: float, phi_deg: float, mu: float):
-    """A rigid box (50 g, 40 x 30 x 10 mm, center of mass 5 mm above its four bottom corners)
-    resting on the floor, gravity (9810 mm/s^2) tilted by ``theta`` from the normal towards the
-    floor direction ``phi``, one 20 ms step from rest: ``(W, q, mu, m g dt, dt)`` of its four
-    corner contacts (rank-6 Delassus operator ``J M^-1 J^T``, rows normal z, tangents x, y)."""
-    m, a, b, h, g, dt = 0.05, 20.0, 15.0, 5.0, 9810.0, 0.02
-    inertia = m / 12 * np.array([(2 * b) ** 2 + (2 * h) ** 2, (2 * a) ** 2 + (2 * h) ** 2, (2 * a) ** 2 + (2 * b) ** 2])
-    Minv = np.diag(np.concatenate([np.full(3, 1 / m), 1 / inertia]))
-    rows = []
-    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-        r = np.array([sx * a, sy * b, -h])
-        cross = np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])  # [r]x
-        Jp = np.hstack([np.eye(3), -cross])  # point velocity v + w x r
-        rows += [Jp[2], Jp[0], Jp[1]]
-    J = np.array(rows)
-    th, ph = np.radians(theta_deg), np.radians(phi_deg)
-    gvec = g * np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), -np.cos(th)])
-    q = J @ np.concatenate([dt * gvec, np.zeros(3)])
-    return J @ Minv @ J.T, q, np.full(4, mu), m * g * dt, dt
-
-
 @pytest.mark.parametrize("method", ["pgs", "apgd"])
 def test_a_box_below_the_friction_angle_sticks(C, method):
     """verification.md: a block on an incline sticks iff tan(theta) <= mu (mu 1.2, threshold
     50.19 deg). At 45 deg the box's four corners stay at rest to 1e-12 of the free velocity
     dt g (no creep; measured 3e-16 with both solvers) and the normal impulses carry the normal
     weight, sum lam_n = m g cos(theta) dt, to 1e-12 relative (measured 3e-16)."""
-    W, q, mu, mgdt, dt = _box_on_incline(45.0, 30.0, 1.2)
+    W, q, mu, mgdt, dt = box_on_incline(45.0, 30.0, 1.2)
     lam = np.asarray(C.solve_constraints(W, q, np.zeros(0, bool), mu, np.zeros(12), np.ones(4, bool), 600,
                                          method=method))
     u = (W @ lam + q).reshape(4, 3)
@@ -345,7 +325,7 @@ def test_a_box_above_the_friction_angle_slides_with_the_coulomb_acceleration(C, 
     direction with no normal velocity, and the friction impulse is mu times the normal one,
     opposite to the slip (maximal dissipation), all to 1e-12 relative (measured 3e-15)."""
     theta, phi = 60.0, 30.0
-    W, q, mu, mgdt, dt = _box_on_incline(theta, phi, 1.2)
+    W, q, mu, mgdt, dt = box_on_incline(theta, phi, 1.2)
     lam = np.asarray(C.solve_constraints(W, q, np.zeros(0, bool), mu, np.zeros(12), np.ones(4, bool), 600,
                                          method=method))
     u, L = (W @ lam + q).reshape(4, 3), lam.reshape(4, 3)
@@ -359,7 +339,7 @@ def test_a_box_above_the_friction_angle_slides_with_the_coulomb_acceleration(C, 
 
 
 def _incline_velocities(theta: float, dt: float):
-    """The closed-form results of the box of :func:`_box_on_incline` at ``theta`` deg (gravity
+    """The closed-form results of the box of :func:`softcrawl.verify.jax_contact.box_on_incline` at ``theta`` deg (gravity
     towards 30 deg in the floor plane, mu 1.2) after one step from rest: the slip speed ``dt g
     max(sin - mu cos, 0)`` (mm/s) and every corner's velocity ``(4, 3)`` (normal, tangents)."""
     th, ph = np.radians(theta), np.radians(30.0)
@@ -381,7 +361,7 @@ def test_the_engines_warm_started_solve_reaches_the_closed_form_results(C, theta
     So does the solve reading the operator in float16 (``storage``, the float32 engine's
     default), by its iterative refinement (measured 6e-16 after 4 and 7 steps; an operator
     merely rounded to float16 would stop at float16's rounding, about 1e-4)."""
-    W, q, mu, mgdt, dt = _box_on_incline(theta, 30.0, 1.2)
+    W, q, mu, mgdt, dt = box_on_incline(theta, 30.0, 1.2)
     lam = np.zeros(12)
     for _ in range(8):
         lam = np.asarray(C.solve_contacts(W, q, mu, lam, np.ones(4, bool), "apgd", C.DEFAULT_ITERATIONS["apgd"],
@@ -411,7 +391,7 @@ def test_the_fused_kernels_warm_started_solve_reaches_the_closed_form_results(C,
     :data:`FUSED_TOL` of ``dt g`` (measured 1.4e-7 at 45 deg, 3.7e-7 at 60; XLA's float32
     iterations 1.3e-7 and 2.7e-7; one cold solve is 3.7e-4 and 3.1e-3 away), and the normal
     impulses carry the weight to :data:`FUSED_TOL` (measured 8.0e-8 and 1.5e-7)."""
-    W, q, mu, mgdt, dt = (np.asarray(a, np.float32) for a in _box_on_incline(theta, 30.0, 1.2))
+    W, q, mu, mgdt, dt = (np.asarray(a, np.float32) for a in box_on_incline(theta, 30.0, 1.2))
     lam = np.zeros(12, np.float32)
     for _ in range(6):
         lam = np.asarray(C.solve_contacts(W, q, mu, lam, np.ones(4, bool), "apgd", C.DEFAULT_ITERATIONS["apgd"],

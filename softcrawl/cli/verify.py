@@ -10,7 +10,8 @@ import sys
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "verify", help="check the physics against closed-form results",
-        description="Run the FEM engine on problems with closed-form answers (verification.md) "
+        description="Run the FEM engine on problems with closed-form answers (verification.md), and the JAX "
+                    "engine's contact solve on this machine's JAX device (a GPU where JAX has one: jax_incline), "
                     "and report expected vs simulated values. Exit status 1 if any check fails.")
     p.add_argument("--resolution", choices=("coarse", "medium", "fine"), default="coarse",
                    help="mesh resolution of the checks (coarse: about a minute)")

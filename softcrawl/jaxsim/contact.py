@@ -69,6 +69,7 @@ from jax import lax
 from jax.scipy.linalg import cho_factor, cho_solve
 
 from softcrawl.jaxsim.cone import cone_projection, de_saxce_term
+from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.schur import SchurOperator
 
 #: The normal column of ``(K, 3)`` impulses or velocities (a broadcastable mask).
@@ -331,6 +332,21 @@ def solve_contacts(W, q, mu, lam0, active, solver: str, iterations: int, op=None
     if solver == "apgd":
         return apgd_coulomb(W, q, mu, lam0, active, iterations, restart=False, op=op, storage=storage, fused=fused)
     return pgs_coulomb(W.dense() if isinstance(W, SchurOperator) else W, q, mu, lam0, active, iterations)
+
+
+def solve_on_platform(W, q, mu, lam0, active, solver: str, iterations: int, op=None, storage=None,
+                      kernel: bool = False):
+    """:func:`solve_contacts` in the form each platform runs it (the engine's step): a CPU reads
+    its operator whole in its own precision (there it stays in cache and float16 would only add
+    conversions); other platforms read it in ``storage`` (None: their own precision too); with
+    ``kernel``, a CUDA GPU that runs Pallas' kernels solves in one kernel (``fused="gpu"``;
+    :func:`softcrawl.jaxsim.gpu.cuda_kernel`). Arguments and result as :func:`solve_contacts`'."""
+    solve = partial(solve_contacts, solver=solver, iterations=iterations, op=op)
+    if storage is None:
+        return solve(W, q, mu, lam0, active)
+    stored = partial(solve, storage=storage)
+    kernels = cuda_kernel(partial(stored, fused="gpu")) if kernel else {}
+    return lax.platform_dependent(W, q, mu, lam0, active, cpu=solve, default=stored, **kernels)
 
 
 @partial(jax.jit, static_argnames="least_squares")

@@ -22,16 +22,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from functools import partial
 
 import jax
 import jax.numpy as jnp
 
 from softcrawl.jaxsim import disk as disk_motion
 from softcrawl.jaxsim import legs as leg_motion
-from softcrawl.jaxsim.contact import solve_contacts
+from softcrawl.jaxsim.contact import solve_on_platform
 from softcrawl.jaxsim.delassus import condense, constraint_rows, corrections
-from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.model import register_pytree
 from softcrawl.jaxsim.ridkernel import with_kernel_rows
 
@@ -147,16 +145,10 @@ def _physics_step(model, state: State, sim_kpa) -> State:
     # 2.-3. free motion, constraint rows, the attachments eliminated; the contacts solved
     qd_free, inv_chol, n_bad, v_free, R, rows, cond, warm = _constrained(model, state, sim_kpa)
     K = rows.points.shape[0]
-    with jax.named_scope("solve_contacts"):
-        solve = partial(solve_contacts, solver=st.solver, iterations=st.iterations,
-                        op=cond.blocks if st.delassus == "blocks" else None)
-        problem = (cond.schur, cond.q, jnp.full((K,), st.friction, cond.q.dtype), warm, rows.active)
-        if st.delassus_storage is None:
-            lam_c = solve(*problem)
-        else:  # a CPU reads its operator whole; the kernel is CUDA's (Settings.delassus)
-            stored = partial(solve, storage=st.delassus_storage)
-            kernel = cuda_kernel(partial(stored, fused="gpu")) if st.delassus == "fused16" else {}
-            lam_c = jax.lax.platform_dependent(*problem, cpu=solve, default=stored, **kernel)
+    with jax.named_scope("solve_contacts"):  # the kernel is CUDA's (Settings.delassus)
+        lam_c = solve_on_platform(cond.schur, cond.q, jnp.full((K,), st.friction, cond.q.dtype), warm, rows.active,
+                                  st.solver, st.iterations, op=cond.blocks if st.delassus == "blocks" else None,
+                                  storage=st.delassus_storage, kernel=st.delassus == "fused16")
     # 4. corrections
     with jax.named_scope("corrections"):
         dq, dv, _ = corrections(model, rows, cond, inv_chol, lam_c, R)

@@ -443,6 +443,15 @@ def check_pneunet_bending(resolution: str = "coarse") -> list[CheckResult]:
     ]
 
 
+def check_jax_incline(resolution: str = "coarse", scales: ModelScales = NOMINAL) -> list[CheckResult]:
+    """The JAX engine's contact solve on the machine's JAX device, a box on an incline
+    (:func:`softcrawl.verify.jax_contact.check_jax_incline`; imported when run: that module builds
+    on this one)."""
+    from softcrawl.verify import jax_contact
+
+    return jax_contact.check_jax_incline(resolution, scales)
+
+
 CHECKS: dict[str, Callable[[str], list[CheckResult]]] = {
     "cantilever": check_cantilever,
     "corotational": check_corotational_invariance,
@@ -451,6 +460,7 @@ CHECKS: dict[str, Callable[[str], list[CheckResult]]] = {
     "sliding": check_sliding_to_rest,
     "resting": check_resting_contact,
     "pneunet": check_pneunet_bending,
+    "jax_incline": check_jax_incline,
 }
 
 
