@@ -77,7 +77,7 @@ def check_jax_incline(resolution: str = "coarse", scales: ModelScales = NOMINAL)
     for theta in (STICK_DEG, SLIDE_DEG):
         W, q, mu, _, dt = (np.asarray(a, np.float32) if np.ndim(a) else a for a in
                            box_on_incline(theta, PHI_DEG, MU * scales.friction, g * scales.gravity))
-        weight = 0.05 * g * dt  # the nominal box's weight over a step, mN s
+        weight = box_on_incline(theta, PHI_DEG, MU, g)[3]  # the nominal box's weight over a step, mN s
         lam = jnp.zeros(12, jnp.float32)
         for _ in range(STEPS):
             lam = solve(jnp.asarray(W), jnp.asarray(q), jnp.asarray(mu), lam, jnp.ones(4, bool))
