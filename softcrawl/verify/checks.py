@@ -14,7 +14,6 @@ a model whose parameters are off by a few percent (:class:`ModelScales`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -25,77 +24,13 @@ from softcrawl.fem.solver import ImplicitEulerSolver, SolverSettings
 from softcrawl.fem.state import Control, State
 from softcrawl.fem.static import solve_static
 from softcrawl.geometry import PneuNetParams, box_mesh, pneunet_mesh, spherical_shell_octant
+from softcrawl.verify.jax_contact import check_jax_incline
+from softcrawl.verify.result import NOMINAL, CheckResult, ModelScales
 
 RESOLUTIONS = ("coarse", "medium", "fine")
 G = 9800.0  # mm/s^2
 MU = 1.2
 THETA_STAR = float(np.degrees(np.arctan(MU)))  # 50.19 deg
-
-
-@dataclass(frozen=True)
-class ModelScales:
-    """Factors on the parameters of the model a check simulates; the closed-form side keeps
-    the nominal values. All 1 (``NOMINAL``) is the check itself; other values give a wrong
-    model, which a strong check must reject.
-
-    Attributes:
-        youngs_modulus: on every Young's modulus the check's bodies use.
-        poisson_ratio: on every Poisson ratio.
-        friction: on the floor's Coulomb coefficient.
-        gravity: on the gravitational acceleration.
-        load: on the applied cavity pressure and point loads.
-    """
-
-    youngs_modulus: float = 1.0
-    poisson_ratio: float = 1.0
-    friction: float = 1.0
-    gravity: float = 1.0
-    load: float = 1.0
-
-    def material(self, material: LinearElastic) -> LinearElastic:
-        """``material`` with the scaled Young's modulus and Poisson ratio."""
-        return LinearElastic(material.youngs_modulus * self.youngs_modulus, material.poisson_ratio * self.poisson_ratio)
-
-
-NOMINAL = ModelScales()
-
-
-@dataclass(frozen=True)
-class CheckResult:
-    """One verified quantity.
-
-    Attributes:
-        name: what is checked.
-        expected: closed-form value.
-        got: simulated value.
-        tolerance: ``softcrawl verify``'s acceptance bound on ``|got - expected|``: relative to
-            ``|expected|`` (mode "rel") or absolute (mode "abs"); unused in mode "min".
-        unit: unit of expected/got.
-        mode: "rel", "abs", or "min" (``expected`` is a lower bound: pass iff got >= expected).
-    """
-
-    name: str
-    expected: float
-    got: float
-    tolerance: float
-    unit: str = ""
-    mode: str = "rel"
-
-    @property
-    def error(self) -> float:
-        e = abs(self.got - self.expected)
-        if self.mode == "min":
-            return max(0.0, self.expected - self.got)
-        return e / abs(self.expected) if self.mode == "rel" else e
-
-    @property
-    def passed(self) -> bool:
-        return bool(np.isfinite(self.got) and self.error <= self.tolerance)
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["pass"] = self.passed
-        return d
 
 
 def _level(resolution: str) -> int:
@@ -441,15 +376,6 @@ def check_pneunet_bending(resolution: str = "coarse") -> list[CheckResult]:
         CheckResult("PneuNet bending angle monotone in pressure (0..350 kPa by 50): non-increasing steps", 0.0,
                     float(np.sum(np.diff(angle) <= 0)), 0.0, mode="abs"),
     ]
-
-
-def check_jax_incline(resolution: str = "coarse", scales: ModelScales = NOMINAL) -> list[CheckResult]:
-    """The JAX engine's contact solve on the machine's JAX device, a box on an incline
-    (:func:`softcrawl.verify.jax_contact.check_jax_incline`; imported when run: that module builds
-    on this one)."""
-    from softcrawl.verify import jax_contact
-
-    return jax_contact.check_jax_incline(resolution, scales)
 
 
 CHECKS: dict[str, Callable[[str], list[CheckResult]]] = {

@@ -18,7 +18,7 @@ from functools import partial
 
 import numpy as np
 
-from softcrawl.verify.checks import NOMINAL, CheckResult, ModelScales
+from softcrawl.verify.result import NOMINAL, CheckResult, ModelScales
 
 #: The box's friction coefficient and the two inclines, degrees: below and above the friction
 #: angle ``atan(1.2) = 50.19``.
