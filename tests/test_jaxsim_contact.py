@@ -339,9 +339,10 @@ def test_a_box_above_the_friction_angle_slides_with_the_coulomb_acceleration(C, 
 
 
 def _incline_velocities(theta: float, dt: float):
-    """The closed-form results of the box of :func:`softcrawl.verify.jax_contact.box_on_incline` at ``theta`` deg (gravity
-    towards 30 deg in the floor plane, mu 1.2) after one step from rest: the slip speed ``dt g
-    max(sin - mu cos, 0)`` (mm/s) and every corner's velocity ``(4, 3)`` (normal, tangents)."""
+    """The closed-form results of the box of :func:`softcrawl.verify.jax_contact.box_on_incline`
+    at ``theta`` deg (gravity towards 30 deg in the floor plane, mu 1.2) after one step from
+    rest: the slip speed ``dt g max(sin - mu cos, 0)`` (mm/s) and every corner's velocity ``(4,
+    3)`` (normal, tangents)."""
     th, ph = np.radians(theta), np.radians(30.0)
     speed = max(dt * 9810.0 * (np.sin(th) - 1.2 * np.cos(th)), 0.0)
     return speed, np.tile([0.0, speed * np.cos(ph), speed * np.sin(ph)], (4, 1))

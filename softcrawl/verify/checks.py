@@ -210,7 +210,8 @@ def block_model(gravity: np.ndarray, friction: float = MU, damping: bool = False
                  gravity=tuple(np.asarray(gravity, float) * scales.gravity), rayleigh_mass=r, rayleigh_stiffness=r)
 
 
-def _run(model: Model, duration: float, dt: float, state: State | None = None) -> tuple[np.ndarray, np.ndarray, ImplicitEulerSolver, State]:
+def _run(model: Model, duration: float, dt: float,
+         state: State | None = None) -> tuple[np.ndarray, np.ndarray, ImplicitEulerSolver, State]:
     solver = ImplicitEulerSolver(model, SolverSettings(dt=dt))
     state = state or model.rest_state()
     control = Control(np.zeros(model.n_channels))
