@@ -46,6 +46,29 @@ def halved_on_memory(error: BaseException, size: int, what: str) -> int:
     return size // 2
 
 
+def in_batches(items: list, largest: int, size_of, run, what: str) -> tuple[list, int]:
+    """``run(chunk, size)`` (a list of one result per item of ``chunk``) for consecutive chunks of
+    at most ``largest`` of ``items``, ``size = size_of(len(chunk), largest)`` the chunk's padded
+    batch; where the device runs out of memory on one, ``largest`` is halved
+    (:func:`halved_on_memory`) and the chunk run again. Returns every item's result, in order,
+    and the largest batch at the end.
+
+    Raises:
+        BaseException: what ``run`` raises, other than a lack of memory of a batch of more than
+            one robot."""
+    out, start = [], 0
+    while start < len(items):
+        chunk = items[start:start + largest]
+        size = size_of(len(chunk), largest)
+        try:
+            out.extend(run(chunk, size))
+        except Exception as error:  # out of the device's memory: smaller batches from now on
+            largest = halved_on_memory(error, size, what)
+            continue
+        start += len(chunk)
+    return out, largest
+
+
 def stack_padded(rows, size: int):
     """The pytrees ``rows`` (non-empty) stacked along a new leading axis of ``size`` (numpy),
     the last row repeated as padding."""

@@ -36,7 +36,7 @@ from softcrawl.design.spacefile import DesignSpace
 from softcrawl.fem.solver import SolverSettings
 from softcrawl.gaits.periodic import PeriodicGait
 from softcrawl.gaits.pressure import P_MAX_KPA, P_MIN_KPA, check_pressures
-from softcrawl.jaxsim.batch import halved_on_memory, padded_size, stack_padded
+from softcrawl.jaxsim.batch import in_batches, padded_size, stack_padded
 from softcrawl.jaxsim.engine import make_schedule_rollout
 from softcrawl.jaxsim.model import engine_dtype
 from softcrawl.jaxsim.tables import DesignTable, SettledStates, build_table
@@ -227,19 +227,13 @@ class JaxEvaluator:
             groups.setdefault((self._designs[d].legs, n), []).append(i)
         out: list[tuple[float, bool]] = [(self.diverged_cm, True)] * len(requests)
         for (_, n), idx in groups.items():
-            i = 0
-            while i < len(idx):
-                chunk = idx[i:i + self.max_batch]
-                try:
-                    results = self._run([designs[j] for j in chunk], [commands[j] for j in chunk])
-                except Exception as error:  # out of the device's memory: smaller batches from now on
-                    self.max_batch = halved_on_memory(error, padded_size(len(chunk), self.max_batch, 2, 1), "episodes")
-                    continue
-                for j, result in zip(chunk, results):
-                    out[j] = result
-                self.episodes += len(chunk)
-                self.sim_seconds += len(chunk) * n * dt
-                i += len(chunk)
+            results, self.max_batch = in_batches(
+                idx, self.max_batch, lambda k, b: padded_size(k, b, 2, 1),
+                lambda chunk, _: self._run([designs[j] for j in chunk], [commands[j] for j in chunk]), "episodes")
+            for j, result in zip(idx, results):
+                out[j] = result
+            self.episodes += len(idx)
+            self.sim_seconds += len(idx) * n * dt
         return out
 
     def _run(self, designs: list[Design], commands: list[np.ndarray]) -> list[tuple[float, bool]]:

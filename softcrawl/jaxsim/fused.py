@@ -99,7 +99,7 @@ HELD_BYTES = 128 * 1024
 #: where the held operator's 128 KiB leave Triton room for its own exchanges. A card of another
 #: capability (A100's 163 KiB a program; 99 KiB on 8.6, 8.9 and 12.x: A10, L4, L40, RTX 4090 and
 #: 5090) solves with the scratch's form, whatever :data:`RESIDENT_ROWS` asks.
-HOLDING_CAPABILITIES = frozenset({"9.0", "10.0", "10.3"})
+HOLDING_CAPABILITIES = frozenset({(9, 0), (10, 0), (10, 3)})
 
 
 def held_bytes(interpret: bool = False) -> int:
@@ -110,7 +110,7 @@ def held_bytes(interpret: bool = False) -> int:
     capability = gpu.compute_capability()
     if interpret or capability is None:
         return HELD_BYTES
-    return HELD_BYTES if "{}.{}".format(*capability) in HOLDING_CAPABILITIES else 0
+    return HELD_BYTES if capability in HOLDING_CAPABILITIES else 0
 
 
 def row_blocks(n: int, row_block: int) -> tuple[int, list[tuple[int, int]]]:

@@ -39,7 +39,7 @@ import numpy as np
 
 from softcrawl.design.spacefile import DesignSpace
 from softcrawl.jaxsim import engine
-from softcrawl.jaxsim.batch import halved_on_memory, make_batch_settle, padded_size
+from softcrawl.jaxsim.batch import in_batches, make_batch_settle, padded_size
 from softcrawl.jaxsim.model import (DISK_POINT_NODES, Model, RobotData, attachment_gram, build_model, disk_inverse,
                                    leg_rows)
 from softcrawl.robot.assembly import RobotConfig, build_robot
@@ -423,23 +423,23 @@ class SettledStates:
         for L, idx in missing.items():
             key = self._layout(L)[0]
             todo = list(dict.fromkeys(designs[i] for i in idx))
-            done, start = {}, 0
-            while start < len(todo):
-                largest = min(batch, self.largest_batch or batch)
-                chunk = todo[start:start + largest]
-                size = padded_size(len(chunk), largest, base, smallest)
-                try:
-                    model = self.table.model(chunk + chunk[-1:] * (size - len(chunk)), L)
-                    state, steps, speed, ok = jax.device_get(self._settle(model))
-                except Exception as error:  # out of the device's memory: smaller batches from now on
-                    self.largest_batch = halved_on_memory(error, size, "settling")
-                    continue
-                for j, d in enumerate(chunk):
-                    done[d] = Rested(jax.tree_util.tree_map(lambda a: np.array(a[j]), state), int(steps[j]),
-                                     float(speed[j]), bool(ok[j]))
-                    self._store(key, d, done[d])
+
+            def settle(chunk, size, L=L, key=key):
+                state, steps, speed, ok = jax.device_get(
+                    self._settle(self.table.model(chunk + chunk[-1:] * (size - len(chunk)), L)))
+                rested = [Rested(jax.tree_util.tree_map(lambda a: np.array(a[j]), state), int(steps[j]),
+                                 float(speed[j]), bool(ok[j])) for j in range(len(chunk))]
+                for d, r in zip(chunk, rested):
+                    self._store(key, d, r)
                     self.settled += 1
-                start += len(chunk)
+                return rested
+
+            first = min(batch, self.largest_batch or batch)
+            rested, largest = in_batches(todo, first, lambda n, b: padded_size(n, b, base, smallest), settle,
+                                         "settling")
+            if largest < first:
+                self.largest_batch = largest
+            done = dict(zip(todo, rested))
             out.update((i, done[designs[i]]) for i in idx)
         return [out[i] for i in range(len(designs))]
 
