@@ -26,20 +26,20 @@ import sys
 
 #: The largest 99th-percentile distance (mm) of a form's robots from the baseline's.
 BUDGET_MM = 0.5
-#: The settings of ``step_cost.py``'s lines that name a form of the step.
-FORM_KEYS = ("precision", "solver", "iterations", "delassus", "rid_form", "cholesky", "pairs_dot", "resident_rows",
-             "operator_parts", "unroll_pivots", "selection")
 
 
 def forms(lines: list[dict]) -> list[tuple[dict, dict[int, dict]]]:
     """The timed lines (those with ``ms_per_step``) grouped by form, in order of first appearance:
-    ``[(settings, {batch: line})]``."""
+    ``[(settings, {batch: line})]``; a form's settings are the line's entries that its
+    ``form_keys`` name (``step_cost.py`` lists there the settings it measured with)."""
     grouped: dict[tuple, tuple[dict, dict[int, dict]]] = {}
     for line in lines:
         if "ms_per_step" not in line:
             continue
-        settings = {k: line.get(k) for k in FORM_KEYS}
-        grouped.setdefault(tuple(settings.values()), (settings, {}))[1][int(line["batch"])] = line
+        if "form_keys" not in line:
+            raise ValueError(f"a timed line without form_keys (batch {line.get('batch')}): not step_cost.py's")
+        settings = {k: line.get(k) for k in line["form_keys"]}
+        grouped.setdefault(tuple(settings.items()), (settings, {}))[1][int(line["batch"])] = line
     return list(grouped.values())
 
 
@@ -62,7 +62,7 @@ def verdicts(lines: list[dict]) -> list[dict]:
         speedup = {b: base_lines[b]["ms_per_step"] / timed[b]["ms_per_step"] for b in sorted(timed) if b in base_lines}
         p99 = max(line["reference_p99_robot_distance_mm"] for line in timed.values())
         extra = sum(line["bad_robots_here_only"] for line in timed.values())
-        out.append({"form": {k: v for k, v in settings.items() if v != base[k]},
+        out.append({"form": {k: v for k, v in settings.items() if v != base.get(k)},
                     "speedup": {str(b): round(v, 4) for b, v in speedup.items()}, "p99_mm": p99,
                     "extra_invalid": extra, "decided": decided,
                     "default": decided and all(v > 1 for v in speedup.values()) and p99 <= BUDGET_MM and extra == 0})

@@ -249,7 +249,7 @@ def main(argv=None) -> None:
                           "robot_steps_per_s": B * steps * args.calls / wall,
                           "bad_robots": int(np.sum(np.asarray(dead))),
                           "peak_device_memory_gb": (device.memory_stats() or {}).get("peak_bytes_in_use", 0) / 1e9,
-                          **agreement, "device": out["device"], **engine}), flush=True)
+                          **agreement, "device": out["device"], **engine, "form_keys": list(engine)}), flush=True)
         if args.profile:
             where = Path(args.profile, f"b{B}")
             with jax.profiler.trace(str(where), create_perfetto_trace=True):

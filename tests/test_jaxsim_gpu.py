@@ -71,7 +71,8 @@ def _timed(batch, ms, settings, **agreement):
     base = {"precision": "float32", "solver": "apgd", "iterations": 48, "delassus": "fused16", "rid_form": None,
             "cholesky": "kernel", "pairs_dot": None, "resident_rows": None, "operator_parts": True,
             "unroll_pivots": 0, "selection": "xla"}
-    return {"batch": batch, "ms_per_step": ms, "bad_robots": 0, **base, **settings, **agreement}
+    return {"batch": batch, "ms_per_step": ms, "bad_robots": 0, **base, **settings, **agreement,
+            "form_keys": list(base)}
 
 
 def test_the_gpu_verdict_makes_a_form_the_default_by_the_stages_rule(tmp_path, capsys):
@@ -106,5 +107,7 @@ def test_the_gpu_verdict_makes_a_form_the_default_by_the_stages_rule(tmp_path, c
                        "undecided": [{"rid_form": "kernel", "selection": "kernel"}]}
     with pytest.raises(ValueError, match="not compared"):
         verdict.verdicts(lines[:2] + [_timed(96, 1.0, {"selection": "kernel"})])
+    with pytest.raises(ValueError, match="without form_keys"):
+        verdict.verdicts([{k: v for k, v in line.items() if k != "form_keys"} for line in lines])
     with pytest.raises(ValueError, match="no timed lines"):
         verdict.verdicts([{"batch": 96, "dependent_ops_per_step": 127.44}])
