@@ -201,7 +201,7 @@ def register(subparsers) -> None:
         "train", help="co-design: train SAC and the design distribution",
         description="Train the design-conditioned open-loop policy (SAC) and the Gibbs design distribution "
         "(codesign.md). Presets: paper (96 envs, 1M steps), reference (paper with the authors' update "
-        "schedule), crawl (40-70 min on 2 cores), demo (5-12 min on 2 cores), smoke (CI, < 1 min).",
+        "schedule), crawl (28-70 min on 2 cores), demo (8-22 min on 2 cores with its report), smoke (CI, < 1 min).",
     )
     p.add_argument("--preset", choices=PRESETS, default=None, help="settings to start from (default demo)")
     p.add_argument("--out", required=True, help="run directory (new, or the run to --resume)")
