@@ -23,9 +23,9 @@ form, on random symmetric positive definite matrices of both sizes and condition
   with other numbers of each matrix per thread (:data:`softcrawl.jaxsim.factor.PER_THREAD`, the
   warps), and with the pivots unrolled or looped, whichever is not the default, at 64 and 128
   (:data:`~softcrawl.jaxsim.factor.UNROLL_PIVOTS`; ``_unrolled`` in the key). The inverse's
-  kernel is timed at every batch size, although its form hands batches of
-  :data:`~softcrawl.jaxsim.factor.LIBRARY_FROM` matrices or more to the library: the sizes
-  between 96 and 16,384 robots say where that should be.
+  kernel is timed at every batch size, whatever :data:`~softcrawl.jaxsim.factor.LIBRARY_FROM`
+  (the batch from which its form would hand the matrices to the library): the sizes between 96
+  and 16,384 robots say whether the library is faster anywhere.
 
 Usage:
     python benchmarks/cholesky_kernel.py [--robots 96,1024,2048,4096,16384] [--legs 6] [--cond 1e5] [--calls 20]
@@ -109,7 +109,7 @@ def main(argv=None) -> None:
             if not gpu:
                 break  # interpreted: the agreement once
     default, unrolled = factor.PER_THREAD, factor.UNROLL_PIVOTS
-    factor.LIBRARY_FROM = 1 << 62  # the kernel at every batch size
+    factor.LIBRARY_FROM = None  # the kernel at every batch size
     for robots in (int(b) for b in args.robots.split(",")):
         out = {**head, "part": "time", "robots": robots}
         for n in sizes:

@@ -219,15 +219,20 @@ def factor_variants(args, arch, sharding, dump) -> None:
         factor.UNROLL_PIVOTS, factor.PER_THREAD = int(unroll), int(per)
         for name, function, specs, n in kernels:
             sass, report = compiled_kernel(jax.jit(function), list(specs), name, arch, sharding, dump)
-            loops = outer_loops(sass)
+            loops = [sum(c.values()) for c in outer_loops(sass)]
             total = len(_SASS.findall(sass))
-            pivot = sum(loops[0].values()) if loops else total / n  # the loop's body, or the straight line's share
-            warps = factor._warps(factor.padded_size(n))
+            pivots = [min(size, n - start) for start, size in factor.row_parts(n)]
+            if len(loops) > len(pivots):
+                raise SystemExit(f"{name}: {len(loops)} outermost loops for {len(pivots)} blocks of pivots")
+            # a loop over each block's pivots, but ptxas unrolls a short one (the last block's few) and
+            # UNROLL_PIVOTS all: the loops are the first blocks', the rest straight-line code
+            per_matrix = total - sum(loops) + sum(lp * k for lp, k in zip(loops, pivots))
+            warps = factor._warps(n)
             print(json.dumps({"kernel": name, "n": n, "variant": {"unroll_pivots": factor.UNROLL_PIVOTS,
                                                                   "per_thread": factor.PER_THREAD, "warps": warps},
-                              "arch": arch, "jax": jax.__version__, **report,
-                              "instructions": total, "instructions_per_pivot": round(pivot, 1),
-                              "warp_instructions_per_matrix": round(pivot * n * warps)}), flush=True)
+                              "arch": arch, "jax": jax.__version__, **report, "blocks": factor.row_parts(n),
+                              "instructions": total, "instructions_per_pivot": round(per_matrix / n, 1),
+                              "warp_instructions_per_matrix": per_matrix * warps}), flush=True)
 
 
 def main(argv=None) -> None:

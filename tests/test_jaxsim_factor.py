@@ -23,17 +23,34 @@ def _spd(rng, batch, n, cond):
     return np.einsum("bij,j,bkj->bik", Q, np.geomspace(1.0, cond, n), Q)
 
 
-@pytest.mark.parametrize("n", [5, 36, 72])
+def test_a_program_holds_its_matrix_in_blocks_of_powers_of_two_that_cover_it():
+    """:func:`softcrawl.jaxsim.factor.row_parts`: the legs' 36 rows as blocks of 32 and 4, the
+    attachment block's 72 as 64 and 8 (a pivot's update then touches 1,296 and 5,184 numbers,
+    not the padded matrices' 4,096 and 16,384); one padded block for powers of two, up to 16
+    rows, and where the rest would be padded past three quarters of the padded size (60 rows:
+    32 and 32, as the padded 64); every block a power of two, contiguous, covering ``n``."""
+    from softcrawl.jaxsim.factor import padded_size, row_parts
+
+    assert row_parts(36) == ((0, 32), (32, 4)) and row_parts(72) == ((0, 64), (64, 8))
+    assert row_parts(64) == ((0, 64),) and row_parts(5) == ((0, 16),) and row_parts(60) == ((0, 64),)
+    assert row_parts(17) == ((0, 16), (16, 4)) and row_parts(48) == ((0, 32), (32, 16))
+    for n in range(1, 300):
+        parts = row_parts(n)
+        assert parts[0][0] == 0 and all(a + s == b for (a, s), (b, _) in zip(parts, parts[1:]))
+        assert all(s & (s - 1) == 0 for _, s in parts) and n <= sum(s for _, s in parts) <= padded_size(n)
+
+
+@pytest.mark.parametrize("n", [5, 17, 36, 48, 60, 72])
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_the_kernel_inverts_the_cholesky_factor(n, dtype):
     """The kernel's ``C^-1`` (interpreted, batched by ``jax.vmap``) against LAPACK's float64
-    factor inverted, for sizes below, at and above a power of two (the legs' 36 and the
-    attachment block's 72 are padded to 64 and 128), on matrices of condition number 1e4 (the
+    factor inverted, for sizes held in one padded block (5, 60) and in two (17: 16 and 4 rows,
+    one of them padding; the legs' 36: 32 and 4; 48; the attachment block's 72: 64 and 8), on matrices of condition number 1e4 (the
     landed robot's leg step matrices: about 1e5): relative error (of the largest entry) within
     ``cond u`` with ``u`` the rounding unit (Higham 2002, sec. 10.1: the factor's error is of
-    that order; measured at most 8e-14 in float64 and 5e-5 in float32, where LAPACK's own
+    that order; measured at most 1e-13 in float64 and 4.4e-5 in float32, where LAPACK's own
     float32 factor errs by 4e-5), exactly lower triangular, and ``C^-1 A C^-T = I`` within the
-    same bound (measured 2e-13 and 8e-5)."""
+    same bound (measured 3.4e-13 and 8.1e-5)."""
     from softcrawl.jaxsim.factor import cholesky_inverse
 
     cond = 1e4
@@ -47,13 +64,13 @@ def test_the_kernel_inverts_the_cholesky_factor(n, dtype):
     assert np.abs(eye - np.eye(n)).max() <= tol
 
 
-@pytest.mark.parametrize("n", [5, 36, 72])
+@pytest.mark.parametrize("n", [5, 17, 36, 48, 60, 72])
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_the_sweeps_invert_the_matrix(n, dtype):
     """``inverse_spd``'s kernel (the symmetric sweep operator, interpreted, batched by
     ``jax.vmap``) against numpy's float64 inverse, sizes and matrices as the factor's test:
     relative error (of the largest entry) within ``cond u`` (Higham 2002, sec. 14.4; measured at
-    most 2e-13 in float64 and 7e-5 in float32, bounds 2.2e-12 and 1.2e-3), symmetric within the
+    most 1.5e-13 in float64 and 7.4e-5 in float32, bounds 2.2e-12 and 1.2e-3), symmetric within the
     same bound (measured 2e-16 and 8e-8), and ``A A^-1 = I`` within it (measured 7e-13 and
     1.5e-4)."""
     from softcrawl.jaxsim.factor import inverse_spd
@@ -89,14 +106,17 @@ def test_the_library_and_kernel_forms_agree_and_a_cpu_takes_the_library():
 def test_a_large_batch_of_the_inverses_kernel_form_is_the_librarys(monkeypatch):
     """``inverse_spd``'s ``"kernel"`` form batched by ``jax.vmap``: below
     :data:`softcrawl.jaxsim.factor.LIBRARY_FROM` matrices the traced program holds the sweeps'
-    kernel (for CUDA), from it only the library's form (cuSOLVER's batched factorisation is
-    faster there on a GPU); on a CPU both are the library's result to the bit, and the choice is
-    made again for each batch size (it is read when a call is traced)."""
+    kernel (for CUDA), from it only the library's form (where cuSOLVER's batched factorisation
+    may be the faster on a GPU); on a CPU both are the library's result to the bit, and the choice is
+    made again for each batch size (it is read when a call is traced). None (the default): the
+    kernel at every size."""
     from softcrawl.jaxsim import factor
 
-    monkeypatch.setattr(factor, "LIBRARY_FROM", 4)
     A = jnp.asarray(_spd(np.random.default_rng(6), 5, 12, 100.0))
-    for batch, kernel in ((3, True), (4, False), (5, False)):
+    cases = [(None, 5, True)] + [(4, batch, kernel) for batch, kernel in ((3, True), (4, False), (5, False))]
+    for library_from, batch, kernel in cases:
+        monkeypatch.setattr(factor, "LIBRARY_FROM", library_from)
+
         def f(a):
             return jax.vmap(lambda m: factor.inverse_spd(m, "kernel"))(a)
 
@@ -264,7 +284,8 @@ def test_unrolled_pivots_are_the_loops_steps(monkeypatch, function):
     legs' 36 x 36 matrices run their pivots as straight-line code, no loop in the traced kernel,
     and give the loop's result to float64 round-off (the same operations in the same order:
     within 1e-13 of the largest entry, condition 1e4; measured 0, while the matrices scaled by 1 +
-    1e-12 move it by 5e-13 to 9e-13, beyond the bound); a 72 x 72 matrix keeps the loop."""
+    1e-12 move it by 5e-13 to 9e-13, beyond the bound); a 72 x 72 matrix keeps a loop over each
+    of its two blocks' pivots."""
     from softcrawl.jaxsim import factor
 
     f = getattr(factor, function)
@@ -278,4 +299,4 @@ def test_unrolled_pivots_are_the_loops_steps(monkeypatch, function):
         call = next(e for e in jax.make_jaxpr(lambda m: f(m, "interpret"))(a).eqns if e.primitive.name == "pallas_call")
         return [e.primitive.name for e in call.params["jaxpr"].eqns if e.primitive.name in ("while", "scan")]
 
-    assert loops(A[0]) == [] and len(loops(jnp.eye(72))) == 1
+    assert loops(A[0]) == [] and len(loops(jnp.eye(72))) == len(factor.row_parts(72)) == 2

@@ -11,7 +11,8 @@ every later solve is a product (:func:`softcrawl.jaxsim.legs.free_motion`,
 and a triangular solve: LAPACK on a CPU; on a GPU cuSOLVER's batched factorisation and cuBLAS'
 triangular solve, each a chain of kernel launches, ``benchmarks/RESULTS.md``). ``form="kernel"``
 does both in one Pallas kernel on an NVIDIA GPU (Triton form, as :mod:`softcrawl.jaxsim.fused`), one
-program per matrix, the matrix in registers: Gaussian elimination of ``[A | I]`` without pivoting,
+program per matrix, the matrix in registers in blocks of power-of-two sizes (:func:`row_parts`:
+36 rows as 32 and 4, not padded to 64): Gaussian elimination of ``[A | I]`` without pivoting,
 stable for SPD matrices as Cholesky's (Higham 2002, "Accuracy and Stability of Numerical
 Algorithms", sec. 10.1-10.2). Step ``k`` subtracts ``l r_k^T`` from the rows below ``k``, with
 ``r_k`` row ``k`` of the current matrix and ``l_i = a_ik / d_k`` (``d_k = a_kk``, the pivot); the
@@ -69,32 +70,34 @@ def padded_size(n: int) -> int:
     return max(16, 1 << (int(n) - 1).bit_length())
 
 
-#: Numbers of each of the program's ``(N, N)`` matrices a thread holds, which sets its warps
-#: (:func:`_warps`; 1 to 16): 64 gives 2 warps for the legs (``N = 64``) and 8 for the attachment
-#: block (``N = 128``), 128 registers a thread, no spill on an H100 (ptxas' counts), the fastest
-#: of 8, 16, 32 and 64 for both sizes on an H200, and for the sweeps within 4% of the fastest of
-#: 16 to 128 on an H100 (benchmarks/RESULTS.md). Read when a call is traced:
+#: Numbers of each of the program's ``(N, N)`` matrices (``N`` :func:`padded_size`) a thread would
+#: hold, which sets its warps (:func:`_warps`; 1 to 16): 64 gives 2 warps for the legs (``N =
+#: 64``) and 8 for the attachment block (``N = 128``), the fastest of 8, 16, 32 and 64 for both
+#: sizes on an H200, and for the sweeps within 4% of the fastest of 16 to 128 on an H100, each
+#: matrix then held padded (benchmarks/RESULTS.md); held in blocks (:func:`row_parts`), 96 and 78
+#: registers a thread, no spill, on an H100 (ptxas' counts). Read when a call is traced:
 #: ``benchmarks/cholesky_kernel.py`` times other values.
 PER_THREAD = 64
 #: Matrices in a batch (``jax.vmap``'s axis) from which :func:`inverse_spd`'s ``"kernel"`` form
-#: hands the batch to the library: one program a matrix pads the attachment block's 72 rows to
-#: 128, and at 16,384 blocks cuSOLVER's batched factorisation and inverse take 5.45 ms against
-#: the sweeps' 7.37; at 96, 0.263 against 0.104 (H100, benchmarks/RESULTS.md). A line through
-#: both crosses at about 1,900 blocks; ``benchmarks/cholesky_kernel.py`` times the sizes between.
-#: Read when a call is traced.
-LIBRARY_FROM = 2048
+#: hands the batch to the library, or None: never. Held padded to 128 rows, the sweeps of 16,384
+#: attachment blocks took 7.37 ms on an H100 against cuSOLVER's batched factorisation and
+#: inverse's 5.45 (at 96 blocks 0.104 against 0.263 ms), so the library served from 2,048 blocks;
+#: held in blocks of 64 and 8 rows the kernel issues 2.7 times fewer instructions a matrix
+#: (compiled for an H100: 125,192 warp instructions against 341,728), about 2.7 ms at the issue
+#: rate the padded kernel ran at. Read when a call is traced: ``benchmarks/cholesky_kernel.py``
+#: times the kernel against the library at the sizes between (``gpu_checks.sh crossover``).
+LIBRARY_FROM = None
 
 #: The largest matrix size whose pivots the kernels unroll, or 0 for none. Unrolled (one pivot's
 #: step after another in straight-line code), the masks of pivot ``k``'s row and column are
-#: constants: compiled for an H100 (``benchmarks/kernel_sass.py --kernel factor``), a leg's 36 x
-#: 36 factor (symmetrized, as the step asks) takes 208 instructions a pivot and warp against the
-#: loop's 495, 14,976 warp instructions a matrix against 35,640 (7,488 instructions of code, 120
-#: KB; 164 registers, no spill; at 128 numbers a thread, one warp, 10,800), the attachment
-#: block's 72 x 72 inverse 390
-#: against 588 (28,112 instructions, 24 bytes spilled). The looped kernel ran 98,304 legs'
-#: matrices at about 80% of an H100's issue rate (4.35 ms): there, fewer instructions should be
-#: faster, unless the longer code stalls on its fetch. Measured on a GPU before it becomes a
-#: default (``benchmarks/cholesky_kernel.py``' ``_unrolled`` variants). Read when a call is traced.
+#: constants: compiled for an H100 (``benchmarks/kernel_sass.py --kernel factor``), a leg's step
+#: (:func:`step_solve`, 36 x 36 in blocks of 32 and 4 rows) issues 16,208 warp instructions
+#: against the loop's 23,562 (8,104 instructions of code; 112 registers, no spill; at 128 numbers
+#: a thread, one warp, 8,624), the attachment block's 72 x 72 inverse 88,640 against 125,192 (8
+#: bytes spilled). The looped kernel, padded, ran 98,304 legs' matrices at about 80% of an H100's
+#: issue rate (4.35 ms): there, fewer instructions should be faster, unless the longer code stalls
+#: on its fetch. Measured on a GPU before it becomes a default (``benchmarks/cholesky_kernel.py``'
+#: ``_unrolled`` variants). Read when a call is traced.
 UNROLL_PIVOTS = 0
 #: Whether :func:`step_solve`'s kernel forms (``"kernel"``, ``"interpret"``) form the matrix and
 #: solve in the kernel's program, or XLA forms the matrix and multiplies by the factor around
@@ -104,71 +107,128 @@ UNROLL_PIVOTS = 0
 STEP_IN_KERNEL = True
 
 
-def _pivots(n: int, body, init):
-    """``body(k, carry)`` for pivots ``k = 0 .. n - 1``: a loop, or unrolled where ``n <=``
-    :data:`UNROLL_PIVOTS`."""
-    if n > UNROLL_PIVOTS:
-        return lax.fori_loop(0, n, body, init)
-    for k in range(n):
-        init = body(k, init)
-    return init
-
-
-def _warps(N: int) -> int:
-    """Warps per program for a padded size ``N`` (:data:`PER_THREAD`)."""
+def _warps(n: int) -> int:
+    """Warps per program for ``n x n`` matrices (padded size ``N``, :data:`PER_THREAD`)."""
+    N = padded_size(n)
     return max(1, min(16, N * N // (PER_THREAD * 32)))
 
 
-def _padded(n: int, dt, load, symmetrize: bool = False):
-    """A program's ``n x n`` matrix at the padded size ``N``: ``load(rows, cols, inside)`` its
-    entries (``rows`` ``(N, 1)``, ``cols`` ``(1, N)``, masked by ``inside``: lanes past ``n`` load
-    nothing), the identity on the padding; with ``symmetrize``, ``(A + A^T) / 2``, the transpose
-    formed in the program (no transposing pass before the kernel).
-    Returns the lane indices ``r`` ``(N,)``, ``rows``, ``cols``, the mask ``inside`` of the ``n x
-    n`` entries, the identity and the matrix ``(N, N)``."""
-    r = lax.iota(jnp.int32, padded_size(n))
-    rows, cols = r[:, None], r[None, :]
-    inside = (rows < n) & (cols < n)
-    eye = (rows == cols).astype(dt)
-    A = load(rows, cols, inside)
+def row_parts(n: int) -> tuple[tuple[int, int], ...]:
+    """``((start, size), ...)``: the blocks of rows (and of columns) in which a program holds an
+    ``n x n`` matrix, each of a power-of-two size (Triton's blocks have power-of-two shapes):
+    one of :func:`padded_size` where ``n`` is a power of two, 16 or less, or its rest past the
+    largest power of two below it would be padded to more than a quarter of :func:`padded_size`;
+    else that power of two and the rest padded to a power of two (at least 4). 36 rows are
+    ``((0, 32), (32, 4))`` and 72 ``((0, 64), (64, 8))``: a pivot's update touches 1,296 and
+    5,184 numbers instead of the padded 64 x 64 and 128 x 128 matrices' 4,096 and 16,384."""
+    N = padded_size(n)
+    if n <= 16 or n == N:
+        return ((0, N),)
+    small = max(4, 1 << (n - N // 2 - 1).bit_length())
+    return ((0, N),) if small > N // 4 else ((0, N // 2), (N // 2, small))
+
+
+def _blocks(n: int, dt, load, symmetrize: bool = False):
+    """A program's ``n x n`` matrix in the blocks of :func:`row_parts`: ``load(rows, cols,
+    inside)`` its entries (``rows`` ``(a, 1)``, ``cols`` ``(1, b)`` global indices, masked by
+    ``inside``: lanes past ``n`` load nothing), the identity on the padding; with
+    ``symmetrize``, ``(A + A^T) / 2``, the transposes formed in the program (no transposing pass
+    before the kernel).
+    Returns ``(idx, inside, A)``: ``idx[i]`` the global indices of block ``i``'s rows,
+    ``inside[i][j]`` the mask of block ``(i, j)``'s entries of the ``n x n`` matrix and
+    ``A[i][j]`` the block."""
+    idx = [start + lax.iota(jnp.int32, size) for start, size in row_parts(n)]
+    P = range(len(idx))
+    inside = [[(idx[i][:, None] < n) & (idx[j][None, :] < n) for j in P] for i in P]
+    A = [[load(idx[i][:, None], idx[j][None, :], inside[i][j]) for j in P] for i in P]
     if symmetrize:
-        A = (A + A.T) / 2
-    return r, rows, cols, inside, eye, jnp.where(inside, A, eye)
+        A = [[(A[i][j] + A[j][i].T) / 2 for j in P] for i in P]
+    return idx, inside, [[jnp.where(inside[i][j], A[i][j], _eye(idx[i], idx[j], dt)) for j in P] for i in P]
+
+
+def _eye(rows, cols, dt):
+    """The identity's block of global ``rows`` ``(a,)`` and ``cols`` ``(b,)``."""
+    return (rows[:, None] == cols[None, :]).astype(dt)
 
 
 def _read(a_ref):
-    """:func:`_padded`'s ``load`` of a matrix ``a_ref`` read whole through masked pointers."""
+    """:func:`_blocks`' ``load`` of a matrix ``a_ref`` read whole through masked pointers."""
     from jax.experimental.pallas import triton as pltriton
 
     return lambda rows, cols, inside: pltriton.load(a_ref.at[rows, cols], mask=inside, other=0.0)
 
 
-def _eliminated(n: int, fma, r, rows, cols, eye, A):
-    """``C^-1`` ``(N, N)`` of a program's padded matrix ``A`` (:func:`_padded`'s ``r``, ``rows``,
-    ``cols``, ``eye`` and matrix) by the module doc's elimination of its ``n`` pivots; ``fma`` the
-    rank-one updates' multiply-add (:func:`fused_multiply_add`)."""
-    def body(k, c):
-        A, T, d = c
-        col = jnp.sum(jnp.where(cols == k, A, 0), axis=1)  # column k, by rows
-        row = jnp.sum(jnp.where(rows == k, A, 0), axis=0)  # row k, by columns
-        trow = jnp.sum(jnp.where(rows == k, T, 0), axis=0)
-        dk = jnp.sum(jnp.where(r == k, col, 0))
-        l = jnp.where(r > k, col / dk, 0)
-        return fma(-l[:, None], row[None, :], A), fma(-l[:, None], trow[None, :], T), jnp.where(r == k, dk, d)
+def _store(o_ref, idx, inside, blocks):
+    """Store ``blocks[i][j]`` (None: zeros) at block ``(i, j)`` of ``o_ref`` through masked
+    pointers: lanes past ``n`` store nothing."""
+    from jax.experimental.pallas import triton as pltriton
 
-    _, T, d = _pivots(n, body, (A, eye, jnp.ones(r.shape, A.dtype)))
-    return T * lax.rsqrt(d)[:, None]
+    for i, rows in enumerate(idx):
+        for j, cols in enumerate(idx):
+            value = blocks[i][j] if blocks[i][j] is not None else jnp.zeros((rows.shape[0], cols.shape[0]), o_ref.dtype)
+            pltriton.store(o_ref.at[rows[:, None], cols[None, :]], value, mask=inside[i][j])
+
+
+def _block_pivots(n: int, idx, body, init):
+    """``body(p, k, carry)`` for the pivots of block ``p = 0, 1, ...`` in turn, ``k`` the pivot's
+    index in its block: each block's a loop, or unrolled where ``n <=`` :data:`UNROLL_PIVOTS`;
+    the padding's rows are no pivots."""
+    start = 0
+    for p, rows in enumerate(idx):
+        pivots = min(n - start, rows.shape[0])
+        if n > UNROLL_PIVOTS:
+            init = lax.fori_loop(0, pivots, partial(body, p), init)
+        else:
+            for k in range(pivots):
+                init = body(p, k, init)
+        start += rows.shape[0]
+    return init
+
+
+def _at(idx, p, k):
+    """Per block ``i``, the mask of block ``p``'s row ``k`` among block ``i``'s rows (none
+    where ``i != p``), and the index of block ``p``'s row ``k`` in the matrix."""
+    local = [lax.iota(jnp.int32, rows.shape[0]) for rows in idx]
+    at = [(local[i] == k) if i == p else jnp.zeros(rows.shape, bool) for i, rows in enumerate(idx)]
+    return at, sum(rows.shape[0] for rows in idx[:p]) + k
+
+
+def _eliminated(n: int, fma, idx, A):
+    """``C^-1`` of a program's matrix in blocks (:func:`_blocks`' ``idx`` and ``A``) by the module
+    doc's elimination of its ``n`` pivots, ``fma`` the rank-one updates' multiply-add
+    (:func:`fused_multiply_add`): its blocks ``(i, j)``, ``j <= i`` (None above: zero). A pivot of
+    block ``p`` changes the matrix's blocks ``(i, j)``, ``i, j >= p`` (the rows above the pivot
+    keep theirs; the columns of earlier blocks are eliminated and not read again) and the
+    inverse's ``(i, j)``, ``i >= p >= j``."""
+    P = range(len(idx))
+    dt = A[0][0].dtype
+    T = [[_eye(idx[i], idx[j], dt) for j in range(i + 1)] for i in P]
+    d = [jnp.ones(rows.shape, dt) for rows in idx]
+
+    def body(p, k, c):
+        A, T, d = c
+        at, kk = _at(idx, p, k)
+        col = {i: jnp.sum(jnp.where(at[p][None, :], A[i][p], 0), axis=1) for i in P if i >= p}  # column k
+        row = {j: jnp.sum(jnp.where(at[p][:, None], A[p][j], 0), axis=0) for j in P if j >= p}  # row k
+        trow = {j: jnp.sum(jnp.where(at[p][:, None], T[p][j], 0), axis=0) for j in range(p + 1)}
+        dk = jnp.sum(jnp.where(at[p], col[p], 0))
+        l = {i: jnp.where(idx[i] > kk, col[i] / dk, 0) for i in col}
+        A = [[fma(-l[i][:, None], row[j][None, :], A[i][j]) if min(i, j) >= p else A[i][j] for j in P] for i in P]
+        T = [[fma(-l[i][:, None], trow[j][None, :], T[i][j]) if i >= p >= j else T[i][j] for j in range(i + 1)]
+             for i in P]
+        return A, T, [jnp.where(at[p], dk, d[p]) if i == p else d[i] for i in P]
+
+    _, T, d = _block_pivots(n, idx, body, (A, T, d))
+    return [[T[i][j] * lax.rsqrt(d[i])[:, None] if j <= i else None for j in P] for i in P]
 
 
 def _kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
     """One matrix (module doc): ``a_ref`` ``(n, n)`` the symmetric matrix, read whole (with
     ``symmetrize``, ``(A + A^T) / 2``); ``o_ref`` receives ``C^-1``; ``fma`` the rank-one updates'
-    multiply-add (:func:`fused_multiply_add`). The program works on the padded size ``N``
-    (:func:`_padded`) and writes through masked pointers: lanes past ``n`` store nothing."""
-    from jax.experimental.pallas import triton as pltriton
-
-    r, rows, cols, inside, eye, A = _padded(n, o_ref.dtype, _read(a_ref), symmetrize)
-    pltriton.store(o_ref.at[rows, cols], _eliminated(n, fma, r, rows, cols, eye, A), mask=inside)
+    multiply-add (:func:`fused_multiply_add`). The program holds the matrix in the blocks of
+    :func:`row_parts` (:func:`_blocks`) and writes through masked pointers."""
+    idx, inside, A = _blocks(n, o_ref.dtype, _read(a_ref), symmetrize)
+    _store(o_ref, idx, inside, _eliminated(n, fma, idx, A))
 
 
 def _step_kernel(n: int, k: int, numbers: tuple, fma, barrier, m_ref, k_ref, fs_ref, s_ref, f_ref, w_ref, x_ref,
@@ -178,7 +238,8 @@ def _step_kernel(n: int, k: int, numbers: tuple, fma, barrier, m_ref, k_ref, fs_
     row and column), symmetrized; ``o_ref`` receives ``C^-1`` (:func:`_eliminated`) and ``y_ref``
     ``x + C^-T C^-1 h (w f + f_s - rate M x)`` of ``fs_ref`` ``(k,)`` (placed as ``K``), ``f_ref``
     and ``x_ref`` ``(n,)`` and ``w_ref`` ``(1,)``; ``numbers`` ``(alpha, beta, h, rate)``;
-    ``barrier()`` the program's (none in the interpreter). Padded and masked as :func:`_kernel`."""
+    ``barrier()`` the program's (none in the interpreter). In blocks as :func:`_kernel`; the
+    products after the factor on the matrices padded to :func:`padded_size`, masked."""
     from jax.experimental.pallas import triton as pltriton
 
     alpha, beta, h, rate = numbers
@@ -188,14 +249,16 @@ def _step_kernel(n: int, k: int, numbers: tuple, fma, barrier, m_ref, k_ref, fs_
         K = pltriton.load(k_ref.at[si, sj], mask=(si < k) & (sj < k), other=0.0)
         return alpha * _read(m_ref)(rows, cols, inside) + beta * K
 
-    r, rows, cols, inside, eye, A = _padded(n, o_ref.dtype, formed, symmetrize=True)
-    pltriton.store(o_ref.at[rows, cols], _eliminated(n, fma, r, rows, cols, eye, A), mask=inside)
+    idx, inside, A = _blocks(n, o_ref.dtype, formed, symmetrize=True)
+    _store(o_ref, idx, inside, _eliminated(n, fma, idx, A))
     # read back after a barrier (the factor, and M and the slots again): products with the factor
     # in registers change the layout Triton gives the elimination (684 instructions a pivot and
-    # 229 registers instead of 508 and 128)
+    # 229 registers instead of 508 and 128, padded)
     barrier()
-    on = r < n
-    Ci, M = _read(o_ref)(rows, cols, inside), _read(m_ref)(rows, cols, inside)
+    r = lax.iota(jnp.int32, padded_size(n))
+    rows, cols, on = r[:, None], r[None, :], r < n
+    whole = (rows < n) & (cols < n)
+    Ci, M = _read(o_ref)(rows, cols, whole), _read(m_ref)(rows, cols, whole)
     s = pltriton.load(s_ref.at[r], mask=on, other=k)
     x = pltriton.load(x_ref.at[r], mask=on, other=0.0)
     f = pltriton.load(f_ref.at[r], mask=on, other=0.0) * w_ref[0] + pltriton.load(fs_ref.at[s], mask=s < k, other=0.0)
@@ -207,21 +270,22 @@ def _step_kernel(n: int, k: int, numbers: tuple, fma, barrier, m_ref, k_ref, fs_
 def _sweep_kernel(n: int, fma, symmetrize: bool, a_ref, o_ref):
     """One matrix's inverse by the symmetric sweep operator (module doc): ``a_ref`` ``(n, n)``
     the symmetric matrix, read whole (with ``symmetrize``, ``(A + A^T) / 2``); ``o_ref``
-    receives ``A^-1``. Padded and masked as :func:`_kernel`; the padding's identity rows are
+    receives ``A^-1``. In blocks and masked as :func:`_kernel`; the padding's identity rows are
     never swept."""
-    from jax.experimental.pallas import triton as pltriton
+    idx, inside, A = _blocks(n, o_ref.dtype, _read(a_ref), symmetrize)
+    P = range(len(idx))
 
-    r, rows, cols, inside, _, A = _padded(n, o_ref.dtype, _read(a_ref), symmetrize)
-
-    def body(k, c):
+    def body(p, k, c):
         A, low = c
-        col = jnp.sum(jnp.where(cols == k, A, 0), axis=1)
-        dk = jnp.sum(jnp.where(r == k, col, 0))
-        u = jnp.where(r == k, -1.0, col) / dk
-        return fma(-(dk * u)[:, None], u[None, :], jnp.where((rows == k) | (cols == k), 0, A)), jnp.minimum(low, dk)
+        at, _ = _at(idx, p, k)
+        col = [jnp.sum(jnp.where(at[p][None, :], A[i][p], 0), axis=1) for i in P]
+        dk = jnp.sum(jnp.where(at[p], col[p], 0))
+        u = [jnp.where(at[i], -1.0, col[i]) / dk for i in P]
+        return ([[fma(-(dk * u[i])[:, None], u[j][None, :], jnp.where(at[i][:, None] | at[j][None, :], 0, A[i][j]))
+                  for j in P] for i in P], jnp.minimum(low, dk))
 
-    A, low = _pivots(n, body, (A, jnp.ones((), A.dtype)))
-    pltriton.store(o_ref.at[rows, cols], jnp.where(low > 0, -A, jnp.nan), mask=inside)
+    A, low = _block_pivots(n, idx, body, (A, jnp.ones((), o_ref.dtype)))
+    _store(o_ref, idx, inside, [[jnp.where(low > 0, -A[i][j], jnp.nan) for j in P] for i in P])
 
 
 def _library(A, symmetrize: bool = False):
@@ -237,7 +301,7 @@ def _pallas(A, interpret: bool, kernel=_kernel, name: str = "cholesky_inverse", 
     return pl.pallas_call(
         partial(kernel, n, partial(fused_multiply_add, compiled=not interpret), symmetrize),
         out_shape=jax.ShapeDtypeStruct((n, n), A.dtype), interpret=interpret,
-        compiler_params=pltriton.CompilerParams(num_warps=_warps(padded_size(n)), num_stages=1),
+        compiler_params=pltriton.CompilerParams(num_warps=_warps(n), num_stages=1),
         name=name)(A)
 
 
@@ -334,7 +398,7 @@ def _step_pallas(M, K, f_s, slots, f, w, x, alpha, beta, h, rate, interpret: boo
         partial(_step_kernel, n, K.shape[0], tuple(float(v) for v in (alpha, beta, h, rate)),
                 partial(fused_multiply_add, compiled=not interpret), barrier),
         out_shape=(jax.ShapeDtypeStruct((n, n), dt), jax.ShapeDtypeStruct((n,), dt)), interpret=interpret,
-        compiler_params=pltriton.CompilerParams(num_warps=_warps(padded_size(n)), num_stages=1),
+        compiler_params=pltriton.CompilerParams(num_warps=_warps(n), num_stages=1),
         name="step_solve")(M, K.astype(dt), f_s.astype(dt), slots.astype(jnp.int32), f.astype(dt),
                            w.astype(dt).reshape(1), x.astype(dt))
 
@@ -344,8 +408,8 @@ def inverse_spd(A, form: str = "library"):
     ``form`` as :func:`cholesky_inverse`'s: ``"library"`` is ``C^-T C^-1`` from that function's
     library form; ``"kernel"`` (CUDA; the library's form elsewhere) and ``"interpret"`` are the
     module doc's sweeps in one kernel, which form ``A^-1`` without a factor; ``"kernel"``
-    batched by ``jax.vmap`` over :data:`LIBRARY_FROM` matrices or more is the library's form,
-    faster there. Its error is of the order of ``cond(A)`` times the rounding unit, as a
+    batched by ``jax.vmap`` over :data:`LIBRARY_FROM` matrices or more (where it is not None)
+    is the library's form. Its error is of the order of ``cond(A)`` times the rounding unit, as a
     solve's (Higham 2002, sec. 14.4); a matrix that is not positive definite gives NaN or
     infinite entries in every form.
 
@@ -379,4 +443,5 @@ def _inverse_by_batch(A):
 def _inverse_batched(axis_size, in_batched, A):
     if not in_batched[0]:
         return _inverse_by_batch(A), False
-    return jax.vmap(inverse_spd if axis_size >= LIBRARY_FROM else _sweeps_on_cuda)(A), True
+    library = LIBRARY_FROM is not None and axis_size >= LIBRARY_FROM
+    return jax.vmap(inverse_spd if library else _sweeps_on_cuda)(A), True
