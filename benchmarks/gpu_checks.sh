@@ -72,10 +72,11 @@
 #              both sizes, make 128 the default (or the fastest held variant's).
 # crossover:   the legs' factors and the attachment block's inverse alone at 96, 1,024, 2,048,
 #              4,096 and 16,384 robots, each kernel against the library (`cholesky_kernel.py`):
-#              set `factor.LIBRARY_FROM` (the batch from which the block's inverse is the
-#              library's) where the library's inverse becomes the faster; the kernels with their
-#              pivots unrolled too (`*_unrolled_ms`): if faster at 96 and 16,384 robots, set
-#              `factor.UNROLL_PIVOTS` (36: the legs' kernel only, 72: both) and `PER_THREAD`.
+#              the kernels hold their matrices in blocks (factor.row_parts) and
+#              `factor.LIBRARY_FROM` is None (the kernel at every batch, by its instruction
+#              count); if the library's inverse is faster from some batch on, set it there;
+#              the kernels with their pivots unrolled too (`*_unrolled_ms`): if faster at 96
+#              and 16,384 robots, set `factor.UNROLL_PIVOTS` (36: the legs' kernel only, 72: both) and `PER_THREAD`.
 # profile:     the step at 1,024 and 16,384 robots without CUDA graphs, every kernel timed
 #              (`step_cost.py --profile`): where the large batches' time goes.
 # flags:       the step at 96 and 16,384 robots with XLA's matrix products by cuBLAS only
