@@ -4,6 +4,7 @@
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
+#   source .gpu-carry/env.sh; BASE=DIR bash benchmarks/gpu_checks.sh OUTDIR blocks   # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR factors      # ~4 min, after candidates
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR selection    # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR parts        # ~6 min
@@ -34,6 +35,12 @@
 #              checked on the card, `rid` and `solve` add the kernels' own checks and variants.
 #              First, `softcrawl verify --only jax_incline` (OUTDIR/verify.json): the solve's
 #              kernel on the card against the box-on-incline closed form (seconds).
+# blocks:      the step at 96 and 16,384 robots with the factor kernels holding their matrices in
+#              blocks (factor.row_parts, the defaults) against BASE's, a commit before them whose
+#              kernels held them padded (`mkdir -p .gpu-carry/base && git archive 508c788 softcrawl
+#              | tar -x -C .gpu-carry/base`, then BASE=.gpu-carry/base), on the same robots, one
+#              call: if the verdict makes {"label": "base"} the default, the padded kernels were
+#              the faster: restore them (`git revert` of the blocks' commit, 42980ca).
 # selection:   the step at 96 and 16,384 robots with each robot's contact candidates chosen by one
 #              kernel (`--selection kernel`, softcrawl.jaxsim.candidates, the warm start with
 #              them: 16 operations fewer, 0.55 MB less a robot-step, compiled for an H100)
@@ -110,7 +117,7 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-stages="candidates, factors, selection, parts, rid, solve, crossover, profile, flags, attribution, kernels,"
+stages="candidates, blocks, factors, selection, parts, rid, solve, crossover, profile, flags, attribution, kernels,"
 stages="$stages groundtruth, targets or training"
 out=${1:?OUTDIR}; stage=${2:?STAGE: $stages}
 mkdir -p "$out"
@@ -121,17 +128,22 @@ export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-/tmp/softcrawl-jax
 nvidia-smi --query-gpu=name,clocks.sm,clocks.mem,memory.total --format=csv | tee -a "$out/log.txt"
 
 # forms NAME LIMIT FLAGS...: the step at 96 and 16,384 robots in each form (one word of
-# step_cost.py's flags, each call under LIMIT seconds), every form's robots against the first's
-# on the same robots (--reference: the first's ends in /tmp/NAME.npz, 66 MB, not in OUTDIR);
-# the lines also in OUTDIR/NAME.jsonl, and gpu_verdict.py's rule on them in OUTDIR/verdict.jsonl
-# (which forms become the default).
+# step_cost.py's flags, each call under LIMIT seconds; "base" instead: BASE's package, labelled),
+# every form's robots against the first's on the same robots (--reference: the first's ends in
+# /tmp/NAME.npz, 66 MB, not in OUTDIR); the lines also in OUTDIR/NAME.jsonl, and gpu_verdict.py's
+# rule on them in OUTDIR/verdict.jsonl (which forms become the default).
 forms() {
-    local name=$1 limit=$2 flags
+    local name=$1 limit=$2 flags path
     shift 2
     rm -f "/tmp/$name.npz" "$out/$name.jsonl"
     for flags in "$@"; do
-        timeout "$limit" python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 $flags \
-            --reference "/tmp/$name.npz" 2>>"$out/log.txt" | tee -a "$out/targets.jsonl" "$out/$name.jsonl"
+        path=${PYTHONPATH:-}
+        if [ "$flags" = base ]; then
+            path=${BASE:?BASE: the folder of an earlier commit of softcrawl}:$path
+            flags="--label base"
+        fi
+        PYTHONPATH=$path timeout "$limit" python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
+            $flags --reference "/tmp/$name.npz" 2>>"$out/log.txt" | tee -a "$out/targets.jsonl" "$out/$name.jsonl"
     done
     python3 benchmarks/gpu_verdict.py "$out/$name.jsonl" 2>>"$out/log.txt" | sed "s/^{/{\"stage\": \"$name\", /" \
         | tee -a "$out/verdict.jsonl"
@@ -151,14 +163,16 @@ rid)
         | tee -a "$out/rid.jsonl"
     forms rid 130 "--rid-form pairs" "--rid-form kernel"
     if [ -n "${BASE:-}" ]; then
-        PYTHONPATH=$BASE:$PYTHONPATH timeout 130 python3 benchmarks/step_cost.py --no-cost --time --batches 96,16384 --calls 3 \
-            2>>"$out/log.txt" | sed 's/^{/{"base": true, /' | tee -a "$out/targets.jsonl"
+        PYTHONPATH=$BASE:${PYTHONPATH:-} timeout 130 python3 benchmarks/step_cost.py --no-cost --time \
+            --batches 96,16384 --calls 3 --label base 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
     fi ;;
 solve)
     timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
         --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
 selection)
     forms selection 200 "" "--selection kernel" ;;
+blocks)
+    forms blocks 130 "" base ;;
 factors)
     timeout 300 python3 benchmarks/cholesky_kernel.py --robots 96,16384 --calls 5 --sizes 36 \
         2>>"$out/log.txt" | tee -a "$out/cholesky.jsonl" ;;

@@ -113,6 +113,9 @@ def main(argv=None) -> None:
                    help="with the timing: compare each batch's final disk node positions with those an earlier "
                         "run (another form of the step, the same designs and calls) stored in FILE (.npz), or "
                         "store them there where FILE holds none for that batch")
+    p.add_argument("--label", default=None,
+                   help="a name for the tree the step comes from, one of the settings each line names (e.g. "
+                        "'base': an earlier commit's package first on PYTHONPATH, timed against today's)")
     args = p.parse_args(argv)
     from softcrawl.jaxsim.cost import prepare_deviceless_gpu
 
@@ -151,7 +154,7 @@ def main(argv=None) -> None:
               "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
               "pairs_dot": args.pairs_dot, "resident_rows": args.resident_rows,
               "operator_parts": fused.OPERATOR_PARTS, "unroll_pivots": factor.UNROLL_PIVOTS,
-              "selection": candidates.SELECTION}  # what every line was measured with
+              "selection": candidates.SELECTION, "label": args.label}  # what every line was measured with
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)
