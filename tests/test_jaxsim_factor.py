@@ -48,9 +48,9 @@ def test_the_kernel_inverts_the_cholesky_factor(n, dtype):
     three of them padding; the legs' 36: 32 and 4; 48; the attachment block's 72: 64 and 8), on
     matrices of condition number 1e4 (the landed robot's leg step matrices: about 1e5): relative
     error (of the largest entry) within ``cond u`` with ``u`` the rounding unit (Higham 2002,
-    sec. 10.1: the factor's error is of that order; measured at most 1e-13 in float64 and 4.4e-5 in float32, where LAPACK's own
-    float32 factor errs by 4e-5), exactly lower triangular, and ``C^-1 A C^-T = I`` within the
-    same bound (measured 3.4e-13 and 8.1e-5)."""
+    sec. 10.1: the factor's error is of that order; measured at most 1e-13 in float64 and 4.4e-5
+    in float32, where LAPACK's own float32 factor errs by 4e-5), exactly lower triangular, and
+    ``C^-1 A C^-T = I`` within the same bound (measured 3.4e-13 and 8.1e-5)."""
     from softcrawl.jaxsim.factor import cholesky_inverse
 
     cond = 1e4
