@@ -40,7 +40,7 @@
 #              kernels held them padded (`mkdir -p .gpu-carry/base && git archive 508c788 softcrawl
 #              | tar -x -C .gpu-carry/base`, then BASE=.gpu-carry/base), on the same robots, one
 #              call: if the verdict makes {"label": "base"} the default, the padded kernels were
-#              the faster: restore them (`git revert` of the blocks' commit, 42980ca).
+#              the faster: restore them (factor.py's kernels as of 508c788).
 # selection:   the step at 96 and 16,384 robots with each robot's contact candidates chosen by one
 #              kernel (`--selection kernel`, softcrawl.jaxsim.candidates, the warm start with
 #              them: 16 operations fewer, 0.55 MB less a robot-step, compiled for an H100)
