@@ -180,7 +180,8 @@ def test_rig_matches_the_cpu_regulators_and_warp():
     step = jax.jit(functools.partial(regulator_step, settings))
     p = jnp.zeros(3)
     for k in range(200):
-        c = rng.uniform(0, 90, 3) if k % 20 == 0 else c
+        if k % 20 == 0:
+            c = rng.uniform(0, 90, 3)
         ref = bank.step(c, dt)
         p = step(rig, p, jnp.asarray(c))
         np.testing.assert_allclose(np.asarray(p), ref, rtol=0, atol=1e-12)

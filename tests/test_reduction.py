@@ -303,8 +303,6 @@ def test_ecsw_on_independent_columns_keeps_what_the_tolerance_needs():
 
 
 # -- a tiny build end to end: file, checks, accuracy against the full model -----------------
-import dataclasses  # noqa: E402
-
 from softcrawl.reduction.artifact import (  # noqa: E402
     ReductionFileError,
     ReductionMismatchError,

@@ -29,7 +29,7 @@ import numpy as np
 
 from softcrawl.design.baseline import symmetric_design
 from softcrawl.design.space import DEFAULT_SPACE
-from softcrawl.design.spacefile import Design, DesignSpace
+from softcrawl.design.spacefile import DesignSpace
 from softcrawl.fem.solver import SimulationDiverged
 from softcrawl.fem.state import Control
 from softcrawl.gaits import SineGait
