@@ -12,7 +12,9 @@ iteration's issue cycles is that times the warps over the multiprocessor's four 
 ``loops_before`` (the instructions of each loop before it: the operator's preparation, one
 trip a block of rows) and the count of each opcode in the loop
 (``LDG``: loads from device memory or cache, ``BAR``: barriers, ``SHFL``: shuffles, ``HADD2``:
-the float16 conversions). A proxy for time where no GPU is lent, not a measurement.
+the float16 conversions), and ``warp_instructions_per_robot`` (:func:`solve_instructions`: the
+preparation's and the 48 iterations' instructions, times the warps). A proxy for time where no GPU
+is lent, not a measurement.
 
 With ``--kernel rid``, each variant of :func:`softcrawl.jaxsim.ridkernel.rid_kernel_terms` (its
 constants ``ELEMENTS``, ``NUM_WARPS``, ``DOT_ALGORITHM``, ``SPLIT``) on the ``paper`` preset's
@@ -138,6 +140,24 @@ def leg_instructions(sass: str, families, elements: int, split: int, warps: int)
     return per_program * split * warps
 
 
+def solve_instructions(sass: str, full: int, iterations: int, warps: int) -> int | None:
+    """The warp instructions a robot's solve program issues, from its machine code ``sass``: the
+    code outside the loops once, the loop over the preparation's ``full`` row blocks (where ptxas
+    kept one: the outermost loops but the last) ``full`` times, the last outermost loop (the
+    iterations) ``iterations`` times and a loop inside it (the looped product's blocks) ``full``
+    times an iteration, times the program's ``warps``; None if the code has another shape."""
+    loops = loop_tree(sass)
+    outer = [i for i, lp in enumerate(loops) if lp["parent"] is None]
+    if not outer or len(outer) > 2 or any(lp["parent"] not in (None, outer[-1]) for lp in loops):
+        return None
+    trips = {i: full for i in outer[:-1]} | {outer[-1]: iterations}
+    count = len(_SASS.findall(sass)) - sum(loops[i]["total"] for i in outer)
+    for i, lp in enumerate(loops):
+        trips.setdefault(i, iterations * full)
+        count += trips[i] * sum(lp["opcodes"].values())
+    return count * warps
+
+
 def machine_code(dump: str, name: str, arch: str) -> str:
     """``nvdisasm -c`` of the kernel ``name`` whose PTX XLA dumped into ``dump``, assembled by ptxas."""
     ptx = next(f for f in Path(dump).glob("*.ptx") if name in f.read_text())
@@ -261,6 +281,7 @@ def main(argv=None) -> None:
 
     from softcrawl.jaxsim import fused
     from softcrawl.jaxsim.cost import deviceless_gpu
+    from softcrawl.jaxsim.factor import padded_size
     from softcrawl.jaxsim.schur import SchurOperator
 
     config = Path(args.gpu_target).read_text()
@@ -295,11 +316,14 @@ def main(argv=None) -> None:
         solve = jax.jit(jax.vmap(fused.fused_solve, in_axes=(0, 0, 0, 0, 0, None)))
         sass, report = compiled_kernel(solve, specs, "apgd_solve", arch, sharding, dump)
         *before, ops = outer_loops(sass)
+        held = fused.RESIDENT_ROWS is not None and 2 * padded_size(n) ** 2 <= fused.held_bytes()  # as fused_solve
+        full = n // min(fused.RESIDENT_ROWS if held else fused.ROW_BLOCK, padded_size(n))
         print(json.dumps({"variant": {"row_block": fused.ROW_BLOCK, "num_warps": fused.NUM_WARPS,
                                       "loop_product": fused.LOOP_PRODUCT, "resident_rows": fused.RESIDENT_ROWS},
                           "contacts": K, "operator": args.schur or "dense", "arch": arch, "jax": jax.__version__,
                           **report,
                           "loop_instructions": sum(ops.values()), "loop_opcodes": dict(ops.most_common()),
+                          "warp_instructions_per_robot": solve_instructions(sass, full, 48, fused.NUM_WARPS),
                           "loops_before": [sum(c.values()) for c in before]}),
               flush=True)
 

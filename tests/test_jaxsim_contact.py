@@ -578,7 +578,8 @@ def test_kernel_sass_counts_the_instructions_of_the_outermost_loops():
     larger loop that prepares the operator), opcodes without predicates or modifiers; every loop
     with its parent and its own instructions (``loop_tree``), and the RID kernel's instructions a
     leg (``leg_instructions``: outside the loops once, each family's block loop times its blocks,
-    its edge loop times the edges too), None where the loops are not the families'."""
+    its edge loop times the edges too), None where the loops are not the families', and the solve
+    kernel's a robot (``solve_instructions``), None without the iterations' loop."""
     from helpers import benchmark_module
 
     sass = benchmark_module("kernel_sass")
@@ -608,6 +609,11 @@ def test_kernel_sass_counts_the_instructions_of_the_outermost_loops():
     assert sass.leg_instructions(text, [(40, 4)], elements=16, split=1, warps=2) is None
     one = text.replace("@P2 BRA `(.L_x_2)", "NOP")  # now one family's loop, its edge loop inside
     assert sass.leg_instructions(one, [(40, 4)], elements=16, split=1, warps=2) == 2 * (7 + 3 * (2 + 3 * 2))
+    # read as the solve kernel: outside the loops once, the preparation's loop 3 times (its full row
+    # blocks), the iterations 48 times and the looped product's blocks inside them 3 times each
+    assert sass.solve_instructions(text, full=3, iterations=48, warps=8) == 8 * (2 + 3 * 5 + 48 * (2 + 3 * 2))
+    assert sass.solve_instructions(one, full=3, iterations=48, warps=8) == 8 * (7 + 48 * (2 + 3 * 2))
+    assert sass.solve_instructions("        /*0000*/                   EXIT ;", 3, 48, 8) is None
 
 
 def test_the_fused_kernels_row_blocks_cover_the_rows_and_no_more_of_the_padding():
