@@ -121,6 +121,17 @@ def loop_tree(sass: str) -> list[dict]:
     return out
 
 
+def issued(sass: str, loops: list[dict], trips: dict[int, int]) -> int:
+    """The instructions one warp issues running ``nvdisasm -c`` output ``sass`` whose
+    :func:`loop_tree` is ``loops``: the code outside the loops once, each loop's own instructions
+    ``trips[i]`` times each time its parent runs (1 where not given)."""
+    runs: dict[int, int] = {}
+    for i, lp in enumerate(loops):  # parents come before their loops
+        runs[i] = trips.get(i, 1) * (1 if lp["parent"] is None else runs[lp["parent"]])
+    outside = len(_SASS.findall(sass)) - sum(lp["total"] for lp in loops if lp["parent"] is None)
+    return outside + sum(runs[i] * sum(lp["opcodes"].values()) for i, lp in enumerate(loops))
+
+
 def leg_instructions(sass: str, families, elements: int, split: int, warps: int) -> int | None:
     """The warp instructions a leg's RID kernel programs issue (module doc), from its machine
     code ``sass`` and its families' ``(E, k)`` (elements, nodes an element): the outermost loops
@@ -132,12 +143,10 @@ def leg_instructions(sass: str, families, elements: int, split: int, warps: int)
     if len(outer) != len(families) or any(len(js) != 1 or any(lp["parent"] == js[0] for lp in loops)
                                           for js in inner):
         return None  # not one edge loop, without loops of its own, in each family's loop
-    n_all = len(_SASS.findall(sass))
-    per_program = n_all - sum(loops[i]["total"] for i in outer)  # outside the loops, once
-    for i, (js, (E, k)) in zip(outer, zip(inner, families)):
-        own = sum(loops[i]["opcodes"].values())
-        per_program += -(-E // (elements * split)) * (own + (k - 1) * loops[js[0]]["total"])
-    return per_program * split * warps
+    trips = {}
+    for i, (j,), (E, k) in zip(outer, inner, families):
+        trips[i], trips[j] = -(-E // (elements * split)), k - 1
+    return issued(sass, loops, trips) * split * warps
 
 
 def solve_instructions(sass: str, full: int, iterations: int, warps: int) -> int | None:
@@ -150,12 +159,8 @@ def solve_instructions(sass: str, full: int, iterations: int, warps: int) -> int
     outer = [i for i, lp in enumerate(loops) if lp["parent"] is None]
     if not outer or len(outer) > 2 or any(lp["parent"] not in (None, outer[-1]) for lp in loops):
         return None
-    trips = {i: full for i in outer[:-1]} | {outer[-1]: iterations}
-    count = len(_SASS.findall(sass)) - sum(loops[i]["total"] for i in outer)
-    for i, lp in enumerate(loops):
-        trips.setdefault(i, iterations * full)
-        count += trips[i] * sum(lp["opcodes"].values())
-    return count * warps
+    trips = {i: full for i in range(len(loops))} | {outer[-1]: iterations}
+    return issued(sass, loops, trips) * warps
 
 
 def machine_code(dump: str, name: str, arch: str) -> str:
@@ -239,14 +244,15 @@ def factor_variants(args, arch, sharding, dump) -> None:
         factor.UNROLL_PIVOTS, factor.PER_THREAD = int(unroll), int(per)
         for name, function, specs, n in kernels:
             sass, report = compiled_kernel(jax.jit(function), list(specs), name, arch, sharding, dump)
-            loops = [sum(c.values()) for c in outer_loops(sass)]
+            loops = loop_tree(sass)
+            outer = [i for i, lp in enumerate(loops) if lp["parent"] is None]
             total = len(_SASS.findall(sass))
             pivots = [min(size, n - start) for start, size in factor.row_parts(n)]
-            if len(loops) > len(pivots):
-                raise SystemExit(f"{name}: {len(loops)} outermost loops for {len(pivots)} blocks of pivots")
+            if len(outer) > len(pivots):
+                raise SystemExit(f"{name}: {len(outer)} outermost loops for {len(pivots)} blocks of pivots")
             # a loop over each block's pivots, but ptxas unrolls a short one (the last block's few) and
             # UNROLL_PIVOTS all: the loops are the first blocks', the rest straight-line code
-            per_matrix = total - sum(loops) + sum(lp * k for lp, k in zip(loops, pivots))
+            per_matrix = issued(sass, loops, dict(zip(outer, pivots)))
             warps = factor._warps(n)
             print(json.dumps({"kernel": name, "n": n, "variant": {"unroll_pivots": factor.UNROLL_PIVOTS,
                                                                   "per_thread": factor.PER_THREAD, "warps": warps},
@@ -281,7 +287,6 @@ def main(argv=None) -> None:
 
     from softcrawl.jaxsim import fused
     from softcrawl.jaxsim.cost import deviceless_gpu
-    from softcrawl.jaxsim.factor import padded_size
     from softcrawl.jaxsim.schur import SchurOperator
 
     config = Path(args.gpu_target).read_text()
@@ -316,8 +321,7 @@ def main(argv=None) -> None:
         solve = jax.jit(jax.vmap(fused.fused_solve, in_axes=(0, 0, 0, 0, 0, None)))
         sass, report = compiled_kernel(solve, specs, "apgd_solve", arch, sharding, dump)
         *before, ops = outer_loops(sass)
-        held = fused.RESIDENT_ROWS is not None and 2 * padded_size(n) ** 2 <= fused.held_bytes()  # as fused_solve
-        full = n // min(fused.RESIDENT_ROWS if held else fused.ROW_BLOCK, padded_size(n))
+        full = n // fused.program_rows(n, jnp.float32)[1]  # the preparation's full row blocks
         print(json.dumps({"variant": {"row_block": fused.ROW_BLOCK, "num_warps": fused.NUM_WARPS,
                                       "loop_product": fused.LOOP_PRODUCT, "resident_rows": fused.RESIDENT_ROWS},
                           "contacts": K, "operator": args.schur or "dense", "arch": arch, "jax": jax.__version__,

@@ -113,6 +113,17 @@ def held_bytes(interpret: bool = False) -> int:
     return HELD_BYTES if capability in HOLDING_CAPABILITIES else 0
 
 
+def program_rows(n: int, dtype, storage: str = "float16", interpret: bool = False) -> tuple[bool, int]:
+    """``(resident, rows)``: whether :func:`fused_solve`'s program holds the scaled ``n x n``
+    operator on chip (:data:`RESIDENT_ROWS` set, a float32 solve, its ``storage`` copy padded to
+    ``N x N`` within :func:`held_bytes`) and the rows of its blocks (:data:`RESIDENT_ROWS` held,
+    :data:`ROW_BLOCK` otherwise, at most ``N``)."""
+    N = padded_size(n)
+    resident = (RESIDENT_ROWS is not None and jnp.dtype(dtype) == jnp.float32
+                and N * N * jnp.dtype(storage).itemsize <= held_bytes(interpret))
+    return resident, min(RESIDENT_ROWS if resident else ROW_BLOCK, N)
+
+
 def row_blocks(n: int, row_block: int) -> tuple[int, list[tuple[int, int]]]:
     """How a program covers ``n`` rows: ``full`` blocks of ``row_block`` rows, then ``tail``, the
     ``(start, size)`` of blocks of the largest powers of two (at least 16) that cover the rest,
@@ -340,11 +351,10 @@ def fused_solve(W, q, mu, lam0, active, betas, *, storage: str = "float16", inte
     b = jnp.zeros(padded_size(n_iter), dt).at[:n_iter].set(betas.astype(dt))
     vector = jax.ShapeDtypeStruct((N,), dt)
     pair = jax.ShapeDtypeStruct((2, N), dt)
-    resident = (RESIDENT_ROWS is not None and dt == jnp.float32
-                and N * N * jnp.dtype(storage).itemsize <= held_bytes(interpret))
+    resident, rows = program_rows(n, dt, storage, interpret)
     x, *_ = pl.pallas_call(
         partial(_kernel, n, n_iter, (lambda: None) if interpret else pltriton.debug_barrier,
-                min(RESIDENT_ROWS if resident else ROW_BLOCK, N), LOOP_PRODUCT, resident, len(parts)),
+                rows, LOOP_PRODUCT, resident, len(parts)),
         out_shape=(jax.ShapeDtypeStruct((n,), dt), jax.ShapeDtypeStruct((N, N), storage), vector,
                    pair, pair),
         interpret=interpret,
