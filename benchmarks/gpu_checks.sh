@@ -4,6 +4,7 @@
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR elimination  # ~4 min, second
 #   source .gpu-carry/env.sh; BASE=DIR bash benchmarks/gpu_checks.sh OUTDIR blocks   # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR factors      # ~4 min, after candidates
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR selection    # ~4 min
@@ -35,6 +36,11 @@
 #              checked on the card, `rid` and `solve` add the kernels' own checks and variants.
 #              First, `softcrawl verify --only jax_incline` (OUTDIR/verify.json): the solve's
 #              kernel on the card against the box-on-incline closed form (seconds).
+# elimination: the step at 96 and 16,384 robots with the attachments' elimination in one kernel
+#              (`--elimination kernel`, softcrawl.jaxsim.elimination: 7 operations fewer, 0.57 MB
+#              less a robot-step, compiled for an H100) against XLA's products, both with the four
+#              candidates' forms, on the same robots; if faster at both sizes, make "kernel"
+#              `elimination.FORM`'s default.
 # blocks:      the step at 96 and 16,384 robots with the factor kernels holding their matrices in
 #              blocks (factor.row_parts, the defaults) against BASE's, a commit before them whose
 #              kernels held them padded (`mkdir -p .gpu-carry/base && git archive 508c788 softcrawl
@@ -117,7 +123,7 @@
 #              learner on the GPU: its steady rate once nothing compiles (`round_s`,
 #              `median_round_transitions_per_s`), what the paper's 1M transitions take.
 set -u
-stages="candidates, blocks, factors, selection, parts, rid, solve, crossover, profile, flags, attribution, kernels,"
+stages="candidates, elimination, blocks, factors, selection, parts, rid, solve, crossover, profile, flags, attribution, kernels,"
 stages="$stages groundtruth, targets or training"
 out=${1:?OUTDIR}; stage=${2:?STAGE: $stages}
 mkdir -p "$out"
@@ -154,6 +160,9 @@ candidates)
     timeout 60 python3 -m softcrawl.cli verify --only jax_incline --json 2>>"$out/log.txt" | tee "$out/verify.json"
     forms candidates 130 "" "--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel" \
         "--rid-form kernel" "--resident-rows 128" ;;
+elimination)
+    all="--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel"
+    forms elimination 130 "$all" "$all --elimination kernel" ;;
 parts)
     forms parts 130 "" "--formed-operator"
     timeout 100 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 5 \

@@ -32,6 +32,12 @@ attachment blocks' 72 x 72 inverses): registers, spills, ``instructions_per_pivo
 ``warp_instructions_per_matrix`` (that times the pivots and the program's warps): at thousands
 of matrices the kernels are bound by the multiprocessors' issue rate.
 
+With ``--kernel elimination``, each variant of :func:`softcrawl.jaxsim.elimination.by_kernel` (its
+constants ``NUM_WARPS``, ``ROW_BLOCK``, ``DOT_ALGORITHM``) on the ``paper`` preset's robot (72
+attachment rows, 8 disk and 6 x 12 leg contacts): registers, spills, its loops and
+``warp_instructions_per_robot`` (its loop over the legs run once a leg, its loop over the legs'
+blocks of ``S``'s rows once a leg and block, times the warps).
+
 Needs JAX's CUDA plugin of the installed JAX's version and ``nvdisasm`` (``pip install
 "jax-cuda12-plugin[with-cuda]==<jax version>" nvidia-cuda-nvdisasm``).
 
@@ -40,6 +46,7 @@ Usage:
         [--variants 64:8:0:-,64:8:0:128] [--contacts 80 | --schur 8:6:12]
     python benchmarks/kernel_sass.py --kernel rid [--variants 16:2:SPLIT_TF32:1,16:4:-:1]
     python benchmarks/kernel_sass.py --kernel factor [--variants 0:64,36:128]
+    python benchmarks/kernel_sass.py --kernel elimination [--variants 8:128:TF32_TF32_F32_X3,8:256:-]
 """
 
 from __future__ import annotations
@@ -261,15 +268,50 @@ def factor_variants(args, arch, sharding, dump) -> None:
                               "warp_instructions_per_matrix": per_matrix * warps}), flush=True)
 
 
+def elimination_variants(args, arch, sharding, dump) -> None:
+    """``--kernel elimination`` (module doc): one JSON line a variant."""
+    import jax
+    import jax.numpy as jnp
+
+    from softcrawl.jaxsim import elimination
+    from softcrawl.jaxsim.factor import padded_size
+
+    B, L, F3, Kd3, Kl3 = 96, 6, 12, 24, 36
+    n = Kd3 + L * Kl3
+    shapes = (((L * F3, L * F3), jnp.float32), ((L * F3, Kd3), jnp.float32), ((L, F3 + Kl3, F3 + Kl3), jnp.float32),
+              ((L * F3,), jnp.bool_), ((L * F3,), jnp.float32), ((n,), jnp.float32))
+    specs = [jax.ShapeDtypeStruct((B, *s), d, sharding=sharding) for s, d in shapes]
+    for text in args.variants.split(","):
+        warps, rows, dot = text.split(":")
+        elimination.NUM_WARPS, elimination.ROW_BLOCK = int(warps), int(rows)
+        elimination.DOT_ALGORITHM = None if dot == "-" else dot
+        sass, report = compiled_kernel(jax.jit(jax.vmap(elimination.by_kernel)), specs, "attachment_elimination",
+                                       arch, sharding, dump)
+        loops = loop_tree(sass)
+        outer = [i for i, lp in enumerate(loops) if lp["parent"] is None]
+        if len(outer) != 2 or len(loops) != 2:
+            raise SystemExit(f"attachment_elimination: {len(loops)} loops, not the legs' and the row blocks'")
+        blocks = padded_size(n) // min(elimination.ROW_BLOCK, padded_size(n))
+        print(json.dumps({"kernel": "elimination", "variant": {"num_warps": elimination.NUM_WARPS,
+                                                               "row_block": elimination.ROW_BLOCK,
+                                                               "dot_algorithm": elimination.DOT_ALGORITHM},
+                          "arch": arch, "jax": jax.__version__, **report, "instructions": len(_SASS.findall(sass)),
+                          "loops": [{"parent": lp["parent"], "total": lp["total"]} for lp in loops],
+                          "warp_instructions_per_robot": issued(sass, loops, {0: L, 1: L * blocks})
+                          * elimination.NUM_WARPS}), flush=True)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--gpu-target", default=str(Path(__file__).parent / "gpu_targets" / "h100.pbtxt"))
-    p.add_argument("--kernel", choices=("solve", "rid", "factor"), default="solve")
+    p.add_argument("--kernel", choices=("solve", "rid", "factor", "elimination"), default="solve")
     p.add_argument("--variants", default=None,
                    help="comma-separated; solve: ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS (- for None; "
                         "default 64:8:0:-,64:8:0:128,64:8:0:64); rid: ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT "
                         "(- for None; default 16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1); "
-                        "factor: UNROLL_PIVOTS:PER_THREAD (default 0:64,72:64,72:128)")
+                        "factor: UNROLL_PIVOTS:PER_THREAD (default 0:64,72:64,72:128); elimination: "
+                        "NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM (default 8:128:TF32_TF32_F32_X3,8:256:TF32_TF32_F32_X3,"
+                        "4:64:TF32_TF32_F32_X3)")
     p.add_argument("--contacts", type=int, default=80, help="contact slots K (the operator is 3K x 3K)")
     p.add_argument("--schur", default=None, metavar="KD:L:KL",
                    help="the operator in its parts (softcrawl.jaxsim.schur.SchurOperator): KD disk contacts and "
@@ -299,6 +341,9 @@ def main(argv=None) -> None:
     if args.kernel == "factor":
         args.variants = args.variants or "0:64,72:64,72:128"
         return factor_variants(args, arch, sharding, dump)
+    if args.kernel == "elimination":
+        args.variants = args.variants or "8:128:TF32_TF32_F32_X3,8:256:TF32_TF32_F32_X3,4:64:TF32_TF32_F32_X3"
+        return elimination_variants(args, arch, sharding, dump)
     args.variants = args.variants or "64:8:0:-,64:8:0:128,64:8:0:64"
     B = 256
     if args.schur:

@@ -45,6 +45,7 @@ Usage:
     python benchmarks/step_cost.py [--preset paper] [--precision float32] [--solver apgd]
         [--iterations N] [--delassus dense16] [--rid-form rows] [--cholesky library]
         [--pairs-dot TF32_TF32_F32_X3] [--resident-rows 128] [--unroll-pivots 36] [--selection kernel]
+        [--elimination kernel]
         [--formed-operator] [--batch 2] [--steps 50] [--time]
         [--batches 96,1024,16384] [--calls 5]
         [--profile DIR] [--reference FILE]
@@ -89,6 +90,9 @@ def main(argv=None) -> None:
                    help="how each body's contact candidates are chosen (softcrawl.jaxsim.candidates.SELECTION: "
                         "XLA's program for all bodies at once, or one kernel, a program a body; default: the "
                         "module's)")
+    p.add_argument("--elimination", choices=("xla", "kernel"), default=None,
+                   help="how the attachments' elimination forms its products (softcrawl.jaxsim.elimination.FORM: "
+                        "XLA's batched products, or one kernel, a program a robot; default: the module's)")
     p.add_argument("--formed-operator", action="store_true",
                    help="the solve kernel reads the condensed operator formed by XLA, not in its parts "
                         "(softcrawl.jaxsim.fused.OPERATOR_PARTS = False)")
@@ -130,7 +134,7 @@ def main(argv=None) -> None:
 
     from softcrawl.codesign.config import preset
     from softcrawl.codesign.factory import robot_factory
-    from softcrawl.jaxsim import candidates, factor, fused, legs
+    from softcrawl.jaxsim import candidates, elimination, factor, fused, legs
     from softcrawl.jaxsim.cost import (captured_stderr, deviceless_gpu, kernel_profile, ptxas_report,
                                        sequential_cost, xla_flops)
     from softcrawl.jaxsim.engine import STEP_SCOPES, rest_state
@@ -150,11 +154,14 @@ def main(argv=None) -> None:
         factor.UNROLL_PIVOTS = args.unroll_pivots
     if args.selection is not None:
         candidates.SELECTION = args.selection
+    if args.elimination is not None:
+        elimination.FORM = args.elimination
     engine = {"precision": args.precision, "solver": settings.solver, "iterations": settings.iterations,
               "delassus": settings.delassus, "rid_form": settings.rid_form, "cholesky": settings.cholesky,
               "pairs_dot": args.pairs_dot, "resident_rows": args.resident_rows,
               "operator_parts": fused.OPERATOR_PARTS, "unroll_pivots": factor.UNROLL_PIVOTS,
-              "selection": candidates.SELECTION, "label": args.label}  # what every line was measured with
+              "selection": candidates.SELECTION, "elimination": elimination.FORM,
+              "label": args.label}  # what every line was measured with
     steps = args.steps or cfg.env.steps_per_action
     R = space.n_regulators
     rng = np.random.default_rng(args.seed)

@@ -90,16 +90,20 @@ def _dense(rows, inv_chol, qd_free):
     return W, u
 
 
-def test_block_assembly_and_elimination_equal_the_dense_schur_complement(landed):
+@pytest.mark.parametrize("form", ["xla", "interpret"])
+def test_block_assembly_and_elimination_equal_the_dense_schur_complement(landed, form, monkeypatch):
     """On a landed, pressurised 4-legged robot in 6 slots (80 contact slots, 24 of the 72
     attachment rows masked): the block-assembled condensed operator ``W_c``, velocities ``q_c``
     and back-substitution (``x_u`` and ``P^T``, the columns of the dense ``X``) equal
     :func:`softcrawl.jaxsim.contact.condense` of the densely summed Delassus operator to 1e-10 of
     their scale (float64; measured 1e-13: only the order of the sums differs), with contacts
-    active."""
+    active: the elimination's products by XLA and by the kernel (``elimination.FORM``, in
+    Pallas' interpreter)."""
+    from softcrawl.jaxsim import elimination
     from softcrawl.jaxsim.contact import condense as dense_condense
     from softcrawl.jaxsim.delassus import condense
 
+    monkeypatch.setattr(elimination, "FORM", form)
     _, rows, inv_chol, qd_free, _ = _step_rows(landed)
     got = condense(rows, inv_chol, qd_free)
     W, u = _dense(rows, inv_chol, qd_free)
@@ -896,6 +900,66 @@ def test_the_candidates_kernel_chooses_the_steps_contacts_as_xla(landed, monkeyp
     monkeypatch.setattr(candidates, "SELECTION", "sorted")
     with pytest.raises(ValueError, match="SELECTION"):
         select_contacts(model, state, v_free, qd_free)
+    jax.clear_caches()
+
+
+def test_the_elimination_kernel_forms_xlas_products(landed, monkeypatch):
+    """:data:`softcrawl.jaxsim.elimination.FORM`: the elimination's products in one kernel
+    (interpreted here) against XLA's on the landed robot (two slots masked). In float32, from the
+    same float32 rows, the kernel's products are off the float64 products by at most three times
+    XLA's form's own error (or 1e-3 of their scale) and 1e-2 of their scale: both errors are the
+    stiff attachment block's inverse in float32, not the order of the sums (measured 6.9e-4 and
+    4.1e-4 for ``W_c``, 1.4e-3 for ``P`` and 1.9e-3 for ``x_u`` in both; with four slots
+    present 6.9e-3 and 6.2e-3 for ``W_c``); an index or a mask wrong is off by the scale. Three
+    whole float64 steps from it end within 1e-9 mm of XLA's. Exported for CUDA the
+    float32 step holds the kernel, but not for a GPU older than Ampere (XLA's form, with a
+    warning), not for ROCm, and a float64 step takes XLA's form; an unknown form is refused."""
+    from softcrawl.jaxsim import elimination, gpu
+    from softcrawl.jaxsim.delassus import condense
+    from softcrawl.jaxsim.engine import Control, make_rollout, physics_step
+
+    model, state, kpa = landed
+    _, rows, inv_chol, qd_free, _ = _step_rows(landed)
+    want = condense(rows, inv_chol, qd_free)
+    f32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, rows)
+    errors = {}
+    for form in ("xla", "interpret"):
+        monkeypatch.setattr(elimination, "FORM", form)
+        got = condense(f32, inv_chol.astype(jnp.float32), qd_free.astype(jnp.float32))
+        errors[form] = [np.abs(np.asarray(a, np.float64) - np.asarray(b)).max() / np.abs(np.asarray(b)).max()
+                        for a, b in ((got.W, want.W), (got.q, want.q), (got.P, want.P), (got.x_u, want.x_u))]
+    for kernel, xla in zip(errors["interpret"], errors["xla"]):
+        assert kernel <= min(max(3 * xla, 1e-3), 1e-2)
+
+    def stepped(form):
+        monkeypatch.setattr(elimination, "FORM", form)
+        jax.clear_caches()
+        batch = dataclasses.replace(model, robot=jax.tree_util.tree_map(lambda a: a[None], model.robot))
+        return make_rollout(3)(batch, jax.tree_util.tree_map(lambda a: a[None], state), Control(kpa[None]))
+
+    a, b = stepped("interpret"), stepped("xla")
+    assert np.abs(np.asarray(a.x) - np.asarray(b.x)).max() <= 1e-9
+    assert np.abs(np.asarray(a.q) - np.asarray(b.q)).max() <= 1e-9 * np.abs(np.asarray(b.q)).max()
+    monkeypatch.setattr(elimination, "FORM", "kernel")
+
+    def exported(platform, dtype, capability=None):
+        monkeypatch.setattr(gpu, "compute_capability", lambda: capability)
+        monkeypatch.setattr(gpu, "_warned", False)
+        jax.clear_caches()
+        cast = jax.tree_util.tree_map(lambda a: a.astype(dtype) if a.dtype == jnp.float64 else a, (model, state, kpa))
+        settings = dataclasses.replace(cast[0].settings, delassus="dense", cholesky="library")
+        return jax.export.export(jax.jit(physics_step), platforms=[platform])(
+            dataclasses.replace(cast[0], settings=settings), *cast[1:]).mlir_module()
+
+    with pytest.raises(ValueError, match="gpu.triton"):
+        exported("cuda", jnp.float32)
+    with pytest.warns(UserWarning, match="compiles no Pallas kernels"):
+        assert "triton" not in exported("cuda", jnp.float32, (7, 5))
+    assert "triton" not in exported("rocm", jnp.float32)
+    assert "triton" not in exported("cuda", jnp.float64)
+    monkeypatch.setattr(elimination, "FORM", "dense")
+    with pytest.raises(ValueError, match="FORM"):
+        condense(rows, inv_chol, qd_free)
     jax.clear_caches()
 
 

@@ -6,7 +6,8 @@ leg reduction, the disk linear elastic in one floating frame, point attachments,
 with Coulomb friction, regulators with the real-to-sim pressure warp. What differs is how the
 work is laid out: fixed shapes so that ``jax.vmap`` runs many robots (of mixed designs) at
 once and ``jax.lax.scan`` runs many steps in one compiled call; the Delassus operator is
-assembled by blocks (:mod:`~softcrawl.jaxsim.delassus`), and the contact problem over the ``K``
+assembled by blocks and the attachments eliminated (:mod:`~softcrawl.jaxsim.delassus`,
+:mod:`~softcrawl.jaxsim.elimination`), and the contact problem over the ``K``
 lowest contact points is solved with a fixed number of unrolled accelerated projected gradient
 iterations, warm-started from the last step (:mod:`~softcrawl.jaxsim.contact`), instead of the CPU
 engine's growing contact set, Gauss-Seidel and exact active-set polish: a step is a short chain

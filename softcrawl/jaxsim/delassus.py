@@ -29,7 +29,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from softcrawl.jaxsim import candidates
+from softcrawl.jaxsim import candidates, elimination
 from softcrawl.jaxsim.contact import floor_contacts
 from softcrawl.jaxsim.factor import inverse_spd
 from softcrawl.jaxsim.gpu import cuda_kernel
@@ -285,7 +285,8 @@ def condense(rows: Rows, inv_chol, qd_free, cholesky: str = "library") -> Conden
     The attachment block ``W_bb`` is positive definite for attachments of distinct disk nodes;
     rows of absent legs are identity rows with zero impulse. Its inverse is formed from its
     Cholesky factor's (:func:`softcrawl.jaxsim.factor.inverse_spd` in the form ``cholesky``), so
-    that ``P`` and ``S = P W_bc`` are products, by the blocks of ``W_cb`` and ``W_bc``.
+    that ``P`` and ``S = P W_bc`` are products, by the blocks of ``W_cb`` and ``W_bc``
+    (:func:`softcrawl.jaxsim.elimination.products`).
     """
     L, n_leg, m = rows.leg.shape
     F3 = rows.u_att.shape[0] // L
@@ -298,20 +299,13 @@ def condense(rows: Rows, inv_chol, qd_free, cholesky: str = "library") -> Conden
     m_b = rows.bilateral
     W_bb = jnp.where(m_b[:, None] & m_b[None, :], W_bb, jnp.eye(L * F3, dtype=dt))
     u_b = jnp.where(m_b, rows.u_att + u_leg[:, :F3].reshape(-1), 0)
-    # attachments x contacts: the disk's against its contacts (dense), each leg's against its own
-    Kl3 = n_leg - F3
-    W_bd = jnp.where(m_b[:, None], rows.disk_ad, 0)
-    W_bl = G[:, :F3, F3:] * m_b.reshape(L, F3)[:, :, None]  # (L, F3, Kl3)
     W_inv = inverse_spd(W_bb, cholesky)
-    # P = W_cb W_bb^-1 by W_cb's blocks (disk contact rows use every attachment, a leg's contact
-    # rows its own leg's; u_b^T W_bb^-1 as one more disk row), then S = P W_bc by W_bc's column blocks
-    P_d = jnp.concatenate([W_bd, u_b[:, None]], axis=1).T @ W_inv
-    x_u, Kd3 = P_d[-1], W_bd.shape[1]
-    P = jnp.concatenate([P_d[:Kd3], jnp.einsum("lbc,lba->lca", W_bl, W_inv.reshape(L, F3, L * F3))
-                         .reshape(L * Kl3, L * F3)])
-    s_legs = jnp.einsum("rlb,lbk->lrk", P.reshape(-1, L, F3), W_bl)
+    # P = W_cb W_bb^-1 and S = P W_bc by the blocks of W_cb and W_bc (a leg's contact rows use its own
+    # attachments only), q_c and x_u: XLA's products or one kernel (elimination.FORM)
     u_c = jnp.concatenate([rows.u_disk, (u_leg[:, F3:] + _gap_rows(rows.gap_leg)).reshape(-1)])
-    return Condensed(SchurOperator(rows.disk_dd, G, P @ W_bd, s_legs), u_c - P @ u_b, x_u, P, Y,
+    P, s_disk, s_legs, q_c, x_u = elimination.products(W_inv, rows.disk_ad, G, m_b, u_b, u_c)
+    W_bd, W_bl = elimination.attachment_blocks(rows.disk_ad, G, m_b)
+    return Condensed(SchurOperator(rows.disk_dd, G, s_disk, s_legs), q_c, x_u, P, Y,
                      DelassusBlocks(rows.disk_dd, G[:, F3:, F3:], W_bd, W_bl, W_inv))
 
 
