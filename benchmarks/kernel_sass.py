@@ -46,7 +46,7 @@ Usage:
         [--variants 64:8:0:-,64:8:0:128] [--contacts 80 | --schur 8:6:12]
     python benchmarks/kernel_sass.py --kernel rid [--variants 16:2:SPLIT_TF32:1,16:4:-:1]
     python benchmarks/kernel_sass.py --kernel factor [--variants 0:64,36:128]
-    python benchmarks/kernel_sass.py --kernel elimination [--variants 8:128:TF32_TF32_F32_X3,8:256:-]
+    python benchmarks/kernel_sass.py --kernel elimination [--variants 4:128:TF32_TF32_F32_X3,4:128:-]
 """
 
 from __future__ import annotations
@@ -310,7 +310,7 @@ def main(argv=None) -> None:
                         "default 64:8:0:-,64:8:0:128,64:8:0:64); rid: ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT "
                         "(- for None; default 16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1); "
                         "factor: UNROLL_PIVOTS:PER_THREAD (default 0:64,72:64,72:128); elimination: "
-                        "NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM (default 8:128:TF32_TF32_F32_X3,8:256:TF32_TF32_F32_X3,"
+                        "NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM (default 4:128:TF32_TF32_F32_X3,8:128:TF32_TF32_F32_X3,"
                         "4:64:TF32_TF32_F32_X3)")
     p.add_argument("--contacts", type=int, default=80, help="contact slots K (the operator is 3K x 3K)")
     p.add_argument("--schur", default=None, metavar="KD:L:KL",
@@ -342,7 +342,7 @@ def main(argv=None) -> None:
         args.variants = args.variants or "0:64,72:64,72:128"
         return factor_variants(args, arch, sharding, dump)
     if args.kernel == "elimination":
-        args.variants = args.variants or "8:128:TF32_TF32_F32_X3,8:256:TF32_TF32_F32_X3,4:64:TF32_TF32_F32_X3"
+        args.variants = args.variants or "4:128:TF32_TF32_F32_X3,8:128:TF32_TF32_F32_X3,4:64:TF32_TF32_F32_X3"
         return elimination_variants(args, arch, sharding, dump)
     args.variants = args.variants or "64:8:0:-,64:8:0:128,64:8:0:64"
     B = 256
