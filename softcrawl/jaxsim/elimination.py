@@ -158,7 +158,8 @@ def _kernel(L: int, F3: int, precision, barrier, inv_ref, ad_ref, gram_ref, mb_r
     bilateral = pltriton.load(mb_ref.at[ac], mask=on_a, other=0) != 0
     disk_t = load(ad_ref.at[ac[None, :], dc[:, None]], on_d[:, None] & (on_a & bilateral)[None, :])  # W_bd^T
     u_b = load(ub_ref.at[ac], on_a)
-    def first(l, carry):  # leg l: P's disk rows in its attachment columns, its contact rows of P, its
+
+    def per_leg(l, carry):  # leg l: P's disk rows in its attachment columns, its contact rows of P, its
         # x_u and its contacts' q_c; the disk rows' S and W_cb x_u accumulated
         s_dd, w_x = carry
         rows, live = leg(l)
@@ -178,12 +179,12 @@ def _kernel(L: int, F3: int, precision, barrier, inv_ref, ad_ref, gram_ref, mb_r
         return s_dd + dot(P_d, W_bd), w_x + jnp.sum(W_bd * x_u[:, None], axis=0)
 
     # a loop, not unrolled: unrolled, the compiler interleaves the legs and spills
-    s_dd, w_x = lax.fori_loop(0, L, first, (jnp.zeros((d.shape[0], d.shape[0]), dt), jnp.zeros(d.shape, dt)))
+    s_dd, w_x = lax.fori_loop(0, L, per_leg, (jnp.zeros((d.shape[0], d.shape[0]), dt), jnp.zeros(d.shape, dt)))
     pltriton.store(sd_ref.at[d[:, None], d[None, :]], s_dd, mask=on_d[:, None] & on_d[None, :])
     pltriton.store(q_ref.at[d], load(uc_ref.at[dc], on_d) - w_x, mask=on_d)
     barrier()  # P's stores visible to every thread of the program
 
-    def then(i, carry):  # S's columns of leg l = i % L's contacts on the rows of block i // L
+    def per_block(i, carry):  # S's columns of leg l = i % L's contacts on the rows of block i // L
         blk = i // L
         l, r = i - blk * L, blk * row_rows + lax.iota(jnp.int32, row_rows)
         on_r = r < n
@@ -196,7 +197,8 @@ def _kernel(L: int, F3: int, precision, barrier, inv_ref, ad_ref, gram_ref, mb_r
         return carry
 
     row_rows = min(ROW_BLOCK, padded_size(n))
-    lax.fori_loop(0, L * (padded_size(n) // row_rows), then, 0)
+    lax.fori_loop(0, L * (padded_size(n) // row_rows), per_block, 0)
+
 
 @partial(jax.jit, static_argnames=("interpret",))
 def by_kernel(W_inv, disk_ad, gram, bilateral, u_b, u_c, *, interpret: bool = False):
