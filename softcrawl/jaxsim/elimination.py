@@ -112,7 +112,8 @@ def products(W_inv, disk_ad, gram, bilateral, u_b, u_c):
     if FORM not in FORMS:
         raise ValueError(f"elimination.FORM must be one of {FORMS}, not {FORM!r}")
     args = (W_inv, disk_ad, gram, bilateral, u_b, u_c)
-    if FORM == "xla" or not (disk_ad.size and gram.shape[1] > W_inv.shape[0] // gram.shape[0]):
+    F3 = W_inv.shape[0] // gram.shape[0]  # a leg's attachment rows; its Gram's others are its contacts'
+    if FORM == "xla" or not (disk_ad.size and gram.shape[1] > F3):  # the kernel needs both bodies' contacts
         return by_xla(*args)
     if FORM == "interpret":
         return by_kernel(*args, interpret=True)
