@@ -69,14 +69,15 @@
 #              the formed operator is faster at both sizes, set `fused.OPERATOR_PARTS = False`.
 # rid:         the legs' RID terms in one kernel (`--rid-form kernel`, not yet a default): against
 #              XLA's pairs and rows forms on the card and timed alone with its variants
-#              (`rid_kernel.py`: if a variant other than the default, 16 elements, 2 warps, two
-#              TF32 passes (SPLIT_TF32), one program a leg, is fastest, set ridkernel.ELEMENTS / NUM_WARPS /
-#              DOT_ALGORITHM / SPLIT), then
+#              (`rid_kernel.py`: if a variant other than the default, 16 elements, 2 warps, `Z`
+#              in bfloat16 parts (SPLIT_BF16; SPLIT_TF32 its TF32 parts), one program a leg, is
+#              fastest, set ridkernel.ELEMENTS / NUM_WARPS / DOT_ALGORITHM / SPLIT), then
 #              the step at 96 and 16,384 robots with it and without it, in one call; if faster at
 #              both, make it the CUDA default (`legs.rid_terms`' None). BASE, where given, is a
 #              folder holding an earlier commit's `softcrawl` package, put first on PYTHONPATH
 #              (`mkdir -p .gpu-carry/base && git archive COMMIT softcrawl | tar -x -C
-#              .gpu-carry/base`, then BASE=.gpu-carry/base): its step is timed in the same call.
+#              .gpu-carry/base`, then BASE=.gpu-carry/base): its step is timed in the same call,
+#              on the same robots, and the verdict names it where it was the faster.
 # solve:       the solve kernel holding its operator on chip, its products on the tensor cores
 #              (`fused.RESIDENT_ROWS`, not yet a default): against XLA's iterations on 96 landed
 #              robots' problems and two actions of the whole engine with it (`fused_kernel.py
@@ -170,11 +171,7 @@ parts)
 rid)
     timeout 200 python3 benchmarks/rid_kernel.py --robots 96,16384 --calls 10 2>>"$out/log.txt" \
         | tee -a "$out/rid.jsonl"
-    forms rid 130 "--rid-form pairs" "--rid-form kernel"
-    if [ -n "${BASE:-}" ]; then
-        PYTHONPATH=$BASE:${PYTHONPATH:-} timeout 130 python3 benchmarks/step_cost.py --no-cost --time \
-            --batches 96,16384 --calls 3 --label base 2>>"$out/log.txt" | tee -a "$out/targets.jsonl"
-    fi ;;
+    forms rid 130 "--rid-form pairs" "--rid-form kernel" ${BASE:+base} ;;
 solve)
     timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
         --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;

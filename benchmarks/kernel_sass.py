@@ -44,7 +44,7 @@ Needs JAX's CUDA plugin of the installed JAX's version and ``nvdisasm`` (``pip i
 Usage:
     python benchmarks/kernel_sass.py [--gpu-target benchmarks/gpu_targets/h100.pbtxt]
         [--variants 64:8:0:-,64:8:0:128] [--contacts 80 | --schur 8:6:12]
-    python benchmarks/kernel_sass.py --kernel rid [--variants 16:2:SPLIT_TF32:1,16:4:-:1]
+    python benchmarks/kernel_sass.py --kernel rid [--variants 16:2:SPLIT_BF16:1,16:4:-:1]
     python benchmarks/kernel_sass.py --kernel factor [--variants 0:64,36:128]
     python benchmarks/kernel_sass.py --kernel elimination [--variants 4:128:TF32_TF32_F32_X3,4:128:-]
 """
@@ -307,7 +307,7 @@ def main(argv=None) -> None:
     p.add_argument("--variants", default=None,
                    help="comma-separated; solve: ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS (- for None; "
                         "default 64:8:0:-,64:8:0:128,64:8:0:64); rid: ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT "
-                        "(- for None; default 16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1); "
+                        "(- for None; default 16:2:SPLIT_BF16:1,16:2:SPLIT_TF32:1,16:4:SPLIT_BF16:1,16:2:-:1); "
                         "factor: UNROLL_PIVOTS:PER_THREAD (default 0:64,72:64,72:128); elimination: "
                         "NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM (default 4:128:TF32_TF32_F32_X3,8:128:TF32_TF32_F32_X3,"
                         "4:64:TF32_TF32_F32_X3)")
@@ -335,7 +335,7 @@ def main(argv=None) -> None:
     cc = re.search(r"cuda_compute_capability\s*{\s*major:\s*(\d+)(?:\s*minor:\s*(\d+))?", config)
     arch = f"sm_{cc.group(1)}{cc.group(2) or 0}{'a' if cc.group(1) == '9' else ''}"
     if args.kernel == "rid":
-        args.variants = args.variants or "16:2:SPLIT_TF32:1,16:2:TF32_TF32_F32_X3:1,16:4:SPLIT_TF32:1,16:2:-:1"
+        args.variants = args.variants or "16:2:SPLIT_BF16:1,16:2:SPLIT_TF32:1,16:4:SPLIT_BF16:1,16:2:-:1"
         return rid_variants(args, arch, sharding, dump)
     if args.kernel == "factor":
         args.variants = args.variants or "0:64,72:64,72:128"

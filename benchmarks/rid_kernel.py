@@ -24,8 +24,8 @@ import time
 from functools import partial
 
 #: The kernel's variants timed on a GPU: (ELEMENTS, NUM_WARPS, DOT_ALGORITHM, SPLIT).
-VARIANTS = ((16, 2, "SPLIT_TF32", 2), (16, 2, "TF32_TF32_F32_X3", 1), (16, 4, "SPLIT_TF32", 1),
-            (16, 2, "F32_F32_F32", 1), (32, 4, "SPLIT_TF32", 1))
+VARIANTS = ((16, 2, "SPLIT_TF32", 1), (16, 2, "SPLIT_BF16", 2), (16, 2, "TF32_TF32_F32_X3", 1),
+            (16, 4, "SPLIT_BF16", 1), (16, 2, "F32_F32_F32", 1))
 
 
 def main(argv=None) -> None:

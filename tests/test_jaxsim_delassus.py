@@ -715,12 +715,12 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     kernel's rows formed before a loop of steps (``ridkernel.with_kernel_rows``); zeros for an
     empty slot (``present`` false: its program treats no element). On one leg: the
     same with the modes as padded tiles only (32 + 16), and with 3 of the modes as loose columns
-    only (``ridkernel.LOOSE``); in float32, ``K_r`` by the two products of its split operands
-    (``DOT_ALGORITHM = "SPLIT_TF32"``) within 2e-6 of float64's (float32's round-off summed over
-    1,944 rows: measured 3.1e-7 for ``K_r``, 7.6e-7 for ``f_r``), which a state 1e-4 off fails
-    (6.6e-6 and 9.2e-5). ``"kernel"`` on a CPU is the rows form to the bit, its traced program holding the
-    kernel for CUDA, in float32 with fused multiply-adds; exported for a TPU, the step with it
-    holds no kernel."""
+    only (``ridkernel.LOOSE``); in float32, ``K_r`` by the products of its split operands, TF32
+    parts (``DOT_ALGORITHM = "SPLIT_TF32"``) or bfloat16 parts (``"SPLIT_BF16"``), within 2e-6 of
+    float64's (float32's round-off summed over 1,944 rows: measured 3.1e-7 and 6.3e-7 for ``K_r``,
+    6.3e-7 to 7.6e-7 for ``f_r``), which a state 1e-4 off fails (6.6e-6 and 9.2e-5). ``"kernel"``
+    on a CPU is the rows form to the bit, its traced program holding the kernel for CUDA, in
+    float32 with fused multiply-adds; exported for a TPU, the step with it holds no kernel."""
     from softcrawl.jaxsim import legs as leg_motion
     from softcrawl.jaxsim import ridkernel
     from softcrawl.jaxsim.engine import physics_step
@@ -766,13 +766,15 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
         assert np.abs(np.asarray(fq - fp)).max() <= 1e-12 * np.abs(np.asarray(fp)).max()
     K1, f1 = Kr[:1], fr[:1]
     f32 = jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, model.leg)
-    monkeypatch.setattr(ridkernel, "DOT_ALGORITHM", "SPLIT_TF32")  # float32: K_r = H^T H + H^T L + L^T H
-    K32, f32_, _ = jax.vmap(lambda q, v: leg_motion.rid_terms(f32, q, v, 0.03, "interpret"))(
-        q1.astype(jnp.float32), v1.astype(jnp.float32))
     Kp, fp, _ = terms("rows", q1 * (1 + 1e-4), v1)  # a state 1e-4 off: the bound tells it apart
-    for K, f, close in ((K1, f1, True), (Kp, fp, False)):
-        assert (np.abs(np.asarray(K32, float) - np.asarray(K)).max() <= 2e-6 * np.abs(np.asarray(K)).max()) == close
-        assert (np.abs(np.asarray(f32_, float) - np.asarray(f)).max() <= 2e-6 * np.abs(np.asarray(f)).max()) == close
+    for algorithm in ("SPLIT_TF32", "SPLIT_BF16"):  # float32: K_r = K + M + M^T from split operands
+        monkeypatch.setattr(ridkernel, "DOT_ALGORITHM", algorithm)
+        K32, f32_, _ = jax.vmap(lambda q, v: leg_motion.rid_terms(f32, q, v, 0.03, "interpret"))(
+            q1.astype(jnp.float32), v1.astype(jnp.float32))
+        for K, f, close in ((K1, f1, True), (Kp, fp, False)):
+            assert (np.abs(np.asarray(K32, float) - np.asarray(K)).max() <= 2e-6 * np.abs(np.asarray(K)).max()) == close
+            err = np.abs(np.asarray(f32_, float) - np.asarray(f)).max()
+            assert (err <= 2e-6 * np.abs(np.asarray(f)).max()) == close
     for a, b in zip(terms("kernel", state.q, qdot), (Kr, fr, nr)):
         np.testing.assert_array_equal(a, b)
     traced = str(jax.make_jaxpr(lambda q, v: terms("kernel", q, v))(state.q, qdot))

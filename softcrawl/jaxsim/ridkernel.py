@@ -9,7 +9,7 @@ written to memory and read again). This kernel runs the rows form per leg, one p
 (``jax.vmap`` over legs and robots; or :data:`SPLIT` programs sharing its elements),
 :data:`ELEMENTS` elements at a time: their frames and stresses from the RID nodes' positions,
 ``Z``'s rows of the block in registers and ``Z^T Z`` accumulated by matrix products
-(:data:`DOT_ALGORITHM`: two TF32 passes of split operands). An edge's basis rows are read once
+(:data:`DOT_ALGORITHM`: bfloat16 parts of ``Z`` on the tensor cores). An edge's basis rows are read once
 for all of an element's stress rows (``Z_i = sum_q (C~ F)_iq H_q``, ``q`` the edge's
 components), from rows padded to the column tiles' widths (aligned, so that Triton reads them by
 vectors), and each product and sum is one fused multiply-add
@@ -26,7 +26,7 @@ interpreter.
 from __future__ import annotations
 
 import dataclasses
-from functools import partial
+from functools import partial, reduce
 
 import jax
 import jax.numpy as jnp
@@ -49,16 +49,19 @@ SPLIT = 1
 #: Strain modes after the last full column tile, up to this many, are treated one by one as
 #: vectors over the elements (not a padded tile of 16 columns).
 LOOSE = 4
-#: The kernel's products in float32: ``"SPLIT_TF32"``, each block's ``Z`` split as ``H + L``
-#: with ``H`` its TF32 part (:func:`tf32_high`) and ``Z^T Z`` accumulated as ``H^T H`` and ``H^T
-#: L`` by one TF32 pass each on the tensor cores, ``K_r = H^T H + H^T L + (H^T L)^T`` formed once
-#: at the end (two passes instead of three, about float32's accuracy); else a
-#: ``jax.lax.DotAlgorithmPreset`` name (``"TF32_TF32_F32_X3"``: the three passes, relative error
-#: 2e-7, ``benchmarks/dot_algorithms.py``), or None for full float32 arithmetic. Other
-#: precisions, and the interpreter, use their own arithmetic (the interpreter applies the split
-#: in float32, with exact products). This module's constants are read when a call is traced:
-#: ``benchmarks/rid_kernel.py`` times other values.
-DOT_ALGORITHM = "SPLIT_TF32"
+#: The kernel's products in float32, on the tensor cores: ``"SPLIT_BF16"``, each block's ``Z``
+#: split in three bfloat16 parts and ``Z^T Z`` accumulated by four products of them
+#: (:func:`split_products`: about float32's accuracy); ``"SPLIT_TF32"``, ``Z = H + L`` with ``H``
+#: its TF32 part (:func:`tf32_high`) and two TF32 products, ``H^T H`` and ``H^T L``; in both,
+#: ``K_r = K + M + M^T`` formed once at the end. Machine code for an H100 (``kernel_sass.py
+#: --kernel rid``): 120k warp instructions a leg by bfloat16 parts, 130k by TF32 parts (Triton
+#: rounds each TF32 operand by five instructions; bfloat16 operands are read by ``ldmatrix``).
+#: Else a ``jax.lax.DotAlgorithmPreset`` name (``"TF32_TF32_F32_X3"``: three TF32 passes,
+#: relative error 2e-7, ``benchmarks/dot_algorithms.py``), or None for full float32 arithmetic.
+#: Other precisions, and the interpreter, use their own arithmetic (the interpreter applies the
+#: splits in float32, with exact products). This module's constants are read when a call is
+#: traced: ``benchmarks/rid_kernel.py`` times other values.
+DOT_ALGORITHM = "SPLIT_BF16"
 
 
 def column_tiles(ms: int) -> tuple[list[tuple[int, int]], list[int]]:
@@ -101,12 +104,36 @@ def tf32_high(z):
     return lax.bitcast_convert_type(bits, jnp.float32)
 
 
-def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, on_ref, x_ref, qs_ref, *refs):
+def split_products(Z, split):
+    """The operand pairs ``(a, b)`` of the products ``a^T b`` that accumulate one stress row's
+    ``Z^T Z`` (``Z`` its column tiles, float32) in the kernel's two accumulators, ``K_tu`` and
+    ``M_tu``, so that ``Z_t^T Z_u = K_tu + M_tu + M_ut^T`` (:data:`DOT_ALGORITHM`): ``(K, M)``,
+    functions of the tiles ``t, u`` giving tuples of pairs.
+
+    ``split`` ``"tf32"``: ``Z = H + L``, ``H`` its TF32 part (:func:`tf32_high`), ``K`` holding
+    ``H^T H`` and ``M`` ``H^T L`` (``L^T L``, about ``2^-22`` of ``Z``'s scale, left out).
+    ``"bf16"``: ``Z = B1 + B2 + B3`` in bfloat16, each part the rounding of what the parts before
+    it leave (exact: ``Z``'s 24 bits in three parts of 8; Henry, Tang & Heinecke 2019, "bf16x6"),
+    ``K`` holding ``B1^T B1 + B2^T B2`` and ``M`` ``B1^T B2 + B1^T B3``: bf16x6's six products in
+    four, ``Z^T Z`` being symmetric (``B2^T B3`` and ``B3^T B3``, about ``2^-23``, left out).
+    None: ``K`` holding ``Z^T Z``, no ``M``."""
+    if split == "bf16":
+        B1 = [z.astype(jnp.bfloat16) for z in Z]
+        R = [z - b.astype(z.dtype) for z, b in zip(Z, B1)]
+        B2 = [r.astype(jnp.bfloat16) for r in R]
+        B3 = [(r - b.astype(r.dtype)).astype(jnp.bfloat16) for r, b in zip(R, B2)]
+        return (lambda t, u: ((B1[t], B1[u]), (B2[t], B2[u])),
+                lambda t, u: ((B1[t], B2[u]), (B1[t], B3[u])))
+    H = [tf32_high(z) for z in Z] if split else Z
+    return lambda t, u: ((H[t], H[u]),), lambda t, u: ((H[t], Z[u] - H[u]),)
+
+
+def _kernel(shapes, ms: int, c: float, precision, split, compiled: bool, on_ref, x_ref, qs_ref, *refs):
     """One leg (module doc). ``shapes``: each family's ``(E, k, r)``; inputs ``on_ref`` ``(1,)``
     1 where the leg exists, 0 where its slot is empty (no element treated: every output 0),
     ``x_ref`` ``(3 nr,)`` the RID nodes' part-frame positions, ``qs_ref`` ``(m',)``, then per family its
-    ``conn``, ``factors``, ``rest_terms`` and :func:`kernel_rows`, flattened; with ``split``,
-    ``Z^T Z`` by :func:`tf32_high`'s two products (:data:`DOT_ALGORITHM`); outputs ``K`` ``(S m'
+    ``conn``, ``factors``, ``rest_terms`` and :func:`kernel_rows`, flattened; ``split``: ``Z^T
+    Z`` by :func:`split_products` (:data:`DOT_ALGORITHM`); outputs ``K`` ``(S m'
     m',)``, ``f`` ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others
     0): program ``s`` of :data:`SPLIT` ``S`` writes share ``s`` of each."""
     from jax.experimental import pallas as pl
@@ -128,8 +155,8 @@ def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, o
     ql = [qs_ref[j] for j in loose]
     eb = lax.iota(jnp.int32, ELEMENTS)
     ordered = [(t, u) for t in range(len(tiles)) for u in range(len(tiles))] if split else []
-    acc = {"K": tuple(jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in pairs),  # Z_t^T Z_u (split: H_t^T H_u)
-           "M": tuple(jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in ordered),  # split: H_t^T (Z_u - H_u)
+    acc = {"K": tuple(jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in pairs),  # Z_t^T Z_u (split: K_tu)
+           "M": tuple(jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in ordered),  # split: M_tu
            "f": tuple(jnp.zeros((ELEMENTS, w), dt) for _, w in tiles),  # by element: Z_t w
            "KL": tuple(jnp.zeros((ELEMENTS, w), dt) for _ in loose for _, w in tiles),  # Z_t z_l
            "LL": tuple(jnp.zeros((ELEMENTS,), dt) for _ in lpairs),  # z_l z_l'
@@ -185,9 +212,11 @@ def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, o
                 for i in range(r):
                     w = s[i] + c * (sum(jnp.sum(z * v[None, :], axis=1) for z, v in zip(Z[i], qs))
                                     + sum(z * v for z, v in zip(zl[i], ql)))
-                    H = [tf32_high(z) for z in Z[i]] if split else Z[i]
-                    acc = {"K": tuple(Km + dot(H[t], H[u]) for Km, (t, u) in zip(acc["K"], pairs)),
-                           "M": tuple(Mm + dot(H[t], Z[i][u] - H[u]) for Mm, (t, u) in zip(acc["M"], ordered)),
+                    K, M = split_products(Z[i], split)  # each product added to its accumulator
+                    acc = {"K": tuple(reduce(lambda a, ab: a + dot(*ab), K(t, u), Km)
+                                      for Km, (t, u) in zip(acc["K"], pairs)),
+                           "M": tuple(reduce(lambda a, ab: a + dot(*ab), M(t, u), Mm)
+                                      for Mm, (t, u) in zip(acc["M"], ordered)),
                            "f": tuple(fma(z, w[:, None], fa) for fa, z in zip(acc["f"], Z[i])),
                            "KL": tuple(fma(z, y[:, None], kl) for kl, (y, z) in
                                        zip(acc["KL"], ((y, z) for y in zl[i] for z in Z[i]))),
@@ -209,7 +238,7 @@ def _kernel(shapes, ms: int, c: float, precision, split: bool, compiled: bool, o
         for m, (t, u) in enumerate(pairs):
             i, j = cols[t], cols[u]
             inside = (i[:, None] < ms) & (j[None, :] < ms)
-            K = acc["K"][m] + (M[t, u] + M[u, t].T if split else 0)  # Z^T Z = H^T H + H^T L + (H^T L)^T
+            K = acc["K"][m] + (M[t, u] + M[u, t].T if split else 0)  # Z^T Z = K + M + M^T
             pltriton.store(k_ref.at[at + i[:, None] * ms + j[None, :]], K, mask=inside)
             if t != u:
                 pltriton.store(k_ref.at[at + j[None, :] * ms + i[:, None]], K, mask=inside)
@@ -263,8 +292,10 @@ def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False, present=Tru
         rows = kernel_rows(fam.rows, ms) if fam.kernel_rows is None else fam.kernel_rows
         arrays += [fam.conn.reshape(-1).astype(jnp.int32), fam.factors.reshape(-1).astype(dt),
                    fam.rest_terms.reshape(-1).astype(dt), *(r.astype(dt) for r in rows)]
-    split = dt == jnp.float32 and DOT_ALGORITHM == "SPLIT_TF32"
-    if dt == jnp.float32 and DOT_ALGORITHM is not None and not interpret:  # a CPU has no TF32
+    split = {"SPLIT_TF32": "tf32", "SPLIT_BF16": "bf16"}.get(DOT_ALGORITHM) if dt == jnp.float32 else None
+    if split == "bf16":
+        precision = None
+    elif dt == jnp.float32 and DOT_ALGORITHM is not None and not interpret:  # a CPU has no TF32
         precision = lax.DotAlgorithmPreset["TF32_TF32_F32" if split else DOT_ALGORITHM]
     else:
         precision = (lax.Precision.HIGHEST, lax.Precision.HIGHEST)
