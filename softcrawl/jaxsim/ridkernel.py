@@ -9,8 +9,8 @@ written to memory and read again). This kernel runs the rows form per leg, one p
 (``jax.vmap`` over legs and robots; or :data:`SPLIT` programs sharing its elements),
 :data:`ELEMENTS` elements at a time: their frames and stresses from the RID nodes' positions,
 ``Z``'s rows of the block in registers and ``Z^T Z`` accumulated by matrix products
-(:data:`DOT_ALGORITHM`: bfloat16 parts of ``Z`` on the tensor cores). An edge's basis rows are read once
-for all of an element's stress rows (``Z_i = sum_q (C~ F)_iq H_q``, ``q`` the edge's
+(:data:`DOT_ALGORITHM`: bfloat16 parts of ``Z`` on the tensor cores). An edge's basis rows are
+read once for all of an element's stress rows (``Z_i = sum_q (C~ F)_iq H_q``, ``q`` the edge's
 components), from rows padded to the column tiles' widths (aligned, so that Triton reads them by
 vectors), and each product and sum is one fused multiply-add
 (:func:`softcrawl.jaxsim.factor.fused_multiply_add`). The strain modes are handled in column
@@ -39,8 +39,8 @@ from softcrawl.jaxsim.frames import frame_terms
 ELEMENTS = 16
 #: Warps per program. The per-element numbers (frames, stresses, ``C~ F``) are computed by every
 #: thread that holds a column of their rows: fewer warps repeat them less. Machine code for an
-#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 128k warp instructions a leg at 2
-#: warps against 182k at 4 (255 and 223 registers, no spill).
+#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 120k warp instructions a leg at 2
+#: warps against 166k at 4 (255 and 210 registers, no spill).
 NUM_WARPS = 2
 #: Programs per leg: program ``s`` of a leg treats its element blocks ``s, s + SPLIT, ...`` and
 #: writes its shares of ``K_r``, ``f_r`` and the count, which are added after the kernel. More
@@ -55,7 +55,8 @@ LOOSE = 4
 #: its TF32 part (:func:`tf32_high`) and two TF32 products, ``H^T H`` and ``H^T L``; in both,
 #: ``K_r = K + M + M^T`` formed once at the end. Machine code for an H100 (``kernel_sass.py
 #: --kernel rid``): 120k warp instructions a leg by bfloat16 parts, 130k by TF32 parts (Triton
-#: rounds each TF32 operand by five instructions; bfloat16 operands are read by ``ldmatrix``).
+#: rounds each TF32 operand by three to five instructions; bfloat16 operands are read by
+#: ``ldmatrix``).
 #: Else a ``jax.lax.DotAlgorithmPreset`` name (``"TF32_TF32_F32_X3"``: three TF32 passes,
 #: relative error 2e-7, ``benchmarks/dot_algorithms.py``), or None for full float32 arithmetic.
 #: Other precisions, and the interpreter, use their own arithmetic (the interpreter applies the
@@ -133,9 +134,9 @@ def _kernel(shapes, ms: int, c: float, precision, split, compiled: bool, on_ref,
     1 where the leg exists, 0 where its slot is empty (no element treated: every output 0),
     ``x_ref`` ``(3 nr,)`` the RID nodes' part-frame positions, ``qs_ref`` ``(m',)``, then per family its
     ``conn``, ``factors``, ``rest_terms`` and :func:`kernel_rows`, flattened; ``split``: ``Z^T
-    Z`` by :func:`split_products` (:data:`DOT_ALGORITHM`); outputs ``K`` ``(S m'
-    m',)``, ``f`` ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others
-    0): program ``s`` of :data:`SPLIT` ``S`` writes share ``s`` of each."""
+    Z`` by :func:`split_products` (:data:`DOT_ALGORITHM`); outputs ``K`` ``(S m' m',)``, ``f``
+    ``(S m',)`` and the bad elements' count in lane 0 of ``(S 16,)`` (the others 0): program
+    ``s`` of :data:`SPLIT` ``S`` writes share ``s`` of each."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as pltriton
 
