@@ -66,6 +66,13 @@ _SASS = re.compile(r"^\s*/\*([0-9a-f]{4,})\*/\s+(.*?);", re.M)
 _LABEL = re.compile(r"^\s*\.(L_x_\d+):\s*\n(?:.*\n)*?\s*/\*([0-9a-f]{4,})\*/", re.M)
 
 
+#: Each kernel's variants compiled where ``--variants`` names none (the module's constants first).
+DEFAULT_VARIANTS = {"solve": "64:8:0:-,64:8:0:128,64:8:0:64",
+                    "rid": "16:2:SPLIT_BF16:1,16:2:SPLIT_TF32:1,16:4:SPLIT_BF16:1,16:2:-:1",
+                    "factor": "0:64,72:64,72:128",
+                    "elimination": "4:128:TF32_TF32_F32_X3,8:128:TF32_TF32_F32_X3,4:64:TF32_TF32_F32_X3"}
+
+
 def tool(name: str) -> str:
     """The path of a CUDA tool installed by a pip wheel (``nvidia/*/bin/NAME``).
 
@@ -303,14 +310,12 @@ def elimination_variants(args, arch, sharding, dump) -> None:
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--gpu-target", default=str(Path(__file__).parent / "gpu_targets" / "h100.pbtxt"))
-    p.add_argument("--kernel", choices=("solve", "rid", "factor", "elimination"), default="solve")
+    p.add_argument("--kernel", choices=tuple(DEFAULT_VARIANTS), default="solve")
     p.add_argument("--variants", default=None,
-                   help="comma-separated; solve: ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS (- for None; "
-                        "default 64:8:0:-,64:8:0:128,64:8:0:64); rid: ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT "
-                        "(- for None; default 16:2:SPLIT_BF16:1,16:2:SPLIT_TF32:1,16:4:SPLIT_BF16:1,16:2:-:1); "
-                        "factor: UNROLL_PIVOTS:PER_THREAD (default 0:64,72:64,72:128); elimination: "
-                        "NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM (default 4:128:TF32_TF32_F32_X3,8:128:TF32_TF32_F32_X3,"
-                        "4:64:TF32_TF32_F32_X3)")
+                   help="comma-separated (- for None); solve: ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS; rid: "
+                        "ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT; factor: UNROLL_PIVOTS:PER_THREAD; elimination: "
+                        "NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM; defaults: "
+                        + "; ".join(f"{k} {v}" for k, v in DEFAULT_VARIANTS.items()))
     p.add_argument("--contacts", type=int, default=80, help="contact slots K (the operator is 3K x 3K)")
     p.add_argument("--schur", default=None, metavar="KD:L:KL",
                    help="the operator in its parts (softcrawl.jaxsim.schur.SchurOperator): KD disk contacts and "
@@ -334,16 +339,13 @@ def main(argv=None) -> None:
     sharding = deviceless_gpu(config)
     cc = re.search(r"cuda_compute_capability\s*{\s*major:\s*(\d+)(?:\s*minor:\s*(\d+))?", config)
     arch = f"sm_{cc.group(1)}{cc.group(2) or 0}{'a' if cc.group(1) == '9' else ''}"
+    args.variants = args.variants or DEFAULT_VARIANTS[args.kernel]
     if args.kernel == "rid":
-        args.variants = args.variants or "16:2:SPLIT_BF16:1,16:2:SPLIT_TF32:1,16:4:SPLIT_BF16:1,16:2:-:1"
         return rid_variants(args, arch, sharding, dump)
     if args.kernel == "factor":
-        args.variants = args.variants or "0:64,72:64,72:128"
         return factor_variants(args, arch, sharding, dump)
     if args.kernel == "elimination":
-        args.variants = args.variants or "4:128:TF32_TF32_F32_X3,8:128:TF32_TF32_F32_X3,4:64:TF32_TF32_F32_X3"
         return elimination_variants(args, arch, sharding, dump)
-    args.variants = args.variants or "64:8:0:-,64:8:0:128,64:8:0:64"
     B = 256
     if args.schur:
         Kd, L, Kl = (int(v) for v in args.schur.split(":"))

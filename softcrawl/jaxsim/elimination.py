@@ -40,7 +40,7 @@ from jax import lax
 from jax.experimental import pallas as pl
 
 from softcrawl.jaxsim.factor import padded_size
-from softcrawl.jaxsim.gpu import cuda_kernel
+from softcrawl.jaxsim.gpu import cuda_kernel, kernel_precision
 
 #: How :func:`products` forms the elimination's products: ``"xla"`` (the default; every
 #: platform), ``"kernel"`` (:func:`by_kernel` on CUDA for float32, XLA's form elsewhere) or
@@ -212,12 +212,9 @@ def by_kernel(W_inv, disk_ad, gram, bilateral, u_b, u_c, *, interpret: bool = Fa
     A3, Kd3 = disk_ad.shape
     F3, n = A3 // L, u_c.shape[0]
     Kl3, dt = n_leg - F3, W_inv.dtype
-    if dt == jnp.float32 and DOT_ALGORITHM is not None and not interpret:  # a CPU has no TF32
-        precision = lax.DotAlgorithmPreset[DOT_ALGORITHM]
-    else:
-        precision = (lax.Precision.HIGHEST, lax.Precision.HIGHEST)
     return pl.pallas_call(
-        partial(_kernel, L, F3, precision, (lambda: None) if interpret else pltriton.debug_barrier),
+        partial(_kernel, L, F3, kernel_precision(dt, DOT_ALGORITHM, interpret),
+                (lambda: None) if interpret else pltriton.debug_barrier),
         out_shape=(jax.ShapeDtypeStruct((n, A3), dt), jax.ShapeDtypeStruct((n, Kd3), dt),
                    jax.ShapeDtypeStruct((L, n, Kl3), dt), jax.ShapeDtypeStruct((n,), dt),
                    jax.ShapeDtypeStruct((A3,), dt)),

@@ -1,8 +1,9 @@
 """The NVIDIA GPU a step is compiled for, and whether it runs the engine's Pallas kernels.
 
-The engine's kernels (the contact solve, the factors, the RID terms, the contact candidates:
-:mod:`softcrawl.jaxsim.fused`, :mod:`~softcrawl.jaxsim.factor`, :mod:`~softcrawl.jaxsim.ridkernel`,
-:mod:`~softcrawl.jaxsim.candidates`) are Pallas kernels in Triton form, and XLA compiles Triton
+The engine's kernels (the contact solve, the factors, the RID terms, the contact candidates, the
+attachments' elimination: :mod:`softcrawl.jaxsim.fused`, :mod:`~softcrawl.jaxsim.factor`,
+:mod:`~softcrawl.jaxsim.ridkernel`, :mod:`~softcrawl.jaxsim.candidates`,
+:mod:`~softcrawl.jaxsim.elimination`) are Pallas kernels in Triton form, and XLA compiles Triton
 kernels for Ampere GPUs and newer only (compute capability 8.0 and up; on a T4 or a V100 it
 fails: "Triton support is only enabled for Ampere GPUs (compute capability 8.0) and up"). Each
 kernel form therefore goes through :func:`cuda_kernel`: the kernel where the GPU runs it, XLA's
@@ -84,3 +85,16 @@ def cuda_kernel(kernel) -> dict:
                       "the JAX engine runs XLA's forms of its kernels, slower".format(*compute_capability()),
                       stacklevel=2)
     return {}
+
+
+def kernel_precision(dtype, algorithm: str | None, interpret: bool):
+    """The ``precision`` of a Pallas kernel's products on arrays of ``dtype``: the
+    ``jax.lax.DotAlgorithmPreset`` named ``algorithm`` (TF32 passes on the tensor cores) for
+    float32 compiled for a GPU, else full precision (float64, ``algorithm`` None, and Pallas'
+    interpreter: a CPU has no TF32)."""
+    import jax.numpy as jnp
+    from jax import lax
+
+    if dtype == jnp.float32 and algorithm is not None and not interpret:
+        return lax.DotAlgorithmPreset[algorithm]
+    return (lax.Precision.HIGHEST, lax.Precision.HIGHEST)

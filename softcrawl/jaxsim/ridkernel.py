@@ -34,6 +34,7 @@ from jax import lax
 
 from softcrawl.jaxsim.factor import fused_multiply_add, padded_size
 from softcrawl.jaxsim.frames import frame_terms
+from softcrawl.jaxsim.gpu import kernel_precision
 
 #: Elements a program treats at once (the products' inner size; at least 16).
 ELEMENTS = 16
@@ -294,12 +295,8 @@ def rid_kernel_terms(part, x, qs, c: float, interpret: bool = False, present=Tru
         arrays += [fam.conn.reshape(-1).astype(jnp.int32), fam.factors.reshape(-1).astype(dt),
                    fam.rest_terms.reshape(-1).astype(dt), *(r.astype(dt) for r in rows)]
     split = {"SPLIT_TF32": "tf32", "SPLIT_BF16": "bf16"}.get(DOT_ALGORITHM) if dt == jnp.float32 else None
-    if split == "bf16":
-        precision = None
-    elif dt == jnp.float32 and DOT_ALGORITHM is not None and not interpret:  # a CPU has no TF32
-        precision = lax.DotAlgorithmPreset["TF32_TF32_F32" if split else DOT_ALGORITHM]
-    else:
-        precision = (lax.Precision.HIGHEST, lax.Precision.HIGHEST)
+    precision = None if split == "bf16" else kernel_precision(dt, "TF32_TF32_F32" if split else DOT_ALGORITHM,
+                                                               interpret)
     K, f, bad = pl.pallas_call(
         partial(_kernel, tuple(shapes), ms, float(c), precision, split, not interpret),
         out_shape=(jax.ShapeDtypeStruct((SPLIT * ms * ms,), dt), jax.ShapeDtypeStruct((SPLIT * ms,), dt),
