@@ -338,7 +338,8 @@ def main(argv=None) -> None:
     config = Path(args.gpu_target).read_text()
     sharding = deviceless_gpu(config)
     cc = re.search(r"cuda_compute_capability\s*{\s*major:\s*(\d+)(?:\s*minor:\s*(\d+))?", config)
-    arch = f"sm_{cc.group(1)}{cc.group(2) or 0}{'a' if cc.group(1) == '9' else ''}"
+    major, minor = int(cc.group(1)), int(cc.group(2) or 0)
+    arch = f"sm_{major}{minor}{'a' if major >= 9 else ''}"  # Triton's PTX targets sm_90a, sm_100a, sm_120a
     args.variants = args.variants or DEFAULT_VARIANTS[args.kernel]
     if args.kernel == "rid":
         return rid_variants(args, arch, sharding, dump)

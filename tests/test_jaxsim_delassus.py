@@ -717,7 +717,7 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     same with the modes as padded tiles only (32 + 16), and with 3 of the modes as loose columns
     only (``ridkernel.LOOSE``); in float32, ``K_r`` by the products of its split operands, TF32
     parts (``DOT_ALGORITHM = "SPLIT_TF32"``) or bfloat16 parts (``"SPLIT_BF16"``), within 2e-6 of
-    float64's (float32's round-off summed over 1,944 rows: measured 3.1e-7 and 6.3e-7 for ``K_r``,
+    float64's (float32's round-off summed over 1,944 rows: measured 3.1e-7 and 5.6e-7 for ``K_r``,
     6.3e-7 to 7.6e-7 for ``f_r``), which a state 1e-4 off fails (6.6e-6 and 9.2e-5). ``"kernel"``
     on a CPU is the rows form to the bit, its traced program holding the kernel for CUDA, in
     float32 with fused multiply-adds; exported for a TPU, the step with it holds no kernel."""
@@ -786,6 +786,36 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     export = jax.export.export(jax.jit(physics_step), platforms=["tpu"])
     text = export(kernel, state, kpa).mlir_module()
     assert "triton" not in text
+
+
+def test_the_rid_kernels_operand_splits_are_exact():
+    """``split_products``' parts of float32 numbers of every sign and of 60 binades (zeros and
+    float32's smallest normal among them): the bfloat16 parts sum to ``z`` exactly (in float64),
+    the first two truncations (``bfloat16_high``: its float32 and bfloat16 the same number, ``|z
+    - h| < 2^-7 |z|``, ``h`` of ``z``'s sign and no larger) and the third below ``2^-14 |z|``;
+    the TF32 parts sum to ``z``, ``H`` with 13 low bits clear and ``|z - H| < 2^-10 |z|``."""
+    from softcrawl.jaxsim import ridkernel
+
+    rng = np.random.default_rng(3)
+    z = (rng.choice([-1.0, 1.0], 4096) * rng.uniform(1.0, 2.0, 4096) * 2.0 ** rng.integers(-30, 30, 4096))
+    z = jnp.asarray(np.concatenate([z, [0.0, -0.0, np.finfo(np.float32).tiny]]), jnp.float32).reshape(-1, 1)
+    zd = np.asarray(z, np.float64)
+    h, b = ridkernel.bfloat16_high(z)
+    assert b.dtype == jnp.bfloat16
+    np.testing.assert_array_equal(np.asarray(b, np.float64), np.asarray(h, np.float64))
+    assert np.all(np.abs(zd - np.asarray(h, np.float64)) <= 2.0 ** -7 * np.abs(zd))
+    assert np.all(np.asarray(h, np.float64) * np.sign(zd) <= np.abs(zd)) and np.all(np.asarray(h) * zd >= 0)
+    K, M = ridkernel.split_products([z], "bf16")
+    (B1, _), (B2, _) = K(0, 0)
+    (_, B2_), (_, B3) = M(0, 0)
+    B1, B2, B3 = (np.asarray(B, np.float64) for B in (B1, B2, B3))
+    np.testing.assert_array_equal(B2, np.asarray(B2_, np.float64))
+    np.testing.assert_array_equal(B1 + B2 + B3, zd)
+    assert np.all(np.abs(B2) <= 2.0 ** -7 * np.abs(zd)) and np.all(np.abs(B3) <= 2.0 ** -14 * np.abs(zd))
+    ((H, _),), ((_, L),) = (f(0, 0) for f in ridkernel.split_products([z], "tf32"))
+    np.testing.assert_array_equal(np.asarray(H, np.float64) + np.asarray(L, np.float64), zd)
+    assert not np.any(np.asarray(jax.lax.bitcast_convert_type(H, jnp.int32)) & ((1 << 13) - 1))
+    assert np.all(np.abs(np.asarray(L, np.float64)) <= 2.0 ** -10 * np.abs(zd))
 
 
 def test_the_rid_kernels_columns_are_tiles_then_loose_columns(monkeypatch):

@@ -72,12 +72,14 @@ LOOP_PRODUCT = False
 #: shared memory: :func:`held_bytes`). Held, the
 #: blocks are unrolled (:data:`LOOP_PRODUCT` ignored) and each iteration's product is a matrix
 #: product on the tensor cores: the float16 block times ``y`` split into two float16 columns, ``y
-#: = m (y1 + y2)``, accumulated in float32 (:func:`split_columns`); Triton keeps the blocks in
-#: shared memory (123 KB for the paper preset's 240 rows) instead of reading them from the
-#: cache, 90 GB a step at 16,384 robots. Compiled for an H100 (``benchmarks/kernel_sass.py``,
-#: the paper preset's operator in its parts): an iteration is 567 instructions a warp at 128 rows
-#: and 8 warps, 825 at 64, against 1,261 for the scratch's (255 registers a thread, no spill in
-#: the iterations). Read when a solve is traced, as above.
+#: = m (y1 + y2)``, accumulated in float32 (:func:`split_columns`); the blocks cover the padding
+#: to ``N`` rows (its rows zeros, not read: the paper preset's 240 rows as two blocks of 128, not
+#: 128, 64, 32 and 16), each a whole warpgroup product on an H100; Triton keeps them in shared
+#: memory (128 KB) instead of reading them from the cache, 90 GB a step at 16,384 robots.
+#: Compiled for an H100 (``benchmarks/kernel_sass.py``, the paper preset's operator in its
+#: parts): an iteration is 436 instructions a warp at 128 rows and 8 warps, 655 at 64, against
+#: 1,261 for the scratch's (255 registers a thread, no spill in the iterations). Read when a
+#: solve is traced, as above.
 RESIDENT_ROWS = None
 #: Whether the program reads a condensed operator given in its parts
 #: (:class:`~softcrawl.jaxsim.schur.SchurOperator`, the engine's) as parts, each entry formed as
@@ -238,15 +240,18 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, re
         g_ref[pl.ds(r0, size)] = g + s_r * pltriton.load(q_ref.at[rows], mask=rows < n, other=0.0)
         return jnp.maximum(bound, jnp.max(total))
 
-    def block(r0, size):  # the scratch's rows r0 .. r0 + size, the columns past n not read
+    def block(r0, size):  # the scratch's rows r0 .. r0 + size, the rows and columns past n not read (0)
         rows = r0 + lax.iota(jnp.int32, size)
-        return pltriton.load(wi_ref.at[rows[:, None], i[None, :]], mask=(i < n)[None, :], other=0.0)
+        return pltriton.load(wi_ref.at[rows[:, None], i[None, :]], mask=(rows < n)[:, None] & (i < n)[None, :],
+                             other=0.0)
 
     bound = lax.fori_loop(0, full, lambda blk, b: prepare(blk * row_block, row_block, b), jnp.zeros((), dt))
     for r0, size in tail:
         bound = prepare(r0, size, bound)
     step = 1 / jnp.maximum(bound, tiny)
     barrier()
+    if resident:  # whole blocks over the padding too (its rows 0): no smaller products after them
+        full, tail = row_blocks(N, row_block)
     held = {r0: block(r0, size) for r0, size in [(b * row_block, row_block) for b in range(full)] + tail} \
         if resident else {}
 
@@ -256,16 +261,14 @@ def _kernel(n: int, n_iter: int, barrier, row_block: int, loop_product: bool, re
         sy_ref[slot, :] = y
 
         def product(r0, size):  # u = Ws~ y + g0 on rows r0 .. r0 + size, the columns past n not read
-            if resident:  # the block times Y's two columns, on the tensor cores (the select lets the
-                # compiler skip the products of Y's zero columns: 567 instructions an iteration, 595 without)
-                Wy = m * jnp.sum(jnp.where(two, jnp.dot(held[r0], Y, preferred_element_type=dt), 0), axis=1)
+            if resident:  # the block times Y (its two columns and zeros), on the tensor cores
+                Wy = m * jnp.sum(jnp.dot(held[r0], Y, preferred_element_type=dt), axis=1)
             else:
                 Wy = jnp.sum(block(r0, size).astype(dt) * y[None, :], axis=1)
             su_ref[slot, pl.ds(r0, size)] = Wy + g_ref[pl.ds(r0, size)]
 
         if resident:
             m, Y = split_columns(y, wi_ref.dtype)
-            two = lax.iota(jnp.int32, SPLIT_COLUMNS)[None, :] < 2
 
         if loop_product and not resident:
             def looped(blk, c):

@@ -40,8 +40,8 @@ from softcrawl.jaxsim.gpu import kernel_precision
 ELEMENTS = 16
 #: Warps per program. The per-element numbers (frames, stresses, ``C~ F``) are computed by every
 #: thread that holds a column of their rows: fewer warps repeat them less. Machine code for an
-#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 120k warp instructions a leg at 2
-#: warps against 166k at 4 (255 and 210 registers, no spill).
+#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 116k warp instructions a leg at 2
+#: warps against 162k at 4 (255 and 208 registers, no spill).
 NUM_WARPS = 2
 #: Programs per leg: program ``s`` of a leg treats its element blocks ``s, s + SPLIT, ...`` and
 #: writes its shares of ``K_r``, ``f_r`` and the count, which are added after the kernel. More
@@ -51,13 +51,14 @@ SPLIT = 1
 #: vectors over the elements (not a padded tile of 16 columns).
 LOOSE = 4
 #: The kernel's products in float32, on the tensor cores: ``"SPLIT_BF16"``, each block's ``Z``
-#: split in three bfloat16 parts and ``Z^T Z`` accumulated by four products of them
+#: split in three bfloat16 parts (truncations, read off its bits by masks and shifts, not
+#: rounding conversions) and ``Z^T Z`` accumulated by four products of them
 #: (:func:`split_products`: about float32's accuracy); ``"SPLIT_TF32"``, ``Z = H + L`` with ``H``
 #: its TF32 part (:func:`tf32_high`) and two TF32 products, ``H^T H`` and ``H^T L``; in both,
 #: ``K_r = K + M + M^T`` formed once at the end. Machine code for an H100 (``kernel_sass.py
-#: --kernel rid``): 120k warp instructions a leg by bfloat16 parts, 130k by TF32 parts (Triton
-#: rounds each TF32 operand by three to five instructions; bfloat16 operands are read by
-#: ``ldmatrix``).
+#: --kernel rid``): 116k warp instructions a leg by bfloat16 parts (120k by rounded parts), 130k
+#: by TF32 parts (Triton rounds each TF32 operand by three to five instructions; bfloat16
+#: operands are read by ``ldmatrix``).
 #: Else a ``jax.lax.DotAlgorithmPreset`` name (``"TF32_TF32_F32_X3"``: three TF32 passes,
 #: relative error 2e-7, ``benchmarks/dot_algorithms.py``), or None for full float32 arithmetic.
 #: Other precisions, and the interpreter, use their own arithmetic (the interpreter applies the
@@ -106,6 +107,15 @@ def tf32_high(z):
     return lax.bitcast_convert_type(bits, jnp.float32)
 
 
+def bfloat16_high(z):
+    """``(h, b)``: ``z`` (float32) truncated to bfloat16, its 16 low bits cleared, as a float32
+    ``h`` and as the bfloat16 ``b``, both read off ``z``'s bits (no conversion to round): ``z -
+    h`` exact and below ``2^-7 |z|``."""
+    bits = lax.bitcast_convert_type(z, jnp.uint32)
+    return (lax.bitcast_convert_type(bits & jnp.uint32(0xFFFF0000), jnp.float32),
+            lax.bitcast_convert_type((bits >> 16).astype(jnp.uint16), jnp.bfloat16))
+
+
 def split_products(Z, split):
     """The operand pairs ``(a, b)`` of the products ``a^T b`` that accumulate one stress row's
     ``Z^T Z`` (``Z`` its column tiles, float32) in the kernel's two accumulators, ``K_tu`` and
@@ -114,16 +124,18 @@ def split_products(Z, split):
 
     ``split`` ``"tf32"``: ``Z = H + L``, ``H`` its TF32 part (:func:`tf32_high`), ``K`` holding
     ``H^T H`` and ``M`` ``H^T L`` (``L^T L``, about ``2^-22`` of ``Z``'s scale, left out).
-    ``"bf16"``: ``Z = B1 + B2 + B3`` in bfloat16, each part the rounding of what the parts before
-    it leave (exact: ``Z``'s 24 bits in three parts of 8; Henry, Tang & Heinecke 2019, "bf16x6"),
-    ``K`` holding ``B1^T B1 + B2^T B2`` and ``M`` ``B1^T B2 + B1^T B3``: bf16x6's six products in
-    four, ``Z^T Z`` being symmetric (``B2^T B3`` and ``B3^T B3``, about ``2^-23``, left out).
-    None: ``K`` holding ``Z^T Z``, no ``M``."""
+    ``"bf16"``: ``Z = B1 + B2 + B3`` in bfloat16, each part the truncation of what the parts
+    before it leave (:func:`bfloat16_high`; exact: ``Z``'s 24 bits in three parts of 8; Henry,
+    Tang & Heinecke 2019, "bf16x6", who round), ``K`` holding ``B1^T B1 + B2^T B2`` and ``M``
+    ``B1^T B2 + B1^T B3``: bf16x6's six products in four, ``Z^T Z`` being symmetric (``B2^T B3``
+    and ``B3^T B3``, below ``2^-21`` of ``Z``'s scale squared, left out). None: ``K`` holding
+    ``Z^T Z``, no ``M``."""
     if split == "bf16":
-        B1 = [z.astype(jnp.bfloat16) for z in Z]
-        R = [z - b.astype(z.dtype) for z, b in zip(Z, B1)]
-        B2 = [r.astype(jnp.bfloat16) for r in R]
-        B3 = [(r - b.astype(r.dtype)).astype(jnp.bfloat16) for r, b in zip(R, B2)]
+        H1 = [bfloat16_high(z) for z in Z]
+        R = [z - h for z, (h, _) in zip(Z, H1)]
+        H2 = [bfloat16_high(r) for r in R]
+        B1, B2 = [b for _, b in H1], [b for _, b in H2]
+        B3 = [(r - h).astype(jnp.bfloat16) for r, (h, _) in zip(R, H2)]
         return (lambda t, u: ((B1[t], B1[u]), (B2[t], B2[u])),
                 lambda t, u: ((B1[t], B2[u]), (B1[t], B3[u])))
     H = [tf32_high(z) for z in Z] if split else Z
