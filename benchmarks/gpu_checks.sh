@@ -70,8 +70,9 @@
 # rid:         the legs' RID terms in one kernel (`--rid-form kernel`, not yet a default): against
 #              XLA's pairs and rows forms on the card and timed alone with its variants
 #              (`rid_kernel.py`: if a variant other than the default, 16 elements, 2 warps, `Z`
-#              in bfloat16 parts (SPLIT_BF16; SPLIT_TF32 its TF32 parts), one program a leg, is
-#              fastest, set ridkernel.ELEMENTS / NUM_WARPS / DOT_ALGORITHM / SPLIT), then
+#              in bfloat16 parts (SPLIT_BF16; SPLIT_TF32 its TF32 parts), one program a leg, its
+#              rows in one group (3: fewer registers), is fastest, set ridkernel.ELEMENTS /
+#              NUM_WARPS / DOT_ALGORITHM / SPLIT / ROW_GROUPS), then
 #              the step at 96 and 16,384 robots with it and without it, in one call; if faster at
 #              both, make it the CUDA default (`legs.rid_terms`' None). BASE, where given, is a
 #              folder holding an earlier commit's `softcrawl` package, put first on PYTHONPATH

@@ -150,16 +150,17 @@ def leg_instructions(sass: str, families, elements: int, split: int, warps: int)
     """The warp instructions a leg's RID kernel programs issue (module doc), from its machine
     code ``sass`` and its families' ``(E, k)`` (elements, nodes an element): the outermost loops
     are the families' loops of element blocks, ``ceil(E / (elements split))`` trips a program,
-    each holding one loop over the ``k - 1`` edges; None if the code has another shape."""
+    each holding a loop over the ``k - 1`` edges for each group of stress rows
+    (``ridkernel.row_groups``); None if the code has another shape."""
     loops = loop_tree(sass)
     outer = [i for i, lp in enumerate(loops) if lp["parent"] is None]
     inner = [[j for j, lp in enumerate(loops) if lp["parent"] == i] for i in outer]
-    if len(outer) != len(families) or any(len(js) != 1 or any(lp["parent"] == js[0] for lp in loops)
-                                          for js in inner):
-        return None  # not one edge loop, without loops of its own, in each family's loop
+    if len(outer) != len(families) or any(not js or any(lp["parent"] in js for lp in loops) for js in inner):
+        return None  # not edge loops, without loops of their own, in each family's loop
     trips = {}
-    for i, (j,), (E, k) in zip(outer, inner, families):
-        trips[i], trips[j] = -(-E // (elements * split)), k - 1
+    for i, js, (E, k) in zip(outer, inner, families):
+        trips[i] = -(-E // (elements * split))
+        trips.update({j: k - 1 for j in js})
     return issued(sass, loops, trips) * split * warps
 
 
@@ -220,14 +221,15 @@ def rid_variants(args, arch, sharding, dump) -> None:
     specs = [jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=sharding), part)] + [
         jax.ShapeDtypeStruct((576, part.mass.shape[0]), jnp.float32, sharding=sharding)] * 2
     for text in args.variants.split(","):
-        elements, warps, dot, split = text.split(":")
+        elements, warps, dot, split, *groups = text.split(":")
         ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.SPLIT = int(elements), int(warps), int(split)
         ridkernel.DOT_ALGORITHM = None if dot == "-" else dot
+        ridkernel.ROW_GROUPS = int(groups[0]) if groups else 1
         terms = jax.jit(jax.vmap(lambda p, q, qd: legs.rid_terms(p, q, qd, c, "kernel"), in_axes=(None, 0, 0)))
         sass, report = compiled_kernel(terms, specs, "rid_terms", arch, sharding, dump)
         print(json.dumps({"kernel": "rid", "variant": {"elements": ridkernel.ELEMENTS, "num_warps": ridkernel.NUM_WARPS,
                                                        "dot_algorithm": ridkernel.DOT_ALGORITHM,
-                                                       "split": ridkernel.SPLIT},
+                                                       "split": ridkernel.SPLIT, "row_groups": ridkernel.ROW_GROUPS},
                           "families": families, "arch": arch, "jax": jax.__version__, **report,
                           "warp_instructions_per_leg": leg_instructions(sass, families, ridkernel.ELEMENTS,
                                                                         ridkernel.SPLIT, ridkernel.NUM_WARPS),
@@ -313,8 +315,8 @@ def main(argv=None) -> None:
     p.add_argument("--kernel", choices=tuple(DEFAULT_VARIANTS), default="solve")
     p.add_argument("--variants", default=None,
                    help="comma-separated (- for None); solve: ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS; rid: "
-                        "ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT; factor: UNROLL_PIVOTS:PER_THREAD; elimination: "
-                        "NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM; defaults: "
+                        "ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT[:ROW_GROUPS]; factor: UNROLL_PIVOTS:PER_THREAD; "
+                        "elimination: NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM; defaults: "
                         + "; ".join(f"{k} {v}" for k, v in DEFAULT_VARIANTS.items()))
     p.add_argument("--contacts", type=int, default=80, help="contact slots K (the operator is 3K x 3K)")
     p.add_argument("--schur", default=None, metavar="KD:L:KL",

@@ -714,8 +714,9 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     three programs (``ridkernel.SPLIT``), their shares added; the same to the bit from the
     kernel's rows formed before a loop of steps (``ridkernel.with_kernel_rows``); zeros for an
     empty slot (``present`` false: its program treats no element). On one leg: the
-    same with the modes as padded tiles only (32 + 16), and with 3 of the modes as loose columns
-    only (``ridkernel.LOOSE``); in float32, ``K_r`` by the products of its split operands, TF32
+    same with the modes as padded tiles only (32 + 16), with 3 of the modes as loose columns only
+    (``ridkernel.LOOSE``), and with ``Z``'s rows formed by groups of stress rows
+    (``ridkernel.ROW_GROUPS``); in float32, ``K_r`` by the products of its split operands, TF32
     parts (``DOT_ALGORITHM = "SPLIT_TF32"``) or bfloat16 parts (``"SPLIT_BF16"``), within 2e-6 of
     float64's (float32's round-off summed over 1,944 rows: measured 3.1e-7 and 5.6e-7 for ``K_r``,
     6.3e-7 to 7.6e-7 for ``f_r``), which a state 1e-4 off fails (6.6e-6 and 9.2e-5). ``"kernel"``
@@ -765,6 +766,12 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
         assert np.abs(np.asarray(Kq - Kq.transpose(0, 2, 1))).max() == 0.0
         assert np.abs(np.asarray(fq - fp)).max() <= 1e-12 * np.abs(np.asarray(fp)).max()
     K1, f1 = Kr[:1], fr[:1]
+    monkeypatch.setattr(ridkernel, "ROW_GROUPS", 4)  # Z's rows by groups: tetrahedra's 6 as 3 x 2, triangles' 1 x 3
+    Kg, fg, _ = terms("interpret", q1, v1)
+    assert np.abs(np.asarray(Kg - K1)).max() <= 1e-12 * np.abs(np.asarray(K1)).max()
+    assert np.abs(np.asarray(Kg - Kg.transpose(0, 2, 1))).max() == 0.0
+    assert np.abs(np.asarray(fg - f1)).max() <= 1e-12 * np.abs(np.asarray(f1)).max()
+    monkeypatch.setattr(ridkernel, "ROW_GROUPS", 1)
     f32 = jax.tree.map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, model.leg)
     Kp, fp, _ = terms("rows", q1 * (1 + 1e-4), v1)  # a state 1e-4 off: the bound tells it apart
     for algorithm in ("SPLIT_TF32", "SPLIT_BF16"):  # float32: K_r = K + M + M^T from split operands

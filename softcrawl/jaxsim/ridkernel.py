@@ -50,6 +50,12 @@ SPLIT = 1
 #: Strain modes after the last full column tile, up to this many, are treated one by one as
 #: vectors over the elements (not a padded tile of 16 columns).
 LOOSE = 4
+#: Groups of an element's stress rows whose ``Z`` rows a program forms at once, each group by its
+#: own pass over the element's edges (the basis rows read again for each; :func:`row_groups`):
+#: fewer rows at once, fewer registers held. Machine code for an H100 at 2 warps: 3 groups take
+#: 167 registers a thread instead of 255 (six programs a multiprocessor instead of four) for
+#: 140k warp instructions a leg instead of 116k; 2 groups, 248 registers and 124k.
+ROW_GROUPS = 1
 #: The kernel's products in float32, on the tensor cores: ``"SPLIT_BF16"``, each block's ``Z``
 #: split in three bfloat16 parts (truncations, read off its bits by masks and shifts, not
 #: rounding conversions) and ``Z^T Z`` accumulated by four products of them
@@ -78,6 +84,14 @@ def column_tiles(ms: int) -> tuple[list[tuple[int, int]], list[int]]:
         tiles.append((start, width))
         start += width
     return tiles, list(range(start, ms))
+
+
+def row_groups(r: int) -> list[range]:
+    """An element's ``r`` stress rows in at most :data:`ROW_GROUPS` groups of consecutive rows,
+    each of ``ceil(r / ROW_GROUPS)`` rows but the last (6 rows in 3 groups: ``[range(0, 2),
+    range(2, 4), range(4, 6)]``; in 4 groups the same; 3 rows in 3: one each)."""
+    size = -(-r // max(1, min(ROW_GROUPS, r)))
+    return [range(start, min(start + size, r)) for start in range(0, r, size)]
 
 
 def kernel_rows(rows, ms: int) -> tuple:
@@ -202,40 +216,41 @@ def _kernel(shapes, ms: int, c: float, precision, split, compiled: bool, on_ref,
                 F, g, wrong = frame_terms([[x[a + 1][i] - x[0][i] for i in range(3)] for a in range(k - 1)])
                 bad = bad + jnp.sum(wrong & on).astype(jnp.int32)
                 # Z's rows of the block, stress row i: Z_i = sum_q (C~ F)_iq H_q, q = 3a + c (edge a,
-                # component c); each basis row H_q of the block's elements read once for all i
-                def edge(a, carry):  # edge a's three components c: q = 3a + c
+                # component c); each basis row H_q of the block's elements read once for a group's rows
+                def edge(a, carry, group):  # edge a's three components c: q = 3a + c
                     s, Z, zl = carry
-                    fac = [[load(fac_ref, (e * r + i) * n + 3 * a + p) for p in range(3)] for i in range(r)]
+                    fac = [[load(fac_ref, (e * r + i) * n + 3 * a + p) for p in range(3)] for i in group]
                     ga = [sum(jnp.where(a == b, g[3 * b + p], 0.0) for b in range(k - 1)) for p in range(3)]
-                    s = [si + sum(fac[i][p] * ga[p] for p in range(3)) for i, si in enumerate(s)]
+                    s = [si + sum(fa[p] * ga[p] for p in range(3)) for fa, si in zip(fac, s)]
                     for c_ in range(3):
                         row = e * n + 3 * a + c_
                         H = [pltriton.load(rows_ref.at[row[:, None] * W + j[None, :]], mask=on[:, None], other=0.0)
                              for j in cols]
                         Hl = [load(loose_ref, row * nl + m) for m in range(nl)]
-                        for i in range(r):
-                            CF = fma(fac[i][2], F[2][c_], fma(fac[i][1], F[1][c_], fac[i][0] * F[0][c_]))
-                            Z[i] = [fma(CF[:, None], h, z) for z, h in zip(Z[i], H)]
-                            zl[i] = [fma(CF, h, z) for z, h in zip(zl[i], Hl)]
+                        for m, fa in enumerate(fac):
+                            CF = fma(fa[2], F[2][c_], fma(fa[1], F[1][c_], fa[0] * F[0][c_]))
+                            Z[m] = [fma(CF[:, None], h, z) for z, h in zip(Z[m], H)]
+                            zl[m] = [fma(CF, h, z) for z, h in zip(zl[m], Hl)]
                     return s, Z, zl
 
-                s, Z, zl = lax.fori_loop(0, k - 1, edge, (
-                    [-load(rest_ref, e * r + i) for i in range(r)],
-                    [[jnp.zeros((ELEMENTS, w), dt) for _, w in tiles] for _ in range(r)],
-                    [[jnp.zeros((ELEMENTS,), dt) for _ in loose] for _ in range(r)]))
-                for i in range(r):
-                    w = s[i] + c * (sum(jnp.sum(z * v[None, :], axis=1) for z, v in zip(Z[i], qs))
-                                    + sum(z * v for z, v in zip(zl[i], ql)))
-                    K, M = split_products(Z[i], split)  # each product added to its accumulator
-                    acc = {"K": tuple(reduce(lambda a, ab: a + dot(*ab), K(t, u), Km)
-                                      for Km, (t, u) in zip(acc["K"], pairs)),
-                           "M": tuple(reduce(lambda a, ab: a + dot(*ab), M(t, u), Mm)
-                                      for Mm, (t, u) in zip(acc["M"], ordered)),
-                           "f": tuple(fma(z, w[:, None], fa) for fa, z in zip(acc["f"], Z[i])),
-                           "KL": tuple(fma(z, y[:, None], kl) for kl, (y, z) in
-                                       zip(acc["KL"], ((y, z) for y in zl[i] for z in Z[i]))),
-                           "LL": tuple(fma(zl[i][a], zl[i][b], ll) for ll, (a, b) in zip(acc["LL"], lpairs)),
-                           "fL": tuple(fma(y, w, fl) for fl, y in zip(acc["fL"], zl[i]))}
+                for group in row_groups(r):
+                    s, Z, zl = lax.fori_loop(0, k - 1, partial(edge, group=group), (
+                        [-load(rest_ref, e * r + i) for i in group],
+                        [[jnp.zeros((ELEMENTS, w), dt) for _, w in tiles] for _ in group],
+                        [[jnp.zeros((ELEMENTS,), dt) for _ in loose] for _ in group]))
+                    for si, Zi, zli in zip(s, Z, zl):
+                        w = si + c * (sum(jnp.sum(z * v[None, :], axis=1) for z, v in zip(Zi, qs))
+                                      + sum(z * v for z, v in zip(zli, ql)))
+                        K, M = split_products(Zi, split)  # each product added to its accumulator
+                        acc = {"K": tuple(reduce(lambda a, ab: a + dot(*ab), K(t, u), Km)
+                                          for Km, (t, u) in zip(acc["K"], pairs)),
+                               "M": tuple(reduce(lambda a, ab: a + dot(*ab), M(t, u), Mm)
+                                          for Mm, (t, u) in zip(acc["M"], ordered)),
+                               "f": tuple(fma(z, w[:, None], fa) for fa, z in zip(acc["f"], Zi)),
+                               "KL": tuple(fma(z, y[:, None], kl) for kl, (y, z) in
+                                           zip(acc["KL"], ((y, z) for y in zli for z in Zi))),
+                               "LL": tuple(fma(zli[a], zli[b], ll) for ll, (a, b) in zip(acc["LL"], lpairs)),
+                               "fL": tuple(fma(y, w, fl) for fl, y in zip(acc["fL"], zli))}
                 return acc, bad
 
             acc, bad = lax.fori_loop(0, -(-E // (ELEMENTS * SPLIT)), block, (acc, bad))
