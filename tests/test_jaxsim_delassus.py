@@ -766,7 +766,7 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
         assert np.abs(np.asarray(Kq - Kq.transpose(0, 2, 1))).max() == 0.0
         assert np.abs(np.asarray(fq - fp)).max() <= 1e-12 * np.abs(np.asarray(fp)).max()
     K1, f1 = Kr[:1], fr[:1]
-    monkeypatch.setattr(ridkernel, "ROW_GROUPS", 4)  # Z's rows by groups: tetrahedra's 6 as 3 x 2, triangles' 1 x 3
+    monkeypatch.setattr(ridkernel, "ROW_GROUPS", 4)  # tetrahedra's 6 rows as 3 groups of 2, triangles' 3 as 3 of 1
     Kg, fg, _ = terms("interpret", q1, v1)
     assert np.abs(np.asarray(Kg - K1)).max() <= 1e-12 * np.abs(np.asarray(K1)).max()
     assert np.abs(np.asarray(Kg - Kg.transpose(0, 2, 1))).max() == 0.0

@@ -77,7 +77,7 @@ LOOP_PRODUCT = False
 #: 128, 64, 32 and 16), each a whole warpgroup product on an H100; Triton keeps them in shared
 #: memory (128 KB) instead of reading them from the cache, 90 GB a step at 16,384 robots.
 #: Compiled for an H100 (``benchmarks/kernel_sass.py``, the paper preset's operator in its
-#: parts): an iteration is 436 instructions a warp at 128 rows and 8 warps, 655 at 64, against
+#: parts): an iteration is 435 instructions a warp at 128 rows and 8 warps, 646 at 64, against
 #: 1,261 for the scratch's (255 registers a thread, no spill in the iterations). Read when a
 #: solve is traced, as above.
 RESIDENT_ROWS = None
