@@ -335,12 +335,12 @@ def main(argv=None) -> None:
 
     from softcrawl.jaxsim import fused
     from softcrawl.jaxsim.cost import deviceless_gpu
+    from softcrawl.jaxsim.gpu import target_capability
     from softcrawl.jaxsim.schur import SchurOperator
 
     config = Path(args.gpu_target).read_text()
     sharding = deviceless_gpu(config)
-    cc = re.search(r"cuda_compute_capability\s*{\s*major:\s*(\d+)(?:\s*minor:\s*(\d+))?", config)
-    major, minor = int(cc.group(1)), int(cc.group(2) or 0)
+    major, minor = target_capability(config)
     arch = f"sm_{major}{minor}{'a' if major >= 9 else ''}"  # Triton's PTX targets sm_90a, sm_100a, sm_120a
     args.variants = args.variants or DEFAULT_VARIANTS[args.kernel]
     if args.kernel == "rid":
