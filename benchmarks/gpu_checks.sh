@@ -3,8 +3,8 @@
 # logs, gzipped kernel tables) under OUTDIR. Run the stages back to back on the warm machine, the
 # open ones first, and record the figures in benchmarks/RESULTS.md with the card:
 #
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~8 min, first
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR elimination  # ~4 min, second
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR candidates   # ~9 min, first
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR elimination  # ~4 min, if candidates ran out of time
 #   source .gpu-carry/env.sh; BASE=DIR bash benchmarks/gpu_checks.sh OUTDIR blocks   # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR factors      # ~4 min, after candidates
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR selection    # ~4 min
@@ -21,15 +21,17 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR training     # ~6 min, measured on an H100
 #
 # candidates:  the step at 96 and 16,384 robots, float32, with the forms not yet defaults and
-#              without: the defaults, all four together (the issue's figures if all are taken:
+#              without: the defaults, all five together (the issue's figures if all are taken:
 #              the RID kernel, the held solve, the unrolled factor, the contact candidates by one
-#              kernel a robot), the RID kernel alone (`--rid-form kernel`), the solve's operator on
-#              chip alone (`--resident-rows 128`; the unrolled factor alone: `factors`, the
-#              candidates' kernel alone: `selection`); one call, so that the four are compared on
-#              one warm card, on the same robots: each form's disk nodes after its four actions
-#              against the defaults' (`--reference`: `reference_p99_robot_distance_mm`, the
-#              robots invalid in one run only). A form (all four, where the call ends before the
-#              single ones) faster at both sizes whose robots end
+#              kernel a robot, the attachments' elimination by one kernel a robot), the first
+#              four together (what the elimination kernel adds), the RID kernel alone
+#              (`--rid-form kernel`: the largest kernel; the held solve alone: `solve`, the
+#              unrolled factor alone: `factors`, the candidates' kernel alone: `selection`); one
+#              call, so that the forms are compared on one warm card, on the same robots: each
+#              form's disk nodes after its four actions against the defaults' (`--reference`:
+#              `reference_p99_robot_distance_mm`, the robots invalid in one run only), in order
+#              of what they decide, a form the call has no time for left undecided. A form faster
+#              at both sizes whose robots end
 #              within 0.5 mm of the defaults' (99th percentile; the issue's budget between the
 #              engines over 2 s; two float32 forms on the CPU differ by 0.04 mm at most) and
 #              with no robot invalid that the defaults keep becomes the default: its results are
@@ -39,7 +41,8 @@
 # elimination: the step at 96 and 16,384 robots with the attachments' elimination in one kernel
 #              (`--elimination kernel`, softcrawl.jaxsim.elimination: 7 operations fewer, 0.57 MB
 #              less a robot-step, compiled for an H100) against XLA's products, both with the four
-#              candidates' forms, on the same robots; if faster at both sizes, make "kernel"
+#              candidates' forms, on the same robots, alone in its call (`candidates` compares the
+#              two after the defaults); if faster at both sizes, make "kernel"
 #              `elimination.FORM`'s default.
 # blocks:      the step at 96 and 16,384 robots with the factor kernels holding their matrices in
 #              blocks (factor.row_parts, the defaults) against BASE's, a commit before them whose
@@ -71,8 +74,9 @@
 #              XLA's pairs and rows forms on the card and timed alone with its variants
 #              (`rid_kernel.py`: if a variant other than the default, 16 elements, 2 warps, `Z`
 #              in bfloat16 parts (SPLIT_BF16; SPLIT_TF32 its TF32 parts), one program a leg, its
-#              rows in one group (3: fewer registers), is fastest, set ridkernel.ELEMENTS /
-#              NUM_WARPS / DOT_ALGORITHM / SPLIT / ROW_GROUPS), then
+#              rows in one group (3: fewer registers), column tiles of 16 (32: half the products
+#              a warp, twice the per-element work), is fastest, set ridkernel.ELEMENTS / NUM_WARPS /
+#              DOT_ALGORITHM / SPLIT / ROW_GROUPS / TILE), then
 #              the step at 96 and 16,384 robots with it and without it, in one call; if faster at
 #              both, make it the CUDA default (`legs.rid_terms`' None). BASE, where given, is a
 #              folder holding an earlier commit's `softcrawl` package, put first on PYTHONPATH
@@ -160,8 +164,8 @@ forms() {
 case $stage in
 candidates)
     timeout 60 python3 -m softcrawl.cli verify --only jax_incline --json 2>>"$out/log.txt" | tee "$out/verify.json"
-    forms candidates 130 "" "--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel" \
-        "--rid-form kernel" "--resident-rows 128" ;;
+    four="--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel"
+    forms candidates 130 "" "$four --elimination kernel" "$four" "--rid-form kernel" ;;
 elimination)
     all="--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel"
     forms elimination 130 "$all" "$all --elimination kernel" ;;

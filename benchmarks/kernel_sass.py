@@ -17,8 +17,8 @@ preparation's and the 48 iterations' instructions, times the warps). A proxy for
 is lent, not a measurement.
 
 With ``--kernel rid``, each variant of :func:`softcrawl.jaxsim.ridkernel.rid_kernel_terms` (its
-constants ``ELEMENTS``, ``NUM_WARPS``, ``DOT_ALGORITHM``, ``SPLIT``) on the ``paper`` preset's
-leg: registers, each family's loop of element blocks and the edge loop inside it
+constants ``ELEMENTS``, ``NUM_WARPS``, ``DOT_ALGORITHM``, ``SPLIT``, ``ROW_GROUPS``, ``TILE``) on
+the ``paper`` preset's leg: registers, each family's loop of element blocks and the edge loop inside it
 (:func:`loop_tree`), and ``warp_instructions_per_leg``, the instructions a leg's programs issue
 (each loop's instructions times its trips, times the warps): the kernel does little but
 arithmetic, so at the multiprocessors' issue rate (one instruction a cycle per scheduler) that
@@ -44,7 +44,7 @@ Needs JAX's CUDA plugin of the installed JAX's version and ``nvdisasm`` (``pip i
 Usage:
     python benchmarks/kernel_sass.py [--gpu-target benchmarks/gpu_targets/h100.pbtxt]
         [--variants 64:8:0:-,64:8:0:128] [--contacts 80 | --schur 8:6:12]
-    python benchmarks/kernel_sass.py --kernel rid [--variants 16:2:SPLIT_BF16:1,16:4:-:1]
+    python benchmarks/kernel_sass.py --kernel rid [--variants 16:2:SPLIT_BF16:1,16:2:SPLIT_BF16:1:1:32]
     python benchmarks/kernel_sass.py --kernel factor [--variants 0:64,36:128]
     python benchmarks/kernel_sass.py --kernel elimination [--variants 4:128:TF32_TF32_F32_X3,4:128:-]
 """
@@ -68,7 +68,7 @@ _LABEL = re.compile(r"^\s*\.(L_x_\d+):\s*\n(?:.*\n)*?\s*/\*([0-9a-f]{4,})\*/", r
 
 #: Each kernel's variants compiled where ``--variants`` names none (the module's constants first).
 DEFAULT_VARIANTS = {"solve": "64:8:0:-,64:8:0:128,64:8:0:64",
-                    "rid": "16:2:SPLIT_BF16:1,16:2:SPLIT_TF32:1,16:4:SPLIT_BF16:1,16:2:-:1",
+                    "rid": "16:2:SPLIT_BF16:1,16:2:SPLIT_BF16:1:1:32,16:2:SPLIT_TF32:1,16:4:SPLIT_BF16:1,16:2:-:1",
                     "factor": "0:64,72:64,72:128",
                     "elimination": "4:128:TF32_TF32_F32_X3,8:128:TF32_TF32_F32_X3,4:64:TF32_TF32_F32_X3"}
 
@@ -221,15 +221,16 @@ def rid_variants(args, arch, sharding, dump) -> None:
     specs = [jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=sharding), part)] + [
         jax.ShapeDtypeStruct((576, part.mass.shape[0]), jnp.float32, sharding=sharding)] * 2
     for text in args.variants.split(","):
-        elements, warps, dot, split, *groups = text.split(":")
+        elements, warps, dot, split, *more = text.split(":")
         ridkernel.ELEMENTS, ridkernel.NUM_WARPS, ridkernel.SPLIT = int(elements), int(warps), int(split)
         ridkernel.DOT_ALGORITHM = None if dot == "-" else dot
-        ridkernel.ROW_GROUPS = int(groups[0]) if groups else 1
+        ridkernel.ROW_GROUPS, ridkernel.TILE = ([*map(int, more)] + [1, 16][len(more):])[:2]  # defaults 1, 16
         terms = jax.jit(jax.vmap(lambda p, q, qd: legs.rid_terms(p, q, qd, c, "kernel"), in_axes=(None, 0, 0)))
         sass, report = compiled_kernel(terms, specs, "rid_terms", arch, sharding, dump)
         print(json.dumps({"kernel": "rid", "variant": {"elements": ridkernel.ELEMENTS, "num_warps": ridkernel.NUM_WARPS,
                                                        "dot_algorithm": ridkernel.DOT_ALGORITHM,
-                                                       "split": ridkernel.SPLIT, "row_groups": ridkernel.ROW_GROUPS},
+                                                       "split": ridkernel.SPLIT, "row_groups": ridkernel.ROW_GROUPS,
+                                                       "tile": ridkernel.TILE},
                           "families": families, "arch": arch, "jax": jax.__version__, **report,
                           "warp_instructions_per_leg": leg_instructions(sass, families, ridkernel.ELEMENTS,
                                                                         ridkernel.SPLIT, ridkernel.NUM_WARPS),
@@ -315,7 +316,7 @@ def main(argv=None) -> None:
     p.add_argument("--kernel", choices=tuple(DEFAULT_VARIANTS), default="solve")
     p.add_argument("--variants", default=None,
                    help="comma-separated (- for None); solve: ROW_BLOCK:NUM_WARPS:LOOP_PRODUCT:RESIDENT_ROWS; rid: "
-                        "ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT[:ROW_GROUPS]; factor: UNROLL_PIVOTS:PER_THREAD; "
+                        "ELEMENTS:NUM_WARPS:DOT_ALGORITHM:SPLIT[:ROW_GROUPS[:TILE]]; factor: UNROLL_PIVOTS:PER_THREAD; "
                         "elimination: NUM_WARPS:ROW_BLOCK:DOT_ALGORITHM; defaults: "
                         + "; ".join(f"{k} {v}" for k, v in DEFAULT_VARIANTS.items()))
     p.add_argument("--contacts", type=int, default=80, help="contact slots K (the operator is 3K x 3K)")

@@ -11,7 +11,7 @@ float32, printed as JSON lines:
 * ``"part": "time"``: ``ms`` per call of each form at each of ``--robots`` (a call treats
   ``--legs`` legs per robot), the rows form only where its ``Z`` fits (``--rows-max`` robots), and
   on a GPU the kernel's variants (``ELEMENTS``, ``NUM_WARPS``, ``DOT_ALGORITHM``, ``SPLIT``,
-  ``ROW_GROUPS``).
+  ``ROW_GROUPS``, ``TILE``).
 
 Usage:
     python benchmarks/rid_kernel.py [--robots 96,16384] [--legs 6] [--calls 20]
@@ -24,12 +24,14 @@ import json
 import time
 from functools import partial
 
-#: The kernel's variants timed on a GPU: (ELEMENTS, NUM_WARPS, DOT_ALGORITHM, SPLIT, ROW_GROUPS).
-#: Three row groups hold 167 registers a thread instead of 255 (six programs a multiprocessor
-#: instead of four) for 21% more instructions (``kernel_sass.py --kernel rid``).
-VARIANTS = ((16, 2, "SPLIT_TF32", 1, 1), (16, 2, "SPLIT_BF16", 2, 1), (16, 2, "TF32_TF32_F32_X3", 1, 1),
-            (16, 4, "SPLIT_BF16", 1, 1), (16, 2, "F32_F32_F32", 1, 1), (16, 2, "SPLIT_BF16", 1, 3))
-NAMES = ("ELEMENTS", "NUM_WARPS", "DOT_ALGORITHM", "SPLIT", "ROW_GROUPS")
+#: The kernel's variants timed on a GPU: (ELEMENTS, NUM_WARPS, DOT_ALGORITHM, SPLIT, ROW_GROUPS,
+#: TILE). With tiles of 32 columns, three row groups hold 167 registers a thread instead of 255
+#: (six programs a multiprocessor instead of four) for 21% more instructions (``kernel_sass.py
+#: --kernel rid``); with tiles of 16 they hold 238.
+VARIANTS = ((16, 2, "SPLIT_TF32", 1, 1, 16), (16, 2, "SPLIT_BF16", 2, 1, 16), (16, 2, "TF32_TF32_F32_X3", 1, 1, 16),
+            (16, 4, "SPLIT_BF16", 1, 1, 16), (16, 2, "F32_F32_F32", 1, 1, 16), (16, 2, "SPLIT_BF16", 1, 1, 32),
+            (16, 2, "SPLIT_BF16", 1, 3, 32))
+NAMES = ("ELEMENTS", "NUM_WARPS", "DOT_ALGORITHM", "SPLIT", "ROW_GROUPS", "TILE")
 
 
 def main(argv=None) -> None:
@@ -101,15 +103,15 @@ def main(argv=None) -> None:
             return 1e3 * (time.perf_counter() - t0) / args.calls
 
         out = {**head, "part": "time", "robots": robots, "legs": robots * args.legs}
-        shared = {"pairs": jax.jit(legs.with_frame_stiffness)(part), "rows": part,  # as a loop of steps has them
-                  kernel: jax.jit(ridkernel.with_kernel_rows)(part)}
+        shared = {"pairs": jax.jit(legs.with_frame_stiffness)(part), "rows": part}  # as a loop of steps has them
         for form in ("pairs", "rows") if robots <= args.rows_max else ("pairs",):
             out[f"{form}_ms"] = timed(batched(form, shared[form]))
         for variant in dict.fromkeys((default, *VARIANTS)) if gpu else (default,):
             for name, value in zip(NAMES, variant):
                 setattr(ridkernel, name, value)
             jax.clear_caches()
-            out["kernel_ms_" + "_".join(map(str, variant))] = timed(batched(kernel, shared[kernel]))
+            rows = jax.jit(ridkernel.with_kernel_rows)(part)  # as the variant's tiles read them
+            out["kernel_ms_" + "_".join(map(str, variant))] = timed(batched(kernel, rows))
         for name, value in zip(NAMES, default):
             setattr(ridkernel, name, value)
         jax.clear_caches()

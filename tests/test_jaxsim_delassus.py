@@ -706,22 +706,23 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
 
 def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     """``rid_terms`` in one kernel (``"interpret"``: :mod:`softcrawl.jaxsim.ridkernel` in Pallas'
-    interpreter, ``Z`` formed 16 elements at a time, its 33 strain modes as a tile of 32 and one
-    loose column) on the landed robot's bent, pressed legs: the rows form's ``K_r`` and ``f_r``
+    interpreter, ``Z`` formed 16 elements at a time, its 33 strain modes as two tiles of 16 and
+    one loose column) on the landed robot's bent, pressed legs: the rows form's ``K_r`` and ``f_r``
     to 1e-12 of their largest entries in float64 (the same products, summed by blocks: measured
     4e-15 on a random state), ``K_r`` exactly symmetric, the same inverted or degenerate elements
     counted on legs bent to invert them; the same with each leg's element blocks shared among
     three programs (``ridkernel.SPLIT``), their shares added; the same to the bit from the
     kernel's rows formed before a loop of steps (``ridkernel.with_kernel_rows``); zeros for an
-    empty slot (``present`` false: its program treats no element). On one leg: the
-    same with the modes as padded tiles only (32 + 16), with 3 of the modes as loose columns only
-    (``ridkernel.LOOSE``), and with ``Z``'s rows formed by groups of stress rows
-    (``ridkernel.ROW_GROUPS``); in float32, ``K_r`` by the products of its split operands, TF32
-    parts (``DOT_ALGORITHM = "SPLIT_TF32"``) or bfloat16 parts (``"SPLIT_BF16"``), within 2e-6 of
-    float64's (float32's round-off summed over 1,944 rows: measured 3.1e-7 and 5.6e-7 for ``K_r``,
-    6.3e-7 to 7.6e-7 for ``f_r``), which a state 1e-4 off fails (6.6e-6 and 9.2e-5). ``"kernel"``
-    on a CPU is the rows form to the bit, its traced program holding the kernel for CUDA, in
-    float32 with fused multiply-adds; exported for a TPU, the step with it holds no kernel."""
+    empty slot (``present`` false: its program treats no element). On one leg: the same with the
+    modes as padded tiles only (16 + 16 + 16), with 3 of the modes as loose columns only
+    (``ridkernel.LOOSE``), as a tile of 32 and a loose column (``ridkernel.TILE``), and with
+    ``Z``'s rows formed by groups of stress rows (``ridkernel.ROW_GROUPS``); in float32, ``K_r``
+    by the products of its split operands, TF32 parts (``DOT_ALGORITHM = "SPLIT_TF32"``) or
+    bfloat16 parts (``"SPLIT_BF16"``), within 2e-6 of float64's (float32's round-off summed over
+    1,944 rows: measured 3.1e-7 and 5.6e-7 for ``K_r``, 6.3e-7 to 7.6e-7 for ``f_r``), which a
+    state 1e-4 off fails (6.6e-6 and 9.2e-5). ``"kernel"`` on a CPU is the rows form to the bit,
+    its traced program holding the kernel for CUDA, in float32 with fused multiply-adds; exported
+    for a TPU, the step with it holds no kernel."""
     from softcrawl.jaxsim import legs as leg_motion
     from softcrawl.jaxsim import ridkernel
     from softcrawl.jaxsim.engine import physics_step
@@ -758,13 +759,16 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     q1, v1 = state.q[:1], qdot[:1]  # one leg from here on: the interpreter is slow
     few = dataclasses.replace(model.leg, strain_modes=model.leg.strain_modes[:3], families=tuple(
         dataclasses.replace(f, rows=f.rows[..., :3]) for f in model.leg.families))
-    for part, loose in ((model.leg, 0), (few, 4)):  # 33 modes as tiles of 32 and 16; 3 modes loose, no tile
+    for part, loose, tile in ((model.leg, 0, 16), (few, 4, 16), (model.leg, 4, 32)):
+        # 33 modes as three tiles of 16, the last padded; 3 modes loose, no tile; a tile of 32 and a loose one
         monkeypatch.setattr(ridkernel, "LOOSE", loose)
+        monkeypatch.setattr(ridkernel, "TILE", tile)
         (Kp, fp, _), (Kq, fq, _) = (jax.vmap(lambda q, v: leg_motion.rid_terms(part, q, v, 0.03, form))(
             q1, v1) for form in ("rows", "interpret"))
         assert np.abs(np.asarray(Kq - Kp)).max() <= 1e-12 * np.abs(np.asarray(Kp)).max()
         assert np.abs(np.asarray(Kq - Kq.transpose(0, 2, 1))).max() == 0.0
         assert np.abs(np.asarray(fq - fp)).max() <= 1e-12 * np.abs(np.asarray(fp)).max()
+    monkeypatch.setattr(ridkernel, "TILE", 16)
     K1, f1 = Kr[:1], fr[:1]
     monkeypatch.setattr(ridkernel, "ROW_GROUPS", 4)  # tetrahedra's 6 rows as 3 groups of 2, triangles' 3 as 3 of 1
     Kg, fg, _ = terms("interpret", q1, v1)
@@ -826,16 +830,22 @@ def test_the_rid_kernels_operand_splits_are_exact():
 
 
 def test_the_rid_kernels_columns_are_tiles_then_loose_columns(monkeypatch):
-    """``column_tiles``: tiles of 32 columns, a last tile padded to 16 or 32 where more than
-    ``LOOSE`` columns are left, else those columns loose."""
+    """``column_tiles``: tiles of ``TILE`` columns (32 or 16), a last tile padded to 16 or 32
+    where more than ``LOOSE`` columns are left, else those columns loose."""
     from softcrawl.jaxsim import ridkernel
 
     monkeypatch.setattr(ridkernel, "LOOSE", 4)
+    monkeypatch.setattr(ridkernel, "TILE", 32)
     assert ridkernel.column_tiles(33) == ([(0, 32)], [32])
     assert ridkernel.column_tiles(36) == ([(0, 32)], [32, 33, 34, 35])
     assert ridkernel.column_tiles(37) == ([(0, 32), (32, 16)], [])
     assert ridkernel.column_tiles(64) == ([(0, 32), (32, 32)], [])
     assert ridkernel.column_tiles(20) == ([(0, 32)], [])
+    assert ridkernel.column_tiles(3) == ([], [0, 1, 2])
+    monkeypatch.setattr(ridkernel, "TILE", 16)
+    assert ridkernel.column_tiles(33) == ([(0, 16), (16, 16)], [32])
+    assert ridkernel.column_tiles(37) == ([(0, 16), (16, 16), (32, 16)], [])
+    assert ridkernel.column_tiles(20) == ([(0, 16)], [16, 17, 18, 19])
     assert ridkernel.column_tiles(3) == ([], [0, 1, 2])
 
 

@@ -14,8 +14,8 @@ read once for all of an element's stress rows (``Z_i = sum_q (C~ F)_iq H_q``, ``
 components), from rows padded to the column tiles' widths (aligned, so that Triton reads them by
 vectors), and each product and sum is one fused multiply-add
 (:func:`softcrawl.jaxsim.factor.fused_multiply_add`). The strain modes are handled in column
-tiles of at most 32 and a few loose columns (:func:`column_tiles`; ``m' = 33`` as one tile and
-one column), each pair of tiles one product, the loose columns' terms by elementwise sums. The
+tiles of :data:`TILE` columns and a few loose columns (:func:`column_tiles`; ``m' = 33`` as two
+tiles of 16 and one column), each pair of tiles one product, the loose columns' terms by elementwise sums. The
 formulas are those of :mod:`softcrawl.jaxsim.legs` (its module doc; Farhat, Chapman & Avery
 2015, eq. 20); the per-element quantities are component arrays (:mod:`softcrawl.jaxsim.frames`).
 
@@ -40,21 +40,33 @@ from softcrawl.jaxsim.gpu import kernel_precision
 ELEMENTS = 16
 #: Warps per program. The per-element numbers (frames, stresses, ``C~ F``) are computed by every
 #: thread that holds a column of their rows: fewer warps repeat them less. Machine code for an
-#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 116k warp instructions a leg at 2
-#: warps against 162k at 4 (255 and 208 registers, no spill).
+#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 106k warp instructions a leg at 2
+#: warps against 178k at 4 (254 and 238 registers, no spill); 1 warp spills (1.6 KB a thread).
 NUM_WARPS = 2
 #: Programs per leg: program ``s`` of a leg treats its element blocks ``s, s + SPLIT, ...`` and
 #: writes its shares of ``K_r``, ``f_r`` and the count, which are added after the kernel. More
 #: programs at few legs (96 robots: 576 legs for 132 multiprocessors), one at many.
 SPLIT = 1
+#: The widest column tile: 16 or 32 columns. Each stress row's ``Z`` block is ``(ELEMENTS, TILE)``
+#: numbers a tile, which Triton spreads over the threads by rows of four numbers each (vector
+#: loads): at 32 columns a thread holds two elements' rows, at 16 one, so that the per-element
+#: numbers (frame, stresses, ``C~ F``), computed by each thread for the rows it holds, are
+#: computed half as often. The products of 16-column tiles are 16 x 16, which both warps form
+#: whole (twice the tensor-core instructions). Machine code for an H100 (``kernel_sass.py --kernel
+#: rid``): 106k warp instructions a leg at 16 columns against 116k at 32 (254 and 255 registers,
+#: no spill); pairs of 16-column tiles joined into 32-column operands for the products (columns
+#: interleaved by ``jnp.stack``) took 111k, the interleaving's register moves costing more than
+#: the products' instructions saved.
+TILE = 16
 #: Strain modes after the last full column tile, up to this many, are treated one by one as
 #: vectors over the elements (not a padded tile of 16 columns).
 LOOSE = 4
 #: Groups of an element's stress rows whose ``Z`` rows a program forms at once, each group by its
 #: own pass over the element's edges (the basis rows read again for each; :func:`row_groups`):
-#: fewer rows at once, fewer registers held. Machine code for an H100 at 2 warps: 3 groups take
-#: 167 registers a thread instead of 255 (six programs a multiprocessor instead of four) for
-#: 140k warp instructions a leg instead of 116k; 2 groups, 248 registers and 124k.
+#: fewer rows at once, fewer registers held. Machine code for an H100 at 2 warps, with tiles of 32
+#: columns (:data:`TILE`): 3 groups take 167 registers a thread instead of 255 (six programs a
+#: multiprocessor instead of four) for 140k warp instructions a leg instead of 116k; with tiles of
+#: 16, 238 registers (four programs) and 121k instead of 106k; 2 groups, 254 and 113k.
 ROW_GROUPS = 1
 #: The kernel's products in float32, on the tensor cores: ``"SPLIT_BF16"``, each block's ``Z``
 #: split in three bfloat16 parts (truncations, read off its bits by masks and shifts, not
@@ -62,9 +74,9 @@ ROW_GROUPS = 1
 #: (:func:`split_products`: about float32's accuracy); ``"SPLIT_TF32"``, ``Z = H + L`` with ``H``
 #: its TF32 part (:func:`tf32_high`) and two TF32 products, ``H^T H`` and ``H^T L``; in both,
 #: ``K_r = K + M + M^T`` formed once at the end. Machine code for an H100 (``kernel_sass.py
-#: --kernel rid``): 116k warp instructions a leg by bfloat16 parts (120k by rounded parts), 130k
-#: by TF32 parts (Triton rounds each TF32 operand by three to five instructions; bfloat16
-#: operands are read by ``ldmatrix``).
+#: --kernel rid``): 106k warp instructions a leg by bfloat16 parts, 123k by TF32 parts (Triton
+#: rounds each TF32 operand by three to five instructions; bfloat16 operands are read by
+#: ``ldmatrix``); with tiles of 32 columns 116k and 130k (120k by rounded bfloat16 parts).
 #: Else a ``jax.lax.DotAlgorithmPreset`` name (``"TF32_TF32_F32_X3"``: three TF32 passes,
 #: relative error 2e-7, ``benchmarks/dot_algorithms.py``), or None for full float32 arithmetic.
 #: Other precisions, and the interpreter, use their own arithmetic (the interpreter applies the
@@ -75,12 +87,12 @@ DOT_ALGORITHM = "SPLIT_BF16"
 
 def column_tiles(ms: int) -> tuple[list[tuple[int, int]], list[int]]:
     """The strain modes' columns as the kernel treats them: ``(start, width)`` of the column
-    tiles, widths powers of two from 16 to 32 (a last one padded), and the columns after the
-    last tile, at most :data:`LOOSE` of them, each treated alone (33 modes: ``([(0, 32)],
-    [32])``; 40: ``([(0, 32), (32, 16)], [])``)."""
+    tiles, :data:`TILE` wide but a last one, padded to 16 or 32, and the columns after the last
+    tile, at most :data:`LOOSE` of them, each treated alone (33 modes: ``([(0, 16), (16, 16)],
+    [32])``, ``([(0, 32)], [32])`` at ``TILE = 32``; 40 at 32: ``([(0, 32), (32, 16)], [])``)."""
     tiles, start = [], 0
     while ms - start > LOOSE:
-        width = 32 if ms - start >= 32 else padded_size(ms - start)
+        width = TILE if ms - start >= TILE else padded_size(ms - start)
         tiles.append((start, width))
         start += width
     return tiles, list(range(start, ms))
