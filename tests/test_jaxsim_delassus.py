@@ -706,23 +706,23 @@ def test_the_legs_rid_terms_agree_in_both_orders_of_the_sums(landed):
 
 def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     """``rid_terms`` in one kernel (``"interpret"``: :mod:`softcrawl.jaxsim.ridkernel` in Pallas'
-    interpreter, ``Z`` formed 16 elements at a time, its 33 strain modes as two tiles of 16 and
-    one loose column) on the landed robot's bent, pressed legs: the rows form's ``K_r`` and ``f_r``
-    to 1e-12 of their largest entries in float64 (the same products, summed by blocks: measured
-    4e-15 on a random state), ``K_r`` exactly symmetric, the same inverted or degenerate elements
-    counted on legs bent to invert them; the same with each leg's element blocks shared among
-    three programs (``ridkernel.SPLIT``), their shares added; the same to the bit from the
-    kernel's rows formed before a loop of steps (``ridkernel.with_kernel_rows``); zeros for an
-    empty slot (``present`` false: its program treats no element). On one leg: the same with the
-    modes as padded tiles only (16 + 16 + 16), with 3 of the modes as loose columns only
-    (``ridkernel.LOOSE``), as a tile of 32 and a loose column (``ridkernel.TILE``), and with
-    ``Z``'s rows formed by groups of stress rows (``ridkernel.ROW_GROUPS``); in float32, ``K_r``
-    by the products of its split operands, TF32 parts (``DOT_ALGORITHM = "SPLIT_TF32"``) or
-    bfloat16 parts (``"SPLIT_BF16"``), within 2e-6 of float64's (float32's round-off summed over
-    1,944 rows: measured 3.1e-7 and 5.6e-7 for ``K_r``, 6.3e-7 to 7.6e-7 for ``f_r``), which a
-    state 1e-4 off fails (6.6e-6 and 9.2e-5). ``"kernel"`` on a CPU is the rows form to the bit,
-    its traced program holding the kernel for CUDA, in float32 with fused multiply-adds; exported
-    for a TPU, the step with it holds no kernel."""
+    interpreter, ``Z`` formed 16 elements at a time, its 33 strain modes as two tiles of 16, joined
+    for the products, and one loose column) on the landed robot's bent, pressed legs: the rows
+    form's ``K_r`` and ``f_r`` to 1e-12 of their largest entries in float64 (the same products,
+    summed by blocks: measured 4e-15 on a random state), ``K_r`` exactly symmetric, the same
+    inverted or degenerate elements counted on legs bent to invert them; the same with each leg's
+    element blocks shared among three programs (``ridkernel.SPLIT``), their shares added; the same
+    to the bit from the kernel's rows formed before a loop of steps
+    (``ridkernel.with_kernel_rows``); zeros for an empty slot (``present`` false: its program treats
+    no element). On one leg: the same with the modes as padded tiles only (16 + 16 + 16), with 3 of
+    the modes as loose columns only (``ridkernel.LOOSE``), as a tile of 32 and a loose column
+    (``ridkernel.TILE``), and with ``Z``'s rows formed by groups of stress rows
+    (``ridkernel.ROW_GROUPS``); in float32, ``K_r`` by the products of its split operands, TF32
+    parts (``DOT_ALGORITHM = "SPLIT_TF32"``) or bfloat16 parts (``"SPLIT_BF16"``), within 2e-6 of
+    float64's (float32's round-off summed over 1,944 rows: measured 3.1e-7 and 5.6e-7 for ``K_r``,
+    6.3e-7 to 7.6e-7 for ``f_r``), which a state 1e-4 off fails (6.6e-6 and 9.2e-5). ``"kernel"`` on
+    a CPU is the rows form to the bit, its traced program holding the kernel for CUDA, in float32
+    with fused multiply-adds; exported for a TPU, the step with it holds no kernel."""
     from softcrawl.jaxsim import legs as leg_motion
     from softcrawl.jaxsim import ridkernel
     from softcrawl.jaxsim.engine import physics_step
@@ -760,7 +760,8 @@ def test_the_rid_kernel_forms_the_rows_forms_terms(landed, monkeypatch):
     few = dataclasses.replace(model.leg, strain_modes=model.leg.strain_modes[:3], families=tuple(
         dataclasses.replace(f, rows=f.rows[..., :3]) for f in model.leg.families))
     for part, loose, tile in ((model.leg, 0, 16), (few, 4, 16), (model.leg, 4, 32)):
-        # 33 modes as three tiles of 16, the last padded; 3 modes loose, no tile; a tile of 32 and a loose one
+        # 33 modes as three tiles of 16, the last padded (two joined for the products, one alone); 3 modes
+        # loose, no tile; a tile of 32 and a loose one
         monkeypatch.setattr(ridkernel, "LOOSE", loose)
         monkeypatch.setattr(ridkernel, "TILE", tile)
         (Kp, fp, _), (Kq, fq, _) = (jax.vmap(lambda q, v: leg_motion.rid_terms(part, q, v, 0.03, form))(
@@ -831,7 +832,9 @@ def test_the_rid_kernels_operand_splits_are_exact():
 
 def test_the_rid_kernels_columns_are_tiles_then_loose_columns(monkeypatch):
     """``column_tiles``: tiles of ``TILE`` columns (32 or 16), a last tile padded to 16 or 32
-    where more than ``LOOSE`` columns are left, else those columns loose."""
+    where more than ``LOOSE`` columns are left, else those columns loose; ``product_tiles``:
+    pairs of consecutive 16-column tiles joined for the products, their columns interleaved
+    (``product_columns``, ``join_tiles``), the others alone."""
     from softcrawl.jaxsim import ridkernel
 
     monkeypatch.setattr(ridkernel, "LOOSE", 4)
@@ -842,11 +845,21 @@ def test_the_rid_kernels_columns_are_tiles_then_loose_columns(monkeypatch):
     assert ridkernel.column_tiles(64) == ([(0, 32), (32, 32)], [])
     assert ridkernel.column_tiles(20) == ([(0, 32)], [])
     assert ridkernel.column_tiles(3) == ([], [0, 1, 2])
+    assert ridkernel.product_tiles(ridkernel.column_tiles(37)[0]) == [(0,), (1,)]
     monkeypatch.setattr(ridkernel, "TILE", 16)
     assert ridkernel.column_tiles(33) == ([(0, 16), (16, 16)], [32])
-    assert ridkernel.column_tiles(37) == ([(0, 16), (16, 16), (32, 16)], [])
     assert ridkernel.column_tiles(20) == ([(0, 16)], [16, 17, 18, 19])
     assert ridkernel.column_tiles(3) == ([], [0, 1, 2])
+    tiles = ridkernel.column_tiles(37)[0]
+    assert tiles == [(0, 16), (16, 16), (32, 16)]
+    assert ridkernel.product_tiles(tiles) == [(0, 1), (2,)]
+    pair = np.stack([np.arange(16), np.arange(16, 32)], axis=-1).reshape(-1)  # 0, 16, 1, 17, ...
+    np.testing.assert_array_equal(ridkernel.product_columns(tiles, (0, 1)), pair)
+    np.testing.assert_array_equal(ridkernel.product_columns(tiles, (2,)), np.arange(32, 48))
+    parts = [jnp.asarray(np.arange(32.0).reshape(2, 16) + 100 * t) for t in range(3)]  # 2 elements' rows
+    joined = ridkernel.join_tiles(parts, [(0, 1), (2,)])
+    np.testing.assert_array_equal(joined[0], np.asarray(parts[0])[:, pair % 16] + 100 * (pair >= 16))
+    np.testing.assert_array_equal(joined[1], parts[2])
 
 
 def test_the_gpu_kernels_are_cudas_only(landed):

@@ -40,8 +40,8 @@ from softcrawl.jaxsim.gpu import kernel_precision
 ELEMENTS = 16
 #: Warps per program. The per-element numbers (frames, stresses, ``C~ F``) are computed by every
 #: thread that holds a column of their rows: fewer warps repeat them less. Machine code for an
-#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 106k warp instructions a leg at 2
-#: warps against 178k at 4 (254 and 238 registers, no spill); 1 warp spills (1.6 KB a thread).
+#: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 101k warp instructions a leg at 2
+#: warps against 172k at 4 (254 and 174 registers, no spill); 1 warp spills.
 NUM_WARPS = 2
 #: Programs per leg: program ``s`` of a leg treats its element blocks ``s, s + SPLIT, ...`` and
 #: writes its shares of ``K_r``, ``f_r`` and the count, which are added after the kernel. More
@@ -51,22 +51,21 @@ SPLIT = 1
 #: numbers a tile, which Triton spreads over the threads by rows of four numbers each (vector
 #: loads): at 32 columns a thread holds two elements' rows, at 16 one, so that the per-element
 #: numbers (frame, stresses, ``C~ F``), computed by each thread for the rows it holds, are
-#: computed half as often. The products of 16-column tiles are 16 x 16, which both warps form
-#: whole (twice the tensor-core instructions). Machine code for an H100 (``kernel_sass.py --kernel
-#: rid``): 106k warp instructions a leg at 16 columns against 116k at 32 (254 and 255 registers,
-#: no spill); pairs of 16-column tiles joined into 32-column operands for the products (columns
-#: interleaved by ``jnp.stack``) took 111k, the interleaving's register moves costing more than
-#: the products' instructions saved.
+#: computed half as often. For the products, pairs of 16-column tiles are joined again
+#: (:func:`product_tiles`): their bfloat16 parts stacked on a last axis, the columns interleaved,
+#: two numbers of a register; products of 16 x 16 outputs would be formed whole by both warps.
+#: Machine code for an H100 (``kernel_sass.py --kernel rid``): 101k warp instructions a leg at 16
+#: columns against 116k at 32 (254 and 255 registers, no spill); 106k with the tiles' products
+#: apart, 111k with the tiles joined as float32 numbers (283 register moves a block).
 TILE = 16
 #: Strain modes after the last full column tile, up to this many, are treated one by one as
 #: vectors over the elements (not a padded tile of 16 columns).
 LOOSE = 4
 #: Groups of an element's stress rows whose ``Z`` rows a program forms at once, each group by its
 #: own pass over the element's edges (the basis rows read again for each; :func:`row_groups`):
-#: fewer rows at once, fewer registers held. Machine code for an H100 at 2 warps, with tiles of 32
-#: columns (:data:`TILE`): 3 groups take 167 registers a thread instead of 255 (six programs a
-#: multiprocessor instead of four) for 140k warp instructions a leg instead of 116k; with tiles of
-#: 16, 238 registers (four programs) and 121k instead of 106k; 2 groups, 254 and 113k.
+#: fewer rows at once, fewer registers held. Machine code for an H100 at 2 warps: 3 groups take
+#: 168 registers a thread instead of 254 (six programs a multiprocessor instead of four) for 116k
+#: warp instructions a leg instead of 101k; 2 groups, 238 registers and 108k.
 ROW_GROUPS = 1
 #: The kernel's products in float32, on the tensor cores: ``"SPLIT_BF16"``, each block's ``Z``
 #: split in three bfloat16 parts (truncations, read off its bits by masks and shifts, not
@@ -74,9 +73,9 @@ ROW_GROUPS = 1
 #: (:func:`split_products`: about float32's accuracy); ``"SPLIT_TF32"``, ``Z = H + L`` with ``H``
 #: its TF32 part (:func:`tf32_high`) and two TF32 products, ``H^T H`` and ``H^T L``; in both,
 #: ``K_r = K + M + M^T`` formed once at the end. Machine code for an H100 (``kernel_sass.py
-#: --kernel rid``): 106k warp instructions a leg by bfloat16 parts, 123k by TF32 parts (Triton
+#: --kernel rid``): 101k warp instructions a leg by bfloat16 parts, 115k by TF32 parts (Triton
 #: rounds each TF32 operand by three to five instructions; bfloat16 operands are read by
-#: ``ldmatrix``); with tiles of 32 columns 116k and 130k (120k by rounded bfloat16 parts).
+#: ``ldmatrix``).
 #: Else a ``jax.lax.DotAlgorithmPreset`` name (``"TF32_TF32_F32_X3"``: three TF32 passes,
 #: relative error 2e-7, ``benchmarks/dot_algorithms.py``), or None for full float32 arithmetic.
 #: Other precisions, and the interpreter, use their own arithmetic (the interpreter applies the
@@ -104,6 +103,39 @@ def row_groups(r: int) -> list[range]:
     range(2, 4), range(4, 6)]``; in 4 groups the same; 3 rows in 3: one each)."""
     size = -(-r // max(1, min(ROW_GROUPS, r)))
     return [range(start, min(start + size, r)) for start in range(0, r, size)]
+
+
+def product_tiles(tiles) -> list[tuple[int, ...]]:
+    """The column tiles (:func:`column_tiles`) as the products take them: each pair of consecutive
+    tiles of 16 columns joined into one of 32 (``(t, t + 1)``; tiles ``[(0, 16), (16, 16), (32,
+    16)]`` give ``[(0, 1), (2,)]``), the others alone (``(t,)``), so that a warp forms half of
+    each product (:data:`TILE`)."""
+    out, t = [], 0
+    while t < len(tiles):
+        pair = t + 1 < len(tiles) and tiles[t][1] == tiles[t + 1][1] == 16
+        out.append((t, t + 1) if pair else (t,))
+        t += 1 + pair
+    return out
+
+
+def product_columns(tiles, tile: tuple[int, ...]):
+    """The strain modes of a product tile's columns (:func:`product_tiles`), an int32 vector: a
+    tile's own ``start + j``; a joined pair's ``j``-th column mode ``start_(j % 2) + j // 2``, its
+    two tiles' columns interleaved (:func:`join_tiles`)."""
+    if len(tile) == 1:
+        start, width = tiles[tile[0]]
+        return start + lax.iota(jnp.int32, width)
+    j = lax.iota(jnp.int32, 32)
+    return jnp.where(j % 2 == 0, tiles[tile[0]][0], tiles[tile[1]][0]) + j // 2
+
+
+def join_tiles(parts, joined) -> list:
+    """Blocks of a stress row's column tiles ``parts`` (each ``(ELEMENTS, width)``) as the
+    product tiles ``joined`` take them (:func:`product_tiles`): a tile alone as it is, a pair
+    stacked on a last axis and flattened, ``(ELEMENTS, 32)`` with the two tiles' columns
+    interleaved (:func:`product_columns`)."""
+    return [parts[g[0]] if len(g) == 1 else jnp.stack([parts[i] for i in g], axis=-1).reshape(
+        parts[g[0]].shape[0], -1) for g in joined]
 
 
 def kernel_rows(rows, ms: int) -> tuple:
@@ -142,11 +174,14 @@ def bfloat16_high(z):
             lax.bitcast_convert_type((bits >> 16).astype(jnp.uint16), jnp.bfloat16))
 
 
-def split_products(Z, split):
+def split_products(Z, split, joined=None):
     """The operand pairs ``(a, b)`` of the products ``a^T b`` that accumulate one stress row's
     ``Z^T Z`` (``Z`` its column tiles, float32) in the kernel's two accumulators, ``K_tu`` and
     ``M_tu``, so that ``Z_t^T Z_u = K_tu + M_tu + M_ut^T`` (:data:`DOT_ALGORITHM`): ``(K, M)``,
-    functions of the tiles ``t, u`` giving tuples of pairs.
+    functions of the product tiles ``t, u`` giving tuples of pairs. ``joined``: the product tiles
+    (:func:`product_tiles`), each tile alone where None; the parts are split from ``Z``'s tiles
+    and then joined (:func:`join_tiles`), so that a joined pair's bfloat16 numbers of a column pair
+    share a register.
 
     ``split`` ``"tf32"``: ``Z = H + L``, ``H`` its TF32 part (:func:`tf32_high`), ``K`` holding
     ``H^T H`` and ``M`` ``H^T L`` (``L^T L``, about ``2^-22`` of ``Z``'s scale, left out).
@@ -156,16 +191,21 @@ def split_products(Z, split):
     ``B1^T B2 + B1^T B3``: bf16x6's six products in four, ``Z^T Z`` being symmetric (``B2^T B3``
     and ``B3^T B3``, below ``2^-21`` of ``Z``'s scale squared, left out). None: ``K`` holding
     ``Z^T Z``, no ``M``."""
+    def join(parts):
+        return parts if joined is None else join_tiles(parts, joined)
+
     if split == "bf16":
         H1 = [bfloat16_high(z) for z in Z]
         R = [z - h for z, (h, _) in zip(Z, H1)]
         H2 = [bfloat16_high(r) for r in R]
         B1, B2 = [b for _, b in H1], [b for _, b in H2]
         B3 = [(r - h).astype(jnp.bfloat16) for r, (h, _) in zip(R, H2)]
+        B1, B2, B3 = (join(B) for B in (B1, B2, B3))
         return (lambda t, u: ((B1[t], B1[u]), (B2[t], B2[u])),
                 lambda t, u: ((B1[t], B2[u]), (B1[t], B3[u])))
     H = [tf32_high(z) for z in Z] if split else Z
-    return lambda t, u: ((H[t], H[u]),), lambda t, u: ((H[t], Z[u] - H[u]),)
+    H, L = join(H), join([z - h for z, h in zip(Z, H)]) if split else None
+    return lambda t, u: ((H[t], H[u]),), lambda t, u: ((H[t], L[u]),)
 
 
 def _kernel(shapes, ms: int, c: float, precision, split, compiled: bool, on_ref, x_ref, qs_ref, *refs):
@@ -188,15 +228,18 @@ def _kernel(shapes, ms: int, c: float, precision, split, compiled: bool, on_ref,
         return lax.dot_general(a, b, (((0,), (0,)), ((), ())), precision=precision, preferred_element_type=dt)
 
     tiles, loose = column_tiles(ms)
-    pairs = [(t, u) for t in range(len(tiles)) for u in range(t, len(tiles))]
+    joined = product_tiles(tiles)
+    pcols = [product_columns(tiles, tile) for tile in joined]  # the product tiles' modes
+    pairs = [(t, u) for t in range(len(joined)) for u in range(t, len(joined))]
     lpairs = [(a, b) for a in range(len(loose)) for b in range(a, len(loose))]
     cols = [s + lax.iota(jnp.int32, w) for s, w in tiles]
     qs = [pltriton.load(qs_ref.at[j], mask=j < ms, other=0.0) for j in cols]
     ql = [qs_ref[j] for j in loose]
     eb = lax.iota(jnp.int32, ELEMENTS)
-    ordered = [(t, u) for t in range(len(tiles)) for u in range(len(tiles))] if split else []
-    acc = {"K": tuple(jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in pairs),  # Z_t^T Z_u (split: K_tu)
-           "M": tuple(jnp.zeros((tiles[t][1], tiles[u][1]), dt) for t, u in ordered),  # split: M_tu
+    ordered = [(t, u) for t in range(len(joined)) for u in range(len(joined))] if split else []
+    width = [c.shape[0] for c in pcols]
+    acc = {"K": tuple(jnp.zeros((width[t], width[u]), dt) for t, u in pairs),  # Z_t^T Z_u (split: K_tu)
+           "M": tuple(jnp.zeros((width[t], width[u]), dt) for t, u in ordered),  # split: M_tu
            "f": tuple(jnp.zeros((ELEMENTS, w), dt) for _, w in tiles),  # by element: Z_t w
            "KL": tuple(jnp.zeros((ELEMENTS, w), dt) for _ in loose for _, w in tiles),  # Z_t z_l
            "LL": tuple(jnp.zeros((ELEMENTS,), dt) for _ in lpairs),  # z_l z_l'
@@ -253,7 +296,7 @@ def _kernel(shapes, ms: int, c: float, precision, split, compiled: bool, on_ref,
                     for si, Zi, zli in zip(s, Z, zl):
                         w = si + c * (sum(jnp.sum(z * v[None, :], axis=1) for z, v in zip(Zi, qs))
                                       + sum(z * v for z, v in zip(zli, ql)))
-                        K, M = split_products(Zi, split)  # each product added to its accumulator
+                        K, M = split_products(Zi, split, joined)  # each product added to its accumulator
                         acc = {"K": tuple(reduce(lambda a, ab: a + dot(*ab), K(t, u), Km)
                                           for Km, (t, u) in zip(acc["K"], pairs)),
                                "M": tuple(reduce(lambda a, ab: a + dot(*ab), M(t, u), Mm)
@@ -277,7 +320,7 @@ def _kernel(shapes, ms: int, c: float, precision, split, compiled: bool, on_ref,
 
         M = dict(zip(ordered, acc["M"]))
         for m, (t, u) in enumerate(pairs):
-            i, j = cols[t], cols[u]
+            i, j = pcols[t], pcols[u]
             inside = (i[:, None] < ms) & (j[None, :] < ms)
             K = acc["K"][m] + (M[t, u] + M[u, t].T if split else 0)  # Z^T Z = K + M + M^T
             pltriton.store(k_ref.at[at + i[:, None] * ms + j[None, :]], K, mask=inside)
