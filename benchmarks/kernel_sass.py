@@ -68,7 +68,8 @@ _LABEL = re.compile(r"^\s*\.(L_x_\d+):\s*\n(?:.*\n)*?\s*/\*([0-9a-f]{4,})\*/", r
 
 #: Each kernel's variants compiled where ``--variants`` names none (the module's constants first).
 DEFAULT_VARIANTS = {"solve": "64:8:0:-,64:8:0:128,64:8:0:64",
-                    "rid": "16:2:SPLIT_BF16:1,16:2:SPLIT_BF16:1:1:32,16:2:SPLIT_TF32:1,16:4:SPLIT_BF16:1,16:2:-:1",
+                    "rid": "16:2:SPLIT_BF16:1,16:2:SPLIT_BF16:1:1:32,16:1:SPLIT_BF16:1:3,16:2:SPLIT_TF32:1,"
+                           "16:4:SPLIT_BF16:1,16:2:-:1",
                     "factor": "0:64,72:64,72:128",
                     "elimination": "4:128:TF32_TF32_F32_X3,8:128:TF32_TF32_F32_X3,4:64:TF32_TF32_F32_X3"}
 

@@ -41,7 +41,9 @@ ELEMENTS = 16
 #: Warps per program. The per-element numbers (frames, stresses, ``C~ F``) are computed by every
 #: thread that holds a column of their rows: fewer warps repeat them less. Machine code for an
 #: H100 (``benchmarks/kernel_sass.py --kernel rid``) counts 101k warp instructions a leg at 2
-#: warps against 172k at 4 (254 and 174 registers, no spill); 1 warp spills.
+#: warps against 172k at 4 (254 and 174 registers, no spill). At 1 warp a program is twice as
+#: long (where legs are few, the kernel's time) and holds twice the numbers a thread: 88k with
+#: 1.2 KB spilled, in three row groups (:data:`ROW_GROUPS`) 90k without spill.
 NUM_WARPS = 2
 #: Programs per leg: program ``s`` of a leg treats its element blocks ``s, s + SPLIT, ...`` and
 #: writes its shares of ``K_r``, ``f_r`` and the count, which are added after the kernel. More
