@@ -10,7 +10,7 @@
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR selection    # ~4 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR parts        # ~6 min
 #   source .gpu-carry/env.sh; [BASE=DIR] bash benchmarks/gpu_checks.sh OUTDIR rid   # ~8 min
-#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~4 min
+#   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR solve        # ~8 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR crossover    # ~6 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR profile      # ~5 min
 #   source .gpu-carry/env.sh; bash benchmarks/gpu_checks.sh OUTDIR flags        # ~5 min
@@ -87,8 +87,9 @@
 #              (`fused.RESIDENT_ROWS`, not yet a default): against XLA's iterations on 96 landed
 #              robots' problems and two actions of the whole engine with it (`fused_kernel.py
 #              --resident-rows 128`), the solve alone at 96 and 16,384 robots in each of the
-#              kernel's variants (the step with it: `candidates`); if the step is faster with it at
-#              both sizes, make 128 the default (or the fastest held variant's).
+#              kernel's variants; then the step at both sizes with it and without it, on the same
+#              robots (`candidates` has it among the five and the four): if the step is faster with
+#              it at both sizes, make 128 the default (or the fastest held variant's).
 # crossover:   the legs' factors and the attachment block's inverse alone at 96, 1,024, 2,048,
 #              4,096 and 16,384 robots, each kernel against the library (`cholesky_kernel.py`):
 #              the kernels hold their matrices in blocks (factor.row_parts) and
@@ -179,7 +180,8 @@ rid)
     forms rid 130 "--rid-form pairs" "--rid-form kernel" ${BASE:+base} ;;
 solve)
     timeout 220 python3 benchmarks/fused_kernel.py --resident-rows 128 --batch 96 --batches 96,16384 --actions 2 \
-        --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl" ;;
+        --calls 10 2>>"$out/log.txt" | tee -a "$out/fused.jsonl"
+    forms solve 130 "" "--resident-rows 128" ;;
 selection)
     forms selection 200 "" "--selection kernel" ;;
 blocks)

@@ -15,7 +15,8 @@ components), from rows padded to the column tiles' widths (aligned, so that Trit
 vectors), and each product and sum is one fused multiply-add
 (:func:`softcrawl.jaxsim.factor.fused_multiply_add`). The strain modes are handled in column
 tiles of :data:`TILE` columns and a few loose columns (:func:`column_tiles`; ``m' = 33`` as two
-tiles of 16 and one column), each pair of tiles one product, the loose columns' terms by elementwise sums. The
+tiles of 16 and one column), each pair of tiles one product (two 16-column tiles joined into one
+of 32 for the products: :func:`product_tiles`), the loose columns' terms by elementwise sums. The
 formulas are those of :mod:`softcrawl.jaxsim.legs` (its module doc; Farhat, Chapman & Avery
 2015, eq. 20); the per-element quantities are component arrays (:mod:`softcrawl.jaxsim.frames`).
 
