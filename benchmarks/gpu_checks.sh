@@ -162,14 +162,15 @@ forms() {
         | tee -a "$out/verdict.jsonl"
 }
 
+# the first four candidate forms' flags (the RID kernel, the held solve, the unrolled factor, the
+# contact candidates' kernel), with which `candidates` and `elimination` time the fifth
+four="--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel"
 case $stage in
 candidates)
     timeout 60 python3 -m softcrawl.cli verify --only jax_incline --json 2>>"$out/log.txt" | tee "$out/verify.json"
-    four="--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel"
     forms candidates 130 "" "$four --elimination kernel" "$four" "--rid-form kernel" ;;
 elimination)
-    all="--rid-form kernel --resident-rows 128 --unroll-pivots 36 --selection kernel"
-    forms elimination 130 "$all" "$all --elimination kernel" ;;
+    forms elimination 130 "$four" "$four --elimination kernel" ;;
 parts)
     forms parts 130 "" "--formed-operator"
     timeout 100 python3 benchmarks/fused_kernel.py --batch 96 --batches 96 --actions 2 --calls 5 \

@@ -18,8 +18,8 @@ is lent, not a measurement.
 
 With ``--kernel rid``, each variant of :func:`softcrawl.jaxsim.ridkernel.rid_kernel_terms` (its
 constants ``ELEMENTS``, ``NUM_WARPS``, ``DOT_ALGORITHM``, ``SPLIT``, ``ROW_GROUPS``, ``TILE``) on
-the ``paper`` preset's leg: registers, each family's loop of element blocks and the edge loop inside it
-(:func:`loop_tree`), and ``warp_instructions_per_leg``, the instructions a leg's programs issue
+the ``paper`` preset's leg: registers, each family's loop of element blocks and the edge loops
+inside it (:func:`loop_tree`), and ``warp_instructions_per_leg``, the instructions a leg's programs issue
 (each loop's instructions times its trips, times the warps): the kernel does little but
 arithmetic, so at the multiprocessors' issue rate (one instruction a cycle per scheduler) that
 count bounds its time from below.
