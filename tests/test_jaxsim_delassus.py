@@ -587,19 +587,49 @@ def test_the_disks_rotation_by_newtons_iteration_is_the_svds(landed):
     assert np.array_equal(np.asarray(jax.jit(kabsch)(*args)), np.asarray(fit(*args)))
 
 
-def test_the_disks_attachment_share_is_its_gram_rotated_by_blocks(landed):
-    """The disk's share of the attachment block is ``R G_pq R^T`` for every pair of attachment
-    points (formed as one product with ``R (x) R``): equal to the blockwise einsum in numpy to
-    1e-12 of its largest entry for a rotation far from the identity (the landed disk's own is
-    near it); ``R^T G R`` instead is off by about the entries' size."""
+def test_the_constraint_rows_blocks_are_their_frames_products(landed):
+    """The constraint rows' blocks, each formed as elementwise sums of products (one fused
+    operation on a GPU), equal the frames' products by numpy's einsum to 1e-12 of their largest
+    entry, for a disk frame far from the identity (the landed disk's own is near it): the disk's
+    share of the attachment block ``R G_pq R^T`` for every pair of attachment points (``R^T G R``
+    instead is off by about the entries' size), of the disk contacts' ``(D R) A_0^-1[n_p, n_q] (D
+    R)^T`` and the coupling ``-R (sum_i w_ai A_0^-1[n_ai, n_k]) (D R)^T``, and each leg's rows,
+    its attachment patches' basis rows turned by its rotation (zero for an absent leg) over its
+    contact points' turned by the floor frame ``D R_l``."""
     from scipy.spatial.transform import Rotation
+
+    from softcrawl.jaxsim.delassus import FLOOR_FRAME
 
     R = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()
     model, rows, _, _, _ = _step_rows(landed, R)
-    G = np.asarray(model.robot.att_gram)
-    ref = np.einsum("ab,pqbc,dc->paqd", R, G, R).reshape(rows.disk_aa.shape)
-    assert np.abs(np.asarray(rows.disk_aa) - ref).max() <= 1e-12 * np.abs(ref).max()
-    assert np.abs(np.einsum("ba,pqbc,cd->paqd", R, G, R).reshape(ref.shape) - ref).max() > 0.1 * np.abs(ref).max()
+    leg, dk, rd, st = model.leg, model.disk, model.robot, model.settings
+    G = np.asarray(rd.att_gram)
+    D, inverse = np.asarray(FLOOR_FRAME), np.asarray(dk.inverse)
+    DR = D @ R
+
+    def blocks(rows_nodes, cols_nodes):  # A_0^-1[n_p, n_q], (..., 3, ..., 3)
+        r, c = np.asarray(rows_nodes), np.asarray(cols_nodes)
+        r, c = 3 * r[..., None] + np.arange(3), 3 * c[..., None] + np.arange(3)
+        return inverse[r.reshape(r.shape + (1,) * c.ndim), c.reshape((1,) * r.ndim + c.shape)]
+
+    L, m = rd.rotation.shape[0], leg.basis.shape[2]
+    Kd, Kl, nd, nc = st.disk_contacts, st.leg_contacts, dk.collision.shape[0], leg.coll_affine.shape[0]
+    lnode = (np.asarray(rows.points[Kd:]) - nd).reshape(L, Kl) % nc
+    rot, mask = np.asarray(rd.rotation), np.asarray(rd.leg_mask)
+    J_att = np.einsum("lac,fcm->lfam", rot, np.asarray(leg.att_basis)) * mask[:, None, None, None]
+    J_con = np.einsum("ab,lbc,lkcm->lkam", D, rot, np.asarray(leg.coll_affine)[lnode, :, :m])
+    expected = {
+        "disk_aa": np.einsum("ab,pqbc,dc->paqd", R, G, R),
+        "disk_dd": np.einsum("ab,pbqc,dc->paqd", DR, blocks(rows.disk_node, rows.disk_node), DR),
+        "disk_ad": -np.einsum("ai,xb,aibkc,dc->axkd", rows.att_weights, R, blocks(rows.att_nodes, rows.disk_node), DR),
+        "leg": np.concatenate([J_att.reshape(L, -1, m), J_con.reshape(L, -1, m)], axis=1)}
+    assert not mask.all() and np.abs(J_att).max() > 0
+    for name, ref in expected.items():
+        got = np.asarray(getattr(rows, name))
+        assert got.shape == ref.reshape(got.shape).shape
+        assert np.abs(got - ref.reshape(got.shape)).max() <= 1e-12 * np.abs(ref).max(), name
+    wrong = np.einsum("ba,pqbc,cd->paqd", R, G, R).reshape(rows.disk_aa.shape)
+    assert np.abs(wrong - np.asarray(rows.disk_aa)).max() > 0.1 * np.abs(expected["disk_aa"]).max()
 
 
 def test_the_strain_modes_terms_are_placed_by_their_slots(landed):

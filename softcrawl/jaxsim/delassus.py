@@ -23,8 +23,9 @@ impulses back to velocities.
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass
-from functools import partial
+from functools import partial, reduce
 
 import jax
 import jax.numpy as jnp
@@ -32,12 +33,16 @@ import jax.numpy as jnp
 from softcrawl.jaxsim import candidates, elimination
 from softcrawl.jaxsim.contact import floor_contacts
 from softcrawl.jaxsim.factor import inverse_spd
+from softcrawl.jaxsim.frames import by_rows
 from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.model import register_pytree
 from softcrawl.jaxsim.schur import SchurOperator, block_diagonal
 
 #: Floor contact frame, rows normal, tangent 1, tangent 2 (:mod:`softcrawl.fem.solver`).
 FLOOR_FRAME = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+#: The world axes of :data:`FLOOR_FRAME`'s rows (a permutation): ``FLOOR_FRAME @ M`` is
+#: ``M[FLOOR_AXES, :]``, a gather of rows instead of a matrix product.
+FLOOR_AXES = (2, 0, 1)
 #: z given to the collision points of absent legs (mm): never a contact.
 FAR = 1e6
 
@@ -168,6 +173,22 @@ def _selected_by_kernel(*args, interpret, **rule):
     return idx.astype(jax.dtypes.canonicalize_dtype(jnp.int64)), active, gap, warm
 
 
+def _turned(X, G, Y):
+    """``(P, 3, Q, 3)`` the blocks ``X G_pq Y^T`` of ``G`` ``(P, 3, Q, 3)`` (``X``, ``Y`` ``(3, 3)``):
+    nine elementwise products summed, one fused operation with whatever forms ``G`` (a gather, a
+    sum), where an einsum of 3 x 3 blocks is batched products of tiny matrices, on a GPU library
+    calls and transposes through memory."""
+    terms = [X[:, b][None, :, None, None] * G[:, b, :, c][:, None, :, None] * Y[:, c][None, None, None, :]
+             for b in range(3) for c in range(3)]
+    return reduce(operator.add, terms)
+
+
+def _weighted(w, y):
+    """``sum_i w[a, i] y[a, i]``: ``(A, ...)`` of the weights ``w`` ``(A, I)`` and ``y`` ``(A, I,
+    ...)`` (each attachment patch's ``I`` disk nodes), as ``I`` elementwise products summed."""
+    return reduce(operator.add, [w[:, i].reshape((-1,) + (1,) * (y.ndim - 2)) * y[:, i] for i in range(w.shape[1])])
+
+
 def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     """The attachment and contact rows of this step (module doc) from the free velocities
     ``v_free`` ``(n, 3)`` (disk, mm/s) and ``qd_free`` ``(L, m)`` (legs, mm/s) and the disk's
@@ -178,15 +199,13 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     F = leg.att_rest.shape[0]
     A = L * F
     dt = v_free.dtype
-    # attachments: leg point minus disk point
-    J_att = jnp.einsum("lac,fcm->lfam", rd.rotation, leg.att_basis) * rd.leg_mask[:, None, None, None]
-    x_leg = jnp.einsum("lfc,lac->lfa", leg.att_rest[None] + jnp.einsum("fam,lm->lfa", leg.att_basis, state.q),
-                       rd.rotation) + rd.translation[:, None]
+    # attachments: leg point minus disk point (3-vectors turned and weighted by elementwise sums)
+    x_leg = by_rows(leg.att_rest[None] + jnp.einsum("fam,lm->lfa", leg.att_basis, state.q),
+                    jnp.swapaxes(rd.rotation, 1, 2)[:, None]) + rd.translation[:, None]
     nodes, w = rd.disk_nodes.reshape(A, -1), rd.disk_weights.reshape(A, -1)
-    drift = (x_leg.reshape(A, 3) - jnp.einsum("ai,aic->ac", w, state.x[nodes])) * jnp.repeat(rd.leg_mask, F)[:, None]
-    u_att = (drift / h - jnp.einsum("ai,aic->ac", w, v_free[nodes])).reshape(-1)
-    RR = (R[:, None, :, None] * R[None, :, None, :]).reshape(9, 9)  # (R x R)[(a, d), (b, c)] = R_ab R_dc
-    disk_aa = (rd.att_gram.reshape(A, A, 9) @ RR.T).reshape(A, A, 3, 3).transpose(0, 2, 1, 3).reshape(3 * A, 3 * A)
+    drift = (x_leg.reshape(A, 3) - _weighted(w, state.x[nodes])) * jnp.repeat(rd.leg_mask, F)[:, None]
+    u_att = (drift / h - _weighted(w, v_free[nodes])).reshape(-1)
+    disk_aa = _turned(R, rd.att_gram.transpose(0, 2, 1, 3), R).reshape(3 * A, 3 * A)
     # contacts: the disk's, then each leg's
     nd, nc, Kd, Kl = dk.collision.shape[0], leg.coll_affine.shape[0], st.disk_contacts, st.leg_contacts
     if Kd + Kl:
@@ -194,17 +213,21 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     else:  # no floor
         idx, active, gap = jnp.zeros(0, jnp.int32), jnp.zeros(0, bool), jnp.zeros(0, dt)
         warm = jnp.zeros((0, 3), dt)
-    D = jnp.asarray(FLOOR_FRAME, dt)
-    DR = D @ R
+    DR = R[FLOOR_AXES, :]  # FLOOR_FRAME @ R
     node = dk.collision[idx[:Kd]]
     lnode = (idx[Kd:] - nd).reshape(L, Kl) % nc
-    J_con = jnp.einsum("ab,lbc,lkcm->lkam", D, rd.rotation, leg.coll_affine[lnode, :, :m])
-    J_con = J_con.reshape(L, 3 * Kl, m)
-    disk_dd = jnp.einsum("ab,pbqc,dc->paqd", DR, _disk_gather(dk.inverse, node, node), DR).reshape(3 * Kd, 3 * Kd)
-    disk_ad = -jnp.einsum("ai,xb,aibkc,dc->axkd", w, R, _disk_gather(dk.inverse, nodes, node), DR)
+    disk_dd = _turned(DR, _disk_gather(dk.inverse, node, node), DR).reshape(3 * Kd, 3 * Kd)
+    disk_ad = -_turned(R, _weighted(w, _disk_gather(dk.inverse, nodes, node)), DR)  # each patch's nodes weighted
     disk_ad = disk_ad.reshape(3 * A, 3 * Kd)
-    u_disk = (v_free[node] @ D.T).at[:, 0].add(gap[:Kd] / h).reshape(-1)
-    rows = jnp.concatenate([J_att.reshape(L, 3 * F, m), J_con], axis=1)
+    u_disk = v_free[node][:, FLOOR_AXES].at[:, 0].add(gap[:Kd] / h).reshape(-1)
+    # each leg's rows [J_att; J_con] at once, (L, 3 (F + Kl), m): its attachment patches' basis rows
+    # turned to the world frame (R_l; an absent leg's rows 0), its contact points' to the floor's
+    # (FLOOR_FRAME R_l), by elementwise sums (one operation with the gather, not products of tiny
+    # matrices and their concatenation)
+    frames = jnp.concatenate([jnp.broadcast_to((rd.rotation * rd.leg_mask[:, None, None])[:, None], (L, F, 3, 3)),
+                              jnp.broadcast_to(rd.rotation[:, None, FLOOR_AXES], (L, Kl, 3, 3))], axis=1)
+    basis = jnp.concatenate([jnp.broadcast_to(leg.att_basis, (L, F, 3, m)), leg.coll_affine[lnode, :, :m]], axis=1)
+    rows = by_rows(frames, basis[:, :, None]).reshape(L, -1, m)
     return Rows(rows, disk_aa, disk_ad, disk_dd, u_att, u_disk, gap[Kd:].reshape(L, Kl) / h, nodes, w, idx,
                 active, node, jnp.repeat(rd.leg_mask, 3 * F), warm)
 
@@ -334,7 +357,7 @@ def corrections(model, rows: Rows, cond: Condensed, inv_chol, lam_c, R):
     dk = model.disk
     dt = lam_c.dtype
     f_body = jnp.zeros((dk.rest.shape[0], 3), dt).at[rows.att_nodes.reshape(-1)].add(
-        (-rows.att_weights[:, :, None] * (lam_b.reshape(-1, 3) @ R)[:, None, :]).reshape(-1, 3))
-    f_body = f_body.at[rows.disk_node].add(lam_c[:Kd3].reshape(Kd3 // 3, 3) @ (jnp.asarray(FLOOR_FRAME, dt) @ R))
-    dv = (dk.inverse @ f_body.reshape(-1)).reshape(-1, 3) @ R.T
+        (-rows.att_weights[:, :, None] * by_rows(lam_b.reshape(-1, 3), R)[:, None, :]).reshape(-1, 3))
+    f_body = f_body.at[rows.disk_node].add(by_rows(lam_c[:Kd3].reshape(Kd3 // 3, 3), R[FLOOR_AXES, :]))
+    dv = by_rows((dk.inverse @ f_body.reshape(-1)).reshape(-1, 3), R.T)
     return dq, dv, lam_b

@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from softcrawl.jaxsim.frames import cross
+from softcrawl.jaxsim.frames import by_rows, cross
 
 #: Newton iterations of :func:`polar_rotation`: 8 give the SVD's rotation to 1e-14 in float64 and
 #: 1.6e-7 in float32 on moment matrices of the paper's disk rotated at random, stretched and
@@ -74,9 +74,9 @@ def free_motion(disk, settings, x, v):
     """
     h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
     R = kabsch(x, disk.weighted_rest)
-    vb = v @ R
-    stretch = (x @ R - disk.rest + (h + rK) * vb).reshape(-1)
-    f = disk.mass[:, None] * (jnp.asarray(settings.gravity, x.dtype) @ R)[None, :]
+    vb = by_rows(v, R)
+    stretch = (by_rows(x, R) - disk.rest + (h + rK) * vb).reshape(-1)
+    f = disk.mass[:, None] * by_rows(jnp.asarray(settings.gravity, x.dtype), R)[None, :]
     rhs = h * (f.reshape(-1) - disk.stiffness @ stretch - rM * (disk.mass[:, None] * vb).reshape(-1))
     dv = (disk.inverse @ rhs).reshape(-1, 3)
-    return (vb + dv) @ R.T, R
+    return by_rows(vb + dv, R.T), R

@@ -2,7 +2,8 @@
 lists of arrays (one entry per element), combined by sums of products only, so that XLA fuses
 them into element-wise kernels and a Pallas kernel holds them in registers, without the stacks
 that vector operations (``jnp.cross``, ``jnp.stack``) bring (:mod:`softcrawl.jaxsim.legs`'
-pairs form, :mod:`softcrawl.jaxsim.ridkernel`).
+pairs form, :mod:`softcrawl.jaxsim.ridkernel`); and products of 3-vectors with a matrix the same
+way (:func:`by_rows`).
 """
 
 from __future__ import annotations
@@ -38,3 +39,11 @@ def frame_terms(d):
         bad = bad | ~(sum(a * b for a, b in zip(d[2], normal)) > 0)
     g = [F[p][0] * da[0] + F[p][1] * da[1] + F[p][2] * da[2] for da in d for p in range(3)]
     return F, g, bad
+
+
+def by_rows(x, M):
+    """``x @ M`` for ``x`` ``(..., 3)`` and ``M`` ``(..., 3, k)`` (broadcast together): three
+    elementwise products summed, which XLA fuses with the operations around them, where a matrix
+    product with an inner size of 3 is a kernel of its own on a GPU (a library call, often with
+    a transpose)."""
+    return x[..., 0, None] * M[..., 0, :] + x[..., 1, None] * M[..., 1, :] + x[..., 2, None] * M[..., 2, :]

@@ -91,7 +91,7 @@ def rid_terms(part, q, qdot, c, form: str | None = None, present=True):
     """
     if form not in (*RID_FORMS, "interpret", None):
         raise ValueError(f"form must be one of {RID_FORMS} or 'interpret', not {form!r}")
-    x = part.rid_rest + part.rid_basis @ q
+    x = part.rid_affine @ jnp.append(q, jnp.ones((), q.dtype))
     qs = qdot[part.strain_modes]
     if form is None:
         return jax.lax.platform_dependent(part, x, qs, cpu=partial(_xla_terms, c=c, form="rows"),

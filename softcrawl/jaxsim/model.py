@@ -48,7 +48,7 @@ class Family:
     """One RID element family (tetrahedra k = 4, r = 6; paper triangles k = 3, r = 3), part frame.
 
     Attributes:
-        conn: ``(E, k)`` indices into :attr:`LegPart.rid_rest`.
+        conn: ``(E, k)`` indices of the RID nodes (the rows of :attr:`LegPart.rid_affine`).
         factors: ``(E, r, 3(k - 1))`` ``C~_e`` (sqrt(mN/mm), ECSW weight included).
         rest_terms: ``(E, r)`` ``s0_e``.
         rows: ``(E, 3(k - 1), m')`` edge basis rows of the strain modes.
@@ -78,7 +78,9 @@ class LegPart:
             modes placed among all modes by a gather).
         mass: ``(m, m)`` reduced mass, kg; mass_rows: ``(3, m)`` ``sum_n m_n Phi_n`` (gravity
             load ``mass_rows^T R_b^T g``).
-        rid_rest, rid_basis: ``(nr, 3)``, ``(nr, 3, m)`` rest positions and basis rows of the RID nodes.
+        rid_affine: ``(nr, 3, m + 1)`` the RID nodes' basis rows and rest positions, ``[Phi_n,
+            X_n]``: part-frame positions ``X_n + Phi_n q`` are ``rid_affine @ (q, 1)``, mm (one
+            product, no rest positions broadcast over the batch).
         families: the RID families (:class:`Family`).
         cavity_rest, cavity_basis: ``(c, 3)``, ``(c, 3, m)`` of the cavity nodes; cavity_tris:
             ``(T, 3)`` indices into them.
@@ -97,8 +99,7 @@ class LegPart:
     mode_slots: object
     mass: object
     mass_rows: object
-    rid_rest: object
-    rid_basis: object
+    rid_affine: object
     families: tuple
     cavity_rest: object
     cavity_basis: object
@@ -287,10 +288,17 @@ def _leg_part(robot) -> LegPart:
     sm = np.asarray(rb.strain_modes)
     slots = np.full(m, len(sm), np.int32)
     slots[sm] = np.arange(len(sm))
-    part = LegPart(sm, slots, rb.reduced_mass, mass_rows, X[rid], rows[rid], families,
+    part = LegPart(sm, slots, rb.reduced_mass, mass_rows, _affine(X, rows, rid), families,
                    X[cav], rows[cav], local.reshape(tris.shape), cavity_polynomial(X, rows, tris),
-                   np.concatenate([rows[coll], X[coll][:, :, None]], axis=2), att_rest, att_basis, rows)
+                   _affine(X, rows, coll), att_rest, att_basis, rows)
     return part
+
+
+def _affine(X: np.ndarray, rows: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """``(len(nodes), 3, m + 1)`` the ``nodes``' basis rows ``rows`` ``(n, 3, m)`` and rest
+    positions ``X`` ``(n, 3)``, ``[Phi_n, X_n]``: their positions ``X_n + Phi_n q`` are one
+    product with ``(q, 1)``."""
+    return np.concatenate([rows[nodes], X[nodes][:, :, None]], axis=2)
 
 
 #: The Levi-Civita symbol ``eps[i, j, k]`` (``(a x b)_i = eps_ijk a_j b_k``).
