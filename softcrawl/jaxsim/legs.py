@@ -29,7 +29,7 @@ import scipy.linalg
 from jax import lax
 
 from softcrawl.jaxsim.factor import step_solve
-from softcrawl.jaxsim.frames import frame_terms
+from softcrawl.jaxsim.frames import by_rows, frame_terms
 from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.ridkernel import rid_kernel_terms
 
@@ -380,7 +380,7 @@ def free_motion(part, settings, q, qdot, rotation, pressure, mask):
     Ks, fs, n_bad = rid_terms(part, q, qdot, h + rK, form=settings.rid_form, present=mask)
     at = part.mode_slots  # the strain modes' terms among all modes, zero for the others: gathers
     g = jnp.asarray(settings.gravity, q.dtype)
-    load = part.mass_rows.T @ (rotation.T @ g) + cavity_load(part, q, pressure)
+    load = by_rows(by_rows(g, rotation), part.mass_rows) + cavity_load(part, q, pressure)  # mass_rows^T R^T g
     inv_chol, qd_free = step_solve(part.mass, Ks, fs, at, load, mask, qdot, 1.0 + h * rM, h * (h + rK), h, rM,
                                    settings.cholesky)
     return qd_free, inv_chol, n_bad
