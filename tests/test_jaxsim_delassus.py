@@ -616,7 +616,7 @@ def test_the_constraint_rows_blocks_are_their_frames_products(landed):
     Kd, Kl, nd, nc = st.disk_contacts, st.leg_contacts, dk.collision.shape[0], leg.coll_affine.shape[0]
     lnode = (np.asarray(rows.points[Kd:]) - nd).reshape(L, Kl) % nc
     rot, mask = np.asarray(rd.rotation), np.asarray(rd.leg_mask)
-    J_att = np.einsum("lac,fcm->lfam", rot, np.asarray(leg.att_basis)) * mask[:, None, None, None]
+    J_att = np.einsum("lac,fcm->lfam", rot, np.asarray(leg.att_affine)[..., :m]) * mask[:, None, None, None]
     J_con = np.einsum("ab,lbc,lkcm->lkam", D, rot, np.asarray(leg.coll_affine)[lnode, :, :m])
     expected = {
         "disk_aa": np.einsum("ab,pqbc,dc->paqd", R, G, R),

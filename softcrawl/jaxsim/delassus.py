@@ -174,10 +174,10 @@ def _selected_by_kernel(*args, interpret, **rule):
 
 
 def _turned(X, G, Y):
-    """``(P, 3, Q, 3)`` the blocks ``X G_pq Y^T`` of ``G`` ``(P, 3, Q, 3)`` (``X``, ``Y`` ``(3, 3)``):
-    nine elementwise products summed, one fused operation with whatever forms ``G`` (a gather, a
-    sum), where an einsum of 3 x 3 blocks is batched products of tiny matrices, on a GPU library
-    calls and transposes through memory."""
+    """``(P, 3, Q, 3)`` the blocks ``X G_pq Y^T`` of ``G`` ``(P, 3, Q, 3)`` (``X``, ``Y`` ``(3, 3)``)
+    as nine elementwise products summed: XLA fuses them with whatever forms ``G`` (a gather, a
+    sum), where an einsum of 3 x 3 blocks becomes batched products of tiny matrices (on a GPU,
+    library calls with transposes through memory)."""
     terms = [X[:, b][None, :, None, None] * G[:, b, :, c][:, None, :, None] * Y[:, c][None, None, None, :]
              for b in range(3) for c in range(3)]
     return reduce(operator.add, terms)
@@ -196,12 +196,13 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     st, leg, dk, rd = model.settings, model.leg, model.disk, model.robot
     h = st.dt
     L, m = state.q.shape
-    F = leg.att_rest.shape[0]
+    F = leg.att_affine.shape[0]
     A = L * F
     dt = v_free.dtype
     # attachments: leg point minus disk point (3-vectors turned and weighted by elementwise sums)
-    x_leg = by_rows(leg.att_rest[None] + jnp.einsum("fam,lm->lfa", leg.att_basis, state.q),
-                    jnp.swapaxes(rd.rotation, 1, 2)[:, None]) + rd.translation[:, None]
+    qe = jnp.concatenate([state.q, jnp.ones((L, 1), dt)], axis=1)  # (q, 1) of each leg
+    x_leg = by_rows(jnp.einsum("fam,lm->lfa", leg.att_affine, qe), jnp.swapaxes(rd.rotation, 1, 2)[:, None])
+    x_leg = x_leg + rd.translation[:, None]
     nodes, w = rd.disk_nodes.reshape(A, -1), rd.disk_weights.reshape(A, -1)
     drift = (x_leg.reshape(A, 3) - _weighted(w, state.x[nodes])) * jnp.repeat(rd.leg_mask, F)[:, None]
     u_att = (drift / h - _weighted(w, v_free[nodes])).reshape(-1)
@@ -226,7 +227,8 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     # matrices and their concatenation)
     frames = jnp.concatenate([jnp.broadcast_to((rd.rotation * rd.leg_mask[:, None, None])[:, None], (L, F, 3, 3)),
                               jnp.broadcast_to(rd.rotation[:, None, FLOOR_AXES], (L, Kl, 3, 3))], axis=1)
-    basis = jnp.concatenate([jnp.broadcast_to(leg.att_basis, (L, F, 3, m)), leg.coll_affine[lnode, :, :m]], axis=1)
+    basis = jnp.concatenate([jnp.broadcast_to(leg.att_affine[..., :m], (L, F, 3, m)), leg.coll_affine[lnode, :, :m]],
+                            axis=1)
     rows = by_rows(frames, basis[:, :, None]).reshape(L, -1, m)
     return Rows(rows, disk_aa, disk_ad, disk_dd, u_att, u_disk, gap[Kd:].reshape(L, Kl) / h, nodes, w, idx,
                 active, node, jnp.repeat(rd.leg_mask, 3 * F), warm)

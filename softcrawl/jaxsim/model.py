@@ -91,7 +91,8 @@ class LegPart:
         coll_affine: ``(nc, 3, m + 1)`` the collision nodes' basis rows and rest positions, ``[Phi_n,
             X_n]``: part-frame positions ``X_n + Phi_n q`` are ``coll_affine @ (q, 1)``, mm
             (:func:`softcrawl.jaxsim.delassus.leg_height_terms`).
-        att_rest, att_basis: ``(F, 3)``, ``(F, 3, m)`` weighted attachment patches.
+        att_affine: ``(F, 3, m + 1)`` the weighted attachment patches' basis rows and rest
+            positions, ``[Phi_f, X_f]``: their part-frame positions are ``att_affine @ (q, 1)``, mm.
         basis: ``(n, 3, m)`` the basis rows of every node (node speeds ``|Phi_n qdot|``, mm/s).
     """
 
@@ -106,8 +107,7 @@ class LegPart:
     cavity_tris: object
     cavity_terms: object
     coll_affine: object
-    att_rest: object
-    att_basis: object
+    att_affine: object
     basis: object
 
 
@@ -282,15 +282,15 @@ def _leg_part(robot) -> LegPart:
     cav, local = np.unique(tris, return_inverse=True)
     coll = np.asarray(body.collision_nodes, np.int64)
     patches = _patches(robot)
-    att_rest = np.stack([w @ X[nd] for nd, w in patches])
-    att_basis = np.stack([np.einsum("n,nam->am", w, rows[nd]) for nd, w in patches])
+    att_affine = np.stack([np.einsum("n,nam->am", w, np.concatenate([rows[nd], X[nd][:, :, None]], axis=2))
+                           for nd, w in patches])
     mass_rows = np.einsum("n,nam->am", body.nodal_mass, rows)
     sm = np.asarray(rb.strain_modes)
     slots = np.full(m, len(sm), np.int32)
     slots[sm] = np.arange(len(sm))
     part = LegPart(sm, slots, rb.reduced_mass, mass_rows, _affine(X, rows, rid), families,
                    X[cav], rows[cav], local.reshape(tris.shape), cavity_polynomial(X, rows, tris),
-                   _affine(X, rows, coll), att_rest, att_basis, rows)
+                   _affine(X, rows, coll), att_affine, rows)
     return part
 
 
