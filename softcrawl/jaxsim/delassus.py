@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from softcrawl.jaxsim import candidates, elimination
 from softcrawl.jaxsim.contact import floor_contacts
 from softcrawl.jaxsim.factor import inverse_spd
-from softcrawl.jaxsim.frames import by_rows
+from softcrawl.jaxsim.frames import by_rows, homogeneous
 from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.model import register_pytree
 from softcrawl.jaxsim.schur import SchurOperator, block_diagonal
@@ -104,8 +104,7 @@ def leg_height_terms(leg, rd, q, qdot):
     1))``, with the legs' ``u (x) (q, 1)`` and ``u (x) (qdot, 0)``: it writes the heights alone,
     not the nodes' three coordinates (:func:`place_heights` adds ``t_z``)."""
     up = rd.rotation[:, 2]  # (L, 3): world z = up . part-frame position
-    one = jnp.ones((q.shape[0], 1), q.dtype)
-    qq = jnp.stack([jnp.concatenate([q, one], axis=1), jnp.concatenate([qdot, jnp.zeros_like(one)], axis=1)])
+    qq = jnp.stack([homogeneous(q), jnp.concatenate([qdot, jnp.zeros((qdot.shape[0], 1), qdot.dtype)], axis=1)])
     return jnp.einsum("nam,klam->kln", leg.coll_affine, up[None, :, :, None] * qq[:, :, None, :])
 
 
@@ -200,8 +199,8 @@ def constraint_rows(model, state, v_free, qd_free, R) -> Rows:
     A = L * F
     dt = v_free.dtype
     # attachments: leg point minus disk point (3-vectors turned and weighted by elementwise sums)
-    qe = jnp.concatenate([state.q, jnp.ones((L, 1), dt)], axis=1)  # (q, 1) of each leg
-    x_leg = by_rows(jnp.einsum("fam,lm->lfa", leg.att_affine, qe), jnp.swapaxes(rd.rotation, 1, 2)[:, None])
+    x_leg = by_rows(jnp.einsum("fam,lm->lfa", leg.att_affine, homogeneous(state.q)),
+                    jnp.swapaxes(rd.rotation, 1, 2)[:, None])
     x_leg = x_leg + rd.translation[:, None]
     nodes, w = rd.disk_nodes.reshape(A, -1), rd.disk_weights.reshape(A, -1)
     drift = (x_leg.reshape(A, 3) - _weighted(w, state.x[nodes])) * jnp.repeat(rd.leg_mask, F)[:, None]

@@ -3,7 +3,8 @@ lists of arrays (one entry per element), combined by sums of products only, so t
 them into element-wise kernels and a Pallas kernel holds them in registers, without the stacks
 that vector operations (``jnp.cross``, ``jnp.stack``) bring (:mod:`softcrawl.jaxsim.legs`'
 pairs form, :mod:`softcrawl.jaxsim.ridkernel`); and products of 3-vectors with a matrix the same
-way (:func:`by_rows`).
+way (:func:`by_rows`), and the modal coordinates the leg part's affine arrays multiply
+(:func:`homogeneous`).
 """
 
 from __future__ import annotations
@@ -47,3 +48,10 @@ def by_rows(x, M):
     product with an inner size of 3 is a kernel of its own on a GPU (a library call, often with
     a transpose)."""
     return x[..., 0, None] * M[..., 0, :] + x[..., 1, None] * M[..., 1, :] + x[..., 2, None] * M[..., 2, :]
+
+
+def homogeneous(q):
+    """``(..., m + 1)``: ``q`` ``(..., m)`` with a 1 appended, ``(q, 1)``, which the leg part's
+    ``[Phi_n, X_n]`` arrays multiply to give positions ``X_n + Phi_n q``
+    (:class:`softcrawl.jaxsim.model.LegPart`), and the cavity load's polynomial takes."""
+    return jnp.concatenate([q, jnp.ones((*q.shape[:-1], 1), q.dtype)], axis=-1)

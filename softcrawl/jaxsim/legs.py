@@ -29,7 +29,7 @@ import scipy.linalg
 from jax import lax
 
 from softcrawl.jaxsim.factor import step_solve
-from softcrawl.jaxsim.frames import by_rows, frame_terms
+from softcrawl.jaxsim.frames import by_rows, frame_terms, homogeneous
 from softcrawl.jaxsim.gpu import cuda_kernel
 from softcrawl.jaxsim.ridkernel import rid_kernel_terms
 
@@ -91,7 +91,7 @@ def rid_terms(part, q, qdot, c, form: str | None = None, present=True):
     """
     if form not in (*RID_FORMS, "interpret", None):
         raise ValueError(f"form must be one of {RID_FORMS} or 'interpret', not {form!r}")
-    x = part.rid_affine @ jnp.append(q, jnp.ones((), q.dtype))
+    x = part.rid_affine @ homogeneous(q)
     qs = qdot[part.strain_modes]
     if form is None:
         return jax.lax.platform_dependent(part, x, qs, cpu=partial(_xla_terms, c=c, form="rows"),
@@ -348,7 +348,7 @@ def cavity_load(part, q, pressure, form: str = "polynomial"):
         ValueError: an unknown ``form``.
     """
     if form == "polynomial":
-        qe = jnp.append(q, jnp.ones((), q.dtype))
+        qe = homogeneous(q)
         i, j = np.triu_indices(qe.shape[0])
         return pressure * ((qe[i] * qe[j]) @ part.cavity_terms)
     if form != "nodes":
