@@ -4,7 +4,14 @@ with ``R`` the best rigid fit of the current positions to the rest ones (mass-we
     dv' = A_0^-1 h (R^T f - K_0 (R^T x - X + (h + r_K) R^T v) - r_M M R^T v),   v_free = R (R^T v + dv')
 
 (Shabana, *Dynamics of Multibody Systems*, ch. 5; Felippa & Haugen 2005), ``A_0^-1`` dense and
-constant.
+constant. As ``A_0 = h (h + r_K) K_0 + (1 + h r_M) M``, ``A_0 (R^T v + dv') = M R^T v + h (R^T f -
+K_0 (R^T x - X))``: the damping terms cancel. So, with ``f = m ⊗ g`` (gravity, the disk's only
+load),
+
+    R^T v_free = A_0^-1 M R^T v - h A_0^-1 K_0 (R^T x - X) + h A_0^-1 (m ⊗ I_3) R^T g,
+
+one product of the constant ``(3n, 6n + 3)`` operator ``[A_0^-1 M | -h A_0^-1 K_0 | h A_0^-1 (m ⊗
+I_3)]`` (:attr:`~softcrawl.jaxsim.model.DiskPart.step_operator`) with ``(R^T v, R^T x - X, R^T g)``.
 """
 
 from __future__ import annotations
@@ -50,8 +57,10 @@ def kabsch(x, weighted_rest):
     """``(3, 3)`` rotation maximising ``tr(R H)``, ``H = sum_n w_n X_n x_n^T`` (reflections
     excluded; Kabsch 1976, Acta Cryst. A32, 922); ``x``, ``weighted_rest``: ``(n, 3)`` mm. By the
     SVD ``H = U S V^T``, ``R = V diag(1, 1, d) U^T``; on CUDA by :func:`polar_rotation`, the same
-    rotation to round-off wherever ``det H > 0``."""
-    H = weighted_rest.T @ x
+    rotation to round-off wherever ``det H > 0``. ``H`` is summed elementwise, one reduction per
+    robot: as a matrix product a batch's positions were transposed first, an operation of its own
+    on a GPU."""
+    H = jnp.sum(weighted_rest[:, :, None] * x[:, None, :], axis=0)
     return jax.lax.platform_dependent(H, cuda=polar_rotation, default=_svd_rotation)
 
 
@@ -63,7 +72,9 @@ def _svd_rotation(H):
 
 
 def free_motion(disk, settings, x, v):
-    """The disk's step without constraints under gravity.
+    """The disk's step without constraints under gravity (module doc; the step length and
+    Rayleigh damping are those :attr:`~softcrawl.jaxsim.model.DiskPart.step_operator` was formed
+    with, ``settings``' own).
 
     Args:
         disk: :class:`~softcrawl.jaxsim.model.DiskPart`; settings: :class:`~softcrawl.jaxsim.model.Settings`.
@@ -72,11 +83,7 @@ def free_motion(disk, settings, x, v):
     Returns:
         ``(v_free (n, 3) mm/s, R (3, 3))``.
     """
-    h, rM, rK = settings.dt, settings.rayleigh_mass, settings.rayleigh_stiffness
     R = kabsch(x, disk.weighted_rest)
-    vb = by_rows(v, R)
-    stretch = (by_rows(x, R) - disk.rest + (h + rK) * vb).reshape(-1)
-    f = disk.mass[:, None] * by_rows(jnp.asarray(settings.gravity, x.dtype), R)[None, :]
-    rhs = h * (f.reshape(-1) - disk.stiffness @ stretch - rM * (disk.mass[:, None] * vb).reshape(-1))
-    dv = (disk.inverse @ rhs).reshape(-1, 3)
-    return by_rows(vb + dv, R.T), R
+    g = by_rows(jnp.asarray(settings.gravity, x.dtype), R)[None, :]
+    frame = jnp.concatenate([by_rows(v, R), by_rows(x, R) - disk.rest, g])
+    return by_rows((disk.step_operator @ frame.reshape(-1)).reshape(-1, 3), R.T), R

@@ -35,7 +35,7 @@ from softcrawl.jaxsim.ridkernel import with_kernel_rows
 
 #: The engine's numerical version: changes whenever a step's result changes (caches of settled
 #: states built by an engine of another version are stale).
-ENGINE_VERSION = 13
+ENGINE_VERSION = 14
 
 #: The parts of :func:`physics_step`, in order, as named scopes of its operations (a profile's
 #: kernels are summed by them: :func:`softcrawl.jaxsim.cost.kernel_profile`).

@@ -118,15 +118,14 @@ class DiskPart:
     Attributes:
         rest: ``(n, 3)`` rest positions, mm; weighted_rest: ``(n, 3)`` rest minus the centre of
             mass, times the mass fractions (Kabsch input).
-        mass: ``(n,)`` nodal masses, kg.
-        stiffness: ``(3n, 3n)`` ``K_0``, mN/mm; inverse: ``(3n, 3n)`` ``A_0^-1`` of the step matrix.
+        step_operator: ``(3n, 6n + 3)`` the free step's operator on ``(R^T v, R^T x - X, R^T g)``
+            (:func:`disk_step_operator`); inverse: ``(3n, 3n)`` ``A_0^-1`` of the step matrix, 1/kg.
         collision: ``(nc,)`` collision nodes; reward_node: the top-centre node (int).
     """
 
     rest: object
     weighted_rest: object
-    mass: object
-    stiffness: object
+    step_operator: object
     inverse: object
     collision: object
     reward_node: int = static()
@@ -352,12 +351,30 @@ def disk_inverse(robot) -> np.ndarray:
     return np.linalg.inv(A0)
 
 
+def disk_step_operator(robot, inverse: np.ndarray) -> np.ndarray:
+    """``[A_0^-1 M | -h A_0^-1 K_0 | h A_0^-1 (m ⊗ I_3)]`` ``(3n, 6n + 3)`` float64 of a reduced
+    robot's floating-frame disk: its free step's velocities, floating frame, from the velocities,
+    the displacements from rest (mm) and gravity (mm/s^2) in that frame (:mod:`softcrawl.jaxsim.disk`,
+    its module doc; ``h`` the robot's step, ``M = diag(m ⊗ 1_3)`` the lumped masses, kg).
+
+    Args:
+        inverse: the disk's ``A_0^-1`` ``(3n, 3n)``, 1/kg (:func:`disk_inverse`).
+    """
+    fb = robot.reduced[robot.disk_body]
+    h, mass = robot.config.dt, np.asarray(fb.body.nodal_mass, np.float64)
+    n = mass.shape[0]
+    gravity = h * np.einsum("ina,n->ia", inverse.reshape(3 * n, n, 3), mass)
+    return np.concatenate([inverse * np.repeat(mass, 3)[None, :], -h * (inverse @ fb.rest_stiffness.toarray()),
+                           gravity], axis=1)
+
+
 def _disk_part(robot) -> DiskPart:
     """The shared floating-frame disk data of a reduced robot."""
     fb = robot.reduced[robot.disk_body]
     node = robot.reward_node - int(robot.model.node_offsets[robot.disk_body])
-    return DiskPart(fb.body.mesh.points, fb.weighted_rest, fb.body.nodal_mass, fb.rest_stiffness.toarray(),
-                    disk_inverse(robot), np.asarray(fb.body.collision_nodes, np.int64), node)
+    inverse = disk_inverse(robot)
+    return DiskPart(fb.body.mesh.points, fb.weighted_rest, disk_step_operator(robot, inverse),
+                    inverse, np.asarray(fb.body.collision_nodes, np.int64), node)
 
 
 def leg_rows(robot) -> tuple[np.ndarray, ...]:
