@@ -357,8 +357,9 @@ def corrections(model, rows: Rows, cond: Condensed, inv_chol, lam_c, R):
     dq = jnp.einsum("lkm,lk->lm", inv_chol, r)
     dk = model.disk
     dt = lam_c.dtype
-    f_body = jnp.zeros((dk.rest.shape[0], 3), dt).at[rows.att_nodes.reshape(-1)].add(
-        (-rows.att_weights[:, :, None] * by_rows(lam_b.reshape(-1, 3), R)[:, None, :]).reshape(-1, 3))
-    f_body = f_body.at[rows.disk_node].add(by_rows(lam_c[:Kd3].reshape(Kd3 // 3, 3), R[FLOOR_AXES, :]))
+    att = (-rows.att_weights[:, :, None] * by_rows(lam_b.reshape(-1, 3), R)[:, None, :]).reshape(-1, 3)
+    con = by_rows(lam_c[:Kd3].reshape(Kd3 // 3, 3), R[FLOOR_AXES, :])
+    f_body = jnp.zeros((dk.rest.shape[0], 3), dt).at[jnp.concatenate([rows.att_nodes.reshape(-1), rows.disk_node])].add(
+        jnp.concatenate([att, con]))  # one scatter, attachments then contacts
     dv = by_rows((dk.inverse @ f_body.reshape(-1)).reshape(-1, 3), R.T)
     return dq, dv, lam_b
