@@ -553,13 +553,13 @@ def test_the_disks_rotation_by_newtons_iteration_is_the_svds(landed):
     (:func:`softcrawl.jaxsim.disk.polar_rotation`), elsewhere by the SVD. On 300 moment matrices
     of the paper's disk, rotated at random, stretched and sheared by up to 30% and moved, the
     two agree to 1e-13 in float64 (measured 1e-14; five iterations instead of eight: 1.9e-12)
-    and 1e-6 in float32 (measured 1.6e-7, round-off of entries near 1); a disk turned inside
-    out (``det H < 0``) gives NaN, where the SVD would fit a rotation to a reflected disk; on a
-    CPU the rotation is the SVD's of the moment matrix (to 1e-13: its sums in another order); and
-    the step exported for CUDA calls no library routine for it (cuSOLVER's SVD is a chain of
-    kernels there), its iterations ending in an optimization barrier (without it, XLA's GPU
-    fusion at 96 robots evaluated them once per entry of the stacked rotation: 216,000
-    instructions of machine code, 6.5 KB spilled a thread, 2.5 minutes of compilation)."""
+    and 1e-6 in float32 (measured 1.6e-7, round-off of entries near 1); a disk turned inside out
+    (``det H < 0``) gives NaN, where the SVD would fit a rotation to a reflected disk; on a CPU
+    the rotation is the SVD's of the moment matrix (to 1e-13, measured 2e-16: its sums in
+    another order); and the step exported for CUDA calls no library routine for it (cuSOLVER's
+    SVD is a chain of kernels there), its iterations ending in an optimization barrier (without
+    it, XLA's GPU fusion at 96 robots evaluated them once per entry of the stacked rotation:
+    216,000 instructions of machine code, 6.5 KB spilled a thread, 2.5 minutes of compilation)."""
     from scipy.spatial.transform import Rotation
 
     from softcrawl.jaxsim.disk import _svd_rotation, kabsch, polar_rotation
