@@ -104,7 +104,7 @@ def leg_height_terms(leg, rd, q, qdot):
     1))``, with the legs' ``u (x) (q, 1)`` and ``u (x) (qdot, 0)``: it writes the heights alone,
     not the nodes' three coordinates (:func:`place_heights` adds ``t_z``)."""
     up = rd.rotation[:, 2]  # (L, 3): world z = up . part-frame position
-    qq = jnp.stack([homogeneous(q), jnp.concatenate([qdot, jnp.zeros((qdot.shape[0], 1), qdot.dtype)], axis=1)])
+    qq = jnp.stack([homogeneous(q), homogeneous(qdot, 0.0)])
     return jnp.einsum("nam,klam->kln", leg.coll_affine, up[None, :, :, None] * qq[:, :, None, :])
 
 

@@ -50,8 +50,9 @@ def by_rows(x, M):
     return x[..., 0, None] * M[..., 0, :] + x[..., 1, None] * M[..., 1, :] + x[..., 2, None] * M[..., 2, :]
 
 
-def homogeneous(q):
-    """``(..., m + 1)``: ``q`` ``(..., m)`` with a 1 appended, ``(q, 1)``, which the leg part's
-    ``[Phi_n, X_n]`` arrays multiply to give positions ``X_n + Phi_n q``
-    (:class:`softcrawl.jaxsim.model.LegPart`), and the cavity load's polynomial takes."""
-    return jnp.concatenate([q, jnp.ones((*q.shape[:-1], 1), q.dtype)], axis=-1)
+def homogeneous(q, w: float = 1.0):
+    """``(..., m + 1)``: ``q`` ``(..., m)`` with ``w`` appended, ``(q, w)``. With ``w = 1`` the leg
+    part's ``[Phi_n, X_n]`` arrays multiply it to give positions ``X_n + Phi_n q``
+    (:class:`softcrawl.jaxsim.model.LegPart`), and the cavity load's polynomial takes it; with
+    ``w = 0`` (modal velocities) they give velocities ``Phi_n qdot``."""
+    return jnp.concatenate([q, jnp.full((*q.shape[:-1], 1), w, q.dtype)], axis=-1)
